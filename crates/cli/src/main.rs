@@ -1,0 +1,1 @@
+fn main() { pdt_model::_x(); println!("ok"); }

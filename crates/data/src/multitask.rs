@@ -1,0 +1,230 @@
+//! Loading D_i and P_i for a list of tasks from a directory laid out like the reference release
+//! (`{dir}/{env}-{i}-{dataset_mode}.pkl`, `{dir}/{env}-{i}-prompt-{prompt_mode}.pkl`), in the native
+//! format, the reference's pickles, or a mix; and converting a directory of pickles to the native
+//! format.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::native::{self, FileMeta};
+use crate::{DataError, MultiTaskDataset, TaskData, TaskDataset, TaskId};
+
+/// Extension of the reference release's pickle files (without the dot).
+pub const PICKLE_EXTENSION: &str = "pkl";
+
+/// Which file format to load.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DataFormat {
+    /// `.safetensors` files only.
+    Native,
+    /// The reference release's `.pkl` files only.
+    ReferencePickle,
+    /// Per file: `.safetensors` if it exists, else `.pkl`.
+    #[default]
+    Auto,
+}
+
+impl DataFormat {
+    /// Candidate extensions, in order of preference.
+    fn extensions(self) -> &'static [&'static str] {
+        match self {
+            DataFormat::Native => &[native::FILE_EXTENSION],
+            DataFormat::ReferencePickle => &[PICKLE_EXTENSION],
+            DataFormat::Auto => &[native::FILE_EXTENSION, PICKLE_EXTENSION],
+        }
+    }
+}
+
+impl std::fmt::Display for DataFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DataFormat::Native => "native",
+            DataFormat::ReferencePickle => "reference-pickle",
+            DataFormat::Auto => "auto",
+        })
+    }
+}
+
+impl std::str::FromStr for DataFormat {
+    type Err = String;
+
+    /// Accepts the names `Display` prints, plus `safetensors` and `pickle` / `pkl`.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "native" | "safetensors" => Ok(DataFormat::Native),
+            "reference-pickle" | "pickle" | "pkl" => Ok(DataFormat::ReferencePickle),
+            "auto" => Ok(DataFormat::Auto),
+            other => {
+                Err(format!("unknown data format {other:?}; expected native, reference-pickle or auto"))
+            }
+        }
+    }
+}
+
+/// Where and what to load: D_i from `{dir}/{env}-{i}-{dataset_mode}.{ext}` and P_i from
+/// `{dir}/{env}-{i}-prompt-{prompt_mode}.{ext}` for every `i` in `tasks`, in that order.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DatasetSpec {
+    pub dir: PathBuf,
+    /// Environment family, e.g. `cheetah_vel`.
+    pub env: String,
+    /// Task indices, e.g. the train split.
+    pub tasks: Vec<usize>,
+    /// Kind of the main dataset D_i, e.g. `expert` (the reference's `--dataset_mode`).
+    pub dataset_mode: String,
+    /// Kind of the prompt set P_i without the `prompt-` prefix, e.g. `expert` (the reference's
+    /// `--train_prompt_mode` / `--test_prompt_mode`).
+    pub prompt_mode: String,
+    pub format: DataFormat,
+}
+
+impl DatasetSpec {
+    /// The reference's defaults: expert D_i and expert P_i, any format.
+    pub fn new(dir: impl Into<PathBuf>, env: impl Into<String>, tasks: Vec<usize>) -> Self {
+        Self {
+            dir: dir.into(),
+            env: env.into(),
+            tasks,
+            dataset_mode: "expert".into(),
+            prompt_mode: "expert".into(),
+            format: DataFormat::Auto,
+        }
+    }
+
+    /// The mode string of P_i files: `prompt-{prompt_mode}`.
+    pub fn prompt_file_mode(&self) -> String {
+        format!("prompt-{}", self.prompt_mode)
+    }
+}
+
+/// Finds the file of task `index` and kind `mode` in `dir`: `{env}-{index}-{mode}.{ext}` for the
+/// extensions `format` allows, first existing one wins. The error lists every path tried.
+pub fn resolve_task_file(
+    dir: &Path,
+    env: &str,
+    index: usize,
+    mode: &str,
+    format: DataFormat,
+) -> Result<PathBuf, DataError> {
+    let stem = native::task_file_stem(env, index, mode);
+    let tried: Vec<PathBuf> =
+        format.extensions().iter().map(|ext| dir.join(format!("{stem}.{ext}"))).collect();
+    if let Some(found) = tried.iter().find(|p| p.is_file()) {
+        return Ok(found.clone());
+    }
+    let list: Vec<String> = tried.iter().map(|p| p.display().to_string()).collect();
+    Err(DataError::Format {
+        path: dir.to_path_buf(),
+        message: format!(
+            "no {mode} data for task {env}-{index} (format {format}); tried: {}",
+            list.join(", ")
+        ),
+    })
+}
+
+/// Loads one file, choosing the reader by extension: `.safetensors` (native) or `.pkl`
+/// (reference pickle, read without executing code).
+pub fn load_task_file(path: &Path) -> Result<TaskDataset, DataError> {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(native::FILE_EXTENSION) => native::read_task_dataset(path),
+        Some(PICKLE_EXTENSION) => load_reference_pickle(path),
+        _ => Err(DataError::Format {
+            path: path.to_path_buf(),
+            message: format!(
+                "unknown file type: expected a .{} or .{PICKLE_EXTENSION} file",
+                native::FILE_EXTENSION
+            ),
+        }),
+    }
+}
+
+fn load_reference_pickle(path: &Path) -> Result<TaskDataset, DataError> {
+    Err(DataError::Format { path: path.to_path_buf(), message: "TEMP: reference not ready".into() })
+}
+
+/// Loads D_i and P_i for every task of `spec`, in the order of `spec.tasks`. All files must share
+/// `obs_dim` and `act_dim`.
+pub fn load_multitask(spec: &DatasetSpec) -> Result<MultiTaskDataset, DataError> {
+    if spec.tasks.is_empty() {
+        return Err(DataError::Format {
+            path: spec.dir.clone(),
+            message: format!("no tasks given for {}", spec.env),
+        });
+    }
+    let prompt_mode = spec.prompt_file_mode();
+    let mut tasks = Vec::with_capacity(spec.tasks.len());
+    for &index in &spec.tasks {
+        let load = |mode: &str| -> Result<TaskDataset, DataError> {
+            let path = resolve_task_file(&spec.dir, &spec.env, index, mode, spec.format)?;
+            load_task_file(&path)
+        };
+        tasks.push(TaskData {
+            id: TaskId { env: spec.env.clone(), index },
+            dataset: load(&spec.dataset_mode)?,
+            prompts: load(&prompt_mode)?,
+        });
+    }
+    MultiTaskDataset::new(tasks).map_err(|e| e.in_file(&spec.dir))
+}
+
+/// One file converted by [`convert_reference_dir`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ConvertedFile {
+    pub source: PathBuf,
+    pub dest: PathBuf,
+    /// Parsed from the file name; fields are `None` when it does not follow
+    /// `{env}-{index}-{mode}`.
+    pub meta: FileMeta,
+    pub trajectories: usize,
+    pub steps: usize,
+    pub obs_dim: usize,
+    pub act_dim: usize,
+}
+
+/// Converts every `*.pkl` file directly in `src` (not in subdirectories) into
+/// `dst/{same stem}.safetensors`, with the metadata parsed from the name `{env}-{index}-{mode}`.
+/// Creates `dst` if needed; `dst` may equal `src`. Files are processed in name order and each is
+/// written atomically, so a failure leaves earlier conversions complete and no partial file.
+pub fn convert_reference_dir(src: &Path, dst: &Path) -> Result<Vec<ConvertedFile>, DataError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| DataError::Io { path, source }
+    };
+    let mut sources = Vec::new();
+    for entry in fs::read_dir(src).map_err(io(src))? {
+        let path = entry.map_err(io(src))?.path();
+        if path.is_file() && path.extension().and_then(|e| e.to_str()) == Some(PICKLE_EXTENSION) {
+            sources.push(path);
+        }
+    }
+    if sources.is_empty() {
+        return Err(DataError::Format {
+            path: src.to_path_buf(),
+            message: format!("no .{PICKLE_EXTENSION} files to convert"),
+        });
+    }
+    sources.sort();
+    fs::create_dir_all(dst).map_err(io(dst))?;
+    let mut converted = Vec::with_capacity(sources.len());
+    for source in sources {
+        let dataset = load_reference_pickle(&source)?;
+        let meta = FileMeta::from_file_name(&source).unwrap_or_default();
+        // `file_stem` exists: the path was listed as a file with an extension.
+        let stem = source.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let dest = dst.join(format!("{stem}.{}", native::FILE_EXTENSION));
+        native::write_task_dataset(&dest, &dataset, &meta)?;
+        converted.push(ConvertedFile {
+            source,
+            dest,
+            meta,
+            trajectories: dataset.trajectories.len(),
+            steps: dataset.num_steps(),
+            obs_dim: dataset.obs_dim,
+            act_dim: dataset.act_dim,
+        });
+    }
+    Ok(converted)
+}

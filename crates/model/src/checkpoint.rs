@@ -1,0 +1,178 @@
+//! Model weights as safetensors under the reference `state_dict` names, both ways.
+//!
+//! Reading accepts exactly the reference's 67-entry state_dict: every parameter must be present
+//! with its shape, and the two per-block buffers (`attn.bias`, a uint8 tril(1024x1024) causal mask,
+//! and `attn.masked_bias`, a 0-d float -1e4) may be present and are checked, not loaded (the causal
+//! mask is rebuilt). Writing emits those buffers too, so `model.load_state_dict(strict=True)` in
+//! PyTorch accepts the file. Anything else (an unknown name, a wrong shape or dtype, NaN) is an
+//! error naming the file and tensor.
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use tch::{nn::VarStore, Kind, Tensor};
+
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: not a safetensors file: {message}")]
+    Format { path: PathBuf, message: String },
+    #[error("{path}: tensor `{name}` is missing")]
+    Missing { path: PathBuf, name: String },
+    #[error("{path}: unexpected tensor `{name}` (not a parameter or buffer of this model)")]
+    Unexpected { path: PathBuf, name: String },
+    #[error("{path}: tensor `{name}` has shape {got:?} and dtype {dtype}, expected shape {expected:?} ({what})")]
+    Shape { path: PathBuf, name: String, got: Vec<usize>, dtype: String, expected: Vec<i64>, what: &'static str },
+    #[error("{path}: tensor `{name}` holds a non-finite value")]
+    NonFinite { path: PathBuf, name: String },
+    #[error("{path}: buffer `{name}` does not hold the reference's value ({what})")]
+    Buffer { path: PathBuf, name: String, what: &'static str },
+}
+
+/// Names of the per-block buffers of the reference state_dict.
+fn buffer_names(n_layer: usize) -> Vec<(String, &'static str)> {
+    (0..n_layer)
+        .flat_map(|i| {
+            [
+                (format!("transformer.h.{i}.attn.bias"), "bias"),
+                (format!("transformer.h.{i}.attn.masked_bias"), "masked_bias"),
+            ]
+        })
+        .collect()
+}
+
+/// Reads `tensor` as f32 values (from F32 or F64 files).
+fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
+    let data = view.data();
+    match view.dtype() {
+        Dtype::F32 => Some(data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()),
+        Dtype::F64 => Some(
+            data.chunks_exact(8)
+                .map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
+                .collect(),
+        ),
+        _ => None,
+    }
+}
+
+/// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`]).
+pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), CheckpointError> {
+    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.into(), source })?;
+    let st = SafeTensors::deserialize(&bytes)
+        .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
+    let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
+    let mut vars = vs.variables();
+    for name in st.names() {
+        if !vars.contains_key(name) && !buffers.contains_key(name) {
+            return Err(CheckpointError::Unexpected { path: path.into(), name: name.clone() });
+        }
+    }
+    for (name, kind) in &buffers {
+        if let Ok(view) = st.tensor(name) {
+            check_buffer(path, name, kind, &view)?;
+        }
+    }
+    let mut loaded = Vec::with_capacity(vars.len());
+    for (name, var) in vars.iter_mut() {
+        let view = st.tensor(name).map_err(|_| CheckpointError::Missing { path: path.into(), name: name.clone() })?;
+        let expected = var.size();
+        let shape_ok = view.shape().iter().map(|&d| d as i64).eq(expected.iter().copied());
+        let values = to_f32(&view).filter(|_| shape_ok).ok_or_else(|| CheckpointError::Shape {
+            path: path.into(),
+            name: name.clone(),
+            got: view.shape().to_vec(),
+            dtype: format!("{:?}", view.dtype()),
+            expected: expected.clone(),
+            what: "float32 or float64",
+        })?;
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(CheckpointError::NonFinite { path: path.into(), name: name.clone() });
+        }
+        loaded.push((var.shallow_clone(), Tensor::from_slice(&values).view(expected.as_slice())));
+    }
+    tch::no_grad(|| {
+        for (mut var, value) in loaded {
+            var.copy_(&value);
+        }
+    });
+    Ok(())
+}
+
+fn check_buffer(path: &Path, name: &str, kind: &str, view: &TensorView<'_>) -> Result<(), CheckpointError> {
+    let bad = |what| CheckpointError::Buffer { path: path.into(), name: name.into(), what };
+    match kind {
+        "bias" => {
+            if view.dtype() != Dtype::U8 || view.shape().len() != 4 || view.shape()[..2] != [1, 1] {
+                return Err(bad("a uint8 [1, 1, N, N] lower-triangular causal mask"));
+            }
+            let n = view.shape()[2];
+            if view.shape()[3] != n {
+                return Err(bad("a uint8 [1, 1, N, N] lower-triangular causal mask"));
+            }
+            let data = view.data();
+            let tril = (0..n).all(|i| (0..n).all(|j| data[i * n + j] == u8::from(j <= i)));
+            if !tril {
+                return Err(bad("a uint8 [1, 1, N, N] lower-triangular causal mask"));
+            }
+        }
+        _ => {
+            let v = to_f32(view).filter(|v| v.len() == 1).ok_or_else(|| bad("a 0-d float -1e4"))?;
+            if v[0] != -1e4 {
+                return Err(bad("a 0-d float -1e4"));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Writes the weights of `vs` plus the reference buffers, atomically (temp file + rename).
+pub fn save(vs: &VarStore, path: &Path, n_layer: usize, n_positions: usize) -> Result<(), CheckpointError> {
+    let io = |source| CheckpointError::Io { path: path.into(), source };
+    let mut named: Vec<(String, Vec<u8>, Dtype, Vec<usize>)> = Vec::new();
+    for (name, var) in vs.variables() {
+        let t = var.to_device(tch::Device::Cpu).to_kind(Kind::Float).contiguous();
+        let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
+        let mut values = vec![0f32; t.numel()];
+        t.view([-1]).copy_data(&mut values, t.numel());
+        named.push((name, values.iter().flat_map(|v| v.to_le_bytes()).collect(), Dtype::F32, shape));
+    }
+    let n = n_positions;
+    let tril: Vec<u8> = (0..n * n).map(|k| u8::from(k % n <= k / n)).collect();
+    for (name, kind) in buffer_names(n_layer) {
+        match kind {
+            "bias" => named.push((name, tril.clone(), Dtype::U8, vec![1, 1, n, n])),
+            _ => named.push((name, (-1e4f32).to_le_bytes().to_vec(), Dtype::F32, vec![])),
+        }
+    }
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    let views = named
+        .iter()
+        .map(|(name, data, dtype, shape)| {
+            TensorView::new(*dtype, shape.clone(), data).map(|v| (name.clone(), v))
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
+    let bytes = safetensors::serialize(views, &None)
+        .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
+    write_atomic(path, &bytes).map_err(io)
+}
+
+/// Writes `bytes` to a temporary file beside `path`, syncs it, and renames it over `path`, so that a
+/// crash leaves either the old file or the new one, never a torn one.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp.{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}

@@ -1,0 +1,66 @@
+//! Device selection: `cpu`, `cuda`, or `auto` (CUDA when present).
+//!
+//! A binary built on a machine without CUDA links only `libtorch_cpu`. On a GPU machine, pointing
+//! `LD_LIBRARY_PATH` at a CUDA libtorch (same version, 2.11.0) and loading `libtorch_cuda.so` at run
+//! time registers the CUDA backend with the already-loaded `libtorch_cpu`, so the same binary runs
+//! on either.
+
+use serde::{Deserialize, Serialize};
+use tch::Device;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DeviceSpec {
+    #[default]
+    Auto,
+    Cpu,
+    Cuda,
+}
+
+impl std::str::FromStr for DeviceSpec {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Self::Auto),
+            "cpu" => Ok(Self::Cpu),
+            "cuda" => Ok(Self::Cuda),
+            other => Err(format!("unknown device `{other}` (expected cpu, cuda or auto)")),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "CUDA was asked for but is not available: {0}. Put a CUDA build of libtorch {ver} on LD_LIBRARY_PATH.",
+    ver = "2.11.0"
+)]
+pub struct DeviceError(String);
+
+/// Loads `libtorch_cuda.so` (if it can be found on the library path) so that libtorch sees CUDA.
+fn load_cuda_backend() -> Result<(), String> {
+    if tch::Cuda::is_available() {
+        return Ok(());
+    }
+    let name = c"libtorch_cuda.so";
+    // SAFETY: dlopen with a valid NUL-terminated name; the handle is intentionally never closed, since
+    // the library registers global state (the CUDA dispatch keys) that must outlive this call.
+    #[allow(unsafe_code)]
+    let handle = unsafe { libc::dlopen(name.as_ptr(), libc::RTLD_NOW | libc::RTLD_GLOBAL) };
+    if handle.is_null() {
+        return Err("libtorch_cuda.so could not be loaded".into());
+    }
+    if tch::Cuda::is_available() {
+        Ok(())
+    } else {
+        Err("libtorch_cuda.so loaded but no CUDA device was found".into())
+    }
+}
+
+/// Resolves a device request.
+pub fn resolve(spec: DeviceSpec) -> Result<Device, DeviceError> {
+    match spec {
+        DeviceSpec::Cpu => Ok(Device::Cpu),
+        DeviceSpec::Cuda => load_cuda_backend().map(|()| Device::Cuda(0)).map_err(DeviceError),
+        DeviceSpec::Auto => Ok(if load_cuda_backend().is_ok() { Device::Cuda(0) } else { Device::Cpu }),
+    }
+}

@@ -1,0 +1,20 @@
+//! The Prompt-DT model (Xu et al. 2022) on tch, written to match the reference PyTorch code op for op.
+//!
+//! - [`config`]: [`PromptDtConfig`] with the reference's hyper-parameters.
+//! - [`gpt2`]: the GPT-2 trunk without position embedding (the reference's `trajectory_gpt2.py`).
+//! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
+//! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
+//! - [`device`]: CPU/CUDA selection.
+//!
+//! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
+//! so a checkpoint moves between promptdt and PyTorch without renaming.
+
+pub mod checkpoint;
+pub mod config;
+pub mod device;
+pub mod gpt2;
+pub mod prompt_dt;
+
+pub use checkpoint::CheckpointError;
+pub use config::PromptDtConfig;
+pub use prompt_dt::{PromptDt, Segments};

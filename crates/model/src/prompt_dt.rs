@@ -1,0 +1,265 @@
+//! Prompt-DT: the reference's `PromptDecisionTransformer` (`promptdt-reference.md` a.2-a.4).
+//!
+//! A sequence is `[prompt tokens ; history tokens]`, each step contributing three tokens in the order
+//! (return-to-go, state, action). The action for step t is predicted from the hidden state of its
+//! *state* token, so it sees R_t and s_t but not a_t (causal attention).
+
+use crate::config::PromptDtConfig;
+use crate::gpt2::Gpt2;
+use tch::nn::{self, Init, Module};
+use tch::{Device, Kind, Tensor};
+
+/// One set of trajectory segments as tensors: the history (`K` steps) or the prompt (`Lp = J*H`).
+///
+/// # Shapes
+/// `states [B, T, ds]`, `actions [B, T, da]`, `returns_to_go [B, T, 1]`, `timesteps [B, T]` (int64),
+/// `mask [B, T]` (float, 1 = real step, 0 = left padding).
+#[derive(Debug)]
+pub struct Segments {
+    pub states: Tensor,
+    pub actions: Tensor,
+    pub returns_to_go: Tensor,
+    pub timesteps: Tensor,
+    pub mask: Tensor,
+}
+
+impl Segments {
+    /// Copies host arrays (row-major) to `device`. Lengths must match `[b, t, ds]` etc.
+    #[allow(clippy::too_many_arguments)] // a flat host-to-device copy; the fields are named by the caller
+    pub fn from_host(
+        b: usize,
+        t: usize,
+        ds: usize,
+        da: usize,
+        states: &[f32],
+        actions: &[f32],
+        returns_to_go: &[f32],
+        timesteps: &[i64],
+        mask: &[f32],
+        device: Device,
+    ) -> Self {
+        let (b, t, ds, da) = (b as i64, t as i64, ds as i64, da as i64);
+        let f = |v: &[f32], shape: &[i64]| Tensor::from_slice(v).view(shape).to_device(device);
+        Self {
+            states: f(states, &[b, t, ds]),
+            actions: f(actions, &[b, t, da]),
+            returns_to_go: f(returns_to_go, &[b, t, 1]),
+            timesteps: Tensor::from_slice(timesteps).view([b, t]).to_device(device),
+            mask: f(mask, &[b, t]),
+        }
+    }
+
+    pub fn batch_size(&self) -> i64 {
+        self.states.size()[0]
+    }
+
+    pub fn len(&self) -> i64 {
+        self.states.size()[1]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Embedding layers of one branch (history, or prompt with the `prompt_` prefix).
+#[derive(Debug)]
+struct Embeddings {
+    timestep: nn::Embedding,
+    ret: nn::Linear,
+    state: nn::Linear,
+    action: nn::Linear,
+}
+
+/// PyTorch's default `nn.Linear` init: W and b ~ U(-1/sqrt(fan_in), 1/sqrt(fan_in)). The outer layers
+/// of the reference keep it (only the GPT-2 trunk is re-initialised).
+fn torch_linear(p: nn::Path, n_in: usize, n_out: usize) -> nn::Linear {
+    let bound = 1.0 / (n_in as f64).sqrt();
+    let init = Init::Uniform { lo: -bound, up: bound };
+    nn::linear(p, n_in as i64, n_out as i64, nn::LinearConfig { ws_init: init, bs_init: Some(init), bias: true })
+}
+
+impl Embeddings {
+    fn new(p: &nn::Path, prefix: &str, cfg: &PromptDtConfig) -> Self {
+        let h = cfg.hidden_size;
+        // PyTorch's default nn.Embedding init is N(0, 1).
+        let emb_cfg = nn::EmbeddingConfig { ws_init: Init::Randn { mean: 0.0, stdev: 1.0 }, ..Default::default() };
+        Self {
+            timestep: nn::embedding(p / format!("{prefix}embed_timestep"), cfg.max_ep_len as i64, h as i64, emb_cfg),
+            ret: torch_linear(p / format!("{prefix}embed_return"), 1, h),
+            state: torch_linear(p / format!("{prefix}embed_state"), cfg.state_dim, h),
+            action: torch_linear(p / format!("{prefix}embed_action"), cfg.act_dim, h),
+        }
+    }
+
+    /// Interleaves (R_t, s_t, a_t) per step. Returns tokens `[B, 3T, H]` and their mask `[B, 3T]`.
+    fn tokens(&self, seg: &Segments, hidden: i64) -> (Tensor, Tensor) {
+        let (b, t) = (seg.batch_size(), seg.len());
+        // The same timestep embedding is added to all three tokens of a step; it is the only
+        // position information (no `wpe`).
+        let time = self.timestep.forward(&seg.timesteps); // [B, T, H]
+        let s = self.state.forward(&seg.states) + &time;
+        let a = self.action.forward(&seg.actions) + &time;
+        let r = self.ret.forward(&seg.returns_to_go) + &time;
+        let tokens =
+            Tensor::stack(&[r, s, a], 1).permute([0, 2, 1, 3]).reshape([b, 3 * t, hidden]); // [B, 3T, H]
+        let m = &seg.mask;
+        let mask = Tensor::stack(&[m, m, m], 1).permute([0, 2, 1]).reshape([b, 3 * t]); // [B, 3T]
+        (tokens, mask)
+    }
+}
+
+/// Why a forward pass was refused. (Shapes are checked up front because libtorch would otherwise
+/// raise a C++ exception that tch turns into a panic.)
+#[derive(Debug, thiserror::Error)]
+pub enum ForwardError {
+    #[error("input `{name}` has shape {got:?}, expected {expected}")]
+    Shape { name: &'static str, got: Vec<i64>, expected: String },
+    #[error(
+        "sequence of {tokens} tokens (3 x ({prompt} prompt + {history} history steps)) exceeds n_positions = {max}"
+    )]
+    TooLong { tokens: i64, prompt: i64, history: i64, max: i64 },
+    #[error("timestep {value} in `{name}` is outside the embedding table [0, {max_ep_len})")]
+    Timestep { name: &'static str, value: i64, max_ep_len: i64 },
+}
+
+/// The Prompt-DT network. Field names follow the reference `state_dict`.
+#[derive(Debug)]
+pub struct PromptDt {
+    pub cfg: PromptDtConfig,
+    history: Embeddings,
+    prompt: Embeddings,
+    /// Layer norm of the history tokens only. Reference quirk (pitfall 1): prompt tokens skip it.
+    embed_ln: nn::LayerNorm,
+    transformer: Gpt2,
+    /// Unused by the loss and by acting; kept so that weights round-trip with the reference.
+    _predict_state: nn::Linear,
+    predict_action: nn::Linear,
+    /// Unused, kept for the same reason.
+    _predict_return: nn::Linear,
+}
+
+impl PromptDt {
+    /// Builds the model's variables under `p` (normally `vs.root()`), initialised as the reference
+    /// does; the caller seeds libtorch's generator first (`tch::manual_seed`) for a reproducible init.
+    pub fn new(p: &nn::Path, cfg: &PromptDtConfig) -> Self {
+        let h = cfg.hidden_size;
+        let ln_cfg = nn::LayerNormConfig { eps: 1e-5, ..Default::default() };
+        Self {
+            cfg: cfg.clone(),
+            history: Embeddings::new(p, "", cfg),
+            prompt: Embeddings::new(p, "prompt_", cfg),
+            embed_ln: nn::layer_norm(p / "embed_ln", vec![h as i64], ln_cfg),
+            transformer: Gpt2::new(p / "transformer", cfg),
+            _predict_state: torch_linear(p / "predict_state", h, cfg.state_dim),
+            predict_action: torch_linear(p / "predict_action" / 0, h, cfg.act_dim),
+            _predict_return: torch_linear(p / "predict_return", h, 1),
+        }
+    }
+
+    /// Checks the inputs' shapes, sequence length and timestep range, so that the forward pass
+    /// cannot fail inside libtorch.
+    pub fn check_inputs(&self, history: &Segments, prompt: Option<&Segments>) -> Result<(), ForwardError> {
+        let (ds, da) = (self.cfg.state_dim as i64, self.cfg.act_dim as i64);
+        let b = history.states.size().first().copied().unwrap_or(0);
+        let mut prompt_len = 0;
+        for (which, seg) in [("history", Some(history)), ("prompt", prompt)] {
+            let Some(seg) = seg else { continue };
+            let t = seg.states.size().get(1).copied().unwrap_or(0);
+            let expect = [
+                ("states", &seg.states, vec![b, t, ds]),
+                ("actions", &seg.actions, vec![b, t, da]),
+                ("returns_to_go", &seg.returns_to_go, vec![b, t, 1]),
+                ("timesteps", &seg.timesteps, vec![b, t]),
+                ("mask", &seg.mask, vec![b, t]),
+            ];
+            for (name, tensor, want) in expect {
+                if tensor.size() != want || b == 0 || t == 0 {
+                    return Err(ForwardError::Shape {
+                        name: if which == "prompt" { prompt_name(name) } else { name },
+                        got: tensor.size(),
+                        expected: format!("{want:?} (batch {b}, {t} steps, non-empty)"),
+                    });
+                }
+            }
+            let (lo, hi) = (seg.timesteps.min().int64_value(&[]), seg.timesteps.max().int64_value(&[]));
+            let max_ep_len = self.cfg.max_ep_len as i64;
+            for value in [lo, hi] {
+                if !(0..max_ep_len).contains(&value) {
+                    let name = if which == "prompt" { "prompt_timesteps" } else { "timesteps" };
+                    return Err(ForwardError::Timestep { name, value, max_ep_len });
+                }
+            }
+            if which == "prompt" {
+                prompt_len = t;
+            }
+        }
+        let k = history.len();
+        let tokens = 3 * (prompt_len + k);
+        if tokens > self.cfg.n_positions as i64 {
+            return Err(ForwardError::TooLong {
+                tokens,
+                prompt: prompt_len,
+                history: k,
+                max: self.cfg.n_positions as i64,
+            });
+        }
+        Ok(())
+    }
+
+    /// Predicted actions for the history steps, `[B, K, da]`.
+    ///
+    /// `prompt = None` is the reference's `--no-prompt` (MT-ORL / MT-BC). `train` turns dropout on.
+    /// The caller must have checked the inputs with [`PromptDt::check_inputs`] (or built them with
+    /// the sampler, which guarantees it).
+    ///
+    /// Deliberate differences from the reference code (`promptdt-reference.md` h.6, h.7): when the
+    /// prompt has exactly as many steps as the history, the reference flattens all prompts of the
+    /// batch into one row shared by every sample (mixing tasks, and crashing for B > 16); and when
+    /// the prompt length is 1, 11, 21, ... it drops the last prompt return-to-go and crashes. Here
+    /// every sample always gets its own prompt, whatever the lengths.
+    pub fn forward(&self, history: &Segments, prompt: Option<&Segments>, train: bool) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let (b, k) = (history.batch_size(), history.len());
+        let (tokens, mask) = self.history.tokens(history, hidden);
+        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
+        let (tokens, mask) = match prompt {
+            Some(p) => {
+                let (p_tokens, p_mask) = self.prompt.tokens(p, hidden); // [B, 3Lp, H], no LayerNorm
+                (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1)) // [B, 3(Lp+K), H]
+            }
+            None => (tokens, mask),
+        };
+        let x = self.transformer.forward(&tokens, &mask, train); // [B, 3(Lp+K), H]
+        let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
+        let state_hidden = x.select(1, 1); // [B, Lp+K, H]: hidden state at each state token
+        let steps = state_hidden.size()[1];
+        let actions = self.predict_action.forward(&state_hidden.narrow(1, steps - k, k)); // [B, K, da]
+        if self.cfg.action_tanh {
+            actions.tanh()
+        } else {
+            actions
+        }
+    }
+
+    /// The reference's loss (`train_step_mix`): mean squared error over the real (unpadded) history
+    /// steps and all action dims. Prompt actions are not supervised (reference pitfall 3).
+    pub fn action_loss(action_preds: &Tensor, target_actions: &Tensor, mask: &Tensor) -> Tensor {
+        let da = action_preds.size().last().copied().unwrap_or(1);
+        let keep = mask.reshape([-1]).gt(0.0);
+        let pred = action_preds.reshape([-1, da]).index(&[Some(&keep)]);
+        let target = target_actions.reshape([-1, da]).index(&[Some(&keep)]);
+        (pred - target).pow_tensor_scalar(2).mean(None::<Kind>)
+    }
+}
+
+/// The prompt inputs' names, as in the `model forward` file format.
+fn prompt_name(name: &'static str) -> &'static str {
+    match name {
+        "states" => "prompt_states",
+        "actions" => "prompt_actions",
+        "returns_to_go" => "prompt_returns_to_go",
+        "timesteps" => "prompt_timesteps",
+        _ => "prompt_attention_mask",
+    }
+}

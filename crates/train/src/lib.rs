@@ -1,0 +1,9 @@
+//! Training Prompt-DT.
+//!
+//! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
+//!   PyTorch's `torch.optim.AdamW` (single-tensor CPU path), `LambdaLR` and `clip_grad_norm_`
+//!   bit for bit, with a state that can be saved and restored for resumable runs.
+//! - [`step`]: one gradient step on a sampled batch (the reference's `train_step_mix`).
+
+pub mod optim;
+pub mod step;
