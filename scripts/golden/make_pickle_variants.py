@@ -11,9 +11,10 @@ Output, in crates/data/tests/fixtures/pickle/:
   exercising one thing the Rust reader must accept: every pickle protocol 2..5, numpy 1.x and 2.x
   module names, float64 arrays, `dones` instead of `terminals`, rewards of shape (T,), Fortran-order
   and big-endian arrays, protocol-5 in-band buffers (writable and read-only).
-- `generic-p{2,3,4,5}.pkl`: one dict holding every Python and numpy value the parser must understand.
-- `err-*.pkl` / hostile files: inputs the reader must refuse, with the error it must give. The hostile
-  ones that would run code are assembled opcode by opcode and are never unpickled here.
+- `generic-p{2,3,4,5}.pkl`: one dict holding every Python and numpy value the parser must
+  understand.
+- `err-*.pkl` / hostile files: inputs the reader must refuse, with the error it must give. The
+  hostile ones that would run code are assembled opcode by opcode and are never unpickled here.
 - `variants.json`: what each file must load to (or the error it must give).
 - `corpus/`: seeds and edge cases for the robustness tests (`ok-*` must parse, `err-*` must fail).
 
@@ -55,7 +56,8 @@ def f32_list(a) -> list:
 
 
 def le_c_bytes(a: np.ndarray) -> str:
-    """The array's bytes as the Rust NdArray holds them after `to_c_order()`: little-endian, C order."""
+    """The array's bytes as the Rust NdArray holds them after `to_c_order()`: little-endian,
+    C order."""
     return np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"))).tobytes(order="C").hex()
 
 
@@ -229,7 +231,9 @@ def make_reference_files():
     for traj in ro:
         for v in traj.values():
             v.flags.writeable = False
-    data = ref_variant("ref-p5-readonly.pkl", ro, 5, "protocol 5, read-only arrays: in-band BINBYTES")
+    data = ref_variant(
+        "ref-p5-readonly.pkl", ro, 5, "protocol 5, read-only arrays: in-band BINBYTES"
+    )
     assert "BYTEARRAY8" not in opcodes(data)
 
     # Non-contiguous arrays are pickled by _reconstruct even under protocol 5.
@@ -239,7 +243,9 @@ def make_reference_files():
             wide = np.repeat(traj[k], 2, axis=1)
             traj[k] = wide[:, ::2]
             assert not traj[k].flags.c_contiguous and not traj[k].flags.f_contiguous
-    ref_variant("ref-p5-strided.pkl", strided, 5, "protocol 5, non-contiguous arrays (_reconstruct)")
+    ref_variant(
+        "ref-p5-strided.pkl", strided, 5, "protocol 5, non-contiguous arrays (_reconstruct)"
+    )
 
     ref_variant(
         "ref-float64.pkl", make_trajs(4, float_dtype="<f8"), 4, "float64 arrays (read as float32)"
@@ -255,7 +261,9 @@ def make_reference_files():
         traj["rewards"] = traj["rewards"].reshape(-1)
         traj["terminals"] = traj["terminals"].reshape(-1)
         del traj["next_observations"]
-    ref_variant("ref-flat.pkl", flat, 4, "rewards and terminals of shape (T,), no next_observations")
+    ref_variant(
+        "ref-flat.pkl", flat, 4, "rewards and terminals of shape (T,), no next_observations"
+    )
 
     fortran = make_trajs(7)
     for traj in fortran:
@@ -315,7 +323,8 @@ def generic_value(proto):
         "none": None,
         "true": True,
         "false": False,
-        "ints": [0, 1, -1, 255, 256, 65535, 65536, -(2**31), 2**31 - 1, 2**31, 2**40, -(2**63), 2**63 - 1],
+        "ints": [0, 1, -1, 255, 256, 65535, 65536, -(2**31), 2**31 - 1, 2**31, 2**40]
+        + [-(2**63), 2**63 - 1],
         "floats": [1.25, -3.5e-7, 0.0, 1e300],
         "str": "héllo ✓",
         "empty_str": "",
@@ -384,7 +393,7 @@ def make_generic_files():
                 "kind": "generic",
                 "value": enc(value),
                 "opcodes": sorted(opcodes(data)),
-                "notes": f"numpy.core.* names for scalar/_reconstruct/_frombuffer, protocol {proto}",
+                "notes": f"numpy.core.* names (scalar, _reconstruct, _frombuffer), proto {proto}",
             }
         )
 
@@ -417,8 +426,13 @@ def make_error_files():
         + b"R"  # REDUCE
         + b"."
     )
-    error_file("err-os-system.pkl", os_system, "pickle", ["global os.system is not allowed", "byte 2"],
-               "GLOBAL os.system + REDUCE")
+    error_file(
+        "err-os-system.pkl",
+        os_system,
+        "pickle",
+        ["global os.system is not allowed", "byte 2"],
+        "GLOBAL os.system + REDUCE",
+    )
 
     # builtins.eval through STACK_GLOBAL, hidden inside a list of dicts like a real file.
     ev = (
@@ -435,8 +449,13 @@ def make_error_files():
         + b"a"  # APPEND
         + b"."
     )
-    error_file("err-builtins-eval.pkl", ev, "pickle", ["global builtins.eval is not allowed", "STACK_GLOBAL"],
-               "STACK_GLOBAL builtins.eval inside a trajectory dict")
+    error_file(
+        "err-builtins-eval.pkl",
+        ev,
+        "pickle",
+        ["global builtins.eval is not allowed", "STACK_GLOBAL"],
+        "STACK_GLOBAL builtins.eval inside a trajectory dict",
+    )
 
     # A valid file cut in the middle of an array's raw bytes.
     full = pickle.dumps(make_trajs(1), protocol=4)
@@ -558,14 +577,16 @@ def make_corpus():
     corpus("err-deep-nesting.bin", b"\x80\x02" + b"]" * depth + b"a" * (depth - 1) + b".")
     # "Billion laughs": each level is a list holding the previous level twice (by memo), so the
     # expanded tree has 2^60 leaves.
-    laughs = b"\x80\x02]N" + b"a" + binput(0)
+    laughs = b"\x80\x02]N" + b"a" + binput(0) + b"0"  # POP: only the memo keeps each level
     for i in range(60):
-        laughs += b"](" + binget(i) + binget(i) + b"e" + binput(i + 1)
-    corpus("err-billion-laughs.bin", laughs + b".")
+        laughs += b"](" + binget(i) + binget(i) + b"e" + binput(i + 1) + b"0"
+    corpus("err-billion-laughs.bin", laughs + binget(60) + b".")
     # One 16 KiB buffer reused by 2000 _frombuffer calls: 32 MB of arrays from a 44 KB file.
     amp = b"\x80\x05\x8c\x13numpy._core.numeric\x8c\x0b_frombuffer\x93\x94"  # memo 0
     amp += b"\x96" + struct.pack("<Q", 16384) + b"\x00" * 16384 + b"\x94"  # memo 1
-    amp += b"\x8c\x05numpy\x8c\x05dtype\x93\x8c\x02u1\x89\x88\x87R(K\x03\x8c\x01|NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb\x94"  # memo 2
+    # numpy.dtype('u1') with state (3, '|', ...): memo 2
+    amp += b"\x8c\x05numpy\x8c\x05dtype\x93\x8c\x02u1\x89\x88\x87R"
+    amp += b"(K\x03\x8c\x01|NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb\x94"
     amp += b"M\x00\x40\x85\x94"  # (16384,) memo 3
     amp += b"\x8c\x01C\x94"  # memo 4
     amp += b"]("
@@ -594,27 +615,54 @@ def make_corpus():
     corpus("err-global-no-newline.bin", b"\x80\x02cnumpy\nndarr")
     corpus("err-global-as-value.bin", b"\x80\x02cnumpy\nndarray\n.")
     corpus("err-reduce-non-tuple.bin", b"\x80\x02c_codecs\nencode\nNR.")
-    corpus("err-codecs-non-latin1.bin", b"\x80\x02c_codecs\nencode\nX\x01\x00\x00\x00aX\x05\x00\x00\x00utf-8\x86R.")
-    dtype_f4 = b"cnumpy\ndtype\nX\x02\x00\x00\x00f4\x89\x88\x87R(K\x03X\x01\x00\x00\x00<NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb"
+    corpus(
+        "err-codecs-non-latin1.bin",
+        b"\x80\x02c_codecs\nencode\n"
+        + b"X\x01\x00\x00\x00a"
+        + b"X\x05\x00\x00\x00utf-8"
+        + b"\x86R.",
+    )
+
+    # Hand-assembled numpy arrays (protocol 3 opcodes) for the size and state edge cases.
+    # numpy.dtype('f4', False, True), then BUILD with (3, '<', None, None, None, -1, -1, 0).
+    dtype_f4_bare = b"cnumpy\ndtype\n" + b"X\x02\x00\x00\x00f4" + b"\x89\x88\x87R"
+    dtype_state = b"(K\x03X\x01\x00\x00\x00<NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb"
+    dtype_f4 = dtype_f4_bare + dtype_state
+    # _reconstruct(numpy.ndarray, (0,), b'b'), waiting for its BUILD.
     recon = b"cnumpy._core.multiarray\n_reconstruct\ncnumpy\nndarray\nK\x00\x85C\x01b\x87R"
-    # Shape claims 2^40 x 2^40 elements for 8 bytes of data: the size check must catch it
-    # (with checked multiplication) before anything is allocated.
-    big_shape = b"\x8a\x06\x00\x00\x00\x00\x00\x01"
+
+    def state(shape: bytes, data: bytes, dtype: bytes = dtype_f4) -> bytes:
+        """BUILD with (1, shape, dtype, False, data); `shape` is the opcodes pushing a tuple."""
+        return b"(K\x01" + shape + dtype + b"\x89C" + bytes([len(data)]) + data + b"tb"
+
+    one = b"K\x01\x85"  # (1,)
+    # Shape claims 2^30 x 2^30 float32 elements (4 EiB) for 8 bytes of data: the size check
+    # must refuse it before anything is allocated.
+    big = b"J\x00\x00\x00\x40"
     corpus(
         "err-shape-mismatch.bin",
-        b"\x80\x03" + recon + b"(K\x01" + big_shape + big_shape + b"\x86" + dtype_f4 + b"\x89C\x08" + b"\x00" * 8 + b"tb.",
+        b"\x80\x03" + recon + state(big + big + b"\x86", bytes(8)) + b".",
     )
+    # 2^62 - 1 squared overflows 64 bits: the multiplication itself must be checked.
     overflow = b"\x8a\x08\xff\xff\xff\xff\xff\xff\xff\x3f"
     corpus(
         "err-shape-overflow.bin",
-        b"\x80\x03" + recon + b"(K\x01" + overflow + overflow + b"\x86" + dtype_f4 + b"\x89C\x08" + b"\x00" * 8 + b"tb.",
+        b"\x80\x03" + recon + state(overflow + overflow + b"\x86", bytes(8)) + b".",
     )
-    corpus("err-negative-shape.bin", b"\x80\x03" + recon + b"(K\x01J\xff\xff\xff\xff\x85" + dtype_f4 + b"\x89C\x00tb.")
+    minus_one = b"J\xff\xff\xff\xff\x85"  # (-1,)
+    corpus("err-negative-shape.bin", b"\x80\x03" + recon + state(minus_one, b"") + b".")
     corpus("err-pending-array.bin", b"\x80\x03" + recon + b".")
-    corpus("err-build-twice.bin", b"\x80\x03" + recon + b"(K\x01K\x01\x85" + dtype_f4 + b"\x89C\x04\x00\x00\x00\x00tb(K\x01K\x01\x85" + dtype_f4 + b"\x89C\x04\x00\x00\x00\x00tb.")
-    corpus("ok-reconstruct.bin", b"\x80\x03" + recon + b"(K\x01K\x01\x85" + dtype_f4 + b"\x89C\x04\x00\x00\x80?tb.")
+    zeros = bytes(4)
+    corpus(
+        "err-build-twice.bin",
+        b"\x80\x03" + recon + state(one, zeros) + state(one, zeros) + b".",
+    )
+    corpus("ok-reconstruct.bin", b"\x80\x03" + recon + state(one, b"\x00\x00\x80?") + b".")
     # A dtype without its BUILD state: byte order unknown for a multi-byte type.
-    corpus("err-dtype-no-state.bin", b"\x80\x03" + recon + b"(K\x01K\x01\x85cnumpy\ndtype\nX\x02\x00\x00\x00f4\x89\x88\x87R\x89C\x04\x00\x00\x80?tb.")
+    corpus(
+        "err-dtype-no-state.bin",
+        b"\x80\x03" + recon + state(one, b"\x00\x00\x80?", dtype=dtype_f4_bare) + b".",
+    )
     corpus("err-structured-dtype.bin", b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00V8\x89\x88\x87R.")
     corpus("err-float16.bin", b"\x80\x02cnumpy\ndtype\nX\x02\x00\x00\x00f2\x89\x88\x87R.")
     corpus("err-bad-utf8.bin", b"\x80\x04\x8c\x02\xff\xfe.")
@@ -636,7 +684,8 @@ def main():
     lines = ",\n".join(json.dumps(entry) for entry in manifest)
     (OUT / "variants.json").write_text("[\n" + lines + "\n]\n")
     total = sum(p.stat().st_size for p in OUT.glob("*.pkl"))
-    print(f"wrote {len(manifest)} fixtures ({total} bytes) and {len(list(CORPUS.iterdir()))} corpus files to {OUT}")
+    n_corpus = len(list(CORPUS.iterdir()))
+    print(f"wrote {len(manifest)} fixtures ({total} bytes) and {n_corpus} corpus files to {OUT}")
 
 
 if __name__ == "__main__":

@@ -1,1 +1,4 @@
-fn main() { pdt_model::_x(); println!("ok"); }
+fn main() {
+    pdt_model::_x();
+    println!("ok");
+}

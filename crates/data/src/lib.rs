@@ -57,11 +57,19 @@ impl Trajectory {
             if got == want {
                 Ok(())
             } else {
-                Err(DataError::Shape { field, expected: format!("{want} elements"), got: format!("{got}") })
+                Err(DataError::Shape {
+                    field,
+                    expected: format!("{want} elements"),
+                    got: format!("{got}"),
+                })
             }
         };
         if t == 0 {
-            return Err(DataError::Shape { field: "rewards", expected: "T >= 1".into(), got: "0".into() });
+            return Err(DataError::Shape {
+                field: "rewards",
+                expected: "T >= 1".into(),
+                got: "0".into(),
+            });
         }
         if obs_dim == 0 || act_dim == 0 {
             return Err(DataError::Shape {
@@ -180,7 +188,10 @@ impl MultiTaskDataset {
                     return Err(DataError::Shape {
                         field: "tasks",
                         expected: format!("obs_dim {obs_dim}, act_dim {act_dim} in every task"),
-                        got: format!("{} {which}: obs_dim {}, act_dim {}", t.id, d.obs_dim, d.act_dim),
+                        got: format!(
+                            "{} {which}: obs_dim {}, act_dim {}",
+                            t.id, d.obs_dim, d.act_dim
+                        ),
                     });
                 }
             }

@@ -57,9 +57,9 @@ impl std::str::FromStr for DataFormat {
             "native" | "safetensors" => Ok(DataFormat::Native),
             "reference-pickle" | "pickle" | "pkl" => Ok(DataFormat::ReferencePickle),
             "auto" => Ok(DataFormat::Auto),
-            other => {
-                Err(format!("unknown data format {other:?}; expected native, reference-pickle or auto"))
-            }
+            other => Err(format!(
+                "unknown data format {other:?}; expected native, reference-pickle or auto"
+            )),
         }
     }
 }
@@ -142,7 +142,10 @@ pub fn load_task_file(path: &Path) -> Result<TaskDataset, DataError> {
 }
 
 fn load_reference_pickle(path: &Path) -> Result<TaskDataset, DataError> {
-    Err(DataError::Format { path: path.to_path_buf(), message: "TEMP: reference not ready".into() })
+    // `load_pickle`'s errors already name the file.
+    let loaded =
+        crate::reference::load_pickle(path, &crate::reference::ReferenceOptions::default())?;
+    Ok(loaded.dataset)
 }
 
 /// Loads D_i and P_i for every task of `spec`, in the order of `spec.tasks`. All files must share

@@ -316,7 +316,9 @@ pub fn write_task_dataset(path: &Path, ds: &TaskDataset, meta: &FileMeta) -> Res
     write_atomically(path, |tmp| {
         safetensors::serialize_to_file(columns.iter().map(|c| (c.kind.name(), c)), &metadata, tmp)
             .map_err(|e| match e {
-                SafeTensorError::IoError(source) => DataError::Io { path: tmp.to_path_buf(), source },
+                SafeTensorError::IoError(source) => {
+                    DataError::Io { path: tmp.to_path_buf(), source }
+                }
                 other => format_err(path, format!("safetensors serialization failed: {other}")),
             })
     })

@@ -1,6 +1,8 @@
 //! Writes are atomic: no temporary file is left behind, a failed write leaves the old file as it
 //! was, and concurrent readers only ever see a complete file.
 
+#![allow(clippy::unwrap_used)] // in tests a panic is the failure report
+
 mod native_support;
 
 use std::path::Path;

@@ -1,6 +1,8 @@
 //! `load_multitask` over directories of native files, reference pickles or both, and
 //! `convert_reference_dir`.
 
+#![allow(clippy::unwrap_used)] // in tests a panic is the failure report
+
 mod native_support;
 
 use std::path::{Path, PathBuf};
@@ -31,8 +33,11 @@ fn official(name: &str) -> Option<PathBuf> {
 fn task_ds(i: usize, prompt: bool, obs_dim: usize) -> TaskDataset {
     let seed = (i * 10 + usize::from(prompt)) as u32;
     let len = if prompt { 4 } else { 9 };
-    TaskDataset::new(vec![traj(obs_dim, 6, len, seed, false, true), traj(obs_dim, 6, 3, seed + 5, true, false)])
-        .unwrap()
+    TaskDataset::new(vec![
+        traj(obs_dim, 6, len, seed, false, true),
+        traj(obs_dim, 6, 3, seed + 5, true, false),
+    ])
+    .unwrap()
 }
 
 fn write_native(dir: &Path, env: &str, i: usize, mode: &str, ds: &TaskDataset) {
@@ -47,7 +52,10 @@ fn loads_native_files_in_task_order() {
         write_native(dir.path(), "cheetah_vel", i, "expert", &task_ds(i, false, 20));
         write_native(dir.path(), "cheetah_vel", i, "prompt-expert", &task_ds(i, true, 20));
     }
-    let spec = DatasetSpec { format: DataFormat::Native, ..DatasetSpec::new(dir.path(), "cheetah_vel", vec![5, 0]) };
+    let spec = DatasetSpec {
+        format: DataFormat::Native,
+        ..DatasetSpec::new(dir.path(), "cheetah_vel", vec![5, 0])
+    };
     let mt = load_multitask(&spec).unwrap();
     assert_eq!((mt.obs_dim, mt.act_dim), (20, 6));
     let ids: Vec<String> = mt.tasks.iter().map(|t| t.id.to_string()).collect();
@@ -104,7 +112,8 @@ fn tasks_with_different_dims_are_rejected() {
         write_native(dir.path(), "e", i, "expert", &task_ds(i, false, obs_dim));
         write_native(dir.path(), "e", i, "prompt-expert", &task_ds(i, true, obs_dim));
     }
-    let msg = load_multitask(&DatasetSpec::new(dir.path(), "e", vec![0, 1])).unwrap_err().to_string();
+    let msg =
+        load_multitask(&DatasetSpec::new(dir.path(), "e", vec![0, 1])).unwrap_err().to_string();
     assert!(msg.contains("e-1") && msg.contains("obs_dim 17"), "{msg}");
     let msg = load_multitask(&DatasetSpec::new(dir.path(), "e", vec![])).unwrap_err().to_string();
     assert!(msg.contains("no tasks"), "{msg}");
@@ -192,7 +201,10 @@ fn converts_reference_pickles() {
         assert_eq!(read_task_dataset(&c.dest).unwrap(), load_task_file(&c.source).unwrap());
     }
     // The converted directory loads natively.
-    let spec = DatasetSpec { format: DataFormat::Native, ..DatasetSpec::new(&dst, "cheetah_dir", vec![1]) };
+    let spec = DatasetSpec {
+        format: DataFormat::Native,
+        ..DatasetSpec::new(&dst, "cheetah_dir", vec![1])
+    };
     let e = load_multitask(&spec).unwrap_err().to_string();
     assert!(e.contains("cheetah_dir-1-expert.safetensors"), "{e}"); // only prompts were converted
     let p = resolve_task_file(&dst, "cheetah_dir", 1, "prompt-expert", DataFormat::Native).unwrap();

@@ -3,6 +3,8 @@
 //! Needs the project venv (`.venv/bin/python` at the workspace root); skipped with a note without
 //! it, as on CI.
 
+#![allow(clippy::unwrap_used)] // in tests a panic is the failure report
+
 mod native_support;
 
 use std::path::Path;
@@ -30,7 +32,11 @@ fn python_reader_prints_the_same_returns() {
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "script failed: {}\n{stdout}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "script failed: {}\n{stdout}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 
     let mut lines = stdout.lines();
     let header = lines.next().unwrap();

@@ -1,11 +1,13 @@
 //! Write -> read round trips of the native format, its metadata, naming convention and card.
 
+#![allow(clippy::unwrap_used)] // in tests a panic is the failure report
+
 mod native_support;
 
 use native_support::{sample_dataset, traj};
 use pdt_data::native::{
-    parse_task_file_stem, read_card, read_file_meta, read_task_dataset, task_file_stem,
-    write_card, write_task_dataset, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats,
+    parse_task_file_stem, read_card, read_file_meta, read_task_dataset, task_file_stem, write_card,
+    write_task_dataset, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats,
 };
 use pdt_data::{DataError, TaskDataset, Trajectory};
 use proptest::prelude::*;
@@ -275,8 +277,8 @@ proptest! {
 fn load_speed_200k_steps() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cheetah_vel-0-expert.safetensors");
-    let ds = TaskDataset::new((0..1000).map(|i| traj(20, 6, 200, i, false, true)).collect())
-        .unwrap();
+    let ds =
+        TaskDataset::new((0..1000).map(|i| traj(20, 6, 200, i, false, true)).collect()).unwrap();
     let t0 = std::time::Instant::now();
     write_task_dataset(&path, &ds, &FileMeta::new("cheetah_vel", 0, "expert")).unwrap();
     let write = t0.elapsed();

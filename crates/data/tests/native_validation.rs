@@ -1,6 +1,8 @@
 //! Every way a native file can be malformed gives an error that names the file and what is wrong,
 //! and no input makes the reader panic.
 
+#![allow(clippy::unwrap_used)] // in tests a panic is the failure report
+
 mod native_support;
 
 use std::path::{Path, PathBuf};
@@ -54,20 +56,37 @@ fn hand_built_valid_file_loads() {
 fn wrong_dtype() {
     let msg = err_after(|t| {
         let obs = t[0].clone();
-        let data = obs.data.chunks_exact(4).flat_map(|c| {
-            (f32::from_le_bytes(c.try_into().unwrap()) as f64).to_le_bytes()
-        });
+        let data = obs
+            .data
+            .chunks_exact(4)
+            .flat_map(|c| (f32::from_le_bytes(c.try_into().unwrap()) as f64).to_le_bytes());
         replace(t, RawTensor { dtype: Dtype::F64, data: data.collect(), ..obs.clone() });
     });
     assert_has(&msg, &["`observations`", "dtype F64", "expected F32"]);
 
     let msg = err_after(|t| {
-        replace(t, RawTensor { name: "episode_starts".into(), dtype: Dtype::I32, shape: vec![5], data: vec![0; 20] })
+        replace(
+            t,
+            RawTensor {
+                name: "episode_starts".into(),
+                dtype: Dtype::I32,
+                shape: vec![5],
+                data: vec![0; 20],
+            },
+        )
     });
     assert_has(&msg, &["`episode_starts`", "dtype I32", "expected I64"]);
 
     let msg = err_after(|t| {
-        replace(t, RawTensor { name: "terminated".into(), dtype: Dtype::I8, shape: vec![25], data: vec![0; 25] })
+        replace(
+            t,
+            RawTensor {
+                name: "terminated".into(),
+                dtype: Dtype::I8,
+                shape: vec![25],
+                data: vec![0; 25],
+            },
+        )
     });
     assert_has(&msg, &["`terminated`", "dtype I8", "expected U8 or BOOL"]);
 }
@@ -127,7 +146,15 @@ fn bad_episode_offsets() {
     let msg = err_after(|t| replace(t, RawTensor::i64("episode_starts", &[0])));
     assert_has(&msg, &["`episode_starts`", "E >= 1"]);
     let msg = err_after(|t| {
-        replace(t, RawTensor { name: "episode_starts".into(), dtype: Dtype::I64, shape: vec![1, 5], data: vec![0; 40] })
+        replace(
+            t,
+            RawTensor {
+                name: "episode_starts".into(),
+                dtype: Dtype::I64,
+                shape: vec![1, 5],
+                data: vec![0; 40],
+            },
+        )
     });
     assert_has(&msg, &["`episode_starts`", "rank 1"]);
 }
@@ -160,7 +187,8 @@ fn non_finite_values() {
     let msg = err_after(|t| replace(t, rew));
     assert_has(&msg, &["episode 0", "`rewards` is -inf at step 3"]);
 
-    let msg = err_after(|t| replace(t, RawTensor::f32("actions", vec![25, 2], &[f32::INFINITY; 50])));
+    let msg =
+        err_after(|t| replace(t, RawTensor::f32("actions", vec![25, 2], &[f32::INFINITY; 50])));
     assert_has(&msg, &["`actions` is inf"]);
 }
 
@@ -177,7 +205,10 @@ fn flags_only_at_last_step_of_an_episode() {
     let mut flags = vec![0u8; 25];
     flags[10] = 1; // inside episode 2 (steps 8..20)
     let msg = err_after(|t| replace(t, RawTensor::u8("terminated", &flags)));
-    assert_has(&msg, &["episode 2", "`terminated` is set at step 2 of 12", "only allowed at its last step"]);
+    assert_has(
+        &msg,
+        &["episode 2", "`terminated` is set at step 2 of 12", "only allowed at its last step"],
+    );
     let mut flags = vec![0u8; 25];
     flags[0] = 1;
     let msg = err_after(|t| replace(t, RawTensor::u8("truncated", &flags)));
@@ -193,7 +224,10 @@ fn metadata_checks() {
         safetensors_bytes(&t, Some(m))
     };
     assert_has(&read_err(&with("format", "something-else")).0, &["`format`", "not a promptdt"]);
-    assert_has(&read_err(&with("format_version", "2")).0, &["`format_version` is \"2\"", "only \"1\""]);
+    assert_has(
+        &read_err(&with("format_version", "2")).0,
+        &["`format_version` is \"2\"", "only \"1\""],
+    );
     assert_has(&read_err(&with("task_index", "two")).0, &["`task_index` is \"two\""]);
 
     // read_file_meta applies the same checks.
@@ -240,7 +274,8 @@ fn huge_or_hostile_headers() {
         assert_has(&msg, &[&claimed.to_string(), "limit"]);
     }
     // A shape whose element count overflows usize, with offsets that look plausible.
-    let header = r#"{"rewards":{"dtype":"F32","shape":[4611686018427387904,8],"data_offsets":[0,4]}}"#;
+    let header =
+        r#"{"rewards":{"dtype":"F32","shape":[4611686018427387904,8],"data_offsets":[0,4]}}"#;
     let mut b = (header.len() as u64).to_le_bytes().to_vec();
     b.extend_from_slice(header.as_bytes());
     b.extend_from_slice(&[0; 4]);

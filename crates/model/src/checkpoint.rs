@@ -23,7 +23,14 @@ pub enum CheckpointError {
     #[error("{path}: unexpected tensor `{name}` (not a parameter or buffer of this model)")]
     Unexpected { path: PathBuf, name: String },
     #[error("{path}: tensor `{name}` has shape {got:?} and dtype {dtype}, expected shape {expected:?} ({what})")]
-    Shape { path: PathBuf, name: String, got: Vec<usize>, dtype: String, expected: Vec<i64>, what: &'static str },
+    Shape {
+        path: PathBuf,
+        name: String,
+        got: Vec<usize>,
+        dtype: String,
+        expected: Vec<i64>,
+        what: &'static str,
+    },
     #[error("{path}: tensor `{name}` holds a non-finite value")]
     NonFinite { path: PathBuf, name: String },
     #[error("{path}: buffer `{name}` does not hold the reference's value ({what})")]
@@ -46,10 +53,14 @@ fn buffer_names(n_layer: usize) -> Vec<(String, &'static str)> {
 fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
     let data = view.data();
     match view.dtype() {
-        Dtype::F32 => Some(data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()),
+        Dtype::F32 => Some(
+            data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
+        ),
         Dtype::F64 => Some(
             data.chunks_exact(8)
-                .map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32)
+                .map(|c| {
+                    f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]) as f32
+                })
                 .collect(),
         ),
         _ => None,
@@ -58,7 +69,8 @@ fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
 
 /// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`]).
 pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), CheckpointError> {
-    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.into(), source })?;
+    let bytes =
+        std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
     let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
@@ -75,7 +87,9 @@ pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), Checkp
     }
     let mut loaded = Vec::with_capacity(vars.len());
     for (name, var) in vars.iter_mut() {
-        let view = st.tensor(name).map_err(|_| CheckpointError::Missing { path: path.into(), name: name.clone() })?;
+        let view = st
+            .tensor(name)
+            .map_err(|_| CheckpointError::Missing { path: path.into(), name: name.clone() })?;
         let expected = var.size();
         let shape_ok = view.shape().iter().map(|&d| d as i64).eq(expected.iter().copied());
         let values = to_f32(&view).filter(|_| shape_ok).ok_or_else(|| CheckpointError::Shape {
@@ -99,7 +113,12 @@ pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), Checkp
     Ok(())
 }
 
-fn check_buffer(path: &Path, name: &str, kind: &str, view: &TensorView<'_>) -> Result<(), CheckpointError> {
+fn check_buffer(
+    path: &Path,
+    name: &str,
+    kind: &str,
+    view: &TensorView<'_>,
+) -> Result<(), CheckpointError> {
     let bad = |what| CheckpointError::Buffer { path: path.into(), name: name.into(), what };
     match kind {
         "bias" => {
@@ -127,7 +146,12 @@ fn check_buffer(path: &Path, name: &str, kind: &str, view: &TensorView<'_>) -> R
 }
 
 /// Writes the weights of `vs` plus the reference buffers, atomically (temp file + rename).
-pub fn save(vs: &VarStore, path: &Path, n_layer: usize, n_positions: usize) -> Result<(), CheckpointError> {
+pub fn save(
+    vs: &VarStore,
+    path: &Path,
+    n_layer: usize,
+    n_positions: usize,
+) -> Result<(), CheckpointError> {
     let io = |source| CheckpointError::Io { path: path.into(), source };
     let mut named: Vec<(String, Vec<u8>, Dtype, Vec<usize>)> = Vec::new();
     for (name, var) in vs.variables() {
@@ -135,7 +159,12 @@ pub fn save(vs: &VarStore, path: &Path, n_layer: usize, n_positions: usize) -> R
         let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
         let mut values = vec![0f32; t.numel()];
         t.view([-1]).copy_data(&mut values, t.numel());
-        named.push((name, values.iter().flat_map(|v| v.to_le_bytes()).collect(), Dtype::F32, shape));
+        named.push((
+            name,
+            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            Dtype::F32,
+            shape,
+        ));
     }
     let n = n_positions;
     let tril: Vec<u8> = (0..n * n).map(|k| u8::from(k % n <= k / n)).collect();

@@ -89,13 +89,40 @@ impl PromptDtConfig {
         Ok(())
     }
 
+    /// Parameter names in the reference's registration order (`model.parameters()`: the GPT-2 trunk
+    /// first, then the embeddings, `embed_ln` and the heads). The order matters: gradient clipping
+    /// sums the per-parameter norms in this order, and float addition is not associative.
+    pub fn parameter_names(&self) -> Vec<String> {
+        let mut names = vec!["transformer.wte.weight".to_string()];
+        let wb = |prefix: &str| [format!("{prefix}.weight"), format!("{prefix}.bias")];
+        for i in 0..self.n_layer {
+            for m in ["ln_1", "attn.c_attn", "attn.c_proj", "ln_2", "mlp.c_fc", "mlp.c_proj"] {
+                names.extend(wb(&format!("transformer.h.{i}.{m}")));
+            }
+        }
+        names.extend(wb("transformer.ln_f"));
+        for prefix in ["", "prompt_"] {
+            names.push(format!("{prefix}embed_timestep.weight"));
+            for m in ["embed_return", "embed_state", "embed_action"] {
+                names.extend(wb(&format!("{prefix}{m}")));
+            }
+        }
+        for m in ["embed_ln", "predict_state", "predict_action.0", "predict_return"] {
+            names.extend(wb(m));
+        }
+        names
+    }
+
     /// Number of trainable parameters (the unused `wte` and prediction heads included, as in the
     /// reference's `model.parameters()`).
     pub fn num_parameters(&self) -> usize {
         let (h, ds, da) = (self.hidden_size, self.state_dim, self.act_dim);
         let linear = |i: usize, o: usize| i * o + o;
         let embeddings = self.max_ep_len * h + linear(1, h) + linear(ds, h) + linear(da, h);
-        let block = 2 * (2 * h) + linear(h, 3 * h) + linear(h, h) + linear(h, self.n_inner)
+        let block = 2 * (2 * h)
+            + linear(h, 3 * h)
+            + linear(h, h)
+            + linear(h, self.n_inner)
             + linear(self.n_inner, h);
         let trunk = h + self.n_layer * block + 2 * h;
         let heads = linear(h, ds) + linear(h, da) + linear(h, 1);

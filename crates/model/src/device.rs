@@ -61,6 +61,8 @@ pub fn resolve(spec: DeviceSpec) -> Result<Device, DeviceError> {
     match spec {
         DeviceSpec::Cpu => Ok(Device::Cpu),
         DeviceSpec::Cuda => load_cuda_backend().map(|()| Device::Cuda(0)).map_err(DeviceError),
-        DeviceSpec::Auto => Ok(if load_cuda_backend().is_ok() { Device::Cuda(0) } else { Device::Cpu }),
+        DeviceSpec::Auto => {
+            Ok(if load_cuda_backend().is_ok() { Device::Cuda(0) } else { Device::Cpu })
+        }
     }
 }

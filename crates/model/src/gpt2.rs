@@ -61,8 +61,8 @@ impl Attention {
         let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]); // [B, nh, hd, L]
         let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
-        // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
-        // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
+                                                      // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
+                                                      // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
         let masked_bias = Tensor::from(-1e4f32).to_device(w.device());
         let w = w.where_self(causal, &masked_bias) + pad_bias;
         let w = w.softmax(-1, None::<Kind>).dropout(self.attn_pdrop, train);
@@ -138,7 +138,7 @@ pub struct Gpt2 {
 impl Gpt2 {
     pub fn new(p: nn::Path, cfg: &PromptDtConfig) -> Self {
         let hidden = cfg.hidden_size as i64;
-        let wte = p.var("wte.weight", &[1, hidden], Init::Randn { mean: 0.0, stdev: 0.02 });
+        let wte = (&p / "wte").var("weight", &[1, hidden], Init::Randn { mean: 0.0, stdev: 0.02 });
         let h = (0..cfg.n_layer).map(|i| Block::new(&p / "h" / i, cfg)).collect();
         Self {
             _wte: wte,

@@ -76,16 +76,29 @@ struct Embeddings {
 fn torch_linear(p: nn::Path, n_in: usize, n_out: usize) -> nn::Linear {
     let bound = 1.0 / (n_in as f64).sqrt();
     let init = Init::Uniform { lo: -bound, up: bound };
-    nn::linear(p, n_in as i64, n_out as i64, nn::LinearConfig { ws_init: init, bs_init: Some(init), bias: true })
+    nn::linear(
+        p,
+        n_in as i64,
+        n_out as i64,
+        nn::LinearConfig { ws_init: init, bs_init: Some(init), bias: true },
+    )
 }
 
 impl Embeddings {
     fn new(p: &nn::Path, prefix: &str, cfg: &PromptDtConfig) -> Self {
         let h = cfg.hidden_size;
         // PyTorch's default nn.Embedding init is N(0, 1).
-        let emb_cfg = nn::EmbeddingConfig { ws_init: Init::Randn { mean: 0.0, stdev: 1.0 }, ..Default::default() };
+        let emb_cfg = nn::EmbeddingConfig {
+            ws_init: Init::Randn { mean: 0.0, stdev: 1.0 },
+            ..Default::default()
+        };
         Self {
-            timestep: nn::embedding(p / format!("{prefix}embed_timestep"), cfg.max_ep_len as i64, h as i64, emb_cfg),
+            timestep: nn::embedding(
+                p / format!("{prefix}embed_timestep"),
+                cfg.max_ep_len as i64,
+                h as i64,
+                emb_cfg,
+            ),
             ret: torch_linear(p / format!("{prefix}embed_return"), 1, h),
             state: torch_linear(p / format!("{prefix}embed_state"), cfg.state_dim, h),
             action: torch_linear(p / format!("{prefix}embed_action"), cfg.act_dim, h),
@@ -101,8 +114,7 @@ impl Embeddings {
         let s = self.state.forward(&seg.states) + &time;
         let a = self.action.forward(&seg.actions) + &time;
         let r = self.ret.forward(&seg.returns_to_go) + &time;
-        let tokens =
-            Tensor::stack(&[r, s, a], 1).permute([0, 2, 1, 3]).reshape([b, 3 * t, hidden]); // [B, 3T, H]
+        let tokens = Tensor::stack(&[r, s, a], 1).permute([0, 2, 1, 3]).reshape([b, 3 * t, hidden]); // [B, 3T, H]
         let m = &seg.mask;
         let mask = Tensor::stack(&[m, m, m], 1).permute([0, 2, 1]).reshape([b, 3 * t]); // [B, 3T]
         (tokens, mask)
@@ -159,7 +171,11 @@ impl PromptDt {
 
     /// Checks the inputs' shapes, sequence length and timestep range, so that the forward pass
     /// cannot fail inside libtorch.
-    pub fn check_inputs(&self, history: &Segments, prompt: Option<&Segments>) -> Result<(), ForwardError> {
+    pub fn check_inputs(
+        &self,
+        history: &Segments,
+        prompt: Option<&Segments>,
+    ) -> Result<(), ForwardError> {
         let (ds, da) = (self.cfg.state_dim as i64, self.cfg.act_dim as i64);
         let b = history.states.size().first().copied().unwrap_or(0);
         let mut prompt_len = 0;
@@ -182,7 +198,8 @@ impl PromptDt {
                     });
                 }
             }
-            let (lo, hi) = (seg.timesteps.min().int64_value(&[]), seg.timesteps.max().int64_value(&[]));
+            let (lo, hi) =
+                (seg.timesteps.min().int64_value(&[]), seg.timesteps.max().int64_value(&[]));
             let max_ep_len = self.cfg.max_ep_len as i64;
             for value in [lo, hi] {
                 if !(0..max_ep_len).contains(&value) {
@@ -219,22 +236,36 @@ impl PromptDt {
     /// the prompt length is 1, 11, 21, ... it drops the last prompt return-to-go and crashes. Here
     /// every sample always gets its own prompt, whatever the lengths.
     pub fn forward(&self, history: &Segments, prompt: Option<&Segments>, train: bool) -> Tensor {
+        let k = history.len();
+        let all = self.forward_all_steps(history, prompt, train); // [B, Lp+K, da]
+        let steps = all.size()[1];
+        all.narrow(1, steps - k, k) // [B, K, da]
+    }
+
+    /// Predicted actions at every step of the sequence, prompt steps first: `[B, Lp+K, da]`.
+    /// The reference only uses the last K; the paper's loss also supervises the prompt's.
+    pub fn forward_all_steps(
+        &self,
+        history: &Segments,
+        prompt: Option<&Segments>,
+        train: bool,
+    ) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
-        let (b, k) = (history.batch_size(), history.len());
+        let b = history.batch_size();
         let (tokens, mask) = self.history.tokens(history, hidden);
         let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
         let (tokens, mask) = match prompt {
             Some(p) => {
                 let (p_tokens, p_mask) = self.prompt.tokens(p, hidden); // [B, 3Lp, H], no LayerNorm
-                (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1)) // [B, 3(Lp+K), H]
+                (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
+                // [B, 3(Lp+K), H]
             }
             None => (tokens, mask),
         };
         let x = self.transformer.forward(&tokens, &mask, train); // [B, 3(Lp+K), H]
         let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
         let state_hidden = x.select(1, 1); // [B, Lp+K, H]: hidden state at each state token
-        let steps = state_hidden.size()[1];
-        let actions = self.predict_action.forward(&state_hidden.narrow(1, steps - k, k)); // [B, K, da]
+        let actions = self.predict_action.forward(&state_hidden); // [B, Lp+K, da]
         if self.cfg.action_tanh {
             actions.tanh()
         } else {

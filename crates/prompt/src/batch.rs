@@ -98,7 +98,8 @@ impl<'a> BatchSampler<'a> {
         n_positions: usize,
     ) -> Result<Self, SamplerError> {
         cfg.validate(n_positions)?;
-        let first = tasks.first().ok_or(SamplerError::Config { field: "tasks", why: "is empty".into() })?;
+        let first =
+            tasks.first().ok_or(SamplerError::Config { field: "tasks", why: "is empty".into() })?;
         let (state_dim, act_dim) = (first.dataset.obs_dim, first.dataset.act_dim);
         if norm.mean.len() != state_dim || norm.std.len() != state_dim {
             return Err(SamplerError::Config {
@@ -119,7 +120,10 @@ impl<'a> BatchSampler<'a> {
                     });
                 }
                 if d.trajectories.is_empty() {
-                    return Err(SamplerError::Task { task: t.id.to_string(), why: format!("{which} is empty") });
+                    return Err(SamplerError::Task {
+                        task: t.id.to_string(),
+                        why: format!("{which} is empty"),
+                    });
                 }
             }
             samplers.push(TaskSampler { data: t, ranking: Ranking::new(&t.dataset, cfg.ranking) });
@@ -145,7 +149,14 @@ impl<'a> BatchSampler<'a> {
     }
 
     /// Writes `n` prompts (J segments each) of task `task` into rows `row ..` of `out`.
-    fn write_prompts(&self, task: usize, n: usize, row: usize, out: &mut SegmentBatch, rng: &mut Rng) {
+    fn write_prompts(
+        &self,
+        task: usize,
+        n: usize,
+        row: usize,
+        out: &mut SegmentBatch,
+        rng: &mut Rng,
+    ) {
         let demos = &self.tasks[task].data.prompts.trajectories;
         let (h, j) = (self.cfg.prompt_length, self.cfg.prompt_episodes);
         for s in 0..n * j {
@@ -165,12 +176,28 @@ impl<'a> BatchSampler<'a> {
                 mask: &mut slots.mask[seg * h..(seg + 1) * h],
             };
             // Prompt returns-to-go are never zeroed, not even for Prompt-MT-BC (reference b.6).
-            write_segment(traj, si, h, &self.norm, self.cfg.rtg_scale, self.cfg.max_ep_len, false, slot);
+            write_segment(
+                traj,
+                si,
+                h,
+                &self.norm,
+                self.cfg.rtg_scale,
+                self.cfg.max_ep_len,
+                false,
+                slot,
+            );
         }
     }
 
     /// Writes `n` history segments of task `task` into rows `row ..` of `out`.
-    fn write_histories(&self, task: usize, n: usize, row: usize, out: &mut SegmentBatch, rng: &mut Rng) {
+    fn write_histories(
+        &self,
+        task: usize,
+        n: usize,
+        row: usize,
+        out: &mut SegmentBatch,
+        rng: &mut Rng,
+    ) {
         let ts = &self.tasks[task];
         let k = self.cfg.k;
         for s in 0..n {
@@ -210,7 +237,8 @@ impl<'a> BatchSampler<'a> {
     /// One evaluation prompt for task `task` (J segments), as the reference draws it once per task
     /// per evaluation call and shares it across that task's episodes.
     pub fn eval_prompt(&self, task: usize, rng: &mut Rng) -> SegmentBatch {
-        let mut prompt = SegmentBatch::zeros(1, self.cfg.prompt_steps(), self.state_dim, self.act_dim);
+        let mut prompt =
+            SegmentBatch::zeros(1, self.cfg.prompt_steps(), self.state_dim, self.act_dim);
         self.write_prompts(task, 1, 0, &mut prompt, rng);
         prompt
     }
@@ -237,21 +265,33 @@ mod tests {
         let make = |kind: f32| {
             let trajs = (0..n_traj)
                 .map(|i| {
-                    let obs = (0..len).flat_map(|t| [task as f32, i as f32 + kind, t as f32]).collect();
+                    let obs =
+                        (0..len).flat_map(|t| [task as f32, i as f32 + kind, t as f32]).collect();
                     let act = (0..len).map(|t| t as f32 / 1000.0).collect();
                     let mut rew = vec![0.0; len];
                     rew[0] = 10.0 * (i + 1) as f32;
-                    Trajectory::new(3, 1, obs, act, rew, vec![false; len], vec![false; len]).unwrap()
+                    Trajectory::new(3, 1, obs, act, rew, vec![false; len], vec![false; len])
+                        .unwrap()
                 })
                 .collect();
             TaskDataset::new(trajs).unwrap()
         };
         // prompts are marked with +100 in the trajectory slot
-        TaskData { id: TaskId { env: "toy".into(), index: task }, dataset: make(0.0), prompts: make(100.0) }
+        TaskData {
+            id: TaskId { env: "toy".into(), index: task },
+            dataset: make(0.0),
+            prompts: make(100.0),
+        }
     }
 
     fn cfg(k: usize, j: usize, h: usize) -> SamplerConfig {
-        SamplerConfig { k, prompt_episodes: j, prompt_length: h, batch_size_per_task: 4, ..SamplerConfig::reference(10.0, 1000) }
+        SamplerConfig {
+            k,
+            prompt_episodes: j,
+            prompt_length: h,
+            batch_size_per_task: 4,
+            ..SamplerConfig::reference(10.0, 1000)
+        }
     }
 
     fn rng(seed: u64) -> Rng {
@@ -270,7 +310,10 @@ mod tests {
         let refs: Vec<&TaskData> = tasks.iter().collect();
         let s = BatchSampler::new(cfg(20, 1, 5), &refs, StateNorm::identity(3), 1024).unwrap();
         let b = s.sample(&mut rng(0));
-        assert_eq!((b.history.batch, b.history.steps, b.prompt.batch, b.prompt.steps), (12, 20, 12, 5));
+        assert_eq!(
+            (b.history.batch, b.history.steps, b.prompt.batch, b.prompt.steps),
+            (12, 20, 12, 5)
+        );
         assert_eq!(b.task_of_sample, vec![0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2]);
         for row in 0..12 {
             let want = (row / 4) as f32;
@@ -288,7 +331,8 @@ mod tests {
     fn prompt_is_the_tail_segment_by_default() {
         // Reference: si = max(0, T - H - 1): steps 194..198 of a 200-step demonstration.
         let tasks = [task(0, 5, 200)];
-        let s = BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
+        let s =
+            BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
         let b = s.sample(&mut rng(1));
         for row in 0..4 {
             let steps: Vec<f32> = (0..5).map(|t| id(&b.prompt, row, t).2).collect();
@@ -325,7 +369,8 @@ mod tests {
     #[test]
     fn j_prompt_segments_are_concatenated_along_time() {
         let tasks = [task(0, 7, 40)];
-        let s = BatchSampler::new(cfg(20, 3, 4), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
+        let s =
+            BatchSampler::new(cfg(20, 3, 4), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
         let b = s.sample(&mut rng(4));
         assert_eq!(b.prompt.steps, 12);
         for row in 0..4 {
@@ -341,7 +386,8 @@ mod tests {
     #[test]
     fn history_segments_start_anywhere_pad_left_and_carry_suffix_returns() {
         let tasks = [task(0, 4, 30)];
-        let s = BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
+        let s =
+            BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
         let mut r = rng(5);
         let (mut padded, mut saw_last_step_start) = (0, false);
         for _ in 0..300 {
@@ -372,7 +418,9 @@ mod tests {
     fn reference_ranking_never_samples_the_lowest_return_trajectory() {
         let tasks = [task(0, 4, 10)];
         let mut seen = [0usize; 4];
-        for (ranking, never) in [(TrajectoryRanking::ReferenceOffByOne, Some(0)), (TrajectoryRanking::All, None)] {
+        for (ranking, never) in
+            [(TrajectoryRanking::ReferenceOffByOne, Some(0)), (TrajectoryRanking::All, None)]
+        {
             seen = [0; 4];
             let c = SamplerConfig { ranking, ..cfg(5, 1, 2) };
             let s = BatchSampler::new(c, &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
@@ -410,7 +458,9 @@ mod tests {
         // JH = K (pitfall 6) and JH = 1, 11, 21 (pitfall 7), and prompts longer than demonstrations.
         let tasks = [task(0, 3, 15), task(1, 3, 15)];
         let refs: Vec<&TaskData> = tasks.iter().collect();
-        for (k, j, h) in [(20, 1, 20), (20, 2, 10), (5, 1, 1), (20, 1, 11), (20, 3, 7), (1, 1, 21), (20, 1, 15)] {
+        for (k, j, h) in
+            [(20, 1, 20), (20, 2, 10), (5, 1, 1), (20, 1, 11), (20, 3, 7), (1, 1, 21), (20, 1, 15)]
+        {
             let s = BatchSampler::new(cfg(k, j, h), &refs, StateNorm::identity(3), 1024).unwrap();
             let b = s.sample(&mut rng(8));
             assert_eq!((b.prompt.steps, b.history.steps, b.prompt.batch), (j * h, k, 8));
@@ -438,9 +488,12 @@ mod tests {
     #[test]
     fn bad_settings_and_data_are_rejected_with_the_field_named() {
         let tasks = [task(0, 3, 10)];
-        let err = |c: SamplerConfig, n: StateNorm| BatchSampler::new(c, &[&tasks[0]], n, 1024).unwrap_err().to_string();
+        let err = |c: SamplerConfig, n: StateNorm| {
+            BatchSampler::new(c, &[&tasks[0]], n, 1024).unwrap_err().to_string()
+        };
         assert!(err(cfg(0, 1, 5), StateNorm::identity(3)).contains("`k`"));
-        assert!(err(SamplerConfig { rtg_scale: 0.0, ..cfg(5, 1, 5) }, StateNorm::identity(3)).contains("rtg_scale"));
+        assert!(err(SamplerConfig { rtg_scale: 0.0, ..cfg(5, 1, 5) }, StateNorm::identity(3))
+            .contains("rtg_scale"));
         assert!(err(cfg(5, 1, 5), StateNorm::identity(2)).contains("norm"));
         assert!(BatchSampler::new(cfg(5, 1, 5), &[], StateNorm::identity(3), 1024).is_err());
     }

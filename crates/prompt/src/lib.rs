@@ -15,7 +15,9 @@ pub mod ranking;
 pub mod segment;
 
 pub use batch::{BatchSampler, PromptDtBatch, SegmentBatch};
-pub use config::{NormalizationScope, PromptPosition, SamplerConfig, SamplerError, TrajectoryRanking};
+pub use config::{
+    NormalizationScope, PromptPosition, SamplerConfig, SamplerError, TrajectoryRanking,
+};
 pub use normalize::StateNorm;
 
 /// The RNG every sampler takes. ChaCha8 is portable and reproducible across platforms and versions.

@@ -21,11 +21,18 @@ impl StateNorm {
     ///
     /// Sums are accumulated in f64 and rounded to f32; numpy sums float32 pairwise, so the two agree
     /// to about 1e-7 relative, not bitwise.
-    pub fn from_datasets<'a>(obs_dim: usize, datasets: impl IntoIterator<Item = &'a TaskDataset>) -> Self {
+    pub fn from_datasets<'a>(
+        obs_dim: usize,
+        datasets: impl IntoIterator<Item = &'a TaskDataset>,
+    ) -> Self {
         let mut n = 0usize;
         let mut sum = vec![0f64; obs_dim];
         let all: Vec<&TaskDataset> = datasets.into_iter().collect();
-        let rows = || all.iter().flat_map(|d| d.trajectories.iter()).flat_map(|t| t.observations.chunks_exact(obs_dim));
+        let rows = || {
+            all.iter()
+                .flat_map(|d| d.trajectories.iter())
+                .flat_map(|t| t.observations.chunks_exact(obs_dim))
+        };
         for row in rows() {
             n += 1;
             for (acc, &x) in sum.iter_mut().zip(row) {
@@ -63,7 +70,8 @@ mod tests {
 
     fn traj(obs: Vec<f32>) -> Trajectory {
         let t = obs.len() / 2;
-        Trajectory::new(2, 1, obs, vec![0.0; t], vec![0.0; t], vec![false; t], vec![false; t]).unwrap()
+        Trajectory::new(2, 1, obs, vec![0.0; t], vec![0.0; t], vec![false; t], vec![false; t])
+            .unwrap()
     }
 
     #[test]
@@ -75,7 +83,7 @@ mod tests {
         // population std of {0, 2, 4} = sqrt(8/3)
         assert!((n.std[0] - ((8.0f64 / 3.0).sqrt() as f32 + 1e-6)).abs() < 1e-7);
         assert_eq!(n.std[1], 1e-6); // constant dimension: std 0 + 1e-6
-        // the same dataset passed twice weighs twice (reference: train list + test list)
+                                    // the same dataset passed twice weighs twice (reference: train list + test list)
         let n2 = StateNorm::from_datasets(2, [&a, &a, &b]);
         assert!((n2.mean[0] - 1.6).abs() < 1e-6);
         assert_eq!(n.apply(0, 2.0), 0.0);

@@ -83,7 +83,8 @@ mod tests {
             .map(|&(ret, t)| {
                 let mut r = vec![0.0; t];
                 r[0] = ret;
-                Trajectory::new(1, 1, vec![0.0; t], vec![0.0; t], r, vec![false; t], vec![false; t]).unwrap()
+                Trajectory::new(1, 1, vec![0.0; t], vec![0.0; t], r, vec![false; t], vec![false; t])
+                    .unwrap()
             })
             .collect();
         TaskDataset::new(trajs).unwrap()

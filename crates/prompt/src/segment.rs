@@ -66,7 +66,8 @@ pub fn write_segment(
         }
         out.actions[row * da..(row + 1) * da].copy_from_slice(traj.action(src));
         // The reference divides float64 (after padding with float64 zeros) and casts to float32.
-        out.returns_to_go[row] = if zero_returns { 0.0 } else { (rtg[t] as f64 / rtg_scale as f64) as f32 };
+        out.returns_to_go[row] =
+            if zero_returns { 0.0 } else { (rtg[t] as f64 / rtg_scale as f64) as f32 };
         out.timesteps[row] = src.min(max_ep_len - 1) as i64;
         out.mask[row] = 1.0;
     }
@@ -91,9 +92,28 @@ mod tests {
         m: Vec<f32>,
     }
 
-    fn cut(tr: &Trajectory, si: usize, len: usize, norm: &StateNorm, clip: usize, zero: bool) -> Buf {
-        let mut b = Buf { s: vec![9.; len * 2], a: vec![9.; len], r: vec![9.; len], t: vec![9; len], m: vec![9.; len] };
-        let out = SegmentOut { states: &mut b.s, actions: &mut b.a, returns_to_go: &mut b.r, timesteps: &mut b.t, mask: &mut b.m };
+    fn cut(
+        tr: &Trajectory,
+        si: usize,
+        len: usize,
+        norm: &StateNorm,
+        clip: usize,
+        zero: bool,
+    ) -> Buf {
+        let mut b = Buf {
+            s: vec![9.; len * 2],
+            a: vec![9.; len],
+            r: vec![9.; len],
+            t: vec![9; len],
+            m: vec![9.; len],
+        };
+        let out = SegmentOut {
+            states: &mut b.s,
+            actions: &mut b.a,
+            returns_to_go: &mut b.r,
+            timesteps: &mut b.t,
+            mask: &mut b.m,
+        };
         write_segment(tr, si, len, norm, 10.0, clip, zero, out);
         b
     }
@@ -118,7 +138,7 @@ mod tests {
         assert_eq!(b.t, vec![0, 0, 4, 5]);
         assert_eq!(b.a, vec![ACTION_PAD, ACTION_PAD, 0.04, 0.05]);
         assert_eq!(b.r, vec![0.0, 0.0, 1.1, 0.6]); // (5 + 6, 6) / 10
-        // pads are normalised zeros: -mean/std
+                                                   // pads are normalised zeros: -mean/std
         assert_eq!(&b.s[..4], &[-0.5, -0.5, -0.5, -0.5]);
         assert_eq!(&b.s[4..6], &[(8.0 - 1.0) / 2.0, (9.0 - 2.0) / 4.0]);
     }
@@ -133,7 +153,16 @@ mod tests {
 
     #[test]
     fn returns_to_go_accumulate_in_f32_from_the_end() {
-        let tr = Trajectory::new(1, 1, vec![0.; 3], vec![0.; 3], vec![0.1, 0.2, 0.3], vec![false; 3], vec![false; 3]).unwrap();
+        let tr = Trajectory::new(
+            1,
+            1,
+            vec![0.; 3],
+            vec![0.; 3],
+            vec![0.1, 0.2, 0.3],
+            vec![false; 3],
+            vec![false; 3],
+        )
+        .unwrap();
         let rtg = returns_to_go_from(&tr, 0, 3);
         assert_eq!(rtg, vec![0.3f32 + 0.2f32 + 0.1f32, 0.3f32 + 0.2f32, 0.3f32]);
     }

@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use tch::{nn::VarStore, Kind, Tensor};
+use tch::{nn::VarStore, Tensor};
 
 /// AdamW settings. Defaults are the reference's (`torch.optim.AdamW(lr=1e-4, weight_decay=1e-4)`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -59,6 +59,10 @@ pub struct ParamState {
     pub exp_avg_sq: Tensor,
 }
 
+/// Gradients of the optimised parameters, in the optimiser's parameter order.
+#[derive(Debug)]
+pub struct Grads(pub Vec<Option<Tensor>>);
+
 /// AdamW over the trainable variables of a `VarStore`, keyed by their state_dict names.
 #[derive(Debug)]
 pub struct AdamW {
@@ -68,65 +72,69 @@ pub struct AdamW {
 }
 
 impl AdamW {
-    pub fn new(vs: &VarStore, cfg: AdamWConfig) -> Self {
+    /// Optimises the variables of `vs` named in `order` (PyTorch's `model.parameters()` order,
+    /// which clipping depends on: see `PromptDtConfig::parameter_names`). Variables of `vs` missing
+    /// from `order` are appended in name order.
+    pub fn new(vs: &VarStore, order: &[String], cfg: AdamWConfig) -> Self {
+        let mut vars = vs.variables();
         let mut params: Vec<(String, Tensor)> =
-            vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect();
-        params.sort_by(|a, b| a.0.cmp(&b.0));
+            order.iter().filter_map(|n| vars.remove(n).map(|t| (n.clone(), t))).collect();
+        let mut rest: Vec<(String, Tensor)> = vars.into_iter().collect();
+        rest.sort_by(|a, b| a.0.cmp(&b.0));
+        params.extend(rest);
+        params.retain(|(_, t)| t.requires_grad());
         Self { cfg, params, state: BTreeMap::new() }
     }
 
-    /// Zeroes the gradients that exist. Parameters that never received a gradient keep none, so they
-    /// stay excluded from clipping and from the update, like PyTorch's `grad is None`.
-    pub fn zero_grad(&mut self) {
-        for (_, p) in &mut self.params {
-            p.zero_grad();
-        }
-    }
-
-    fn grads(&self) -> Vec<Tensor> {
-        self.params.iter().map(|(_, p)| p.grad()).filter(Tensor::defined).collect()
+    /// Gradients of `loss` with respect to every optimised parameter, as fresh tensors.
+    ///
+    /// Parameters that do not influence the loss get no gradient (`None`) and are then left out of
+    /// clipping and of the update, exactly as PyTorch's `grad is None` (the unused prediction heads,
+    /// `wte`, and the prompt layers of a no-prompt variant). Nothing accumulates in `.grad`: PyTorch's
+    /// `zero_grad(set_to_none=True)` followed by `backward()` gives the same fresh tensors.
+    pub fn backward(&self, loss: &Tensor) -> Grads {
+        let inputs: Vec<&Tensor> = self.params.iter().map(|(_, p)| p).collect();
+        let grads = Tensor::run_backward(&[loss], &inputs, false, false);
+        Grads(grads.into_iter().map(|g| g.defined().then_some(g)).collect())
     }
 
     /// `torch.nn.utils.clip_grad_norm_(params, max_norm)`: scales all gradients in place by
     /// `min(max_norm / (total_norm + 1e-6), 1)` and returns the total norm before clipping.
-    pub fn clip_grad_norm(&mut self, max_norm: f64) -> f64 {
-        let mut grads = self.grads();
-        if grads.is_empty() {
+    pub fn clip_grad_norm(&self, grads: &mut Grads, max_norm: f64) -> f64 {
+        let present: Vec<&mut Tensor> = grads.0.iter_mut().flatten().collect();
+        if present.is_empty() {
             return 0.0;
         }
-        let norms: Vec<Tensor> =
-            grads.iter().map(|g| g.linalg_vector_norm(2.0, None::<&[i64]>, false, None::<Kind>)).collect();
-        let total = Tensor::stack(&norms, 0).linalg_vector_norm(2.0, None::<&[i64]>, false, None::<Kind>);
+        // `norm()` is at::norm(p=2), which libtorch computes with linalg_vector_norm's kernel (tch
+        // 0.24 has no binding for the latter).
+        let norms: Vec<Tensor> = present.iter().map(|g| g.norm()).collect();
+        let total = Tensor::stack(&norms, 0).norm();
         // Python evaluates `max_norm / (total + 1e-6)` as `(total + 1e-6).reciprocal() * max_norm`.
         let coef = ((&total + 1e-6).reciprocal() * max_norm).clamp_max(1.0);
-        tch::no_grad(|| {
-            for g in &mut grads {
-                let _ = g.mul_(&coef);
-            }
-        });
+        for g in present {
+            let _ = g.g_mul_(&coef);
+        }
         total.double_value(&[])
     }
 
     /// One AdamW update at learning rate `lr`, for every parameter that has a gradient.
-    pub fn step(&mut self, lr: f64) {
-        let (b1, b2, eps, wd) = (self.cfg.beta1, self.cfg.beta2, self.cfg.eps, self.cfg.weight_decay);
+    pub fn step(&mut self, grads: &Grads, lr: f64) {
+        let (b1, b2, eps, wd) =
+            (self.cfg.beta1, self.cfg.beta2, self.cfg.eps, self.cfg.weight_decay);
         tch::no_grad(|| {
-            for (name, p) in &mut self.params {
-                let grad = p.grad();
-                if !grad.defined() {
-                    continue;
-                }
+            for ((name, p), grad) in self.params.iter_mut().zip(&grads.0) {
+                let Some(grad) = grad else { continue };
                 let st = self.state.entry(name.clone()).or_insert_with(|| ParamState {
                     step: 0,
                     exp_avg: p.zeros_like(),
                     exp_avg_sq: p.zeros_like(),
                 });
                 st.step += 1;
-                let _ = p.mul_(1.0 - lr * wd);
-                let _ = st.exp_avg.lerp_(&grad, 1.0 - b1);
+                let _ = p.g_mul_scalar_(1.0 - lr * wd);
+                let _ = st.exp_avg.lerp_(grad, 1.0 - b1);
                 // `addcmul_(g, g, value=v)` computes self + (v * g) * g; tch's addcmul_ has no
                 // `value`, and (v * g) with value 1 gives the same bits.
-                let _ = st.exp_avg_sq.mul_(b2).addcmul_(&(&grad * (1.0 - b2)), &grad);
+                let _ = st.exp_avg_sq.g_mul_scalar_(b2).addcmul_(&(grad * (1.0 - b2)), grad);
                 let step = st.step as f64;
                 let bias_correction1 = 1.0 - b1.powf(step);
                 let bias_correction2 = 1.0 - b2.powf(step);
@@ -139,7 +147,7 @@ impl AdamW {
         });
     }
 
-    /// Names of the optimised parameters, sorted.
+    /// Names of the optimised parameters, in optimisation order.
     pub fn param_names(&self) -> impl Iterator<Item = &str> {
         self.params.iter().map(|(n, _)| n.as_str())
     }

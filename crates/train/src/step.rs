@@ -1,0 +1,87 @@
+//! One gradient step (the reference's `train_step_mix`): forward in train mode, masked MSE on the
+//! history actions, backward, global clipping, AdamW at the scheduled learning rate.
+
+use crate::optim::AdamW;
+use pdt_model::{PromptDt, Segments};
+use pdt_prompt::{PromptDtBatch, SegmentBatch};
+use tch::{Device, Kind, Tensor};
+
+/// Moves a host segment batch to `device`.
+pub fn to_segments(b: &SegmentBatch, device: Device) -> Segments {
+    Segments::from_host(
+        b.batch,
+        b.steps,
+        b.state_dim,
+        b.act_dim,
+        &b.states,
+        &b.actions,
+        &b.returns_to_go,
+        &b.timesteps,
+        &b.mask,
+        device,
+    )
+}
+
+/// What one step measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepStats {
+    /// Mean squared action error over the supervised steps, before the update.
+    pub loss: f64,
+    /// Global gradient L2 norm before clipping.
+    pub grad_norm: f64,
+    /// Learning rate used for this update.
+    pub lr: f64,
+}
+
+/// Which predicted actions the loss supervises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LossOn {
+    /// Reference code (pitfall 3): only the K history steps.
+    #[default]
+    History,
+    /// The paper (section 4.4): the prompt's steps too.
+    PromptAndHistory,
+}
+
+/// Tensors of a batch on the device, ready for [`train_step`].
+#[derive(Debug)]
+pub struct DeviceBatch {
+    pub history: Segments,
+    pub prompt: Option<Segments>,
+}
+
+impl DeviceBatch {
+    /// `use_prompt = false` drops the prompt (MT-ORL, MT-BC: the reference's `--no-prompt`).
+    pub fn new(batch: &PromptDtBatch, use_prompt: bool, device: Device) -> Self {
+        Self {
+            history: to_segments(&batch.history, device),
+            prompt: use_prompt.then(|| to_segments(&batch.prompt, device)),
+        }
+    }
+}
+
+/// One training step at gradient step index `step` (0-based; it sets the warm-up learning rate).
+pub fn train_step(
+    model: &PromptDt,
+    opt: &mut AdamW,
+    batch: &DeviceBatch,
+    loss_on: LossOn,
+    step: u64,
+) -> StepStats {
+    let (h, p) = (&batch.history, batch.prompt.as_ref());
+    let loss = match (loss_on, p) {
+        (LossOn::PromptAndHistory, Some(p)) => {
+            let preds = model.forward_all_steps(h, Some(p), true); // [B, Lp+K, da]
+            let targets = Tensor::cat(&[&p.actions, &h.actions], 1);
+            let mask = Tensor::cat(&[&p.mask, &h.mask], 1);
+            PromptDt::action_loss(&preds, &targets, &mask)
+        }
+        _ => PromptDt::action_loss(&model.forward(h, p, true), &h.actions, &h.mask),
+    };
+    let mut grads = opt.backward(&loss);
+    let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg.grad_clip_norm);
+    let lr = opt.cfg.lr_at(step);
+    opt.step(&grads, lr);
+    StepStats { loss: loss.to_kind(Kind::Double).double_value(&[]), grad_norm, lr }
+}
