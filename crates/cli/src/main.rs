@@ -1,4 +1,72 @@
-fn main() {
-    pdt_model::_x();
-    println!("ok");
+//! `promptdt`: a thin shell over the library crates. Each subcommand turns its arguments into a
+//! library call; errors are printed with their causes and give a nonzero exit code.
+
+mod args;
+
+use anyhow::{Context, Result};
+use args::{Cli, Command, DataCommand, ModelCommand};
+use clap::Parser;
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Data(DataCommand::Inspect(a)) => {
+            let reports = pdt_data::inspect::inspect_path(&a.path)?;
+            if a.json {
+                println!("{}", serde_json::to_string_pretty(&reports)?);
+            } else {
+                print!("{}", pdt_data::inspect::render_table(&reports));
+            }
+        }
+        Command::Data(DataCommand::Convert(a)) => {
+            let files = pdt_data::multitask::convert_reference_dir(&a.src, &a.dst)?;
+            for f in &files {
+                println!("{} -> {} ({} trajectories, {} steps)", f.source.display(), f.dest.display(), f.trajectories, f.steps);
+            }
+            println!("converted {} files into {}", files.len(), a.dst.display());
+        }
+        Command::Model(ModelCommand::Forward(a)) => {
+            let device = pdt_model::device::resolve(a.device)?;
+            let s = pdt_model::forward_file::forward_file(&a.weights, &a.inputs, &a.out, device)?;
+            println!(
+                "wrote action_preds [{}, {}, {}] to {} (prompt: {} steps)",
+                s.batch,
+                s.history_steps,
+                s.act_dim,
+                a.out.display(),
+                s.prompt_steps
+            );
+        }
+        Command::Bench(a) => {
+            let cfg = a.to_config()?;
+            let report = pdt_train::bench::run(&cfg)?;
+            let md = pdt_train::bench::render_markdown(&report);
+            print!("{md}");
+            if let Some(dir) = &a.out {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+                std::fs::write(dir.join("bench.json"), serde_json::to_string_pretty(&report)?)?;
+                std::fs::write(dir.join("bench.md"), md)?;
+                println!("wrote {}/bench.json and bench.md", dir.display());
+            }
+        }
+        Command::Demo(a) => {
+            let device = pdt_model::device::resolve(a.device)?;
+            println!("promptdt smoke run: 2 synthetic tasks, {} training steps on {device:?}", a.steps);
+            for (i, s) in pdt_train::smoke::run(a.seed, a.steps, device).iter().enumerate() {
+                println!("step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}", s.loss, s.grad_norm, s.lr);
+            }
+        }
+    }
+    Ok(())
 }

@@ -12,6 +12,7 @@
 pub mod checkpoint;
 pub mod config;
 pub mod device;
+pub mod forward_file;
 pub mod gpt2;
 pub mod prompt_dt;
 

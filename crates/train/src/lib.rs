@@ -6,4 +6,6 @@
 //! - [`step`]: one gradient step on a sampled batch (the reference's `train_step_mix`).
 
 pub mod optim;
+pub mod bench;
+pub mod smoke;
 pub mod step;

@@ -1,0 +1,133 @@
+//! Command-line arguments (what the user typed). Each becomes a validated library config.
+
+use anyhow::{bail, Result};
+use clap::{Args, Parser, Subcommand};
+use pdt_model::device::DeviceSpec;
+use std::path::PathBuf;
+
+#[derive(Debug, Parser)]
+#[command(name = "promptdt", version, about = "Prompt-based Decision Transformer (Xu et al., ICML 2022) in Rust")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Inspect and convert offline datasets.
+    #[command(subcommand)]
+    Data(DataCommand),
+    /// Run a model on stored inputs.
+    #[command(subcommand)]
+    Model(ModelCommand),
+    /// Time training steps and inference against PyTorch.
+    Bench(BenchArgs),
+    /// A quick end-to-end run.
+    Demo(DemoArgs),
+}
+
+#[derive(Debug, Subcommand)]
+pub enum DataCommand {
+    /// Per file: trajectories, steps, dims, dtypes, returns (a table, or JSON with --json).
+    Inspect(InspectArgs),
+    /// Convert the reference release's pickles (`*.pkl`) into the native format.
+    Convert(ConvertArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct InspectArgs {
+    /// A dataset file (.pkl or .safetensors) or a directory of them.
+    pub path: PathBuf,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct ConvertArgs {
+    /// Directory holding `{env}-{task}-{mode}.pkl` files.
+    pub src: PathBuf,
+    /// Output directory for `{env}-{task}-{mode}.safetensors`.
+    pub dst: PathBuf,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ModelCommand {
+    /// Predict actions for a batch stored in safetensors (tensor names in docs/model-forward.md).
+    Forward(ForwardArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ForwardArgs {
+    /// Weights with the reference state_dict names (safetensors).
+    #[arg(long)]
+    pub weights: PathBuf,
+    /// Input batch (safetensors).
+    #[arg(long)]
+    pub inputs: PathBuf,
+    /// Where to write `action_preds` (safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Intra-op threads for both engines (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value_t = 30)]
+    pub iters: usize,
+    #[arg(long, default_value_t = 5)]
+    pub warmup: usize,
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Comma-separated cases.
+    #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50")]
+    pub cases: String,
+    /// Python with PyTorch 2.11 for the side-by-side baseline (omit to time promptdt alone).
+    #[arg(long)]
+    pub python: Option<PathBuf>,
+    /// The PyTorch benchmark script.
+    #[arg(long, default_value = "scripts/bench/bench_torch.py")]
+    pub script: PathBuf,
+    /// Directory for bench.json and bench.md.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl BenchArgs {
+    pub fn to_config(&self) -> Result<pdt_train::bench::BenchConfig> {
+        let threads = self.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+        if threads == 0 || self.iters == 0 {
+            bail!("--threads and --iters must be at least 1");
+        }
+        let pytorch = self.python.as_ref().map(|python| {
+            pdt_train::bench::PyTorchBaseline { python: python.clone(), script: self.script.clone() }
+        });
+        if let Some(p) = &pytorch {
+            if !p.script.is_file() {
+                bail!("PyTorch benchmark script {} not found (run from the repository root or pass --script)", p.script.display());
+            }
+        }
+        Ok(pdt_train::bench::BenchConfig {
+            threads,
+            iters: self.iters,
+            warmup: self.warmup,
+            device: pdt_model::device::resolve(self.device)?,
+            cases: self.cases.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect(),
+            pytorch,
+        })
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 20)]
+    pub steps: u64,
+    #[arg(long, default_value = "auto")]
+    pub device: DeviceSpec,
+}

@@ -1,0 +1,201 @@
+//! Speed of one training step and of inference, side by side with PyTorch running the same model
+//! (`scripts/bench/bench_torch.py`) in the same invocation.
+//!
+//! Cases (state 20, action 6, K = 20, prompt 5 steps, the reference architecture):
+//! `train_b560` / `train_b64` (forward in train mode, masked MSE, backward, clipping, AdamW) and
+//! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
+//! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
+
+use crate::optim::{AdamW, AdamWConfig};
+use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Instant;
+use tch::{nn::VarStore, Device, Kind, Tensor};
+
+/// What to measure.
+#[derive(Debug, Clone)]
+pub struct BenchConfig {
+    /// libtorch intra-op threads (PyTorch gets the same).
+    pub threads: usize,
+    /// Timed iterations per case (after `warmup` untimed ones).
+    pub iters: usize,
+    pub warmup: usize,
+    pub device: Device,
+    /// Cases to run: any of `train_b560`, `train_b64`, `infer_b1`, `infer_b50`.
+    pub cases: Vec<String>,
+    /// Run the PyTorch baseline with this Python and script (None: promptdt only).
+    pub pytorch: Option<PyTorchBaseline>,
+}
+
+#[derive(Debug, Clone)]
+pub struct PyTorchBaseline {
+    pub python: PathBuf,
+    pub script: PathBuf,
+}
+
+/// Timing of one case (milliseconds per iteration).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaseTiming {
+    pub name: String,
+    pub median_ms: f64,
+    pub p10_ms: f64,
+    pub p90_ms: f64,
+    pub iters: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct EngineReport {
+    pub engine: String,
+    #[serde(default)]
+    pub torch_version: Option<String>,
+    pub threads: usize,
+    pub results: Vec<CaseTiming>,
+}
+
+/// Both engines' numbers, and PyTorch's median divided by promptdt's (above 1: promptdt is faster).
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    pub device: String,
+    pub promptdt: EngineReport,
+    pub pytorch: Option<EngineReport>,
+    pub speedup: Vec<(String, f64)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("unknown benchmark case `{0}` (expected train_b560, train_b64, infer_b1, infer_b50)")]
+    UnknownCase(String),
+    #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
+    Baseline { cmd: String, why: String },
+}
+
+fn parse_case(name: &str) -> Result<(bool, i64), BenchError> {
+    let bad = || BenchError::UnknownCase(name.to_string());
+    let (train, b) = if let Some(b) = name.strip_prefix("train_b") {
+        (true, b)
+    } else if let Some(b) = name.strip_prefix("infer_b") {
+        (false, b)
+    } else {
+        return Err(bad());
+    };
+    b.parse::<i64>().ok().filter(|&b| b > 0).map(|b| (train, b)).ok_or_else(bad)
+}
+
+/// Random segments of `b` samples x `t` steps; histories left-padded to a random length.
+fn random_segments(b: i64, t: i64, ds: i64, da: i64, full: bool, dev: Device) -> Segments {
+    let opts = (Kind::Float, dev);
+    let tlen = if full { Tensor::full([b], t, (Kind::Int64, dev)) } else { Tensor::randint_low(1, t + 1, [b], (Kind::Int64, dev)) };
+    let pos = Tensor::arange(t, (Kind::Int64, dev));
+    let mask = pos.unsqueeze(0).ge_tensor(&(t - tlen).unsqueeze(1)); // [b, t] bool
+    let start = Tensor::randint_low(0, 1000 - t, [b, 1], (Kind::Int64, dev));
+    let timesteps = (start + pos.unsqueeze(0)).where_self(&mask, &Tensor::zeros([1], (Kind::Int64, dev)));
+    Segments {
+        states: Tensor::randn([b, t, ds], opts),
+        actions: Tensor::rand([b, t, da], opts) * 2.0 - 1.0,
+        returns_to_go: Tensor::rand([b, t, 1], opts),
+        timesteps,
+        mask: mask.to_kind(Kind::Float),
+    }
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
+    sorted[i]
+}
+
+fn time_case(model: &PromptDt, opt: &mut AdamW, name: &str, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+    let (train, b) = parse_case(name)?;
+    let dev = cfg.device;
+    let history = random_segments(b, 20, 20, 6, false, dev);
+    let prompt = random_segments(b, 5, 20, 6, true, dev);
+    let mut run = || {
+        if train {
+            let preds = model.forward(&history, Some(&prompt), true);
+            let loss = PromptDt::action_loss(&preds, &history.actions, &history.mask);
+            let mut grads = opt.backward(&loss);
+            opt.clip_grad_norm(&mut grads, 0.25);
+            opt.step(&grads, 1e-4);
+        } else {
+            let preds = tch::no_grad(|| model.forward(&history, Some(&prompt), false));
+            // Acting needs the action on the host: include the copy, as a rollout would.
+            let _ = preds.select(1, -1).to_device(Device::Cpu);
+        }
+        if let Device::Cuda(_) = dev {
+            tch::Cuda::synchronize(0);
+        }
+    };
+    for _ in 0..cfg.warmup {
+        run();
+    }
+    let mut ms: Vec<f64> = (0..cfg.iters)
+        .map(|_| {
+            let t0 = Instant::now();
+            run();
+            t0.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    ms.sort_by(f64::total_cmp);
+    Ok(CaseTiming {
+        name: name.to_string(),
+        median_ms: percentile(&ms, 0.5),
+        p10_ms: percentile(&ms, 0.1),
+        p90_ms: percentile(&ms, 0.9),
+        iters: cfg.iters,
+    })
+}
+
+fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport, BenchError> {
+    let device = if let Device::Cuda(_) = cfg.device { "cuda" } else { "cpu" };
+    let mut cmd = Command::new(&base.python);
+    cmd.arg(&base.script)
+        .args(["--threads", &cfg.threads.to_string(), "--iters", &cfg.iters.to_string()])
+        .args(["--warmup", &cfg.warmup.to_string(), "--device", device, "--cases", &cfg.cases.join(",")]);
+    let shown = format!("{cmd:?}");
+    let out = cmd.output().map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
+    if !out.status.success() {
+        let why = format!("{}: {}", out.status, String::from_utf8_lossy(&out.stderr).trim());
+        return Err(BenchError::Baseline { cmd: shown, why });
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or("");
+    serde_json::from_str(line).map_err(|e| BenchError::Baseline { cmd: shown, why: format!("unreadable output ({e}): {text}") })
+}
+
+/// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
+pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
+    for c in &cfg.cases {
+        parse_case(c)?;
+    }
+    tch::set_num_threads(cfg.threads as i32);
+    tch::manual_seed(0);
+    let mcfg = PromptDtConfig::reference(20, 6);
+    let vs = VarStore::new(cfg.device);
+    let model = PromptDt::new(&vs.root(), &mcfg);
+    let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
+    let results = cfg.cases.iter().map(|c| time_case(&model, &mut opt, c, cfg)).collect::<Result<Vec<_>, _>>()?;
+    let promptdt = EngineReport { engine: "promptdt".into(), torch_version: Some("libtorch 2.11.0 (tch 0.24)".into()), threads: cfg.threads, results };
+    let pytorch = cfg.pytorch.as_ref().map(|b| run_pytorch(b, cfg)).transpose()?;
+    let speedup = match &pytorch {
+        Some(p) => promptdt
+            .results
+            .iter()
+            .filter_map(|r| p.results.iter().find(|q| q.name == r.name).map(|q| (r.name.clone(), q.median_ms / r.median_ms)))
+            .collect(),
+        None => Vec::new(),
+    };
+    Ok(BenchReport { device: format!("{:?}", cfg.device), promptdt, pytorch, speedup })
+}
+
+/// A Markdown table of the report.
+pub fn render_markdown(r: &BenchReport) -> String {
+    let mut s = String::from("| case | promptdt median (p10-p90) ms | PyTorch median (p10-p90) ms | PyTorch / promptdt |\n|---|---:|---:|---:|\n");
+    for c in &r.promptdt.results {
+        let theirs = r.pytorch.as_ref().and_then(|p| p.results.iter().find(|q| q.name == c.name));
+        let fmt = |t: &CaseTiming| format!("{:.2} ({:.2}-{:.2})", t.median_ms, t.p10_ms, t.p90_ms);
+        let ratio = r.speedup.iter().find(|(n, _)| n == &c.name).map_or("-".into(), |(_, x)| format!("{x:.2}x"));
+        s += &format!("| {} | {} | {} | {} |\n", c.name, fmt(c), theirs.map_or("not run".into(), fmt), ratio);
+    }
+    s
+}
