@@ -1,0 +1,117 @@
+//! End-to-end smoke tests: every subcommand of the real binary on a tiny budget, in a temp dir.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn promptdt(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_promptdt")).args(args).output().expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = promptdt(args);
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
+    stdout.into_owned()
+}
+
+fn fails(args: &[&str]) -> String {
+    let out = promptdt(args);
+    assert!(!out.status.success(), "promptdt {args:?} should fail");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn repo(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
+}
+
+fn official() -> Option<PathBuf> {
+    let p = repo("../shared/data/official-prompts");
+    p.is_dir().then_some(p)
+}
+
+#[test]
+fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
+    let Some(dir) = official() else { return eprintln!("skipped: ../shared/data not present") };
+    let d = dir.to_str().unwrap();
+    let table = ok(&["data", "inspect", d]);
+    assert!(table.contains("42 files, 210 trajectories, 42000 steps"), "{table}");
+    let json: serde_json::Value = serde_json::from_str(&ok(&["data", "inspect", "--json", d])).unwrap();
+    let files = json.as_array().unwrap();
+    assert_eq!(files.len(), 42);
+    // README figures: cheetah_dir-0 forward 630-687, cheetah_dir-1 backward 1129-1171
+    let find = |stem: &str| files.iter().find(|f| f["path"].as_str().unwrap().contains(stem)).unwrap();
+    let fwd = find("cheetah_dir-0-");
+    assert!(fwd["return_min"].as_f64().unwrap() > 630.0 && fwd["return_max"].as_f64().unwrap() < 687.0);
+    let bwd = find("cheetah_dir-1-");
+    assert!(bwd["return_min"].as_f64().unwrap() > 1129.0 && bwd["return_max"].as_f64().unwrap() < 1171.0);
+}
+
+#[test]
+fn data_convert_then_inspect_the_native_files() {
+    let Some(dir) = official() else { return eprintln!("skipped: ../shared/data not present") };
+    let tmp = tempfile::tempdir().unwrap();
+    let src = tmp.path().join("src");
+    std::fs::create_dir(&src).unwrap();
+    for f in ["cheetah_vel-2-prompt-expert.pkl", "cheetah_dir-1-prompt-expert.pkl"] {
+        std::fs::copy(dir.join(f), src.join(f)).unwrap();
+    }
+    let dst = tmp.path().join("native");
+    let out = ok(&["data", "convert", src.to_str().unwrap(), dst.to_str().unwrap()]);
+    assert!(out.contains("converted 2 files"), "{out}");
+    let native = ok(&["data", "inspect", dst.to_str().unwrap()]);
+    let pickles = ok(&["data", "inspect", src.to_str().unwrap()]);
+    assert!(native.contains("native") && native.contains("2 files, 10 trajectories, 2000 steps"), "{native}");
+    // same returns in both formats
+    let returns = |t: &str| t.lines().filter(|l| l.contains("cheetah")).map(|l| l.split_whitespace().rev().take(3).collect::<Vec<_>>().join(" ")).collect::<Vec<_>>();
+    assert_eq!(returns(&native), returns(&pickles));
+}
+
+#[test]
+fn model_forward_reproduces_the_pytorch_golden_predictions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("preds.safetensors");
+    let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
+    let i = repo("testdata/golden/prompt_dt_inputs.safetensors");
+    let msg = ok(&["model", "forward", "--weights", w.to_str().unwrap(), "--inputs", i.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(msg.contains("[4, 20, 6]"), "{msg}");
+    let ours = tch::Tensor::read_safetensors(&out).unwrap();
+    let gold = tch::Tensor::read_safetensors(repo("testdata/golden/prompt_dt_expected.safetensors")).unwrap();
+    let want = &gold.iter().find(|(n, _)| n == "eval.action_preds").unwrap().1;
+    assert_eq!(ours.len(), 1);
+    assert!(ours[0].1.equal(want), "model forward differs from PyTorch");
+}
+
+#[test]
+fn model_forward_errors_name_the_file_and_tensor() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("p.safetensors");
+    let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
+    let missing = fails(&["model", "forward", "--weights", "/nonexistent.safetensors", "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(missing.contains("/nonexistent.safetensors"), "{missing}");
+    // weights given as inputs: no `states`
+    let wrong = fails(&["model", "forward", "--weights", w.to_str().unwrap(), "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(wrong.contains("`states` is missing"), "{wrong}");
+    let garbage = tmp.path().join("garbage.safetensors");
+    std::fs::write(&garbage, b"\x10\x00\x00\x00\x00\x00\x00\x00{not json at all").unwrap();
+    let bad = fails(&["model", "forward", "--weights", garbage.to_str().unwrap(), "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(bad.contains("garbage.safetensors"), "{bad}");
+    assert!(!out.exists(), "no output on failure");
+}
+
+#[test]
+fn bench_runs_promptdt_alone_on_a_tiny_budget() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = ok(&["bench", "--threads", "1", "--iters", "2", "--warmup", "0", "--cases", "train_b4,infer_b1", "--out", tmp.path().to_str().unwrap()]);
+    assert!(out.contains("train_b4") && out.contains("not run"), "{out}");
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(tmp.path().join("bench.json")).unwrap()).unwrap();
+    assert_eq!(json["promptdt"]["results"].as_array().unwrap().len(), 2);
+    assert!(fails(&["bench", "--cases", "nonsense"]).contains("unknown benchmark case"));
+}
+
+#[test]
+fn demo_smoke_trains_and_the_loss_goes_down() {
+    let out = ok(&["demo", "--steps", "30", "--device", "cpu"]);
+    let losses: Vec<f64> = out.lines().filter_map(|l| l.split("loss ").nth(1)?.split_whitespace().next()?.parse().ok()).collect();
+    assert_eq!(losses.len(), 30, "{out}");
+    assert!(losses[25..].iter().sum::<f64>() < losses[..5].iter().sum::<f64>() * 0.5, "{losses:?}");
+}
