@@ -20,6 +20,14 @@ pub enum Command {
     /// Run a model on stored inputs.
     #[command(subcommand)]
     Model(ModelCommand),
+    /// Collect offline datasets (expert / medium / random) and prompt sets.
+    Collect(CollectArgs),
+    /// Train Prompt-DT or a variant from a TOML configuration.
+    Train(TrainArgs),
+    /// Few-shot evaluation of a run's latest checkpoint on its held-out tasks.
+    Eval(EvalArgs),
+    /// Tables and learning-curve plots from run directories.
+    Report(ReportArgs),
     /// Time training steps and inference against PyTorch.
     Bench(BenchArgs),
     /// A quick end-to-end run.
@@ -130,4 +138,80 @@ pub struct DemoArgs {
     pub steps: u64,
     #[arg(long, default_value = "auto")]
     pub device: DeviceSpec,
+}
+
+#[derive(Debug, Args)]
+pub struct CollectArgs {
+    /// Task family (`point-robot`).
+    #[arg(long)]
+    pub env: String,
+    /// Output directory (default: data/<env>).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Episodes per task in each main dataset.
+    #[arg(long, default_value_t = 100)]
+    pub episodes: usize,
+    /// Episodes per task in each prompt set.
+    #[arg(long, default_value_t = 5)]
+    pub prompt_episodes: usize,
+}
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Experiment file (TOML; see configs/). Not needed with --resume.
+    #[arg(long, required_unless_present = "resume")]
+    pub config: Option<PathBuf>,
+    /// Run directory to write.
+    #[arg(long, conflicts_with = "resume")]
+    pub out: Option<PathBuf>,
+    /// Continue the (killed) run in this directory from its last checkpoint.
+    #[arg(long)]
+    pub resume: Option<PathBuf>,
+    /// Override run.seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override train.iterations.
+    #[arg(long)]
+    pub iterations: Option<u64>,
+    /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune).
+    #[arg(long)]
+    pub method: Option<String>,
+    /// Override run.device.
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+    /// Override data.dir.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Run directory.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Episodes per task (default: the run's eval.episodes).
+    #[arg(long)]
+    pub episodes: Option<usize>,
+    /// `test` (held-out tasks) or `train`.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+}
+
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// Run directories (or directories holding them).
+    #[arg(required = true)]
+    pub runs: Vec<PathBuf>,
+    /// Output directory for table.md/csv and curves_<env>.png/svg/csv.
+    #[arg(long, default_value = "report")]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub title: Option<String>,
 }

@@ -2,9 +2,11 @@
 //! library call; errors are printed with their causes and give a nonzero exit code.
 
 mod args;
+mod commands;
 
 use anyhow::{Context, Result};
 use args::{Cli, Command, DataCommand, ModelCommand};
+use commands::{collect, train};
 use clap::Parser;
 use std::process::ExitCode;
 
@@ -47,6 +49,28 @@ fn run(cli: Cli) -> Result<()> {
                 a.out.display(),
                 s.prompt_steps
             );
+        }
+        Command::Collect(a) => collect(&a)?,
+        Command::Train(a) => train(&a)?,
+        Command::Eval(a) => {
+            let r = pdt_train::run::evaluate_run(&a.run, a.episodes, &a.split, a.device)?;
+            println!("{:<24} {:>12} {:>10} {:>9}", "task", "return mean", "std", "episodes");
+            for t in &r.tasks {
+                println!("{:<24} {:>12.2} {:>10.2} {:>9}", t.task, t.return_mean, t.return_std, t.episodes);
+            }
+            println!("{:<24} {:>12.2}", format!("average ({})", r.split), r.mean_return);
+            println!("checkpoint {} (iteration {}); wrote {}/eval_final.json", r.checkpoint, r.iteration, a.run.display());
+        }
+        Command::Report(a) => {
+            let cfg = pdt_report::ReportConfig { runs: a.runs.clone(), out_dir: a.out.clone(), title: a.title.clone() };
+            let summary = pdt_report::run(&cfg)?;
+            print!("{}", summary.markdown);
+            for w in &summary.warnings {
+                eprintln!("warning: {w}");
+            }
+            for f in &summary.files {
+                println!("wrote {}", f.display());
+            }
         }
         Command::Bench(a) => {
             let cfg = a.to_config()?;

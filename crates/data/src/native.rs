@@ -320,8 +320,34 @@ pub fn write_task_dataset(path: &Path, ds: &TaskDataset, meta: &FileMeta) -> Res
                     DataError::Io { path: tmp.to_path_buf(), source }
                 }
                 other => format_err(path, format!("safetensors serialization failed: {other}")),
-            })
+            })?;
+        canonicalize_header(tmp).map_err(|source| DataError::Io { path: tmp.to_path_buf(), source })
     })
+}
+
+/// Rewrites a safetensors header with its JSON keys sorted, in place. The safetensors crate writes
+/// `__metadata__` from a `HashMap`, whose order changes from run to run; sorted keys make the same
+/// data give the same bytes. Reordering keys keeps the JSON's length, and the header is padded with
+/// spaces to its original size, so the tensor offsets are untouched.
+fn canonicalize_header(path: &Path) -> std::io::Result<()> {
+    use std::io::{Read, Seek, SeekFrom, Write};
+    let mut f = std::fs::OpenOptions::new().read(true).write(true).open(path)?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len)?;
+    let n = u64::from_le_bytes(len) as usize;
+    let mut header = vec![0u8; n];
+    f.read_exact(&mut header)?;
+    let invalid = |m: String| std::io::Error::new(std::io::ErrorKind::InvalidData, m);
+    // serde_json's map is a BTreeMap: parsing and printing sorts every object's keys.
+    let value: serde_json::Value = serde_json::from_slice(&header).map_err(|e| invalid(e.to_string()))?;
+    let mut sorted = serde_json::to_vec(&value).map_err(|e| invalid(e.to_string()))?;
+    if sorted.len() > n {
+        return Err(invalid(format!("canonical header is {} bytes, more than the {n} written", sorted.len())));
+    }
+    sorted.resize(n, b' ');
+    f.seek(SeekFrom::Start(8))?;
+    f.write_all(&sorted)?;
+    f.sync_all()
 }
 
 #[derive(Clone, Copy)]

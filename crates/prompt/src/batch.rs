@@ -243,6 +243,21 @@ impl<'a> BatchSampler<'a> {
         prompt
     }
 
+    /// `n` segments of `len` steps from the tail of task `task`'s demonstrations (P_i), the
+    /// reference's `get_batch_finetune` (`si = T - len - 1`, uniform demonstration): the data
+    /// MT-BC-Finetune adapts on. Returns-to-go are kept (reference pitfall 10).
+    pub fn tail_segments(&self, task: usize, n: usize, len: usize, rng: &mut Rng) -> SegmentBatch {
+        let demos = &self.tasks[task].data.prompts.trajectories;
+        let mut out = SegmentBatch::zeros(n, len, self.state_dim, self.act_dim);
+        for row in 0..n {
+            let traj = &demos[rng.random_range(0..demos.len())];
+            let si = traj.len().saturating_sub(len + 1);
+            let slot = out.rows(row, 1);
+            write_segment(traj, si, len, &self.norm, self.cfg.rtg_scale, self.cfg.max_ep_len, false, slot);
+        }
+        out
+    }
+
     pub fn num_tasks(&self) -> usize {
         self.tasks.len()
     }
@@ -473,6 +488,18 @@ mod tests {
         // the token limit: 3 * (JH + K) <= n_positions
         assert!(BatchSampler::new(cfg(20, 1, 322), &refs, StateNorm::identity(3), 1024).is_err());
         assert!(BatchSampler::new(cfg(20, 1, 322), &refs, StateNorm::identity(3), 1026).is_ok());
+    }
+
+    #[test]
+    fn finetune_segments_are_demonstration_tails() {
+        let tasks = [task(0, 3, 50)];
+        let s = BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
+        let b = s.tail_segments(0, 6, 5, &mut rng(11));
+        assert_eq!((b.batch, b.steps), (6, 5));
+        for row in 0..6 {
+            assert_eq!(&b.timesteps[row * 5..row * 5 + 5], &[44, 45, 46, 47, 48]);
+            assert!(id(&b, row, 0).1 >= 100.0, "from P_i");
+        }
     }
 
     #[test]

@@ -6,6 +6,8 @@
 //! - [`step`]: one gradient step on a sampled batch (the reference's `train_step_mix`).
 
 pub mod optim;
+pub mod run;
 pub mod bench;
+pub mod config;
 pub mod smoke;
 pub mod step;

@@ -12,7 +12,7 @@ use tch::{nn::VarStore, Tensor};
 
 /// AdamW settings. Defaults are the reference's (`torch.optim.AdamW(lr=1e-4, weight_decay=1e-4)`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct AdamWConfig {
     /// Peak learning rate, reached at the end of warm-up.
     pub learning_rate: f64,

@@ -1,0 +1,89 @@
+//! Subcommands with progress bars: argument handling and display only; the work is one library call.
+
+use crate::args::{CollectArgs, TrainArgs};
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+
+fn bar(len: u64, template: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len);
+    if let Ok(style) = ProgressStyle::with_template(template) {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb
+}
+
+pub fn collect(a: &CollectArgs) -> Result<()> {
+    let family = pdt_envs::family(&a.env)?;
+    if family.name() != "point_robot" {
+        bail!("`collect --env {}`: scripted collection exists for point-robot only so far", a.env);
+    }
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family.name()));
+    let cfg = pdt_envs::collect_scripted::CollectConfig {
+        seed: a.seed,
+        episodes_per_task: a.episodes,
+        prompt_episodes: a.prompt_episodes,
+        ..Default::default()
+    };
+    let pb = bar(0, "collect {bar:30} {pos}/{len} datasets [{elapsed} < {eta}]");
+    let summary = pdt_envs::collect_scripted::collect(&cfg, &out, &mut |done, total| {
+        pb.set_length(total as u64);
+        pb.set_position(done as u64);
+    })?;
+    pb.finish_and_clear();
+    println!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
+    for e in summary.entries.iter().filter(|e| e.task % 8 == 2) {
+        println!("{:<6} {:<8} {:>14.2} {:>14.2}", e.task, format!("{:?}", e.mode).to_lowercase(), e.dataset.mean, e.prompts.mean);
+    }
+    println!("wrote {} datasets and {} to {}", summary.entries.len() * 2, summary.card.display(), out.display());
+    Ok(())
+}
+
+pub fn train(a: &TrainArgs) -> Result<()> {
+    use pdt_train::config::{Method, TrainConfig};
+    let (cfg, dir) = match (&a.resume, &a.config) {
+        (Some(dir), _) => (None, dir.clone()),
+        (None, Some(path)) => {
+            let mut cfg = TrainConfig::from_file(path)?;
+            if let Some(s) = a.seed {
+                cfg.run.seed = s;
+            }
+            if let Some(n) = a.iterations {
+                cfg.train.iterations = n;
+            }
+            if let Some(m) = &a.method {
+                cfg.run.method = serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
+                    .with_context(|| format!("--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl or mt-bc-finetune"))?;
+            }
+            if let Some(d) = a.device {
+                cfg.run.device = d;
+            }
+            if let Some(d) = &a.data {
+                cfg.data.dir = d.clone();
+            }
+            let dir = a.out.clone().unwrap_or_else(|| {
+                PathBuf::from("runs").join(format!("{}-{}-seed{}", cfg.run.method.name(), cfg.env.name, cfg.run.seed))
+            });
+            (Some(cfg), dir)
+        }
+        (None, None) => bail!("give --config or --resume"),
+    };
+    let pb = if a.quiet { ProgressBar::hidden() } else { bar(0, "train {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}") };
+    let mut last_test: Option<f64> = None;
+    let mut progress = |p: &pdt_train::run::Progress| {
+        pb.set_length(p.iterations);
+        pb.set_position(p.iteration);
+        last_test = p.test_return.or(last_test);
+        let test = last_test.map_or(String::new(), |r| format!("  test return {r:.2}"));
+        pb.set_message(format!("loss {:.5}{test}", p.loss));
+    };
+    let opts = pdt_train::run::TrainOptions { resume: a.resume.is_some(), stop_after_iterations: None, progress: &mut progress };
+    let summary = pdt_train::run::train(cfg, &dir, opts)?;
+    pb.finish_and_clear();
+    if let Some(tasks) = &summary.last_test {
+        let mean = tasks.iter().map(|t| t.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
+        println!("held-out tasks after iteration {}: average return {mean:.2}", summary.iterations_done);
+    }
+    println!("run directory: {}", summary.dir.display());
+    Ok(())
+}

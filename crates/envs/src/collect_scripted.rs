@@ -1,0 +1,543 @@
+//! Scripted point-robot policies and a deterministic writer for their datasets.
+//!
+//! Three policies of decreasing quality ([`Mode`]): `expert` heads straight for the goal,
+//! `medium` heads for a goal misremembered once per episode, `random` moves uniformly at random.
+//! [`collect`] writes, for every task `i` and mode `m`, the main dataset D_i
+//! (`point_robot-{i}-{m}.safetensors`) and the prompt set P_i
+//! (`point_robot-{i}-prompt-{m}.safetensors`) in the native format, plus a `dataset.json` card.
+//!
+//! Every episode draws its randomness from its own ChaCha8 generator keyed by
+//! `(seed, task, mode, set, episode)`, so the data does not depend on the order in which episodes
+//! are generated, on thread count, or on which other tasks and modes are collected in the same run.
+//! `docs/point-robot.md` describes the policies and the file layout.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc;
+
+use pdt_data::native::{
+    self, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats, CARD_FILE_NAME, CARD_FORMAT_NAME,
+    FORMAT_VERSION,
+};
+use pdt_data::{DataError, TaskDataset, Trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
+use crate::{Env, EnvError, EnvFamily};
+
+/// Standard deviation of the expert's per-coordinate action noise.
+pub const EXPERT_ACTION_NOISE: f64 = 0.01;
+/// Standard deviation of the medium policy's per-episode, per-coordinate goal error.
+pub const MEDIUM_GOAL_NOISE: f64 = 0.5;
+/// Standard deviation of the medium policy's per-coordinate action noise.
+pub const MEDIUM_ACTION_NOISE: f64 = 0.05;
+
+/// A scripted policy, and the dataset kind it produces (the `mode` in file names).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    Expert,
+    Medium,
+    Random,
+}
+
+impl Mode {
+    /// All modes, best first.
+    pub const ALL: [Mode; 3] = [Mode::Expert, Mode::Medium, Mode::Random];
+
+    /// The name used in file names and cards.
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Expert => "expert",
+            Mode::Medium => "medium",
+            Mode::Random => "random",
+        }
+    }
+
+    /// One-line description of the policy, recorded in the dataset card.
+    pub fn description(self) -> &'static str {
+        match self {
+            Mode::Expert => {
+                "a = clip(goal - pos + N(0, 0.01^2) per coordinate, -0.1, 0.1): straight to the \
+                 goal at full speed"
+            }
+            Mode::Medium => {
+                "g' = goal + N(0, 0.5^2) per coordinate, drawn once per episode; a = clip(g' - pos \
+                 + N(0, 0.05^2) per coordinate, -0.1, 0.1)"
+            }
+            Mode::Random => "a ~ Uniform[-0.1, 0.1] per coordinate",
+        }
+    }
+
+    /// Stable number of the mode in RNG keys: adding a mode must not change the others' data.
+    fn rng_id(self) -> u32 {
+        match self {
+            Mode::Expert => 0,
+            Mode::Medium => 1,
+            Mode::Random => 2,
+        }
+    }
+}
+
+impl fmt::Display for Mode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Mode {
+    type Err = CollectError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Mode::ALL.into_iter().find(|m| m.name() == s).ok_or_else(|| {
+            CollectError::Config(format!("unknown mode {s:?} (known: expert, medium, random)"))
+        })
+    }
+}
+
+/// Which of a task's two sets an episode belongs to. Part of the RNG key, so P_i's episodes are
+/// distinct from D_i's and do not change when `episodes_per_task` does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Set {
+    /// The main dataset D_i.
+    Dataset,
+    /// The prompt set P_i.
+    Prompt,
+}
+
+impl Set {
+    fn rng_id(self) -> u32 {
+        match self {
+            Set::Dataset => 0,
+            Set::Prompt => 1,
+        }
+    }
+}
+
+/// What to collect.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CollectConfig {
+    pub seed: u64,
+    /// Episodes in each main dataset D_i.
+    pub episodes_per_task: usize,
+    /// Episodes in each prompt set P_i.
+    pub prompt_episodes: usize,
+    pub modes: Vec<Mode>,
+    /// Task indices, `0..40`.
+    pub tasks: Vec<usize>,
+}
+
+impl Default for CollectConfig {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            episodes_per_task: 100,
+            prompt_episodes: 5,
+            modes: Mode::ALL.to_vec(),
+            tasks: (0..NUM_TASKS).collect(),
+        }
+    }
+}
+
+impl CollectConfig {
+    /// Checks the config before anything is written.
+    pub fn validate(&self) -> Result<(), CollectError> {
+        let bad = |m: String| Err(CollectError::Config(m));
+        if self.episodes_per_task == 0 {
+            return bad("episodes_per_task must be at least 1".into());
+        }
+        if self.prompt_episodes == 0 {
+            return bad("prompt_episodes must be at least 1".into());
+        }
+        if self.modes.is_empty() {
+            return bad("no modes given".into());
+        }
+        if self.tasks.is_empty() {
+            return bad("no tasks given".into());
+        }
+        if let Some(&t) = self.tasks.iter().find(|&&t| t >= NUM_TASKS) {
+            return Err(
+                EnvError::UnknownTask { env: ENV_NAME.into(), task: t, n: NUM_TASKS }.into()
+            );
+        }
+        // A duplicate would write the same files twice and list them twice in the card.
+        for (i, t) in self.tasks.iter().enumerate() {
+            if self.tasks[..i].contains(t) {
+                return bad(format!("task {t} is listed twice"));
+            }
+        }
+        for (i, m) in self.modes.iter().enumerate() {
+            if self.modes[..i].contains(m) {
+                return bad(format!("mode {m} is listed twice"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Return statistics of one (task, mode).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskModeSummary {
+    pub task: usize,
+    pub mode: Mode,
+    /// Undiscounted returns of D_i (population std).
+    pub dataset: ReturnStats,
+    /// Undiscounted returns of P_i.
+    pub prompts: ReturnStats,
+    pub dataset_file: PathBuf,
+    pub prompt_file: PathBuf,
+}
+
+/// What [`collect`] wrote.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CollectSummary {
+    /// One entry per (task, mode), tasks in config order, modes in config order within a task.
+    pub entries: Vec<TaskModeSummary>,
+    /// Path of the `dataset.json` card.
+    pub card: PathBuf,
+}
+
+impl CollectSummary {
+    /// The entry of `(task, mode)`, if it was collected.
+    pub fn get(&self, task: usize, mode: Mode) -> Option<&TaskModeSummary> {
+        self.entries.iter().find(|e| e.task == task && e.mode == mode)
+    }
+
+    /// Mean over `tasks` of the per-task mean D_i return of `mode`; `None` if any of those tasks
+    /// was not collected in that mode, or `tasks` is empty.
+    pub fn mean_return(&self, mode: Mode, tasks: &[usize]) -> Option<f64> {
+        if tasks.is_empty() {
+            return None;
+        }
+        let mut sum = 0.0;
+        for &t in tasks {
+            sum += self.get(t, mode)?.dataset.mean;
+        }
+        Some(sum / tasks.len() as f64)
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CollectError {
+    #[error("invalid collection config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error("cannot create the output directory {}", path.display())]
+    CreateDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Writing a dataset file or the card failed; `path` is the file.
+    #[error("cannot write {}: {source}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: DataError,
+    },
+    /// The file was not written because writing another one failed first.
+    #[error("stopped after an earlier error")]
+    Stopped,
+    /// The generated episodes did not form a valid dataset (a bug here, not a user error).
+    #[error("generated data for {ENV_NAME}-{task} ({mode}) is invalid: {source}")]
+    Data {
+        task: usize,
+        mode: Mode,
+        #[source]
+        source: DataError,
+    },
+}
+
+/// The RNG of one episode. The 256-bit ChaCha key holds the five parts side by side, so distinct
+/// tuples get independent streams with no hashing and no chance of collision.
+pub fn episode_rng(seed: u64, task: usize, mode: Mode, set: Set, episode: usize) -> ChaCha8Rng {
+    let mut key = [0u8; 32];
+    key[0..8].copy_from_slice(&seed.to_le_bytes());
+    key[8..16].copy_from_slice(&(task as u64).to_le_bytes());
+    key[16..20].copy_from_slice(&mode.rng_id().to_le_bytes());
+    key[20..24].copy_from_slice(&set.rng_id().to_le_bytes());
+    key[24..32].copy_from_slice(&(episode as u64).to_le_bytes());
+    ChaCha8Rng::from_seed(key)
+}
+
+/// A standard normal sample (Box-Muller). Written out rather than taken from `rand_distr` to keep
+/// the dependency set small and the algorithm visible here: the data then depends only on rand's
+/// uniform sampling, which is fixed within a rand major version.
+fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
+    // `random::<f64>()` is in [0, 1); 1 - u is in (0, 1], so the log is finite.
+    let u1 = 1.0 - rng.random::<f64>();
+    let u2 = rng.random::<f64>();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+fn normal(rng: &mut ChaCha8Rng, std: f64) -> f32 {
+    (std * standard_normal(rng)) as f32
+}
+
+/// Runs one episode of `mode` on `task`; all randomness comes from `rng`.
+pub fn run_episode(
+    task: usize,
+    mode: Mode,
+    rng: &mut ChaCha8Rng,
+) -> Result<Trajectory, CollectError> {
+    let goal = point_robot::goal(task)?;
+    let mut env = PointRobot::new(goal);
+    // The medium policy's misremembered goal is fixed for the whole episode, so it goes
+    // consistently to the wrong place instead of jittering around the right one.
+    let aim = match mode {
+        Mode::Medium => {
+            [goal[0] + normal(rng, MEDIUM_GOAL_NOISE), goal[1] + normal(rng, MEDIUM_GOAL_NOISE)]
+        }
+        Mode::Expert | Mode::Random => goal,
+    };
+    let horizon = env.horizon();
+    let mut observations = Vec::with_capacity(horizon * OBS_DIM);
+    let mut actions = Vec::with_capacity(horizon * ACT_DIM);
+    let mut rewards = Vec::with_capacity(horizon);
+    let mut terminated = Vec::with_capacity(horizon);
+    let mut truncated = Vec::with_capacity(horizon);
+    let mut obs = env.reset(0);
+    loop {
+        let pos = env.position();
+        let action: [f32; 2] = match mode {
+            Mode::Expert | Mode::Medium => {
+                let noise =
+                    if mode == Mode::Expert { EXPERT_ACTION_NOISE } else { MEDIUM_ACTION_NOISE };
+                let mut a = [0.0f32; 2];
+                for (j, v) in a.iter_mut().enumerate() {
+                    *v = point_robot::clip_speed(aim[j] - pos[j] + normal(rng, noise));
+                }
+                a
+            }
+            Mode::Random => {
+                [rng.random_range(-MAX_SPEED..=MAX_SPEED), rng.random_range(-MAX_SPEED..=MAX_SPEED)]
+            }
+        };
+        let step = env.step(&action)?;
+        observations.extend_from_slice(&obs);
+        actions.extend_from_slice(&action);
+        rewards.push(step.reward);
+        terminated.push(step.terminated);
+        truncated.push(step.truncated);
+        obs = step.obs;
+        if step.terminated || step.truncated {
+            break;
+        }
+    }
+    Trajectory::new(OBS_DIM, ACT_DIM, observations, actions, rewards, terminated, truncated)
+        .map_err(|source| CollectError::Data { task, mode, source })
+}
+
+/// Generates `episodes` episodes of `(task, mode)` for one set.
+pub fn generate(
+    seed: u64,
+    task: usize,
+    mode: Mode,
+    set: Set,
+    episodes: usize,
+) -> Result<TaskDataset, CollectError> {
+    let trajectories = (0..episodes)
+        .map(|e| run_episode(task, mode, &mut episode_rng(seed, task, mode, set, e)))
+        .collect::<Result<Vec<_>, _>>()?;
+    TaskDataset::new(trajectories).map_err(|source| CollectError::Data { task, mode, source })
+}
+
+/// Writes the datasets of `cfg` into `out_dir` (created if missing) and a `dataset.json` card
+/// describing exactly what this call wrote (an existing card is replaced). `progress(done, total)`
+/// is called after each (task, mode) is written, with `total = tasks x modes`.
+///
+/// Same `cfg` gives byte-identical data; the files of each (task, mode) do not depend on the other
+/// tasks and modes in `cfg`.
+pub fn collect(
+    cfg: &CollectConfig,
+    out_dir: &Path,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<CollectSummary, CollectError> {
+    cfg.validate()?;
+    std::fs::create_dir_all(out_dir)
+        .map_err(|source| CollectError::CreateDir { path: out_dir.to_path_buf(), source })?;
+    let family = point_robot::PointRobotFamily::default();
+    let total = cfg.tasks.len() * cfg.modes.len();
+    // One job per file, in card order: pair p = task position * modes + mode position, and its
+    // jobs 2p (D_i) and 2p + 1 (P_i).
+    let jobs: Vec<(usize, Mode, Set, usize)> = cfg
+        .tasks
+        .iter()
+        .flat_map(|&task| {
+            cfg.modes.iter().flat_map(move |&mode| {
+                [
+                    (task, mode, Set::Dataset, cfg.episodes_per_task),
+                    (task, mode, Set::Prompt, cfg.prompt_episodes),
+                ]
+            })
+        })
+        .collect();
+    let mut results = run_jobs(cfg.seed, &jobs, out_dir, total, progress);
+    // Report the real failure, not a job skipped because of it.
+    let failure =
+        results.iter().position(|r| matches!(r, Err(e) if !matches!(e, CollectError::Stopped)));
+    if let Some(i) = failure {
+        results.swap_remove(i)?;
+    }
+    let mut results = results.into_iter();
+
+    let mut entries = Vec::with_capacity(total);
+    let mut card_tasks = Vec::with_capacity(cfg.tasks.len());
+    for &task in &cfg.tasks {
+        let mut files = Vec::with_capacity(2 * cfg.modes.len());
+        for &mode in &cfg.modes {
+            // `run_jobs` returns one result per job, so both are present, and none is an error.
+            let (main, dataset_file) = results.next().ok_or(CollectError::Stopped)??;
+            let (prompt, prompt_file) = results.next().ok_or(CollectError::Stopped)??;
+            entries.push(TaskModeSummary {
+                task,
+                mode,
+                dataset: main.returns,
+                prompts: prompt.returns,
+                dataset_file,
+                prompt_file,
+            });
+            files.push(main);
+            files.push(prompt);
+        }
+        card_tasks.push(CardTask { index: task, params: family.task_params(task)?, files });
+    }
+    let card = DatasetCard {
+        format: CARD_FORMAT_NAME.to_owned(),
+        format_version: FORMAT_VERSION.to_owned(),
+        env: ENV_NAME.to_owned(),
+        obs_dim: OBS_DIM,
+        act_dim: ACT_DIM,
+        tasks: card_tasks,
+        generator: generator_info(cfg),
+    };
+    native::write_card(out_dir, &card)
+        .map_err(|source| CollectError::Write { path: out_dir.join(CARD_FILE_NAME), source })?;
+    Ok(CollectSummary { entries, card: out_dir.join(CARD_FILE_NAME) })
+}
+
+/// Threads writing files. Writing is dominated by each file's fsync, which waits on the disk
+/// rather than using a CPU, so more threads than cores still help; 240 files take ~1.5 s on one
+/// thread. The data does not depend on this number (each file has its own RNGs).
+const WRITE_THREADS: usize = 16;
+
+type JobResult = Result<(CardFile, PathBuf), CollectError>;
+
+/// Generates and writes every job on [`WRITE_THREADS`] threads; returns the results in job order.
+/// After the first failure no new job starts (its result is [`CollectError::Stopped`]).
+/// `progress(done, total)` runs on this thread each time both files of a (task, mode) pair (jobs
+/// `2p` and `2p + 1`) are written.
+fn run_jobs(
+    seed: u64,
+    jobs: &[(usize, Mode, Set, usize)],
+    out_dir: &Path,
+    total_pairs: usize,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Vec<JobResult> {
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let mut results: Vec<JobResult> = (0..jobs.len()).map(|_| Err(CollectError::Stopped)).collect();
+    std::thread::scope(|scope| {
+        let (tx, rx) = mpsc::channel::<usize>();
+        let workers: Vec<_> = (0..WRITE_THREADS.min(jobs.len()))
+            .map(|_| {
+                let tx = tx.clone();
+                let (next, failed) = (&next, &failed);
+                scope.spawn(move || {
+                    let mut done = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(&(task, mode, set, episodes)) = jobs.get(i) else { break };
+                        if failed.load(Ordering::Relaxed) {
+                            break;
+                        }
+                        let result = write_set(seed, task, mode, set, episodes, out_dir);
+                        if result.is_err() {
+                            failed.store(true, Ordering::Relaxed);
+                        } else {
+                            // The receiver lives until every worker is joined; a send error
+                            // would only mean nobody listens for progress any more.
+                            let _ = tx.send(i);
+                        }
+                        done.push((i, result));
+                    }
+                    done
+                })
+            })
+            .collect();
+        // Only the workers' clones may keep the channel open, so `recv` ends when they finish.
+        drop(tx);
+        let mut pair_files = vec![0u8; total_pairs];
+        let mut pairs_done = 0;
+        for i in rx {
+            let pair = i / 2;
+            pair_files[pair] += 1;
+            if pair_files[pair] == 2 {
+                pairs_done += 1;
+                progress(pairs_done, total_pairs);
+            }
+        }
+        for worker in workers {
+            match worker.join() {
+                Ok(done) => {
+                    for (i, result) in done {
+                        results[i] = result;
+                    }
+                }
+                // A worker panicked (a bug): re-raise it here rather than report a fake error.
+                Err(panic) => std::panic::resume_unwind(panic),
+            }
+        }
+    });
+    results
+}
+
+/// Generates and writes one file; returns its card entry and path.
+fn write_set(
+    seed: u64,
+    task: usize,
+    mode: Mode,
+    set: Set,
+    episodes: usize,
+    out_dir: &Path,
+) -> Result<(CardFile, PathBuf), CollectError> {
+    let file_mode = match set {
+        Set::Dataset => mode.name().to_owned(),
+        Set::Prompt => format!("prompt-{}", mode.name()),
+    };
+    let name = format!(
+        "{}.{}",
+        native::task_file_stem(ENV_NAME, task, &file_mode),
+        native::FILE_EXTENSION
+    );
+    let path = out_dir.join(&name);
+    let ds = generate(seed, task, mode, set, episodes)?;
+    let meta = FileMeta::new(ENV_NAME, task, file_mode.clone());
+    native::write_task_dataset(&path, &ds, &meta)
+        .map_err(|source| CollectError::Write { path: path.clone(), source })?;
+    Ok((CardFile::describe(name, file_mode, &ds), path))
+}
+
+/// The card's `generator` entry: enough to regenerate the data.
+fn generator_info(cfg: &CollectConfig) -> serde_json::Value {
+    let policies: serde_json::Map<String, serde_json::Value> = cfg
+        .modes
+        .iter()
+        .map(|m| (m.name().to_owned(), serde_json::Value::from(m.description())))
+        .collect();
+    serde_json::json!({
+        "name": "pdt-envs collect_scripted",
+        "version": env!("CARGO_PKG_VERSION"),
+        "seed": cfg.seed,
+        "episodes_per_task": cfg.episodes_per_task,
+        "prompt_episodes": cfg.prompt_episodes,
+        "policies": policies,
+        "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode); \
+                normal noise by Box-Muller",
+    })
+}

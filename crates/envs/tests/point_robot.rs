@@ -1,0 +1,311 @@
+//! Point-robot family and scripted collection: policies' quality ordering, determinism of the
+//! written files, and that the files load with pdt-data's readers.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Instant;
+
+use pdt_data::multitask::{load_multitask, DatasetSpec};
+use pdt_data::native::{self, read_card, read_file_meta, read_task_dataset, FileMeta};
+use pdt_envs::collect_scripted::{
+    collect, episode_rng, generate, run_episode, CollectConfig, CollectError, Mode, Set,
+};
+use pdt_envs::point_robot::{self, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS};
+use pdt_envs::{family, EnvError, EnvFamily};
+
+fn small_config(seed: u64) -> CollectConfig {
+    CollectConfig {
+        seed,
+        episodes_per_task: 10,
+        prompt_episodes: 3,
+        modes: Mode::ALL.to_vec(),
+        tasks: vec![0, 2, 39],
+    }
+}
+
+fn no_progress() -> impl FnMut(usize, usize) {
+    |_, _| {}
+}
+
+/// Every regular file of `dir`, name -> bytes.
+fn dir_bytes(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    for entry in std::fs::read_dir(dir).expect("read_dir") {
+        let entry = entry.expect("entry");
+        let name = entry.file_name().to_string_lossy().into_owned();
+        out.insert(name, std::fs::read(entry.path()).expect("read"));
+    }
+    out
+}
+
+#[test]
+fn registry_finds_the_family() {
+    let fam = family("point_robot").expect("family");
+    assert_eq!(fam.name(), "point_robot");
+    assert_eq!(fam.split_names()[0], "default");
+    assert!(matches!(family("nope"), Err(EnvError::UnknownEnv(..))));
+}
+
+#[test]
+fn expert_beats_medium_beats_random_on_test_tasks() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let tasks: Vec<usize> = DEFAULT_TEST_TASKS.iter().chain(&OOD_TEST_TASKS).copied().collect();
+    let cfg = CollectConfig { seed: 7, tasks: tasks.clone(), ..CollectConfig::default() };
+    let summary = collect(&cfg, dir.path(), &mut no_progress()).expect("collect");
+    let mean = |m: Mode, t: &[usize]| summary.mean_return(m, t).expect("collected");
+    for (split, t) in [("default", &DEFAULT_TEST_TASKS[..]), ("ood", &OOD_TEST_TASKS[..])] {
+        let (e, m, r) = (mean(Mode::Expert, t), mean(Mode::Medium, t), mean(Mode::Random, t));
+        println!("{split} test tasks {t:?}: expert {e:.3}, medium {m:.3}, random {r:.3}");
+        // "Clear margin": at least 2 return units (one fifth of rtg_scale) between neighbours.
+        assert!(e > m + 2.0, "expert {e} vs medium {m}");
+        assert!(m > r + 2.0, "medium {m} vs random {r}");
+    }
+    for entry in &summary.entries {
+        println!(
+            "task {:2} {:6}: D mean {:8.3} std {:6.3} | P mean {:8.3} std {:6.3}",
+            entry.task,
+            entry.mode,
+            entry.dataset.mean,
+            entry.dataset.std,
+            entry.prompts.mean,
+            entry.prompts.std
+        );
+    }
+}
+
+#[test]
+fn expert_reaches_the_goal_and_episodes_are_truncated() {
+    for task in [0, 17, 39] {
+        let traj = run_episode(
+            task,
+            Mode::Expert,
+            &mut episode_rng(1, task, Mode::Expert, Set::Dataset, 0),
+        )
+        .expect("episode");
+        assert_eq!(traj.len(), HORIZON);
+        assert!(traj.terminated.iter().all(|&t| !t));
+        assert_eq!(traj.truncated.iter().filter(|&&t| t).count(), 1);
+        assert_eq!(traj.truncated.last(), Some(&true));
+        // Starts at the origin; every action respects the speed limit.
+        assert_eq!(traj.obs(0), &[0.0, 0.0]);
+        assert!(traj.actions.iter().all(|a| a.abs() <= point_robot::MAX_SPEED));
+        // After 20 steps at up to 0.1 per coordinate the unit-distance goal is reached.
+        assert!(traj.rewards[HORIZON - 1] > -0.05, "final reward {}", traj.rewards[HORIZON - 1]);
+    }
+}
+
+#[test]
+fn recorded_episodes_replay_exactly_in_the_env() {
+    // Observations are the state before each action and rewards come from the env, so replaying
+    // the recorded actions must reproduce both exactly.
+    let fam = PointRobotFamily::default();
+    for mode in Mode::ALL {
+        let ds = generate(3, 21, mode, Set::Dataset, 4).expect("generate");
+        for traj in &ds.trajectories {
+            let mut env = fam.make(21).expect("make");
+            let mut obs = env.reset(99);
+            for t in 0..traj.len() {
+                assert_eq!(obs, traj.obs(t));
+                let step = env.step(traj.action(t)).expect("step");
+                assert_eq!(step.reward, traj.rewards[t]);
+                assert_eq!(step.truncated, traj.truncated[t]);
+                obs = step.obs;
+            }
+        }
+    }
+}
+
+#[test]
+fn episodes_do_not_depend_on_other_episodes_or_the_set_size() {
+    let a = generate(5, 4, Mode::Medium, Set::Dataset, 3).expect("generate");
+    let b = generate(5, 4, Mode::Medium, Set::Dataset, 8).expect("generate");
+    assert_eq!(a.trajectories[..], b.trajectories[..3]);
+    // The prompt set uses a different stream from the main set.
+    let p = generate(5, 4, Mode::Medium, Set::Prompt, 3).expect("generate");
+    assert_ne!(a.trajectories, p.trajectories);
+    // Expert demonstrations are not all identical (action noise).
+    let e = generate(5, 4, Mode::Expert, Set::Dataset, 2).expect("generate");
+    assert_ne!(e.trajectories[0].actions, e.trajectories[1].actions);
+}
+
+/// A safetensors file's parts: the header JSON (parsed, so key order does not matter) and the
+/// bytes after the header.
+fn split_safetensors(bytes: &[u8]) -> (serde_json::Value, &[u8]) {
+    let len = u64::from_le_bytes(bytes[..8].try_into().expect("8-byte prefix")) as usize;
+    let header = serde_json::from_slice(&bytes[8..8 + len]).expect("header JSON");
+    (header, &bytes[8 + len..])
+}
+
+/// Collects `small_config(seed)` into a fresh directory; returns the directory's files.
+fn collect_files(seed: u64) -> BTreeMap<String, Vec<u8>> {
+    let dir = tempfile::tempdir().expect("tempdir");
+    collect(&small_config(seed), dir.path(), &mut no_progress()).expect("collect");
+    dir_bytes(dir.path())
+}
+
+#[test]
+fn same_seed_gives_identical_data_and_different_seeds_differ() {
+    let (b1, b2, b3) = (collect_files(11), collect_files(11), collect_files(12));
+    // 3 tasks x 3 modes x (D_i, P_i) + the card; no temporary files left behind.
+    assert_eq!(b1.len(), 3 * 3 * 2 + 1, "{:?}", b1.keys().collect::<Vec<_>>());
+    assert_eq!(b1.keys().collect::<Vec<_>>(), b2.keys().collect::<Vec<_>>());
+    assert_eq!(b1.keys().collect::<Vec<_>>(), b3.keys().collect::<Vec<_>>());
+    for (name, bytes) in &b1 {
+        let other = &b2[name];
+        if name == "dataset.json" {
+            assert!(bytes == other, "{name} differs between two runs with one seed");
+            assert!(bytes != &b3[name], "{name} is the same for seeds 11 and 12");
+            continue;
+        }
+        // Same length, same header content, and the tensor data byte for byte. Only the order of
+        // the header's `__metadata__` keys may differ (see the ignored test below).
+        assert_eq!(bytes.len(), other.len(), "{name}: lengths differ");
+        let ((h1, d1), (h2, d2)) = (split_safetensors(bytes), split_safetensors(other));
+        assert_eq!(h1, h2, "{name}: headers differ");
+        assert!(d1 == d2, "{name}: tensor data differs between two runs with one seed");
+        let (_, d3) = split_safetensors(&b3[name]);
+        assert!(d1 != d3, "{name}: tensor data is the same for seeds 11 and 12");
+    }
+}
+
+/// Whole files byte for byte (pdt-data writes the safetensors header with sorted keys).
+#[test]
+fn same_seed_gives_byte_identical_files() {
+    let (b1, b2) = (collect_files(11), collect_files(11));
+    for (name, bytes) in &b1 {
+        assert!(bytes == &b2[name], "{name} differs between two runs with one seed");
+    }
+}
+
+#[test]
+fn written_files_load_back() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = small_config(21);
+    let mut calls = Vec::new();
+    let summary =
+        collect(&cfg, dir.path(), &mut |done, total| calls.push((done, total))).expect("collect");
+    assert_eq!(calls, (1..=9).map(|d| (d, 9)).collect::<Vec<_>>());
+
+    // Each file by itself, with its metadata.
+    for entry in &summary.entries {
+        let ds = read_task_dataset(&entry.dataset_file).expect("read D_i");
+        assert_eq!((ds.obs_dim, ds.act_dim), (2, 2));
+        assert_eq!(ds.trajectories.len(), cfg.episodes_per_task);
+        assert_eq!(ds.num_steps(), cfg.episodes_per_task * HORIZON);
+        assert_eq!(native::ReturnStats::of(&ds.returns()), entry.dataset);
+        assert_eq!(
+            read_file_meta(&entry.dataset_file).expect("meta"),
+            FileMeta::new("point_robot", entry.task, entry.mode.name())
+        );
+        let p = read_task_dataset(&entry.prompt_file).expect("read P_i");
+        assert_eq!(p.trajectories.len(), cfg.prompt_episodes);
+        assert_eq!(
+            read_file_meta(&entry.prompt_file).expect("meta"),
+            FileMeta::new("point_robot", entry.task, format!("prompt-{}", entry.mode))
+        );
+    }
+
+    // Through the multi-task loader, for every mode.
+    for mode in Mode::ALL {
+        let mut spec = DatasetSpec::new(dir.path(), "point_robot", cfg.tasks.clone());
+        spec.dataset_mode = mode.name().into();
+        spec.prompt_mode = mode.name().into();
+        let mt = load_multitask(&spec).expect("load_multitask");
+        assert_eq!((mt.obs_dim, mt.act_dim), (2, 2));
+        assert_eq!(mt.tasks.len(), 3);
+        for (t, &index) in mt.tasks.iter().zip(&cfg.tasks) {
+            assert_eq!(t.id.index, index);
+            assert_eq!(t.dataset.trajectories.len(), cfg.episodes_per_task);
+            assert_eq!(t.prompts.trajectories.len(), cfg.prompt_episodes);
+        }
+    }
+
+    // The card lists every file with the same statistics.
+    let card = read_card(dir.path()).expect("read card").expect("card present");
+    assert_eq!(card.env, "point_robot");
+    assert_eq!((card.obs_dim, card.act_dim), (2, 2));
+    assert_eq!(card.tasks.iter().map(|t| t.index).collect::<Vec<_>>(), cfg.tasks);
+    let fam = PointRobotFamily::default();
+    for task in &card.tasks {
+        assert_eq!(task.params, fam.task_params(task.index).expect("params"));
+        assert_eq!(task.files.len(), 6);
+        for f in &task.files {
+            assert!(dir.path().join(&f.name).is_file(), "{}", f.name);
+            let ds = read_task_dataset(&dir.path().join(&f.name)).expect("read");
+            // JSON keeps f64s to within an ulp or so (serde_json's default float parser).
+            let want = native::ReturnStats::of(&ds.returns());
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs().max(1.0);
+            assert!(
+                close(f.returns.mean, want.mean)
+                    && close(f.returns.std, want.std)
+                    && close(f.returns.min, want.min)
+                    && close(f.returns.max, want.max),
+                "{}: card {:?} vs file {want:?}",
+                f.name,
+                f.returns
+            );
+            assert_eq!(f.steps, ds.num_steps());
+        }
+    }
+    assert_eq!(card.generator["seed"], 21);
+    assert_eq!(card.generator["episodes_per_task"], 10);
+    assert!(card.generator["policies"]["medium"].is_string());
+}
+
+#[test]
+fn full_collection_is_fast() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let start = Instant::now();
+    let summary =
+        collect(&CollectConfig::default(), dir.path(), &mut no_progress()).expect("collect");
+    let elapsed = start.elapsed();
+    println!("40 tasks x 3 modes x (100 + 5) episodes: {elapsed:?}");
+    assert_eq!(summary.entries.len(), 40 * 3);
+    // Generous bound: debug builds and slow disks (each file is fsynced) must still pass.
+    assert!(elapsed.as_secs_f64() < 10.0, "took {elapsed:?}");
+}
+
+#[test]
+fn config_errors() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bad = |cfg: CollectConfig| collect(&cfg, dir.path(), &mut no_progress()).map(|_| ());
+    let base = small_config(0);
+    assert!(matches!(
+        bad(CollectConfig { tasks: vec![3, 40], ..base.clone() }),
+        Err(CollectError::Env(EnvError::UnknownTask { task: 40, .. }))
+    ));
+    for cfg in [
+        CollectConfig { episodes_per_task: 0, ..base.clone() },
+        CollectConfig { prompt_episodes: 0, ..base.clone() },
+        CollectConfig { modes: vec![], ..base.clone() },
+        CollectConfig { tasks: vec![], ..base.clone() },
+        CollectConfig { tasks: vec![1, 1], ..base.clone() },
+        CollectConfig { modes: vec![Mode::Random, Mode::Random], ..base.clone() },
+    ] {
+        assert!(matches!(bad(cfg.clone()), Err(CollectError::Config(_))), "{cfg:?}");
+    }
+    // Nothing was written for refused configs.
+    assert_eq!(std::fs::read_dir(dir.path()).expect("read_dir").count(), 0);
+    assert_eq!("medium".parse::<Mode>().expect("mode"), Mode::Medium);
+    assert!("best".parse::<Mode>().is_err());
+}
+
+#[test]
+fn write_errors_name_the_file() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // A directory where a data file should go makes that one write fail.
+    let blocker = dir.path().join("point_robot-2-prompt-medium.safetensors");
+    std::fs::create_dir(&blocker).expect("mkdir");
+    let err = collect(&small_config(0), dir.path(), &mut no_progress()).expect_err("must fail");
+    match &err {
+        CollectError::Write { path, .. } => assert_eq!(path, &blocker),
+        other => panic!("expected a write error, got {other:?}"),
+    }
+    assert!(err.to_string().contains("point_robot-2-prompt-medium.safetensors"), "{err}");
+
+    // An output "directory" that is a file.
+    let file = dir.path().join("plain-file");
+    std::fs::write(&file, b"x").expect("write");
+    let err = collect(&small_config(0), &file.join("sub"), &mut no_progress()).expect_err("fail");
+    assert!(matches!(err, CollectError::CreateDir { .. }), "{err:?}");
+}

@@ -1,0 +1,243 @@
+//! Few-shot evaluation (`promptdt-reference.md` d, the paper's Algorithm 3), batched.
+//!
+//! The reference rolls out one episode at a time, one forward pass per step. Here every unfinished
+//! episode of every task is stepped together: one batched forward per environment step, episodes
+//! that end drop out of the batch. With `max_batch = 1` the same code is the reference's loop, and a
+//! test checks that both give the same actions.
+//!
+//! Per episode, as the reference's `prompt_evaluate_episode_rtg` + `get_action`: the history holds
+//! the states so far (normalised in f32), the actions taken (a zero placeholder for the current
+//! one), returns-to-go starting at G*/scale and decreasing by r/scale, timesteps from 0; the model
+//! sees the last K steps, left-padded with zeros (mask 0), and the task's prompt.
+
+use pdt_envs::{Env, EnvError};
+use pdt_model::{PromptDt, Segments};
+use pdt_prompt::{SegmentBatch, StateNorm};
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor};
+
+/// What history returns-to-go the model is fed during evaluation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EvalReturns {
+    /// G*/scale at the first step, decreasing by r/scale (the reference, all methods).
+    #[default]
+    Decreasing,
+    /// The constant G*/scale at every step: the reference's Prompt-MT-BC evaluation (pitfall 10).
+    Constant,
+    /// Zero at every step, as in training with `--no-rtg`: the paper's Prompt-MT-BC.
+    Zero,
+}
+
+/// One task to evaluate: its environments (one per episode) and its prompt.
+pub struct EvalTask {
+    pub name: String,
+    pub index: usize,
+    /// One environment per episode (episodes of a task may run at the same time).
+    pub envs: Vec<Box<dyn Env>>,
+    /// Reset seed of each episode.
+    pub seeds: Vec<u64>,
+    /// `[1, J*H]` prompt for all this task's episodes, or `None` (no-prompt variants).
+    pub prompt: Option<SegmentBatch>,
+}
+
+/// Settings shared by all tasks.
+#[derive(Debug, Clone)]
+pub struct EvalSettings {
+    /// History length K the model sees.
+    pub k: usize,
+    /// Episode length limit (`max_ep_len`): episodes also end when their environment says so.
+    pub horizon: usize,
+    pub rtg_scale: f32,
+    pub target_return: f32,
+    pub returns: EvalReturns,
+    pub norm: StateNorm,
+    /// At most this many episodes in one forward pass (1 = the reference's sequential loop).
+    pub max_batch: usize,
+    pub device: Device,
+}
+
+/// One finished episode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecord {
+    pub task_index: usize,
+    pub seed: u64,
+    pub episode_return: f64,
+    pub length: usize,
+    /// Actions taken, `[length * act_dim]` (kept for the batched-vs-sequential test).
+    #[serde(skip)]
+    pub actions: Vec<f32>,
+}
+
+/// Per-task summary.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskResult {
+    pub task: String,
+    pub task_index: usize,
+    pub return_mean: f64,
+    pub return_std: f64,
+    pub length_mean: f64,
+    pub episodes: usize,
+    pub returns: Vec<f64>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("task {task}: {source}")]
+    Env { task: String, source: EnvError },
+    #[error("task {task}: {why}")]
+    Setup { task: String, why: String },
+}
+
+/// An episode in progress.
+struct Running {
+    task: usize,
+    env: Box<dyn Env>,
+    seed: u64,
+    /// Normalised states so far, `[(t+1) * ds]`.
+    states: Vec<f32>,
+    /// Actions so far, `[t * da]`.
+    actions: Vec<f32>,
+    /// Returns-to-go (already divided by the scale), `[t+1]`.
+    rtg: Vec<f32>,
+    ret: f64,
+    t: usize,
+}
+
+/// Normalises one raw observation in f32, as the reference does it on torch tensors at evaluation.
+fn normalise(norm: &StateNorm, obs: &[f32]) -> Vec<f32> {
+    obs.iter().enumerate().map(|(j, &x)| (x - norm.mean[j]) / norm.std[j]).collect()
+}
+
+/// Builds the `[A, K]` history of the given episodes (last K steps, left zero-padding).
+fn history_batch(eps: &[&Running], k: usize, ds: usize, da: usize, device: Device) -> Segments {
+    let a = eps.len();
+    let (mut s, mut act) = (vec![0f32; a * k * ds], vec![0f32; a * k * da]);
+    let (mut r, mut ts, mut m) = (vec![0f32; a * k], vec![0i64; a * k], vec![0f32; a * k]);
+    for (i, e) in eps.iter().enumerate() {
+        let steps = e.t + 1; // states s_0..s_t, actions a_0..a_{t-1} plus the zero placeholder a_t
+        let n = steps.min(k);
+        let (first, pad) = (steps - n, k - n);
+        for j in 0..n {
+            let (src, dst) = (first + j, i * k + pad + j);
+            s[dst * ds..(dst + 1) * ds].copy_from_slice(&e.states[src * ds..(src + 1) * ds]);
+            if src < e.t {
+                act[dst * da..(dst + 1) * da].copy_from_slice(&e.actions[src * da..(src + 1) * da]);
+            }
+            r[dst] = e.rtg[src];
+            ts[dst] = src as i64;
+            m[dst] = 1.0;
+        }
+    }
+    Segments::from_host(a, k, ds, da, &s, &act, &r, &ts, &m, device)
+}
+
+/// Stacks the prompts of the given episodes' tasks into `[A, J*H]`.
+fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
+    let p0 = prompts[0];
+    let cat_f = |f: fn(&SegmentBatch) -> &Vec<f32>| prompts.iter().flat_map(|p| f(p).iter().copied()).collect::<Vec<f32>>();
+    let ts: Vec<i64> = prompts.iter().flat_map(|p| p.timesteps.iter().copied()).collect();
+    Segments::from_host(
+        prompts.len(),
+        p0.steps,
+        p0.state_dim,
+        p0.act_dim,
+        &cat_f(|p| &p.states),
+        &cat_f(|p| &p.actions),
+        &cat_f(|p| &p.returns_to_go),
+        &ts,
+        &cat_f(|p| &p.mask),
+        device,
+    )
+}
+
+/// Runs every episode of every task to its end; returns the episodes in (task, episode) order.
+pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> Result<Vec<EpisodeRecord>, EvalError> {
+    let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
+    let first_rtg = match cfg.returns {
+        EvalReturns::Zero => 0.0,
+        _ => cfg.target_return / cfg.rtg_scale,
+    };
+    let mut prompts: Vec<Option<SegmentBatch>> = Vec::new();
+    let mut pending: Vec<Running> = Vec::new();
+    for (ti, task) in tasks.into_iter().enumerate() {
+        if task.envs.len() != task.seeds.len() {
+            return Err(EvalError::Setup { task: task.name, why: "one seed per environment is needed".into() });
+        }
+        for (env, seed) in task.envs.into_iter().zip(task.seeds) {
+            if env.obs_dim() != ds || env.act_dim() != da {
+                let why = format!("environment dims {}/{} differ from the model's {ds}/{da}", env.obs_dim(), env.act_dim());
+                return Err(EvalError::Setup { task: task.name, why });
+            }
+            pending.push(Running { task: ti, env, seed, states: vec![], actions: vec![], rtg: vec![], ret: 0.0, t: 0 });
+        }
+        prompts.push(task.prompt);
+    }
+    let mut done: Vec<(usize, EpisodeRecord)> = Vec::with_capacity(pending.len());
+    let mut order = 0..;
+    let mut queue: Vec<(usize, Running)> = pending.into_iter().map(|r| (order.next().unwrap_or(0), r)).collect();
+    queue.reverse(); // pop from the end in episode order
+    while !queue.is_empty() {
+        // Start up to `max_batch` episodes; they run to their ends together.
+        let mut active: Vec<(usize, Running)> = Vec::new();
+        while active.len() < cfg.max_batch.max(1) {
+            let Some((id, mut ep)) = queue.pop() else { break };
+            let obs = ep.env.reset(ep.seed);
+            ep.states = normalise(&cfg.norm, &obs);
+            ep.rtg = vec![first_rtg];
+            active.push((id, ep));
+        }
+        while !active.is_empty() {
+            let eps: Vec<&Running> = active.iter().map(|(_, e)| e).collect();
+            let history = history_batch(&eps, cfg.k, ds, da, cfg.device);
+            let task_prompts: Option<Vec<&SegmentBatch>> = eps.iter().map(|e| prompts[e.task].as_ref()).collect();
+            let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
+            let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
+            let last = preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
+            let mut acts = vec![0f32; eps.len() * da];
+            last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
+            let mut still = Vec::with_capacity(active.len());
+            for ((id, mut ep), a) in active.into_iter().zip(acts.chunks_exact(da)) {
+                let name = ep.task.to_string();
+                let step = ep.env.step(a).map_err(|source| EvalError::Env { task: name, source })?;
+                ep.actions.extend_from_slice(a);
+                ep.states.extend(normalise(&cfg.norm, &step.obs));
+                ep.ret += step.reward as f64;
+                let prev = *ep.rtg.last().unwrap_or(&0.0);
+                ep.rtg.push(match cfg.returns {
+                    EvalReturns::Decreasing => prev - step.reward / cfg.rtg_scale,
+                    EvalReturns::Constant | EvalReturns::Zero => prev,
+                });
+                ep.t += 1;
+                if step.terminated || step.truncated || ep.t >= cfg.horizon {
+                    let record = EpisodeRecord { task_index: ep.task, seed: ep.seed, episode_return: ep.ret, length: ep.t, actions: ep.actions };
+                    done.push((id, record));
+                } else {
+                    still.push((id, ep));
+                }
+            }
+            active = still;
+        }
+    }
+    done.sort_by_key(|(id, _)| *id);
+    Ok(done.into_iter().map(|(_, r)| r).collect())
+}
+
+/// Mean, population std and mean length of a task's episodes.
+pub fn summarise(name: &str, task_index: usize, episodes: &[&EpisodeRecord]) -> TaskResult {
+    let returns: Vec<f64> = episodes.iter().map(|e| e.episode_return).collect();
+    let n = returns.len().max(1) as f64;
+    let mean = returns.iter().sum::<f64>() / n;
+    let std = (returns.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / n).sqrt();
+    let length_mean = episodes.iter().map(|e| e.length as f64).sum::<f64>() / n;
+    TaskResult { task: name.to_string(), task_index, return_mean: mean, return_std: std, length_mean, episodes: returns.len(), returns }
+}
+
+/// A tensor's values, for tests and reports.
+pub fn to_vec(t: &Tensor) -> Vec<f32> {
+    let t = t.to_kind(Kind::Float).to_device(Device::Cpu).contiguous().view([-1]);
+    let mut v = vec![0f32; t.numel()];
+    let n = v.len();
+    t.copy_data(&mut v, n);
+    v
+}

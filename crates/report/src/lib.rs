@@ -1,0 +1,114 @@
+//! `pdt-report`: tables and learning-curve plots from run directories.
+//!
+//! The report reads only run directories (see `docs/run-directory.md`) and writes into one
+//! output directory:
+//!
+//! - `table.md`, `table.csv`: final return on each test task and their average, per
+//!   (environment, method), as mean ± std over seeds, like the paper's tables;
+//! - `curves_<env>.png`, `curves_<env>.svg`, `curves.csv`: average test return against
+//!   training iteration, one line per method with a ± std band, like the paper's Figure 2;
+//! - `runs.csv`: which runs were found, which were used, and where each value came from.
+//!
+//! How the numbers are aggregated is documented in `docs/report.md`. Problems that do not
+//! invalidate the report (a truncated last line, a run without evaluations) are returned in
+//! [`ReportSummary::warnings`] and listed at the end of `table.md`; the library prints nothing.
+
+mod aggregate;
+mod error;
+mod load;
+mod plot;
+mod render;
+
+use std::fs;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+pub use error::ReportError;
+
+/// What to report on and where to write it.
+#[derive(Debug, Clone, Default)]
+pub struct ReportConfig {
+    /// Run directories, or parent directories that are searched recursively for `run.json`.
+    pub runs: Vec<PathBuf>,
+    /// Created if missing; existing report files in it are replaced.
+    pub out_dir: PathBuf,
+    /// Heading of `table.md` and prefix of plot titles.
+    pub title: Option<String>,
+}
+
+/// What [`run`] produced.
+#[derive(Debug, Clone)]
+pub struct ReportSummary {
+    /// Every file written, in the order written.
+    pub files: Vec<PathBuf>,
+    /// The content of `table.md`, for printing.
+    pub markdown: String,
+    /// Non-fatal problems, one sentence each, naming the file concerned.
+    pub warnings: Vec<String>,
+    /// Runs that contributed to the table and curves.
+    pub runs_used: usize,
+    /// Runs found but left out (no test evaluation); each has a warning.
+    pub runs_skipped: usize,
+}
+
+/// Loads the runs, aggregates them and writes the report files into `cfg.out_dir`.
+pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
+    if cfg.runs.is_empty() {
+        return Err(ReportError::NoInput);
+    }
+    let mut warnings = Vec::new();
+    let dirs = load::discover(&cfg.runs)?;
+    let runs =
+        dirs.iter().map(|d| load::load_run(d, &mut warnings)).collect::<Result<Vec<_>, _>>()?;
+    let agg = aggregate::aggregate(&runs, &mut warnings)?;
+
+    let title = cfg.title.as_deref();
+    let markdown = render::table_markdown(&agg, title, &warnings);
+    // Render every figure before writing anything, so a plotting failure leaves the output
+    // directory as it was rather than half-updated.
+    let mut outputs: Vec<(String, Vec<u8>)> = vec![
+        ("table.md".to_string(), markdown.clone().into_bytes()),
+        ("table.csv".to_string(), render::table_csv(&agg).into_bytes()),
+        ("curves.csv".to_string(), render::curves_csv(&agg).into_bytes()),
+        ("runs.csv".to_string(), render::runs_csv(&agg).into_bytes()),
+    ];
+    for env in agg.envs.iter().filter(|e| !e.curves.is_empty()) {
+        let fig = plot::render(env, title)?;
+        outputs.push((format!("curves_{}.png", env.file_stem), fig.png));
+        outputs.push((format!("curves_{}.svg", env.file_stem), fig.svg.into_bytes()));
+    }
+
+    fs::create_dir_all(&cfg.out_dir).map_err(|e| ReportError::io(&cfg.out_dir, e))?;
+    let mut files = Vec::with_capacity(outputs.len());
+    for (name, bytes) in &outputs {
+        let path = cfg.out_dir.join(name);
+        write_atomic(&path, bytes)?;
+        files.push(path);
+    }
+    Ok(ReportSummary {
+        files,
+        markdown,
+        warnings,
+        runs_used: agg.runs_used,
+        runs_skipped: agg.runs_skipped,
+    })
+}
+
+/// Writes via a temporary file in the same directory and a rename, so a reader (or a report
+/// interrupted half-way) never sees a partially written file.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut f = fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        fs::rename(&tmp, path)
+    })();
+    result.map_err(|e| {
+        // Best effort: do not leave the temporary file behind on failure.
+        let _ = fs::remove_file(&tmp);
+        ReportError::io(path, e)
+    })
+}

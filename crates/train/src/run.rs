@@ -1,0 +1,572 @@
+//! A training run: data and environments set up from a [`TrainConfig`], the reference's loop
+//! (iterations of gradient steps, periodic evaluation of test and train tasks), checkpoints written
+//! atomically, and exact resumption. The run directory layout is `docs/run-directory.md`.
+//!
+//! Randomness: one seed, split into independent streams (model init, batch sampling, dropout per
+//! iteration, evaluation per iteration), so a resumed run draws exactly what an uninterrupted one
+//! would, and evaluation never disturbs training.
+
+use crate::config::{ConfigError, Method, MtBcEval, TrainConfig};
+use crate::optim::{AdamW, AdamWConfig, ParamState};
+use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
+use pdt_data::multitask::{load_multitask, DatasetSpec};
+use pdt_data::{DataError, MultiTaskDataset, TaskData};
+use pdt_envs::{EnvError, EnvFamily, EnvPreset};
+use pdt_eval::{evaluate, summarise, EvalError, EvalReturns, EvalSettings, EvalTask, TaskResult};
+use pdt_model::checkpoint::{self, write_atomic, CheckpointError};
+use pdt_model::{PromptDt, PromptDtConfig};
+use pdt_prompt::{BatchSampler, NormalizationScope, Rng, SamplerConfig, SamplerError, StateNorm};
+use rand::{RngCore, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use tch::{nn::VarStore, Device, Tensor};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Sampler(#[from] SamplerError),
+    #[error(transparent)]
+    Eval(#[from] EvalError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Device(#[from] pdt_model::device::DeviceError),
+    #[error("{path}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {message}")]
+    Corrupt { path: PathBuf, message: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
+    move |source| RunError::Io { path: path.into(), source }
+}
+
+/// Independent random streams derived from the run seed (SplitMix64 of seed, stream, counter).
+fn derive_seed(seed: u64, stream: u64, counter: u64) -> u64 {
+    let mut z = seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ counter.wrapping_mul(0xD1B5_4A32_D192_ED03);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+const STREAM_INIT: u64 = 1;
+const STREAM_BATCHES: u64 = 2;
+const STREAM_DROPOUT: u64 = 3;
+const STREAM_EVAL: u64 = 4;
+
+/// The run's identity (`run.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunInfo {
+    pub name: String,
+    pub method: String,
+    pub env: String,
+    pub seed: u64,
+    pub split: String,
+    pub created: String,
+    pub promptdt_version: String,
+}
+
+/// What evaluation needs besides weights (`task_stats.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskStats {
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    pub state_mean: Vec<f32>,
+    pub state_std: Vec<f32>,
+    pub rtg_scale: f32,
+    pub target_return: f32,
+    pub horizon: usize,
+    pub train_tasks: Vec<usize>,
+    pub test_tasks: Vec<usize>,
+}
+
+/// The commit point of a checkpoint (`checkpoints/latest.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Latest {
+    step: u64,
+    iteration: u64,
+    model: String,
+    state: String,
+}
+
+/// Training state besides weights and moments (`checkpoints/state_<N>.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct TrainState {
+    iteration: u64,
+    step: u64,
+    /// Position of the batch-sampling RNG (a u128, as a decimal string).
+    batch_rng_word_pos: String,
+    adam_steps: BTreeMap<String, u64>,
+    metrics_lines: usize,
+    eval_lines: usize,
+}
+
+/// Progress reported after every iteration.
+#[derive(Debug, Clone)]
+pub struct Progress {
+    pub iteration: u64,
+    pub iterations: u64,
+    pub loss: f64,
+    /// Average test return of the evaluation just made, if one was.
+    pub test_return: Option<f64>,
+}
+
+/// How a call to [`train`] runs.
+pub struct TrainOptions<'a> {
+    /// Continue the run in the directory from its last checkpoint.
+    pub resume: bool,
+    /// Stop after this many iterations of this call (simulates an interruption in tests).
+    pub stop_after_iterations: Option<u64>,
+    pub progress: &'a mut dyn FnMut(&Progress),
+}
+
+/// What a finished (or stopped) call did.
+#[derive(Debug, Clone)]
+pub struct TrainSummary {
+    pub dir: PathBuf,
+    pub iterations_done: u64,
+    pub finished: bool,
+    pub last_test: Option<Vec<TaskResult>>,
+}
+
+/// Everything built from the configuration and the data.
+struct Setup {
+    cfg: TrainConfig,
+    family: Box<dyn EnvFamily>,
+    preset: EnvPreset,
+    train_data: MultiTaskDataset,
+    test_data: MultiTaskDataset,
+    norm: StateNorm,
+    sampler_cfg: SamplerConfig,
+    model_cfg: PromptDtConfig,
+    device: Device,
+    stats: TaskStats,
+}
+
+impl Setup {
+    fn new(cfg: TrainConfig) -> Result<Self, RunError> {
+        cfg.validate()?;
+        let family = pdt_envs::family(&cfg.env.name)?;
+        let preset = family.preset();
+        let (train_tasks, test_tasks) = family.split(&cfg.env.split)?;
+        let env_name = family.name().to_string();
+        let spec = |tasks: &[usize], d: &str, p: &str| DatasetSpec {
+            dir: cfg.data.dir.clone(),
+            env: env_name.clone(),
+            tasks: tasks.to_vec(),
+            dataset_mode: d.to_string(),
+            prompt_mode: p.to_string(),
+            format: cfg.data.format,
+        };
+        let train_data = load_multitask(&spec(&train_tasks, &cfg.data.dataset_mode, &cfg.data.prompt_mode))?;
+        let test_data = load_multitask(&spec(&test_tasks, &cfg.data.test_dataset_mode, &cfg.data.test_prompt_mode))?;
+        let (ds, da) = (train_data.obs_dim, train_data.act_dim);
+        if (ds, da) != (preset.obs_dim, preset.act_dim) || (test_data.obs_dim, test_data.act_dim) != (ds, da) {
+            return Err(RunError::Invalid(format!(
+                "data in {} has obs/act dims {ds}/{da} (test {}/{}), but {} has {}/{}",
+                cfg.data.dir.display(),
+                test_data.obs_dim,
+                test_data.act_dim,
+                env_name,
+                preset.obs_dim,
+                preset.act_dim
+            )));
+        }
+        let train_ds = train_data.tasks.iter().map(|t| &t.dataset);
+        // Reference quirk (pitfall 4): the statistics include the test tasks' datasets.
+        let norm = match cfg.data.normalization {
+            NormalizationScope::TrainAndTest => {
+                StateNorm::from_datasets(ds, train_ds.chain(test_data.tasks.iter().map(|t| &t.dataset)))
+            }
+            NormalizationScope::TrainOnly => StateNorm::from_datasets(ds, train_ds),
+            NormalizationScope::None => StateNorm::identity(ds),
+        };
+        let s = &cfg.sampler;
+        let sampler_cfg = SamplerConfig {
+            k: s.k,
+            prompt_episodes: s.prompt_episodes,
+            prompt_length: s.prompt_length.unwrap_or(preset.prompt_length),
+            prompt_position: s.prompt_position,
+            batch_size_per_task: s.batch_size_per_task,
+            rtg_scale: s.rtg_scale.unwrap_or(preset.rtg_scale),
+            max_ep_len: preset.horizon,
+            ranking: s.ranking,
+            zero_history_returns: cfg.run.method.zeroes_history_returns(),
+        };
+        let model_cfg = cfg.model.to_model_config(ds, da);
+        model_cfg.validate().map_err(RunError::Invalid)?;
+        sampler_cfg.validate(model_cfg.n_positions)?;
+        let device = pdt_model::device::resolve(cfg.run.device)?;
+        let stats = TaskStats {
+            obs_dim: ds,
+            act_dim: da,
+            state_mean: norm.mean.clone(),
+            state_std: norm.std.clone(),
+            rtg_scale: sampler_cfg.rtg_scale,
+            target_return: cfg.eval.target_return.unwrap_or(preset.target_return),
+            horizon: preset.horizon,
+            train_tasks,
+            test_tasks,
+        };
+        Ok(Self { cfg, family, preset, train_data, test_data, norm, sampler_cfg, model_cfg, device, stats })
+    }
+
+    fn sampler<'a>(&self, data: &'a MultiTaskDataset) -> Result<BatchSampler<'a>, RunError> {
+        let tasks: Vec<&TaskData> = data.tasks.iter().collect();
+        Ok(BatchSampler::new(self.sampler_cfg.clone(), &tasks, self.norm.clone(), self.model_cfg.n_positions)?)
+    }
+
+    fn eval_returns(&self) -> EvalReturns {
+        match (self.cfg.run.method.zeroes_history_returns(), self.cfg.eval.mt_bc_returns) {
+            (false, _) => EvalReturns::Decreasing,
+            (true, MtBcEval::Reference) => EvalReturns::Constant,
+            (true, MtBcEval::Paper) => EvalReturns::Zero,
+        }
+    }
+}
+
+/// Model and optimiser of a run.
+struct Learner {
+    vs: VarStore,
+    model: PromptDt,
+    opt: AdamW,
+}
+
+impl Learner {
+    fn new(setup: &Setup) -> Self {
+        tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
+        let vs = VarStore::new(setup.device);
+        let model = PromptDt::new(&vs.root(), &setup.model_cfg);
+        let opt = AdamW::new(&vs, &setup.model_cfg.parameter_names(), setup.cfg.optim.clone());
+        Self { vs, model, opt }
+    }
+}
+
+/// Evaluates `tasks` (indices into `data`), each with its own prompt, all episodes together.
+fn eval_tasks(setup: &Setup, learner: &mut Learner, data: &MultiTaskDataset, iteration: u64) -> Result<Vec<TaskResult>, RunError> {
+    let sampler = setup.sampler(data)?;
+    let mut rng = Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, STREAM_EVAL, iteration));
+    let method = setup.cfg.run.method;
+    let make = |i: usize, rng: &mut Rng| -> Result<EvalTask, RunError> {
+        let t = &data.tasks[i];
+        // The prompt is drawn once per task and evaluation call, and shared by its episodes.
+        let prompt = sampler.eval_prompt(i, rng);
+        let envs = (0..setup.cfg.eval.episodes).map(|_| setup.family.make(t.id.index)).collect::<Result<Vec<_>, _>>()?;
+        let seeds = (0..setup.cfg.eval.episodes).map(|_| rng.next_u64()).collect();
+        Ok(EvalTask { name: t.id.to_string(), index: t.id.index, envs, seeds, prompt: method.uses_prompt().then_some(prompt) })
+    };
+    let settings = EvalSettings {
+        k: setup.sampler_cfg.k,
+        horizon: setup.preset.horizon,
+        rtg_scale: setup.sampler_cfg.rtg_scale,
+        target_return: setup.stats.target_return,
+        returns: setup.eval_returns(),
+        norm: setup.norm.clone(),
+        max_batch: setup.cfg.eval.max_batch,
+        device: setup.device,
+    };
+    let summarise_all = |tasks: &[EvalTask], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
+        tasks
+            .iter()
+            .enumerate()
+            .map(|(i, t)| summarise(&t.name, t.index, &eps.iter().filter(|e| e.task_index == i).collect::<Vec<_>>()))
+            .collect()
+    };
+    if method != Method::MtBcFinetune {
+        let tasks = (0..data.tasks.len()).map(|i| make(i, &mut rng)).collect::<Result<Vec<_>, _>>()?;
+        let names: Vec<EvalTask> = tasks.iter().map(|t| EvalTask { name: t.name.clone(), index: t.index, envs: vec![], seeds: vec![], prompt: None }).collect();
+        let eps = evaluate(&learner.model, tasks, &settings)?;
+        return Ok(summarise_all(&names, &eps));
+    }
+    // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
+    // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
+    // of an evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
+    let snapshot: Vec<(String, Tensor)> = learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
+    let mut results = Vec::new();
+    for i in 0..data.tasks.len() {
+        let task = make(i, &mut rng)?;
+        let ocfg = AdamWConfig { learning_rate: setup.cfg.eval.finetune_lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
+        let mut opt = AdamW::new(&learner.vs, &setup.model_cfg.parameter_names(), ocfg);
+        for s in 0..setup.cfg.eval.finetune_steps {
+            let seg = sampler.tail_segments(i, setup.cfg.eval.finetune_batch, setup.sampler_cfg.prompt_length, &mut rng);
+            let history = crate::step::to_segments(&seg, setup.device);
+            train_step(&learner.model, &mut opt, &DeviceBatch { history, prompt: None }, LossOn::History, s);
+        }
+        let name = EvalTask { name: task.name.clone(), index: task.index, envs: vec![], seeds: vec![], prompt: None };
+        let eps = evaluate(&learner.model, vec![task], &settings)?;
+        results.extend(summarise_all(&[name], &eps));
+        tch::no_grad(|| {
+            let vars = learner.vs.variables();
+            for (n, saved) in &snapshot {
+                if let Some(v) = vars.get(n) {
+                    v.shallow_clone().copy_(saved);
+                }
+            }
+        });
+    }
+    Ok(results)
+}
+
+/// Appends JSON lines (and matching CSV rows) to a log.
+struct Log {
+    jsonl: PathBuf,
+    csv: PathBuf,
+    lines: usize,
+}
+
+impl Log {
+    fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
+        let (jsonl, csv) = (dir.join(format!("{stem}.jsonl")), dir.join(format!("{stem}.csv")));
+        // Keep exactly the lines the checkpoint knew about: a killed run may have written more.
+        for (path, keep) in [(&jsonl, keep_lines), (&csv, keep_lines + usize::from(keep_lines > 0))] {
+            if path.exists() {
+                let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+                let kept: String = text.lines().take(keep).map(|l| format!("{l}\n")).collect();
+                write_atomic(path, kept.as_bytes()).map_err(io_err(path))?;
+            }
+        }
+        Ok(Self { jsonl, csv, lines: keep_lines })
+    }
+
+    fn append(&mut self, rows: &[serde_json::Map<String, serde_json::Value>]) -> Result<(), RunError> {
+        let mut j = std::fs::OpenOptions::new().create(true).append(true).open(&self.jsonl).map_err(io_err(&self.jsonl))?;
+        let mut c = std::fs::OpenOptions::new().create(true).append(true).open(&self.csv).map_err(io_err(&self.csv))?;
+        for row in rows {
+            if self.lines == 0 {
+                let header: Vec<&str> = row.keys().map(String::as_str).collect();
+                writeln!(c, "{}", header.join(",")).map_err(io_err(&self.csv))?;
+            }
+            let values: Vec<String> = row.values().map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string)).collect();
+            writeln!(c, "{}", values.join(",")).map_err(io_err(&self.csv))?;
+            writeln!(j, "{}", serde_json::Value::Object(row.clone())).map_err(io_err(&self.jsonl))?;
+            self.lines += 1;
+        }
+        Ok(())
+    }
+}
+
+fn eval_rows(results: &[TaskResult], iteration: u64, step: u64, split: &str, target: f32) -> Vec<serde_json::Map<String, serde_json::Value>> {
+    results
+        .iter()
+        .map(|r| {
+            let v = serde_json::json!({
+                "iteration": iteration, "step": step, "split": split, "task": r.task, "task_index": r.task_index,
+                "return_mean": r.return_mean, "return_std": r.return_std, "length_mean": r.length_mean,
+                "episodes": r.episodes, "target_return": target,
+            });
+            v.as_object().cloned().unwrap_or_default()
+        })
+        .collect()
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?;
+    write_atomic(path, text.as_bytes()).map_err(io_err(path))
+}
+
+fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
+    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    serde_json::from_str(&text).map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })
+}
+
+/// Saves weights, optimiser state and the training state; `latest.json` is written last, so a
+/// crash before it leaves the previous checkpoint in force.
+fn save_checkpoint(dir: &Path, learner: &Learner, state: &TrainState, n_positions: usize) -> Result<(), RunError> {
+    let ck = dir.join("checkpoints");
+    std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
+    let (model, opt_state) = (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
+    checkpoint::save(&learner.vs, &ck.join(&model), learner.model.cfg.n_layer, n_positions)?;
+    let mut named: Vec<(String, Tensor)> = Vec::new();
+    for (name, st) in &learner.opt.state {
+        named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
+        named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
+    }
+    let tmp = ck.join(format!(".{opt_state}.tmp"));
+    Tensor::write_safetensors(&named, &tmp).map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
+    std::fs::rename(&tmp, ck.join(&opt_state)).map_err(io_err(&tmp))?;
+    write_json(&ck.join(format!("state_{}.json", state.step)), state)?;
+    let previous: Option<Latest> = read_json(&ck.join("latest.json")).ok();
+    write_json(&ck.join("latest.json"), &Latest { step: state.step, iteration: state.iteration, model, state: opt_state })?;
+    // Optimiser moments are only needed to resume: keep the latest ones (weights are all kept).
+    if let Some(p) = previous.filter(|p| p.step != state.step) {
+        let _ = std::fs::remove_file(ck.join(p.state));
+    }
+    Ok(())
+}
+
+fn load_checkpoint(dir: &Path, learner: &mut Learner) -> Result<Option<TrainState>, RunError> {
+    let ck = dir.join("checkpoints");
+    let latest_path = ck.join("latest.json");
+    if !latest_path.exists() {
+        return Ok(None);
+    }
+    let latest: Latest = read_json(&latest_path)?;
+    let state: TrainState = read_json(&ck.join(format!("state_{}.json", latest.step)))?;
+    checkpoint::load(&mut learner.vs, &ck.join(&latest.model), learner.model.cfg.n_layer)?;
+    let opt_path = ck.join(&latest.state);
+    let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(&opt_path)
+        .map_err(|e| RunError::Corrupt { path: opt_path.clone(), message: e.to_string() })?
+        .into_iter()
+        .collect();
+    let device = learner.vs.device();
+    for (name, &step) in &state.adam_steps {
+        let get = |k: String| {
+            tensors.get(&k).map(|t| t.to_device(device)).ok_or_else(|| RunError::Corrupt { path: opt_path.clone(), message: format!("missing `{k}`") })
+        };
+        let st = ParamState { step, exp_avg: get(format!("exp_avg.{name}"))?, exp_avg_sq: get(format!("exp_avg_sq.{name}"))? };
+        learner.opt.state.insert(name.clone(), st);
+    }
+    Ok(Some(state))
+}
+
+fn now_utc() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    format!("unix:{secs}")
+}
+
+/// Trains from `cfg` into `dir` (created), or with `opts.resume`, continues the run in `dir` (its
+/// `config.toml` is authoritative and `cfg` is ignored).
+pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Result<TrainSummary, RunError> {
+    let cfg = match (opts.resume, cfg) {
+        (true, _) => TrainConfig::from_file(&dir.join("config.toml"))?,
+        (false, Some(cfg)) => cfg,
+        (false, None) => return Err(RunError::Invalid("no configuration given".into())),
+    };
+    let setup = Setup::new(cfg)?;
+    let cfg = &setup.cfg;
+    let threads = if cfg.run.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { cfg.run.threads };
+    tch::set_num_threads(threads as i32);
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    if !opts.resume {
+        if dir.join("checkpoints").join("latest.json").exists() {
+            return Err(RunError::Invalid(format!("{} already holds a run; use --resume to continue it or pick another --out", dir.display())));
+        }
+        let info = RunInfo {
+            name: format!("{}-{}-seed{}", cfg.run.method.name(), setup.family.name(), cfg.run.seed),
+            method: cfg.run.method.name().into(),
+            env: setup.family.name().into(),
+            seed: cfg.run.seed,
+            split: cfg.env.split.clone(),
+            created: now_utc(),
+            promptdt_version: env!("CARGO_PKG_VERSION").into(),
+        };
+        write_json(&dir.join("run.json"), &info)?;
+        let toml = cfg.to_toml();
+        write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
+        write_json(&dir.join("task_stats.json"), &setup.stats)?;
+    }
+    let mut learner = Learner::new(&setup);
+    let state = if opts.resume { load_checkpoint(dir, &mut learner)? } else { None };
+    let (mut iteration, mut step) = state.as_ref().map_or((0, 0), |s| (s.iteration, s.step));
+    let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
+    let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
+    let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
+    if let Some(s) = &state {
+        let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt { path: dir.join("checkpoints"), message: format!("batch_rng_word_pos: {e}") })?;
+        batch_rng.set_word_pos(pos);
+    }
+    let sampler = setup.sampler(&setup.train_data)?;
+    let (t, started) = (&cfg.train, std::time::Instant::now());
+    let mut last_test = None;
+    let mut done_here = 0;
+    while iteration < t.iterations {
+        if opts.stop_after_iterations.is_some_and(|n| done_here >= n) {
+            return Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: false, last_test });
+        }
+        // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
+        // run continues the same stream.
+        tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, iteration) as i64);
+        let mut stats: Vec<StepStats> = Vec::with_capacity(t.steps_per_iteration as usize);
+        for _ in 0..t.steps_per_iteration {
+            let batch = DeviceBatch::new(&sampler.sample(&mut batch_rng), cfg.run.method.uses_prompt(), setup.device);
+            stats.push(train_step(&learner.model, &mut learner.opt, &batch, t.loss_on, step));
+            step += 1;
+        }
+        iteration += 1;
+        done_here += 1;
+        let n = stats.len() as f64;
+        let loss = stats.iter().map(|s| s.loss).sum::<f64>() / n;
+        let row = serde_json::json!({
+            "iteration": iteration, "step": step, "train/action_loss": loss,
+            "train/grad_norm": stats.iter().map(|s| s.grad_norm).sum::<f64>() / n,
+            "train/lr": stats.last().map_or(0.0, |s| s.lr), "time/elapsed_s": started.elapsed().as_secs_f64(),
+        });
+        metrics.append(&[row.as_object().cloned().unwrap_or_default()])?;
+        let last = iteration == t.iterations;
+        let mut test_return = None;
+        // Reference: evaluation after the first iteration and every `interval` after it.
+        if (iteration - 1) % t.test_eval_interval == 0 || last {
+            let res = eval_tasks(&setup, &mut learner, &setup.test_data, iteration)?;
+            evals.append(&eval_rows(&res, iteration, step, "test", setup.stats.target_return))?;
+            test_return = Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
+            last_test = Some(res);
+        }
+        if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
+            let res = eval_tasks(&setup, &mut learner, &setup.train_data, iteration)?;
+            evals.append(&eval_rows(&res, iteration, step, "train", setup.stats.target_return))?;
+        }
+        if iteration % t.save_interval == 0 || last {
+            let state = TrainState {
+                iteration,
+                step,
+                batch_rng_word_pos: batch_rng.get_word_pos().to_string(),
+                adam_steps: learner.opt.state.iter().map(|(n, s)| (n.clone(), s.step)).collect(),
+                metrics_lines: metrics.lines,
+                eval_lines: evals.lines,
+            };
+            save_checkpoint(dir, &learner, &state, setup.model_cfg.n_positions)?;
+        }
+        (opts.progress)(&Progress { iteration, iterations: t.iterations, loss, test_return });
+    }
+    Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: true, last_test })
+}
+
+/// The final evaluation of a run's latest checkpoint (`promptdt eval`), written to `eval_final.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FinalEval {
+    pub iteration: u64,
+    pub step: u64,
+    pub checkpoint: String,
+    pub split: String,
+    pub tasks: Vec<TaskResult>,
+    pub mean_return: f64,
+}
+
+/// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
+pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Option<pdt_model::device::DeviceSpec>) -> Result<FinalEval, RunError> {
+    let mut cfg = TrainConfig::from_file(&dir.join("config.toml"))?;
+    if let Some(e) = episodes {
+        cfg.eval.episodes = e;
+    }
+    if let Some(d) = device {
+        cfg.run.device = d;
+    }
+    let setup = Setup::new(cfg)?;
+    let mut learner = Learner::new(&setup);
+    let ck = dir.join("checkpoints");
+    let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
+        RunError::Io { .. } => RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display())),
+        other => other,
+    })?;
+    checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
+    let data = match split {
+        "test" => &setup.test_data,
+        "train" => &setup.train_data,
+        other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
+    };
+    // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
+    let tasks = eval_tasks(&setup, &mut learner, data, u64::MAX - latest.iteration)?;
+    let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
+    let result = FinalEval { iteration: latest.iteration, step: latest.step, checkpoint: format!("checkpoints/{}", latest.model), split: split.into(), tasks, mean_return };
+    write_json(&dir.join("eval_final.json"), &result)?;
+    Ok(result)
+}
