@@ -132,12 +132,20 @@ impl BenchArgs {
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    #[arg(long, default_value_t = 20)]
-    pub steps: u64,
+    /// Seeds per method (the closing numbers in the README use 3).
+    #[arg(long, default_value_t = 1)]
+    pub seeds: u64,
+    /// Override train.iterations of configs/point_robot/demo.toml.
+    #[arg(long)]
+    pub iterations: Option<u64>,
+    /// Where data, runs and the report go.
+    #[arg(long, default_value = "runs/demo")]
+    pub out: PathBuf,
     #[arg(long, default_value = "auto")]
     pub device: DeviceSpec,
+    /// Only the old smoke check: a few training steps on synthetic data.
+    #[arg(long)]
+    pub smoke: bool,
 }
 
 #[derive(Debug, Args)]

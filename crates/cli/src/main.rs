@@ -15,10 +15,27 @@ fn main() -> ExitCode {
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_chain(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// The error and its causes, `: `-separated. Library errors already include their cause in their
+/// message (so `to_string()` is useful to library users); a cause whose text is already there is
+/// not repeated.
+fn error_chain(e: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if !out.contains(&text) {
+            if !out.is_empty() {
+                out.push_str(": ");
+            }
+            out.push_str(&text);
+        }
+    }
+    out
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -84,13 +101,13 @@ fn run(cli: Cli) -> Result<()> {
                 println!("wrote {}/bench.json and bench.md", dir.display());
             }
         }
-        Command::Demo(a) => {
+        Command::Demo(a) if a.smoke => {
             let device = pdt_model::device::resolve(a.device)?;
-            println!("promptdt smoke run: 2 synthetic tasks, {} training steps on {device:?}", a.steps);
-            for (i, s) in pdt_train::smoke::run(a.seed, a.steps, device).iter().enumerate() {
+            for (i, s) in pdt_train::smoke::run(0, 20, device).iter().enumerate() {
                 println!("step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}", s.loss, s.grad_norm, s.lr);
             }
         }
+        Command::Demo(a) => commands::demo(&a)?,
     }
     Ok(())
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("wrong shape for `{field}`: expected {expected}, got {got}")]
     Shape { field: &'static str, expected: String, got: String },
@@ -12,9 +12,9 @@ pub enum DataError {
     Empty,
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
-    #[error("pickle")]
+    #[error("pickle: {0}")]
     Pickle(#[from] crate::pickle::PickleError),
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     InFile { path: PathBuf, source: Box<DataError> },
 }
 

@@ -14,7 +14,7 @@ use tch::{nn::VarStore, Kind, Tensor};
 
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: not a safetensors file: {message}")]
     Format { path: PathBuf, message: String },

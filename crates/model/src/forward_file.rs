@@ -27,7 +27,7 @@ use tch::{nn::VarStore, Device, Kind, Tensor};
 pub enum ForwardFileError {
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: not a safetensors file: {message}")]
     Format { path: PathBuf, message: String },
@@ -39,7 +39,7 @@ pub enum ForwardFileError {
     NonFinite { path: PathBuf, name: String },
     #[error("{path}: the prompt tensors must be given all together or not at all; missing `{name}`")]
     PartialPrompt { path: PathBuf, name: &'static str },
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     Forward { path: PathBuf, source: ForwardError },
     #[error("{path}: cannot infer the architecture: {message}")]
     Architecture { path: PathBuf, message: String },

@@ -239,8 +239,8 @@ fn draw<DB: DrawingBackend>(
                 .draw_series(pts.iter().map(|&(x, m, _)| Circle::new((x, m), 3, color.filled())))
                 .map_err(pe)?;
         }
-        if pts.len() == 1 {
-            let (x, m, s) = pts[0];
+        if let [(x, m, s)] = pts.as_slice() {
+            let (x, m, s) = (*x, *m, *s);
             chart
                 .draw_series(std::iter::once(PathElement::new(
                     vec![(x, m - s), (x, m + s)],

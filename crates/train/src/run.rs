@@ -39,7 +39,7 @@ pub enum RunError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),
-    #[error("{path}")]
+    #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
@@ -433,6 +433,14 @@ fn now_utc() -> String {
     format!("unix:{secs}")
 }
 
+/// libtorch's random generator (weight init, dropout) is global to the process: runs in one process
+/// take turns, so that each run's draws depend on its seed alone.
+static TORCH_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn torch_rng_lock() -> std::sync::MutexGuard<'static, ()> {
+    TORCH_RNG.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Trains from `cfg` into `dir` (created), or with `opts.resume`, continues the run in `dir` (its
 /// `config.toml` is authoritative and `cfg` is ignored).
 pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Result<TrainSummary, RunError> {
@@ -442,6 +450,7 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
         (false, None) => return Err(RunError::Invalid("no configuration given".into())),
     };
     let setup = Setup::new(cfg)?;
+    let _rng = torch_rng_lock();
     let cfg = &setup.cfg;
     let threads = if cfg.run.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { cfg.run.threads };
     tch::set_num_threads(threads as i32);
@@ -551,6 +560,7 @@ pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Op
         cfg.run.device = d;
     }
     let setup = Setup::new(cfg)?;
+    let _rng = torch_rng_lock();
     let mut learner = Learner::new(&setup);
     let ck = dir.join("checkpoints");
     let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {

@@ -1,0 +1,103 @@
+//! A run killed and resumed produces exactly the losses and evaluations of an uninterrupted run.
+
+use pdt_train::config::{Method, TrainConfig};
+use pdt_train::run::{train, TrainOptions};
+use std::path::Path;
+
+fn config(data: &Path, method: Method) -> TrainConfig {
+    let mut c: TrainConfig = toml::from_str(
+        r#"
+        [env]
+        name = "point_robot"
+        [sampler]
+        k = 4
+        batch_size_per_task = 1
+        [model]
+        hidden_size = 16
+        n_layer = 1
+        n_inner = 32
+        [optim]
+        learning_rate = 1e-3
+        warmup_steps = 3
+        [train]
+        iterations = 6
+        steps_per_iteration = 2
+        test_eval_interval = 2
+        train_eval_interval = 5
+        save_interval = 2
+        [eval]
+        episodes = 2
+        finetune_steps = 2
+        finetune_batch = 4
+        [run]
+        threads = 1
+        device = "cpu"
+        "#,
+    )
+    .unwrap();
+    c.data.dir = data.to_path_buf();
+    c.run.method = method;
+    c
+}
+
+/// The lines of a log with wall-clock fields removed.
+fn lines(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v.as_object_mut().unwrap().remove("time/elapsed_s");
+            v
+        })
+        .collect()
+}
+
+fn run(cfg: Option<TrainConfig>, dir: &Path, resume: bool, stop: Option<u64>) -> pdt_train::run::TrainSummary {
+    let mut progress = |_: &pdt_train::run::Progress| {};
+    train(cfg, dir, TrainOptions { resume, stop_after_iterations: stop, progress: &mut progress }).unwrap()
+}
+
+#[test]
+fn killed_and_resumed_run_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let collect = pdt_envs::collect_scripted::CollectConfig { episodes_per_task: 4, prompt_episodes: 2, ..Default::default() };
+    pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
+    for method in [Method::PromptDt, Method::MtBcFinetune] {
+        let (full, cut) = (tmp.path().join(format!("full-{method:?}")), tmp.path().join(format!("cut-{method:?}")));
+        assert!(run(Some(config(&data, method)), &full, false, None).finished);
+        // Interrupted after iteration 3: the last checkpoint is iteration 2, and iteration 3's
+        // metrics line (written after the checkpoint) must be discarded on resume.
+        let stopped = run(Some(config(&data, method)), &cut, false, Some(3));
+        assert!(!stopped.finished);
+        assert_eq!(lines(&cut.join("metrics.jsonl")).len(), 3);
+        let resumed = run(None, &cut, true, None);
+        assert!(resumed.finished);
+        let (a, b) = (lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
+        assert_eq!(a.len(), 6);
+        assert_eq!(a, b, "{method:?}: training losses differ after resume");
+        assert_eq!(lines(&full.join("eval.jsonl")), lines(&cut.join("eval.jsonl")), "{method:?}: evaluations differ");
+        let (ca, cb) = (std::fs::read_to_string(full.join("metrics.csv")).unwrap(), std::fs::read_to_string(cut.join("metrics.csv")).unwrap());
+        assert_eq!(ca.lines().count(), cb.lines().count());
+        let w = |d: &Path| std::fs::read(d.join("checkpoints/step_12.safetensors")).unwrap();
+        assert!(w(&full) == w(&cut), "{method:?}: final weights differ");
+        // resuming a finished run is a no-op that reports it finished
+        assert!(run(None, &cut, true, None).finished);
+    }
+}
+
+#[test]
+fn starting_over_an_existing_run_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let collect = pdt_envs::collect_scripted::CollectConfig { episodes_per_task: 4, prompt_episodes: 2, ..Default::default() };
+    pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
+    let mut cfg = config(&data, Method::MtOrl);
+    cfg.train.iterations = 2;
+    let dir = tmp.path().join("run");
+    run(Some(cfg.clone()), &dir, false, None);
+    let mut progress = |_: &pdt_train::run::Progress| {};
+    let err = train(Some(cfg), &dir, TrainOptions { resume: false, stop_after_iterations: None, progress: &mut progress }).unwrap_err();
+    assert!(err.to_string().contains("--resume"), "{err}");
+}
