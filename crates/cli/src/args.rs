@@ -92,7 +92,7 @@ pub struct BenchArgs {
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
     /// Comma-separated cases.
-    #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50")]
+    #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50,eval_point_robot")]
     pub cases: String,
     /// Python with PyTorch 2.11 for the side-by-side baseline (omit to time promptdt alone).
     #[arg(long)]
@@ -100,6 +100,12 @@ pub struct BenchArgs {
     /// The PyTorch benchmark script.
     #[arg(long, default_value = "scripts/bench/bench_torch.py")]
     pub script: PathBuf,
+    /// The PyTorch reference evaluation loop (for the `eval_point_robot` case).
+    #[arg(long, default_value = "scripts/bench/bench_eval_torch.py")]
+    pub eval_script: PathBuf,
+    /// Episodes per task in `eval_point_robot`.
+    #[arg(long, default_value_t = 50)]
+    pub eval_episodes: usize,
     /// Directory for bench.json and bench.md.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -125,7 +131,9 @@ impl BenchArgs {
             warmup: self.warmup,
             device: pdt_model::device::resolve(self.device)?,
             cases: self.cases.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect(),
+            pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
             pytorch,
+            eval_episodes: self.eval_episodes.max(1),
         })
     }
 }

@@ -27,6 +27,10 @@ pub struct BenchConfig {
     pub cases: Vec<String>,
     /// Run the PyTorch baseline with this Python and script (None: promptdt only).
     pub pytorch: Option<PyTorchBaseline>,
+    /// The reference's one-episode-at-a-time evaluation loop in PyTorch, for `eval_point_robot`.
+    pub pytorch_eval_script: Option<PathBuf>,
+    /// Episodes per task of `eval_point_robot`.
+    pub eval_episodes: usize,
 }
 
 #[derive(Debug, Clone)]
@@ -65,11 +69,14 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b560, train_b64, infer_b1, infer_b50)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N> or eval_point_robot)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
 }
+
+/// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
+pub const EVAL_CASE: &str = "eval_point_robot";
 
 fn parse_case(name: &str) -> Result<(bool, i64), BenchError> {
     let bad = || BenchError::UnknownCase(name.to_string());
@@ -163,9 +170,79 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
     serde_json::from_str(line).map_err(|e| BenchError::Baseline { cmd: shown, why: format!("unreadable output ({e}): {text}") })
 }
 
+/// Times the whole evaluation protocol: 5 tasks x `eval_episodes` episodes x 20 steps, all episodes
+/// stepped together (reference architecture with point-robot dims, K = 20, prompt 5 steps).
+fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+    use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
+    use pdt_prompt::{SegmentBatch, StateNorm};
+    tch::manual_seed(0);
+    let vs = VarStore::new(cfg.device);
+    let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
+    let family = pdt_envs::family("point_robot").map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
+    let tasks = || -> Result<Vec<EvalTask>, BenchError> {
+        [2usize, 10, 18, 26, 34]
+            .iter()
+            .map(|&i| {
+                let goal = pdt_envs::point_robot::goal(i).unwrap_or([0.0, 1.0]);
+                let prompt = SegmentBatch {
+                    batch: 1,
+                    steps: 5,
+                    state_dim: 2,
+                    act_dim: 2,
+                    states: (0..5).flat_map(|t| [goal[0] * (15 + t) as f32 / 20.0, goal[1] * (15 + t) as f32 / 20.0]).collect(),
+                    actions: (0..5).flat_map(|_| [0.1 * goal[0], 0.1 * goal[1]]).collect(),
+                    returns_to_go: vec![-0.05; 5],
+                    timesteps: (14..19).collect(),
+                    mask: vec![1.0; 5],
+                };
+                let envs = (0..cfg.eval_episodes).map(|_| family.make(i)).collect::<Result<Vec<_>, _>>();
+                let envs = envs.map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
+                Ok(EvalTask { name: format!("point_robot-{i}"), index: i, envs, seeds: (0..cfg.eval_episodes as u64).collect(), prompt: Some(prompt) })
+            })
+            .collect()
+    };
+    let settings = EvalSettings {
+        k: 20,
+        horizon: 20,
+        rtg_scale: 10.0,
+        target_return: 0.0,
+        returns: EvalReturns::Decreasing,
+        norm: StateNorm::identity(2),
+        max_batch: 4096,
+        device: cfg.device,
+    };
+    let mut secs = Vec::new();
+    for i in 0..cfg.iters.min(5) + 1 {
+        let t = tasks()?;
+        let t0 = Instant::now();
+        evaluate(&model, t, &settings).map_err(|e| BenchError::Baseline { cmd: EVAL_CASE.into(), why: e.to_string() })?;
+        if i > 0 {
+            secs.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    secs.sort_by(f64::total_cmp);
+    Ok(CaseTiming { name: EVAL_CASE.into(), median_ms: percentile(&secs, 0.5), p10_ms: percentile(&secs, 0.1), p90_ms: percentile(&secs, 0.9), iters: secs.len() })
+}
+
+/// The reference's one-episode-at-a-time loop in PyTorch (`scripts/bench/bench_eval_torch.py`).
+fn run_pytorch_eval(python: &std::path::Path, script: &std::path::Path, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+    let mut cmd = Command::new(python);
+    cmd.arg(script).args(["--threads", &cfg.threads.to_string(), "--episodes", &cfg.eval_episodes.to_string(), "--repeats", "3"]);
+    let shown = format!("{cmd:?}");
+    let out = cmd.output().map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
+    if !out.status.success() {
+        return Err(BenchError::Baseline { cmd: shown, why: String::from_utf8_lossy(&out.stderr).trim().to_string() });
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or("");
+    let v: serde_json::Value = serde_json::from_str(line).map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: format!("{e}: {text}") })?;
+    let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN) * 1e3;
+    Ok(CaseTiming { name: EVAL_CASE.into(), median_ms: f("median_s"), p10_ms: f("p10_s"), p90_ms: f("p90_s"), iters: 3 })
+}
+
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
-    for c in &cfg.cases {
+    for c in cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE) {
         parse_case(c)?;
     }
     tch::set_num_threads(cfg.threads as i32);
@@ -174,9 +251,21 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let vs = VarStore::new(cfg.device);
     let model = PromptDt::new(&vs.root(), &mcfg);
     let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
-    let results = cfg.cases.iter().map(|c| time_case(&model, &mut opt, c, cfg)).collect::<Result<Vec<_>, _>>()?;
+    let mut results = Vec::new();
+    for c in &cfg.cases {
+        results.push(if c == EVAL_CASE { time_eval(cfg)? } else { time_case(&model, &mut opt, c, cfg)? });
+    }
     let promptdt = EngineReport { engine: "promptdt".into(), torch_version: Some("libtorch 2.11.0 (tch 0.24)".into()), threads: cfg.threads, results };
-    let pytorch = cfg.pytorch.as_ref().map(|b| run_pytorch(b, cfg)).transpose()?;
+    let train_cases: Vec<String> = cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE).cloned().collect();
+    let mut pytorch = match &cfg.pytorch {
+        Some(b) if !train_cases.is_empty() => Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?),
+        _ => None,
+    };
+    if let (Some(b), Some(script), true) = (&cfg.pytorch, &cfg.pytorch_eval_script, cfg.cases.iter().any(|c| c == EVAL_CASE)) {
+        let t = run_pytorch_eval(&b.python, script, cfg)?;
+        let report = pytorch.get_or_insert_with(|| EngineReport { engine: "pytorch".into(), torch_version: None, threads: cfg.threads, results: vec![] });
+        report.results.push(t);
+    }
     let speedup = match &pytorch {
         Some(p) => promptdt
             .results
