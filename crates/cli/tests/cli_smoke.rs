@@ -191,7 +191,6 @@ fn collect_train_eval_report_on_a_tiny_budget() {
     let table = ok(&["report", run.to_str().unwrap(), "--out", rep.to_str().unwrap()]);
     assert!(table.contains("prompt-dt"), "{table}");
     assert!(rep.join("curves_point_robot.png").is_file() && rep.join("table.csv").is_file());
-    // the checkpoint loads in `model forward` too (reference state_dict names, any dims)
     let err = fails(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap()]);
     assert!(err.contains("--resume"), "{err}");
 }
