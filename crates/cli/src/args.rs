@@ -61,7 +61,7 @@ pub struct ConvertArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCommand {
-    /// Predict actions for a batch stored in safetensors (tensor names in docs/model-forward.md).
+    /// Predict actions for a batch stored in safetensors (tensor names: docs/model-forward.md).
     Forward(ForwardArgs),
 }
 

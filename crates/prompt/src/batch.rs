@@ -243,14 +243,15 @@ impl<'a> BatchSampler<'a> {
         prompt
     }
 
-    /// `n` segments of `len` steps from the tail of task `task`'s demonstrations (P_i), the
-    /// reference's `get_batch_finetune` (`si = T - len - 1`, uniform demonstration): the data
-    /// MT-BC-Finetune adapts on. Returns-to-go are kept (reference pitfall 10).
+    /// `n` segments of `len` steps from the tails of task `task`'s trajectories, the reference's
+    /// `get_batch_finetune`: trajectories of the main dataset D_i drawn with the history-sampling
+    /// weights (the ranking above), segment `si = T - len - 1`. It is the data MT-BC-Finetune adapts
+    /// on. Returns-to-go are kept (reference pitfall 10).
     pub fn tail_segments(&self, task: usize, n: usize, len: usize, rng: &mut Rng) -> SegmentBatch {
-        let demos = &self.tasks[task].data.prompts.trajectories;
+        let ts = &self.tasks[task];
         let mut out = SegmentBatch::zeros(n, len, self.state_dim, self.act_dim);
         for row in 0..n {
-            let traj = &demos[rng.random_range(0..demos.len())];
+            let traj = &ts.data.dataset.trajectories[ts.ranking.pick(rng.random::<f64>())];
             let si = traj.len().saturating_sub(len + 1);
             let slot = out.rows(row, 1);
             write_segment(traj, si, len, &self.norm, self.cfg.rtg_scale, self.cfg.max_ep_len, false, slot);
@@ -498,7 +499,8 @@ mod tests {
         assert_eq!((b.batch, b.steps), (6, 5));
         for row in 0..6 {
             assert_eq!(&b.timesteps[row * 5..row * 5 + 5], &[44, 45, 46, 47, 48]);
-            assert!(id(&b, row, 0).1 >= 100.0, "from P_i");
+            let traj = id(&b, row, 0).1;
+            assert!((1.0..3.0).contains(&traj), "from D_i, never its lowest-return trajectory 0: {traj}");
         }
     }
 

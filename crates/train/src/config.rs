@@ -152,12 +152,15 @@ pub struct ModelSection {
     pub n_inner: usize,
     pub max_ep_len: usize,
     pub n_positions: usize,
+    /// Residual and attention dropout (the reference's `--dropout`).
     pub dropout: f64,
+    /// Dropout on the input embeddings (HF's `embd_pdrop`, not set by the reference's `--dropout`).
+    pub embd_dropout: f64,
 }
 
 impl Default for ModelSection {
     fn default() -> Self {
-        Self { hidden_size: 128, n_layer: 3, n_head: 1, n_inner: 512, max_ep_len: 1000, n_positions: 1024, dropout: 0.1 }
+        Self { hidden_size: 128, n_layer: 3, n_head: 1, n_inner: 512, max_ep_len: 1000, n_positions: 1024, dropout: 0.1, embd_dropout: 0.1 }
     }
 }
 
@@ -172,7 +175,7 @@ impl ModelSection {
             n_positions: self.n_positions,
             resid_pdrop: self.dropout,
             attn_pdrop: self.dropout,
-            embd_pdrop: self.dropout,
+            embd_pdrop: self.embd_dropout,
             ..pdt_model::PromptDtConfig::reference(state_dim, act_dim)
         }
     }

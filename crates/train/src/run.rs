@@ -61,7 +61,15 @@ fn derive_seed(seed: u64, stream: u64, counter: u64) -> u64 {
 const STREAM_INIT: u64 = 1;
 const STREAM_BATCHES: u64 = 2;
 const STREAM_DROPOUT: u64 = 3;
-const STREAM_EVAL: u64 = 4;
+const STREAM_EVAL_TEST: u64 = 4;
+const STREAM_EVAL_TRAIN: u64 = 5;
+
+/// Which tasks an evaluation covers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Split {
+    Test,
+    Train,
+}
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -252,9 +260,13 @@ impl Learner {
 }
 
 /// Evaluates `tasks` (indices into `data`), each with its own prompt, all episodes together.
-fn eval_tasks(setup: &Setup, learner: &mut Learner, data: &MultiTaskDataset, iteration: u64) -> Result<Vec<TaskResult>, RunError> {
+fn eval_tasks(setup: &Setup, learner: &mut Learner, split: Split, iteration: u64) -> Result<Vec<TaskResult>, RunError> {
+    let (data, stream) = match split {
+        Split::Test => (&setup.test_data, STREAM_EVAL_TEST),
+        Split::Train => (&setup.train_data, STREAM_EVAL_TRAIN),
+    };
     let sampler = setup.sampler(data)?;
-    let mut rng = Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, STREAM_EVAL, iteration));
+    let mut rng = Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, stream, iteration));
     let method = setup.cfg.run.method;
     let make = |i: usize, rng: &mut Rng| -> Result<EvalTask, RunError> {
         let t = &data.tasks[i];
@@ -281,7 +293,8 @@ fn eval_tasks(setup: &Setup, learner: &mut Learner, data: &MultiTaskDataset, ite
             .map(|(i, t)| summarise(&t.name, t.index, &eps.iter().filter(|e| e.task_index == i).collect::<Vec<_>>()))
             .collect()
     };
-    if method != Method::MtBcFinetune {
+    // The reference fine-tunes before test-task evaluations only; training tasks are evaluated as is.
+    if method != Method::MtBcFinetune || split == Split::Train {
         let tasks = (0..data.tasks.len()).map(|i| make(i, &mut rng)).collect::<Result<Vec<_>, _>>()?;
         let names: Vec<EvalTask> = tasks.iter().map(|t| EvalTask { name: t.name.clone(), index: t.index, envs: vec![], seeds: vec![], prompt: None }).collect();
         let eps = evaluate(&learner.model, tasks, &settings)?;
@@ -514,13 +527,13 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
         let mut test_return = None;
         // Reference: evaluation after the first iteration and every `interval` after it.
         if (iteration - 1) % t.test_eval_interval == 0 || last {
-            let res = eval_tasks(&setup, &mut learner, &setup.test_data, iteration)?;
+            let res = eval_tasks(&setup, &mut learner, Split::Test, iteration)?;
             evals.append(&eval_rows(&res, iteration, step, "test", setup.stats.target_return))?;
             test_return = Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
-            let res = eval_tasks(&setup, &mut learner, &setup.train_data, iteration)?;
+            let res = eval_tasks(&setup, &mut learner, Split::Train, iteration)?;
             evals.append(&eval_rows(&res, iteration, step, "train", setup.stats.target_return))?;
         }
         if iteration % t.save_interval == 0 || last {
@@ -568,13 +581,13 @@ pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Op
         other => other,
     })?;
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
-    let data = match split {
-        "test" => &setup.test_data,
-        "train" => &setup.train_data,
+    let which = match split {
+        "test" => Split::Test,
+        "train" => Split::Train,
         other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
     };
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
-    let tasks = eval_tasks(&setup, &mut learner, data, u64::MAX - latest.iteration)?;
+    let tasks = eval_tasks(&setup, &mut learner, which, u64::MAX - latest.iteration)?;
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval { iteration: latest.iteration, step: latest.step, checkpoint: format!("checkpoints/{}", latest.model), split: split.into(), tasks, mean_return };
     write_json(&dir.join("eval_final.json"), &result)?;
