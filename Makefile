@@ -10,6 +10,7 @@ PYTHON ?= python3
 
 setup:
 	$(PYTHON) scripts/fetch_libtorch.py
+	$(PYTHON) scripts/fetch_mujoco.py
 
 demo: setup
 	$(CARGO) run --release -p promptdt -- demo

@@ -2,8 +2,15 @@
 //! their task parameters, train/test splits and the reference's per-environment constants
 //! ([`EnvPreset`]). No tensor framework here.
 
+pub mod ant_dir;
+pub mod cheetah;
 pub mod collect_scripted;
+pub mod mujoco_env;
 pub mod point_robot;
+pub mod replay;
+pub mod vec_env;
+
+pub use replay::{replay, ReplayResult};
 
 use serde::{Deserialize, Serialize};
 
@@ -35,6 +42,9 @@ pub enum EnvError {
     UnknownSplit { env: String, split: String, known: String },
     #[error("{env}: {message}")]
     Simulation { env: String, message: String },
+    /// A simulator state given from outside (e.g. a replay's initial `qpos`/`qvel`) is unusable.
+    #[error("{env}: invalid state: {message}")]
+    BadState { env: String, message: String },
 }
 
 /// One task instance of an environment family.
@@ -82,10 +92,17 @@ pub trait EnvFamily: Send + Sync {
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError>;
 }
 
+/// Names of the families [`family`] knows.
+pub const FAMILY_NAMES: [&str; 4] = ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir"];
+
 /// Looks up a family by name.
 pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
     match name {
         "point_robot" | "point-robot" => Ok(Box::new(point_robot::PointRobotFamily::default())),
-        other => Err(EnvError::UnknownEnv(other.to_string(), "point_robot".into())),
+        "cheetah_dir" => Ok(Box::new(cheetah::CheetahDirFamily::default())),
+        "cheetah_vel" => Ok(Box::new(cheetah::CheetahVelFamily::default())),
+        // The contact cost as the reference computed it (zero): see `ant_dir::ContactCost`.
+        "ant_dir" => Ok(Box::new(ant_dir::AntDirFamily::default())),
+        other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
     }
 }

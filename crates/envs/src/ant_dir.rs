@@ -1,0 +1,269 @@
+//! Ant-Dir (`ant_dir`), as the reference defines it (`promptdt-reference.md` e.3;
+//! `tp_envs/ant_dir.py` of PEARL/MACAW/Prompt-DT): gym's ant with marker sites, RK4, frame skip 5
+//! (dt 0.05 s), 200-step episodes.
+//!
+//! - Observation (27, f32): `qpos[2:15]` (torso z, quaternion, 8 joint angles) ‖ `qvel[0:14]`.
+//! - Action (8): motor commands in [-1, 1] (MuJoCo clamps; the reward uses the raw action).
+//! - Reward: `((p_after - p_before)[:2] / dt) . (cos g, sin g) - 0.5 ||a||^2 - contact + 1`, with
+//!   `p = xpos(torso)` read as `mj_step` leaves it (never recomputed from `qpos`: with RK4 that
+//!   would differ), and `contact` per [`ContactCost`].
+//! - Terminated when the state (`qpos` ‖ `qvel`) is not finite or the torso height `qpos[2]` leaves
+//!   [0.2, 1.0].
+
+use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, HORIZON};
+use crate::{Env, EnvError, EnvFamily, EnvPreset};
+
+/// Family name, as used in file names (`ant_dir-3-prompt-expert.pkl`).
+pub const ENV_NAME: &str = "ant_dir";
+/// Number of tasks.
+pub const NUM_TASKS: usize = 50;
+/// Weight of `||a||^2`.
+pub const CTRL_COST_WEIGHT: f64 = 0.5;
+/// Weight of `||clip(cfrc_ext, -1, 1)||^2` in the contact cost (`0.5 * 1e-3`).
+pub const CONTACT_COST_WEIGHT: f64 = 0.5e-3;
+/// Reward for every step survived.
+pub const SURVIVE_REWARD: f64 = 1.0;
+/// The torso height `qpos[2]` must stay within this range, or the episode terminates.
+pub const HEALTHY_Z: (f64, f64) = (0.2, 1.0);
+/// Test tasks of the `default` split (the reference's `config/ant_dir/ant_dir_50.json`, = MACAW's).
+pub const DEFAULT_TEST_TASKS: [usize; 5] = [6, 17, 23, 30, 41];
+/// Train tasks of the `ood` split (paper section 6.4; the reference's `ant_dir_10.json`).
+pub const OOD_TRAIN_TASKS: [usize; 8] = [8, 13, 16, 20, 22, 26, 32, 37];
+/// Test tasks of the `ood` split.
+pub const OOD_TEST_TASKS: [usize; 3] = [1, 4, 41];
+/// Split names, the default first.
+pub const SPLIT_NAMES: [&str; 2] = ["default", "ood"];
+
+/// Goal directions of the 50 tasks, radians in [0, 2 pi): fixed random draws.
+///
+/// Provenance: the reference's `config/ant_dir/config_ant_dir_task{i}.pkl` = `[{'goal': g_i}]`, as
+/// unpickled into `../shared/data/official-task-parameters.json` (key `ant_dir_goal_radians`),
+/// with all digits (a test checks them against the file).
+pub const GOALS: [f64; NUM_TASKS] = [
+    1.2033605945679715,
+    0.42663053293975295,
+    4.944775479235424,
+    4.123865140631488,
+    4.005661927041337,
+    3.6166196447991155,
+    0.2454395410534735,
+    2.2482091824000023,
+    5.941902704664186,
+    0.3772718531319245,
+    5.428936649786095,
+    5.512178944021152,
+    0.32165928764709933,
+    4.099267058824251,
+    3.4667560926228758,
+    3.754286493596681,
+    3.0380999478653634,
+    1.7780670544024204,
+    1.87066585880318,
+    3.5280645037970855,
+    2.488439431116824,
+    4.9555527108165744,
+    2.629414941289294,
+    0.9041750006610754,
+    0.9481747251390378,
+    0.3470916400248258,
+    4.511560745487209,
+    1.8366841068540096,
+    1.2489330732603883,
+    5.223613581580657,
+    3.5687934580622827,
+    0.5173559024487111,
+    3.42432703215533,
+    0.9987672483128179,
+    4.252223478300645,
+    0.7443831939965014,
+    2.795992744398332,
+    5.579358183330077,
+    5.009380886994954,
+    0.42712294662677097,
+    6.036807514750099,
+    4.141909635790574,
+    4.516203325267859,
+    4.672030605450681,
+    5.577812002817041,
+    0.8416054504725834,
+    4.881875268913003,
+    5.26525595696687,
+    5.210675507763471,
+    0.1831988121347493,
+];
+
+/// How the contact cost term of the reward is computed.
+///
+/// The reference computes `0.5e-3 * ||clip(cfrc_ext, -1, 1)||^2` but never calls
+/// `mj_rnePostConstraint`, which is what fills `cfrc_ext` under MuJoCo >= 2.0; so in the reference
+/// (and in the data recorded with it) the term is always 0 (pitfall 19; openai/gym#1541, #1711).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum ContactCost {
+    /// As the reference under MuJoCo >= 2: always 0. The default.
+    #[default]
+    Reference,
+    /// What the formula means: call `mj_rnePostConstraint` after stepping (as gymnasium's `step`
+    /// does; it changes no state) and charge the clipped external contact forces.
+    Computed,
+}
+
+/// Ant-Dir's contact cost from `cfrc_ext` (one 6-vector per body): `0.5e-3 ||clip(f, -1, 1)||^2`.
+pub fn contact_cost(cfrc_ext: &[[f64; 6]]) -> f64 {
+    let sq: f64 = cfrc_ext.iter().flatten().map(|&f| f.clamp(-1.0, 1.0).powi(2)).sum();
+    CONTACT_COST_WEIGHT * sq
+}
+
+/// Ant-Dir reward: `((p_after - p_before)[:2] / dt) . (cos goal, sin goal) - 0.5 ||a||^2
+/// - contact + 1`, with `p` the torso's `xpos` before and after the step.
+pub fn reward(
+    goal: f64,
+    p_before: [f64; 3],
+    p_after: [f64; 3],
+    dt: f64,
+    action: &[f32],
+    contact: f64,
+) -> f64 {
+    let vx = (p_after[0] - p_before[0]) / dt;
+    let vy = (p_after[1] - p_before[1]) / dt;
+    let forward = vx * goal.cos() + vy * goal.sin();
+    forward - CTRL_COST_WEIGHT * action_sq_norm(action) - contact + SURVIVE_REWARD
+}
+
+/// Termination: the state is not finite, or the torso height `qpos[2]` is outside [0.2, 1.0].
+pub fn is_terminal(qpos: &[f64], qvel: &[f64]) -> bool {
+    let finite = qpos.iter().chain(qvel).all(|v| v.is_finite());
+    let z = qpos.get(2).copied().unwrap_or(f64::NAN);
+    !(finite && z >= HEALTHY_Z.0 && z <= HEALTHY_Z.1)
+}
+
+fn check_task(task: usize) -> Result<(), EnvError> {
+    if task < NUM_TASKS {
+        Ok(())
+    } else {
+        Err(EnvError::UnknownTask { env: ENV_NAME.into(), task, n: NUM_TASKS })
+    }
+}
+
+/// The 50-task Ant-Dir family. `default()` uses [`ContactCost::Reference`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct AntDirFamily {
+    pub contact_cost: ContactCost,
+}
+
+impl AntDirFamily {
+    pub fn with_contact_cost(contact_cost: ContactCost) -> Self {
+        Self { contact_cost }
+    }
+
+    /// The environment of `task`, as a concrete type (for state access and replay).
+    pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
+        check_task(task)?;
+        MujocoEnv::new(MujocoTask::AntDir { goal: GOALS[task], contact_cost: self.contact_cost })
+    }
+}
+
+impl EnvFamily for AntDirFamily {
+    fn name(&self) -> &str {
+        ENV_NAME
+    }
+
+    fn num_tasks(&self) -> usize {
+        NUM_TASKS
+    }
+
+    /// `promptdt-reference.md` c.4 (code = paper).
+    fn preset(&self) -> EnvPreset {
+        EnvPreset {
+            obs_dim: Body::Ant.obs_dim(),
+            act_dim: Body::Ant.act_dim(),
+            horizon: HORIZON,
+            rtg_scale: 500.0,
+            target_return: 500.0,
+            prompt_length: 5,
+        }
+    }
+
+    fn split_names(&self) -> Vec<String> {
+        SPLIT_NAMES.iter().map(|s| (*s).to_owned()).collect()
+    }
+
+    /// `default`: test [6, 17, 23, 30, 41], train the other 45. `ood`: train
+    /// [8, 13, 16, 20, 22, 26, 32, 37], test [1, 4, 41] (only task 1's goal lies outside the
+    /// training goals' range: pitfall 17).
+    fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
+        match name {
+            "default" => {
+                let train = (0..NUM_TASKS).filter(|t| !DEFAULT_TEST_TASKS.contains(t)).collect();
+                Ok((train, DEFAULT_TEST_TASKS.to_vec()))
+            }
+            "ood" => Ok((OOD_TRAIN_TASKS.to_vec(), OOD_TEST_TASKS.to_vec())),
+            other => Err(EnvError::UnknownSplit {
+                env: ENV_NAME.into(),
+                split: other.into(),
+                known: SPLIT_NAMES.join(", "),
+            }),
+        }
+    }
+
+    fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
+        check_task(task)?;
+        let contact = match self.contact_cost {
+            ContactCost::Reference => "reference",
+            ContactCost::Computed => "computed",
+        };
+        Ok(serde_json::json!({ "goal": GOALS[task], "contact_cost": contact }))
+    }
+
+    fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
+        Ok(Box::new(self.make_env(task)?))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reward_follows_the_formula() {
+        let a = [1.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0];
+        // goal pi/2: only y counts; vy = 0.1 / 0.05 = 2; control cost 0.5 * 2 = 1.
+        let r =
+            reward(std::f64::consts::FRAC_PI_2, [0.0, 0.0, 0.5], [0.3, 0.1, 0.6], 0.05, &a, 0.25);
+        assert!((r - (2.0 - 1.0 - 0.25 + 1.0)).abs() < 1e-12, "{r}");
+    }
+
+    #[test]
+    fn contact_cost_clips_each_component() {
+        let f = [[2.0, -3.0, 0.5, 0.0, 0.0, 0.0], [0.0; 6]];
+        assert!((contact_cost(&f) - 0.5e-3 * (1.0 + 1.0 + 0.25)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn termination_rule() {
+        let mut q = vec![0.0; 15];
+        let v = vec![0.0; 14];
+        for (z, done) in [(0.55, false), (0.2, false), (1.0, false), (0.19, true), (1.01, true)] {
+            q[2] = z;
+            assert_eq!(is_terminal(&q, &v), done, "z = {z}");
+        }
+        q[2] = 0.5;
+        let mut bad = v.clone();
+        bad[3] = f64::INFINITY;
+        assert!(is_terminal(&q, &bad));
+        q[7] = f64::NAN;
+        assert!(is_terminal(&q, &v));
+    }
+
+    #[test]
+    fn splits() {
+        let fam = AntDirFamily::default();
+        let (train, test) = fam.split("default").unwrap_or_default();
+        assert_eq!(test, vec![6, 17, 23, 30, 41]);
+        assert_eq!(train.len(), 45);
+        let (train, test) = fam.split("ood").unwrap_or_default();
+        assert_eq!((train.len(), test), (8, vec![1, 4, 41]));
+        assert_eq!(fam.contact_cost, ContactCost::Reference);
+        let p = fam.preset();
+        assert_eq!((p.obs_dim, p.act_dim, p.rtg_scale, p.target_return), (27, 8, 500.0, 500.0));
+    }
+}

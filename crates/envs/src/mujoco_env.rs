@@ -1,0 +1,425 @@
+//! The MuJoCo environments of the reference (`promptdt-reference.md` e.1-e.3): one simulator wrapper
+//! [`MujocoEnv`] for HalfCheetah-Dir, HalfCheetah-Vel and Ant-Dir, on MuJoCo 3.17.0 through
+//! mujoco-rs. The per-family constants, reward functions and task families live in
+//! [`crate::cheetah`] and [`crate::ant_dir`]; `docs/mujoco-envs.md` describes them all.
+//!
+//! What each step does, as gym's `MujocoEnv` did for the reference:
+//! 1. `ctrl <- action` (f32 widened to f64; MuJoCo clamps to the ctrlrange [-1, 1] itself),
+//! 2. `mj_step` [`FRAME_SKIP`] = 5 times (dt = 5 x 0.01 s),
+//! 3. read `qpos`, `qvel` and `xpos(torso)` **as `mj_step` leaves them, without `mj_forward`**.
+//!
+//! The third point matters (pitfall 22): `mj_step` computes kinematics at the start of its last
+//! sub-step, so `xpos` is one 0.01 s sub-step older than `qpos`. The cheetah observation's torso
+//! position and Ant-Dir's reward read that stale `xpos`; the reference's recorded data shows it.
+
+use std::sync::{Arc, Once, OnceLock};
+
+use mujoco_rs::prelude::{MjData, MjModel, MjtObjBase};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::ant_dir::{self, ContactCost};
+use crate::cheetah;
+use crate::{Env, EnvError, StepResult};
+
+/// Simulator steps per environment step (gym's `frame_skip` for both bodies).
+pub const FRAME_SKIP: usize = 5;
+/// Episode length: `step` reports `truncated` at this step (the reference's `max_ep_len`).
+pub const HORIZON: usize = 200;
+/// Half-width of the uniform noise added to every `qpos` entry at reset (gym `reset_model`).
+pub const RESET_QPOS_NOISE: f64 = 0.1;
+/// Standard deviation of the normal noise added to every `qvel` entry at reset.
+pub const RESET_QVEL_NOISE: f64 = 0.1;
+
+/// gym's `half_cheetah.xml`, unchanged (md5 6bf6419903e906a511ad88260f424d22).
+pub const HALF_CHEETAH_XML: &str = include_str!("../assets/half_cheetah.xml");
+/// gym's `ant.xml` with the Ant-Dir sites `goal` and `origin` and without the `track` camera.
+pub const ANT_DIR_XML: &str = include_str!("../assets/ant_dir.xml");
+
+/// Which body model a family uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Body {
+    HalfCheetah,
+    Ant,
+}
+
+impl Body {
+    fn xml(self) -> &'static str {
+        match self {
+            Body::HalfCheetah => HALF_CHEETAH_XML,
+            Body::Ant => ANT_DIR_XML,
+        }
+    }
+
+    /// Observation size: cheetah `qpos[1:]` (8) + `qvel` (9) + `xpos(torso)` (3); ant `qpos[2:]`
+    /// (13) + `qvel` (14).
+    pub fn obs_dim(self) -> usize {
+        match self {
+            Body::HalfCheetah => 20,
+            Body::Ant => 27,
+        }
+    }
+
+    /// Number of actuators.
+    pub fn act_dim(self) -> usize {
+        match self {
+            Body::HalfCheetah => 6,
+            Body::Ant => 8,
+        }
+    }
+}
+
+/// The task of one environment: which reward it pays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MujocoTask {
+    /// HalfCheetah-Dir: run in direction `direction` (+1 forward, -1 backward).
+    CheetahDir { direction: f64 },
+    /// HalfCheetah-Vel: run forward at `velocity` m/s.
+    CheetahVel { velocity: f64 },
+    /// Ant-Dir: walk in the direction at angle `goal` (radians) in the x-y plane.
+    AntDir { goal: f64, contact_cost: ContactCost },
+}
+
+impl MujocoTask {
+    pub fn body(&self) -> Body {
+        match self {
+            MujocoTask::CheetahDir { .. } | MujocoTask::CheetahVel { .. } => Body::HalfCheetah,
+            MujocoTask::AntDir { .. } => Body::Ant,
+        }
+    }
+
+    /// The family name, used in error messages.
+    pub fn env_name(&self) -> &'static str {
+        match self {
+            MujocoTask::CheetahDir { .. } => cheetah::DIR_ENV_NAME,
+            MujocoTask::CheetahVel { .. } => cheetah::VEL_ENV_NAME,
+            MujocoTask::AntDir { .. } => ant_dir::ENV_NAME,
+        }
+    }
+}
+
+/// Routes MuJoCo's log to the `log` crate, once per process, before the first model is loaded.
+///
+/// Without this MuJoCo prints warnings to stdout and appends them to `MUJOCO_LOG.TXT` in the
+/// working directory (gym's `half_cheetah.xml` triggers one at every load: `settotalmass` is
+/// deprecated). The `log` crate lets the program decide where they go.
+fn init_logging() {
+    static HOOK: Once = Once::new();
+    HOOK.call_once(|| {
+        // SAFETY: mujoco-rs requires that no other thread uses MuJoCo during the call. Every MuJoCo
+        // use in this crate goes through `load_model`, which runs this `Once` first; `call_once`
+        // blocks every other caller until it has returned. So no thread of this crate can be
+        // using MuJoCo while the hook is installed.
+        #[allow(unsafe_code)]
+        unsafe {
+            mujoco_rs::prelude::install_logging_hook()
+        };
+    });
+}
+
+/// The compiled model of `body`, loaded once per process and shared (read-only) by every
+/// environment.
+fn load_model(body: Body) -> Result<Arc<MjModel>, EnvError> {
+    static CHEETAH: OnceLock<Result<Arc<MjModel>, String>> = OnceLock::new();
+    static ANT: OnceLock<Result<Arc<MjModel>, String>> = OnceLock::new();
+    init_logging();
+    let cell = match body {
+        Body::HalfCheetah => &CHEETAH,
+        Body::Ant => &ANT,
+    };
+    let loaded = cell.get_or_init(|| {
+        MjModel::from_xml_string(body.xml()).map(Arc::new).map_err(|e| format!("{e:?}"))
+    });
+    loaded.clone().map_err(|message| EnvError::Simulation {
+        env: format!("{body:?}"),
+        message: format!("cannot load the MuJoCo model: {message}"),
+    })
+}
+
+/// One MuJoCo environment instance (see the module docs).
+#[derive(Debug)]
+pub struct MujocoEnv {
+    task: MujocoTask,
+    data: MjData<Arc<MjModel>>,
+    /// Body id of `torso` (1 in both models).
+    torso: usize,
+    /// The model's default pose `qpos0` and zero velocity: gym's `init_qpos`/`init_qvel`.
+    init_qpos: Vec<f64>,
+    init_qvel: Vec<f64>,
+    /// Environment time step: `timestep * FRAME_SKIP` (0.05 s), computed like gym's `dt`.
+    dt: f64,
+    /// Steps taken in the current episode.
+    t: usize,
+    /// The episode has ended (terminated or truncated); `step` refuses until the next reset.
+    finished: bool,
+}
+
+impl MujocoEnv {
+    /// An environment for `task`, already reset with seed 0 (so `step` may be called at once).
+    pub fn new(task: MujocoTask) -> Result<Self, EnvError> {
+        let model = load_model(task.body())?;
+        let torso = model.name_to_id(MjtObjBase::mjOBJ_BODY, "torso").ok_or_else(|| {
+            EnvError::Simulation {
+                env: task.env_name().into(),
+                message: "model has no body `torso`".into(),
+            }
+        })?;
+        let init_qpos = model.qpos0().to_vec();
+        let dt = model.opt().timestep * FRAME_SKIP as f64;
+        let data = MjData::try_new(model).map_err(|e| EnvError::Simulation {
+            env: task.env_name().into(),
+            message: format!("cannot allocate mjData: {e:?}"),
+        })?;
+        let init_qvel = vec![0.0; data.qvel().len()];
+        let mut env = Self { task, data, torso, init_qpos, init_qvel, dt, t: 0, finished: false };
+        env.reset(0);
+        Ok(env)
+    }
+
+    pub fn task(&self) -> MujocoTask {
+        self.task
+    }
+
+    /// Environment time step in seconds (0.05).
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+
+    /// Number of position coordinates (cheetah 9, ant 15).
+    pub fn nq(&self) -> usize {
+        self.init_qpos.len()
+    }
+
+    /// Number of velocity coordinates (cheetah 9, ant 14).
+    pub fn nv(&self) -> usize {
+        self.init_qvel.len()
+    }
+
+    /// The current generalised positions.
+    pub fn qpos(&self) -> &[f64] {
+        self.data.qpos()
+    }
+
+    /// The current generalised velocities.
+    pub fn qvel(&self) -> &[f64] {
+        self.data.qvel()
+    }
+
+    /// The torso's frame position as the last `mj_step` (or the reset's `mj_forward`) left it:
+    /// after a step it is one sub-step older than [`qpos`](Self::qpos) (see the module docs).
+    pub fn torso_xpos(&self) -> [f64; 3] {
+        self.data.xpos().get(self.torso).copied().unwrap_or([f64::NAN; 3])
+    }
+
+    /// The default pose `qpos0` that reset noise is added to.
+    pub fn init_qpos(&self) -> &[f64] {
+        &self.init_qpos
+    }
+
+    /// Steps taken in the current episode.
+    pub fn steps(&self) -> usize {
+        self.t
+    }
+
+    /// Starts an episode from exactly `qpos`, `qvel` (no noise): what `reset` does after drawing
+    /// its noise, as gym's `set_state`: `mj_resetData`, set the state, `mj_forward`.
+    pub fn reset_to(&mut self, qpos: &[f64], qvel: &[f64]) -> Result<Vec<f32>, EnvError> {
+        let env = self.task.env_name();
+        for (what, values, expected) in [("qpos", qpos, self.nq()), ("qvel", qvel, self.nv())] {
+            if values.len() != expected {
+                return Err(EnvError::BadState {
+                    env: env.into(),
+                    message: format!("{what} has {} values, expected {expected}", values.len()),
+                });
+            }
+            if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+                return Err(EnvError::BadState {
+                    env: env.into(),
+                    message: format!("{what}[{i}] is {v}, not a finite number"),
+                });
+            }
+        }
+        self.set_state(qpos, qvel);
+        Ok(self.observation())
+    }
+
+    fn set_state(&mut self, qpos: &[f64], qvel: &[f64]) {
+        // mj_resetData also zeroes time, controls, warm-start accelerations and contacts, so an
+        // episode does not depend on the previous one.
+        self.data.reset();
+        self.data.qpos_mut().copy_from_slice(qpos);
+        self.data.qvel_mut().copy_from_slice(qvel);
+        // Fresh kinematics at reset (here xpos matches qpos exactly, unlike after a step).
+        self.data.forward();
+        self.t = 0;
+        self.finished = false;
+    }
+
+    /// The observation of the current state, in f32 (see [`Body::obs_dim`]).
+    fn observation(&self) -> Vec<f32> {
+        let qpos = self.data.qpos();
+        let qvel = self.data.qvel();
+        let mut obs = Vec::with_capacity(self.task.body().obs_dim());
+        match self.task.body() {
+            Body::HalfCheetah => {
+                obs.extend(qpos[1..].iter().map(|&v| v as f32));
+                obs.extend(qvel.iter().map(|&v| v as f32));
+                obs.extend(self.torso_xpos().iter().map(|&v| v as f32));
+            }
+            Body::Ant => {
+                obs.extend(qpos[2..].iter().map(|&v| v as f32));
+                obs.extend(qvel.iter().map(|&v| v as f32));
+            }
+        }
+        obs
+    }
+
+    /// Ant-Dir's contact cost term for the current state, with `mj_rnePostConstraint` (which fills
+    /// `cfrc_ext`; it changes no state). See [`ContactCost`].
+    fn computed_contact_cost(&mut self) -> f64 {
+        self.data.rne_post_constraint();
+        ant_dir::contact_cost(self.data.cfrc_ext())
+    }
+
+    fn check_action(&self, action: &[f32]) -> Result<(), EnvError> {
+        let env = self.task.env_name();
+        if self.finished {
+            return Err(EnvError::Finished { env: env.into() });
+        }
+        let expected = self.task.body().act_dim();
+        if action.len() != expected {
+            return Err(EnvError::ActionDim { env: env.into(), got: action.len(), expected });
+        }
+        if let Some((index, &value)) = action.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            // MuJoCo would only warn and reset the simulation: a non-finite action is a policy
+            // bug, so refuse it before it reaches the simulator.
+            return Err(EnvError::NonFiniteAction { env: env.into(), index, value });
+        }
+        Ok(())
+    }
+}
+
+impl Env for MujocoEnv {
+    fn obs_dim(&self) -> usize {
+        self.task.body().obs_dim()
+    }
+
+    fn act_dim(&self) -> usize {
+        self.task.body().act_dim()
+    }
+
+    fn horizon(&self) -> usize {
+        HORIZON
+    }
+
+    /// gym's `reset_model`: `qpos = qpos0 + U(-0.1, 0.1)`, then `qvel = 0 + 0.1 N(0, 1)`, all drawn
+    /// from `ChaCha8Rng::seed_from_u64(seed)` (positions first, in coordinate order).
+    fn reset(&mut self, seed: u64) -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let qpos: Vec<f64> = self
+            .init_qpos
+            .iter()
+            .map(|&q| q + rng.random_range(-RESET_QPOS_NOISE..RESET_QPOS_NOISE))
+            .collect();
+        let qvel: Vec<f64> = self
+            .init_qvel
+            .iter()
+            .map(|&v| v + RESET_QVEL_NOISE * standard_normal(&mut rng))
+            .collect();
+        self.set_state(&qpos, &qvel);
+        self.observation()
+    }
+
+    fn step(&mut self, action: &[f32]) -> Result<StepResult, EnvError> {
+        // Everything is checked before the simulator changes, so a refused step leaves the episode
+        // as it was.
+        self.check_action(action)?;
+        let x_before = self.data.qpos()[0];
+        let p_before = self.torso_xpos();
+        for (c, &a) in self.data.ctrl_mut().iter_mut().zip(action) {
+            *c = f64::from(a);
+        }
+        for _ in 0..FRAME_SKIP {
+            self.data.step();
+        }
+        // No mj_forward here: the observation and Ant-Dir's reward read xpos as mj_step left it.
+        let x_after = self.data.qpos()[0];
+        let p_after = self.torso_xpos();
+        let (reward, terminated) = match self.task {
+            MujocoTask::CheetahDir { direction } => {
+                (cheetah::dir_reward(direction, x_before, x_after, self.dt, action), false)
+            }
+            MujocoTask::CheetahVel { velocity } => {
+                (cheetah::vel_reward(velocity, x_before, x_after, self.dt, action), false)
+            }
+            MujocoTask::AntDir { goal, contact_cost } => {
+                let contact = match contact_cost {
+                    ContactCost::Reference => 0.0,
+                    ContactCost::Computed => self.computed_contact_cost(),
+                };
+                let reward = ant_dir::reward(goal, p_before, p_after, self.dt, action, contact);
+                (reward, ant_dir::is_terminal(self.data.qpos(), self.data.qvel()))
+            }
+        };
+        self.t += 1;
+        let truncated = !terminated && self.t >= HORIZON;
+        self.finished = terminated || truncated;
+        Ok(StepResult { obs: self.observation(), reward: reward as f32, terminated, truncated })
+    }
+}
+
+/// A standard normal sample (Box-Muller), from two uniforms of `rng`.
+fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
+    // `random::<f64>()` is in [0, 1); 1 - u is in (0, 1], so the logarithm is finite.
+    let u1 = 1.0 - rng.random::<f64>();
+    let u2 = rng.random::<f64>();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// Sum of squares of the action, accumulated in f64 in coordinate order (the control cost's
+/// `||a||^2`; the Python replay script sums the same way, so rewards agree bit for bit).
+pub fn action_sq_norm(action: &[f32]) -> f64 {
+    action.iter().fold(0.0, |acc, &a| acc + f64::from(a) * f64::from(a))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cheetah() -> MujocoEnv {
+        match MujocoEnv::new(MujocoTask::CheetahDir { direction: 1.0 }) {
+            Ok(env) => env,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    #[test]
+    fn cheetah_torso_xpos_is_one_substep_stale_after_a_step() {
+        let mut env = cheetah();
+        env.reset(3);
+        let r = env.step(&[0.5, -0.3, 0.9, -1.0, 0.2, 0.7]).map_err(|e| e.to_string());
+        let r = r.unwrap_or_else(|e| panic!("{e}"));
+        let (x, vx) = (env.qpos()[0], env.qvel()[0]);
+        let stale = env.torso_xpos()[0];
+        // Semi-implicit Euler: x_new = x_old + h v_new, and xpos was computed at x_old.
+        assert!((stale - (x - 0.01 * vx)).abs() < 1e-9, "stale {stale} vs {}", x - 0.01 * vx);
+        assert!((stale - x).abs() > 1e-4, "the step should have moved the torso");
+        assert_eq!(r.obs[17], stale as f32);
+        // mj_forward would make it fresh: the environment must not call it.
+        env.data.forward();
+        assert!((env.torso_xpos()[0] - x).abs() < 1e-12);
+    }
+
+    #[test]
+    fn reset_xpos_is_fresh() {
+        let mut env = cheetah();
+        let obs = env.reset(11);
+        assert_eq!(obs[17], env.qpos()[0] as f32);
+        assert_eq!(obs[19], (0.7 + env.qpos()[1]) as f32);
+    }
+
+    #[test]
+    fn dt_is_five_substeps() {
+        assert_eq!(cheetah().dt(), 0.05);
+    }
+}

@@ -1,0 +1,118 @@
+//! Replaying an action sequence from a given simulator state: the Rust side of the Python parity
+//! check (`scripts/mujoco/replay.py`) and of `promptdt env replay`. The JSON file format is
+//! [`ReplayInput`] in and [`ReplayResult`] out; `docs/mujoco-envs.md` documents both.
+
+use serde::{Deserialize, Serialize};
+
+use crate::ant_dir::AntDirFamily;
+use crate::cheetah::{CheetahDirFamily, CheetahVelFamily};
+use crate::mujoco_env::MujocoEnv;
+use crate::{Env, EnvError};
+
+/// Families that [`replay`] accepts (the MuJoCo ones).
+pub const REPLAY_FAMILIES: [&str; 3] = ["cheetah_dir", "cheetah_vel", "ant_dir"];
+
+/// A replay request (the input file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReplayInput {
+    pub family: String,
+    pub task: usize,
+    /// Initial generalised positions (cheetah 9, ant 15).
+    pub init_qpos: Vec<f64>,
+    /// Initial generalised velocities (cheetah 9, ant 14).
+    pub init_qvel: Vec<f64>,
+    /// One action per step (cheetah 6 values, ant 8).
+    pub actions: Vec<Vec<f32>>,
+}
+
+/// What a replay produced (the output file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReplayResult {
+    pub family: String,
+    pub task: usize,
+    /// `steps + 1` observations: the one after setting the initial state, then one per step.
+    pub observations: Vec<Vec<f32>>,
+    /// One per step taken.
+    pub rewards: Vec<f32>,
+    pub terminated: Vec<bool>,
+    pub truncated: Vec<bool>,
+    /// Actions not applied because the episode had ended (terminated, or truncated at the
+    /// 200-step horizon) before them.
+    pub unused_actions: usize,
+}
+
+/// The concrete environment of a MuJoCo family's task (Ant-Dir with the reference's contact cost).
+pub fn make_mujoco_env(family: &str, task: usize) -> Result<MujocoEnv, EnvError> {
+    match family {
+        "cheetah_dir" => CheetahDirFamily::default().make_env(task),
+        "cheetah_vel" => CheetahVelFamily::default().make_env(task),
+        "ant_dir" => AntDirFamily::default().make_env(task),
+        other => Err(EnvError::UnknownEnv(other.to_string(), REPLAY_FAMILIES.join(", "))),
+    }
+}
+
+/// Sets task `task` of `family` to `(init_qpos, init_qvel)` and applies `actions` until they run
+/// out or the episode ends. Errors on an unknown family or task, a state of the wrong size or with
+/// non-finite values, and an action of the wrong size or with non-finite values (naming the step).
+pub fn replay(
+    family: &str,
+    task: usize,
+    init_qpos: &[f64],
+    init_qvel: &[f64],
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    let mut env = make_mujoco_env(family, task)?;
+    replay_env(&mut env, family, task, init_qpos, init_qvel, actions)
+}
+
+/// [`replay`] for a request read from a file.
+pub fn replay_input(input: &ReplayInput) -> Result<ReplayResult, EnvError> {
+    replay(&input.family, input.task, &input.init_qpos, &input.init_qvel, &input.actions)
+}
+
+/// [`replay`] on an environment built by the caller (e.g. Ant-Dir with the computed contact cost).
+/// `family` and `task` are only recorded in the result.
+pub fn replay_env(
+    env: &mut MujocoEnv,
+    family: &str,
+    task: usize,
+    init_qpos: &[f64],
+    init_qvel: &[f64],
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    let first = env.reset_to(init_qpos, init_qvel)?;
+    let mut result = ReplayResult {
+        family: family.to_string(),
+        task,
+        observations: vec![first],
+        rewards: Vec::with_capacity(actions.len()),
+        terminated: Vec::with_capacity(actions.len()),
+        truncated: Vec::with_capacity(actions.len()),
+        unused_actions: 0,
+    };
+    for (t, action) in actions.iter().enumerate() {
+        let step = env.step(action).map_err(|e| at_step(e, t))?;
+        result.observations.push(step.obs);
+        result.rewards.push(step.reward);
+        result.terminated.push(step.terminated);
+        result.truncated.push(step.truncated);
+        if step.terminated || step.truncated {
+            result.unused_actions = actions.len() - t - 1;
+            break;
+        }
+    }
+    Ok(result)
+}
+
+/// Adds the step index to an action error, so that a bad action in a long file can be found.
+fn at_step(e: EnvError, t: usize) -> EnvError {
+    match e {
+        EnvError::ActionDim { env, got, expected } => {
+            EnvError::ActionDim { env: format!("{env} (step {t})"), got, expected }
+        }
+        EnvError::NonFiniteAction { env, index, value } => {
+            EnvError::NonFiniteAction { env: format!("{env} (step {t})"), index, value }
+        }
+        other => other,
+    }
+}
