@@ -28,6 +28,9 @@ pub enum Command {
     Eval(EvalArgs),
     /// Tables and learning-curve plots from run directories.
     Report(ReportArgs),
+    /// Environment tools.
+    #[command(subcommand)]
+    Env(EnvCommand),
     /// Time training steps and inference against PyTorch.
     Bench(BenchArgs),
     /// A quick end-to-end run.
@@ -230,4 +233,29 @@ pub struct ReportArgs {
     pub out: PathBuf,
     #[arg(long)]
     pub title: Option<String>,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum EnvCommand {
+    /// Replay an initial state and actions through a MuJoCo environment (format: docs/mujoco-envs.md).
+    Replay(ReplayArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ReplayArgs {
+    /// Family: cheetah_dir, cheetah_vel or ant_dir.
+    #[arg(long)]
+    pub env: String,
+    /// Task index within the family.
+    #[arg(long)]
+    pub task: usize,
+    /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values).
+    #[arg(long)]
+    pub init: PathBuf,
+    /// JSON array of actions, one array per step.
+    #[arg(long)]
+    pub actions: PathBuf,
+    /// Output JSON: observations, rewards, terminated, truncated.
+    #[arg(long)]
+    pub out: PathBuf,
 }

@@ -5,7 +5,7 @@ mod args;
 mod commands;
 
 use anyhow::{Context, Result};
-use args::{Cli, Command, DataCommand, ModelCommand};
+use args::{Cli, Command, DataCommand, EnvCommand, ModelCommand};
 use commands::{collect, train};
 use clap::Parser;
 use std::process::ExitCode;
@@ -88,6 +88,30 @@ fn run(cli: Cli) -> Result<()> {
             for f in &summary.files {
                 println!("wrote {}", f.display());
             }
+        }
+        Command::Env(EnvCommand::Replay(a)) => {
+            #[derive(serde::Deserialize)]
+            struct Init {
+                qpos: Vec<f64>,
+                qvel: Vec<f64>,
+            }
+            let read = |p: &std::path::Path| std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()));
+            let init: Init = serde_json::from_str(&read(&a.init)?)
+                .with_context(|| format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", a.init.display()))?;
+            let actions: Vec<Vec<f32>> = serde_json::from_str(&read(&a.actions)?)
+                .with_context(|| format!("{}: expected a JSON array of actions (arrays of numbers)", a.actions.display()))?;
+            let r = pdt_envs::replay(&a.env, a.task, &init.qpos, &init.qvel, &actions)?;
+            let text = serde_json::to_string(&r)?;
+            pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes()).with_context(|| format!("writing {}", a.out.display()))?;
+            let ret: f64 = r.rewards.iter().map(|&x| x as f64).sum();
+            println!(
+                "{} task {}: {} steps, return {ret:.3}, terminated {}, wrote {}",
+                r.family,
+                r.task,
+                r.rewards.len(),
+                r.terminated.iter().any(|&t| t),
+                a.out.display()
+            );
         }
         Command::Bench(a) => {
             let cfg = a.to_config()?;

@@ -10,7 +10,7 @@
 //! one), returns-to-go starting at G*/scale and decreasing by r/scale, timesteps from 0; the model
 //! sees the last K steps, left-padded with zeros (mask 0), and the task's prompt.
 
-use pdt_envs::{Env, EnvError};
+use pdt_envs::{Env, EnvError, StepResult};
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use serde::{Deserialize, Serialize};
@@ -55,6 +55,33 @@ pub struct EvalSettings {
     /// At most this many episodes in one forward pass (1 = the reference's sequential loop).
     pub max_batch: usize,
     pub device: Device,
+    /// Threads stepping the environments of a batch (each environment is independent, so results
+    /// do not depend on this number; MuJoCo steps are worth spreading, the point robot's are not).
+    pub env_threads: usize,
+}
+
+/// Steps every active episode with its action, on up to `threads` scoped threads, in order.
+fn step_all(active: &mut [(usize, Running)], acts: &[f32], da: usize, threads: usize) -> Vec<Result<StepResult, EnvError>> {
+    let n = active.len();
+    let threads = threads.clamp(1, n.max(1));
+    let step = |eps: &mut [(usize, Running)], acts: &[f32]| -> Vec<Result<StepResult, EnvError>> {
+        eps.iter_mut().zip(acts.chunks_exact(da)).map(|((_, ep), a)| ep.env.step(a)).collect()
+    };
+    if threads == 1 {
+        return step(active, acts);
+    }
+    let chunk = n.div_ceil(threads);
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = active
+            .chunks_mut(chunk)
+            .zip(acts.chunks(chunk * da))
+            .map(|(eps, a)| scope.spawn(move || step(eps, a)))
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap_or_else(|payload| std::panic::resume_unwind(payload)))
+            .collect()
+    })
 }
 
 /// One finished episode.
@@ -196,10 +223,11 @@ pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> R
             let last = preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
+            let steps = step_all(&mut active, &acts, da, cfg.env_threads);
             let mut still = Vec::with_capacity(active.len());
-            for ((id, mut ep), a) in active.into_iter().zip(acts.chunks_exact(da)) {
+            for (((id, mut ep), a), step) in active.into_iter().zip(acts.chunks_exact(da)).zip(steps) {
                 let name = ep.task.to_string();
-                let step = ep.env.step(a).map_err(|source| EvalError::Env { task: name, source })?;
+                let step = step.map_err(|source| EvalError::Env { task: name, source })?;
                 ep.actions.extend_from_slice(a);
                 ep.states.extend(normalise(&cfg.norm, &step.obs));
                 ep.ret += step.reward as f64;

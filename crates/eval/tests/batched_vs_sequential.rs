@@ -60,6 +60,7 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
             norm: StateNorm { mean: vec![0.1, 0.3], std: vec![0.5, 0.4] },
             max_batch,
             device: Device::Cpu,
+            env_threads: max_batch.min(3),
         };
         let batched = evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(4096)).unwrap();
         let sequential = evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(1)).unwrap();

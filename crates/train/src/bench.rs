@@ -210,6 +210,7 @@ fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
         norm: StateNorm::identity(2),
         max_batch: 4096,
         device: cfg.device,
+        env_threads: 1,
     };
     let mut secs = Vec::new();
     for i in 0..cfg.iters.min(5) + 1 {

@@ -220,6 +220,8 @@ pub struct EvalSection {
     pub mt_bc_returns: MtBcEval,
     /// Largest number of episodes in one forward pass (1 reproduces the reference's loop).
     pub max_batch: usize,
+    /// Threads stepping environments during evaluation (results do not depend on it); 0 = all cores.
+    pub env_threads: usize,
     /// MT-BC-Finetune: gradient steps on each test task (reference 10).
     pub finetune_steps: u64,
     /// MT-BC-Finetune: segments per fine-tuning batch (reference 256).
@@ -234,6 +236,7 @@ impl Default for EvalSection {
             target_return: None,
             mt_bc_returns: MtBcEval::Reference,
             max_batch: 4096,
+            env_threads: 0,
             finetune_steps: 10,
             finetune_batch: 256,
             finetune_lr: 1e-4,

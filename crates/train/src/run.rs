@@ -285,6 +285,10 @@ fn eval_tasks(setup: &Setup, learner: &mut Learner, split: Split, iteration: u64
         norm: setup.norm.clone(),
         max_batch: setup.cfg.eval.max_batch,
         device: setup.device,
+        env_threads: match setup.cfg.eval.env_threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        },
     };
     let summarise_all = |tasks: &[EvalTask], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
         tasks
