@@ -6,7 +6,11 @@ use pdt_model::device::DeviceSpec;
 use std::path::PathBuf;
 
 #[derive(Debug, Parser)]
-#[command(name = "promptdt", version, about = "Prompt-based Decision Transformer (Xu et al., ICML 2022) in Rust")]
+#[command(
+    name = "promptdt",
+    version,
+    about = "Prompt-based Decision Transformer (Xu et al., ICML 2022) in Rust"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -116,12 +120,15 @@ pub struct BenchArgs {
 
 impl BenchArgs {
     pub fn to_config(&self) -> Result<pdt_train::bench::BenchConfig> {
-        let threads = self.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+        let threads = self
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
         if threads == 0 || self.iters == 0 {
             bail!("--threads and --iters must be at least 1");
         }
-        let pytorch = self.python.as_ref().map(|python| {
-            pdt_train::bench::PyTorchBaseline { python: python.clone(), script: self.script.clone() }
+        let pytorch = self.python.as_ref().map(|python| pdt_train::bench::PyTorchBaseline {
+            python: python.clone(),
+            script: self.script.clone(),
         });
         if let Some(p) = &pytorch {
             if !p.script.is_file() {
@@ -133,7 +140,12 @@ impl BenchArgs {
             iters: self.iters,
             warmup: self.warmup,
             device: pdt_model::device::resolve(self.device)?,
-            cases: self.cases.split(',').map(|s| s.trim().to_string()).filter(|s| !s.is_empty()).collect(),
+            cases: self
+                .cases
+                .split(',')
+                .map(|s| s.trim().to_string())
+                .filter(|s| !s.is_empty())
+                .collect(),
             pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
             pytorch,
             eval_episodes: self.eval_episodes.max(1),

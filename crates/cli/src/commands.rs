@@ -33,9 +33,20 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     pb.finish_and_clear();
     println!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
     for e in summary.entries.iter().filter(|e| e.task % 8 == 2) {
-        println!("{:<6} {:<8} {:>14.2} {:>14.2}", e.task, format!("{:?}", e.mode).to_lowercase(), e.dataset.mean, e.prompts.mean);
+        println!(
+            "{:<6} {:<8} {:>14.2} {:>14.2}",
+            e.task,
+            format!("{:?}", e.mode).to_lowercase(),
+            e.dataset.mean,
+            e.prompts.mean
+        );
     }
-    println!("wrote {} datasets and {} to {}", summary.entries.len() * 2, summary.card.display(), out.display());
+    println!(
+        "wrote {} datasets and {} to {}",
+        summary.entries.len() * 2,
+        summary.card.display(),
+        out.display()
+    );
     Ok(())
 }
 
@@ -52,8 +63,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 cfg.train.iterations = n;
             }
             if let Some(m) = &a.method {
-                cfg.run.method = serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
-                    .with_context(|| format!("--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl or mt-bc-finetune"))?;
+                cfg.run.method = serde_json::from_value::<Method>(serde_json::Value::String(
+                    m.clone(),
+                ))
+                .with_context(|| {
+                    format!(
+                        "--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl or mt-bc-finetune"
+                    )
+                })?;
             }
             if let Some(d) = a.device {
                 cfg.run.device = d;
@@ -62,13 +79,22 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 cfg.data.dir = d.clone();
             }
             let dir = a.out.clone().unwrap_or_else(|| {
-                PathBuf::from("runs").join(format!("{}-{}-seed{}", cfg.run.method.name(), cfg.env.name, cfg.run.seed))
+                PathBuf::from("runs").join(format!(
+                    "{}-{}-seed{}",
+                    cfg.run.method.name(),
+                    cfg.env.name,
+                    cfg.run.seed
+                ))
             });
             (Some(cfg), dir)
         }
         (None, None) => bail!("give --config or --resume"),
     };
-    let pb = if a.quiet { ProgressBar::hidden() } else { bar(0, "train {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}") };
+    let pb = if a.quiet {
+        ProgressBar::hidden()
+    } else {
+        bar(0, "train {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}")
+    };
     let mut last_test: Option<f64> = None;
     let mut progress = |p: &pdt_train::run::Progress| {
         pb.set_length(p.iterations);
@@ -77,12 +103,19 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let test = last_test.map_or(String::new(), |r| format!("  test return {r:.2}"));
         pb.set_message(format!("loss {:.5}{test}", p.loss));
     };
-    let opts = pdt_train::run::TrainOptions { resume: a.resume.is_some(), stop_after_iterations: None, progress: &mut progress };
+    let opts = pdt_train::run::TrainOptions {
+        resume: a.resume.is_some(),
+        stop_after_iterations: None,
+        progress: &mut progress,
+    };
     let summary = pdt_train::run::train(cfg, &dir, opts)?;
     pb.finish_and_clear();
     if let Some(tasks) = &summary.last_test {
         let mean = tasks.iter().map(|t| t.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
-        println!("held-out tasks after iteration {}: average return {mean:.2}", summary.iterations_done);
+        println!(
+            "held-out tasks after iteration {}: average return {mean:.2}",
+            summary.iterations_done
+        );
     }
     println!("run directory: {}", summary.dir.display());
     Ok(())
@@ -100,7 +133,10 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         std::fs::remove_dir_all(out).with_context(|| format!("clearing {}", out.display()))?;
     }
     let data = out.join("data");
-    println!("[1/4] collecting point-robot datasets (40 goals x expert/medium/random) into {}", data.display());
+    println!(
+        "[1/4] collecting point-robot datasets (40 goals x expert/medium/random) into {}",
+        data.display()
+    );
     let cfg = pdt_envs::collect_scripted::CollectConfig::default();
     pdt_envs::collect_scripted::collect(&cfg, &data, &mut |_, _| {})?;
     let base: TrainConfig = toml::from_str(DEMO_CONFIG).context("configs/point_robot/demo.toml")?;
@@ -117,7 +153,10 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             }
             let dir = out.join(format!("{}-seed{seed}", method.name()));
             println!("[{}/4] training {} (seed {seed}) -> {}", n + 2, method.name(), dir.display());
-            let pb = bar(cfg.train.iterations, "      {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}");
+            let pb = bar(
+                cfg.train.iterations,
+                "      {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}",
+            );
             let mut progress = |p: &pdt_train::run::Progress| {
                 pb.set_position(p.iteration);
                 let test = p.test_return.map_or(String::new(), |r| format!("  test return {r:.2}"));
@@ -125,7 +164,11 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                     pb.set_message(format!("loss {:.5}{test}", p.loss));
                 }
             };
-            let opts = pdt_train::run::TrainOptions { resume: false, stop_after_iterations: None, progress: &mut progress };
+            let opts = pdt_train::run::TrainOptions {
+                resume: false,
+                stop_after_iterations: None,
+                progress: &mut progress,
+            };
             pdt_train::run::train(Some(cfg), &dir, opts)?;
             pb.finish_and_clear();
             let r = pdt_train::run::evaluate_run(&dir, None, "test", Some(a.device))?;
@@ -135,10 +178,17 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     }
     println!("[4/4] report");
     let report_dir = out.join("report");
-    let cfg = pdt_report::ReportConfig { runs, out_dir: report_dir.clone(), title: Some("promptdt demo: point robot".into()) };
+    let cfg = pdt_report::ReportConfig {
+        runs,
+        out_dir: report_dir.clone(),
+        title: Some("promptdt demo: point robot".into()),
+    };
     let summary = pdt_report::run(&cfg)?;
     print!("\n{}", summary.markdown);
-    println!("\nplots and tables: {}/ (curves_point_robot.png, table.md, table.csv, curves.csv)", report_dir.display());
+    println!(
+        "\nplots and tables: {}/ (curves_point_robot.png, table.md, table.csv, curves.csv)",
+        report_dir.display()
+    );
     println!("demo finished in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
 }

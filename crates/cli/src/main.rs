@@ -6,8 +6,8 @@ mod commands;
 
 use anyhow::{Context, Result};
 use args::{Cli, Command, DataCommand, EnvCommand, ModelCommand};
-use commands::{collect, train};
 use clap::Parser;
+use commands::{collect, train};
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
@@ -51,7 +51,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Data(DataCommand::Convert(a)) => {
             let files = pdt_data::multitask::convert_reference_dir(&a.src, &a.dst)?;
             for f in &files {
-                println!("{} -> {} ({} trajectories, {} steps)", f.source.display(), f.dest.display(), f.trajectories, f.steps);
+                println!(
+                    "{} -> {} ({} trajectories, {} steps)",
+                    f.source.display(),
+                    f.dest.display(),
+                    f.trajectories,
+                    f.steps
+                );
             }
             println!("converted {} files into {}", files.len(), a.dst.display());
         }
@@ -73,13 +79,25 @@ fn run(cli: Cli) -> Result<()> {
             let r = pdt_train::run::evaluate_run(&a.run, a.episodes, &a.split, a.device)?;
             println!("{:<24} {:>12} {:>10} {:>9}", "task", "return mean", "std", "episodes");
             for t in &r.tasks {
-                println!("{:<24} {:>12.2} {:>10.2} {:>9}", t.task, t.return_mean, t.return_std, t.episodes);
+                println!(
+                    "{:<24} {:>12.2} {:>10.2} {:>9}",
+                    t.task, t.return_mean, t.return_std, t.episodes
+                );
             }
             println!("{:<24} {:>12.2}", format!("average ({})", r.split), r.mean_return);
-            println!("checkpoint {} (iteration {}); wrote {}/eval_final.json", r.checkpoint, r.iteration, a.run.display());
+            println!(
+                "checkpoint {} (iteration {}); wrote {}/eval_final.json",
+                r.checkpoint,
+                r.iteration,
+                a.run.display()
+            );
         }
         Command::Report(a) => {
-            let cfg = pdt_report::ReportConfig { runs: a.runs.clone(), out_dir: a.out.clone(), title: a.title.clone() };
+            let cfg = pdt_report::ReportConfig {
+                runs: a.runs.clone(),
+                out_dir: a.out.clone(),
+                title: a.title.clone(),
+            };
             let summary = pdt_report::run(&cfg)?;
             print!("{}", summary.markdown);
             for w in &summary.warnings {
@@ -95,14 +113,23 @@ fn run(cli: Cli) -> Result<()> {
                 qpos: Vec<f64>,
                 qvel: Vec<f64>,
             }
-            let read = |p: &std::path::Path| std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()));
-            let init: Init = serde_json::from_str(&read(&a.init)?)
-                .with_context(|| format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", a.init.display()))?;
-            let actions: Vec<Vec<f32>> = serde_json::from_str(&read(&a.actions)?)
-                .with_context(|| format!("{}: expected a JSON array of actions (arrays of numbers)", a.actions.display()))?;
+            let read = |p: &std::path::Path| {
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))
+            };
+            let init: Init = serde_json::from_str(&read(&a.init)?).with_context(|| {
+                format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", a.init.display())
+            })?;
+            let actions: Vec<Vec<f32>> =
+                serde_json::from_str(&read(&a.actions)?).with_context(|| {
+                    format!(
+                        "{}: expected a JSON array of actions (arrays of numbers)",
+                        a.actions.display()
+                    )
+                })?;
             let r = pdt_envs::replay(&a.env, a.task, &init.qpos, &init.qvel, &actions)?;
             let text = serde_json::to_string(&r)?;
-            pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes()).with_context(|| format!("writing {}", a.out.display()))?;
+            pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes())
+                .with_context(|| format!("writing {}", a.out.display()))?;
             let ret: f64 = r.rewards.iter().map(|&x| x as f64).sum();
             println!(
                 "{} task {}: {} steps, return {ret:.3}, terminated {}, wrote {}",
@@ -119,7 +146,8 @@ fn run(cli: Cli) -> Result<()> {
             let md = pdt_train::bench::render_markdown(&report);
             print!("{md}");
             if let Some(dir) = &a.out {
-                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
                 std::fs::write(dir.join("bench.json"), serde_json::to_string_pretty(&report)?)?;
                 std::fs::write(dir.join("bench.md"), md)?;
                 println!("wrote {}/bench.json and bench.md", dir.display());
@@ -128,7 +156,10 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo(a) if a.smoke => {
             let device = pdt_model::device::resolve(a.device)?;
             for (i, s) in pdt_train::smoke::run(0, 20, device).iter().enumerate() {
-                println!("step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}", s.loss, s.grad_norm, s.lr);
+                println!(
+                    "step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}",
+                    s.loss, s.grad_norm, s.lr
+                );
             }
         }
         Command::Demo(a) => commands::demo(&a)?,

@@ -9,7 +9,8 @@ fn promptdt(args: &[&str]) -> Output {
 
 fn ok(args: &[&str]) -> String {
     let out = promptdt(args);
-    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    let (stdout, stderr) =
+        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
     stdout.into_owned()
 }
@@ -35,15 +36,22 @@ fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
     let d = dir.to_str().unwrap();
     let table = ok(&["data", "inspect", d]);
     assert!(table.contains("42 files, 210 trajectories, 42000 steps"), "{table}");
-    let json: serde_json::Value = serde_json::from_str(&ok(&["data", "inspect", "--json", d])).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&ok(&["data", "inspect", "--json", d])).unwrap();
     let files = json.as_array().unwrap();
     assert_eq!(files.len(), 42);
     // README figures: cheetah_dir-0 forward 630-687, cheetah_dir-1 backward 1129-1171
-    let find = |stem: &str| files.iter().find(|f| f["path"].as_str().unwrap().contains(stem)).unwrap();
+    let find =
+        |stem: &str| files.iter().find(|f| f["path"].as_str().unwrap().contains(stem)).unwrap();
     let fwd = find("cheetah_dir-0-");
-    assert!(fwd["return_min"].as_f64().unwrap() > 630.0 && fwd["return_max"].as_f64().unwrap() < 687.0);
+    assert!(
+        fwd["return_min"].as_f64().unwrap() > 630.0 && fwd["return_max"].as_f64().unwrap() < 687.0
+    );
     let bwd = find("cheetah_dir-1-");
-    assert!(bwd["return_min"].as_f64().unwrap() > 1129.0 && bwd["return_max"].as_f64().unwrap() < 1171.0);
+    assert!(
+        bwd["return_min"].as_f64().unwrap() > 1129.0
+            && bwd["return_max"].as_f64().unwrap() < 1171.0
+    );
 }
 
 #[test]
@@ -60,9 +68,17 @@ fn data_convert_then_inspect_the_native_files() {
     assert!(out.contains("converted 2 files"), "{out}");
     let native = ok(&["data", "inspect", dst.to_str().unwrap()]);
     let pickles = ok(&["data", "inspect", src.to_str().unwrap()]);
-    assert!(native.contains("native") && native.contains("2 files, 10 trajectories, 2000 steps"), "{native}");
+    assert!(
+        native.contains("native") && native.contains("2 files, 10 trajectories, 2000 steps"),
+        "{native}"
+    );
     // same returns in both formats
-    let returns = |t: &str| t.lines().filter(|l| l.contains("cheetah")).map(|l| l.split_whitespace().rev().take(3).collect::<Vec<_>>().join(" ")).collect::<Vec<_>>();
+    let returns = |t: &str| {
+        t.lines()
+            .filter(|l| l.contains("cheetah"))
+            .map(|l| l.split_whitespace().rev().take(3).collect::<Vec<_>>().join(" "))
+            .collect::<Vec<_>>()
+    };
     assert_eq!(returns(&native), returns(&pickles));
 }
 
@@ -72,10 +88,21 @@ fn model_forward_reproduces_the_pytorch_golden_predictions() {
     let out = tmp.path().join("preds.safetensors");
     let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
     let i = repo("testdata/golden/prompt_dt_inputs.safetensors");
-    let msg = ok(&["model", "forward", "--weights", w.to_str().unwrap(), "--inputs", i.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let msg = ok(&[
+        "model",
+        "forward",
+        "--weights",
+        w.to_str().unwrap(),
+        "--inputs",
+        i.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(msg.contains("[4, 20, 6]"), "{msg}");
     let ours = tch::Tensor::read_safetensors(&out).unwrap();
-    let gold = tch::Tensor::read_safetensors(repo("testdata/golden/prompt_dt_expected.safetensors")).unwrap();
+    let gold =
+        tch::Tensor::read_safetensors(repo("testdata/golden/prompt_dt_expected.safetensors"))
+            .unwrap();
     let want = &gold.iter().find(|(n, _)| n == "eval.action_preds").unwrap().1;
     assert_eq!(ours.len(), 1);
     assert!(ours[0].1.equal(want), "model forward differs from PyTorch");
@@ -86,14 +113,41 @@ fn model_forward_errors_name_the_file_and_tensor() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("p.safetensors");
     let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
-    let missing = fails(&["model", "forward", "--weights", "/nonexistent.safetensors", "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let missing = fails(&[
+        "model",
+        "forward",
+        "--weights",
+        "/nonexistent.safetensors",
+        "--inputs",
+        w.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(missing.contains("/nonexistent.safetensors"), "{missing}");
     // weights given as inputs: no `states`
-    let wrong = fails(&["model", "forward", "--weights", w.to_str().unwrap(), "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let wrong = fails(&[
+        "model",
+        "forward",
+        "--weights",
+        w.to_str().unwrap(),
+        "--inputs",
+        w.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(wrong.contains("`states` is missing"), "{wrong}");
     let garbage = tmp.path().join("garbage.safetensors");
     std::fs::write(&garbage, b"\x10\x00\x00\x00\x00\x00\x00\x00{not json at all").unwrap();
-    let bad = fails(&["model", "forward", "--weights", garbage.to_str().unwrap(), "--inputs", w.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let bad = fails(&[
+        "model",
+        "forward",
+        "--weights",
+        garbage.to_str().unwrap(),
+        "--inputs",
+        w.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(bad.contains("garbage.safetensors"), "{bad}");
     assert!(!out.exists(), "no output on failure");
 }
@@ -101,9 +155,23 @@ fn model_forward_errors_name_the_file_and_tensor() {
 #[test]
 fn bench_runs_promptdt_alone_on_a_tiny_budget() {
     let tmp = tempfile::tempdir().unwrap();
-    let out = ok(&["bench", "--threads", "1", "--iters", "2", "--warmup", "0", "--cases", "train_b4,infer_b1", "--out", tmp.path().to_str().unwrap()]);
+    let out = ok(&[
+        "bench",
+        "--threads",
+        "1",
+        "--iters",
+        "2",
+        "--warmup",
+        "0",
+        "--cases",
+        "train_b4,infer_b1",
+        "--out",
+        tmp.path().to_str().unwrap(),
+    ]);
     assert!(out.contains("train_b4") && out.contains("not run"), "{out}");
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(tmp.path().join("bench.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(tmp.path().join("bench.json")).unwrap())
+            .unwrap();
     assert_eq!(json["promptdt"]["results"].as_array().unwrap().len(), 2);
     assert!(fails(&["bench", "--cases", "nonsense"]).contains("unknown benchmark case"));
 }
@@ -111,7 +179,10 @@ fn bench_runs_promptdt_alone_on_a_tiny_budget() {
 #[test]
 fn demo_smoke_trains_and_the_loss_goes_down() {
     let out = ok(&["demo", "--smoke", "--device", "cpu"]);
-    let losses: Vec<f64> = out.lines().filter_map(|l| l.split("loss ").nth(1)?.split_whitespace().next()?.parse().ok()).collect();
+    let losses: Vec<f64> = out
+        .lines()
+        .filter_map(|l| l.split("loss ").nth(1)?.split_whitespace().next()?.parse().ok())
+        .collect();
     assert_eq!(losses.len(), 20, "{out}");
     assert!(losses[15..].iter().sum::<f64>() < losses[..5].iter().sum::<f64>() * 0.6, "{losses:?}");
 }
@@ -119,9 +190,26 @@ fn demo_smoke_trains_and_the_loss_goes_down() {
 #[test]
 fn demo_runs_end_to_end_on_a_tiny_budget() {
     let tmp = tempfile::tempdir().unwrap();
-    let out = ok(&["demo", "--iterations", "2", "--out", tmp.path().to_str().unwrap(), "--device", "cpu"]);
-    assert!(out.contains("prompt-dt") && out.contains("mt-orl") && out.contains("demo finished"), "{out}");
-    for f in ["report/table.md", "report/curves_point_robot.png", "report/curves.csv", "prompt-dt-seed0/eval_final.json", "mt-orl-seed0/eval_final.json"] {
+    let out = ok(&[
+        "demo",
+        "--iterations",
+        "2",
+        "--out",
+        tmp.path().to_str().unwrap(),
+        "--device",
+        "cpu",
+    ]);
+    assert!(
+        out.contains("prompt-dt") && out.contains("mt-orl") && out.contains("demo finished"),
+        "{out}"
+    );
+    for f in [
+        "report/table.md",
+        "report/curves_point_robot.png",
+        "report/curves.csv",
+        "prompt-dt-seed0/eval_final.json",
+        "mt-orl-seed0/eval_final.json",
+    ] {
         assert!(tmp.path().join(f).is_file(), "missing {f}");
     }
 }
@@ -152,14 +240,34 @@ device = "cpu"
 /// A tiny dataset and experiment file in `dir`.
 fn tiny_setup(dir: &Path) -> PathBuf {
     let data = dir.join("data");
-    let msg = ok(&["collect", "--env", "point-robot", "--out", data.to_str().unwrap(), "--episodes", "3", "--prompt-episodes", "2"]);
+    let msg = ok(&[
+        "collect",
+        "--env",
+        "point-robot",
+        "--out",
+        data.to_str().unwrap(),
+        "--episodes",
+        "3",
+        "--prompt-episodes",
+        "2",
+    ]);
     assert!(msg.contains("wrote 240 datasets"), "{msg}");
-    assert!(data.join("point_robot-7-prompt-expert.safetensors").is_file() && data.join("dataset.json").is_file());
+    assert!(
+        data.join("point_robot-7-prompt-expert.safetensors").is_file()
+            && data.join("dataset.json").is_file()
+    );
     let cfg = dir.join("tiny.toml");
-    std::fs::write(&cfg, format!("{TINY}
+    std::fs::write(
+        &cfg,
+        format!(
+            "{TINY}
 [data]
 dir = {:?}
-", data.to_str().unwrap())).unwrap();
+",
+            data.to_str().unwrap()
+        ),
+    )
+    .unwrap();
     cfg
 }
 
@@ -176,15 +284,34 @@ fn collect_train_eval_report_on_a_tiny_budget() {
     let tmp = tempfile::tempdir().unwrap();
     let cfg = tiny_setup(tmp.path());
     let run = tmp.path().join("run");
-    let out = ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
+    let out = ok(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--quiet",
+    ]);
     assert!(out.contains("held-out tasks after iteration 8"), "{out}");
-    for f in ["run.json", "config.toml", "task_stats.json", "metrics.jsonl", "metrics.csv", "eval.jsonl", "eval.csv", "checkpoints/latest.json", "checkpoints/step_16.safetensors"] {
+    for f in [
+        "run.json",
+        "config.toml",
+        "task_stats.json",
+        "metrics.jsonl",
+        "metrics.csv",
+        "eval.jsonl",
+        "eval.csv",
+        "checkpoints/latest.json",
+        "checkpoints/step_16.safetensors",
+    ] {
         assert!(run.join(f).is_file(), "missing {f}");
     }
     assert_eq!(losses(&run).len(), 8);
     let ev = ok(&["eval", "--run", run.to_str().unwrap(), "--episodes", "3"]);
     assert!(ev.contains("point_robot-34") && ev.contains("average (test)"), "{ev}");
-    let fin: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval_final.json")).unwrap()).unwrap();
+    let fin: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval_final.json")).unwrap())
+            .unwrap();
     assert_eq!(fin["tasks"].as_array().unwrap().len(), 5);
     assert_eq!(fin["tasks"][0]["episodes"], 3);
     let rep = tmp.path().join("rep");
@@ -204,7 +331,14 @@ fn train_killed_with_sigkill_resumes_to_the_same_losses() {
     let (full, cut) = (tmp.path().join("full"), tmp.path().join("cut"));
     ok(&["train", "--config", cfg.to_str().unwrap(), "--out", full.to_str().unwrap(), "--quiet"]);
     let mut child = Command::new(env!("CARGO_BIN_EXE_promptdt"))
-        .args(["train", "--config", cfg.to_str().unwrap(), "--out", cut.to_str().unwrap(), "--quiet"])
+        .args([
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            cut.to_str().unwrap(),
+            "--quiet",
+        ])
         .spawn()
         .unwrap();
     // Kill it once it has checkpointed at least once but before it finishes.
@@ -230,34 +364,91 @@ fn bad_input_gives_clear_errors() {
     std::fs::write(&cfg, "[train]\niteratons = 3\n").unwrap();
     assert!(fails(&["train", "--config", cfg.to_str().unwrap()]).contains("iteratons"));
     std::fs::write(&cfg, format!("[data]\ndir = {:?}\n", tmp.path().to_str().unwrap())).unwrap();
-    let e = fails(&["train", "--config", cfg.to_str().unwrap(), "--out", tmp.path().join("r").to_str().unwrap()]);
+    let e = fails(&[
+        "train",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        tmp.path().join("r").to_str().unwrap(),
+    ]);
     assert!(e.contains("point_robot-0-expert"), "names the missing file: {e}");
     assert!(fails(&["eval", "--run", tmp.path().to_str().unwrap()]).contains("config.toml"));
     std::fs::write(&cfg, "").unwrap();
-    assert!(fails(&["train", "--config", cfg.to_str().unwrap(), "--method", "dt-xl"]).contains("--method dt-xl"));
+    assert!(fails(&["train", "--config", cfg.to_str().unwrap(), "--method", "dt-xl"])
+        .contains("--method dt-xl"));
 }
 
 #[test]
 fn env_replay_matches_the_python_mujoco_fixture() {
-    let fixture: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(repo("testdata/mujoco/replay-cheetah_vel.json")).unwrap()).unwrap();
+    let fixture: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(repo("testdata/mujoco/replay-cheetah_vel.json")).unwrap(),
+    )
+    .unwrap();
     let case = &fixture["cases"][0];
     let tmp = tempfile::tempdir().unwrap();
-    let (init, actions, out) = (tmp.path().join("init.json"), tmp.path().join("actions.json"), tmp.path().join("out.json"));
-    std::fs::write(&init, serde_json::json!({"qpos": case["init_qpos"], "qvel": case["init_qvel"]}).to_string()).unwrap();
+    let (init, actions, out) = (
+        tmp.path().join("init.json"),
+        tmp.path().join("actions.json"),
+        tmp.path().join("out.json"),
+    );
+    std::fs::write(
+        &init,
+        serde_json::json!({"qpos": case["init_qpos"], "qvel": case["init_qvel"]}).to_string(),
+    )
+    .unwrap();
     std::fs::write(&actions, case["actions"].to_string()).unwrap();
     let task = case["task"].to_string();
-    let msg = ok(&["env", "replay", "--env", "cheetah_vel", "--task", &task, "--init", init.to_str().unwrap(), "--actions", actions.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let msg = ok(&[
+        "env",
+        "replay",
+        "--env",
+        "cheetah_vel",
+        "--task",
+        &task,
+        "--init",
+        init.to_str().unwrap(),
+        "--actions",
+        actions.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(msg.contains("200 steps"), "{msg}");
-    let got: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let got: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert_eq!(got["observations"], case["expected"]["observations"]);
     assert_eq!(got["rewards"], case["expected"]["rewards"]);
     assert_eq!(got["truncated"], case["expected"]["truncated"]);
     // bad input: a wrong-length action is refused with a clear error
     std::fs::write(&actions, "[[0.1, 0.2]]").unwrap();
-    let e = fails(&["env", "replay", "--env", "cheetah_vel", "--task", "2", "--init", init.to_str().unwrap(), "--actions", actions.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "cheetah_vel",
+        "--task",
+        "2",
+        "--init",
+        init.to_str().unwrap(),
+        "--actions",
+        actions.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(e.contains("action has 2 values, expected 6"), "{e}");
-    let e = fails(&["env", "replay", "--env", "cheetah_vel", "--task", "40", "--init", init.to_str().unwrap(), "--actions", actions.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "cheetah_vel",
+        "--task",
+        "40",
+        "--init",
+        init.to_str().unwrap(),
+        "--actions",
+        actions.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(e.contains("unknown task 40"), "{e}");
 }
 
@@ -275,9 +466,16 @@ fn cheetah_vel_train_and_eval_on_the_official_prompt_files() {
     let run = tmp.path().join("run");
     ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
     let out = ok(&["eval", "--run", run.to_str().unwrap(), "--episodes", "2"]);
-    for t in ["cheetah_vel-2", "cheetah_vel-7", "cheetah_vel-15", "cheetah_vel-23", "cheetah_vel-26"] {
+    for t in
+        ["cheetah_vel-2", "cheetah_vel-7", "cheetah_vel-15", "cheetah_vel-23", "cheetah_vel-26"]
+    {
         assert!(out.contains(t), "{out}");
     }
-    let fin: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval_final.json")).unwrap()).unwrap();
-    assert!(fin["tasks"].as_array().unwrap().iter().all(|t| t["length_mean"] == 200.0), "200-step episodes");
+    let fin: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval_final.json")).unwrap())
+            .unwrap();
+    assert!(
+        fin["tasks"].as_array().unwrap().iter().all(|t| t["length_mean"] == 200.0),
+        "200-step episodes"
+    );
 }

@@ -339,10 +339,14 @@ fn canonicalize_header(path: &Path) -> std::io::Result<()> {
     f.read_exact(&mut header)?;
     let invalid = |m: String| std::io::Error::new(std::io::ErrorKind::InvalidData, m);
     // serde_json's map is a BTreeMap: parsing and printing sorts every object's keys.
-    let value: serde_json::Value = serde_json::from_slice(&header).map_err(|e| invalid(e.to_string()))?;
+    let value: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| invalid(e.to_string()))?;
     let mut sorted = serde_json::to_vec(&value).map_err(|e| invalid(e.to_string()))?;
     if sorted.len() > n {
-        return Err(invalid(format!("canonical header is {} bytes, more than the {n} written", sorted.len())));
+        return Err(invalid(format!(
+            "canonical header is {} bytes, more than the {n} written",
+            sorted.len()
+        )));
     }
     sorted.resize(n, b' ');
     f.seek(SeekFrom::Start(8))?;

@@ -61,7 +61,12 @@ pub struct EvalSettings {
 }
 
 /// Steps every active episode with its action, on up to `threads` scoped threads, in order.
-fn step_all(active: &mut [(usize, Running)], acts: &[f32], da: usize, threads: usize) -> Vec<Result<StepResult, EnvError>> {
+fn step_all(
+    active: &mut [(usize, Running)],
+    acts: &[f32],
+    da: usize,
+    threads: usize,
+) -> Vec<Result<StepResult, EnvError>> {
     let n = active.len();
     let threads = threads.clamp(1, n.max(1));
     let step = |eps: &mut [(usize, Running)], acts: &[f32]| -> Vec<Result<StepResult, EnvError>> {
@@ -162,7 +167,9 @@ fn history_batch(eps: &[&Running], k: usize, ds: usize, da: usize, device: Devic
 /// Stacks the prompts of the given episodes' tasks into `[A, J*H]`.
 fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
     let p0 = prompts[0];
-    let cat_f = |f: fn(&SegmentBatch) -> &Vec<f32>| prompts.iter().flat_map(|p| f(p).iter().copied()).collect::<Vec<f32>>();
+    let cat_f = |f: fn(&SegmentBatch) -> &Vec<f32>| {
+        prompts.iter().flat_map(|p| f(p).iter().copied()).collect::<Vec<f32>>()
+    };
     let ts: Vec<i64> = prompts.iter().flat_map(|p| p.timesteps.iter().copied()).collect();
     Segments::from_host(
         prompts.len(),
@@ -179,7 +186,11 @@ fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
 }
 
 /// Runs every episode of every task to its end; returns the episodes in (task, episode) order.
-pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> Result<Vec<EpisodeRecord>, EvalError> {
+pub fn evaluate(
+    model: &PromptDt,
+    tasks: Vec<EvalTask>,
+    cfg: &EvalSettings,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
     let first_rtg = match cfg.returns {
         EvalReturns::Zero => 0.0,
@@ -189,20 +200,37 @@ pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> R
     let mut pending: Vec<Running> = Vec::new();
     for (ti, task) in tasks.into_iter().enumerate() {
         if task.envs.len() != task.seeds.len() {
-            return Err(EvalError::Setup { task: task.name, why: "one seed per environment is needed".into() });
+            return Err(EvalError::Setup {
+                task: task.name,
+                why: "one seed per environment is needed".into(),
+            });
         }
         for (env, seed) in task.envs.into_iter().zip(task.seeds) {
             if env.obs_dim() != ds || env.act_dim() != da {
-                let why = format!("environment dims {}/{} differ from the model's {ds}/{da}", env.obs_dim(), env.act_dim());
+                let why = format!(
+                    "environment dims {}/{} differ from the model's {ds}/{da}",
+                    env.obs_dim(),
+                    env.act_dim()
+                );
                 return Err(EvalError::Setup { task: task.name, why });
             }
-            pending.push(Running { task: ti, env, seed, states: vec![], actions: vec![], rtg: vec![], ret: 0.0, t: 0 });
+            pending.push(Running {
+                task: ti,
+                env,
+                seed,
+                states: vec![],
+                actions: vec![],
+                rtg: vec![],
+                ret: 0.0,
+                t: 0,
+            });
         }
         prompts.push(task.prompt);
     }
     let mut done: Vec<(usize, EpisodeRecord)> = Vec::with_capacity(pending.len());
     let mut order = 0..;
-    let mut queue: Vec<(usize, Running)> = pending.into_iter().map(|r| (order.next().unwrap_or(0), r)).collect();
+    let mut queue: Vec<(usize, Running)> =
+        pending.into_iter().map(|r| (order.next().unwrap_or(0), r)).collect();
     queue.reverse(); // pop from the end in episode order
     while !queue.is_empty() {
         // Start up to `max_batch` episodes; they run to their ends together.
@@ -217,15 +245,19 @@ pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> R
         while !active.is_empty() {
             let eps: Vec<&Running> = active.iter().map(|(_, e)| e).collect();
             let history = history_batch(&eps, cfg.k, ds, da, cfg.device);
-            let task_prompts: Option<Vec<&SegmentBatch>> = eps.iter().map(|e| prompts[e.task].as_ref()).collect();
+            let task_prompts: Option<Vec<&SegmentBatch>> =
+                eps.iter().map(|e| prompts[e.task].as_ref()).collect();
             let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
             let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
-            let last = preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
+            let last =
+                preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
             let steps = step_all(&mut active, &acts, da, cfg.env_threads);
             let mut still = Vec::with_capacity(active.len());
-            for (((id, mut ep), a), step) in active.into_iter().zip(acts.chunks_exact(da)).zip(steps) {
+            for (((id, mut ep), a), step) in
+                active.into_iter().zip(acts.chunks_exact(da)).zip(steps)
+            {
                 let name = ep.task.to_string();
                 let step = step.map_err(|source| EvalError::Env { task: name, source })?;
                 ep.actions.extend_from_slice(a);
@@ -238,7 +270,13 @@ pub fn evaluate(model: &PromptDt, tasks: Vec<EvalTask>, cfg: &EvalSettings) -> R
                 });
                 ep.t += 1;
                 if step.terminated || step.truncated || ep.t >= cfg.horizon {
-                    let record = EpisodeRecord { task_index: ep.task, seed: ep.seed, episode_return: ep.ret, length: ep.t, actions: ep.actions };
+                    let record = EpisodeRecord {
+                        task_index: ep.task,
+                        seed: ep.seed,
+                        episode_return: ep.ret,
+                        length: ep.t,
+                        actions: ep.actions,
+                    };
                     done.push((id, record));
                 } else {
                     still.push((id, ep));
@@ -258,7 +296,15 @@ pub fn summarise(name: &str, task_index: usize, episodes: &[&EpisodeRecord]) -> 
     let mean = returns.iter().sum::<f64>() / n;
     let std = (returns.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / n).sqrt();
     let length_mean = episodes.iter().map(|e| e.length as f64).sum::<f64>() / n;
-    TaskResult { task: name.to_string(), task_index, return_mean: mean, return_std: std, length_mean, episodes: returns.len(), returns }
+    TaskResult {
+        task: name.to_string(),
+        task_index,
+        return_mean: mean,
+        return_std: std,
+        length_mean,
+        episodes: returns.len(),
+        returns,
+    }
 }
 
 /// A tensor's values, for tests and reports.

@@ -10,7 +10,8 @@ use tch::{nn::VarStore, Device};
 fn prompt_for(goal: [f32; 2]) -> SegmentBatch {
     // A 5-step prompt that walks toward the goal, as a demonstration's tail would.
     let steps = 5;
-    let states: Vec<f32> = (0..steps).flat_map(|t| [goal[0] * (t as f32) / 5.0, goal[1] * (t as f32) / 5.0]).collect();
+    let states: Vec<f32> =
+        (0..steps).flat_map(|t| [goal[0] * (t as f32) / 5.0, goal[1] * (t as f32) / 5.0]).collect();
     SegmentBatch {
         batch: 1,
         steps,
@@ -50,7 +51,8 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
     let vs = VarStore::new(Device::Cpu);
     let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
     let family = pdt_envs::family("point_robot").unwrap();
-    for (with_prompt, returns) in [(true, EvalReturns::Decreasing), (false, EvalReturns::Constant)] {
+    for (with_prompt, returns) in [(true, EvalReturns::Decreasing), (false, EvalReturns::Constant)]
+    {
         let settings = |max_batch| EvalSettings {
             k: 10,
             horizon: 20,
@@ -62,15 +64,22 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
             device: Device::Cpu,
             env_threads: max_batch.min(3),
         };
-        let batched = evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(4096)).unwrap();
-        let sequential = evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(1)).unwrap();
+        let batched =
+            evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(4096)).unwrap();
+        let sequential =
+            evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(1)).unwrap();
         assert_eq!(batched.len(), 35);
         for (b, s) in batched.iter().zip(&sequential) {
             assert_eq!((b.task_index, b.seed, b.length), (s.task_index, s.seed, s.length));
             assert_eq!(b.actions.len(), 40);
             let same = b.actions.iter().zip(&s.actions).all(|(x, y)| x.to_bits() == y.to_bits());
-            let diff = b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
-            assert!(same, "task {} seed {}: batched actions differ by up to {diff:e}", b.task_index, b.seed);
+            let diff =
+                b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+            assert!(
+                same,
+                "task {} seed {}: batched actions differ by up to {diff:e}",
+                b.task_index, b.seed
+            );
             assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
         }
         // The episodes of different tasks behave differently (the prompt carries the goal).

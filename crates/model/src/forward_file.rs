@@ -37,7 +37,9 @@ pub enum ForwardFileError {
     Dtype { path: PathBuf, name: String, dtype: Dtype, expected: &'static str },
     #[error("{path}: tensor `{name}` holds a non-finite value")]
     NonFinite { path: PathBuf, name: String },
-    #[error("{path}: the prompt tensors must be given all together or not at all; missing `{name}`")]
+    #[error(
+        "{path}: the prompt tensors must be given all together or not at all; missing `{name}`"
+    )]
     PartialPrompt { path: PathBuf, name: &'static str },
     #[error("{path}: {source}")]
     Forward { path: PathBuf, source: ForwardError },
@@ -47,7 +49,8 @@ pub enum ForwardFileError {
 
 /// Reads the architecture (dims, width, depth, MLP size, timestep table) off a weights file.
 pub fn infer_config(path: &Path) -> Result<PromptDtConfig, ForwardFileError> {
-    let bytes = std::fs::read(path).map_err(|source| ForwardFileError::Io { path: path.into(), source })?;
+    let bytes =
+        std::fs::read(path).map_err(|source| ForwardFileError::Io { path: path.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| ForwardFileError::Format { path: path.into(), message: e.to_string() })?;
     let arch = |message: String| ForwardFileError::Architecture { path: path.into(), message };
@@ -64,33 +67,60 @@ pub fn infer_config(path: &Path) -> Result<PromptDtConfig, ForwardFileError> {
     let (_, act_dim) = two("embed_action.weight")?;
     let (max_ep_len, _) = two("embed_timestep.weight")?;
     let (_, n_inner) = two("transformer.h.0.mlp.c_fc.weight")?;
-    let n_layer = (0..).take_while(|i| st.tensor(&format!("transformer.h.{i}.ln_1.weight")).is_ok()).count();
+    let n_layer =
+        (0..).take_while(|i| st.tensor(&format!("transformer.h.{i}.ln_1.weight")).is_ok()).count();
     let n_positions = match shape("transformer.h.0.attn.bias") {
         Ok(s) if s.len() == 4 => s[3],
         _ => 1024,
     };
-    let cfg = PromptDtConfig { state_dim, act_dim, hidden_size: hidden, n_layer, n_inner, max_ep_len, n_positions, ..PromptDtConfig::reference(state_dim, act_dim) };
+    let cfg = PromptDtConfig {
+        state_dim,
+        act_dim,
+        hidden_size: hidden,
+        n_layer,
+        n_inner,
+        max_ep_len,
+        n_positions,
+        ..PromptDtConfig::reference(state_dim, act_dim)
+    };
     cfg.validate().map_err(arch)?;
     Ok(cfg)
 }
 
-fn tensor_of(path: &Path, st: &SafeTensors<'_>, name: &str, kind: Kind) -> Result<Option<Tensor>, ForwardFileError> {
+fn tensor_of(
+    path: &Path,
+    st: &SafeTensors<'_>,
+    name: &str,
+    kind: Kind,
+) -> Result<Option<Tensor>, ForwardFileError> {
     let Ok(view) = st.tensor(name) else { return Ok(None) };
     let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
     let t = decode(path, name, &view, kind)?;
     Ok(Some(t.view(shape.as_slice())))
 }
 
-fn decode(path: &Path, name: &str, view: &TensorView<'_>, kind: Kind) -> Result<Tensor, ForwardFileError> {
+fn decode(
+    path: &Path,
+    name: &str,
+    view: &TensorView<'_>,
+    kind: Kind,
+) -> Result<Tensor, ForwardFileError> {
     let d = view.data();
-    let bad = |expected| ForwardFileError::Dtype { path: path.into(), name: name.into(), dtype: view.dtype(), expected };
+    let bad = |expected| ForwardFileError::Dtype {
+        path: path.into(),
+        name: name.into(),
+        dtype: view.dtype(),
+        expected,
+    };
     let le4 = |c: &[u8]| [c[0], c[1], c[2], c[3]];
     let le8 = |c: &[u8]| [c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]];
     match kind {
         Kind::Int64 => {
             let v: Vec<i64> = match view.dtype() {
                 Dtype::I64 => d.chunks_exact(8).map(|c| i64::from_le_bytes(le8(c))).collect(),
-                Dtype::I32 => d.chunks_exact(4).map(|c| i32::from_le_bytes(le4(c)) as i64).collect(),
+                Dtype::I32 => {
+                    d.chunks_exact(4).map(|c| i32::from_le_bytes(le4(c)) as i64).collect()
+                }
                 _ => return Err(bad("int64 or int32")),
             };
             Ok(Tensor::from_slice(&v))
@@ -98,9 +128,15 @@ fn decode(path: &Path, name: &str, view: &TensorView<'_>, kind: Kind) -> Result<
         _ => {
             let v: Vec<f32> = match view.dtype() {
                 Dtype::F32 => d.chunks_exact(4).map(|c| f32::from_le_bytes(le4(c))).collect(),
-                Dtype::F64 => d.chunks_exact(8).map(|c| f64::from_le_bytes(le8(c)) as f32).collect(),
-                Dtype::I64 => d.chunks_exact(8).map(|c| i64::from_le_bytes(le8(c)) as f32).collect(),
-                Dtype::I32 => d.chunks_exact(4).map(|c| i32::from_le_bytes(le4(c)) as f32).collect(),
+                Dtype::F64 => {
+                    d.chunks_exact(8).map(|c| f64::from_le_bytes(le8(c)) as f32).collect()
+                }
+                Dtype::I64 => {
+                    d.chunks_exact(8).map(|c| i64::from_le_bytes(le8(c)) as f32).collect()
+                }
+                Dtype::I32 => {
+                    d.chunks_exact(4).map(|c| i32::from_le_bytes(le4(c)) as f32).collect()
+                }
                 Dtype::BOOL | Dtype::U8 => d.iter().map(|&b| f32::from(b)).collect(),
                 _ => return Err(bad("float32, float64, int64, int32, uint8 or bool")),
             };
@@ -112,7 +148,11 @@ fn decode(path: &Path, name: &str, view: &TensorView<'_>, kind: Kind) -> Result<
     }
 }
 
-fn segments(path: &Path, st: &SafeTensors<'_>, prefix: &'static str) -> Result<Option<Segments>, ForwardFileError> {
+fn segments(
+    path: &Path,
+    st: &SafeTensors<'_>,
+    prefix: &'static str,
+) -> Result<Option<Segments>, ForwardFileError> {
     const NAMES: [(&str, &str); 5] = [
         ("states", "prompt_states"),
         ("actions", "prompt_actions"),
@@ -139,7 +179,13 @@ fn segments(path: &Path, st: &SafeTensors<'_>, prefix: &'static str) -> Result<O
     }
     let mut it = got.into_iter().filter_map(|(_, t)| t);
     let mut next = || it.next().unwrap_or_else(Tensor::new);
-    Ok(Some(Segments { states: next(), actions: next(), returns_to_go: next(), timesteps: next(), mask: next() }))
+    Ok(Some(Segments {
+        states: next(),
+        actions: next(),
+        returns_to_go: next(),
+        timesteps: next(),
+        mask: next(),
+    }))
 }
 
 /// What [`forward_file`] did.
@@ -152,12 +198,18 @@ pub struct ForwardSummary {
 }
 
 /// Loads `weights`, runs the model in eval mode on `inputs`, writes `action_preds` to `out`.
-pub fn forward_file(weights: &Path, inputs: &Path, out: &Path, device: Device) -> Result<ForwardSummary, ForwardFileError> {
+pub fn forward_file(
+    weights: &Path,
+    inputs: &Path,
+    out: &Path,
+    device: Device,
+) -> Result<ForwardSummary, ForwardFileError> {
     let cfg = infer_config(weights)?;
     let mut vs = VarStore::new(device);
     let model = PromptDt::new(&vs.root(), &cfg);
     checkpoint::load(&mut vs, weights, cfg.n_layer)?;
-    let bytes = std::fs::read(inputs).map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
+    let bytes = std::fs::read(inputs)
+        .map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| ForwardFileError::Format { path: inputs.into(), message: e.to_string() })?;
     let to_dev = |s: Segments| Segments {
@@ -167,12 +219,15 @@ pub fn forward_file(weights: &Path, inputs: &Path, out: &Path, device: Device) -
         timesteps: s.timesteps.to_device(device),
         mask: s.mask.to_device(device),
     };
-    let history = segments(inputs, &st, "")?.map(to_dev).ok_or(ForwardFileError::Missing { path: inputs.into(), name: "states" })?;
+    let history = segments(inputs, &st, "")?
+        .map(to_dev)
+        .ok_or(ForwardFileError::Missing { path: inputs.into(), name: "states" })?;
     let prompt = segments(inputs, &st, "prompt_")?.map(to_dev);
     model
         .check_inputs(&history, prompt.as_ref())
         .map_err(|source| ForwardFileError::Forward { path: inputs.into(), source })?;
-    let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)).to_device(Device::Cpu);
+    let preds =
+        tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)).to_device(Device::Cpu);
     let shape: Vec<usize> = preds.size().iter().map(|&d| d as usize).collect();
     let mut values = vec![0f32; preds.numel()];
     preds.contiguous().view([-1]).copy_data(&mut values, preds.numel());
@@ -183,7 +238,8 @@ pub fn forward_file(weights: &Path, inputs: &Path, out: &Path, device: Device) -
     meta.insert("producer".to_string(), "promptdt model forward".to_string());
     let bytes = safetensors::serialize([("action_preds", view)], &Some(meta.into_iter().collect()))
         .map_err(|e| ForwardFileError::Format { path: out.into(), message: e.to_string() })?;
-    write_atomic(out, &bytes).map_err(|source| ForwardFileError::Io { path: out.into(), source })?;
+    write_atomic(out, &bytes)
+        .map_err(|source| ForwardFileError::Io { path: out.into(), source })?;
     Ok(ForwardSummary {
         batch: history.batch_size(),
         history_steps: history.len(),

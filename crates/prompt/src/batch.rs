@@ -254,7 +254,16 @@ impl<'a> BatchSampler<'a> {
             let traj = &ts.data.dataset.trajectories[ts.ranking.pick(rng.random::<f64>())];
             let si = traj.len().saturating_sub(len + 1);
             let slot = out.rows(row, 1);
-            write_segment(traj, si, len, &self.norm, self.cfg.rtg_scale, self.cfg.max_ep_len, false, slot);
+            write_segment(
+                traj,
+                si,
+                len,
+                &self.norm,
+                self.cfg.rtg_scale,
+                self.cfg.max_ep_len,
+                false,
+                slot,
+            );
         }
         out
     }
@@ -494,13 +503,17 @@ mod tests {
     #[test]
     fn finetune_segments_are_demonstration_tails() {
         let tasks = [task(0, 3, 50)];
-        let s = BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
+        let s =
+            BatchSampler::new(cfg(20, 1, 5), &[&tasks[0]], StateNorm::identity(3), 1024).unwrap();
         let b = s.tail_segments(0, 6, 5, &mut rng(11));
         assert_eq!((b.batch, b.steps), (6, 5));
         for row in 0..6 {
             assert_eq!(&b.timesteps[row * 5..row * 5 + 5], &[44, 45, 46, 47, 48]);
             let traj = id(&b, row, 0).1;
-            assert!((1.0..3.0).contains(&traj), "from D_i, never its lowest-return trajectory 0: {traj}");
+            assert!(
+                (1.0..3.0).contains(&traj),
+                "from D_i, never its lowest-return trajectory 0: {traj}"
+            );
         }
     }
 

@@ -93,11 +93,16 @@ fn parse_case(name: &str) -> Result<(bool, i64), BenchError> {
 /// Random segments of `b` samples x `t` steps; histories left-padded to a random length.
 fn random_segments(b: i64, t: i64, ds: i64, da: i64, full: bool, dev: Device) -> Segments {
     let opts = (Kind::Float, dev);
-    let tlen = if full { Tensor::full([b], t, (Kind::Int64, dev)) } else { Tensor::randint_low(1, t + 1, [b], (Kind::Int64, dev)) };
+    let tlen = if full {
+        Tensor::full([b], t, (Kind::Int64, dev))
+    } else {
+        Tensor::randint_low(1, t + 1, [b], (Kind::Int64, dev))
+    };
     let pos = Tensor::arange(t, (Kind::Int64, dev));
     let mask = pos.unsqueeze(0).ge_tensor(&(t - tlen).unsqueeze(1)); // [b, t] bool
     let start = Tensor::randint_low(0, 1000 - t, [b, 1], (Kind::Int64, dev));
-    let timesteps = (start + pos.unsqueeze(0)).where_self(&mask, &Tensor::zeros([1], (Kind::Int64, dev)));
+    let timesteps =
+        (start + pos.unsqueeze(0)).where_self(&mask, &Tensor::zeros([1], (Kind::Int64, dev)));
     Segments {
         states: Tensor::randn([b, t, ds], opts),
         actions: Tensor::rand([b, t, da], opts) * 2.0 - 1.0,
@@ -112,7 +117,12 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i]
 }
 
-fn time_case(model: &PromptDt, opt: &mut AdamW, name: &str, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+fn time_case(
+    model: &PromptDt,
+    opt: &mut AdamW,
+    name: &str,
+    cfg: &BenchConfig,
+) -> Result<CaseTiming, BenchError> {
     let (train, b) = parse_case(name)?;
     let dev = cfg.device;
     let history = random_segments(b, 20, 20, 6, false, dev);
@@ -158,16 +168,28 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
     let mut cmd = Command::new(&base.python);
     cmd.arg(&base.script)
         .args(["--threads", &cfg.threads.to_string(), "--iters", &cfg.iters.to_string()])
-        .args(["--warmup", &cfg.warmup.to_string(), "--device", device, "--cases", &cfg.cases.join(",")]);
+        .args([
+            "--warmup",
+            &cfg.warmup.to_string(),
+            "--device",
+            device,
+            "--cases",
+            &cfg.cases.join(","),
+        ]);
     let shown = format!("{cmd:?}");
-    let out = cmd.output().map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
+    let out = cmd
+        .output()
+        .map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
     if !out.status.success() {
         let why = format!("{}: {}", out.status, String::from_utf8_lossy(&out.stderr).trim());
         return Err(BenchError::Baseline { cmd: shown, why });
     }
     let text = String::from_utf8_lossy(&out.stdout);
     let line = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or("");
-    serde_json::from_str(line).map_err(|e| BenchError::Baseline { cmd: shown, why: format!("unreadable output ({e}): {text}") })
+    serde_json::from_str(line).map_err(|e| BenchError::Baseline {
+        cmd: shown,
+        why: format!("unreadable output ({e}): {text}"),
+    })
 }
 
 /// Times the whole evaluation protocol: 5 tasks x `eval_episodes` episodes x 20 steps, all episodes
@@ -178,7 +200,8 @@ fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     tch::manual_seed(0);
     let vs = VarStore::new(cfg.device);
     let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
-    let family = pdt_envs::family("point_robot").map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
+    let family = pdt_envs::family("point_robot")
+        .map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
     let tasks = || -> Result<Vec<EvalTask>, BenchError> {
         [2usize, 10, 18, 26, 34]
             .iter()
@@ -189,15 +212,29 @@ fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
                     steps: 5,
                     state_dim: 2,
                     act_dim: 2,
-                    states: (0..5).flat_map(|t| [goal[0] * (15 + t) as f32 / 20.0, goal[1] * (15 + t) as f32 / 20.0]).collect(),
+                    states: (0..5)
+                        .flat_map(|t| {
+                            [goal[0] * (15 + t) as f32 / 20.0, goal[1] * (15 + t) as f32 / 20.0]
+                        })
+                        .collect(),
                     actions: (0..5).flat_map(|_| [0.1 * goal[0], 0.1 * goal[1]]).collect(),
                     returns_to_go: vec![-0.05; 5],
                     timesteps: (14..19).collect(),
                     mask: vec![1.0; 5],
                 };
-                let envs = (0..cfg.eval_episodes).map(|_| family.make(i)).collect::<Result<Vec<_>, _>>();
-                let envs = envs.map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
-                Ok(EvalTask { name: format!("point_robot-{i}"), index: i, envs, seeds: (0..cfg.eval_episodes as u64).collect(), prompt: Some(prompt) })
+                let envs =
+                    (0..cfg.eval_episodes).map(|_| family.make(i)).collect::<Result<Vec<_>, _>>();
+                let envs = envs.map_err(|e| BenchError::Baseline {
+                    cmd: "point_robot".into(),
+                    why: e.to_string(),
+                })?;
+                Ok(EvalTask {
+                    name: format!("point_robot-{i}"),
+                    index: i,
+                    envs,
+                    seeds: (0..cfg.eval_episodes as u64).collect(),
+                    prompt: Some(prompt),
+                })
             })
             .collect()
     };
@@ -216,29 +253,59 @@ fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     for i in 0..cfg.iters.min(5) + 1 {
         let t = tasks()?;
         let t0 = Instant::now();
-        evaluate(&model, t, &settings).map_err(|e| BenchError::Baseline { cmd: EVAL_CASE.into(), why: e.to_string() })?;
+        evaluate(&model, t, &settings)
+            .map_err(|e| BenchError::Baseline { cmd: EVAL_CASE.into(), why: e.to_string() })?;
         if i > 0 {
             secs.push(t0.elapsed().as_secs_f64() * 1e3);
         }
     }
     secs.sort_by(f64::total_cmp);
-    Ok(CaseTiming { name: EVAL_CASE.into(), median_ms: percentile(&secs, 0.5), p10_ms: percentile(&secs, 0.1), p90_ms: percentile(&secs, 0.9), iters: secs.len() })
+    Ok(CaseTiming {
+        name: EVAL_CASE.into(),
+        median_ms: percentile(&secs, 0.5),
+        p10_ms: percentile(&secs, 0.1),
+        p90_ms: percentile(&secs, 0.9),
+        iters: secs.len(),
+    })
 }
 
 /// The reference's one-episode-at-a-time loop in PyTorch (`scripts/bench/bench_eval_torch.py`).
-fn run_pytorch_eval(python: &std::path::Path, script: &std::path::Path, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+fn run_pytorch_eval(
+    python: &std::path::Path,
+    script: &std::path::Path,
+    cfg: &BenchConfig,
+) -> Result<CaseTiming, BenchError> {
     let mut cmd = Command::new(python);
-    cmd.arg(script).args(["--threads", &cfg.threads.to_string(), "--episodes", &cfg.eval_episodes.to_string(), "--repeats", "3"]);
+    cmd.arg(script).args([
+        "--threads",
+        &cfg.threads.to_string(),
+        "--episodes",
+        &cfg.eval_episodes.to_string(),
+        "--repeats",
+        "3",
+    ]);
     let shown = format!("{cmd:?}");
-    let out = cmd.output().map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
+    let out = cmd
+        .output()
+        .map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: e.to_string() })?;
     if !out.status.success() {
-        return Err(BenchError::Baseline { cmd: shown, why: String::from_utf8_lossy(&out.stderr).trim().to_string() });
+        return Err(BenchError::Baseline {
+            cmd: shown,
+            why: String::from_utf8_lossy(&out.stderr).trim().to_string(),
+        });
     }
     let text = String::from_utf8_lossy(&out.stdout);
     let line = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or("");
-    let v: serde_json::Value = serde_json::from_str(line).map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: format!("{e}: {text}") })?;
+    let v: serde_json::Value = serde_json::from_str(line)
+        .map_err(|e| BenchError::Baseline { cmd: shown.clone(), why: format!("{e}: {text}") })?;
     let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN) * 1e3;
-    Ok(CaseTiming { name: EVAL_CASE.into(), median_ms: f("median_s"), p10_ms: f("p10_s"), p90_ms: f("p90_s"), iters: 3 })
+    Ok(CaseTiming {
+        name: EVAL_CASE.into(),
+        median_ms: f("median_s"),
+        p10_ms: f("p10_s"),
+        p90_ms: f("p90_s"),
+        iters: 3,
+    })
 }
 
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
@@ -254,24 +321,48 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
     let mut results = Vec::new();
     for c in &cfg.cases {
-        results.push(if c == EVAL_CASE { time_eval(cfg)? } else { time_case(&model, &mut opt, c, cfg)? });
+        results.push(if c == EVAL_CASE {
+            time_eval(cfg)?
+        } else {
+            time_case(&model, &mut opt, c, cfg)?
+        });
     }
-    let promptdt = EngineReport { engine: "promptdt".into(), torch_version: Some("libtorch 2.11.0 (tch 0.24)".into()), threads: cfg.threads, results };
-    let train_cases: Vec<String> = cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE).cloned().collect();
+    let promptdt = EngineReport {
+        engine: "promptdt".into(),
+        torch_version: Some("libtorch 2.11.0 (tch 0.24)".into()),
+        threads: cfg.threads,
+        results,
+    };
+    let train_cases: Vec<String> =
+        cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE).cloned().collect();
     let mut pytorch = match &cfg.pytorch {
-        Some(b) if !train_cases.is_empty() => Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?),
+        Some(b) if !train_cases.is_empty() => {
+            Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?)
+        }
         _ => None,
     };
-    if let (Some(b), Some(script), true) = (&cfg.pytorch, &cfg.pytorch_eval_script, cfg.cases.iter().any(|c| c == EVAL_CASE)) {
+    if let (Some(b), Some(script), true) =
+        (&cfg.pytorch, &cfg.pytorch_eval_script, cfg.cases.iter().any(|c| c == EVAL_CASE))
+    {
         let t = run_pytorch_eval(&b.python, script, cfg)?;
-        let report = pytorch.get_or_insert_with(|| EngineReport { engine: "pytorch".into(), torch_version: None, threads: cfg.threads, results: vec![] });
+        let report = pytorch.get_or_insert_with(|| EngineReport {
+            engine: "pytorch".into(),
+            torch_version: None,
+            threads: cfg.threads,
+            results: vec![],
+        });
         report.results.push(t);
     }
     let speedup = match &pytorch {
         Some(p) => promptdt
             .results
             .iter()
-            .filter_map(|r| p.results.iter().find(|q| q.name == r.name).map(|q| (r.name.clone(), q.median_ms / r.median_ms)))
+            .filter_map(|r| {
+                p.results
+                    .iter()
+                    .find(|q| q.name == r.name)
+                    .map(|q| (r.name.clone(), q.median_ms / r.median_ms))
+            })
             .collect(),
         None => Vec::new(),
     };
@@ -284,8 +375,18 @@ pub fn render_markdown(r: &BenchReport) -> String {
     for c in &r.promptdt.results {
         let theirs = r.pytorch.as_ref().and_then(|p| p.results.iter().find(|q| q.name == c.name));
         let fmt = |t: &CaseTiming| format!("{:.2} ({:.2}-{:.2})", t.median_ms, t.p10_ms, t.p90_ms);
-        let ratio = r.speedup.iter().find(|(n, _)| n == &c.name).map_or("-".into(), |(_, x)| format!("{x:.2}x"));
-        s += &format!("| {} | {} | {} | {} |\n", c.name, fmt(c), theirs.map_or("not run".into(), fmt), ratio);
+        let ratio = r
+            .speedup
+            .iter()
+            .find(|(n, _)| n == &c.name)
+            .map_or("-".into(), |(_, x)| format!("{x:.2}x"));
+        s += &format!(
+            "| {} | {} | {} | {} |\n",
+            c.name,
+            fmt(c),
+            theirs.map_or("not run".into(), fmt),
+            ratio
+        );
     }
     s
 }

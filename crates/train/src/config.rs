@@ -160,7 +160,16 @@ pub struct ModelSection {
 
 impl Default for ModelSection {
     fn default() -> Self {
-        Self { hidden_size: 128, n_layer: 3, n_head: 1, n_inner: 512, max_ep_len: 1000, n_positions: 1024, dropout: 0.1, embd_dropout: 0.1 }
+        Self {
+            hidden_size: 128,
+            n_layer: 3,
+            n_head: 1,
+            n_inner: 512,
+            max_ep_len: 1000,
+            n_positions: 1024,
+            dropout: 0.1,
+            embd_dropout: 0.1,
+        }
     }
 }
 
@@ -271,8 +280,10 @@ pub enum ConfigError {
 impl TrainConfig {
     /// Reads a TOML file; unknown keys are errors (a typo must not silently fall back to a default).
     pub fn from_file(path: &std::path::Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io { path: path.into(), source })?;
-        toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Io { path: path.into(), source })?;
+        toml::from_str(&text)
+            .map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })
     }
 
     pub fn to_toml(&self) -> String {
@@ -286,13 +297,18 @@ impl TrainConfig {
             return bad("train.iterations and train.steps_per_iteration must be at least 1".into());
         }
         if self.train.test_eval_interval == 0 || self.train.save_interval == 0 {
-            return bad("train.test_eval_interval and train.save_interval must be at least 1".into());
+            return bad(
+                "train.test_eval_interval and train.save_interval must be at least 1".into()
+            );
         }
         if self.eval.episodes == 0 || self.eval.max_batch == 0 {
             return bad("eval.episodes and eval.max_batch must be at least 1".into());
         }
         if !(self.optim.learning_rate > 0.0 && self.optim.learning_rate.is_finite()) {
-            return bad(format!("optim.learning_rate must be positive, got {}", self.optim.learning_rate));
+            return bad(format!(
+                "optim.learning_rate must be positive, got {}",
+                self.optim.learning_rate
+            ));
         }
         Ok(())
     }
@@ -319,7 +335,9 @@ mod tests {
     fn unknown_keys_are_rejected_with_their_name() {
         let e = toml::from_str::<TrainConfig>("[train]\niteratons = 3\n").unwrap_err().to_string();
         assert!(e.contains("iteratons"), "{e}");
-        let c: TrainConfig = toml::from_str("[run]\nmethod = \"mt-orl\"\n[sampler]\nprompt_position = \"random\"\n").unwrap();
+        let c: TrainConfig =
+            toml::from_str("[run]\nmethod = \"mt-orl\"\n[sampler]\nprompt_position = \"random\"\n")
+                .unwrap();
         assert_eq!(c.run.method, Method::MtOrl);
         assert!(!c.run.method.uses_prompt());
     }

@@ -5,9 +5,9 @@
 //!   bit for bit, with a state that can be saved and restored for resumable runs.
 //! - [`step`]: one gradient step on a sampled batch (the reference's `train_step_mix`).
 
-pub mod optim;
-pub mod run;
 pub mod bench;
 pub mod config;
+pub mod optim;
+pub mod run;
 pub mod smoke;
 pub mod step;

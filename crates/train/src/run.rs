@@ -53,7 +53,9 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
 
 /// Independent random streams derived from the run seed (SplitMix64 of seed, stream, counter).
 fn derive_seed(seed: u64, stream: u64, counter: u64) -> u64 {
-    let mut z = seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ counter.wrapping_mul(0xD1B5_4A32_D192_ED03);
+    let mut z = seed
+        ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ counter.wrapping_mul(0xD1B5_4A32_D192_ED03);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
@@ -175,10 +177,17 @@ impl Setup {
             prompt_mode: p.to_string(),
             format: cfg.data.format,
         };
-        let train_data = load_multitask(&spec(&train_tasks, &cfg.data.dataset_mode, &cfg.data.prompt_mode))?;
-        let test_data = load_multitask(&spec(&test_tasks, &cfg.data.test_dataset_mode, &cfg.data.test_prompt_mode))?;
+        let train_data =
+            load_multitask(&spec(&train_tasks, &cfg.data.dataset_mode, &cfg.data.prompt_mode))?;
+        let test_data = load_multitask(&spec(
+            &test_tasks,
+            &cfg.data.test_dataset_mode,
+            &cfg.data.test_prompt_mode,
+        ))?;
         let (ds, da) = (train_data.obs_dim, train_data.act_dim);
-        if (ds, da) != (preset.obs_dim, preset.act_dim) || (test_data.obs_dim, test_data.act_dim) != (ds, da) {
+        if (ds, da) != (preset.obs_dim, preset.act_dim)
+            || (test_data.obs_dim, test_data.act_dim) != (ds, da)
+        {
             return Err(RunError::Invalid(format!(
                 "data in {} has obs/act dims {ds}/{da} (test {}/{}), but {} has {}/{}",
                 cfg.data.dir.display(),
@@ -192,9 +201,10 @@ impl Setup {
         let train_ds = train_data.tasks.iter().map(|t| &t.dataset);
         // Reference quirk (pitfall 4): the statistics include the test tasks' datasets.
         let norm = match cfg.data.normalization {
-            NormalizationScope::TrainAndTest => {
-                StateNorm::from_datasets(ds, train_ds.chain(test_data.tasks.iter().map(|t| &t.dataset)))
-            }
+            NormalizationScope::TrainAndTest => StateNorm::from_datasets(
+                ds,
+                train_ds.chain(test_data.tasks.iter().map(|t| &t.dataset)),
+            ),
             NormalizationScope::TrainOnly => StateNorm::from_datasets(ds, train_ds),
             NormalizationScope::None => StateNorm::identity(ds),
         };
@@ -225,12 +235,28 @@ impl Setup {
             train_tasks,
             test_tasks,
         };
-        Ok(Self { cfg, family, preset, train_data, test_data, norm, sampler_cfg, model_cfg, device, stats })
+        Ok(Self {
+            cfg,
+            family,
+            preset,
+            train_data,
+            test_data,
+            norm,
+            sampler_cfg,
+            model_cfg,
+            device,
+            stats,
+        })
     }
 
     fn sampler<'a>(&self, data: &'a MultiTaskDataset) -> Result<BatchSampler<'a>, RunError> {
         let tasks: Vec<&TaskData> = data.tasks.iter().collect();
-        Ok(BatchSampler::new(self.sampler_cfg.clone(), &tasks, self.norm.clone(), self.model_cfg.n_positions)?)
+        Ok(BatchSampler::new(
+            self.sampler_cfg.clone(),
+            &tasks,
+            self.norm.clone(),
+            self.model_cfg.n_positions,
+        )?)
     }
 
     fn eval_returns(&self) -> EvalReturns {
@@ -260,7 +286,12 @@ impl Learner {
 }
 
 /// Evaluates `tasks` (indices into `data`), each with its own prompt, all episodes together.
-fn eval_tasks(setup: &Setup, learner: &mut Learner, split: Split, iteration: u64) -> Result<Vec<TaskResult>, RunError> {
+fn eval_tasks(
+    setup: &Setup,
+    learner: &mut Learner,
+    split: Split,
+    iteration: u64,
+) -> Result<Vec<TaskResult>, RunError> {
     let (data, stream) = match split {
         Split::Test => (&setup.test_data, STREAM_EVAL_TEST),
         Split::Train => (&setup.train_data, STREAM_EVAL_TRAIN),
@@ -272,9 +303,17 @@ fn eval_tasks(setup: &Setup, learner: &mut Learner, split: Split, iteration: u64
         let t = &data.tasks[i];
         // The prompt is drawn once per task and evaluation call, and shared by its episodes.
         let prompt = sampler.eval_prompt(i, rng);
-        let envs = (0..setup.cfg.eval.episodes).map(|_| setup.family.make(t.id.index)).collect::<Result<Vec<_>, _>>()?;
+        let envs = (0..setup.cfg.eval.episodes)
+            .map(|_| setup.family.make(t.id.index))
+            .collect::<Result<Vec<_>, _>>()?;
         let seeds = (0..setup.cfg.eval.episodes).map(|_| rng.next_u64()).collect();
-        Ok(EvalTask { name: t.id.to_string(), index: t.id.index, envs, seeds, prompt: method.uses_prompt().then_some(prompt) })
+        Ok(EvalTask {
+            name: t.id.to_string(),
+            index: t.id.index,
+            envs,
+            seeds,
+            prompt: method.uses_prompt().then_some(prompt),
+        })
     };
     let settings = EvalSettings {
         k: setup.sampler_cfg.k,
@@ -294,31 +333,69 @@ fn eval_tasks(setup: &Setup, learner: &mut Learner, split: Split, iteration: u64
         tasks
             .iter()
             .enumerate()
-            .map(|(i, t)| summarise(&t.name, t.index, &eps.iter().filter(|e| e.task_index == i).collect::<Vec<_>>()))
+            .map(|(i, t)| {
+                summarise(
+                    &t.name,
+                    t.index,
+                    &eps.iter().filter(|e| e.task_index == i).collect::<Vec<_>>(),
+                )
+            })
             .collect()
     };
     // The reference fine-tunes before test-task evaluations only; training tasks are evaluated as is.
     if method != Method::MtBcFinetune || split == Split::Train {
-        let tasks = (0..data.tasks.len()).map(|i| make(i, &mut rng)).collect::<Result<Vec<_>, _>>()?;
-        let names: Vec<EvalTask> = tasks.iter().map(|t| EvalTask { name: t.name.clone(), index: t.index, envs: vec![], seeds: vec![], prompt: None }).collect();
+        let tasks =
+            (0..data.tasks.len()).map(|i| make(i, &mut rng)).collect::<Result<Vec<_>, _>>()?;
+        let names: Vec<EvalTask> = tasks
+            .iter()
+            .map(|t| EvalTask {
+                name: t.name.clone(),
+                index: t.index,
+                envs: vec![],
+                seeds: vec![],
+                prompt: None,
+            })
+            .collect();
         let eps = evaluate(&learner.model, tasks, &settings)?;
         return Ok(summarise_all(&names, &eps));
     }
     // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
     // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
     // of an evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
-    let snapshot: Vec<(String, Tensor)> = learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
+    let snapshot: Vec<(String, Tensor)> =
+        learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
     let mut results = Vec::new();
     for i in 0..data.tasks.len() {
         let task = make(i, &mut rng)?;
-        let ocfg = AdamWConfig { learning_rate: setup.cfg.eval.finetune_lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
+        let ocfg = AdamWConfig {
+            learning_rate: setup.cfg.eval.finetune_lr,
+            warmup_steps: 1,
+            ..setup.cfg.optim.clone()
+        };
         let mut opt = AdamW::new(&learner.vs, &setup.model_cfg.parameter_names(), ocfg);
         for s in 0..setup.cfg.eval.finetune_steps {
-            let seg = sampler.tail_segments(i, setup.cfg.eval.finetune_batch, setup.sampler_cfg.prompt_length, &mut rng);
+            let seg = sampler.tail_segments(
+                i,
+                setup.cfg.eval.finetune_batch,
+                setup.sampler_cfg.prompt_length,
+                &mut rng,
+            );
             let history = crate::step::to_segments(&seg, setup.device);
-            train_step(&learner.model, &mut opt, &DeviceBatch { history, prompt: None }, LossOn::History, s);
+            train_step(
+                &learner.model,
+                &mut opt,
+                &DeviceBatch { history, prompt: None },
+                LossOn::History,
+                s,
+            );
         }
-        let name = EvalTask { name: task.name.clone(), index: task.index, envs: vec![], seeds: vec![], prompt: None };
+        let name = EvalTask {
+            name: task.name.clone(),
+            index: task.index,
+            envs: vec![],
+            seeds: vec![],
+            prompt: None,
+        };
         let eps = evaluate(&learner.model, vec![task], &settings)?;
         results.extend(summarise_all(&[name], &eps));
         tch::no_grad(|| {
@@ -344,7 +421,8 @@ impl Log {
     fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
         let (jsonl, csv) = (dir.join(format!("{stem}.jsonl")), dir.join(format!("{stem}.csv")));
         // Keep exactly the lines the checkpoint knew about: a killed run may have written more.
-        for (path, keep) in [(&jsonl, keep_lines), (&csv, keep_lines + usize::from(keep_lines > 0))] {
+        for (path, keep) in [(&jsonl, keep_lines), (&csv, keep_lines + usize::from(keep_lines > 0))]
+        {
             if path.exists() {
                 let text = std::fs::read_to_string(path).map_err(io_err(path))?;
                 let kept: String = text.lines().take(keep).map(|l| format!("{l}\n")).collect();
@@ -354,24 +432,45 @@ impl Log {
         Ok(Self { jsonl, csv, lines: keep_lines })
     }
 
-    fn append(&mut self, rows: &[serde_json::Map<String, serde_json::Value>]) -> Result<(), RunError> {
-        let mut j = std::fs::OpenOptions::new().create(true).append(true).open(&self.jsonl).map_err(io_err(&self.jsonl))?;
-        let mut c = std::fs::OpenOptions::new().create(true).append(true).open(&self.csv).map_err(io_err(&self.csv))?;
+    fn append(
+        &mut self,
+        rows: &[serde_json::Map<String, serde_json::Value>],
+    ) -> Result<(), RunError> {
+        let mut j = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.jsonl)
+            .map_err(io_err(&self.jsonl))?;
+        let mut c = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.csv)
+            .map_err(io_err(&self.csv))?;
         for row in rows {
             if self.lines == 0 {
                 let header: Vec<&str> = row.keys().map(String::as_str).collect();
                 writeln!(c, "{}", header.join(",")).map_err(io_err(&self.csv))?;
             }
-            let values: Vec<String> = row.values().map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string)).collect();
+            let values: Vec<String> = row
+                .values()
+                .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string))
+                .collect();
             writeln!(c, "{}", values.join(",")).map_err(io_err(&self.csv))?;
-            writeln!(j, "{}", serde_json::Value::Object(row.clone())).map_err(io_err(&self.jsonl))?;
+            writeln!(j, "{}", serde_json::Value::Object(row.clone()))
+                .map_err(io_err(&self.jsonl))?;
             self.lines += 1;
         }
         Ok(())
     }
 }
 
-fn eval_rows(results: &[TaskResult], iteration: u64, step: u64, split: &str, target: f32) -> Vec<serde_json::Map<String, serde_json::Value>> {
+fn eval_rows(
+    results: &[TaskResult],
+    iteration: u64,
+    step: u64,
+    split: &str,
+    target: f32,
+) -> Vec<serde_json::Map<String, serde_json::Value>> {
     results
         .iter()
         .map(|r| {
@@ -386,21 +485,29 @@ fn eval_rows(results: &[TaskResult], iteration: u64, step: u64, split: &str, tar
 }
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?;
+    let text = serde_json::to_string_pretty(value)
+        .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?;
     write_atomic(path, text.as_bytes()).map_err(io_err(path))
 }
 
 fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
     let text = std::fs::read_to_string(path).map_err(io_err(path))?;
-    serde_json::from_str(&text).map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })
+    serde_json::from_str(&text)
+        .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })
 }
 
 /// Saves weights, optimiser state and the training state; `latest.json` is written last, so a
 /// crash before it leaves the previous checkpoint in force.
-fn save_checkpoint(dir: &Path, learner: &Learner, state: &TrainState, n_positions: usize) -> Result<(), RunError> {
+fn save_checkpoint(
+    dir: &Path,
+    learner: &Learner,
+    state: &TrainState,
+    n_positions: usize,
+) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");
     std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
-    let (model, opt_state) = (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
+    let (model, opt_state) =
+        (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
     checkpoint::save(&learner.vs, &ck.join(&model), learner.model.cfg.n_layer, n_positions)?;
     let mut named: Vec<(String, Tensor)> = Vec::new();
     for (name, st) in &learner.opt.state {
@@ -408,11 +515,15 @@ fn save_checkpoint(dir: &Path, learner: &Learner, state: &TrainState, n_position
         named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
     }
     let tmp = ck.join(format!(".{opt_state}.tmp"));
-    Tensor::write_safetensors(&named, &tmp).map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
+    Tensor::write_safetensors(&named, &tmp)
+        .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
     std::fs::rename(&tmp, ck.join(&opt_state)).map_err(io_err(&tmp))?;
     write_json(&ck.join(format!("state_{}.json", state.step)), state)?;
     let previous: Option<Latest> = read_json(&ck.join("latest.json")).ok();
-    write_json(&ck.join("latest.json"), &Latest { step: state.step, iteration: state.iteration, model, state: opt_state })?;
+    write_json(
+        &ck.join("latest.json"),
+        &Latest { step: state.step, iteration: state.iteration, model, state: opt_state },
+    )?;
     // Optimiser moments are only needed to resume: keep the latest ones (weights are all kept).
     if let Some(p) = previous.filter(|p| p.step != state.step) {
         let _ = std::fs::remove_file(ck.join(p.state));
@@ -437,16 +548,25 @@ fn load_checkpoint(dir: &Path, learner: &mut Learner) -> Result<Option<TrainStat
     let device = learner.vs.device();
     for (name, &step) in &state.adam_steps {
         let get = |k: String| {
-            tensors.get(&k).map(|t| t.to_device(device)).ok_or_else(|| RunError::Corrupt { path: opt_path.clone(), message: format!("missing `{k}`") })
+            tensors.get(&k).map(|t| t.to_device(device)).ok_or_else(|| RunError::Corrupt {
+                path: opt_path.clone(),
+                message: format!("missing `{k}`"),
+            })
         };
-        let st = ParamState { step, exp_avg: get(format!("exp_avg.{name}"))?, exp_avg_sq: get(format!("exp_avg_sq.{name}"))? };
+        let st = ParamState {
+            step,
+            exp_avg: get(format!("exp_avg.{name}"))?,
+            exp_avg_sq: get(format!("exp_avg_sq.{name}"))?,
+        };
         learner.opt.state.insert(name.clone(), st);
     }
     Ok(Some(state))
 }
 
 fn now_utc() -> String {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
     format!("unix:{secs}")
 }
 
@@ -460,7 +580,11 @@ fn torch_rng_lock() -> std::sync::MutexGuard<'static, ()> {
 
 /// Trains from `cfg` into `dir` (created), or with `opts.resume`, continues the run in `dir` (its
 /// `config.toml` is authoritative and `cfg` is ignored).
-pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Result<TrainSummary, RunError> {
+pub fn train(
+    cfg: Option<TrainConfig>,
+    dir: &Path,
+    opts: TrainOptions<'_>,
+) -> Result<TrainSummary, RunError> {
     let cfg = match (opts.resume, cfg) {
         (true, _) => TrainConfig::from_file(&dir.join("config.toml"))?,
         (false, Some(cfg)) => cfg,
@@ -469,12 +593,19 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
     let setup = Setup::new(cfg)?;
     let _rng = torch_rng_lock();
     let cfg = &setup.cfg;
-    let threads = if cfg.run.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { cfg.run.threads };
+    let threads = if cfg.run.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        cfg.run.threads
+    };
     tch::set_num_threads(threads as i32);
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     if !opts.resume {
         if dir.join("checkpoints").join("latest.json").exists() {
-            return Err(RunError::Invalid(format!("{} already holds a run; use --resume to continue it or pick another --out", dir.display())));
+            return Err(RunError::Invalid(format!(
+                "{} already holds a run; use --resume to continue it or pick another --out",
+                dir.display()
+            )));
         }
         let info = RunInfo {
             name: format!("{}-{}-seed{}", cfg.run.method.name(), setup.family.name(), cfg.run.seed),
@@ -497,7 +628,10 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
     let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
     if let Some(s) = &state {
-        let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt { path: dir.join("checkpoints"), message: format!("batch_rng_word_pos: {e}") })?;
+        let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt {
+            path: dir.join("checkpoints"),
+            message: format!("batch_rng_word_pos: {e}"),
+        })?;
         batch_rng.set_word_pos(pos);
     }
     let sampler = setup.sampler(&setup.train_data)?;
@@ -506,14 +640,23 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
     let mut done_here = 0;
     while iteration < t.iterations {
         if opts.stop_after_iterations.is_some_and(|n| done_here >= n) {
-            return Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: false, last_test });
+            return Ok(TrainSummary {
+                dir: dir.into(),
+                iterations_done: iteration,
+                finished: false,
+                last_test,
+            });
         }
         // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
         // run continues the same stream.
         tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, iteration) as i64);
         let mut stats: Vec<StepStats> = Vec::with_capacity(t.steps_per_iteration as usize);
         for _ in 0..t.steps_per_iteration {
-            let batch = DeviceBatch::new(&sampler.sample(&mut batch_rng), cfg.run.method.uses_prompt(), setup.device);
+            let batch = DeviceBatch::new(
+                &sampler.sample(&mut batch_rng),
+                cfg.run.method.uses_prompt(),
+                setup.device,
+            );
             stats.push(train_step(&learner.model, &mut learner.opt, &batch, t.loss_on, step));
             step += 1;
         }
@@ -533,7 +676,8 @@ pub fn train(cfg: Option<TrainConfig>, dir: &Path, opts: TrainOptions<'_>) -> Re
         if (iteration - 1) % t.test_eval_interval == 0 || last {
             let res = eval_tasks(&setup, &mut learner, Split::Test, iteration)?;
             evals.append(&eval_rows(&res, iteration, step, "test", setup.stats.target_return))?;
-            test_return = Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
+            test_return =
+                Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
@@ -568,7 +712,12 @@ pub struct FinalEval {
 }
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
-pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Option<pdt_model::device::DeviceSpec>) -> Result<FinalEval, RunError> {
+pub fn evaluate_run(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+) -> Result<FinalEval, RunError> {
     let mut cfg = TrainConfig::from_file(&dir.join("config.toml"))?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
@@ -581,7 +730,9 @@ pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Op
     let mut learner = Learner::new(&setup);
     let ck = dir.join("checkpoints");
     let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
-        RunError::Io { .. } => RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display())),
+        RunError::Io { .. } => {
+            RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
+        }
         other => other,
     })?;
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
@@ -593,7 +744,14 @@ pub fn evaluate_run(dir: &Path, episodes: Option<usize>, split: &str, device: Op
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let tasks = eval_tasks(&setup, &mut learner, which, u64::MAX - latest.iteration)?;
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
-    let result = FinalEval { iteration: latest.iteration, step: latest.step, checkpoint: format!("checkpoints/{}", latest.model), split: split.into(), tasks, mean_return };
+    let result = FinalEval {
+        iteration: latest.iteration,
+        step: latest.step,
+        checkpoint: format!("checkpoints/{}", latest.model),
+        split: split.into(),
+        tasks,
+        mean_return,
+    };
     write_json(&dir.join("eval_final.json"), &result)?;
     Ok(result)
 }

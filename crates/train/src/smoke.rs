@@ -28,7 +28,9 @@ fn synthetic_task(index: usize, rng: &mut Rng) -> TaskData {
     };
     let (dataset, prompts) = (make(rng, 8), make(rng, 3));
     // The builders above cannot fail for these fixed, consistent shapes.
-    let (Ok(dataset), Ok(prompts)) = (dataset, prompts) else { unreachable!("synthetic shapes are consistent") };
+    let (Ok(dataset), Ok(prompts)) = (dataset, prompts) else {
+        unreachable!("synthetic shapes are consistent")
+    };
     TaskData { id: TaskId { env: "synthetic".into(), index }, dataset, prompts }
 }
 
@@ -38,7 +40,8 @@ pub fn run(seed: u64, steps: u64, device: Device) -> Vec<StepStats> {
     let tasks = [synthetic_task(0, &mut rng), synthetic_task(1, &mut rng)];
     let refs: Vec<&TaskData> = tasks.iter().collect();
     let norm = StateNorm::from_datasets(4, tasks.iter().map(|t| &t.dataset));
-    let scfg = SamplerConfig { k: 10, batch_size_per_task: 8, ..SamplerConfig::reference(30.0, 30) };
+    let scfg =
+        SamplerConfig { k: 10, batch_size_per_task: 8, ..SamplerConfig::reference(30.0, 30) };
     let mcfg = PromptDtConfig::reference(4, 2);
     let Ok(sampler) = BatchSampler::new(scfg, &refs, norm, mcfg.n_positions) else {
         unreachable!("the smoke settings are valid")

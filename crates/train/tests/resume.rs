@@ -53,19 +53,32 @@ fn lines(path: &Path) -> Vec<serde_json::Value> {
         .collect()
 }
 
-fn run(cfg: Option<TrainConfig>, dir: &Path, resume: bool, stop: Option<u64>) -> pdt_train::run::TrainSummary {
+fn run(
+    cfg: Option<TrainConfig>,
+    dir: &Path,
+    resume: bool,
+    stop: Option<u64>,
+) -> pdt_train::run::TrainSummary {
     let mut progress = |_: &pdt_train::run::Progress| {};
-    train(cfg, dir, TrainOptions { resume, stop_after_iterations: stop, progress: &mut progress }).unwrap()
+    train(cfg, dir, TrainOptions { resume, stop_after_iterations: stop, progress: &mut progress })
+        .unwrap()
 }
 
 #[test]
 fn killed_and_resumed_run_equals_uninterrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let collect = pdt_envs::collect_scripted::CollectConfig { episodes_per_task: 4, prompt_episodes: 2, ..Default::default() };
+    let collect = pdt_envs::collect_scripted::CollectConfig {
+        episodes_per_task: 4,
+        prompt_episodes: 2,
+        ..Default::default()
+    };
     pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
     for method in [Method::PromptDt, Method::MtBcFinetune] {
-        let (full, cut) = (tmp.path().join(format!("full-{method:?}")), tmp.path().join(format!("cut-{method:?}")));
+        let (full, cut) = (
+            tmp.path().join(format!("full-{method:?}")),
+            tmp.path().join(format!("cut-{method:?}")),
+        );
         assert!(run(Some(config(&data, method)), &full, false, None).finished);
         // Interrupted after iteration 3: the last checkpoint is iteration 2, and iteration 3's
         // metrics line (written after the checkpoint) must be discarded on resume.
@@ -77,8 +90,15 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
         let (a, b) = (lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
         assert_eq!(a.len(), 6);
         assert_eq!(a, b, "{method:?}: training losses differ after resume");
-        assert_eq!(lines(&full.join("eval.jsonl")), lines(&cut.join("eval.jsonl")), "{method:?}: evaluations differ");
-        let (ca, cb) = (std::fs::read_to_string(full.join("metrics.csv")).unwrap(), std::fs::read_to_string(cut.join("metrics.csv")).unwrap());
+        assert_eq!(
+            lines(&full.join("eval.jsonl")),
+            lines(&cut.join("eval.jsonl")),
+            "{method:?}: evaluations differ"
+        );
+        let (ca, cb) = (
+            std::fs::read_to_string(full.join("metrics.csv")).unwrap(),
+            std::fs::read_to_string(cut.join("metrics.csv")).unwrap(),
+        );
         assert_eq!(ca.lines().count(), cb.lines().count());
         let w = |d: &Path| std::fs::read(d.join("checkpoints/step_12.safetensors")).unwrap();
         assert!(w(&full) == w(&cut), "{method:?}: final weights differ");
@@ -91,13 +111,22 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
 fn starting_over_an_existing_run_is_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let collect = pdt_envs::collect_scripted::CollectConfig { episodes_per_task: 4, prompt_episodes: 2, ..Default::default() };
+    let collect = pdt_envs::collect_scripted::CollectConfig {
+        episodes_per_task: 4,
+        prompt_episodes: 2,
+        ..Default::default()
+    };
     pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
     let mut cfg = config(&data, Method::MtOrl);
     cfg.train.iterations = 2;
     let dir = tmp.path().join("run");
     run(Some(cfg.clone()), &dir, false, None);
     let mut progress = |_: &pdt_train::run::Progress| {};
-    let err = train(Some(cfg), &dir, TrainOptions { resume: false, stop_after_iterations: None, progress: &mut progress }).unwrap_err();
+    let err = train(
+        Some(cfg),
+        &dir,
+        TrainOptions { resume: false, stop_after_iterations: None, progress: &mut progress },
+    )
+    .unwrap_err();
     assert!(err.to_string().contains("--resume"), "{err}");
 }
