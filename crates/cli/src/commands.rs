@@ -63,14 +63,13 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 cfg.train.iterations = n;
             }
             if let Some(m) = &a.method {
-                cfg.run.method = serde_json::from_value::<Method>(serde_json::Value::String(
-                    m.clone(),
-                ))
-                .with_context(|| {
-                    format!(
+                cfg.run.method =
+                    serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
+                        .with_context(|| {
+                            format!(
                         "--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl or mt-bc-finetune"
                     )
-                })?;
+                        })?;
             }
             if let Some(d) = a.device {
                 cfg.run.device = d;

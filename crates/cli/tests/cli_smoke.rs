@@ -1,4 +1,5 @@
 //! End-to-end smoke tests: every subcommand of the real binary on a tiny budget, in a temp dir.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

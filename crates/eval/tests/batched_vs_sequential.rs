@@ -1,5 +1,6 @@
 //! The batched evaluation (all episodes of all tasks in one forward per step) takes exactly the
 //! actions of the reference's one-episode-at-a-time loop (`max_batch = 1`).
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::EnvFamily;
 use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};

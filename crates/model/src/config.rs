@@ -71,7 +71,7 @@ impl PromptDtConfig {
                 return Err(format!("model.{name} must be at least 1"));
             }
         }
-        if self.hidden_size % self.n_head != 0 {
+        if !self.hidden_size.is_multiple_of(self.n_head) {
             return Err(format!(
                 "model.hidden_size ({}) must be divisible by model.n_head ({})",
                 self.hidden_size, self.n_head

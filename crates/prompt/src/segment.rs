@@ -59,7 +59,7 @@ pub fn write_segment(
         out.timesteps[p] = 0;
         out.mask[p] = 0.0;
     }
-    for t in 0..tlen {
+    for (t, &rtg_t) in rtg.iter().enumerate().take(tlen) {
         let (row, src) = (pad + t, si + t);
         for (j, &x) in traj.obs(src).iter().enumerate() {
             out.states[row * ds + j] = norm.apply(j, x);
@@ -67,7 +67,7 @@ pub fn write_segment(
         out.actions[row * da..(row + 1) * da].copy_from_slice(traj.action(src));
         // The reference divides float64 (after padding with float64 zeros) and casts to float32.
         out.returns_to_go[row] =
-            if zero_returns { 0.0 } else { (rtg[t] as f64 / rtg_scale as f64) as f32 };
+            if zero_returns { 0.0 } else { (rtg_t as f64 / rtg_scale as f64) as f32 };
         out.timesteps[row] = src.min(max_ep_len - 1) as i64;
         out.mask[row] = 1.0;
     }

@@ -4,6 +4,7 @@
 //!
 //! Same weights, same inputs, same dropout seed (libtorch's CPU generator is shared by PyTorch and
 //! tch, and both call `at::dropout`), so the results are compared bit for bit.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_model::{checkpoint, PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamW, AdamWConfig};

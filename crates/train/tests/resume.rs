@@ -1,4 +1,5 @@
 //! A run killed and resumed produces exactly the losses and evaluations of an uninterrupted run.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_train::config::{Method, TrainConfig};
 use pdt_train::run::{train, TrainOptions};
