@@ -3,6 +3,7 @@
 //! ([`EnvPreset`]). No tensor framework here.
 
 pub mod ant_dir;
+pub mod bench;
 pub mod cheetah;
 pub mod collect_scripted;
 pub mod mujoco_env;
