@@ -53,7 +53,7 @@ struct Attention {
 impl Attention {
     /// # Shapes
     /// `x`: `[B, L, H]`; `causal`: bool `[1, 1, L, L]`; `pad_bias`: `[B, 1, 1, L]` (0 keep, -1e4 pad).
-    fn forward(&self, x: &Tensor, causal: &Tensor, pad_bias: &Tensor, train: bool) -> Tensor {
+    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
@@ -63,8 +63,7 @@ impl Attention {
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
                                                       // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
                                                       // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
-        let masked_bias = Tensor::from(-1e4f32).to_device(w.device());
-        let w = w.where_self(causal, &masked_bias) + pad_bias;
+        let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
         let w = w.softmax(-1, None::<Kind>).dropout(self.attn_pdrop, train);
         let a = w.matmul(&v); // [B, nh, L, hd]
         let a = a.permute([0, 2, 1, 3]).contiguous().view([b, l, self.hidden]); // [B, L, H]
@@ -117,10 +116,20 @@ impl Block {
         }
     }
 
-    fn forward(&self, x: &Tensor, causal: &Tensor, pad_bias: &Tensor, train: bool) -> Tensor {
-        let h = x + self.attn.forward(&self.ln_1.forward(x), causal, pad_bias, train);
+    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
+        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, train);
         &h + self.mlp.forward(&self.ln_2.forward(&h), train)
     }
+}
+
+/// The masks every attention layer of one forward pass uses.
+struct Masks<'a> {
+    /// bool `[1, 1, L, L]`, lower triangular.
+    causal: &'a Tensor,
+    /// 0-d float -1e4: the value masked scores are replaced with.
+    masked_bias: &'a Tensor,
+    /// `[B, 1, 1, L]`: 0 for real tokens, -1e4 for padding.
+    pad_bias: &'a Tensor,
 }
 
 /// The trunk: `drop -> h.0 .. h.{n-1} -> ln_f`, fed with embeddings (no token or position lookup).
@@ -133,6 +142,10 @@ pub struct Gpt2 {
     ln_f: nn::LayerNorm,
     embd_pdrop: f64,
     n_positions: i64,
+    /// tril(ones(n_positions, n_positions)) as bool, built once (the reference's `attn.bias` buffer).
+    causal: Tensor,
+    /// The reference's `attn.masked_bias` buffer, built once.
+    masked_bias: Tensor,
 }
 
 impl Gpt2 {
@@ -146,6 +159,8 @@ impl Gpt2 {
             ln_f: layer_norm(&p / "ln_f", cfg.hidden_size, cfg.layer_norm_epsilon),
             embd_pdrop: cfg.embd_pdrop,
             n_positions: cfg.n_positions as i64,
+            causal: Tensor::ones([cfg.n_positions as i64; 2], (Kind::Bool, p.device())).tril(0),
+            masked_bias: Tensor::from(-1e4f32).to_device(p.device()),
         }
     }
 
@@ -155,14 +170,14 @@ impl Gpt2 {
     pub fn forward(&self, inputs_embeds: &Tensor, token_mask: &Tensor, train: bool) -> Tensor {
         let l = inputs_embeds.size()[1];
         debug_assert!(l <= self.n_positions, "caller checks the sequence length");
-        let dev = inputs_embeds.device();
-        // The reference slices a persistent tril(1024x1024) buffer; tril(L x L) is the same slice.
-        let causal = Tensor::ones([l, l], (Kind::Bool, dev)).tril(0).view([1, 1, l, l]);
+        // As the reference, the causal mask is the top-left L x L slice of the persistent buffer.
+        let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
         // [B, 1, 1, L]: 0 for real tokens, -1e4 for padding (HF's extended attention mask).
         let pad_bias = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0;
+        let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
         let mut x = inputs_embeds.dropout(self.embd_pdrop, train);
         for block in &self.h {
-            x = block.forward(&x, &causal, &pad_bias, train);
+            x = block.forward(&x, &masks, train);
         }
         self.ln_f.forward(&x)
     }
