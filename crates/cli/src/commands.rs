@@ -180,7 +180,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     let cfg = pdt_report::ReportConfig {
         runs,
         out_dir: report_dir.clone(),
-        title: Some("promptdt demo: point robot".into()),
+        title: Some("promptdt demo".into()),
     };
     let summary = pdt_report::run(&cfg)?;
     print!("\n{}", summary.markdown);
