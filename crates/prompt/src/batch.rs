@@ -139,6 +139,19 @@ impl<'a> BatchSampler<'a> {
         &self.norm
     }
 
+    /// Writes one segment with this sampler's normalisation, return scale and timestep clip.
+    fn write(
+        &self,
+        traj: &Trajectory,
+        si: usize,
+        len: usize,
+        zero_returns: bool,
+        out: SegmentOut<'_>,
+    ) {
+        let (norm, cfg) = (&self.norm, &self.cfg);
+        write_segment(traj, si, len, norm, cfg.rtg_scale, cfg.max_ep_len, zero_returns, out);
+    }
+
     /// Start index of a prompt segment in a demonstration of length `t`.
     fn prompt_start(&self, t: usize, rng: &mut Rng) -> usize {
         let h = self.cfg.prompt_length;
@@ -176,16 +189,7 @@ impl<'a> BatchSampler<'a> {
                 mask: &mut slots.mask[seg * h..(seg + 1) * h],
             };
             // Prompt returns-to-go are never zeroed, not even for Prompt-MT-BC (reference b.6).
-            write_segment(
-                traj,
-                si,
-                h,
-                &self.norm,
-                self.cfg.rtg_scale,
-                self.cfg.max_ep_len,
-                false,
-                slot,
-            );
+            self.write(traj, si, h, false, slot);
         }
     }
 
@@ -205,16 +209,7 @@ impl<'a> BatchSampler<'a> {
             // Any step may start a segment, the last one included (`random.randint(0, T - 1)`).
             let si = rng.random_range(0..traj.len());
             let slot = out.rows(row + s, 1);
-            write_segment(
-                traj,
-                si,
-                k,
-                &self.norm,
-                self.cfg.rtg_scale,
-                self.cfg.max_ep_len,
-                self.cfg.zero_history_returns,
-                slot,
-            );
+            self.write(traj, si, k, self.cfg.zero_history_returns, slot);
         }
     }
 
@@ -254,16 +249,7 @@ impl<'a> BatchSampler<'a> {
             let traj = &ts.data.dataset.trajectories[ts.ranking.pick(rng.random::<f64>())];
             let si = traj.len().saturating_sub(len + 1);
             let slot = out.rows(row, 1);
-            write_segment(
-                traj,
-                si,
-                len,
-                &self.norm,
-                self.cfg.rtg_scale,
-                self.cfg.max_ep_len,
-                false,
-                slot,
-            );
+            self.write(traj, si, len, false, slot);
         }
         out
     }
