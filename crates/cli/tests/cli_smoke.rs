@@ -4,11 +4,14 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-fn promptdt(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_promptdt")).args(args).output().expect("binary runs")
+fn promptdt<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(args.iter().map(AsRef::<str>::as_ref))
+        .output()
+        .expect("binary runs")
 }
 
-fn ok(args: &[&str]) -> String {
+fn ok<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
     let out = promptdt(args);
     let (stdout, stderr) =
         (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
@@ -16,7 +19,7 @@ fn ok(args: &[&str]) -> String {
     stdout.into_owned()
 }
 
-fn fails(args: &[&str]) -> String {
+fn fails<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
     let out = promptdt(args);
     assert!(!out.status.success(), "promptdt {args:?} should fail");
     String::from_utf8_lossy(&out.stderr).into_owned()
@@ -399,20 +402,22 @@ fn env_replay_matches_the_python_mujoco_fixture() {
     .unwrap();
     std::fs::write(&actions, case["actions"].to_string()).unwrap();
     let task = case["task"].to_string();
-    let msg = ok(&[
-        "env",
-        "replay",
-        "--env",
-        "cheetah_vel",
-        "--task",
-        &task,
-        "--init",
-        init.to_str().unwrap(),
-        "--actions",
-        actions.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let args = |task: &str| -> Vec<String> {
+        let p = |f: &std::path::Path| f.to_str().unwrap().to_string();
+        ["env", "replay", "--env", "cheetah_vel", "--task", task]
+            .map(String::from)
+            .into_iter()
+            .chain([
+                "--init".into(),
+                p(&init),
+                "--actions".into(),
+                p(&actions),
+                "--out".into(),
+                p(&out),
+            ])
+            .collect()
+    };
+    let msg = ok(&args(&task));
     assert!(msg.contains("200 steps"), "{msg}");
     let got: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
@@ -421,35 +426,9 @@ fn env_replay_matches_the_python_mujoco_fixture() {
     assert_eq!(got["truncated"], case["expected"]["truncated"]);
     // bad input: a wrong-length action is refused with a clear error
     std::fs::write(&actions, "[[0.1, 0.2]]").unwrap();
-    let e = fails(&[
-        "env",
-        "replay",
-        "--env",
-        "cheetah_vel",
-        "--task",
-        "2",
-        "--init",
-        init.to_str().unwrap(),
-        "--actions",
-        actions.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let e = fails(&args("2"));
     assert!(e.contains("action has 2 values, expected 6"), "{e}");
-    let e = fails(&[
-        "env",
-        "replay",
-        "--env",
-        "cheetah_vel",
-        "--task",
-        "40",
-        "--init",
-        init.to_str().unwrap(),
-        "--actions",
-        actions.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let e = fails(&args("40"));
     assert!(e.contains("unknown task 40"), "{e}");
 }
 

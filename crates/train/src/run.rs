@@ -329,16 +329,16 @@ fn eval_tasks(
             n => n,
         },
     };
-    let summarise_all = |tasks: &[EvalTask], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
-        tasks
+    // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
+    // whose episodes carry `task_index == k`.
+    let summarise_all = |positions: &[usize], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
+        positions
             .iter()
             .enumerate()
-            .map(|(i, t)| {
-                summarise(
-                    &t.name,
-                    t.index,
-                    &eps.iter().filter(|e| e.task_index == i).collect::<Vec<_>>(),
-                )
+            .map(|(k, &i)| {
+                let id = &data.tasks[i].id;
+                let mine: Vec<_> = eps.iter().filter(|e| e.task_index == k).collect();
+                summarise(&id.to_string(), id.index, &mine)
             })
             .collect()
     };
@@ -346,18 +346,9 @@ fn eval_tasks(
     if method != Method::MtBcFinetune || split == Split::Train {
         let tasks =
             (0..data.tasks.len()).map(|i| make(i, &mut rng)).collect::<Result<Vec<_>, _>>()?;
-        let names: Vec<EvalTask> = tasks
-            .iter()
-            .map(|t| EvalTask {
-                name: t.name.clone(),
-                index: t.index,
-                envs: vec![],
-                seeds: vec![],
-                prompt: None,
-            })
-            .collect();
         let eps = evaluate(&learner.model, tasks, &settings)?;
-        return Ok(summarise_all(&names, &eps));
+        let positions: Vec<usize> = (0..data.tasks.len()).collect();
+        return Ok(summarise_all(&positions, &eps));
     }
     // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
     // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
@@ -389,15 +380,8 @@ fn eval_tasks(
                 s,
             );
         }
-        let name = EvalTask {
-            name: task.name.clone(),
-            index: task.index,
-            envs: vec![],
-            seeds: vec![],
-            prompt: None,
-        };
         let eps = evaluate(&learner.model, vec![task], &settings)?;
-        results.extend(summarise_all(&[name], &eps));
+        results.extend(summarise_all(&[i], &eps));
         tch::no_grad(|| {
             let vars = learner.vs.variables();
             for (n, saved) in &snapshot {

@@ -65,8 +65,8 @@ fn run(
         .unwrap()
 }
 
-#[test]
-fn killed_and_resumed_run_equals_uninterrupted_run() {
+/// A temp dir with a small point-robot dataset in `data/`.
+fn tiny_data() -> (tempfile::TempDir, std::path::PathBuf) {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let collect = pdt_envs::collect_scripted::CollectConfig {
@@ -75,6 +75,12 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
         ..Default::default()
     };
     pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
+    (tmp, data)
+}
+
+#[test]
+fn killed_and_resumed_run_equals_uninterrupted_run() {
+    let (tmp, data) = tiny_data();
     for method in [Method::PromptDt, Method::MtBcFinetune] {
         let (full, cut) = (
             tmp.path().join(format!("full-{method:?}")),
@@ -110,14 +116,7 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
 
 #[test]
 fn starting_over_an_existing_run_is_refused() {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    let collect = pdt_envs::collect_scripted::CollectConfig {
-        episodes_per_task: 4,
-        prompt_episodes: 2,
-        ..Default::default()
-    };
-    pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
+    let (tmp, data) = tiny_data();
     let mut cfg = config(&data, Method::MtOrl);
     cfg.train.iterations = 2;
     let dir = tmp.path().join("run");
