@@ -113,6 +113,9 @@ pub struct BenchArgs {
     /// Episodes per task in `eval_point_robot`.
     #[arg(long, default_value_t = 50)]
     pub eval_episodes: usize,
+    /// The PyTorch SAC / TD3 script (for `sac_h<H>_b<B>` and `td3_h<H>_b<B>` cases).
+    #[arg(long, default_value = "scripts/bench/bench_rl_torch.py")]
+    pub rl_script: PathBuf,
     /// Directory for bench.json and bench.md.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -147,6 +150,7 @@ impl BenchArgs {
                 .filter(|s| !s.is_empty())
                 .collect(),
             pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
+            pytorch_rl_script: pytorch.as_ref().map(|_| self.rl_script.clone()),
             pytorch,
             eval_episodes: self.eval_episodes.max(1),
         })
@@ -173,10 +177,11 @@ pub struct DemoArgs {
 
 #[derive(Debug, Args)]
 pub struct CollectArgs {
-    /// Task family (`point-robot`).
+    /// Task family: `point_robot` (scripted policies), `cheetah_dir`, `cheetah_vel`, `ant_dir`
+    /// (trains an RL agent, then writes its datasets).
     #[arg(long)]
     pub env: String,
-    /// Output directory (default: data/<env>).
+    /// Output directory of the datasets (default: data/<env>).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
@@ -187,6 +192,50 @@ pub struct CollectArgs {
     /// Episodes per task in each prompt set.
     #[arg(long, default_value_t = 5)]
     pub prompt_episodes: usize,
+    /// Skip training: write the datasets from the committed agent in this directory
+    /// (default: pretrained/<env>).
+    #[arg(long, num_args = 0..=1, default_missing_value = "")]
+    pub from_pretrained: Option<PathBuf>,
+    /// RL run directory: checkpoints, snapshots, and the trained agent in `agent/`
+    /// (default: runs/collect-<env>).
+    #[arg(long)]
+    pub run_dir: Option<PathBuf>,
+    /// Continue the interrupted training in --run-dir from its last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// `sac` or `td3` (default: the paper's choice for the family).
+    #[arg(long)]
+    pub algorithm: Option<String>,
+    /// Environment steps of RL training (default: the family's preset).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Uniform random steps before learning starts (default: min(5000, steps / 4)).
+    #[arg(long)]
+    pub learning_starts: Option<u64>,
+    /// Hidden layer sizes of actor and critics, e.g. `256,256`.
+    #[arg(long, value_delimiter = ',')]
+    pub hidden: Option<Vec<i64>>,
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    /// Checkpoint every this many environment steps (at the next episode end).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all.
+    #[arg(long, value_delimiter = ',')]
+    pub tasks: Option<Vec<usize>>,
+    /// Write the datasets without exploration noise (default: the policy's own noise, as in a
+    /// replay buffer).
+    #[arg(long)]
+    pub deterministic: bool,
+    /// Intra-op threads of libtorch (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Stop training after this many environment steps of this invocation, leaving a resumable
+    /// checkpoint (to test interruption).
+    #[arg(long, hide = true)]
+    pub stop_after: Option<u64>,
 }
 
 #[derive(Debug, Args)]

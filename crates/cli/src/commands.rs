@@ -16,7 +16,7 @@ fn bar(len: u64, template: &str) -> ProgressBar {
 pub fn collect(a: &CollectArgs) -> Result<()> {
     let family = pdt_envs::family(&a.env)?;
     if family.name() != "point_robot" {
-        bail!("`collect --env {}`: scripted collection exists for point-robot only so far", a.env);
+        return collect_rl(a, family.name());
     }
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family.name()));
     let cfg = pdt_envs::collect_scripted::CollectConfig {
@@ -190,4 +190,174 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     );
     println!("demo finished in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
+}
+
+/// `collect` for the MuJoCo families: train (or resume, or take the pretrained agent), then write
+/// the datasets.
+fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
+    use pdt_rl::agent::Noise;
+    use pdt_rl::train::{RlConfig, TrainProgress};
+    if let Some(t) = a.threads {
+        tch::set_num_threads(t as i32);
+    }
+    let device = pdt_model::device::resolve(a.device)?;
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family));
+    let agent_dir = match &a.from_pretrained {
+        Some(dir) => {
+            let dir = if dir.as_os_str().is_empty() {
+                PathBuf::from("pretrained").join(family)
+            } else {
+                dir.clone()
+            };
+            println!("using the pretrained agent in {}", dir.display());
+            dir
+        }
+        None => {
+            let run_dir = a
+                .run_dir
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("runs").join(format!("collect-{family}")));
+            let mut cfg = RlConfig::preset(family)?;
+            cfg.seed = a.seed;
+            if let Some(alg) = &a.algorithm {
+                cfg.algorithm = alg.parse()?;
+            }
+            if let Some(s) = a.steps {
+                cfg.total_steps = s;
+                cfg.learning_starts = cfg.learning_starts.min(s / 4);
+            }
+            if let Some(l) = a.learning_starts {
+                cfg.learning_starts = l;
+            }
+            if let Some(h) = &a.hidden {
+                cfg.agent.sac.hidden = h.clone();
+                cfg.agent.td3.hidden = h.clone();
+            }
+            if let Some(b) = a.batch_size {
+                cfg.batch_size = b;
+            }
+            if let Some(c) = a.checkpoint_every {
+                cfg.checkpoint_every = c;
+            }
+            if let Some(t) = &a.tasks {
+                cfg.tasks = t.clone();
+            }
+            let pb = bar(
+                cfg.total_steps,
+                "{prefix} {bar:30} {pos}/{len} steps [{elapsed} < {eta}] {msg}",
+            );
+            pb.set_prefix(format!("{} {family}", cfg.algorithm.name()));
+            let mut on_progress = |p: &TrainProgress<'_>| {
+                pb.set_length(p.total);
+                pb.set_position(p.step);
+                let seen: Vec<f64> = p.recent.iter().flatten().copied().collect();
+                let mean = seen.iter().sum::<f64>() / seen.len().max(1) as f64;
+                let per_task = if p.recent.len() <= 4 {
+                    p.recent
+                        .iter()
+                        .enumerate()
+                        .map(|(i, r)| match r {
+                            Some(r) => format!("t{i} {r:.0}"),
+                            None => format!("t{i} -"),
+                        })
+                        .collect::<Vec<_>>()
+                        .join(" ")
+                } else {
+                    format!("{} tasks seen", seen.len())
+                };
+                pb.set_message(format!(
+                    "return {mean:.1} ({per_task}) q-loss {:.3}",
+                    p.last_update.critic_loss
+                ));
+                if let Some(s) = p.snapshot {
+                    pb.println(format!(
+                        "snapshot at step {}: mean deterministic return {:.1}",
+                        s.step, s.mean_return
+                    ));
+                }
+            };
+            let start = if a.resume {
+                pdt_rl::train::Start::Resume { total_steps: a.steps }
+            } else {
+                pdt_rl::train::Start::New(&cfg)
+            };
+            let card =
+                pdt_rl::train::train(start, &run_dir, a.stop_after, device, &mut on_progress)?;
+            pb.finish_and_clear();
+            let Some(card) = card else {
+                println!(
+                    "stopped as asked (--stop-after); continue with --resume --run-dir {}",
+                    run_dir.display()
+                );
+                return Ok(());
+            };
+            println!(
+                "trained {} on {family} for {} steps in {:.0} s; expert: step {} (mean {:.1}), medium: step {} (mean {:.1}), random: mean {:.1}",
+                card.algorithm.name(),
+                card.config.total_steps,
+                card.wall_seconds,
+                card.expert_step,
+                mean(&card.expert_eval),
+                card.medium_step,
+                mean(&card.medium_eval),
+                mean(&card.random_eval),
+            );
+            pdt_rl::train::agent_dir(&run_dir)
+        }
+    };
+    let dcfg = pdt_rl::datasets::DatasetConfig {
+        seed: a.seed,
+        episodes: a.episodes,
+        prompt_episodes: a.prompt_episodes,
+        noise: if a.deterministic { Noise::Deterministic } else { Noise::Explore },
+        ..Default::default()
+    };
+    let pb = bar(0, "datasets {bar:30} {pos}/{len} episodes [{elapsed} < {eta}]");
+    let t0 = std::time::Instant::now();
+    let summary =
+        pdt_rl::datasets::generate(&agent_dir, &out, &dcfg, device, &mut |done, total| {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        })?;
+    pb.finish_and_clear();
+    println!(
+        "{:<6} {:>12} {:>12} {:>12} {:>14}",
+        "task", "expert", "medium", "random", "prompt-expert"
+    );
+    let tasks: Vec<usize> = {
+        let mut t: Vec<usize> = summary.entries.iter().map(|e| e.task).collect();
+        t.sort_unstable();
+        t.dedup();
+        t
+    };
+    let get = |t: usize, m| {
+        summary.get(t, m).map_or("-".to_string(), |e: &pdt_rl::datasets::TaskModeStats| {
+            format!("{:.1}", e.dataset.mean)
+        })
+    };
+    use pdt_envs::collect_scripted::Mode;
+    for &t in &tasks {
+        let p =
+            summary.get(t, Mode::Expert).map_or("-".into(), |e| format!("{:.1}", e.prompts.mean));
+        println!(
+            "{:<6} {:>12} {:>12} {:>12} {:>14}",
+            t,
+            get(t, Mode::Expert),
+            get(t, Mode::Medium),
+            get(t, Mode::Random),
+            p
+        );
+    }
+    println!(
+        "wrote {} files ({} steps) and {} in {:.1} s",
+        summary.files,
+        summary.steps,
+        summary.card.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
 }

@@ -251,17 +251,17 @@ fn run_vec(
     }
     let act_dim = envs[0].act_dim();
     let rows = steps_per_env.min(ACTION_POOL_STEPS);
-    // actions[row][env]: the shape `VecEnv::step` takes.
+    // One row per step, `n * act_dim` values: environment `i`'s action at `i * act_dim`, the flat
+    // layout `VecEnv::step_flat` takes.
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let actions: Vec<Vec<Vec<f32>>> =
-        (0..rows).map(|_| (0..n).map(|_| random_actions(&mut rng, 1, act_dim)).collect()).collect();
+    let actions: Vec<Vec<f32>> = (0..rows).map(|_| random_actions(&mut rng, n, act_dim)).collect();
     let mut venv = VecEnv::new(envs, threads);
     let seeds: Vec<u64> = (0..n).map(|i| episode_seed(seed, i, 0)).collect();
     venv.reset(&seeds)?;
 
     let start = Instant::now();
     for t in 0..steps_per_env {
-        for r in venv.step(&actions[t % rows])? {
+        for r in venv.step_flat(&actions[t % rows], None)?.into_iter().flatten() {
             black_box(r?);
         }
     }
@@ -271,7 +271,7 @@ fn run_vec(
     Ok(EnvBenchResult {
         family: name.into(),
         mode: BenchMode::Vec,
-        threads: threads.clamp(1, n),
+        threads: venv.threads(),
         envs: n,
         steps,
         resets: resets.load(Ordering::Relaxed),

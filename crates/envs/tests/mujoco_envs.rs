@@ -249,7 +249,7 @@ fn vec_env_results_do_not_depend_on_the_thread_count() {
         let mut venv = VecEnv::new(make(), threads);
         let mut trace = vec![ok(venv.reset(&[1, 2, 3, 4, 5]))];
         for t in 0..30 {
-            let acts: Vec<Vec<f32>> = venv.envs().iter().map(|e| action(t, e.act_dim())).collect();
+            let acts: Vec<Vec<f32>> = venv.dims().iter().map(|d| action(t, d.act_dim)).collect();
             let steps = ok(venv.step(&acts));
             trace.push(steps.into_iter().map(|s| ok(s).obs).collect());
         }
@@ -265,7 +265,7 @@ fn vec_env_results_do_not_depend_on_the_thread_count() {
     let mut venv = VecEnv::new(make(), 2);
     assert!(venv.reset(&[1, 2]).is_err());
     ok(venv.reset(&[0; 5]));
-    let mut acts: Vec<Vec<f32>> = venv.envs().iter().map(|e| vec![0.0; e.act_dim()]).collect();
+    let mut acts: Vec<Vec<f32>> = venv.dims().iter().map(|d| vec![0.0; d.act_dim]).collect();
     acts[1] = vec![0.0; 3];
     let out = ok(venv.step(&acts));
     assert!(matches!(out[1], Err(EnvError::ActionDim { .. })));

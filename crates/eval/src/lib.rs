@@ -10,7 +10,8 @@
 //! one), returns-to-go starting at G*/scale and decreasing by r/scale, timesteps from 0; the model
 //! sees the last K steps, left-padded with zeros (mask 0), and the task's prompt.
 
-use pdt_envs::{Env, EnvError, StepResult};
+use pdt_envs::vec_env::VecEnv;
+use pdt_envs::{Env, EnvError};
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use serde::{Deserialize, Serialize};
@@ -60,35 +61,6 @@ pub struct EvalSettings {
     pub env_threads: usize,
 }
 
-/// Steps every active episode with its action, on up to `threads` scoped threads, in order.
-fn step_all(
-    active: &mut [(usize, Running)],
-    acts: &[f32],
-    da: usize,
-    threads: usize,
-) -> Vec<Result<StepResult, EnvError>> {
-    let n = active.len();
-    let threads = threads.clamp(1, n.max(1));
-    let step = |eps: &mut [(usize, Running)], acts: &[f32]| -> Vec<Result<StepResult, EnvError>> {
-        eps.iter_mut().zip(acts.chunks_exact(da)).map(|((_, ep), a)| ep.env.step(a)).collect()
-    };
-    if threads == 1 {
-        return step(active, acts);
-    }
-    let chunk = n.div_ceil(threads);
-    std::thread::scope(|scope| {
-        let handles: Vec<_> = active
-            .chunks_mut(chunk)
-            .zip(acts.chunks(chunk * da))
-            .map(|(eps, a)| scope.spawn(move || step(eps, a)))
-            .collect();
-        handles
-            .into_iter()
-            .flat_map(|h| h.join().unwrap_or_else(|payload| std::panic::resume_unwind(payload)))
-            .collect()
-    })
-}
-
 /// One finished episode.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeRecord {
@@ -121,10 +93,11 @@ pub enum EvalError {
     Setup { task: String, why: String },
 }
 
-/// An episode in progress.
+/// An episode in progress (its environment is slot `id` of the evaluation's `VecEnv`).
 struct Running {
+    /// Position of the episode, in (task, episode) order.
+    id: usize,
     task: usize,
-    env: Box<dyn Env>,
     seed: u64,
     /// Normalised states so far, `[(t+1) * ds]`.
     states: Vec<f32>,
@@ -186,6 +159,9 @@ fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
 }
 
 /// Runs every episode of every task to its end; returns the episodes in (task, episode) order.
+///
+/// All episodes' environments go into one [`VecEnv`] on `cfg.env_threads` threads, started once
+/// for the call; each forward's actions step only the episodes still running (a masked step).
 pub fn evaluate(
     model: &PromptDt,
     tasks: Vec<EvalTask>,
@@ -196,8 +172,10 @@ pub fn evaluate(
         EvalReturns::Zero => 0.0,
         _ => cfg.target_return / cfg.rtg_scale,
     };
-    let mut prompts: Vec<Option<SegmentBatch>> = Vec::new();
-    let mut pending: Vec<Running> = Vec::new();
+    let mut names: Vec<String> = Vec::with_capacity(tasks.len());
+    let mut prompts: Vec<Option<SegmentBatch>> = Vec::with_capacity(tasks.len());
+    let mut envs: Vec<Box<dyn Env>> = Vec::new();
+    let mut queue: Vec<Running> = Vec::new();
     for (ti, task) in tasks.into_iter().enumerate() {
         if task.envs.len() != task.seeds.len() {
             return Err(EvalError::Setup {
@@ -214,9 +192,9 @@ pub fn evaluate(
                 );
                 return Err(EvalError::Setup { task: task.name, why });
             }
-            pending.push(Running {
+            queue.push(Running {
+                id: envs.len(),
                 task: ti,
-                env,
                 seed,
                 states: vec![],
                 actions: vec![],
@@ -224,26 +202,36 @@ pub fn evaluate(
                 ret: 0.0,
                 t: 0,
             });
+            envs.push(env);
         }
+        names.push(task.name);
         prompts.push(task.prompt);
     }
-    let mut done: Vec<(usize, EpisodeRecord)> = Vec::with_capacity(pending.len());
-    let mut order = 0..;
-    let mut queue: Vec<(usize, Running)> =
-        pending.into_iter().map(|r| (order.next().unwrap_or(0), r)).collect();
-    queue.reverse(); // pop from the end in episode order
-    while !queue.is_empty() {
-        // Start up to `max_batch` episodes; they run to their ends together.
-        let mut active: Vec<(usize, Running)> = Vec::new();
-        while active.len() < cfg.max_batch.max(1) {
-            let Some((id, mut ep)) = queue.pop() else { break };
-            let obs = ep.env.reset(ep.seed);
+    let n = envs.len();
+    // Every environment takes `da` values (checked above), so episode `id`'s action sits at
+    // `id * da` of the flat action buffer.
+    let mut venv = VecEnv::new(envs, cfg.env_threads);
+    let (mut flat, mut mask) = (vec![0f32; n * da], vec![false; n]);
+    // A failure of the pool itself (not of one environment) is charged to the batch's tasks.
+    let batch_error = |active: &[Running], source: EnvError| {
+        let mut tasks: Vec<&str> = active.iter().map(|e| names[e.task].as_str()).collect();
+        tasks.dedup();
+        EvalError::Env { task: tasks.join(", "), source }
+    };
+
+    let mut done: Vec<(usize, EpisodeRecord)> = Vec::with_capacity(n);
+    let mut queue = queue.into_iter().peekable();
+    while queue.peek().is_some() {
+        // Start up to `max_batch` episodes, in episode order; they run to their ends together.
+        let mut active: Vec<Running> = queue.by_ref().take(cfg.max_batch.max(1)).collect();
+        let resets: Vec<(usize, u64)> = active.iter().map(|e| (e.id, e.seed)).collect();
+        let first = venv.reset_some(&resets).map_err(|source| batch_error(&active, source))?;
+        for (ep, obs) in active.iter_mut().zip(first) {
             ep.states = normalise(&cfg.norm, &obs);
             ep.rtg = vec![first_rtg];
-            active.push((id, ep));
         }
         while !active.is_empty() {
-            let eps: Vec<&Running> = active.iter().map(|(_, e)| e).collect();
+            let eps: Vec<&Running> = active.iter().collect();
             let history = history_batch(&eps, cfg.k, ds, da, cfg.device);
             let task_prompts: Option<Vec<&SegmentBatch>> =
                 eps.iter().map(|e| prompts[e.task].as_ref()).collect();
@@ -253,13 +241,25 @@ pub fn evaluate(
                 preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
-            let steps = step_all(&mut active, &acts, da, cfg.env_threads);
+            for (ep, a) in active.iter().zip(acts.chunks_exact(da)) {
+                flat[ep.id * da..(ep.id + 1) * da].copy_from_slice(a);
+                mask[ep.id] = true;
+            }
+            let stepped = venv.step_flat(&flat, Some(&mask));
+            for ep in &active {
+                mask[ep.id] = false;
+            }
+            let mut steps = stepped.map_err(|source| batch_error(&active, source))?;
             let mut still = Vec::with_capacity(active.len());
-            for (((id, mut ep), a), step) in
-                active.into_iter().zip(acts.chunks_exact(da)).zip(steps)
-            {
-                let name = ep.task.to_string();
-                let step = step.map_err(|source| EvalError::Env { task: name, source })?;
+            for (mut ep, a) in active.into_iter().zip(acts.chunks_exact(da)) {
+                let name = || names[ep.task].clone();
+                let step = match steps.get_mut(ep.id).and_then(Option::take) {
+                    Some(step) => step.map_err(|source| EvalError::Env { task: name(), source })?,
+                    None => {
+                        let why = format!("episode {} was not stepped (internal error)", ep.id);
+                        return Err(EvalError::Setup { task: name(), why });
+                    }
+                };
                 ep.actions.extend_from_slice(a);
                 ep.states.extend(normalise(&cfg.norm, &step.obs));
                 ep.ret += step.reward as f64;
@@ -277,14 +277,15 @@ pub fn evaluate(
                         length: ep.t,
                         actions: ep.actions,
                     };
-                    done.push((id, record));
+                    done.push((ep.id, record));
                 } else {
-                    still.push((id, ep));
+                    still.push(ep);
                 }
             }
             active = still;
         }
     }
+    // Episodes of a batch end in any order; report them in (task, episode) order.
     done.sort_by_key(|(id, _)| *id);
     Ok(done.into_iter().map(|(_, r)| r).collect())
 }

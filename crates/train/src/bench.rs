@@ -31,6 +31,8 @@ pub struct BenchConfig {
     pub pytorch_eval_script: Option<PathBuf>,
     /// Episodes per task of `eval_point_robot`.
     pub eval_episodes: usize,
+    /// The PyTorch SAC / TD3 script, for the `sac_h*_b*` / `td3_h*_b*` cases.
+    pub pytorch_rl_script: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone)]
@@ -69,7 +71,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N> or eval_point_robot)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, eval_point_robot, sac_h<H>_b<B> or td3_h<H>_b<B>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -109,6 +111,22 @@ fn random_segments(b: i64, t: i64, ds: i64, da: i64, full: bool, dev: Device) ->
         returns_to_go: Tensor::rand([b, t, 1], opts),
         timesteps,
         mask: mask.to_kind(Kind::Float),
+    }
+}
+
+/// Median and 10th/90th percentiles of per-iteration milliseconds.
+fn timing(name: &str, mut ms: Vec<f64>) -> CaseTiming {
+    ms.sort_by(f64::total_cmp);
+    let iters = ms.len();
+    if ms.is_empty() {
+        ms.push(f64::NAN);
+    }
+    CaseTiming {
+        name: name.to_string(),
+        median_ms: percentile(&ms, 0.5),
+        p10_ms: percentile(&ms, 0.1),
+        p90_ms: percentile(&ms, 0.9),
+        iters,
     }
 }
 
@@ -310,7 +328,8 @@ fn run_pytorch_eval(
 
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
-    for c in cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE) {
+    let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
+    for c in cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE && !is_rl(c)) {
         parse_case(c)?;
     }
     tch::set_num_threads(cfg.threads as i32);
@@ -323,6 +342,9 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     for c in &cfg.cases {
         results.push(if c == EVAL_CASE {
             time_eval(cfg)?
+        } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
+            let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
+            timing(c, ms)
         } else {
             time_case(&model, &mut opt, c, cfg)?
         });
@@ -334,7 +356,8 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         results,
     };
     let train_cases: Vec<String> =
-        cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE).cloned().collect();
+        cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE && !is_rl(c)).cloned().collect();
+    let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();
     let mut pytorch = match &cfg.pytorch {
         Some(b) if !train_cases.is_empty() => {
             Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?)
@@ -352,6 +375,19 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
             results: vec![],
         });
         report.results.push(t);
+    }
+    if let (Some(b), Some(script), false) =
+        (&cfg.pytorch, &cfg.pytorch_rl_script, rl_cases.is_empty())
+    {
+        let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
+        let t = run_pytorch(&base, &BenchConfig { cases: rl_cases, ..cfg.clone() })?;
+        let report = pytorch.get_or_insert_with(|| EngineReport {
+            engine: "pytorch".into(),
+            torch_version: t.torch_version.clone(),
+            threads: cfg.threads,
+            results: vec![],
+        });
+        report.results.extend(t.results);
     }
     let speedup = match &pytorch {
         Some(p) => promptdt

@@ -1,0 +1,394 @@
+//! What SAC and TD3 share: the task-conditioned input, the agent behind one enum, the exported
+//! policy (actor only) and the host-side action noise.
+//!
+//! **Task conditioning.** One agent serves every task of a family: its networks see the
+//! environment's observation plus the task parameter (direction, target velocity, goal angle as
+//! (cos, sin)). Datasets store the environment's observation only, as the reference data does.
+//! For HalfCheetah the agent also does not see `obs[17]`, the torso's absolute x position (it grows
+//! without bound, which gym's own HalfCheetah leaves out of the observation for the same reason);
+//! the datasets keep it.
+
+use crate::nets::{tensor_to_vec, Mlp};
+use crate::sac::{Sac, SacConfig};
+use crate::td3::{Td3, Td3Config};
+use crate::RlError;
+use pdt_envs::EnvFamily;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use tch::{Device, Tensor};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Algorithm {
+    Sac,
+    Td3,
+}
+
+impl Algorithm {
+    pub fn name(self) -> &'static str {
+        match self {
+            Algorithm::Sac => "sac",
+            Algorithm::Td3 => "td3",
+        }
+    }
+}
+
+impl std::str::FromStr for Algorithm {
+    type Err = RlError;
+    fn from_str(s: &str) -> Result<Self, RlError> {
+        match s {
+            "sac" => Ok(Algorithm::Sac),
+            "td3" => Ok(Algorithm::Td3),
+            other => Err(RlError::Config(format!("unknown algorithm `{other}` (known: sac, td3)"))),
+        }
+    }
+}
+
+/// The agent's input for a family: which observation entries it drops and the per-task features
+/// it appends.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskEncoder {
+    pub family: String,
+    pub obs_dim: usize,
+    /// Observation indices the agent does not see.
+    pub drop: Vec<usize>,
+    /// `task_features[task]`, all of the same length.
+    pub task_features: Vec<Vec<f32>>,
+}
+
+impl TaskEncoder {
+    pub fn for_family(family: &dyn EnvFamily) -> Result<Self, RlError> {
+        let name = family.name().to_string();
+        let preset = family.preset();
+        let mut task_features = Vec::with_capacity(family.num_tasks());
+        for task in 0..family.num_tasks() {
+            let p = family.task_params(task)?;
+            let num = |key: &str| -> Result<f32, RlError> {
+                p.get(key).and_then(|v| v.as_f64()).map(|v| v as f32).ok_or_else(|| {
+                    RlError::Config(format!("{name} task {task}: no numeric parameter `{key}`"))
+                })
+            };
+            let f = match name.as_str() {
+                "cheetah_dir" => vec![num("direction")?],
+                "cheetah_vel" => vec![num("velocity")?],
+                "ant_dir" => {
+                    let g = num("goal")?;
+                    vec![g.cos(), g.sin()]
+                }
+                "point_robot" => {
+                    let goal =
+                        p.get("goal").and_then(|g| g.as_array()).cloned().unwrap_or_default();
+                    goal.iter().filter_map(|v| v.as_f64()).map(|v| v as f32).collect()
+                }
+                other => {
+                    return Err(RlError::Config(format!("no task encoding for family `{other}`")))
+                }
+            };
+            task_features.push(f);
+        }
+        let drop = match name.as_str() {
+            "cheetah_dir" | "cheetah_vel" => vec![17],
+            _ => vec![],
+        };
+        Ok(Self { family: name, obs_dim: preset.obs_dim, drop, task_features })
+    }
+
+    /// Length of the agent's input.
+    pub fn input_dim(&self) -> usize {
+        self.obs_dim - self.drop.len() + self.task_features.first().map_or(0, Vec::len)
+    }
+
+    /// Appends the agent's input for `obs` of `task` to `out`.
+    pub fn encode(&self, obs: &[f32], task: usize, out: &mut Vec<f32>) {
+        for (i, &v) in obs.iter().enumerate() {
+            if !self.drop.contains(&i) {
+                out.push(v);
+            }
+        }
+        if let Some(f) = self.task_features.get(task) {
+            out.extend_from_slice(f);
+        }
+    }
+}
+
+/// Hyper-parameters of both algorithms (only the chosen one's are used).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct AgentConfig {
+    pub sac: SacConfig,
+    pub td3: Td3Config,
+}
+
+/// A learning agent.
+#[derive(Debug)]
+pub enum Agent {
+    Sac(Sac),
+    Td3(Td3),
+}
+
+/// A batch of standard normals from `rng` (Box-Muller, both outputs used).
+pub fn normals(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(n + 1);
+    while out.len() < n {
+        // 1 - u is in (0, 1], so the log is finite.
+        let u1 = 1.0 - rng.random::<f64>();
+        let u2 = rng.random::<f64>();
+        let r = (-2.0 * u1.ln()).sqrt();
+        let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
+        out.push((r * c) as f32);
+        out.push((r * s) as f32);
+    }
+    out.truncate(n);
+    out
+}
+
+fn normal_tensor(rng: &mut ChaCha8Rng, rows: i64, cols: i64, device: Device) -> Tensor {
+    Tensor::from_slice(&normals(rng, (rows * cols) as usize)).view([rows, cols]).to_device(device)
+}
+
+/// Losses of one update, for progress display.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct UpdateStats {
+    pub critic_loss: f64,
+    pub actor_loss: f64,
+}
+
+impl Agent {
+    pub fn new(
+        algorithm: Algorithm,
+        obs_dim: usize,
+        act_dim: usize,
+        cfg: &AgentConfig,
+        rng: &mut ChaCha8Rng,
+        device: Device,
+    ) -> Self {
+        let (d, a) = (obs_dim as i64, act_dim as i64);
+        match algorithm {
+            Algorithm::Sac => Agent::Sac(Sac::new(d, a, cfg.sac.clone(), rng, device)),
+            Algorithm::Td3 => Agent::Td3(Td3::new(d, a, cfg.td3.clone(), rng, device)),
+        }
+    }
+
+    pub fn algorithm(&self) -> Algorithm {
+        match self {
+            Agent::Sac(_) => Algorithm::Sac,
+            Agent::Td3(_) => Algorithm::Td3,
+        }
+    }
+
+    pub fn actor(&self) -> &Mlp {
+        match self {
+            Agent::Sac(s) => &s.actor,
+            Agent::Td3(t) => &t.actor,
+        }
+    }
+
+    /// The exploring policy's noise scale (TD3) — SAC's comes from its own std.
+    pub fn policy_head(&self) -> PolicyHead {
+        match self {
+            Agent::Sac(_) => PolicyHead::Sac,
+            Agent::Td3(t) => PolicyHead::Td3 { exploration_noise: t.cfg.exploration_noise as f32 },
+        }
+    }
+
+    /// One update on a batch, with its noise drawn from `rng`.
+    pub fn update(&mut self, batch: &crate::buffer::Batch, rng: &mut ChaCha8Rng) -> UpdateStats {
+        let b = batch.obs.size()[0];
+        let dev = batch.obs.device();
+        match self {
+            Agent::Sac(s) => {
+                let n1 = normal_tensor(rng, b, s.act_dim, dev);
+                let n2 = normal_tensor(rng, b, s.act_dim, dev);
+                let st = s.update(batch, &n1, &n2);
+                UpdateStats { critic_loss: st.critic_loss, actor_loss: st.actor_loss }
+            }
+            Agent::Td3(t) => {
+                let n = normal_tensor(rng, b, t.act_dim, dev);
+                let st = t.update(batch, &n);
+                UpdateStats { critic_loss: st.critic_loss, actor_loss: st.actor_loss }
+            }
+        }
+    }
+
+    /// Every tensor of the agent (networks, targets, optimiser moments) as named host arrays,
+    /// plus the optimiser step counts, for checkpoints.
+    pub fn state(&self) -> (Vec<(String, Vec<f32>)>, Vec<(String, u64)>) {
+        let mut t: Vec<(String, Vec<f32>)> = Vec::new();
+        let mut steps = Vec::new();
+        let mut opt = |name: &str, o: &crate::nets::Adam, t: &mut Vec<(String, Vec<f32>)>| {
+            let (m, v) = o.state_vecs();
+            t.push((format!("{name}_opt.exp_avg"), m));
+            t.push((format!("{name}_opt.exp_avg_sq"), v));
+            steps.push((format!("{name}_opt"), o.step));
+        };
+        match self {
+            Agent::Sac(s) => {
+                t.push(("actor".into(), s.actor.to_vec()));
+                t.push(("critic".into(), s.critic.to_vec()));
+                t.push(("critic_target".into(), s.critic_target.to_vec()));
+                t.push(("log_alpha".into(), tensor_to_vec(&s.log_alpha)));
+                opt("actor", &s.actor_opt, &mut t);
+                opt("critic", &s.critic_opt, &mut t);
+                opt("alpha", &s.alpha_opt, &mut t);
+            }
+            Agent::Td3(d) => {
+                t.push(("actor".into(), d.actor.to_vec()));
+                t.push(("actor_target".into(), d.actor_target.to_vec()));
+                t.push(("critic".into(), d.critic.to_vec()));
+                t.push(("critic_target".into(), d.critic_target.to_vec()));
+                opt("actor", &d.actor_opt, &mut t);
+                opt("critic", &d.critic_opt, &mut t);
+                steps.push(("updates".into(), d.updates));
+            }
+        }
+        (t, steps)
+    }
+
+    /// Restores what [`Agent::state`] saved.
+    pub fn load_state(
+        &mut self,
+        get: &dyn Fn(&str) -> Option<Vec<f32>>,
+        steps: &dyn Fn(&str) -> Option<u64>,
+    ) -> Result<(), String> {
+        let need = |name: &str| get(name).ok_or_else(|| format!("missing tensor `{name}`"));
+        let need_step = |name: &str| steps(name).ok_or_else(|| format!("missing counter `{name}`"));
+        let load_opt = |name: &str, o: &mut crate::nets::Adam| -> Result<(), String> {
+            let m = need(&format!("{name}_opt.exp_avg"))?;
+            let v = need(&format!("{name}_opt.exp_avg_sq"))?;
+            o.load_state(need_step(&format!("{name}_opt"))?, &m, &v)
+                .map_err(|e| format!("{name}_opt: {e}"))
+        };
+        let load_net = |name: &str, net: &mut Mlp| -> Result<(), String> {
+            net.load_vec(&need(name)?).map_err(|e| format!("`{name}`: {e}"))
+        };
+        match self {
+            Agent::Sac(s) => {
+                load_net("actor", &mut s.actor)?;
+                load_net("critic", &mut s.critic)?;
+                load_net("critic_target", &mut s.critic_target)?;
+                let la = need("log_alpha")?;
+                if la.len() != 1 {
+                    return Err(format!("`log_alpha` has {} values, expected 1", la.len()));
+                }
+                tch::no_grad(|| {
+                    s.log_alpha.copy_(&Tensor::from_slice(&la).to_device(s.log_alpha.device()))
+                });
+                load_opt("actor", &mut s.actor_opt)?;
+                load_opt("critic", &mut s.critic_opt)?;
+                load_opt("alpha", &mut s.alpha_opt)?;
+            }
+            Agent::Td3(d) => {
+                load_net("actor", &mut d.actor)?;
+                load_net("actor_target", &mut d.actor_target)?;
+                load_net("critic", &mut d.critic)?;
+                load_net("critic_target", &mut d.critic_target)?;
+                load_opt("actor", &mut d.actor_opt)?;
+                load_opt("critic", &mut d.critic_opt)?;
+                d.updates = need_step("updates")?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How an actor's raw output becomes an action.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum PolicyHead {
+    /// Raw output `[mean, log_std]` (2A); action `tanh(mean + std * n)`.
+    Sac,
+    /// Raw output `a` (A); action `clip(tanh(a) + sigma * n, -1, 1)`.
+    Td3 { exploration_noise: f32 },
+}
+
+/// Whether to act with the policy's exploration noise or deterministically.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Noise {
+    /// SAC: a sample of the policy; TD3: Gaussian exploration noise (as in its replay buffer).
+    Explore,
+    /// The noiseless policy (`tanh(mean)` / `tanh(a)`).
+    Deterministic,
+}
+
+impl PolicyHead {
+    /// Raw output width for `act_dim`.
+    pub fn raw_dim(self, act_dim: usize) -> usize {
+        match self {
+            PolicyHead::Sac => 2 * act_dim,
+            PolicyHead::Td3 { .. } => act_dim,
+        }
+    }
+
+    /// The action from one row of raw output; noise (when used) comes from `rng`.
+    pub fn action(
+        self,
+        raw: &[f32],
+        act_dim: usize,
+        noise: Noise,
+        rng: &mut ChaCha8Rng,
+        out: &mut Vec<f32>,
+    ) {
+        let n = match noise {
+            Noise::Explore => normals(rng, act_dim),
+            Noise::Deterministic => vec![0.0; act_dim],
+        };
+        match self {
+            PolicyHead::Sac => {
+                for j in 0..act_dim {
+                    let log_std = raw[act_dim + j].clamp(-20.0, 2.0);
+                    out.push((raw[j] + log_std.exp() * n[j]).tanh());
+                }
+            }
+            PolicyHead::Td3 { exploration_noise } => {
+                for j in 0..act_dim {
+                    out.push((raw[j].tanh() + exploration_noise * n[j]).clamp(-1.0, 1.0));
+                }
+            }
+        }
+    }
+}
+
+/// Raw actor outputs for a batch of agent inputs `[n, D]` (row-major), as host floats.
+pub fn actor_raw(actor: &Mlp, inputs: &[f32], n: usize, device: Device) -> Vec<f32> {
+    let d = inputs.len() / n.max(1);
+    let x = Tensor::from_slice(inputs).view([n as i64, d as i64]).to_device(device);
+    tch::no_grad(|| tensor_to_vec(&actor.forward(&x)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn encoders_of_the_mujoco_families() {
+        let cd =
+            TaskEncoder::for_family(pdt_envs::family("cheetah_dir").unwrap().as_ref()).unwrap();
+        assert_eq!(cd.input_dim(), 20);
+        let obs: Vec<f32> = (0..20).map(|i| i as f32).collect();
+        let mut out = vec![];
+        cd.encode(&obs, 1, &mut out);
+        assert_eq!(out.len(), 20);
+        assert!(!out[..19].contains(&17.0), "torso x is dropped");
+        assert_eq!(out[19], -1.0);
+        let ant = TaskEncoder::for_family(pdt_envs::family("ant_dir").unwrap().as_ref()).unwrap();
+        assert_eq!(ant.input_dim(), 29);
+        let f = &ant.task_features[0];
+        assert!((f[0] * f[0] + f[1] * f[1] - 1.0).abs() < 1e-6);
+        let vel =
+            TaskEncoder::for_family(pdt_envs::family("cheetah_vel").unwrap().as_ref()).unwrap();
+        assert_eq!(vel.task_features[39], vec![3.0]);
+    }
+
+    #[test]
+    fn normals_look_standard() {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let v = normals(&mut rng, 100_001);
+        assert_eq!(v.len(), 100_001);
+        let mean = v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+        let var = v.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / v.len() as f64;
+        assert!(mean.abs() < 0.01 && (var - 1.0).abs() < 0.02, "{mean} {var}");
+    }
+}

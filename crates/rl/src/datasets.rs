@@ -1,0 +1,243 @@
+//! Datasets from trained agents: for every task, the main dataset D_i and a prompt set P_i for
+//! each of `expert`, `medium` and `random`, in the native format, with a `dataset.json` card.
+//!
+//! The paper's section 6.3 takes the last / middle / first 500 trajectories of a replay buffer.
+//! Here the data comes from **policy snapshots** instead: the expert snapshot, a medium snapshot
+//! (halfway in evaluated return between random and expert, see `train::finish`), and uniform
+//! random actions (what a replay buffer's first trajectories are, since SAC and TD3 start with
+//! uniform random steps). Why: the committed pretrained agents must rebuild every dataset in
+//! minutes without retraining, and a replay buffer (hundreds of MB) cannot be committed. Actions
+//! carry the policy's own exploration noise by default (a SAC sample, TD3's Gaussian noise), as
+//! in a replay buffer.
+//!
+//! Every episode has its own generator keyed by (seed, task, mode, set, episode): the data is a
+//! function of the seed and the settings. It does not depend on the number of threads; the chunk
+//! size (how many episodes share one actor forward) is part of the settings, since a batched
+//! matmul may round the last bit differently for different batch sizes.
+
+use crate::agent::Noise;
+use crate::policy::{self, Policy};
+use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
+use crate::train::read_agent_card;
+use crate::RlError;
+use pdt_data::native::{
+    self, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats, CARD_FILE_NAME, CARD_FORMAT_NAME,
+    FORMAT_VERSION,
+};
+use pdt_data::TaskDataset;
+use pdt_envs::collect_scripted::{episode_rng, Mode, Set};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use tch::Device;
+
+/// What to generate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetConfig {
+    pub seed: u64,
+    /// Episodes of each main dataset D_i.
+    pub episodes: usize,
+    /// Episodes of each prompt set P_i.
+    pub prompt_episodes: usize,
+    pub modes: Vec<Mode>,
+    /// Task indices; empty: all of the family's.
+    pub tasks: Vec<usize>,
+    /// Exploration noise (as in a replay buffer) or the deterministic policy.
+    pub noise: Noise,
+    /// Episodes stepped together (sets the actor's batch size, which the data depends on).
+    pub chunk: usize,
+    /// Threads stepping the environments (the data does not depend on this).
+    pub threads: usize,
+}
+
+impl Default for DatasetConfig {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            episodes: 100,
+            prompt_episodes: 5,
+            modes: Mode::ALL.to_vec(),
+            tasks: vec![],
+            noise: Noise::Explore,
+            chunk: 256,
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        }
+    }
+}
+
+/// Return statistics of one (task, mode).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskModeStats {
+    pub task: usize,
+    pub mode: Mode,
+    pub dataset: ReturnStats,
+    pub prompts: ReturnStats,
+}
+
+/// What [`generate`] wrote.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetSummary {
+    pub family: String,
+    pub entries: Vec<TaskModeStats>,
+    pub card: PathBuf,
+    pub files: usize,
+    pub steps: usize,
+}
+
+impl DatasetSummary {
+    pub fn get(&self, task: usize, mode: Mode) -> Option<&TaskModeStats> {
+        self.entries.iter().find(|e| e.task == task && e.mode == mode)
+    }
+}
+
+/// Generates the datasets of `cfg` from the agent in `agent_dir` (an `agent.json` plus
+/// `expert.safetensors` / `medium.safetensors`) into `out_dir`. `progress(done, total)` counts
+/// episodes.
+pub fn generate(
+    agent_dir: &Path,
+    out_dir: &Path,
+    cfg: &DatasetConfig,
+    device: Device,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<DatasetSummary, RlError> {
+    let card = read_agent_card(agent_dir)?;
+    let family = pdt_envs::family(&card.family)?;
+    let n_tasks = family.num_tasks();
+    let tasks: Vec<usize> =
+        if cfg.tasks.is_empty() { (0..n_tasks).collect() } else { cfg.tasks.clone() };
+    if let Some(&t) = tasks.iter().find(|&&t| t >= n_tasks) {
+        return Err(pdt_envs::EnvError::UnknownTask {
+            env: card.family.clone(),
+            task: t,
+            n: n_tasks,
+        }
+        .into());
+    }
+    if cfg.episodes == 0 || cfg.prompt_episodes == 0 || cfg.modes.is_empty() {
+        return Err(RlError::Config(
+            "episodes, prompt_episodes and modes must not be empty".into(),
+        ));
+    }
+    std::fs::create_dir_all(out_dir)
+        .map_err(|source| RlError::Io { path: out_dir.to_path_buf(), source })?;
+    let load = |name: &str| -> Result<Policy, RlError> {
+        let p = policy::load(&agent_dir.join(format!("{name}.safetensors")), device)?;
+        if p.meta.family != card.family {
+            return Err(RlError::File {
+                path: agent_dir.join(format!("{name}.safetensors")),
+                message: format!("a {} policy in a {} agent directory", p.meta.family, card.family),
+            });
+        }
+        Ok(p)
+    };
+    let per_task = cfg.episodes + cfg.prompt_episodes;
+    let total = tasks.len() * per_task * cfg.modes.len();
+    let mut done_before = 0;
+    let mut entries = Vec::new();
+    let mut card_files: Vec<Vec<CardFile>> = vec![Vec::new(); tasks.len()];
+    let (mut files, mut steps) = (0, 0);
+    for &mode in &cfg.modes {
+        let policy = match mode {
+            Mode::Expert => Some(load("expert")?),
+            Mode::Medium => Some(load("medium")?),
+            Mode::Random => None,
+        };
+        let behaviour = match &policy {
+            Some(p) => Behaviour::Actor {
+                actor: &p.actor,
+                head: p.meta.head,
+                encoder: &p.meta.encoder,
+                noise: cfg.noise,
+                device,
+            },
+            None => Behaviour::Uniform,
+        };
+        let mut specs = Vec::with_capacity(tasks.len() * per_task);
+        for &task in &tasks {
+            for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
+                for e in 0..n {
+                    let mut rng = episode_rng(cfg.seed, task, mode, set, e);
+                    let reset_seed = rng.random();
+                    specs.push(EpisodeSpec { task, reset_seed, rng });
+                }
+            }
+        }
+        let trajs =
+            run_episodes(family.as_ref(), behaviour, specs, cfg.chunk, cfg.threads, &mut |d| {
+                progress(done_before + d, total)
+            })?;
+        done_before += trajs.len();
+        let mut trajs = trajs.into_iter();
+        for (k, &task) in tasks.iter().enumerate() {
+            let mut stats = Vec::new();
+            for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
+                let ds = TaskDataset::new(trajs.by_ref().take(n).collect())
+                    .map_err(|source| RlError::Data { path: out_dir.to_path_buf(), source })?;
+                let file_mode = match set {
+                    Set::Dataset => mode.name().to_string(),
+                    Set::Prompt => format!("prompt-{}", mode.name()),
+                };
+                let name = format!(
+                    "{}.{}",
+                    native::task_file_stem(&card.family, task, &file_mode),
+                    native::FILE_EXTENSION
+                );
+                let path = out_dir.join(&name);
+                native::write_task_dataset(
+                    &path,
+                    &ds,
+                    &FileMeta::new(card.family.as_str(), task, file_mode.clone()),
+                )
+                .map_err(|source| RlError::Data { path: path.clone(), source })?;
+                files += 1;
+                steps += ds.num_steps();
+                stats.push(ReturnStats::of(&ds.returns()));
+                card_files[k].push(CardFile::describe(name, file_mode, &ds));
+            }
+            entries.push(TaskModeStats { task, mode, dataset: stats[0], prompts: stats[1] });
+        }
+    }
+    let preset = family.preset();
+    let card_tasks = tasks
+        .iter()
+        .zip(card_files)
+        .map(|(&task, files)| {
+            Ok(CardTask { index: task, params: family.task_params(task)?, files })
+        })
+        .collect::<Result<Vec<_>, RlError>>()?;
+    let dataset_card = DatasetCard {
+        format: CARD_FORMAT_NAME.to_owned(),
+        format_version: FORMAT_VERSION.to_owned(),
+        env: card.family.clone(),
+        obs_dim: preset.obs_dim,
+        act_dim: preset.act_dim,
+        tasks: card_tasks,
+        generator: serde_json::json!({
+            "name": "pdt-rl datasets",
+            "version": env!("CARGO_PKG_VERSION"),
+            "algorithm": card.algorithm,
+            "agent_training_seed": card.config.seed,
+            "agent_training_steps": card.config.total_steps,
+            "agent_training_wall_seconds": card.wall_seconds,
+            "seed": cfg.seed,
+            "episodes_per_task": cfg.episodes,
+            "prompt_episodes": cfg.prompt_episodes,
+            "noise": cfg.noise,
+            "policies": {
+                "expert": format!("the {} actor snapshot at step {} (best evaluated)", card.algorithm.name(), card.expert_step),
+                "medium": format!("the {} actor snapshot at step {} ({})", card.algorithm.name(), card.medium_step, card.why_medium),
+                "random": "uniform random actions in [-1, 1] (the first episodes of a replay buffer)",
+            },
+            "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode): reset seed, then action noise",
+        }),
+    };
+    native::write_card(out_dir, &dataset_card)
+        .map_err(|source| RlError::Data { path: out_dir.join(CARD_FILE_NAME), source })?;
+    Ok(DatasetSummary {
+        family: card.family,
+        entries,
+        card: out_dir.join(CARD_FILE_NAME),
+        files,
+        steps,
+    })
+}

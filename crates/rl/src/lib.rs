@@ -1,0 +1,92 @@
+//! Online RL for making Prompt-DT's offline datasets: SAC and TD3 (one flat module each), a
+//! shared replay buffer and flat-parameter networks, a resumable training loop for one
+//! task-conditioned agent per family, and the dataset generator (expert / medium / random data and
+//! prompt sets, in the native format with a dataset card).
+//!
+//! - [`sac`], [`td3`]: the algorithms.
+//! - [`nets`]: MLPs whose parameters are one flat tensor; Adam on it.
+//! - [`buffer`]: the replay buffer.
+//! - [`agent`]: task conditioning, the `Agent` enum, action noise on the host.
+//! - [`policy`]: exported actors (the pretrained experts) as safetensors.
+//! - [`rollout`]: many episodes stepped together with one batched actor forward per step.
+//! - [`train`]: the training loop, checkpoints, snapshots.
+//! - [`datasets`]: expert / medium / random datasets and prompt sets from exported actors.
+
+pub mod agent;
+pub mod bench;
+pub mod buffer;
+pub mod datasets;
+pub mod nets;
+pub mod policy;
+pub mod rollout;
+pub mod sac;
+pub mod td3;
+pub mod train;
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RlError {
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Env(#[from] pdt_envs::EnvError),
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A checkpoint or policy file that cannot be used; `path` names it.
+    #[error("{}: {message}", path.display())]
+    File { path: PathBuf, message: String },
+    #[error("cannot write {}: {source}", path.display())]
+    Data {
+        path: PathBuf,
+        #[source]
+        source: pdt_data::DataError,
+    },
+    /// The run directory already holds a run and `resume` was not asked for.
+    #[error("{} already holds a training run: pass --resume to continue it, or choose another directory", path.display())]
+    Exists { path: PathBuf },
+    #[error("no checkpoint to resume in {}", path.display())]
+    NoCheckpoint { path: PathBuf },
+    #[error("training diverged: {0}")]
+    Diverged(String),
+}
+
+/// splitmix64 of (seed, stream, counter): independent seeds for every random choice, so a resumed
+/// run, a different thread count or a different batch split draws the same numbers.
+pub fn derive_seed(seed: u64, stream: u64, counter: u64) -> u64 {
+    let mut z = seed
+        ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ counter.wrapping_mul(0xD1B5_4A32_D192_ED03);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// A ChaCha8 generator for `(seed, stream, counter)`.
+pub fn stream_rng(seed: u64, stream: u64, counter: u64) -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(seed, stream, counter))
+}
+
+/// Writes `bytes` to a temporary file beside `path`, syncs it and renames it over `path`.
+pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), RlError> {
+    use std::io::Write;
+    let dir =
+        path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp.{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.map_err(|source| RlError::Io { path: path.to_path_buf(), source })
+}

@@ -1,0 +1,161 @@
+//! Many episodes at once: every unfinished episode of a chunk is stepped together, with one
+//! batched actor forward per environment step. Each episode draws its reset seed and its action
+//! noise from its own generator, so an episode does not depend on which others share its chunk.
+
+use crate::agent::{actor_raw, Noise, PolicyHead, TaskEncoder};
+use crate::nets::Mlp;
+use crate::RlError;
+use pdt_data::Trajectory;
+use pdt_envs::vec_env::VecEnv;
+use pdt_envs::EnvFamily;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use tch::Device;
+
+/// One episode to run.
+#[derive(Debug, Clone)]
+pub struct EpisodeSpec {
+    pub task: usize,
+    pub reset_seed: u64,
+    /// Source of the episode's action noise.
+    pub rng: ChaCha8Rng,
+}
+
+/// Who acts.
+#[derive(Debug, Clone, Copy)]
+pub enum Behaviour<'a> {
+    Actor {
+        actor: &'a Mlp,
+        head: PolicyHead,
+        encoder: &'a TaskEncoder,
+        noise: Noise,
+        device: Device,
+    },
+    /// Uniform random actions in [-1, 1] (the first episodes of a replay buffer).
+    Uniform,
+}
+
+struct Running {
+    spec: EpisodeSpec,
+    obs: Vec<f32>,
+    observations: Vec<f32>,
+    actions: Vec<f32>,
+    rewards: Vec<f32>,
+    terminated: Vec<bool>,
+    truncated: Vec<bool>,
+    done: bool,
+}
+
+/// Runs `specs` in chunks of `chunk` episodes, stepping each chunk's environments on `threads`
+/// threads (a [`VecEnv`]); returns the trajectories in spec order. `progress(done)` is called with
+/// the number of finished episodes after each chunk.
+///
+/// The result depends on the specs and `chunk` only: not on `threads` (environments are
+/// independent), but `chunk` sets the actor's batch sizes, and a batched matmul may round the
+/// last bit differently for different batch sizes.
+pub fn run_episodes(
+    family: &dyn EnvFamily,
+    behaviour: Behaviour<'_>,
+    specs: Vec<EpisodeSpec>,
+    chunk: usize,
+    threads: usize,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Vec<Trajectory>, RlError> {
+    let preset = family.preset();
+    let (obs_dim, act_dim) = (preset.obs_dim, preset.act_dim);
+    let mut out = Vec::with_capacity(specs.len());
+    let mut specs = specs.into_iter().peekable();
+    while specs.peek().is_some() {
+        let mut running = Vec::with_capacity(chunk);
+        let mut envs = Vec::with_capacity(chunk);
+        for spec in specs.by_ref().take(chunk.max(1)) {
+            let env = family.make(spec.task)?;
+            let h = env.horizon();
+            envs.push(env);
+            running.push(Running {
+                spec,
+                obs: Vec::new(),
+                observations: Vec::with_capacity(h * obs_dim),
+                actions: Vec::with_capacity(h * act_dim),
+                rewards: Vec::with_capacity(h),
+                terminated: Vec::with_capacity(h),
+                truncated: Vec::with_capacity(h),
+                done: false,
+            });
+        }
+        let mut venv = VecEnv::new(envs, threads);
+        let seeds: Vec<u64> = running.iter().map(|r| r.spec.reset_seed).collect();
+        for (r, obs) in running.iter_mut().zip(venv.reset(&seeds)?) {
+            r.obs = obs;
+        }
+        let mut inputs = Vec::new();
+        let mut action = Vec::with_capacity(act_dim);
+        let mut flat = vec![0f32; venv.flat_action_len()];
+        loop {
+            let active: Vec<usize> = (0..running.len()).filter(|&i| !running[i].done).collect();
+            if active.is_empty() {
+                break;
+            }
+            let raw = match behaviour {
+                Behaviour::Actor { actor, encoder, device, .. } => {
+                    inputs.clear();
+                    for &i in &active {
+                        encoder.encode(&running[i].obs, running[i].spec.task, &mut inputs);
+                    }
+                    actor_raw(actor, &inputs, active.len(), device)
+                }
+                Behaviour::Uniform => Vec::new(),
+            };
+            for (k, &i) in active.iter().enumerate() {
+                let ep = &mut running[i];
+                action.clear();
+                match behaviour {
+                    Behaviour::Actor { head, noise, .. } => {
+                        let w = head.raw_dim(act_dim);
+                        head.action(
+                            &raw[k * w..(k + 1) * w],
+                            act_dim,
+                            noise,
+                            &mut ep.spec.rng,
+                            &mut action,
+                        );
+                    }
+                    Behaviour::Uniform => {
+                        for _ in 0..act_dim {
+                            action.push(ep.spec.rng.random_range(-1.0f32..=1.0));
+                        }
+                    }
+                }
+                flat[i * act_dim..(i + 1) * act_dim].copy_from_slice(&action);
+                ep.actions.extend_from_slice(&action);
+            }
+            let mask: Vec<bool> = running.iter().map(|r| !r.done).collect();
+            let steps = venv.step_flat(&flat, Some(&mask))?;
+            for (ep, slot) in running.iter_mut().zip(steps) {
+                let Some(step) = slot else { continue };
+                let step = step?;
+                ep.observations.extend_from_slice(&ep.obs);
+                ep.rewards.push(step.reward);
+                ep.terminated.push(step.terminated);
+                ep.truncated.push(step.truncated);
+                ep.obs = step.obs;
+                ep.done = step.terminated || step.truncated;
+            }
+        }
+        for ep in running {
+            let traj = Trajectory::new(
+                obs_dim,
+                act_dim,
+                ep.observations,
+                ep.actions,
+                ep.rewards,
+                ep.terminated,
+                ep.truncated,
+            )
+            .map_err(|e| RlError::Config(format!("rollout produced an invalid trajectory: {e}")))?;
+            out.push(traj);
+        }
+        progress(out.len());
+    }
+    Ok(out)
+}
