@@ -218,7 +218,6 @@ pub fn generate(
             "algorithm": card.algorithm,
             "agent_training_seed": card.config.seed,
             "agent_training_steps": card.config.total_steps,
-            "agent_training_wall_seconds": card.wall_seconds,
             "seed": cfg.seed,
             "episodes_per_task": cfg.episodes,
             "prompt_episodes": cfg.prompt_episodes,

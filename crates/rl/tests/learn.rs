@@ -84,7 +84,7 @@ fn interrupted_and_resumed_run_equals_uninterrupted_run() {
         assert_eq!(full.snapshots, resumed.snapshots, "{alg:?}");
         assert_eq!(full.expert_step, resumed.expert_step);
         for f in ["agent/expert.safetensors", "agent/medium.safetensors", "episodes.csv"] {
-            assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}");
+            assert!(std::fs::read(a.join(f)).unwrap() == std::fs::read(b.join(f)).unwrap(), "{f}");
         }
     }
 }
@@ -143,7 +143,7 @@ fn datasets_from_an_agent_are_deterministic_and_described_by_a_card() {
         let name = format!("ant_dir-{}-{}.safetensors", e.task, e.mode.name());
         let a = std::fs::read(tmp.path().join("d1").join(&name)).unwrap();
         let b = std::fs::read(tmp.path().join("d2").join(&name)).unwrap();
-        assert_eq!(a, b, "{name} depends on the thread count");
+        assert!(a == b, "{name} depends on the thread count");
     }
     assert_eq!(s1.entries, s2.entries);
     let card = pdt_data::native::read_card(&tmp.path().join("d1")).unwrap().unwrap();

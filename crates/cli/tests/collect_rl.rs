@@ -1,0 +1,174 @@
+//! `promptdt collect` for a MuJoCo family on a budget of seconds: RL training, an interruption and
+//! `--resume`, the datasets, and `--from-pretrained` on the committed experts.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn promptdt(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_promptdt")).args(args).output().expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = promptdt(args);
+    let (stdout, stderr) =
+        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
+    stdout.into_owned()
+}
+
+fn repo(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
+}
+
+const TINY: [&str; 14] = [
+    "--steps",
+    "800",
+    "--learning-starts",
+    "200",
+    "--hidden",
+    "16,16",
+    "--batch-size",
+    "32",
+    "--checkpoint-every",
+    "400",
+    "--episodes",
+    "2",
+    "--prompt-episodes",
+    "1",
+];
+
+fn collect(run: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec!["collect", "--env", "cheetah_dir", "--threads", "1"];
+    let (run, out) = (run.to_str().unwrap(), out.to_str().unwrap());
+    args.extend(["--run-dir", run, "--out", out]);
+    args.extend(TINY);
+    args.extend(extra);
+    ok(&args)
+}
+
+#[test]
+fn collect_trains_is_interrupted_resumes_and_writes_the_same_datasets() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = |s: &str| tmp.path().join(s);
+    let full = collect(&p("run-a"), &p("data-a"), &[]);
+    assert!(full.contains("trained sac on cheetah_dir for 800 steps"), "{full}");
+    assert!(full.contains("wrote 12 files"), "{full}");
+
+    // Interrupted after 400 steps of this invocation, then resumed.
+    let stopped = collect(&p("run-b"), &p("data-b"), &["--stop-after", "400"]);
+    assert!(stopped.contains("continue with --resume"), "{stopped}");
+    assert!(!p("data-b").exists(), "no datasets before training ends");
+    let again = promptdt(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--run-dir",
+        p("run-b").to_str().unwrap(),
+        "--out",
+        p("data-b").to_str().unwrap(),
+    ]);
+    assert!(!again.status.success(), "a second start in the same run directory is refused");
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--resume"));
+    collect(&p("run-b"), &p("data-b"), &["--resume"]);
+
+    for name in ["agent/expert.safetensors", "agent/medium.safetensors", "episodes.csv"] {
+        let a = std::fs::read(p("run-a").join(name)).unwrap();
+        let b = std::fs::read(p("run-b").join(name)).unwrap();
+        assert!(a == b, "{name}: the resumed run differs from the uninterrupted one");
+    }
+    let mut files: Vec<_> =
+        std::fs::read_dir(p("data-a")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    files.sort();
+    assert_eq!(files.len(), 13, "{files:?}"); // 2 tasks x 3 modes x (D_i, P_i) + dataset.json
+    for f in &files {
+        let a = std::fs::read(p("data-a").join(f)).unwrap();
+        let b = std::fs::read(p("data-b").join(f)).unwrap();
+        assert!(a == b, "{f:?} differs");
+    }
+    let card = std::fs::read_to_string(p("data-a/dataset.json")).unwrap();
+    assert!(card.contains("\"algorithm\": \"sac\""), "{card}");
+
+    // The written data is what `data inspect` reads.
+    let inspect = ok(&["data", "inspect", p("data-a").to_str().unwrap()]);
+    assert!(inspect.contains("12 files"), "{inspect}");
+}
+
+/// The committed experts rebuild datasets without training (a few episodes here; the full rebuild
+/// is `promptdt collect --env <family> --from-pretrained`).
+#[test]
+fn from_pretrained_uses_the_committed_agents() {
+    let tmp = tempfile::tempdir().unwrap();
+    for family in ["cheetah_dir", "cheetah_vel", "ant_dir"] {
+        let agent = repo(&format!("pretrained/{family}"));
+        if !agent.join("agent.json").exists() {
+            eprintln!("skipped {family}: no committed agent in {}", agent.display());
+            continue;
+        }
+        let out = tmp.path().join(family);
+        let stdout = ok(&[
+            "collect",
+            "--env",
+            family,
+            "--from-pretrained",
+            agent.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--episodes",
+            "1",
+            "--prompt-episodes",
+            "1",
+        ]);
+        assert!(stdout.contains("using the pretrained agent"), "{stdout}");
+        assert!(out.join("dataset.json").exists());
+    }
+}
+
+#[test]
+fn collect_bad_inputs_are_clear_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let err = |args: &[&str]| {
+        let out = promptdt(args);
+        assert!(!out.status.success(), "{args:?} should fail");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let e = err(&[
+        "collect",
+        "--env",
+        "cheetah_vel",
+        "--tasks",
+        "41",
+        "--steps",
+        "10",
+        "--run-dir",
+        tmp.path().join("r").to_str().unwrap(),
+    ]);
+    assert!(e.contains("41"), "{e}");
+    let e = err(&[
+        "collect",
+        "--env",
+        "ant_dir",
+        "--resume",
+        "--run-dir",
+        tmp.path().join("none").to_str().unwrap(),
+    ]);
+    assert!(e.contains("no checkpoint"), "{e}");
+    let e = err(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--algorithm",
+        "ppo",
+        "--run-dir",
+        tmp.path().join("p").to_str().unwrap(),
+    ]);
+    assert!(e.contains("ppo"), "{e}");
+    let e = err(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--from-pretrained",
+        tmp.path().to_str().unwrap(),
+    ]);
+    assert!(e.contains("agent.json"), "{e}");
+}
