@@ -47,6 +47,20 @@ pub enum DataCommand {
     Inspect(InspectArgs),
     /// Convert the reference release's pickles (`*.pkl`) into the native format.
     Convert(ConvertArgs),
+    /// Dataset quality: return per task and mode against the reference, with the quality bars.
+    Report(DataReportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct DataReportArgs {
+    /// A dataset directory written by `promptdt collect` (`{env}-{task}-{mode}.safetensors`).
+    pub ours: PathBuf,
+    /// Directory of reference files (the reference release's pickles, or native files).
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Output directory (default: <OURS>/report).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]

@@ -61,6 +61,23 @@ fn run(cli: Cli) -> Result<()> {
             }
             println!("converted {} files into {}", files.len(), a.dst.display());
         }
+        Command::Data(DataCommand::Report(a)) => {
+            let cfg = pdt_report::DatasetReportConfig {
+                out_dir: a.out.clone().unwrap_or_else(|| a.ours.join("report")),
+                ours: a.ours.clone(),
+                reference: a.reference.clone(),
+            };
+            let summary = pdt_report::dataset_report(&cfg)?;
+            for f in &summary.families {
+                print!("{}", f.markdown);
+            }
+            for w in &summary.warnings {
+                eprintln!("warning: {w}");
+            }
+            for f in &summary.files {
+                println!("wrote {}", f.display());
+            }
+        }
         Command::Model(ModelCommand::Forward(a)) => {
             let device = pdt_model::device::resolve(a.device)?;
             let s = pdt_model::forward_file::forward_file(&a.weights, &a.inputs, &a.out, device)?;

@@ -459,3 +459,32 @@ fn cheetah_vel_train_and_eval_on_the_official_prompt_files() {
         "200-step episodes"
     );
 }
+
+#[test]
+fn data_report_on_a_collected_point_robot_dataset() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let d = data.to_str().unwrap();
+    ok(&["collect", "--env", "point_robot", "--episodes", "2", "--out", d]);
+    // point_robot has no reference: the report works without --reference.
+    let out = ok(&["data", "report", d]);
+    assert!(out.contains("# Dataset returns: point_robot"), "{out}");
+    assert!(out.contains("Reference: none given"), "{out}");
+    assert!(out.contains("| task | expert | medium | random | prompt-expert |"), "{out}");
+    assert!(out.contains("medium between random and expert"), "{out}");
+    let report = data.join("report");
+    for ext in ["csv", "md", "png", "svg"] {
+        let f = report.join(format!("dataset_returns_point_robot.{ext}"));
+        assert!(f.is_file() && out.contains(&format!("wrote {}", f.display())), "{out}");
+    }
+    let csv = std::fs::read_to_string(report.join("dataset_returns_point_robot.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 41, "40 tasks and a header");
+    let png = std::fs::read(report.join("dataset_returns_point_robot.png")).unwrap();
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"));
+    // --out elsewhere; a directory with no data files is a clear error naming it.
+    let other = tmp.path().join("other");
+    ok(&["data", "report", d, "--out", other.to_str().unwrap()]);
+    assert!(other.join("dataset_returns_point_robot.md").is_file());
+    let e = fails(&["data", "report", other.to_str().unwrap()]);
+    assert!(e.contains("no data files") && e.contains(other.to_str().unwrap()), "{e}");
+}

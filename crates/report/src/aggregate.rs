@@ -331,7 +331,7 @@ fn join_u64(v: &[u64]) -> String {
     v.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(", ")
 }
 
-fn file_stem(env: &str, used: &mut BTreeSet<String>) -> String {
+pub(crate) fn file_stem(env: &str, used: &mut BTreeSet<String>) -> String {
     let mut base: String =
         env.chars()
             .map(|c| {

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-/// Everything that can make [`crate::run`] fail.
+/// Everything that can make [`crate::run`] or [`crate::dataset_report`] fail.
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
     /// `ReportConfig::runs` was empty.
@@ -63,9 +63,27 @@ pub enum ReportError {
     #[error("the embedded plot font could not be loaded: {0}")]
     Font(String),
 
-    /// plotters failed while drawing a figure.
-    #[error("drawing the learning curves of {env}: {message}")]
-    Plot { env: String, message: String },
+    /// plotters failed while drawing a figure; `figure` says which (e.g. "the learning curves
+    /// of cheetah_vel").
+    #[error("drawing {figure}: {message}")]
+    Plot { figure: String, message: String },
+
+    /// A directory given to [`crate::dataset_report`] does not exist or is not a directory.
+    #[error("{}: not a directory", path.display())]
+    NotADirectory { path: PathBuf },
+
+    /// A dataset directory given to [`crate::dataset_report`] holds no
+    /// `{{env}}-{{task}}-{{mode}}.safetensors` or `.pkl` file, so there is no family to report on.
+    #[error("{}: no data files ({{env}}-{{task}}-{{mode}}.safetensors or .pkl) in this directory", path.display())]
+    NoDataFiles { path: PathBuf },
+
+    /// A data file could not be read (missing, truncated, malformed, unreadable).
+    #[error("{}", data_message(path, source))]
+    Data {
+        path: PathBuf,
+        #[source]
+        source: pdt_data::DataError,
+    },
 
     /// Encoding a rendered bitmap as PNG failed.
     #[error("{}: encoding PNG: {source}", path.display())]
@@ -74,6 +92,18 @@ pub enum ReportError {
         #[source]
         source: png::EncodingError,
     },
+}
+
+/// pdt-data's errors usually name the file already; say it once, and add it where they do not
+/// (e.g. a shape error).
+fn data_message(path: &std::path::Path, source: &pdt_data::DataError) -> String {
+    let text = source.to_string();
+    let shown = path.display().to_string();
+    if text.contains(&shown) {
+        text
+    } else {
+        format!("{shown}: {text}")
+    }
 }
 
 impl ReportError {

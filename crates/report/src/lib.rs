@@ -9,11 +9,16 @@
 //!   training iteration, one line per method with a ± std band, like the paper's Figure 2;
 //! - `runs.csv`: which runs were found, which were used, and where each value came from.
 //!
+//! [`dataset_report`] does the same for a dataset directory written by `promptdt collect`:
+//! episode return per task and mode against the reference release, with the quality bars
+//! (`dataset_returns_<env>.{csv,md,png,svg}`).
+//!
 //! How the numbers are aggregated is documented in `docs/report.md`. Problems that do not
 //! invalidate the report (a truncated last line, a run without evaluations) are returned in
 //! [`ReportSummary::warnings`] and listed at the end of `table.md`; the library prints nothing.
 
 mod aggregate;
+mod datasets;
 mod error;
 mod load;
 mod plot;
@@ -23,6 +28,10 @@ use std::fs;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
+pub use datasets::{
+    dataset_report, BarStatus, DatasetReportConfig, DatasetReportSummary, FamilyReport, QualityBar,
+    ReferenceReturn, ReturnStat, TaskMean, TaskRow,
+};
 pub use error::ReportError;
 
 /// What to report on and where to write it.

@@ -41,7 +41,7 @@ fn ensure_font() -> Result<(), ReportError> {
 }
 
 /// Tableau-10 colours (matplotlib's default cycle), familiar from most RL papers' plots.
-const PALETTE: [RGBColor; 10] = [
+pub(crate) const PALETTE: [RGBColor; 10] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -79,24 +79,95 @@ pub(crate) struct Figure {
     pub svg: String,
 }
 
+/// One line of a figure: its legend name, colour and finite `(x, mean, std)` points.
+pub(crate) struct Curve {
+    pub name: String,
+    pub color: RGBColor,
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// The words on a figure, so the same drawing code serves learning curves and per-task returns.
+pub(crate) struct Labels {
+    pub caption: String,
+    pub x_desc: String,
+    pub y_desc: String,
+    /// Grey line under each curve's name in the legend, one per curve (e.g. its seed count).
+    pub legend_sub: Vec<String>,
+    /// Grey lines at the end of the legend saying what lines and bands mean.
+    pub notes: Vec<String>,
+}
+
+/// How the x range is chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum XAxis {
+    /// Training iterations: start at 0 when the first evaluation is early, as in the paper.
+    Iterations,
+    /// Task indices: discrete, so half a task of air either side keeps the end markers whole.
+    Tasks,
+}
+
+/// The learning curves of one environment.
 pub(crate) fn render(env: &EnvReport, title: Option<&str>) -> Result<Figure, ReportError> {
+    let curves: Vec<Curve> = env
+        .curves
+        .iter()
+        .zip(colors(&env.curves))
+        .map(|(c, color)| Curve { name: c.method.clone(), color, points: finite_points(c) })
+        .collect();
+    let labels =
+        Labels {
+            caption: match title {
+                Some(t) => format!("{t}: {}", env.env),
+                None => format!("{}: return on unseen test tasks", env.env),
+            },
+            x_desc: "Training iteration".to_string(),
+            y_desc: "Average return on test tasks".to_string(),
+            legend_sub: env
+                .curves
+                .iter()
+                .map(|c| {
+                    if c.n_seeds == 1 {
+                        "1 seed".to_string()
+                    } else {
+                        format!("{} seeds", c.n_seeds)
+                    }
+                })
+                .collect(),
+            notes: vec!["line: mean over seeds".to_string(), "band: ± std over seeds".to_string()],
+        };
+    render_figure(
+        &curves,
+        &labels,
+        XAxis::Iterations,
+        &format!("the learning curves of {}", env.env),
+        &format!("curves_{}.png", env.file_stem),
+    )
+}
+
+/// Draws `curves` into a PNG and an SVG. `what` names the figure in a drawing error, `png_name`
+/// the file in an encoding error.
+pub(crate) fn render_figure(
+    curves: &[Curve],
+    labels: &Labels,
+    x_axis: XAxis,
+    what: &str,
+    png_name: &str,
+) -> Result<Figure, ReportError> {
     ensure_font()?;
-    let plot_err = |message: String| ReportError::Plot { env: env.env.clone(), message };
+    let plot_err = |message: String| ReportError::Plot { figure: what.to_string(), message };
 
     let mut pixels = vec![0u8; (WIDTH * HEIGHT * 3) as usize];
     {
         let root = BitMapBackend::with_buffer(&mut pixels, (WIDTH, HEIGHT)).into_drawing_area();
-        draw(&root, env, title).map_err(plot_err)?;
+        draw(&root, curves, labels, x_axis).map_err(plot_err)?;
     }
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (WIDTH, HEIGHT)).into_drawing_area();
-        draw(&root, env, title).map_err(plot_err)?;
+        draw(&root, curves, labels, x_axis).map_err(plot_err)?;
     }
-    let png = encode_png(&pixels).map_err(|source| ReportError::Png {
-        path: format!("curves_{}.png", env.file_stem).into(),
-        source,
-    })?;
+    let png =
+        encode_png(&pixels).map_err(|source| ReportError::Png { path: png_name.into(), source })?;
     Ok(Figure { png, svg })
 }
 
@@ -129,8 +200,8 @@ fn finite_points(c: &MethodCurve) -> Vec<(f64, f64, f64)> {
 }
 
 /// Axis ranges covering every line and band, with a little air so nothing touches the frame.
-fn ranges(curves: &[Vec<(f64, f64, f64)>]) -> ((f64, f64), (f64, f64)) {
-    let pts = curves.iter().flatten();
+fn ranges(curves: &[&[(f64, f64, f64)]], x_axis: XAxis) -> ((f64, f64), (f64, f64)) {
+    let pts = curves.iter().copied().flatten();
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for &(x, m, s) in pts {
         x0 = x0.min(x);
@@ -140,6 +211,10 @@ fn ranges(curves: &[Vec<(f64, f64, f64)>]) -> ((f64, f64), (f64, f64)) {
     }
     if x0 > x1 {
         return ((0.0, 1.0), (0.0, 1.0));
+    }
+    let pad = if y1 - y0 > 0.0 { 0.06 * (y1 - y0) } else { y0.abs().max(1.0) * 0.1 };
+    if x_axis == XAxis::Tasks {
+        return ((x0 - 0.5, x1 + 0.5), (y0 - pad, y1 + pad));
     }
     // Start at 0 like the paper's plots when the first evaluation is early in training; a late
     // start (a resumed or zoomed run) keeps its own range.
@@ -154,7 +229,6 @@ fn ranges(curves: &[Vec<(f64, f64, f64)>]) -> ((f64, f64), (f64, f64)) {
         // Keep markers at the last evaluation from being cut in half by the frame.
         x1 += 0.02 * (x1 - x0);
     }
-    let pad = if y1 - y0 > 0.0 { 0.06 * (y1 - y0) } else { y0.abs().max(1.0) * 0.1 };
     ((x0, x1), (y0 - pad, y1 + pad))
 }
 
@@ -170,20 +244,16 @@ fn y_decimals(span: f64) -> usize {
 
 fn draw<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
-    env: &EnvReport,
-    title: Option<&str>,
+    curves: &[Curve],
+    labels: &Labels,
+    x_axis: XAxis,
 ) -> Result<(), String> {
     root.fill(&WHITE).map_err(pe)?;
-    let caption = match title {
-        Some(t) => format!("{t}: {}", env.env),
-        None => format!("{}: return on unseen test tasks", env.env),
-    };
-    let body = root.titled(&caption, (FONT, 22).into_font().color(&BLACK)).map_err(pe)?;
+    let body = root.titled(&labels.caption, (FONT, 22).into_font().color(&BLACK)).map_err(pe)?;
     let (chart_area, legend_area) = body.split_horizontally(WIDTH - LEGEND_WIDTH);
 
-    let series: Vec<Vec<(f64, f64, f64)>> = env.curves.iter().map(finite_points).collect();
-    let palette = colors(&env.curves);
-    let ((x0, x1), (y0, y1)) = ranges(&series);
+    let series: Vec<&[(f64, f64, f64)]> = curves.iter().map(|c| c.points.as_slice()).collect();
+    let ((x0, x1), (y0, y1)) = ranges(&series, x_axis);
     let decimals = y_decimals(y1 - y0);
 
     let mut chart = ChartBuilder::on(&chart_area)
@@ -199,8 +269,8 @@ fn draw<DB: DrawingBackend>(
     let y_fmt = move |y: &f64| format!("{y:.decimals$}");
     chart
         .configure_mesh()
-        .x_desc("Training iteration")
-        .y_desc("Average return on test tasks")
+        .x_desc(labels.x_desc.as_str())
+        .y_desc(labels.y_desc.as_str())
         .axis_desc_style((FONT, 16))
         .label_style((FONT, 13))
         .x_labels(8)
@@ -214,7 +284,7 @@ fn draw<DB: DrawingBackend>(
         .map_err(pe)?;
 
     // Bands first, so that every mean line is drawn on top of every band.
-    for (pts, &color) in series.iter().zip(&palette) {
+    for (pts, color) in series.iter().zip(curves.iter().map(|c| c.color)) {
         if pts.len() < 2 {
             continue;
         }
@@ -225,7 +295,7 @@ fn draw<DB: DrawingBackend>(
             .draw_series(std::iter::once(Polygon::new(outline, color.mix(0.2).filled())))
             .map_err(pe)?;
     }
-    for (pts, &color) in series.iter().zip(&palette) {
+    for (pts, color) in series.iter().zip(curves.iter().map(|c| c.color)) {
         chart
             .draw_series(LineSeries::new(
                 pts.iter().map(|&(x, m, _)| (x, m)),
@@ -239,7 +309,7 @@ fn draw<DB: DrawingBackend>(
                 .draw_series(pts.iter().map(|&(x, m, _)| Circle::new((x, m), 3, color.filled())))
                 .map_err(pe)?;
         }
-        if let [(x, m, s)] = pts.as_slice() {
+        if let [(x, m, s)] = pts {
             let (x, m, s) = (*x, *m, *s);
             chart
                 .draw_series(std::iter::once(PathElement::new(
@@ -250,17 +320,17 @@ fn draw<DB: DrawingBackend>(
         }
     }
 
-    draw_legend(&legend_area, env, &palette)?;
+    draw_legend(&legend_area, curves, labels)?;
     root.present().map_err(pe)?;
     Ok(())
 }
 
-/// Legend column: a colour swatch and the method name, the seed count below it in grey, and a
-/// note on what line and band mean.
+/// Legend column: a colour swatch and the curve's name, its sub-line below it in grey, and
+/// notes on what line and band mean.
 fn draw_legend<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
-    env: &EnvReport,
-    palette: &[RGBColor],
+    curves: &[Curve],
+    labels: &Labels,
 ) -> Result<(), String> {
     let sub_style = TextStyle::from((FONT, 12).into_font())
         .color(&RGBColor(110, 110, 110))
@@ -268,20 +338,21 @@ fn draw_legend<DB: DrawingBackend>(
     let text_x = 42;
     let room = LEGEND_WIDTH.saturating_sub(text_x as u32 + 4);
     let mut y = 30;
-    for (c, &color) in env.curves.iter().zip(palette) {
+    for (i, c) in curves.iter().enumerate() {
+        let color = c.color;
         area.draw(&Rectangle::new([(8, y - 6), (34, y + 6)], color.mix(0.2).filled()))
             .map_err(pe)?;
         area.draw(&PathElement::new(vec![(8, y), (34, y)], color.stroke_width(3))).map_err(pe)?;
-        let (name, name_style) = fit_label(area, &c.method, room)?;
+        let (name, name_style) = fit_label(area, &c.name, room)?;
         area.draw(&Text::new(name, (text_x, y), name_style)).map_err(pe)?;
-        let seeds =
-            if c.n_seeds == 1 { "1 seed".to_string() } else { format!("{} seeds", c.n_seeds) };
-        area.draw(&Text::new(seeds, (text_x, y + 17), sub_style.clone())).map_err(pe)?;
+        if let Some(sub) = labels.legend_sub.get(i) {
+            area.draw(&Text::new(sub.as_str(), (text_x, y + 17), sub_style.clone())).map_err(pe)?;
+        }
         y += 44;
     }
     y += 6;
-    for line in ["line: mean over seeds", "band: ± std over seeds"] {
-        area.draw(&Text::new(line, (8, y), sub_style.clone())).map_err(pe)?;
+    for line in &labels.notes {
+        area.draw(&Text::new(line.as_str(), (8, y), sub_style.clone())).map_err(pe)?;
         y += 17;
     }
     Ok(())
@@ -326,7 +397,7 @@ mod tests {
 
     #[test]
     fn ranges_pad_degenerate_data() {
-        let ((x0, x1), (y0, y1)) = ranges(&[vec![(10.0, 5.0, 0.0)]]);
+        let ((x0, x1), (y0, y1)) = ranges(&[&[(10.0, 5.0, 0.0)]], XAxis::Iterations);
         assert!(x0 < 10.0 && x1 > 10.0);
         assert!(y0 < 5.0 && y1 > 5.0);
     }

@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use crate::aggregate::{Aggregated, Stat};
 
 /// Formats a float for CSV: shortest round-trip form, so no precision is lost.
-fn num(v: f64) -> String {
+pub(crate) fn num(v: f64) -> String {
     format!("{v}")
 }
 
@@ -26,7 +26,7 @@ fn csv_field(s: &str) -> String {
     }
 }
 
-fn csv_line(fields: &[String]) -> String {
+pub(crate) fn csv_line(fields: &[String]) -> String {
     let mut line = fields.iter().map(|f| csv_field(f)).collect::<Vec<_>>().join(",");
     line.push('\n');
     line
@@ -125,7 +125,7 @@ pub(crate) fn runs_csv(agg: &Aggregated) -> String {
 }
 
 /// Escapes text for a Markdown table cell.
-fn md(s: &str) -> String {
+pub(crate) fn md(s: &str) -> String {
     s.replace('|', "\\|")
 }
 

@@ -213,7 +213,7 @@ impl Agent {
 
     /// Every tensor of the agent (networks, targets, optimiser moments) as named host arrays,
     /// plus the optimiser step counts, for checkpoints.
-    pub fn state(&self) -> (Vec<(String, Vec<f32>)>, Vec<(String, u64)>) {
+    pub fn state(&self) -> AgentState {
         let mut t: Vec<(String, Vec<f32>)> = Vec::new();
         let mut steps = Vec::new();
         let mut opt = |name: &str, o: &crate::nets::Adam, t: &mut Vec<(String, Vec<f32>)>| {
@@ -242,7 +242,7 @@ impl Agent {
                 steps.push(("updates".into(), d.updates));
             }
         }
-        (t, steps)
+        AgentState { arrays: t, counters: steps }
     }
 
     /// Restores what [`Agent::state`] saved.
@@ -290,6 +290,15 @@ impl Agent {
         }
         Ok(())
     }
+}
+
+/// What a checkpoint stores of an agent.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AgentState {
+    /// Networks, target networks and optimiser moments, by name.
+    pub arrays: Vec<(String, Vec<f32>)>,
+    /// Optimiser step counts (and TD3's update count), by name.
+    pub counters: Vec<(String, u64)>,
 }
 
 /// How an actor's raw output becomes an action.

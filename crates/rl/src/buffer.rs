@@ -31,6 +31,16 @@ pub struct Batch {
     pub not_done: Tensor,
 }
 
+/// A buffer's contents as stored in a checkpoint (row-major, insertion order).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct BufferArrays {
+    pub obs: Vec<f32>,
+    pub actions: Vec<f32>,
+    pub rewards: Vec<f32>,
+    pub next_obs: Vec<f32>,
+    pub terminated: Vec<f32>,
+}
+
 /// Transitions in insertion order (which dataset extraction and checkpoints rely on).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReplayBuffer {
@@ -129,12 +139,9 @@ impl ReplayBuffer {
         obs_dim: usize,
         act_dim: usize,
         capacity: usize,
-        obs: Vec<f32>,
-        actions: Vec<f32>,
-        rewards: Vec<f32>,
-        next_obs: Vec<f32>,
-        terminated: Vec<f32>,
+        arrays: BufferArrays,
     ) -> Result<Self, String> {
+        let BufferArrays { obs, actions, rewards, next_obs, terminated } = arrays;
         let n = rewards.len();
         let checks = [
             ("obs", obs.len(), n * obs_dim),

@@ -109,7 +109,7 @@ pub fn load(path: &Path, device: Device) -> Result<Policy, RlError> {
     if meta.format != POLICY_FORMAT {
         return Err(bad(format!("format {:?}, expected {POLICY_FORMAT:?}", meta.format)));
     }
-    if meta.sizes.len() < 2 || meta.sizes.iter().any(|&s| s < 1 || s > 1 << 16) {
+    if meta.sizes.len() < 2 || meta.sizes.iter().any(|s| !(1..=1 << 16).contains(s)) {
         return Err(bad(format!("implausible layer sizes {:?}", meta.sizes)));
     }
     if meta.sizes[0] as usize != meta.encoder.input_dim()

@@ -137,7 +137,7 @@ impl Td3 {
         self.critic_opt.update(&mut self.critic.flat, &g);
         self.updates += 1;
 
-        if self.updates % self.cfg.policy_delay.max(1) == 0 {
+        if self.updates.is_multiple_of(self.cfg.policy_delay.max(1)) {
             let a = Self::policy(&self.actor, &b.obs);
             // The actor follows the first critic only, as in TD3.
             let q1 = self.critic.forward(&Tensor::cat(&[&b.obs, &a], 1)).get(0); // [B, 1]

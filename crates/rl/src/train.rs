@@ -15,7 +15,7 @@
 //!   `pretrained/<family>/` holds.
 
 use crate::agent::{actor_raw, Agent, AgentConfig, Algorithm, Noise, TaskEncoder, UpdateStats};
-use crate::buffer::{ReplayBuffer, Transition};
+use crate::buffer::{BufferArrays, ReplayBuffer, Transition};
 use crate::policy::{self, PolicyMeta, POLICY_FORMAT};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
 use crate::{stream_rng, write_atomic, RlError};
@@ -307,15 +307,18 @@ pub fn train(
             let take = |n: &str| {
                 tensors.get(n).cloned().ok_or_else(|| bad(format!("missing tensor `{n}`")))
             };
+            let arrays = BufferArrays {
+                obs: take("buffer.obs")?,
+                actions: take("buffer.actions")?,
+                rewards: take("buffer.rewards")?,
+                next_obs: take("buffer.next_obs")?,
+                terminated: take("buffer.terminated")?,
+            };
             let buffer = ReplayBuffer::from_parts(
                 in_dim,
                 act_dim,
                 capacity.max(state.step as usize),
-                take("buffer.obs")?,
-                take("buffer.actions")?,
-                take("buffer.rewards")?,
-                take("buffer.next_obs")?,
-                take("buffer.terminated")?,
+                arrays,
             )
             .map_err(bad)?;
             if buffer.len() as u64 != state.step {
@@ -672,8 +675,9 @@ fn write_checkpoint(
     agent: &Agent,
     buffer: &ReplayBuffer,
 ) -> Result<(), RlError> {
-    let (mut tensors, steps) = agent.state();
-    state.optimiser_steps = steps;
+    let st = agent.state();
+    let mut tensors = st.arrays;
+    state.optimiser_steps = st.counters;
     tensors.push(("buffer.obs".into(), buffer.obs.clone()));
     tensors.push(("buffer.actions".into(), buffer.actions.clone()));
     tensors.push(("buffer.rewards".into(), buffer.rewards.clone()));
