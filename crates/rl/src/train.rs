@@ -441,8 +441,10 @@ pub fn train(
 
         // Snapshots due by now (at most one per episode end).
         let mut snap = None;
-        let done_snaps = state.snapshots.len();
-        if let Some(&due) = snapshot_steps.get(done_snaps) {
+        // The next scheduled step after the last snapshot taken (by step, not by count, so that a
+        // run resumed with a larger budget keeps snapshotting on its new schedule).
+        let last_snap = state.snapshots.last().map_or(0, |s| s.step);
+        if let Some(&due) = snapshot_steps.iter().find(|&&s| s > last_snap) {
             if state.step >= due {
                 let info =
                     snapshot(&cfg, family.as_ref(), &encoder, &agent, state.step, dir, device)?;

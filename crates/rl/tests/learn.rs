@@ -199,3 +199,32 @@ fn bad_inputs_are_clear_errors() {
         .to_string();
     assert!(e.contains("p.safetensors"), "{e}");
 }
+
+/// A finished run resumed with a larger budget keeps training and snapshotting on the new
+/// schedule, and its expert can come from the extension.
+#[test]
+fn a_finished_run_can_be_extended() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cfg = tiny("cheetah_dir", Algorithm::Td3, 600);
+    cfg.snapshot_fractions = vec![0.5, 1.0];
+    let first =
+        train(Start::New(&cfg), tmp.path(), None, Device::Cpu, &mut |_| {}).unwrap().unwrap();
+    assert_eq!(first.snapshots.iter().map(|s| s.step).collect::<Vec<_>>(), vec![400, 600]);
+    let e =
+        train(Start::Resume { total_steps: Some(200) }, tmp.path(), None, Device::Cpu, &mut |_| {})
+            .unwrap_err()
+            .to_string();
+    assert!(e.contains("cannot shrink"), "{e}");
+    let longer = train(
+        Start::Resume { total_steps: Some(1200) },
+        tmp.path(),
+        None,
+        Device::Cpu,
+        &mut |_| {},
+    )
+    .unwrap()
+    .unwrap();
+    let steps: Vec<u64> = longer.snapshots.iter().map(|s| s.step).collect();
+    assert_eq!(steps, vec![400, 600, 1200], "new schedule: 600 (done), then 1200");
+    assert_eq!(longer.config.total_steps, 1200);
+}
