@@ -6,8 +6,9 @@
 A plain PyTorch SAC and TD3 as in CleanRL's single-file implementations, at the sizes promptdt uses:
 agent input 20 (HalfCheetah observation without the torso x, plus the task parameter), action 6,
 hidden layers of H units, batch B. Separate `nn.Sequential` actor and twin critics, `torch.optim.Adam`.
-One timed iteration = one update from a filled replay buffer of 10,000 transitions (numpy arrays,
-indices from numpy, `torch.as_tensor` to the device), exactly what promptdt's timed iteration does:
+One timed iteration = one update (SAC) or one policy-delay cycle of two updates (TD3) from a filled
+replay buffer of 10,000 transitions (numpy arrays, indices from numpy, `torch.as_tensor` to the
+device), exactly what promptdt's timed iteration does:
   sac: target with a fresh policy sample, twin-critic MSE, actor loss alpha*logp - min Q, temperature
        loss, Polyak update of the target critics (every step)
   td3: target-policy smoothing, twin-critic MSE; every 2nd update the actor (Q1) and both targets
@@ -170,13 +171,19 @@ def main():
         alg, h, b = parse_case(case)
         agent = (Sac if alg == "sac" else Td3)([h, h], device)
         buf = Buffer(np.random.default_rng(0), device)
+        per_iter = 1 if alg == "sac" else 2
+
+        def iteration():
+            for _ in range(per_iter):
+                agent.update(buf.sample(b))
+
         for _ in range(args.warmup):
-            agent.update(buf.sample(b))
+            iteration()
         times = []
         for _ in range(args.iters):
             sync()
             t0 = time.perf_counter()
-            agent.update(buf.sample(b))
+            iteration()
             sync()
             times.append((time.perf_counter() - t0) * 1e3)
         times.sort()

@@ -1,6 +1,8 @@
 //! Update speed of SAC / TD3 (`promptdt bench --cases sac_h256_b256,...`), timed the way
 //! `scripts/bench/bench_rl_torch.py` times PyTorch: one iteration = sample a batch from a filled
-//! replay buffer of 10,000 transitions and do one update. Agent input 20, action 6 (HalfCheetah).
+//! replay buffer of 10,000 transitions and do one update (SAC), or one policy-delay cycle of two
+//! updates, the second with the actor and target updates (TD3, whose single updates alternate
+//! between two costs). Agent input 20, action 6 (HalfCheetah).
 
 use crate::agent::{Agent, AgentConfig, Algorithm};
 use crate::buffer::{ReplayBuffer, Transition};
@@ -49,9 +51,15 @@ pub fn time_updates(
             terminated: false,
         });
     }
+    let per_iter = match alg {
+        Algorithm::Sac => 1,
+        Algorithm::Td3 => cfg.td3.policy_delay.max(1),
+    };
     let mut step = |rng: &mut ChaCha8Rng| {
-        let b = buf.sample(batch, rng, device);
-        agent.update(&b, rng);
+        for _ in 0..per_iter {
+            let b = buf.sample(batch, rng, device);
+            agent.update(&b, rng);
+        }
     };
     for _ in 0..warmup {
         step(&mut rng);
