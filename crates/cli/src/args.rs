@@ -206,10 +206,14 @@ pub struct CollectArgs {
     /// Episodes per task in each prompt set.
     #[arg(long, default_value_t = 5)]
     pub prompt_episodes: usize,
-    /// Skip training: write the datasets from the committed agent in this directory
-    /// (default: pretrained/<env>).
-    #[arg(long, num_args = 0..=1, default_missing_value = "")]
-    pub from_pretrained: Option<PathBuf>,
+    /// Skip training: write the datasets from the committed agent (pretrained/<env>, or
+    /// --pretrained-dir).
+    #[arg(long)]
+    pub from_pretrained: bool,
+    /// The agent directory --from-pretrained reads (`agent.json`, `expert.safetensors`,
+    /// `medium.safetensors`).
+    #[arg(long, requires = "from_pretrained")]
+    pub pretrained_dir: Option<PathBuf>,
     /// RL run directory: checkpoints, snapshots, and the trained agent in `agent/`
     /// (default: runs/collect-<env>).
     #[arg(long)]

@@ -202,17 +202,16 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
     }
     let device = pdt_model::device::resolve(a.device)?;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family));
-    let agent_dir = match &a.from_pretrained {
-        Some(dir) => {
-            let dir = if dir.as_os_str().is_empty() {
-                PathBuf::from("pretrained").join(family)
-            } else {
-                dir.clone()
-            };
+    let agent_dir = match a.from_pretrained {
+        true => {
+            let dir = a
+                .pretrained_dir
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("pretrained").join(family));
             println!("using the pretrained agent in {}", dir.display());
             dir
         }
-        None => {
+        false => {
             let run_dir = a
                 .run_dir
                 .clone()
