@@ -111,6 +111,7 @@ fn from_pretrained_uses_the_committed_agents() {
             "--env",
             family,
             "--from-pretrained",
+            "--pretrained-dir",
             agent.to_str().unwrap(),
             "--out",
             out.to_str().unwrap(),
@@ -168,6 +169,7 @@ fn collect_bad_inputs_are_clear_errors() {
         "--env",
         "cheetah_dir",
         "--from-pretrained",
+        "--pretrained-dir",
         tmp.path().to_str().unwrap(),
     ]);
     assert!(e.contains("agent.json"), "{e}");
