@@ -262,7 +262,18 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                         .collect::<Vec<_>>()
                         .join(" ")
                 } else {
-                    format!("{} tasks seen", seen.len())
+                    // Too many tasks for one line: the worst and the best, with their indices.
+                    let known = p.recent.iter().enumerate().filter_map(|(i, r)| r.map(|r| (i, r)));
+                    let worst = known.clone().min_by(|a, b| a.1.total_cmp(&b.1));
+                    let best = known.max_by(|a, b| a.1.total_cmp(&b.1));
+                    match (worst, best) {
+                        (Some((wi, w)), Some((bi, b))) => format!(
+                            "worst t{wi} {w:.0}, best t{bi} {b:.0}, {}/{} tasks seen",
+                            seen.len(),
+                            p.recent.len()
+                        ),
+                        _ => "no episode yet".to_string(),
+                    }
                 };
                 pb.set_message(format!(
                     "return {mean:.1} ({per_task}) q-loss {:.3}",

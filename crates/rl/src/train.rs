@@ -481,7 +481,7 @@ pub fn train(
         }
     }
     state.wall_seconds = wall_before + started.elapsed().as_secs_f64();
-    finish(&cfg, family.as_ref(), &encoder, &state, dir, device).map(Some)
+    finish(&cfg, family.as_ref(), &state, dir).map(Some)
 }
 
 fn push_recent(r: &mut VecDeque<f64>, v: f64) {
@@ -595,10 +595,8 @@ fn encoder_act_dim(agent: &Agent) -> usize {
 fn finish(
     cfg: &RlConfig,
     family: &dyn EnvFamily,
-    _encoder: &TaskEncoder,
     state: &TrainState,
     dir: &Path,
-    _device: Device,
 ) -> Result<AgentCard, RlError> {
     let snaps = &state.snapshots;
     let expert = snaps
