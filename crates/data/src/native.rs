@@ -464,6 +464,12 @@ impl Drop for TempFile {
     }
 }
 
+/// Writes `bytes` to `path` atomically: a uniquely named temporary file beside it, fsynced, then
+/// renamed over `path`, so a crash leaves the old file or the new one, never a torn one.
+pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
+    write_atomically(path, |tmp| fs::write(tmp, bytes).map_err(io_err(tmp)))
+}
+
 /// Writes a file through `write(temp_path)`, then fsyncs and renames it to `path`.
 pub(crate) fn write_atomically(
     path: &Path,

@@ -72,21 +72,9 @@ pub fn stream_rng(seed: u64, stream: u64, counter: u64) -> rand_chacha::ChaCha8R
     rand_chacha::ChaCha8Rng::seed_from_u64(derive_seed(seed, stream, counter))
 }
 
-/// Writes `bytes` to a temporary file beside `path`, syncs it and renames it over `path`.
+/// Writes `bytes` to `path` atomically (temp file + fsync + rename; see
+/// `pdt_data::native::write_bytes_atomically`).
 pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), RlError> {
-    use std::io::Write;
-    let dir =
-        path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp.{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.map_err(|source| RlError::Io { path: path.to_path_buf(), source })
+    pdt_data::native::write_bytes_atomically(path, bytes)
+        .map_err(|source| RlError::Data { path: path.to_path_buf(), source })
 }
