@@ -20,8 +20,8 @@ use pdt_data::TaskDataset;
 use crate::aggregate::file_stem;
 use crate::error::ReportError;
 use crate::plot::{self, Curve, Labels, XAxis, PALETTE};
-use crate::render::{csv_line, md, num};
-use crate::write_atomic;
+use crate::render::{csv_line, md, num, warnings_markdown};
+use crate::write_outputs;
 
 /// What to report on and where to write it.
 #[derive(Debug, Clone, Default)]
@@ -265,13 +265,7 @@ pub fn dataset_report(cfg: &DatasetReportConfig) -> Result<DatasetReportSummary,
         outputs.push((format!("{stem}.png"), fig.png));
         outputs.push((format!("{stem}.svg"), fig.svg.into_bytes()));
     }
-    fs::create_dir_all(&cfg.out_dir).map_err(|e| ReportError::io(&cfg.out_dir, e))?;
-    let mut files = Vec::with_capacity(outputs.len());
-    for (name, bytes) in &outputs {
-        let path = cfg.out_dir.join(name);
-        write_atomic(&path, bytes)?;
-        files.push(path);
-    }
+    let files = write_outputs(&cfg.out_dir, &outputs)?;
     Ok(DatasetReportSummary { families, files, warnings })
 }
 
@@ -798,13 +792,7 @@ fn family_markdown(
         let _ = writeln!(out, "- **{}**: {} — {}.", b.status.label(), b.name, b.detail);
     }
     out.push('\n');
-    if !warnings.is_empty() {
-        let _ = writeln!(out, "## Warnings\n");
-        for w in warnings {
-            let _ = writeln!(out, "- {}", md(w).replace('\n', "\n  "));
-        }
-        out.push('\n');
-    }
+    warnings_markdown(&mut out, warnings);
     out
 }
 

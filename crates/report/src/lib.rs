@@ -87,13 +87,7 @@ pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
         outputs.push((format!("curves_{}.svg", env.file_stem), fig.svg.into_bytes()));
     }
 
-    fs::create_dir_all(&cfg.out_dir).map_err(|e| ReportError::io(&cfg.out_dir, e))?;
-    let mut files = Vec::with_capacity(outputs.len());
-    for (name, bytes) in &outputs {
-        let path = cfg.out_dir.join(name);
-        write_atomic(&path, bytes)?;
-        files.push(path);
-    }
+    let files = write_outputs(&cfg.out_dir, &outputs)?;
     Ok(ReportSummary {
         files,
         markdown,
@@ -101,6 +95,22 @@ pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
         runs_used: agg.runs_used,
         runs_skipped: agg.runs_skipped,
     })
+}
+
+/// Creates `out_dir` and writes each `(file name, bytes)` into it atomically; returns the paths.
+/// Everything is rendered before this is called, so a failed report writes nothing half-made.
+pub(crate) fn write_outputs(
+    out_dir: &Path,
+    outputs: &[(String, Vec<u8>)],
+) -> Result<Vec<PathBuf>, ReportError> {
+    fs::create_dir_all(out_dir).map_err(|e| ReportError::io(out_dir, e))?;
+    let mut files = Vec::with_capacity(outputs.len());
+    for (name, bytes) in outputs {
+        let path = out_dir.join(name);
+        write_atomic(&path, bytes)?;
+        files.push(path);
+    }
+    Ok(files)
 }
 
 /// Writes via a temporary file in the same directory and a rename, so a reader (or a report

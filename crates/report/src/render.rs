@@ -214,15 +214,21 @@ pub(crate) fn table_markdown(agg: &Aggregated, title: Option<&str>, warnings: &[
         }
         out.push('\n');
     }
-    if !warnings.is_empty() {
-        let _ = writeln!(out, "## Warnings\n");
-        for w in warnings {
-            // Indented continuation keeps multi-line warnings inside their list item.
-            let _ = writeln!(out, "- {}", md(w).replace('\n', "\n  "));
-        }
-        out.push('\n');
-    }
+    warnings_markdown(&mut out, warnings);
     out
+}
+
+/// A `## Warnings` section listing `warnings` (nothing when there are none).
+pub(crate) fn warnings_markdown(out: &mut String, warnings: &[String]) {
+    if warnings.is_empty() {
+        return;
+    }
+    let _ = writeln!(out, "## Warnings\n");
+    for w in warnings {
+        // Indented continuation keeps multi-line warnings inside their list item.
+        let _ = writeln!(out, "- {}", md(w).replace('\n', "\n  "));
+    }
+    out.push('\n');
 }
 
 #[cfg(test)]

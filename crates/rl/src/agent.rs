@@ -177,6 +177,13 @@ impl Agent {
         }
     }
 
+    pub fn act_dim(&self) -> usize {
+        match self {
+            Agent::Sac(s) => s.act_dim as usize,
+            Agent::Td3(t) => t.act_dim as usize,
+        }
+    }
+
     pub fn actor(&self) -> &Mlp {
         match self {
             Agent::Sac(s) => &s.actor,

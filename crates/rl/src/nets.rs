@@ -147,6 +147,14 @@ impl Mlp {
     }
 }
 
+/// Layer sizes `[input, hidden.., output]` of an MLP.
+pub fn mlp_sizes(input: i64, hidden: &[i64], output: i64) -> Vec<i64> {
+    let mut s = vec![input];
+    s.extend_from_slice(hidden);
+    s.push(output);
+    s
+}
+
 /// Adam (no weight decay) on one flat parameter tensor, with the same float ops as
 /// `torch.optim.Adam`'s single-tensor path. Its state is two tensors and a step count, so it can be
 /// checkpointed exactly.

@@ -6,7 +6,7 @@
 //! (state, batch, noise) and a resumed run repeats the same updates.
 
 use crate::buffer::Batch;
-use crate::nets::{grad_of, Adam, Mlp};
+use crate::nets::{grad_of, mlp_sizes, Adam, Mlp};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -69,13 +69,6 @@ pub struct Sac {
     pub alpha_opt: Adam,
 }
 
-fn sizes(input: i64, hidden: &[i64], output: i64) -> Vec<i64> {
-    let mut s = vec![input];
-    s.extend_from_slice(hidden);
-    s.push(output);
-    s
-}
-
 impl Sac {
     pub fn new(
         obs_dim: i64,
@@ -84,8 +77,8 @@ impl Sac {
         rng: &mut ChaCha8Rng,
         device: Device,
     ) -> Self {
-        let actor = Mlp::new(&sizes(obs_dim, &cfg.hidden, 2 * act_dim), 1, rng, device);
-        let critic = Mlp::new(&sizes(obs_dim + act_dim, &cfg.hidden, 1), 2, rng, device);
+        let actor = Mlp::new(&mlp_sizes(obs_dim, &cfg.hidden, 2 * act_dim), 1, rng, device);
+        let critic = Mlp::new(&mlp_sizes(obs_dim + act_dim, &cfg.hidden, 1), 2, rng, device);
         let critic_target = critic.detached_copy();
         let log_alpha = Tensor::from_slice(&[cfg.init_alpha.ln() as f32])
             .to_device(device)

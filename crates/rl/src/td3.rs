@@ -4,7 +4,7 @@
 //! As in `sac.rs`, every random number arrives from the caller, so updates are reproducible.
 
 use crate::buffer::Batch;
-use crate::nets::{grad_of, Adam, Mlp};
+use crate::nets::{grad_of, mlp_sizes, Adam, Mlp};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -66,13 +66,6 @@ pub struct Td3 {
     last_actor_loss: f64,
 }
 
-fn sizes(input: i64, hidden: &[i64], output: i64) -> Vec<i64> {
-    let mut s = vec![input];
-    s.extend_from_slice(hidden);
-    s.push(output);
-    s
-}
-
 impl Td3 {
     pub fn new(
         obs_dim: i64,
@@ -81,8 +74,8 @@ impl Td3 {
         rng: &mut ChaCha8Rng,
         device: Device,
     ) -> Self {
-        let actor = Mlp::new(&sizes(obs_dim, &cfg.hidden, act_dim), 1, rng, device);
-        let critic = Mlp::new(&sizes(obs_dim + act_dim, &cfg.hidden, 1), 2, rng, device);
+        let actor = Mlp::new(&mlp_sizes(obs_dim, &cfg.hidden, act_dim), 1, rng, device);
+        let critic = Mlp::new(&mlp_sizes(obs_dim + act_dim, &cfg.hidden, 1), 2, rng, device);
         let actor_target = actor.detached_copy();
         let critic_target = critic.detached_copy();
         let actor_opt = Adam::new(&actor.flat, cfg.actor_lr);

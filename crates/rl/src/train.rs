@@ -492,15 +492,12 @@ fn push_recent(r: &mut VecDeque<f64>, v: f64) {
     r.push_back(v);
 }
 
-fn eval_specs(seed: u64, num_tasks: usize, episodes: usize, counter: u64) -> Vec<EpisodeSpec> {
+fn eval_specs(seed: u64, num_tasks: usize, episodes: usize) -> Vec<EpisodeSpec> {
     (0..num_tasks)
         .flat_map(|task| {
             (0..episodes).map(move |e| {
-                let mut rng = stream_rng(
-                    seed,
-                    STREAM_EVAL,
-                    counter ^ ((task as u64) << 32) ^ ((e as u64) << 48),
-                );
+                let mut rng =
+                    stream_rng(seed, STREAM_EVAL, ((task as u64) << 32) ^ ((e as u64) << 48));
                 let reset_seed = rng.random();
                 EpisodeSpec { task, reset_seed, rng }
             })
@@ -520,7 +517,7 @@ fn evaluate(
     let trajs = run_episodes(
         family,
         behaviour,
-        eval_specs(seed, n, episodes, 0),
+        eval_specs(seed, n, episodes),
         512,
         threads(),
         &mut |_| {},
@@ -575,18 +572,11 @@ fn policy_meta(
         algorithm: cfg.algorithm,
         family: cfg.family.clone(),
         sizes: agent.actor().sizes().to_vec(),
-        act_dim: encoder_act_dim(agent),
+        act_dim: agent.act_dim(),
         head: agent.policy_head(),
         encoder: encoder.clone(),
         step,
         eval_returns,
-    }
-}
-
-fn encoder_act_dim(agent: &Agent) -> usize {
-    match agent {
-        Agent::Sac(s) => s.act_dim as usize,
-        Agent::Td3(t) => t.act_dim as usize,
     }
 }
 
