@@ -24,6 +24,9 @@ pub enum Command {
     /// Run a model on stored inputs.
     #[command(subcommand)]
     Model(ModelCommand),
+    /// RL agents that make the datasets (see `collect`).
+    #[command(subcommand)]
+    Agent(AgentCommand),
     /// Collect offline datasets (expert / medium / random) and prompt sets.
     Collect(CollectArgs),
     /// Train Prompt-DT or a variant from a TOML configuration.
@@ -78,6 +81,38 @@ pub struct ConvertArgs {
     pub src: PathBuf,
     /// Output directory for `{env}-{task}-{mode}.safetensors`.
     pub dst: PathBuf,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum AgentCommand {
+    /// Per-task experts: for every task, the best of the given snapshots (and the base expert),
+    /// re-evaluated on a few episodes; writes an agent directory for `collect --from-pretrained
+    /// --pretrained-dir`.
+    Combine(CombineArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CombineArgs {
+    /// A finished agent directory (a run's `agent/`, or `pretrained/<env>`): its expert is a
+    /// candidate, its medium policy is kept.
+    #[arg(long)]
+    pub base: PathBuf,
+    /// Snapshot directories (a run's `snapshots/`) or policy files, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub snapshots: Vec<PathBuf>,
+    /// Output agent directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Snapshots re-evaluated per task (the best by their recorded evaluation).
+    #[arg(long, default_value_t = 3)]
+    pub top_k: usize,
+    /// Deterministic evaluation episodes per task and snapshot.
+    #[arg(long, default_value_t = 5)]
+    pub eval_episodes: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 #[derive(Debug, Subcommand)]
@@ -238,7 +273,8 @@ pub struct CollectArgs {
     /// Checkpoint every this many environment steps (at the next episode end).
     #[arg(long)]
     pub checkpoint_every: Option<u64>,
-    /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all.
+    /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all. With
+    /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
     /// Write the datasets without exploration noise (default: the policy's own noise, as in a

@@ -5,7 +5,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
-fn bar(len: u64, template: &str) -> ProgressBar {
+pub fn bar(len: u64, template: &str) -> ProgressBar {
     let pb = ProgressBar::new(len);
     if let Ok(style) = ProgressStyle::with_template(template) {
         pb.set_style(style.progress_chars("=> "));
@@ -287,7 +287,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                 }
             };
             let start = if a.resume {
-                pdt_rl::train::Start::Resume { total_steps: a.steps }
+                pdt_rl::train::Start::Resume { total_steps: a.steps, tasks: a.tasks.as_deref() }
             } else {
                 pdt_rl::train::Start::New(&cfg)
             };

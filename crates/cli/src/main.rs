@@ -5,7 +5,7 @@ mod args;
 mod commands;
 
 use anyhow::{Context, Result};
-use args::{Cli, Command, DataCommand, EnvCommand, ModelCommand};
+use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand};
 use clap::Parser;
 use commands::{collect, train};
 use std::process::ExitCode;
@@ -88,6 +88,33 @@ fn run(cli: Cli) -> Result<()> {
                 s.act_dim,
                 a.out.display(),
                 s.prompt_steps
+            );
+        }
+        Command::Agent(AgentCommand::Combine(a)) => {
+            let device = pdt_model::device::resolve(a.device)?;
+            let cfg = pdt_rl::combine::CombineConfig {
+                base: a.base.clone(),
+                candidates: a.snapshots.clone(),
+                top_k: a.top_k,
+                eval_episodes: a.eval_episodes,
+                seed: a.seed,
+            };
+            let pb =
+                commands::bar(0, "evaluating {bar:30} {pos}/{len} snapshots [{elapsed} < {eta}]");
+            let card = pdt_rl::combine::combine(&cfg, &a.out, device, &mut |done, total| {
+                pb.set_length(total as u64);
+                pb.set_position(done as u64);
+            })?;
+            pb.finish_and_clear();
+            println!("{:<6} {:>12} {:>10}  {}", "task", "return", "step", "file");
+            for e in &card.task_experts {
+                println!("{:<6} {:>12.1} {:>10}  {}", e.task, e.eval_return, e.step, e.file);
+            }
+            let m = card.expert_eval.iter().sum::<f64>() / card.expert_eval.len().max(1) as f64;
+            println!(
+                "mean expert return {m:.1} over {} tasks; wrote {}/agent.json",
+                card.expert_eval.len(),
+                a.out.display()
             );
         }
         Command::Collect(a) => collect(&a)?,

@@ -120,11 +120,11 @@ pub fn generate(
     }
     std::fs::create_dir_all(out_dir)
         .map_err(|source| RlError::Io { path: out_dir.to_path_buf(), source })?;
-    let load = |name: &str| -> Result<Policy, RlError> {
-        let p = policy::load(&agent_dir.join(format!("{name}.safetensors")), device)?;
+    let load = |file: &str| -> Result<Policy, RlError> {
+        let p = policy::load(&agent_dir.join(file), device)?;
         if p.meta.family != card.family {
             return Err(RlError::File {
-                path: agent_dir.join(format!("{name}.safetensors")),
+                path: agent_dir.join(file),
                 message: format!("a {} policy in a {} agent directory", p.meta.family, card.family),
             });
         }
@@ -137,37 +137,63 @@ pub fn generate(
     let mut card_files: Vec<Vec<CardFile>> = vec![Vec::new(); tasks.len()];
     let (mut files, mut steps) = (0, 0);
     for &mode in &cfg.modes {
-        let policy = match mode {
-            Mode::Expert => Some(load("expert")?),
-            Mode::Medium => Some(load("medium")?),
-            Mode::Random => None,
-        };
-        let behaviour = match &policy {
-            Some(p) => Behaviour::Actor {
-                actor: &p.actor,
-                head: p.meta.head,
-                encoder: &p.meta.encoder,
-                noise: cfg.noise,
-                device,
-            },
-            None => Behaviour::Uniform,
-        };
-        let mut specs = Vec::with_capacity(tasks.len() * per_task);
+        // Which policy acts on which tasks: one group, except for the expert of a combined agent
+        // (see `combine`), whose expert file may differ by task.
+        let mut groups: Vec<(Option<String>, Vec<usize>)> = Vec::new();
         for &task in &tasks {
-            for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
-                for e in 0..n {
-                    let mut rng = episode_rng(cfg.seed, task, mode, set, e);
-                    let reset_seed = rng.random();
-                    specs.push(EpisodeSpec { task, reset_seed, rng });
+            let file = match mode {
+                Mode::Expert => Some(card.expert_file(task).to_string()),
+                Mode::Medium => Some("medium.safetensors".to_string()),
+                Mode::Random => None,
+            };
+            match groups.iter_mut().find(|(f, _)| *f == file) {
+                Some((_, ts)) => ts.push(task),
+                None => groups.push((file, vec![task])),
+            }
+        }
+        let mut by_task: Vec<Vec<pdt_data::Trajectory>> = vec![Vec::new(); tasks.len()];
+        for (file, group_tasks) in &groups {
+            let policy = match file {
+                Some(f) => Some(load(f)?),
+                None => None,
+            };
+            let behaviour = match &policy {
+                Some(p) => Behaviour::Actor {
+                    actor: &p.actor,
+                    head: p.meta.head,
+                    encoder: &p.meta.encoder,
+                    noise: cfg.noise,
+                    device,
+                },
+                None => Behaviour::Uniform,
+            };
+            let mut specs = Vec::with_capacity(group_tasks.len() * per_task);
+            for &task in group_tasks {
+                for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
+                    for e in 0..n {
+                        let mut rng = episode_rng(cfg.seed, task, mode, set, e);
+                        let reset_seed = rng.random();
+                        specs.push(EpisodeSpec { task, reset_seed, rng });
+                    }
+                }
+            }
+            let trajs = run_episodes(
+                family.as_ref(),
+                behaviour,
+                specs,
+                cfg.chunk,
+                cfg.threads,
+                &mut |d| progress(done_before + d, total),
+            )?;
+            done_before += trajs.len();
+            let mut trajs = trajs.into_iter();
+            for &task in group_tasks {
+                if let Some(k) = tasks.iter().position(|&t| t == task) {
+                    by_task[k] = trajs.by_ref().take(per_task).collect();
                 }
             }
         }
-        let trajs =
-            run_episodes(family.as_ref(), behaviour, specs, cfg.chunk, cfg.threads, &mut |d| {
-                progress(done_before + d, total)
-            })?;
-        done_before += trajs.len();
-        let mut trajs = trajs.into_iter();
+        let mut trajs = by_task.into_iter().flatten();
         for (k, &task) in tasks.iter().enumerate() {
             let mut stats = Vec::new();
             for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
@@ -223,10 +249,17 @@ pub fn generate(
             "prompt_episodes": cfg.prompt_episodes,
             "noise": cfg.noise,
             "policies": {
-                "expert": format!("the {} actor snapshot at step {} (best evaluated)", card.algorithm.name(), card.expert_step),
+                "expert": if card.task_experts.is_empty() {
+                    format!("the {} actor snapshot at step {} (best evaluated)", card.algorithm.name(), card.expert_step)
+                } else {
+                    format!("per task, the best evaluated of several {} actor snapshots (see expert_per_task)", card.algorithm.name())
+                },
                 "medium": format!("the {} actor snapshot at step {} ({})", card.algorithm.name(), card.medium_step, card.why_medium),
                 "random": "uniform random actions in [-1, 1] (the first episodes of a replay buffer)",
             },
+            "expert_per_task": card.task_experts.iter().filter(|e| tasks.contains(&e.task)).map(|e| serde_json::json!({
+                "task": e.task, "file": e.file, "source": e.source, "step": e.step, "eval_return": e.eval_return,
+            })).collect::<Vec<_>>(),
             "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode): reset seed, then action noise",
         }),
     };

@@ -10,11 +10,13 @@
 //! - [`policy`]: exported actors (the pretrained experts) as safetensors.
 //! - [`rollout`]: many episodes stepped together with one batched actor forward per step.
 //! - [`train`]: the training loop, checkpoints, snapshots.
+//! - [`combine`]: per-task experts picked from the snapshots of one or more runs.
 //! - [`datasets`]: expert / medium / random datasets and prompt sets from exported actors.
 
 pub mod agent;
 pub mod bench;
 pub mod buffer;
+pub mod combine;
 pub mod datasets;
 pub mod nets;
 pub mod policy;

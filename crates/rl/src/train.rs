@@ -227,6 +227,34 @@ pub struct AgentCard {
     pub snapshots: Vec<SnapshotInfo>,
     pub wall_seconds: f64,
     pub why_medium: String,
+    /// When the experts differ by task (an agent made by [`crate::combine`]): the policy file of
+    /// each task. Empty: `expert.safetensors` for every task.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub task_experts: Vec<TaskExpert>,
+}
+
+/// The expert of one task in a combined agent.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskExpert {
+    pub task: usize,
+    /// Policy file in the agent directory.
+    pub file: String,
+    /// The snapshot it was copied from.
+    pub source: String,
+    /// Its training step.
+    pub step: u64,
+    /// Its mean deterministic return on the task, over the combination's evaluation episodes.
+    pub eval_return: f64,
+}
+
+impl AgentCard {
+    /// The expert policy file of `task`.
+    pub fn expert_file(&self, task: usize) -> &str {
+        self.task_experts
+            .iter()
+            .find(|e| e.task == task)
+            .map_or("expert.safetensors", |e| e.file.as_str())
+    }
 }
 
 pub const AGENT_CARD_FORMAT: &str = "promptdt-agent-v1";
@@ -236,8 +264,10 @@ pub const AGENT_CARD_FORMAT: &str = "promptdt-agent-v1";
 pub enum Start<'a> {
     /// A new run in an empty (or missing) directory.
     New(&'a RlConfig),
-    /// Continue from the directory's checkpoint, optionally with a new (larger) step budget.
-    Resume { total_steps: Option<u64> },
+    /// Continue from the directory's checkpoint, optionally with a new (larger) step budget and a
+    /// new set of training tasks (fine-tuning a trained agent on the tasks it does worst, say; the
+    /// replay buffer keeps the earlier tasks' transitions).
+    Resume { total_steps: Option<u64>, tasks: Option<&'a [usize]> },
 }
 
 /// Trains (or resumes) in `dir`; at the end writes `dir/agent/`.
@@ -256,7 +286,7 @@ pub fn train(
         move |source| RlError::Io { path, source }
     };
     let (cfg, loaded) = match start {
-        Start::Resume { total_steps } => {
+        Start::Resume { total_steps, tasks } => {
             if !ckpt_path.exists() {
                 return Err(RlError::NoCheckpoint { path: dir.to_path_buf() });
             }
@@ -270,6 +300,9 @@ pub fn train(
                     )));
                 }
                 c.total_steps = t;
+            }
+            if let Some(t) = tasks {
+                c.tasks = t.to_vec();
             }
             (c, Some((state, tensors)))
         }
@@ -492,9 +525,10 @@ fn push_recent(r: &mut VecDeque<f64>, v: f64) {
     r.push_back(v);
 }
 
-fn eval_specs(seed: u64, num_tasks: usize, episodes: usize) -> Vec<EpisodeSpec> {
-    (0..num_tasks)
-        .flat_map(|task| {
+fn eval_specs(seed: u64, tasks: &[usize], episodes: usize) -> Vec<EpisodeSpec> {
+    tasks
+        .iter()
+        .flat_map(|&task| {
             (0..episodes).map(move |e| {
                 let mut rng =
                     stream_rng(seed, STREAM_EVAL, ((task as u64) << 32) ^ ((e as u64) << 48));
@@ -512,12 +546,24 @@ fn evaluate(
     seed: u64,
     episodes: usize,
 ) -> Result<Vec<f64>, RlError> {
-    let n = family.num_tasks();
-    // The same evaluation episodes (reset states) for every snapshot, so they compare fairly.
+    let all: Vec<usize> = (0..family.num_tasks()).collect();
+    evaluate_tasks(family, behaviour, seed, &all, episodes)
+}
+
+/// Mean return of `behaviour` on each of `tasks`, `episodes` per task. A task's evaluation
+/// episodes (reset states) depend on the seed and the task only, so every policy evaluated on a
+/// task meets the same episodes, whichever other tasks are evaluated with it.
+pub(crate) fn evaluate_tasks(
+    family: &dyn EnvFamily,
+    behaviour: Behaviour<'_>,
+    seed: u64,
+    tasks: &[usize],
+    episodes: usize,
+) -> Result<Vec<f64>, RlError> {
     let trajs = run_episodes(
         family,
         behaviour,
-        eval_specs(seed, n, episodes),
+        eval_specs(seed, tasks, episodes),
         512,
         threads(),
         &mut |_| {},
@@ -625,6 +671,7 @@ fn finish(
             "the snapshot before the expert whose mean deterministic return is closest to {half:.2}, \
              halfway between uniform random actions and the expert"
         ),
+        task_experts: vec![],
     };
     let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
     write_atomic(&agent_dir.join("agent.json"), format!("{text}\n").as_bytes())?;

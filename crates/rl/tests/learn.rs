@@ -77,10 +77,15 @@ fn interrupted_and_resumed_run_equals_uninterrupted_run() {
             train(Start::New(&cfg), &b, None, Device::Cpu, &mut |_| {}),
             Err(pdt_rl::RlError::Exists { .. })
         ));
-        let resumed =
-            train(Start::Resume { total_steps: None }, &b, None, Device::Cpu, &mut |_| {})
-                .unwrap()
-                .unwrap();
+        let resumed = train(
+            Start::Resume { total_steps: None, tasks: None },
+            &b,
+            None,
+            Device::Cpu,
+            &mut |_| {},
+        )
+        .unwrap()
+        .unwrap();
         assert_eq!(full.snapshots, resumed.snapshots, "{alg:?}");
         assert_eq!(full.expert_step, resumed.expert_step);
         for f in ["agent/expert.safetensors", "agent/medium.safetensors", "episodes.csv"] {
@@ -175,7 +180,7 @@ fn bad_inputs_are_clear_errors() {
         .to_string();
     assert!(e.contains("40"), "{e}");
     let e = train(
-        Start::Resume { total_steps: None },
+        Start::Resume { total_steps: None, tasks: None },
         &tmp.path().join("none"),
         None,
         Device::Cpu,
@@ -191,9 +196,15 @@ fn bad_inputs_are_clear_errors() {
     let ck = run.join("checkpoint.safetensors");
     let bytes = std::fs::read(&ck).unwrap();
     std::fs::write(&ck, &bytes[..bytes.len() / 2]).unwrap();
-    let e = train(Start::Resume { total_steps: None }, &run, None, Device::Cpu, &mut |_| {})
-        .unwrap_err()
-        .to_string();
+    let e = train(
+        Start::Resume { total_steps: None, tasks: None },
+        &run,
+        None,
+        Device::Cpu,
+        &mut |_| {},
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("checkpoint.safetensors"), "{e}");
     // A policy file that is not one.
     std::fs::write(tmp.path().join("p.safetensors"), b"junk").unwrap();
@@ -213,13 +224,18 @@ fn a_finished_run_can_be_extended() {
     let first =
         train(Start::New(&cfg), tmp.path(), None, Device::Cpu, &mut |_| {}).unwrap().unwrap();
     assert_eq!(first.snapshots.iter().map(|s| s.step).collect::<Vec<_>>(), vec![400, 600]);
-    let e =
-        train(Start::Resume { total_steps: Some(200) }, tmp.path(), None, Device::Cpu, &mut |_| {})
-            .unwrap_err()
-            .to_string();
+    let e = train(
+        Start::Resume { total_steps: Some(200), tasks: None },
+        tmp.path(),
+        None,
+        Device::Cpu,
+        &mut |_| {},
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("cannot shrink"), "{e}");
     let longer = train(
-        Start::Resume { total_steps: Some(1200) },
+        Start::Resume { total_steps: Some(1200), tasks: None },
         tmp.path(),
         None,
         Device::Cpu,

@@ -1,0 +1,225 @@
+//! Per-task experts from several snapshots: one agent directory whose expert may differ by task.
+//!
+//! Why: one task-conditioned agent per family is what fits a 2-core budget, but such an agent can
+//! settle on a gait that serves only some tasks (the Ant-Dir agent walks well towards half of the
+//! directions and barely moves towards the other half), and its best snapshot overall is not the
+//! best for every task (a Cheetah-Vel snapshot can track low speeds better than a later one that
+//! tracks high speeds better). The reference trained one agent per task, so its experts are each
+//! the best for their task; this recovers that from a few runs: a second agent trained on the
+//! weak tasks only (`collect --tasks`), or the first one fine-tuned on them (`collect --resume
+//! --tasks`), and then, for every task, the snapshot that does best on it.
+//!
+//! Selection: every snapshot file records a one-episode deterministic evaluation per task. For each
+//! task the `top_k` snapshots by that record are evaluated again on `eval_episodes` episodes (the
+//! same reset states for all of them) and the best mean wins; ties go to the earlier candidate,
+//! the base agent's expert first. The medium policy and the random-action evaluation are the base
+//! agent's.
+
+use crate::agent::Noise;
+use crate::policy::{self, Policy};
+use crate::rollout::Behaviour;
+use crate::train::{evaluate_tasks, read_agent_card, AgentCard, TaskExpert};
+use crate::{write_atomic, RlError};
+use pdt_envs::EnvFamily;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use tch::Device;
+
+/// What to combine.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CombineConfig {
+    /// A finished agent directory (`agent.json`, `expert.safetensors`, `medium.safetensors`).
+    pub base: PathBuf,
+    /// Directories of snapshot policy files (a run's `snapshots/`), or single policy files.
+    pub candidates: Vec<PathBuf>,
+    /// Snapshots re-evaluated per task (the best by their recorded evaluation).
+    pub top_k: usize,
+    /// Deterministic evaluation episodes per (task, snapshot).
+    pub eval_episodes: usize,
+    /// Seed of the evaluation episodes.
+    pub seed: u64,
+}
+
+impl Default for CombineConfig {
+    fn default() -> Self {
+        Self { base: PathBuf::new(), candidates: vec![], top_k: 3, eval_episodes: 5, seed: 0 }
+    }
+}
+
+/// Mean deterministic return of `policy` on each of `tasks`, `episodes` per task: the evaluation
+/// [`combine`] ranks snapshots by (the episodes depend on the seed and the task only).
+pub fn evaluate_policy(
+    policy: &Policy,
+    family: &dyn EnvFamily,
+    tasks: &[usize],
+    episodes: usize,
+    seed: u64,
+    device: Device,
+) -> Result<Vec<f64>, RlError> {
+    let behaviour = Behaviour::Actor {
+        actor: &policy.actor,
+        head: policy.meta.head,
+        encoder: &policy.meta.encoder,
+        noise: Noise::Deterministic,
+        device,
+    };
+    evaluate_tasks(family, behaviour, seed, tasks, episodes)
+}
+
+struct Candidate {
+    path: PathBuf,
+    policy: Policy,
+}
+
+/// Builds the combined agent in `out` (which may not be the base directory) and returns its card.
+/// `progress(done, total)` counts evaluated candidates.
+pub fn combine(
+    cfg: &CombineConfig,
+    out: &Path,
+    device: Device,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<AgentCard, RlError> {
+    if cfg.top_k == 0 || cfg.eval_episodes == 0 {
+        return Err(RlError::Config("top_k and eval_episodes must be at least 1".into()));
+    }
+    let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if same(&cfg.base, out) {
+        return Err(RlError::Config(format!(
+            "the combined agent must go to a new directory, not the base {}",
+            cfg.base.display()
+        )));
+    }
+    let base = read_agent_card(&cfg.base)?;
+    let family = pdt_envs::family(&base.family)?;
+    let n_tasks = family.num_tasks();
+
+    // Candidates: the base expert first, then every policy file given, in name order.
+    let mut paths = vec![cfg.base.join("expert.safetensors")];
+    for c in &cfg.candidates {
+        if c.is_dir() {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(c)
+                .map_err(|source| RlError::Io { path: c.clone(), source })?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
+                .collect();
+            files.sort();
+            if files.is_empty() {
+                return Err(RlError::File {
+                    path: c.clone(),
+                    message: "no policy files (*.safetensors) in this directory".into(),
+                });
+            }
+            paths.extend(files);
+        } else {
+            paths.push(c.clone());
+        }
+    }
+    let mut cands = Vec::with_capacity(paths.len());
+    for path in paths {
+        let policy = policy::load(&path, device)?;
+        let bad = |message: String| RlError::File { path: path.clone(), message };
+        if policy.meta.family != base.family {
+            return Err(bad(format!(
+                "a {} policy, but the base agent is {}",
+                policy.meta.family, base.family
+            )));
+        }
+        if policy.meta.eval_returns.len() != n_tasks {
+            return Err(bad(format!(
+                "records {} evaluation returns, expected one per task ({n_tasks})",
+                policy.meta.eval_returns.len()
+            )));
+        }
+        cands.push(Candidate { path, policy });
+    }
+
+    // Per task, the top_k candidates by their recorded evaluation.
+    let mut to_eval: BTreeMap<usize, Vec<usize>> = BTreeMap::new(); // candidate -> tasks
+    for task in 0..n_tasks {
+        let mut order: Vec<usize> = (0..cands.len()).collect();
+        order.sort_by(|&a, &b| {
+            let (ra, rb) =
+                (cands[a].policy.meta.eval_returns[task], cands[b].policy.meta.eval_returns[task]);
+            rb.total_cmp(&ra).then(a.cmp(&b))
+        });
+        for &c in order.iter().take(cfg.top_k) {
+            to_eval.entry(c).or_default().push(task);
+        }
+    }
+    // (task) -> [(candidate, mean return)]
+    let mut scores: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n_tasks];
+    let total = to_eval.len();
+    for (done, (&c, tasks)) in to_eval.iter().enumerate() {
+        let returns = evaluate_policy(
+            &cands[c].policy,
+            family.as_ref(),
+            tasks,
+            cfg.eval_episodes,
+            cfg.seed,
+            device,
+        )?;
+        for (&t, r) in tasks.iter().zip(returns) {
+            scores[t].push((c, r));
+        }
+        progress(done + 1, total);
+    }
+    let chosen: Vec<(usize, f64)> = scores
+        .iter()
+        .enumerate()
+        .map(|(t, s)| {
+            s.iter()
+                .copied()
+                .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+                .ok_or_else(|| RlError::Config(format!("no candidate evaluated for task {t}")))
+        })
+        .collect::<Result<_, _>>()?;
+
+    // Files: the candidate chosen for most tasks is `expert.safetensors`, the others
+    // `expert-1.safetensors`, ... in the order of their first task.
+    let mut uses: BTreeMap<usize, usize> = BTreeMap::new();
+    for &(c, _) in &chosen {
+        *uses.entry(c).or_default() += 1;
+    }
+    let main =
+        uses.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(&c, _)| c).unwrap_or(0);
+    let mut file_of: BTreeMap<usize, String> =
+        BTreeMap::from([(main, "expert.safetensors".into())]);
+    for &(c, _) in &chosen {
+        let k = file_of.len();
+        file_of.entry(c).or_insert_with(|| format!("expert-{k}.safetensors"));
+    }
+    std::fs::create_dir_all(out)
+        .map_err(|source| RlError::Io { path: out.to_path_buf(), source })?;
+    for (&c, name) in &file_of {
+        let src = &cands[c].path;
+        let bytes =
+            std::fs::read(src).map_err(|source| RlError::Io { path: src.clone(), source })?;
+        write_atomic(&out.join(name), &bytes)?;
+    }
+    let medium_src = cfg.base.join("medium.safetensors");
+    let bytes = std::fs::read(&medium_src)
+        .map_err(|source| RlError::Io { path: medium_src.clone(), source })?;
+    write_atomic(&out.join("medium.safetensors"), &bytes)?;
+
+    let task_experts: Vec<TaskExpert> = chosen
+        .iter()
+        .enumerate()
+        .map(|(task, &(c, r))| TaskExpert {
+            task,
+            file: file_of[&c].clone(),
+            source: cands[c].path.display().to_string(),
+            step: cands[c].policy.meta.step,
+            eval_return: r,
+        })
+        .collect();
+    let mut card = base.clone();
+    card.expert_step = cands[main].policy.meta.step;
+    card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
+    card.task_experts = task_experts;
+    let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
+    write_atomic(&out.join("agent.json"), format!("{text}\n").as_bytes())?;
+    Ok(card)
+}
