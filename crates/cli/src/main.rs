@@ -106,7 +106,7 @@ fn run(cli: Cli) -> Result<()> {
                 pb.set_position(done as u64);
             })?;
             pb.finish_and_clear();
-            println!("{:<6} {:>12} {:>10}  {}", "task", "return", "step", "file");
+            println!("{:<6} {:>12} {:>10}  file", "task", "return", "step");
             for e in &card.task_experts {
                 println!("{:<6} {:>12.1} {:>10}  {}", e.task, e.eval_return, e.step, e.file);
             }
