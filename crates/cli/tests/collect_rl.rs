@@ -94,6 +94,100 @@ fn collect_trains_is_interrupted_resumes_and_writes_the_same_datasets() {
     assert!(inspect.contains("12 files"), "{inspect}");
 }
 
+/// A run fine-tuned on one task (`--resume --tasks`), per-task experts from both (`agent
+/// combine`), and datasets from the combined agent.
+#[test]
+fn fine_tune_combine_and_collect_from_the_combined_agent() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = |s: &str| tmp.path().join(s);
+    collect(&p("run-a"), &p("data-a"), &[]);
+    std::fs::create_dir_all(p("run-c/snapshots")).unwrap();
+    // A copy of the run (`cp -r` without `agent/`).
+    for f in ["checkpoint.safetensors", "config.json", "episodes.csv"] {
+        std::fs::copy(p("run-a").join(f), p("run-c").join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(p("run-a/snapshots")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), p("run-c/snapshots").join(e.file_name())).unwrap();
+    }
+    let (run_c, data_c) = (p("run-c"), p("data-c"));
+    let tuned = ok(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--threads",
+        "1",
+        "--run-dir",
+        run_c.to_str().unwrap(),
+        "--out",
+        data_c.to_str().unwrap(),
+        "--episodes",
+        "2",
+        "--prompt-episodes",
+        "1",
+        "--resume",
+        "--tasks",
+        "1",
+        "--steps",
+        "1000",
+    ]);
+    assert!(tuned.contains("for 1000 steps"), "{tuned}");
+    let config = std::fs::read_to_string(p("run-c/config.json")).unwrap();
+    assert!(config.contains("\"tasks\": [\n    1\n  ]"), "{config}");
+
+    let snaps = format!(
+        "{},{}",
+        p("run-a/snapshots").to_str().unwrap(),
+        p("run-c/snapshots").to_str().unwrap()
+    );
+    let out = ok(&[
+        "agent",
+        "combine",
+        "--base",
+        p("run-a/agent").to_str().unwrap(),
+        "--snapshots",
+        &snaps,
+        "--out",
+        p("combined").to_str().unwrap(),
+        "--eval-episodes",
+        "2",
+    ]);
+    assert!(out.contains("mean expert return"), "{out}");
+    let card = std::fs::read_to_string(p("combined/agent.json")).unwrap();
+    assert!(card.contains("task_experts"), "{card}");
+    let data = ok(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--from-pretrained",
+        "--pretrained-dir",
+        p("combined").to_str().unwrap(),
+        "--out",
+        p("data-comb").to_str().unwrap(),
+        "--episodes",
+        "2",
+        "--prompt-episodes",
+        "1",
+    ]);
+    assert!(data.contains("wrote 12 files"), "{data}");
+    let dcard = std::fs::read_to_string(p("data-comb/dataset.json")).unwrap();
+    assert!(dcard.contains("expert_per_task"), "{dcard}");
+
+    // The base directory cannot be overwritten, and a missing snapshot path is named.
+    let bad = promptdt(&[
+        "agent",
+        "combine",
+        "--base",
+        p("run-a/agent").to_str().unwrap(),
+        "--snapshots",
+        p("nowhere").to_str().unwrap(),
+        "--out",
+        p("c2").to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("nowhere"));
+}
+
 /// The committed experts rebuild datasets without training (a few episodes here; the full rebuild
 /// is `promptdt collect --env <family> --from-pretrained`).
 #[test]
