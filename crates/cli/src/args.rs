@@ -109,6 +109,10 @@ pub struct CombineArgs {
     /// Deterministic evaluation episodes per task and snapshot.
     #[arg(long, default_value_t = 5)]
     pub eval_episodes: usize,
+    /// Record in the agent that its datasets are written without exploration noise (what
+    /// `collect --from-pretrained` then does unless given --explore).
+    #[arg(long)]
+    pub deterministic_datasets: bool,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long, default_value = "cpu")]
@@ -277,10 +281,13 @@ pub struct CollectArgs {
     /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
-    /// Write the datasets without exploration noise (default: the policy's own noise, as in a
-    /// replay buffer).
-    #[arg(long)]
+    /// Write the datasets without exploration noise (default: what the agent's `agent.json` asks
+    /// for in `dataset_noise`, else the policy's own noise, as in a replay buffer).
+    #[arg(long, conflicts_with = "explore")]
     pub deterministic: bool,
+    /// Write the datasets with the policy's own exploration noise, whatever the agent asks for.
+    #[arg(long)]
+    pub explore: bool,
     /// Intra-op threads of libtorch (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,

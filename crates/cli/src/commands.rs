@@ -319,7 +319,11 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
         seed: a.seed,
         episodes: a.episodes,
         prompt_episodes: a.prompt_episodes,
-        noise: if a.deterministic { Noise::Deterministic } else { Noise::Explore },
+        noise: match (a.deterministic, a.explore) {
+            (true, _) => Some(Noise::Deterministic),
+            (_, true) => Some(Noise::Explore),
+            _ => None,
+        },
         ..Default::default()
     };
     let pb = bar(0, "datasets {bar:30} {pos}/{len} episodes [{elapsed} < {eta}]");

@@ -98,6 +98,9 @@ fn run(cli: Cli) -> Result<()> {
                 top_k: a.top_k,
                 eval_episodes: a.eval_episodes,
                 seed: a.seed,
+                dataset_noise: a
+                    .deterministic_datasets
+                    .then_some(pdt_rl::agent::Noise::Deterministic),
             };
             let pb =
                 commands::bar(0, "evaluating {bar:30} {pos}/{len} snapshots [{elapsed} < {eta}]");

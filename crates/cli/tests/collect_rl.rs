@@ -151,6 +151,7 @@ fn fine_tune_combine_and_collect_from_the_combined_agent() {
         p("combined").to_str().unwrap(),
         "--eval-episodes",
         "2",
+        "--deterministic-datasets",
     ]);
     assert!(out.contains("mean expert return"), "{out}");
     let card = std::fs::read_to_string(p("combined/agent.json")).unwrap();
@@ -172,6 +173,25 @@ fn fine_tune_combine_and_collect_from_the_combined_agent() {
     assert!(data.contains("wrote 12 files"), "{data}");
     let dcard = std::fs::read_to_string(p("data-comb/dataset.json")).unwrap();
     assert!(dcard.contains("expert_per_task"), "{dcard}");
+    // The agent asks for noiseless data; --explore overrides it.
+    assert!(dcard.contains("\"noise\": \"deterministic\""), "{dcard}");
+    ok(&[
+        "collect",
+        "--env",
+        "cheetah_dir",
+        "--from-pretrained",
+        "--pretrained-dir",
+        p("combined").to_str().unwrap(),
+        "--out",
+        p("data-explore").to_str().unwrap(),
+        "--episodes",
+        "1",
+        "--prompt-episodes",
+        "1",
+        "--explore",
+    ]);
+    let ecard = std::fs::read_to_string(p("data-explore/dataset.json")).unwrap();
+    assert!(ecard.contains("\"noise\": \"explore\""), "{ecard}");
 
     // The base directory cannot be overwritten, and a missing snapshot path is named.
     let bad = promptdt(&[

@@ -38,11 +38,21 @@ pub struct CombineConfig {
     pub eval_episodes: usize,
     /// Seed of the evaluation episodes.
     pub seed: u64,
+    /// Recorded in the card as `dataset_noise` (how `collect --from-pretrained` writes data);
+    /// `None` keeps the base agent's.
+    pub dataset_noise: Option<Noise>,
 }
 
 impl Default for CombineConfig {
     fn default() -> Self {
-        Self { base: PathBuf::new(), candidates: vec![], top_k: 3, eval_episodes: 5, seed: 0 }
+        Self {
+            base: PathBuf::new(),
+            candidates: vec![],
+            top_k: 3,
+            eval_episodes: 5,
+            seed: 0,
+            dataset_noise: None,
+        }
     }
 }
 
@@ -118,7 +128,16 @@ pub fn combine(
         }
     }
     let mut cands = Vec::with_capacity(paths.len());
+    let mut seen: Vec<Vec<u8>> = Vec::with_capacity(paths.len());
     for path in paths {
+        // The same actor twice (the base expert is also one of its run's snapshots) would take
+        // two of a task's top_k places: keep the first.
+        let bytes =
+            std::fs::read(&path).map_err(|source| RlError::Io { path: path.clone(), source })?;
+        if seen.contains(&bytes) {
+            continue;
+        }
+        seen.push(bytes);
         let policy = policy::load(&path, device)?;
         let bad = |message: String| RlError::File { path: path.clone(), message };
         if policy.meta.family != base.family {
@@ -219,6 +238,9 @@ pub fn combine(
     card.expert_step = cands[main].policy.meta.step;
     card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
     card.task_experts = task_experts;
+    if cfg.dataset_noise.is_some() {
+        card.dataset_noise = cfg.dataset_noise;
+    }
     let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
     write_atomic(&out.join("agent.json"), format!("{text}\n").as_bytes())?;
     Ok(card)

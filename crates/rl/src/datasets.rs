@@ -42,8 +42,9 @@ pub struct DatasetConfig {
     pub modes: Vec<Mode>,
     /// Task indices; empty: all of the family's.
     pub tasks: Vec<usize>,
-    /// Exploration noise (as in a replay buffer) or the deterministic policy.
-    pub noise: Noise,
+    /// Exploration noise (as in a replay buffer) or the deterministic policy; `None`: what the
+    /// agent's card asks for (`dataset_noise`), else exploration noise.
+    pub noise: Option<Noise>,
     /// Episodes stepped together (sets the actor's batch size, which the data depends on).
     pub chunk: usize,
     /// Threads stepping the environments (the data does not depend on this).
@@ -58,7 +59,7 @@ impl Default for DatasetConfig {
             prompt_episodes: 5,
             modes: Mode::ALL.to_vec(),
             tasks: vec![],
-            noise: Noise::Explore,
+            noise: None,
             chunk: 256,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
         }
@@ -130,6 +131,7 @@ pub fn generate(
         }
         Ok(p)
     };
+    let noise = cfg.noise.or(card.dataset_noise).unwrap_or(Noise::Explore);
     let per_task = cfg.episodes + cfg.prompt_episodes;
     let total = tasks.len() * per_task * cfg.modes.len();
     let mut done_before = 0;
@@ -162,7 +164,7 @@ pub fn generate(
                     actor: &p.actor,
                     head: p.meta.head,
                     encoder: &p.meta.encoder,
-                    noise: cfg.noise,
+                    noise,
                     device,
                 },
                 None => Behaviour::Uniform,
@@ -247,7 +249,7 @@ pub fn generate(
             "seed": cfg.seed,
             "episodes_per_task": cfg.episodes,
             "prompt_episodes": cfg.prompt_episodes,
-            "noise": cfg.noise,
+            "noise": noise,
             "policies": {
                 "expert": if card.task_experts.is_empty() {
                     format!("the {} actor snapshot at step {} (best evaluated)", card.algorithm.name(), card.expert_step)

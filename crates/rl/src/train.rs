@@ -231,6 +231,10 @@ pub struct AgentCard {
     /// each task. Empty: `expert.safetensors` for every task.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub task_experts: Vec<TaskExpert>,
+    /// How `collect` writes this agent's datasets unless told otherwise (`None`: exploration
+    /// noise, as in a replay buffer).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset_noise: Option<Noise>,
 }
 
 /// The expert of one task in a combined agent.
@@ -672,6 +676,7 @@ fn finish(
              halfway between uniform random actions and the expert"
         ),
         task_experts: vec![],
+        dataset_noise: None,
     };
     let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
     write_atomic(&agent_dir.join("agent.json"), format!("{text}\n").as_bytes())?;

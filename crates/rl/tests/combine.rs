@@ -3,7 +3,7 @@
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
 use pdt_envs::collect_scripted::Mode;
-use pdt_rl::agent::Algorithm;
+use pdt_rl::agent::{Algorithm, Noise};
 use pdt_rl::combine::{combine, evaluate_policy, CombineConfig};
 use pdt_rl::datasets::{generate, DatasetConfig};
 use pdt_rl::policy;
@@ -93,6 +93,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
         top_k: 100,
         eval_episodes: 2,
         seed: 3,
+        dataset_noise: Some(Noise::Deterministic),
     };
     let comb = combine(&cfg, &out, Device::Cpu, &mut |_, _| {}).unwrap();
     assert_eq!(read_agent_card(&out).unwrap(), comb);
@@ -161,6 +162,8 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
         let per_task = &card["generator"]["expert_per_task"];
         assert_eq!(per_task[0]["task"], e.task);
         assert_eq!(per_task[0]["file"], e.file.as_str());
+        // The agent asked for noiseless data, and the config left it to the agent.
+        assert_eq!(card["generator"]["noise"], "deterministic");
     }
 
     // Bad input: writing over the base, an empty candidate directory, a policy of another family.
