@@ -109,6 +109,10 @@ pub struct CombineArgs {
     /// Deterministic evaluation episodes per task and snapshot.
     #[arg(long, default_value_t = 5)]
     pub eval_episodes: usize,
+    /// Do not try mirrored snapshots (Ant-Dir: each snapshot also acting through the body's two
+    /// reflections, towards the mirror images of the directions it walks well towards).
+    #[arg(long)]
+    pub no_mirrors: bool,
     /// Record in the agent that its datasets are written without exploration noise (what
     /// `collect --from-pretrained` then does unless given --explore).
     #[arg(long)]

@@ -98,6 +98,7 @@ fn run(cli: Cli) -> Result<()> {
                 top_k: a.top_k,
                 eval_episodes: a.eval_episodes,
                 seed: a.seed,
+                mirrors: !a.no_mirrors,
                 dataset_noise: a
                     .deterministic_datasets
                     .then_some(pdt_rl::agent::Noise::Deterministic),
@@ -109,9 +110,13 @@ fn run(cli: Cli) -> Result<()> {
                 pb.set_position(done as u64);
             })?;
             pb.finish_and_clear();
-            println!("{:<6} {:>12} {:>10}  file", "task", "return", "step");
+            println!("{:<6} {:>12} {:>10} {:>10}  file", "task", "return", "step", "mirror");
             for e in &card.task_experts {
-                println!("{:<6} {:>12.1} {:>10}  {}", e.task, e.eval_return, e.step, e.file);
+                let m = e.mirror.as_deref().unwrap_or("-");
+                println!(
+                    "{:<6} {:>12.1} {:>10} {m:>10}  {}",
+                    e.task, e.eval_return, e.step, e.file
+                );
             }
             let m = card.expert_eval.iter().sum::<f64>() / card.expert_eval.len().max(1) as f64;
             println!(

@@ -267,3 +267,171 @@ mod tests {
         assert_eq!((p.obs_dim, p.act_dim, p.rtg_scale, p.target_return), (27, 8, 500.0, 500.0));
     }
 }
+
+/// A symmetry of the Ant: the body, its legs, joint ranges, actuators and the floor are
+/// symmetric under both reflections below (and so under their composition, a half turn), so a
+/// state mirrored and stepped with the mirrored action stays the mirror of the original trajectory, and the reward for goal `g` becomes the reward for
+/// the mirrored goal. A policy that walks towards `g` therefore walks towards the mirrored goal
+/// when it sees mirrored observations and its actions are mirrored back (`pdt-rl` uses this for
+/// directions its agent walks poorly towards).
+///
+/// Derivation (`ant_dir.xml`): the legs sit at (±0.2, ±0.2); hips turn about z (range ±30°);
+/// ankle axes are (-1, 1, 0) for legs 1 and 3, (1, 1, 0) for legs 2 and 4. A symmetry `S` maps
+/// a hinge about axis `n` by angle `φ` to a hinge about `det(S) S n` by `φ`, a free body's
+/// rotation `R` to `S R S⁻¹` (a rotation about `det(S) S n`: quaternion `(w, v)` to
+/// `(w, det(S) S v)`), linear velocity `v` to `S v`, and the (body-frame) angular velocity `ω` to
+/// `det(S) S ω`; `det(S) = -1` for the reflections, +1 for the half turn. Checked by
+/// stepping a mirrored state with mirrored actions (`tests/ant_symmetry.rs`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Symmetry {
+    /// `y -> -y`: legs 1 <-> 4, 2 <-> 3; hip angles change sign, ankles keep it; goal `g -> -g`.
+    AcrossX,
+    /// `x -> -x`: legs 1 <-> 2, 3 <-> 4; hip and ankle angles change sign; goal `g -> pi - g`.
+    AcrossY,
+    /// Both, i.e. a half turn about z: legs 1 <-> 3, 2 <-> 4; ankle angles change sign; goal
+    /// `g -> g + pi`.
+    HalfTurn,
+}
+
+/// A signed permutation: `out[i] = sign[i] * x[index[i]]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SignedPerm {
+    pub index: Vec<usize>,
+    pub sign: Vec<f64>,
+}
+
+impl SignedPerm {
+    pub fn apply<T: Copy + Into<f64>>(&self, x: &[T]) -> Vec<f64> {
+        self.index.iter().zip(&self.sign).map(|(&i, &s)| s * x[i].into()).collect()
+    }
+}
+
+/// Actuator `k` drives joint `ACTUATOR_JOINT[k]` (joints in `qpos` order: hip_1, ankle_1, ..., hip_4,
+/// ankle_4; the XML lists the motors from leg 4).
+const ACTUATOR_JOINT: [usize; 8] = [6, 7, 0, 1, 2, 3, 4, 5];
+
+impl Symmetry {
+    pub const ALL: [Symmetry; 3] = [Symmetry::AcrossX, Symmetry::AcrossY, Symmetry::HalfTurn];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Symmetry::AcrossX => "across_x",
+            Symmetry::AcrossY => "across_y",
+            Symmetry::HalfTurn => "half_turn",
+        }
+    }
+
+    /// Leg (0-based) that leg `l` becomes.
+    fn leg(self, l: usize) -> usize {
+        match self {
+            Symmetry::AcrossX => 3 - l,
+            Symmetry::AcrossY => [1, 0, 3, 2][l],
+            Symmetry::HalfTurn => (l + 2) % 4,
+        }
+    }
+
+    /// Sign of (hip, ankle) angles.
+    fn joint_signs(self) -> (f64, f64) {
+        match self {
+            Symmetry::AcrossX => (-1.0, 1.0),
+            Symmetry::AcrossY => (-1.0, -1.0),
+            Symmetry::HalfTurn => (1.0, -1.0),
+        }
+    }
+
+    /// The 8 leg joints, in `qpos` order.
+    fn joints(self) -> SignedPerm {
+        let (hip, ankle) = self.joint_signs();
+        let mut p = SignedPerm { index: vec![], sign: vec![] };
+        for j in 0..8 {
+            p.index.push(2 * self.leg(j / 2) + j % 2);
+            p.sign.push(if j % 2 == 0 { hip } else { ankle });
+        }
+        p
+    }
+
+    /// Signs of a vector `S v` (position, linear velocity).
+    fn vector_signs(self) -> [f64; 3] {
+        match self {
+            Symmetry::AcrossX => [1.0, -1.0, 1.0],
+            Symmetry::AcrossY => [-1.0, 1.0, 1.0],
+            Symmetry::HalfTurn => [-1.0, -1.0, 1.0],
+        }
+    }
+
+    /// Signs of the quaternion's vector part and of the angular velocity: `det(S) S` applied to
+    /// an axis (`-S` for a reflection, `S` for the half turn).
+    fn axial_signs(self) -> [f64; 3] {
+        let v = self.vector_signs();
+        let det = v[0] * v[1] * v[2];
+        [det * v[0], det * v[1], det * v[2]]
+    }
+
+    /// The map of `qpos` (15: position, quaternion, 8 joints).
+    pub fn qpos(self) -> SignedPerm {
+        let (v, a) = (self.vector_signs(), self.axial_signs());
+        let mut p = SignedPerm { index: (0..7).collect(), sign: vec![] };
+        p.sign.extend(v);
+        p.sign.push(1.0);
+        p.sign.extend(a);
+        let j = self.joints();
+        p.index.extend(j.index.iter().map(|i| i + 7));
+        p.sign.extend(j.sign);
+        p
+    }
+
+    /// The map of `qvel` (14: linear velocity, angular velocity, 8 joints).
+    pub fn qvel(self) -> SignedPerm {
+        let (v, a) = (self.vector_signs(), self.axial_signs());
+        let mut p = SignedPerm { index: (0..6).collect(), sign: vec![] };
+        p.sign.extend(v);
+        p.sign.extend(a);
+        let j = self.joints();
+        p.index.extend(j.index.iter().map(|i| i + 6));
+        p.sign.extend(j.sign);
+        p
+    }
+
+    /// The map of the observation (27: `qpos[2:15]` ‖ `qvel`).
+    pub fn observation(self) -> SignedPerm {
+        let (q, v) = (self.qpos(), self.qvel());
+        let mut p = SignedPerm { index: vec![], sign: vec![] };
+        for i in 2..15 {
+            p.index.push(q.index[i] - 2);
+            p.sign.push(q.sign[i]);
+        }
+        for i in 0..14 {
+            p.index.push(v.index[i] + 13);
+            p.sign.push(v.sign[i]);
+        }
+        p
+    }
+
+    /// The map of the action (8 motor commands, in actuator order).
+    pub fn action(self) -> SignedPerm {
+        let j = self.joints();
+        let mut p = SignedPerm { index: vec![], sign: vec![] };
+        for &joint in &ACTUATOR_JOINT {
+            let src = j.index[joint];
+            let k = ACTUATOR_JOINT.iter().position(|&x| x == src).unwrap_or(0);
+            p.index.push(k);
+            p.sign.push(j.sign[joint]);
+        }
+        p
+    }
+
+    /// The mirrored goal direction (radians).
+    pub fn goal(self, g: f64) -> f64 {
+        match self {
+            Symmetry::AcrossX => -g,
+            Symmetry::AcrossY => std::f64::consts::PI - g,
+            Symmetry::HalfTurn => g + std::f64::consts::PI,
+        }
+    }
+
+    /// Signs of the goal's `(cos g, sin g)` under the symmetry.
+    pub fn direction_signs(self) -> [f64; 2] {
+        let v = self.vector_signs();
+        [v[0], v[1]]
+    }
+}

@@ -55,6 +55,60 @@ pub struct TaskEncoder {
     pub drop: Vec<usize>,
     /// `task_features[task]`, all of the same length.
     pub task_features: Vec<Vec<f32>>,
+    /// Set on a mirrored policy (see [`Mirror`]); never while training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mirror: Option<Mirror>,
+}
+
+/// A symmetry of the body used to act in a mirrored world: the actor sees the mirrored observation
+/// and the mirrored task feature, and its action is mirrored back. With it an agent that walks
+/// well towards some directions also walks towards their mirror images (Ant-Dir; the maps come
+/// from `pdt_envs::ant_dir::Symmetry`, whose test steps mirrored states). Each map is a signed
+/// permutation `out[i] = sign[i] * x[index[i]]` and its own inverse (a reflection or a half turn).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Mirror {
+    pub name: String,
+    pub obs_index: Vec<usize>,
+    pub obs_sign: Vec<f32>,
+    pub action_index: Vec<usize>,
+    pub action_sign: Vec<f32>,
+    pub task_feature_sign: Vec<f32>,
+}
+
+impl Mirror {
+    /// The family's mirror symmetries (none for the HalfCheetah families: a mirror image of
+    /// running forward is not running in another direction they have).
+    pub fn for_family(family: &str) -> Vec<Mirror> {
+        use pdt_envs::ant_dir::Symmetry;
+        if family != pdt_envs::ant_dir::ENV_NAME {
+            return vec![];
+        }
+        let f32s = |v: Vec<f64>| v.into_iter().map(|x| x as f32).collect::<Vec<f32>>();
+        Symmetry::ALL
+            .iter()
+            .map(|r| {
+                let (o, a) = (r.observation(), r.action());
+                Mirror {
+                    name: r.name().to_string(),
+                    obs_index: o.index,
+                    obs_sign: f32s(o.sign),
+                    action_index: a.index,
+                    action_sign: f32s(a.sign),
+                    task_feature_sign: f32s(r.direction_signs().to_vec()),
+                }
+            })
+            .collect()
+    }
+
+    /// Whether the maps fit an observation, action and task feature of these sizes.
+    pub fn fits(&self, obs_dim: usize, act_dim: usize, feature_dim: usize) -> bool {
+        let ok = |index: &[usize], sign: &[f32], n: usize| {
+            index.len() == n && sign.len() == n && index.iter().all(|&i| i < n)
+        };
+        ok(&self.obs_index, &self.obs_sign, obs_dim)
+            && ok(&self.action_index, &self.action_sign, act_dim)
+            && self.task_feature_sign.len() == feature_dim
+    }
 }
 
 impl TaskEncoder {
@@ -91,7 +145,7 @@ impl TaskEncoder {
             "cheetah_dir" | "cheetah_vel" => vec![17],
             _ => vec![],
         };
-        Ok(Self { family: name, obs_dim: preset.obs_dim, drop, task_features })
+        Ok(Self { family: name, obs_dim: preset.obs_dim, drop, task_features, mirror: None })
     }
 
     /// Length of the agent's input.
@@ -101,13 +155,30 @@ impl TaskEncoder {
 
     /// Appends the agent's input for `obs` of `task` to `out`.
     pub fn encode(&self, obs: &[f32], task: usize, out: &mut Vec<f32>) {
-        for (i, &v) in obs.iter().enumerate() {
+        let seen = |i: usize| match &self.mirror {
+            Some(m) => m.obs_sign[i] * obs[m.obs_index[i]],
+            None => obs[i],
+        };
+        for i in 0..obs.len() {
             if !self.drop.contains(&i) {
-                out.push(v);
+                out.push(seen(i));
             }
         }
         if let Some(f) = self.task_features.get(task) {
-            out.extend_from_slice(f);
+            match &self.mirror {
+                Some(m) => out.extend(f.iter().zip(&m.task_feature_sign).map(|(v, s)| v * s)),
+                None => out.extend_from_slice(f),
+            }
+        }
+    }
+
+    /// Turns the actor's action into the environment's (mirrors it back; a no-op unmirrored).
+    pub fn decode_action(&self, action: &mut [f32]) {
+        if let Some(m) = &self.mirror {
+            let a = action.to_vec();
+            for (i, v) in action.iter_mut().enumerate() {
+                *v = m.action_sign[i] * a[m.action_index[i]];
+            }
         }
     }
 }

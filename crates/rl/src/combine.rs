@@ -15,7 +15,7 @@
 //! the base agent's expert first. The medium policy and the random-action evaluation are the base
 //! agent's.
 
-use crate::agent::Noise;
+use crate::agent::{Mirror, Noise, TaskEncoder};
 use crate::policy::{self, Policy};
 use crate::rollout::Behaviour;
 use crate::train::{evaluate_tasks, read_agent_card, AgentCard, TaskExpert};
@@ -38,6 +38,9 @@ pub struct CombineConfig {
     pub eval_episodes: usize,
     /// Seed of the evaluation episodes.
     pub seed: u64,
+    /// Also try every candidate mirrored by the body's symmetries (Ant-Dir; see
+    /// [`Mirror`]).
+    pub mirrors: bool,
     /// Recorded in the card as `dataset_noise` (how `collect --from-pretrained` writes data);
     /// `None` keeps the base agent's.
     pub dataset_noise: Option<Noise>,
@@ -51,6 +54,7 @@ impl Default for CombineConfig {
             top_k: 3,
             eval_episodes: 5,
             seed: 0,
+            mirrors: true,
             dataset_noise: None,
         }
     }
@@ -79,6 +83,12 @@ pub fn evaluate_policy(
 struct Candidate {
     path: PathBuf,
     policy: Policy,
+}
+
+/// A candidate as it is, or mirrored.
+struct Variant {
+    cand: usize,
+    mirror: Option<Mirror>,
 }
 
 /// Builds the combined agent in `out` (which may not be the base directory) and returns its card.
@@ -155,33 +165,63 @@ pub fn combine(
         cands.push(Candidate { path, policy });
     }
 
-    // Per task, the top_k candidates by their recorded evaluation.
-    let mut to_eval: BTreeMap<usize, Vec<usize>> = BTreeMap::new(); // candidate -> tasks
-    for task in 0..n_tasks {
-        let mut order: Vec<usize> = (0..cands.len()).collect();
-        order.sort_by(|&a, &b| {
-            let (ra, rb) =
-                (cands[a].policy.meta.eval_returns[task], cands[b].policy.meta.eval_returns[task]);
-            rb.total_cmp(&ra).then(a.cmp(&b))
-        });
-        for &c in order.iter().take(cfg.top_k) {
-            to_eval.entry(c).or_default().push(task);
+    // Variants: every candidate as it is, and (Ant-Dir) mirrored by each of the body's symmetries.
+    let mirrors = if cfg.mirrors { Mirror::for_family(&base.family) } else { vec![] };
+    let mut variants: Vec<Variant> = Vec::new();
+    for c in 0..cands.len() {
+        variants.push(Variant { cand: c, mirror: None });
+        for m in &mirrors {
+            variants.push(Variant { cand: c, mirror: Some(m.clone()) });
         }
     }
-    // (task) -> [(candidate, mean return)]
+    let features = &cands[0].policy.meta.encoder.task_features;
+    // A mirrored variant's recorded evaluation on a task is taken to be the candidate's on the
+    // task whose feature is nearest to the mirrored feature (a proxy used for ranking only).
+    let recorded = |v: &Variant, task: usize| -> f64 {
+        let r = &cands[v.cand].policy.meta.eval_returns;
+        match &v.mirror {
+            None => r[task],
+            Some(m) => {
+                let f: Vec<f32> =
+                    features[task].iter().zip(&m.task_feature_sign).map(|(x, s)| x * s).collect();
+                let dist = |k: usize| -> f32 {
+                    features[k].iter().zip(&f).map(|(a, b)| (a - b) * (a - b)).sum()
+                };
+                let nearest =
+                    (0..n_tasks).min_by(|&a, &b| dist(a).total_cmp(&dist(b))).unwrap_or(task);
+                r[nearest]
+            }
+        }
+    };
+
+    // Per task, the top_k variants by their recorded evaluation.
+    let mut to_eval: BTreeMap<usize, Vec<usize>> = BTreeMap::new(); // variant -> tasks
+    for task in 0..n_tasks {
+        let mut order: Vec<usize> = (0..variants.len()).collect();
+        order.sort_by(|&a, &b| {
+            recorded(&variants[b], task).total_cmp(&recorded(&variants[a], task)).then(a.cmp(&b))
+        });
+        for &v in order.iter().take(cfg.top_k) {
+            to_eval.entry(v).or_default().push(task);
+        }
+    }
+    // (task) -> [(variant, mean return)]
     let mut scores: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n_tasks];
     let total = to_eval.len();
-    for (done, (&c, tasks)) in to_eval.iter().enumerate() {
-        let returns = evaluate_policy(
-            &cands[c].policy,
-            family.as_ref(),
-            tasks,
-            cfg.eval_episodes,
-            cfg.seed,
+    for (done, (&v, tasks)) in to_eval.iter().enumerate() {
+        let p = &cands[variants[v].cand].policy;
+        let encoder = TaskEncoder { mirror: variants[v].mirror.clone(), ..p.meta.encoder.clone() };
+        let behaviour = Behaviour::Actor {
+            actor: &p.actor,
+            head: p.meta.head,
+            encoder: &encoder,
+            noise: Noise::Deterministic,
             device,
-        )?;
+        };
+        let returns =
+            evaluate_tasks(family.as_ref(), behaviour, cfg.seed, tasks, cfg.eval_episodes)?;
         for (&t, r) in tasks.iter().zip(returns) {
-            scores[t].push((c, r));
+            scores[t].push((v, r));
         }
         progress(done + 1, total);
     }
@@ -196,27 +236,38 @@ pub fn combine(
         })
         .collect::<Result<_, _>>()?;
 
-    // Files: the candidate chosen for most tasks is `expert.safetensors`, the others
+    // Files: the variant chosen for most tasks is `expert.safetensors`, the others
     // `expert-1.safetensors`, ... in the order of their first task.
     let mut uses: BTreeMap<usize, usize> = BTreeMap::new();
-    for &(c, _) in &chosen {
-        *uses.entry(c).or_default() += 1;
+    for &(v, _) in &chosen {
+        *uses.entry(v).or_default() += 1;
     }
     let main =
-        uses.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(&c, _)| c).unwrap_or(0);
+        uses.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(&v, _)| v).unwrap_or(0);
     let mut file_of: BTreeMap<usize, String> =
         BTreeMap::from([(main, "expert.safetensors".into())]);
-    for &(c, _) in &chosen {
+    for &(v, _) in &chosen {
         let k = file_of.len();
-        file_of.entry(c).or_insert_with(|| format!("expert-{k}.safetensors"));
+        file_of.entry(v).or_insert_with(|| format!("expert-{k}.safetensors"));
     }
     std::fs::create_dir_all(out)
         .map_err(|source| RlError::Io { path: out.to_path_buf(), source })?;
-    for (&c, name) in &file_of {
-        let src = &cands[c].path;
-        let bytes =
-            std::fs::read(src).map_err(|source| RlError::Io { path: src.clone(), source })?;
-        write_atomic(&out.join(name), &bytes)?;
+    for (&v, name) in &file_of {
+        let c = &cands[variants[v].cand];
+        match &variants[v].mirror {
+            // As it is: a byte copy of the snapshot.
+            None => {
+                let bytes = std::fs::read(&c.path)
+                    .map_err(|source| RlError::Io { path: c.path.clone(), source })?;
+                write_atomic(&out.join(name), &bytes)?;
+            }
+            // Mirrored: the same actor, with the mirror in its encoder.
+            Some(m) => {
+                let mut meta = c.policy.meta.clone();
+                meta.encoder.mirror = Some(m.clone());
+                policy::save(&out.join(name), &c.policy.actor, &meta)?;
+            }
+        }
     }
     let medium_src = cfg.base.join("medium.safetensors");
     let bytes = std::fs::read(&medium_src)
@@ -226,16 +277,17 @@ pub fn combine(
     let task_experts: Vec<TaskExpert> = chosen
         .iter()
         .enumerate()
-        .map(|(task, &(c, r))| TaskExpert {
+        .map(|(task, &(v, r))| TaskExpert {
             task,
-            file: file_of[&c].clone(),
-            source: cands[c].path.display().to_string(),
-            step: cands[c].policy.meta.step,
+            file: file_of[&v].clone(),
+            source: cands[variants[v].cand].path.display().to_string(),
+            mirror: variants[v].mirror.as_ref().map(|m| m.name.clone()),
+            step: cands[variants[v].cand].policy.meta.step,
             eval_return: r,
         })
         .collect();
     let mut card = base.clone();
-    card.expert_step = cands[main].policy.meta.step;
+    card.expert_step = cands[variants[main].cand].policy.meta.step;
     card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
     card.task_experts = task_experts;
     if cfg.dataset_noise.is_some() {

@@ -61,6 +61,7 @@ impl Policy {
         let mut out = Vec::with_capacity(self.meta.act_dim);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         self.meta.head.action(&raw, self.meta.act_dim, Noise::Deterministic, &mut rng, &mut out);
+        self.meta.encoder.decode_action(&mut out);
         out
     }
 }
@@ -121,6 +122,15 @@ pub fn load(path: &Path, device: Device) -> Result<Policy, RlError> {
             meta.encoder.input_dim(),
             meta.head.raw_dim(meta.act_dim)
         )));
+    }
+    if let Some(m) = &meta.encoder.mirror {
+        let feature_dim = meta.encoder.task_features.first().map_or(0, Vec::len);
+        if !m.fits(meta.encoder.obs_dim, meta.act_dim, feature_dim) {
+            return Err(bad(format!(
+                "mirror `{}` does not fit observation {}, action {} and task feature {}",
+                m.name, meta.encoder.obs_dim, meta.act_dim, feature_dim
+            )));
+        }
     }
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| bad(format!("not a safetensors file: {e}")))?;

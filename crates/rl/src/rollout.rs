@@ -110,7 +110,7 @@ pub fn run_episodes(
                 let ep = &mut running[i];
                 action.clear();
                 match behaviour {
-                    Behaviour::Actor { head, noise, .. } => {
+                    Behaviour::Actor { head, noise, encoder, .. } => {
                         let w = head.raw_dim(act_dim);
                         head.action(
                             &raw[k * w..(k + 1) * w],
@@ -119,6 +119,7 @@ pub fn run_episodes(
                             &mut ep.spec.rng,
                             &mut action,
                         );
+                        encoder.decode_action(&mut action);
                     }
                     Behaviour::Uniform => {
                         for _ in 0..act_dim {

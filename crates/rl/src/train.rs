@@ -245,6 +245,9 @@ pub struct TaskExpert {
     pub file: String,
     /// The snapshot it was copied from.
     pub source: String,
+    /// The mirror it acts through, if any (see `agent::Mirror`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mirror: Option<String>,
     /// Its training step.
     pub step: u64,
     /// Its mean deterministic return on the task, over the combination's evaluation episodes.

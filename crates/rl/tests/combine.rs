@@ -93,6 +93,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
         top_k: 100,
         eval_episodes: 2,
         seed: 3,
+        mirrors: true,
         dataset_noise: Some(Noise::Deterministic),
     };
     let comb = combine(&cfg, &out, Device::Cpu, &mut |_, _| {}).unwrap();
