@@ -270,10 +270,11 @@ mod tests {
 
 /// A symmetry of the Ant: the body, its legs, joint ranges, actuators and the floor are
 /// symmetric under both reflections below (and so under their composition, a half turn), so a
-/// state mirrored and stepped with the mirrored action stays the mirror of the original trajectory, and the reward for goal `g` becomes the reward for
-/// the mirrored goal. A policy that walks towards `g` therefore walks towards the mirrored goal
-/// when it sees mirrored observations and its actions are mirrored back (`pdt-rl` uses this for
-/// directions its agent walks poorly towards).
+/// state mirrored and stepped with the mirrored action stays the mirror of the original
+/// trajectory, and the reward for goal `g` becomes the reward for the mirrored goal. A policy that
+/// walks towards `g` therefore walks towards the mirrored goal when it sees mirrored observations
+/// and its actions are mirrored back (`pdt-rl` uses this for directions its agent walks poorly
+/// towards).
 ///
 /// Derivation (`ant_dir.xml`): the legs sit at (±0.2, ±0.2); hips turn about z (range ±30°);
 /// ankle axes are (-1, 1, 0) for legs 1 and 3, (1, 1, 0) for legs 2 and 4. A symmetry `S` maps
