@@ -285,6 +285,10 @@ pub struct CollectArgs {
     /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
+    /// Minibatches from the most recent N transitions only (0: the whole replay buffer); with
+    /// --resume --tasks, this makes fine-tuning learn from the fine-tuned tasks' transitions.
+    #[arg(long)]
+    pub sample_recent: Option<u64>,
     /// Write the datasets without exploration noise (default: what the agent's `agent.json` asks
     /// for in `dataset_noise`, else the policy's own noise, as in a replay buffer).
     #[arg(long, conflicts_with = "explore")]

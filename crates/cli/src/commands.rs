@@ -241,6 +241,9 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
             if let Some(t) = &a.tasks {
                 cfg.tasks = t.clone();
             }
+            if let Some(w) = a.sample_recent {
+                cfg.sample_recent = w;
+            }
             let pb = bar(
                 cfg.total_steps,
                 "{prefix} {bar:30} {pos}/{len} steps [{elapsed} < {eta}] {msg}",
@@ -287,7 +290,11 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                 }
             };
             let start = if a.resume {
-                pdt_rl::train::Start::Resume { total_steps: a.steps, tasks: a.tasks.as_deref() }
+                pdt_rl::train::Start::Resume {
+                    total_steps: a.steps,
+                    tasks: a.tasks.as_deref(),
+                    sample_recent: a.sample_recent,
+                }
             } else {
                 pdt_rl::train::Start::New(&cfg)
             };

@@ -107,7 +107,20 @@ impl ReplayBuffer {
 
     /// `batch` transitions drawn uniformly with replacement (the buffer must not be empty).
     pub fn sample(&mut self, batch: usize, rng: &mut ChaCha8Rng, device: Device) -> Batch {
+        self.sample_recent(batch, 0, rng, device)
+    }
+
+    /// Like [`sample`](Self::sample), from the most recent `window` transitions only (all of them
+    /// when `window` is 0 or at least the buffer's length).
+    pub fn sample_recent(
+        &mut self,
+        batch: usize,
+        window: usize,
+        rng: &mut ChaCha8Rng,
+        device: Device,
+    ) -> Batch {
         let (n, d, a) = (self.len().max(1), self.obs_dim, self.act_dim);
+        let lo = if window == 0 { 0 } else { n.saturating_sub(window) };
         let s = &mut self.scratch;
         s.obs.clear();
         s.actions.clear();
@@ -115,7 +128,7 @@ impl ReplayBuffer {
         s.next_obs.clear();
         s.not_done.clear();
         for _ in 0..batch {
-            let i = rng.random_range(0..n);
+            let i = lo + rng.random_range(0..n - lo);
             s.obs.extend_from_slice(&self.obs[i * d..(i + 1) * d]);
             s.actions.extend_from_slice(&self.actions[i * a..(i + 1) * a]);
             s.rewards.push(self.rewards[i]);
@@ -171,6 +184,33 @@ impl ReplayBuffer {
 mod tests {
     use super::*;
     use rand::SeedableRng;
+
+    #[test]
+    fn sample_recent_draws_from_the_window_and_whole_buffer_draws_are_unchanged() {
+        let mut b = ReplayBuffer::new(1, 1, 100);
+        for i in 0..100 {
+            let x = [i as f32];
+            b.push(Transition {
+                obs: &x,
+                action: &x,
+                reward: i as f32,
+                next_obs: &x,
+                terminated: false,
+            });
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let r = b.sample_recent(500, 10, &mut rng, Device::Cpu).rewards;
+        let v: Vec<f32> = Vec::<f32>::try_from(r.view([-1])).unwrap();
+        assert!(v.iter().all(|&x| (90.0..100.0).contains(&x)), "{v:?}");
+        assert!(v.contains(&90.0) && v.contains(&99.0));
+        // Window 0 and a window larger than the buffer are the plain sample, draw for draw.
+        for w in [0, 100, 1000] {
+            let (mut r1, mut r2) = (ChaCha8Rng::seed_from_u64(2), ChaCha8Rng::seed_from_u64(2));
+            let a = b.sample(64, &mut r1, Device::Cpu).rewards;
+            let c = b.sample_recent(64, w, &mut r2, Device::Cpu).rewards;
+            assert!(a.equal(&c), "window {w}");
+        }
+    }
 
     #[test]
     fn push_keeps_order_and_refuses_bad_sizes_and_overflow() {

@@ -49,6 +49,11 @@ pub struct RlConfig {
     pub learning_starts: u64,
     pub batch_size: usize,
     pub updates_per_step: u64,
+    /// Minibatches from the most recent this many transitions only; 0: the whole buffer. For
+    /// fine-tuning on a few tasks (`Start::Resume { tasks, .. }`), whose buffer is otherwise
+    /// mostly the earlier tasks' transitions.
+    #[serde(default)]
+    pub sample_recent: u64,
     /// Tasks the agent trains on (one drawn uniformly per episode); empty: all of the family's.
     /// A single task gives a per-task agent.
     #[serde(default)]
@@ -91,6 +96,7 @@ impl RlConfig {
             learning_starts: 5_000.min(total_steps / 4),
             batch_size: 256,
             updates_per_step: 1,
+            sample_recent: 0,
             tasks: vec![],
             checkpoint_every: 50_000,
             snapshot_fractions: vec![
@@ -274,7 +280,8 @@ pub enum Start<'a> {
     /// Continue from the directory's checkpoint, optionally with a new (larger) step budget and a
     /// new set of training tasks (fine-tuning a trained agent on the tasks it does worst, say; the
     /// replay buffer keeps the earlier tasks' transitions).
-    Resume { total_steps: Option<u64>, tasks: Option<&'a [usize]> },
+    /// `sample_recent` likewise replaces the minibatch window.
+    Resume { total_steps: Option<u64>, tasks: Option<&'a [usize]>, sample_recent: Option<u64> },
 }
 
 /// Trains (or resumes) in `dir`; at the end writes `dir/agent/`.
@@ -293,7 +300,7 @@ pub fn train(
         move |source| RlError::Io { path, source }
     };
     let (cfg, loaded) = match start {
-        Start::Resume { total_steps, tasks } => {
+        Start::Resume { total_steps, tasks, sample_recent } => {
             if !ckpt_path.exists() {
                 return Err(RlError::NoCheckpoint { path: dir.to_path_buf() });
             }
@@ -310,6 +317,9 @@ pub fn train(
             }
             if let Some(t) = tasks {
                 c.tasks = t.to_vec();
+            }
+            if let Some(w) = sample_recent {
+                c.sample_recent = w;
             }
             (c, Some((state, tensors)))
         }
@@ -452,7 +462,12 @@ pub fn train(
             if state.step >= cfg.learning_starts {
                 for _ in 0..cfg.updates_per_step {
                     let mut brng = stream_rng(cfg.seed, STREAM_BATCH, state.updates);
-                    let batch = buffer.sample(cfg.batch_size, &mut brng, device);
+                    let batch = buffer.sample_recent(
+                        cfg.batch_size,
+                        cfg.sample_recent as usize,
+                        &mut brng,
+                        device,
+                    );
                     last_update = agent.update(&batch, &mut brng);
                     state.updates += 1;
                 }

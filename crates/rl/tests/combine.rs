@@ -52,7 +52,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
     copy_dir(&a, &c);
     std::fs::remove_dir_all(c.join("agent")).unwrap();
     let card = train(
-        Start::Resume { total_steps: Some(900), tasks: Some(&[1]) },
+        Start::Resume { total_steps: Some(900), tasks: Some(&[1]), sample_recent: Some(200) },
         &c,
         None,
         Device::Cpu,
@@ -61,6 +61,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
     .unwrap()
     .unwrap();
     assert_eq!(card.config.tasks, vec![1]);
+    assert_eq!(card.config.sample_recent, 200);
     let csv = std::fs::read_to_string(c.join("episodes.csv")).unwrap();
     let mut after = 0;
     for line in csv.lines().skip(1) {
@@ -76,7 +77,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
     assert!(c.join("snapshots").join("actor-000000900.safetensors").exists());
     // An unknown task is refused, naming it.
     let e = train(
-        Start::Resume { total_steps: Some(1000), tasks: Some(&[7]) },
+        Start::Resume { total_steps: Some(1000), tasks: Some(&[7]), sample_recent: None },
         &c,
         None,
         Device::Cpu,

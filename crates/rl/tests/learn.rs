@@ -78,7 +78,7 @@ fn interrupted_and_resumed_run_equals_uninterrupted_run() {
             Err(pdt_rl::RlError::Exists { .. })
         ));
         let resumed = train(
-            Start::Resume { total_steps: None, tasks: None },
+            Start::Resume { total_steps: None, tasks: None, sample_recent: None },
             &b,
             None,
             Device::Cpu,
@@ -180,7 +180,7 @@ fn bad_inputs_are_clear_errors() {
         .to_string();
     assert!(e.contains("40"), "{e}");
     let e = train(
-        Start::Resume { total_steps: None, tasks: None },
+        Start::Resume { total_steps: None, tasks: None, sample_recent: None },
         &tmp.path().join("none"),
         None,
         Device::Cpu,
@@ -197,7 +197,7 @@ fn bad_inputs_are_clear_errors() {
     let bytes = std::fs::read(&ck).unwrap();
     std::fs::write(&ck, &bytes[..bytes.len() / 2]).unwrap();
     let e = train(
-        Start::Resume { total_steps: None, tasks: None },
+        Start::Resume { total_steps: None, tasks: None, sample_recent: None },
         &run,
         None,
         Device::Cpu,
@@ -225,7 +225,7 @@ fn a_finished_run_can_be_extended() {
         train(Start::New(&cfg), tmp.path(), None, Device::Cpu, &mut |_| {}).unwrap().unwrap();
     assert_eq!(first.snapshots.iter().map(|s| s.step).collect::<Vec<_>>(), vec![400, 600]);
     let e = train(
-        Start::Resume { total_steps: Some(200), tasks: None },
+        Start::Resume { total_steps: Some(200), tasks: None, sample_recent: None },
         tmp.path(),
         None,
         Device::Cpu,
@@ -235,7 +235,7 @@ fn a_finished_run_can_be_extended() {
     .to_string();
     assert!(e.contains("cannot shrink"), "{e}");
     let longer = train(
-        Start::Resume { total_steps: Some(1200), tasks: None },
+        Start::Resume { total_steps: Some(1200), tasks: None, sample_recent: None },
         tmp.path(),
         None,
         Device::Cpu,
