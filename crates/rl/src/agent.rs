@@ -450,6 +450,38 @@ mod tests {
     use rand::SeedableRng;
 
     #[test]
+    fn a_mirrored_encoder_sees_the_mirrored_observation_and_goal_and_mirrors_actions_back() {
+        use pdt_envs::ant_dir::Symmetry;
+        let fam = pdt_envs::family("ant_dir").unwrap();
+        let plain = TaskEncoder::for_family(fam.as_ref()).unwrap();
+        let mirrors = Mirror::for_family("ant_dir");
+        assert_eq!(mirrors.len(), 3);
+        assert!(Mirror::for_family("cheetah_vel").is_empty());
+        let obs: Vec<f32> = (0..27).map(|i| i as f32 * 0.1 - 1.0).collect();
+        for (m, sym) in mirrors.iter().zip(Symmetry::ALL) {
+            assert!(m.fits(27, 8, 2));
+            let enc = TaskEncoder { mirror: Some(m.clone()), ..plain.clone() };
+            let (mut a, mut b) = (vec![], vec![]);
+            enc.encode(&obs, 3, &mut a);
+            let mobs: Vec<f32> = sym.observation().apply(&obs).iter().map(|&v| v as f32).collect();
+            plain.encode(&mobs, 3, &mut b);
+            // The task feature: (cos, sin) of the mirrored goal.
+            let g = sym.goal(pdt_envs::ant_dir::GOALS[3]);
+            b.truncate(27);
+            b.extend([g.cos() as f32, g.sin() as f32]);
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x - y).abs() < 1e-6, "{}: {a:?} vs {b:?}", m.name);
+            }
+            let mut act: Vec<f32> = (0..8).map(|i| i as f32 * 0.2 - 0.7).collect();
+            let want: Vec<f32> = sym.action().apply(&act).iter().map(|&v| v as f32).collect();
+            enc.decode_action(&mut act);
+            assert_eq!(act, want);
+            plain.decode_action(&mut act);
+            assert_eq!(act, want, "no mirror: unchanged");
+        }
+    }
+
+    #[test]
     fn encoders_of_the_mujoco_families() {
         let cd =
             TaskEncoder::for_family(pdt_envs::family("cheetah_dir").unwrap().as_ref()).unwrap();

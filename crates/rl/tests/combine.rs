@@ -202,3 +202,59 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
     .unwrap_err();
     assert!(e.to_string().contains("cheetah_vel policy"), "{e}");
 }
+
+/// Ant-Dir: mirrored candidates (the body's symmetries) are evaluated and written as policy files
+/// whose encoder carries the mirror; a policy file with a mirror that does not fit is refused.
+#[test]
+fn ant_candidates_are_also_tried_mirrored() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("ant");
+    let mut cfg = tiny(400);
+    cfg.family = "ant_dir".into();
+    cfg.snapshot_fractions = vec![1.0];
+    train(Start::New(&cfg), &run, None, Device::Cpu, &mut |_| {}).unwrap().unwrap();
+    let out = tmp.path().join("combined");
+    let ccfg = CombineConfig {
+        base: agent_dir(&run),
+        candidates: vec![run.join("snapshots")],
+        top_k: 4, // the expert as it is and through each of the 3 symmetries
+        eval_episodes: 1,
+        seed: 0,
+        mirrors: true,
+        dataset_noise: None,
+    };
+    let card = combine(&ccfg, &out, Device::Cpu, &mut |_, _| {}).unwrap();
+    let family = pdt_envs::family("ant_dir").unwrap();
+    let base = policy::load(&agent_dir(&run).join("expert.safetensors"), Device::Cpu).unwrap();
+    let mut mirrored = 0;
+    for e in &card.task_experts {
+        let p = policy::load(&out.join(&e.file), Device::Cpu).unwrap();
+        assert_eq!(p.meta.encoder.mirror.as_ref().map(|m| m.name.clone()), e.mirror);
+        assert!(p.actor.to_vec() == base.actor.to_vec(), "the same actor, mirrored or not");
+        let r = evaluate_policy(&p, family.as_ref(), &[e.task], 1, 0, Device::Cpu).unwrap()[0];
+        assert!((r - e.eval_return).abs() <= 1e-4 * r.abs().max(1.0), "task {}", e.task);
+        mirrored += usize::from(e.mirror.is_some());
+    }
+    // With four variants of one actor per task, some task is best served mirrored.
+    assert!(mirrored > 0, "no task chose a mirrored expert");
+    // Without mirrors every expert is the actor as it is.
+    let plain = combine(
+        &CombineConfig { mirrors: false, ..ccfg },
+        &tmp.path().join("plain"),
+        Device::Cpu,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert!(plain.task_experts.iter().all(|e| e.mirror.is_none()));
+
+    // A mirror whose maps do not fit the observation is refused when the file is read.
+    let f = card.task_experts.iter().find(|e| e.mirror.is_some()).unwrap();
+    let mut p = policy::load(&out.join(&f.file), Device::Cpu).unwrap();
+    if let Some(m) = p.meta.encoder.mirror.as_mut() {
+        m.obs_index.pop();
+    }
+    let bad = tmp.path().join("bad.safetensors");
+    policy::save(&bad, &p.actor, &p.meta).unwrap();
+    let e = policy::load(&bad, Device::Cpu).unwrap_err();
+    assert!(e.to_string().contains("mirror") && e.to_string().contains("bad.safetensors"), "{e}");
+}
