@@ -1,19 +1,20 @@
 //! Per-task experts from several snapshots: one agent directory whose expert may differ by task.
 //!
 //! Why: one task-conditioned agent per family is what fits a 2-core budget, but such an agent can
-//! settle on a gait that serves only some tasks (the Ant-Dir agent walks well towards half of the
-//! directions and barely moves towards the other half), and its best snapshot overall is not the
+//! settle on a gait that serves only some tasks (the Ant-Dir agent walks well towards about half of
+//! the directions and barely moves towards the others), and its best snapshot overall is not the
 //! best for every task (a Cheetah-Vel snapshot can track low speeds better than a later one that
 //! tracks high speeds better). The reference trained one agent per task, so its experts are each
-//! the best for their task; this recovers that from a few runs: a second agent trained on the
-//! weak tasks only (`collect --tasks`), or the first one fine-tuned on them (`collect --resume
-//! --tasks`), and then, for every task, the snapshot that does best on it.
+//! the best for their task; this recovers that from a run, runs fine-tuned on some tasks
+//! (`collect --resume --tasks --sample-recent`), and, for Ant-Dir, the body's symmetries: a
+//! snapshot acting through a reflection or the half turn walks towards the mirror images of the
+//! directions it walks towards ([`Mirror`]).
 //!
-//! Selection: every snapshot file records a one-episode deterministic evaluation per task. For each
-//! task the `top_k` snapshots by that record are evaluated again on `eval_episodes` episodes (the
-//! same reset states for all of them) and the best mean wins; ties go to the earlier candidate,
-//! the base agent's expert first. The medium policy and the random-action evaluation are the base
-//! agent's.
+//! Selection: every snapshot file records a one-episode deterministic evaluation per task (a
+//! mirrored candidate's is read off the task nearest to the mirrored goal). For each task the
+//! `top_k` candidates by that record are evaluated again on `eval_episodes` episodes (the same reset
+//! states for all of them) and the best mean wins; ties go to the earlier candidate, the base
+//! agent's expert first. The medium policy and the random-action evaluation are the base agent's.
 
 use crate::agent::{Mirror, Noise, TaskEncoder};
 use crate::policy::{self, Policy};
