@@ -14,7 +14,9 @@
 //! mirrored candidate's is read off the task nearest to the mirrored goal). For each task the
 //! `top_k` candidates by that record are evaluated again on `eval_episodes` episodes (the same reset
 //! states for all of them) and the best mean wins; ties go to the earlier candidate, the base
-//! agent's expert first. The medium policy and the random-action evaluation are the base agent's.
+//! agent's expert first. The medium policy is, of the base agent's medium and the candidates, the
+//! one whose recorded returns are on average closest to each task's halfway point between random
+//! actions (the base agent's evaluation) and the task's chosen expert.
 
 use crate::agent::{Mirror, Noise, TaskEncoder};
 use crate::policy::{self, Policy};
@@ -270,9 +272,27 @@ pub fn combine(
             }
         }
     }
-    let medium_src = cfg.base.join("medium.safetensors");
-    let bytes = std::fs::read(&medium_src)
-        .map_err(|source| RlError::Io { path: medium_src.clone(), source })?;
+    // The medium policy keeps its definition (halfway in evaluated return between uniform random
+    // actions and the expert), now against the per-task experts, task by task: of the base agent's
+    // medium and the candidates as they are, the one whose recorded returns are on average closest
+    // to each task's halfway point (a policy that walks well in half of the directions and not at
+    // all in the others is not medium data).
+    let half: Vec<f64> =
+        base.random_eval.iter().zip(&chosen).map(|(r, c)| 0.5 * (r + c.1)).collect();
+    let gap = |r: &[f64]| -> f64 {
+        r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>() / half.len().max(1) as f64
+    };
+    let base_medium_path = cfg.base.join("medium.safetensors");
+    let base_medium = policy::load(&base_medium_path, device)?;
+    let mut medium = (base_medium_path, base_medium.meta.step, base_medium.meta.eval_returns);
+    for c in &cands {
+        let r = &c.policy.meta.eval_returns;
+        if gap(r) < gap(&medium.2) {
+            medium = (c.path.clone(), c.policy.meta.step, r.clone());
+        }
+    }
+    let bytes = std::fs::read(&medium.0)
+        .map_err(|source| RlError::Io { path: medium.0.clone(), source })?;
     write_atomic(&out.join("medium.safetensors"), &bytes)?;
 
     let task_experts: Vec<TaskExpert> = chosen
@@ -291,6 +311,16 @@ pub fn combine(
     card.expert_step = cands[variants[main].cand].policy.meta.step;
     card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
     card.task_experts = task_experts;
+    card.medium_step = medium.1;
+    card.medium_eval = medium.2.clone();
+    card.why_medium = format!(
+        "of the base agent's medium and the {} candidate snapshots, the one whose deterministic \
+         returns are on average closest ({:.2}) to each task's halfway point between uniform \
+         random actions and its expert ({})",
+        cands.len(),
+        gap(&medium.2),
+        medium.0.display()
+    );
     if cfg.dataset_noise.is_some() {
         card.dataset_noise = cfg.dataset_noise;
     }

@@ -129,10 +129,19 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
             e.source
         );
     }
-    assert!(
-        std::fs::read(out.join("medium.safetensors")).unwrap()
-            == std::fs::read(agent_dir(&a).join("medium.safetensors")).unwrap()
-    );
+    // The medium policy: of the base medium and the candidates, the one whose recorded returns are
+    // on average closest to each task's halfway point between random actions and its expert.
+    let half: Vec<f64> =
+        comb.random_eval.iter().zip(&comb.expert_eval).map(|(r, e)| 0.5 * (r + e)).collect();
+    let gap = |r: &[f64]| r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>();
+    let medium = policy::load(&out.join("medium.safetensors"), Device::Cpu).unwrap();
+    assert_eq!(medium.meta.eval_returns, comb.medium_eval);
+    let mut pool = candidates.clone();
+    pool.push(agent_dir(&a).join("medium.safetensors"));
+    for p in &pool {
+        let r = policy::load(p, Device::Cpu).unwrap().meta.eval_returns;
+        assert!(gap(&comb.medium_eval) <= gap(&r), "{} is closer to halfway", p.display());
+    }
 
     // Datasets: each task's expert data comes from that task's expert file: the same bytes as from
     // an agent directory whose only expert is that file.
