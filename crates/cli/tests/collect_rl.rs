@@ -156,40 +156,21 @@ fn fine_tune_combine_and_collect_from_the_combined_agent() {
     assert!(out.contains("mean expert return"), "{out}");
     let card = std::fs::read_to_string(p("combined/agent.json")).unwrap();
     assert!(card.contains("task_experts"), "{card}");
-    let data = ok(&[
-        "collect",
-        "--env",
-        "cheetah_dir",
-        "--from-pretrained",
-        "--pretrained-dir",
-        p("combined").to_str().unwrap(),
-        "--out",
-        p("data-comb").to_str().unwrap(),
-        "--episodes",
-        "2",
-        "--prompt-episodes",
-        "1",
-    ]);
+    let from_combined = |out: &str, extra: &[&str]| {
+        let (agent, out) = (p("combined"), p(out));
+        let mut args = vec!["collect", "--env", "cheetah_dir", "--from-pretrained"];
+        args.extend(["--pretrained-dir", agent.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        args.extend(["--episodes", "2", "--prompt-episodes", "1"]);
+        args.extend(extra);
+        ok(&args)
+    };
+    let data = from_combined("data-comb", &[]);
     assert!(data.contains("wrote 12 files"), "{data}");
     let dcard = std::fs::read_to_string(p("data-comb/dataset.json")).unwrap();
     assert!(dcard.contains("expert_per_task"), "{dcard}");
     // The agent asks for noiseless data; --explore overrides it.
     assert!(dcard.contains("\"noise\": \"deterministic\""), "{dcard}");
-    ok(&[
-        "collect",
-        "--env",
-        "cheetah_dir",
-        "--from-pretrained",
-        "--pretrained-dir",
-        p("combined").to_str().unwrap(),
-        "--out",
-        p("data-explore").to_str().unwrap(),
-        "--episodes",
-        "1",
-        "--prompt-episodes",
-        "1",
-        "--explore",
-    ]);
+    from_combined("data-explore", &["--explore"]);
     let ecard = std::fs::read_to_string(p("data-explore/dataset.json")).unwrap();
     assert!(ecard.contains("\"noise\": \"explore\""), "{ecard}");
 
