@@ -122,6 +122,13 @@ pub fn generate(
     std::fs::create_dir_all(out_dir)
         .map_err(|source| RlError::Io { path: out_dir.to_path_buf(), source })?;
     let load = |file: &str| -> Result<Policy, RlError> {
+        // `task_experts` names files inside the agent directory, never elsewhere.
+        if file.contains(['/', '\\']) || file.starts_with('.') {
+            return Err(RlError::File {
+                path: agent_dir.join("agent.json"),
+                message: format!("expert file `{file}` is not a file name in the agent directory"),
+            });
+        }
         let p = policy::load(&agent_dir.join(file), device)?;
         if p.meta.family != card.family {
             return Err(RlError::File {

@@ -177,6 +177,20 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
         assert_eq!(card["generator"]["noise"], "deterministic");
     }
 
+    // An agent card naming an expert file outside its directory is refused.
+    let mut evil = comb.clone();
+    evil.task_experts[0].file = "../a/agent/expert.safetensors".into();
+    std::fs::write(out.join("agent.json"), serde_json::to_string(&evil).unwrap()).unwrap();
+    let e = generate(
+        &out,
+        &tmp.path().join("d-evil"),
+        &DatasetConfig::default(),
+        Device::Cpu,
+        &mut |_, _| {},
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("not a file name"), "{e}");
+
     // Bad input: writing over the base, an empty candidate directory, a policy of another family.
     let e = combine(
         &CombineConfig { base: agent_dir(&a), ..cfg.clone() },
