@@ -73,10 +73,23 @@ pub fn evaluate_policy(
     seed: u64,
     device: Device,
 ) -> Result<Vec<f64>, RlError> {
+    evaluate_through(policy, &policy.meta.encoder, family, tasks, episodes, seed, device)
+}
+
+/// [`evaluate_policy`] with another encoder for the same actor (a mirror of its own).
+fn evaluate_through(
+    policy: &Policy,
+    encoder: &TaskEncoder,
+    family: &dyn EnvFamily,
+    tasks: &[usize],
+    episodes: usize,
+    seed: u64,
+    device: Device,
+) -> Result<Vec<f64>, RlError> {
     let behaviour = Behaviour::Actor {
         actor: &policy.actor,
         head: policy.meta.head,
-        encoder: &policy.meta.encoder,
+        encoder,
         noise: Noise::Deterministic,
         device,
     };
@@ -85,6 +98,8 @@ pub fn evaluate_policy(
 
 struct Candidate {
     path: PathBuf,
+    /// The file as read (copied as it is into the combined agent).
+    bytes: Vec<u8>,
     policy: Policy,
 }
 
@@ -140,18 +155,16 @@ pub fn combine(
             paths.push(c.clone());
         }
     }
-    let mut cands = Vec::with_capacity(paths.len());
-    let mut seen: Vec<Vec<u8>> = Vec::with_capacity(paths.len());
+    let mut cands: Vec<Candidate> = Vec::with_capacity(paths.len());
     for path in paths {
         // The same actor twice (the base expert is also one of its run's snapshots) would take
         // two of a task's top_k places: keep the first.
         let bytes =
             std::fs::read(&path).map_err(|source| RlError::Io { path: path.clone(), source })?;
-        if seen.contains(&bytes) {
+        if cands.iter().any(|c| c.bytes == bytes) {
             continue;
         }
-        seen.push(bytes);
-        let policy = policy::load(&path, device)?;
+        let policy = policy::from_bytes(&bytes, &path, device)?;
         let bad = |message: String| RlError::File { path: path.clone(), message };
         if policy.meta.family != base.family {
             return Err(bad(format!(
@@ -165,7 +178,7 @@ pub fn combine(
                 policy.meta.eval_returns.len()
             )));
         }
-        cands.push(Candidate { path, policy });
+        cands.push(Candidate { path, bytes, policy });
     }
 
     // Variants: every candidate as it is, and (Ant-Dir) mirrored by each of the body's symmetries.
@@ -214,15 +227,15 @@ pub fn combine(
     for (done, (&v, tasks)) in to_eval.iter().enumerate() {
         let p = &cands[variants[v].cand].policy;
         let encoder = TaskEncoder { mirror: variants[v].mirror.clone(), ..p.meta.encoder.clone() };
-        let behaviour = Behaviour::Actor {
-            actor: &p.actor,
-            head: p.meta.head,
-            encoder: &encoder,
-            noise: Noise::Deterministic,
+        let returns = evaluate_through(
+            p,
+            &encoder,
+            family.as_ref(),
+            tasks,
+            cfg.eval_episodes,
+            cfg.seed,
             device,
-        };
-        let returns =
-            evaluate_tasks(family.as_ref(), behaviour, cfg.seed, tasks, cfg.eval_episodes)?;
+        )?;
         for (&t, r) in tasks.iter().zip(returns) {
             scores[t].push((v, r));
         }
@@ -259,11 +272,7 @@ pub fn combine(
         let c = &cands[variants[v].cand];
         match &variants[v].mirror {
             // As it is: a byte copy of the snapshot.
-            None => {
-                let bytes = std::fs::read(&c.path)
-                    .map_err(|source| RlError::Io { path: c.path.clone(), source })?;
-                write_atomic(&out.join(name), &bytes)?;
-            }
+            None => write_atomic(&out.join(name), &c.bytes)?,
             // Mirrored: the same actor, with the mirror in its encoder.
             Some(m) => {
                 let mut meta = c.policy.meta.clone();
@@ -283,17 +292,16 @@ pub fn combine(
         r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>() / half.len().max(1) as f64
     };
     let base_medium_path = cfg.base.join("medium.safetensors");
-    let base_medium = policy::load(&base_medium_path, device)?;
-    let mut medium = (base_medium_path, base_medium.meta.step, base_medium.meta.eval_returns);
+    let base_medium_bytes = std::fs::read(&base_medium_path)
+        .map_err(|source| RlError::Io { path: base_medium_path.clone(), source })?;
+    let base_medium = policy::from_bytes(&base_medium_bytes, &base_medium_path, device)?;
+    let mut medium = (&base_medium_path, &base_medium_bytes, &base_medium.meta);
     for c in &cands {
-        let r = &c.policy.meta.eval_returns;
-        if gap(r) < gap(&medium.2) {
-            medium = (c.path.clone(), c.policy.meta.step, r.clone());
+        if gap(&c.policy.meta.eval_returns) < gap(&medium.2.eval_returns) {
+            medium = (&c.path, &c.bytes, &c.policy.meta);
         }
     }
-    let bytes = std::fs::read(&medium.0)
-        .map_err(|source| RlError::Io { path: medium.0.clone(), source })?;
-    write_atomic(&out.join("medium.safetensors"), &bytes)?;
+    write_atomic(&out.join("medium.safetensors"), medium.1)?;
 
     let task_experts: Vec<TaskExpert> = chosen
         .iter()
@@ -311,14 +319,14 @@ pub fn combine(
     card.expert_step = cands[variants[main].cand].policy.meta.step;
     card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
     card.task_experts = task_experts;
-    card.medium_step = medium.1;
-    card.medium_eval = medium.2.clone();
+    card.medium_step = medium.2.step;
+    card.medium_eval = medium.2.eval_returns.clone();
     card.why_medium = format!(
         "of the base agent's medium and the {} candidate snapshots, the one whose deterministic \
          returns are on average closest ({:.2}) to each task's halfway point between uniform \
          random actions and its expert ({})",
         cands.len(),
-        gap(&medium.2),
+        gap(&medium.2.eval_returns),
         medium.0.display()
     );
     if cfg.dataset_noise.is_some() {

@@ -95,10 +95,15 @@ pub fn save(path: &Path, actor: &Mlp, meta: &PolicyMeta) -> Result<(), RlError> 
 
 /// Reads a policy file, checking its metadata against its tensors.
 pub fn load(path: &Path, device: Device) -> Result<Policy, RlError> {
-    let bad = |message: String| RlError::File { path: path.to_path_buf(), message };
     let bytes =
         std::fs::read(path).map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
-    let (_, header) = SafeTensors::read_metadata(&bytes)
+    from_bytes(&bytes, path, device)
+}
+
+/// Parses the bytes of the policy file `path` (named in errors), as [`load`] does.
+pub fn from_bytes(bytes: &[u8], path: &Path, device: Device) -> Result<Policy, RlError> {
+    let bad = |message: String| RlError::File { path: path.to_path_buf(), message };
+    let (_, header) = SafeTensors::read_metadata(bytes)
         .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
     let meta_json = header
         .metadata()
@@ -132,8 +137,8 @@ pub fn load(path: &Path, device: Device) -> Result<Policy, RlError> {
             )));
         }
     }
-    let st = SafeTensors::deserialize(&bytes)
-        .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let st =
+        SafeTensors::deserialize(bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut actor = Mlp::new(&meta.sizes, 1, &mut rng, Device::Cpu);
     let mut flat = vec![0f32; actor.flat.numel()];
