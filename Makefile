@@ -5,8 +5,13 @@
 
 CARGO ?= cargo
 PYTHON ?= python3
+# A Python with torch 2.11.0 (scripts/setup_torch_venv.sh installs one in .venv). When it is there,
+# `make test` first makes the PyTorch parity fixtures on this machine, and the parity tests then
+# compare against them bit for bit (besides the committed fixtures, within cross-CPU bounds).
+TORCH_PYTHON ?= .venv/bin/python
+LIVE_GOLDEN := target/golden-live
 
-.PHONY: demo test setup bench fmt lint
+.PHONY: demo test setup bench fmt lint torch-venv live-golden
 
 setup:
 	$(PYTHON) scripts/fetch_libtorch.py
@@ -15,8 +20,20 @@ setup:
 demo: setup
 	$(CARGO) run --release -p promptdt -- demo
 
-test: setup
-	$(CARGO) test --release --workspace
+# --no-fail-fast: every test binary runs even when one fails, so a failure report is complete.
+test: setup live-golden
+	PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) $(CARGO) test --release --workspace --no-fail-fast
+
+live-golden:
+	@rm -rf $(LIVE_GOLDEN)
+	@if $(TORCH_PYTHON) -c "import torch" 2>/dev/null; then \
+		$(TORCH_PYTHON) scripts/golden/make_prompt_dt_fixtures.py --out $(LIVE_GOLDEN) --threads 1; \
+	else \
+		echo "no torch at $(TORCH_PYTHON): bitwise parity against PyTorch on this CPU skipped (make torch-venv)"; \
+	fi
+
+torch-venv:
+	bash scripts/setup_torch_venv.sh
 
 # Side-by-side with PyTorch (needs a Python with torch 2.11: see scripts/requirements-torch.txt).
 bench: setup

@@ -7,6 +7,8 @@ Files (all safetensors; see testdata/golden/README.md for every name, shape and 
   prompt_dt_state_dict.safetensors  model.state_dict() after torch.manual_seed(0) + construction
   prompt_dt_inputs.safetensors      one realistic batch (B=4, K=20) + prompt (Lp=5), cheetah dims 20/6
   prompt_dt_expected.safetensors    eval outputs (with / without prompt) and two training steps
+  prompt_dt_cpu.json                the CPU and torch build that made them (the parity tests compare
+                                    bit for bit only on a CPU with the same fingerprint)
 
 The batch imitates the reference's get_batch / get_prompt (reference (b.4), (b.5)): left padding,
 states normalised after zero-padding, actions padded with -10, rtg / timesteps padded with 0.
@@ -15,6 +17,7 @@ Everything is drawn from numpy's PCG64 generator with seed INPUT_SEED, so the sc
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 
@@ -83,6 +86,31 @@ def batch_and_prompt(inp):
     return tuple(inp[n] for n in names), tuple(inp["prompt_" + n] for n in names)
 
 
+# The /proc/cpuinfo flags that change which kernels libtorch, MKL or oneDNN run, in this order.
+# crates/model/src/cpu.rs (KERNEL_FLAGS) reads the same list the same way: change both together.
+KERNEL_FLAGS = ["sse4_2", "avx", "avx2", "fma", "f16c", "avx512f", "avx512dq", "avx512cd", "avx512bw",
+                "avx512vl", "avx512_vnni", "avx512_bf16", "avx512_fp16", "avx512vbmi", "avx_vnni",
+                "amx_tile", "amx_bf16", "amx_int8"]
+
+
+def cpu_fingerprint():
+    """Vendor, model name and kernel-relevant flags of the first processor in /proc/cpuinfo."""
+    try:
+        text = open("/proc/cpuinfo").read()
+    except OSError:
+        return None
+    fields = {}
+    for line in text.splitlines():
+        k, sep, v = line.partition(":")
+        if sep and k.strip() not in fields:
+            fields[k.strip()] = v.strip()
+    if "vendor_id" not in fields:
+        return None
+    have = set(fields.get("flags", "").split())
+    return {"vendor_id": fields["vendor_id"], "model_name": fields.get("model name", ""),
+            "isa": [f for f in KERNEL_FLAGS if f in have]}
+
+
 def snapshot(d):
     """Detached, contiguous copies (a state_dict aliases the live parameters, which training changes)."""
     return {k: v.detach().clone(memory_format=torch.contiguous_format) for k, v in d.items()}
@@ -139,6 +167,14 @@ def main():
         path = os.path.join(args.out, fname)
         save_file(tensors, path, metadata=meta)
         print(f"{path}: {len(tensors)} tensors, {os.path.getsize(path)} bytes")
+    cpu = {"cpu": cpu_fingerprint(), "torch": torch.__version__,
+           "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(), "threads": args.threads,
+           "generator": meta["generator"]}
+    path = os.path.join(args.out, "prompt_dt_cpu.json")
+    with open(path, "w") as fh:
+        json.dump(cpu, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+    print(f"{path}: {cpu['torch_cpu_capability']}, {cpu['cpu']}")
     no_grad = sorted(n for n, p in model.named_parameters() if f"train.1.grad.{n}" not in expected)
     print("parameters without a gradient:", no_grad)
     print("loss:", [float(expected[f"train.{k}.loss"]) for k in (1, 2)],
