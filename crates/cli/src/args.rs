@@ -142,6 +142,10 @@ pub struct ForwardArgs {
     pub out: PathBuf,
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
+    /// Intra-op threads of libtorch (default: all cores). Bit-for-bit comparisons with PyTorch need
+    /// the thread count PyTorch ran with (the golden fixtures: 1).
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
 #[derive(Debug, Args)]

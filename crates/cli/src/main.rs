@@ -79,6 +79,11 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Model(ModelCommand::Forward(a)) => {
+            match a.threads {
+                Some(0) => anyhow::bail!("--threads must be at least 1"),
+                Some(t) => tch::set_num_threads(i32::try_from(t).unwrap_or(i32::MAX)),
+                None => {}
+            }
             let device = pdt_model::device::resolve(a.device)?;
             let s = pdt_model::forward_file::forward_file(&a.weights, &a.inputs, &a.out, device)?;
             println!(

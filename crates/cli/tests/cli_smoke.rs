@@ -107,6 +107,8 @@ fn model_forward_reproduces_the_pytorch_golden_predictions() {
             i.to_str().unwrap(),
             "--out",
             out.to_str().unwrap(),
+            "--threads",
+            "1",
         ]);
         assert!(msg.contains("[4, 20, 6]"), "{msg}");
         let ours = tch::Tensor::read_safetensors(&out).unwrap();
