@@ -42,6 +42,58 @@ pub enum Command {
     Bench(BenchArgs),
     /// A quick end-to-end run.
     Demo(DemoArgs),
+    /// Reproduce a table or figure of the paper: run what is not finished, then report it next to
+    /// the paper's numbers (`--list` shows the experiments).
+    Reproduce(ReproduceArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ReproduceArgs {
+    /// Experiment name (fig2, table1, fig3, fig4, appendix_*) or a manifest file.
+    #[arg(required_unless_present = "list")]
+    pub experiment: Option<String>,
+    /// List every experiment with its cost per budget.
+    #[arg(long)]
+    pub list: bool,
+    /// paper, cpu or smoke (see the manifest).
+    #[arg(long, default_value = "cpu")]
+    pub budget: String,
+    /// Seeds per cell (default: the budget's).
+    #[arg(long)]
+    pub seeds: Option<u32>,
+    /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// libtorch threads per run.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value = "auto")]
+    pub device: pdt_model::device::DeviceSpec,
+    /// Output directory: data/, runs/, configs/, logs/, reports/.
+    #[arg(long, default_value = "runs/repro")]
+    pub out: PathBuf,
+    /// Where the datasets go (default: <out>/data).
+    #[arg(long)]
+    pub data_root: Option<PathBuf>,
+    /// Directory with the committed agents (`<env>/agent.json`) that collect the datasets.
+    #[arg(long, default_value = "pretrained")]
+    pub pretrained_root: PathBuf,
+    /// The reference release's prompt files, to normalise the paper's numbers with its experts'
+    /// returns (default: ../shared/data/official-prompts when present).
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// `jobs`: write one command per run (jobs.txt) and a Slurm array script instead of running.
+    #[arg(long)]
+    pub emit: Option<String>,
+    /// Only write the report, from the run directories as they are.
+    #[arg(long)]
+    pub report_only: bool,
+    /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it) and write no report.
+    #[arg(long)]
+    pub only: Option<String>,
+    /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
+    #[arg(long, default_value = "PASSIVE")]
+    pub omp_wait_policy: String,
 }
 
 #[derive(Debug, Subcommand)]

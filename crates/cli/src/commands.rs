@@ -1,6 +1,6 @@
 //! Subcommands with progress bars: argument handling and display only; the work is one library call.
 
-use crate::args::{CollectArgs, DemoArgs, TrainArgs};
+use crate::args::{CollectArgs, DemoArgs, ReproduceArgs, TrainArgs};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -381,4 +381,136 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
 
 fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// `reproduce`: list, emit jobs, run what is unfinished, report.
+pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
+    use pdt_repro::{exec, plan, report, Manifest, Stage};
+    if a.list {
+        for e in pdt_repro::list()? {
+            let pending = if e.pending > 0 {
+                format!(", {} waiting for MACAW/Meta-World/Dial", e.pending)
+            } else {
+                String::new()
+            };
+            println!("{:<30} {} ({} cells{pending})", e.name, e.title, e.cells);
+            for (b, runs, iters, hours, note) in &e.budgets {
+                let h = hours.map_or(String::new(), |h| format!(", ~{h} h here"));
+                println!("    {b:<6} {runs:>3} runs x {iters} iterations{h}: {note}");
+            }
+        }
+        return Ok(());
+    }
+    let Some(name) = a.experiment.as_deref() else { bail!("name an experiment, or --list") };
+    let m = Manifest::load(name)?;
+    if a.jobs == 0 {
+        bail!("--jobs must be at least 1");
+    }
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let threads = match a.threads {
+        Some(0) => bail!("--threads must be at least 1"),
+        Some(t) => t,
+        None => (cores / a.jobs).max(1),
+    };
+    let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    let data_root = match &a.data_root {
+        Some(d) => {
+            std::path::absolute(d).with_context(|| format!("--data-root {}", d.display()))?
+        }
+        None => out.join("data"),
+    };
+    let opts = plan::PlanOptions {
+        budget: a.budget.clone(),
+        out: out.clone(),
+        data_root,
+        threads,
+        device: a.device,
+        seeds: a.seeds,
+    };
+    let p = plan::plan(&m, &opts)?;
+    let exe = std::env::current_exe().context("the promptdt binary's path")?;
+    match a.emit.as_deref() {
+        Some("jobs") => {
+            let dir = out.join("jobs").join(format!("{}-{}", p.experiment, p.budget));
+            let mut extra = vec!["--threads".to_string(), threads.to_string()];
+            if a.data_root.is_some() {
+                extra.push("--data-root".into());
+                extra.push(opts.data_root.to_string_lossy().into_owned());
+            }
+            extra.push("--pretrained-root".into());
+            extra.push(std::path::absolute(&a.pretrained_root)?.to_string_lossy().into_owned());
+            let files = exec::emit_jobs(&p, &dir, &exe, name, &extra)?;
+            println!(
+                "{} runs; wrote {}",
+                p.runs.len(),
+                files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
+            );
+            println!("run them, e.g.: xargs -P 2 -I{{}} sh -c {{}} < {}", files[0].display());
+            println!(
+                "then: promptdt reproduce {name} --budget {} --out {} --report-only",
+                p.budget,
+                out.display()
+            );
+            return Ok(());
+        }
+        Some(other) => bail!("--emit {other}: expected `jobs`"),
+        None => {}
+    }
+    if !a.report_only {
+        let eopts = exec::ExecOptions {
+            exe,
+            jobs: a.jobs,
+            omp_wait_policy: Some(a.omp_wait_policy.clone()),
+            pretrained_root: std::path::absolute(&a.pretrained_root)?,
+        };
+        let pb = bar(0, "{prefix} {bar:30} {pos}/{len} iterations [{elapsed} < {eta}] {msg}");
+        pb.set_prefix(format!("{} {}", p.experiment, p.budget));
+        let summary = exec::execute(&p, a.only.as_deref(), &eopts, &mut |pr| match &pr.stage {
+            Stage::Data(env) => pb.set_message(format!("collecting the {env} datasets")),
+            Stage::Training | Stage::Done => {
+                pb.set_length(pr.iterations_total);
+                pb.set_position(pr.iterations_done);
+                pb.set_message(format!(
+                    "runs {}/{} done{}",
+                    pr.runs_finished,
+                    pr.runs_total,
+                    if pr.running.is_empty() {
+                        String::new()
+                    } else {
+                        format!(", running {}", pr.running.join(" "))
+                    }
+                ));
+            }
+        })?;
+        pb.finish_and_clear();
+        println!(
+            "{}: {} runs already finished, {} started, {} resumed, {} failed",
+            p.experiment,
+            summary.already_finished,
+            summary.started,
+            summary.resumed,
+            summary.failed.len()
+        );
+        for (k, msg) in &summary.failed {
+            eprintln!("run {k} failed: {msg}");
+        }
+        if !summary.failed.is_empty() {
+            bail!(
+                "{} runs failed (logs under {})",
+                summary.failed.len(),
+                out.join("logs").display()
+            );
+        }
+        if a.only.is_some() {
+            return Ok(());
+        }
+    }
+    let reference = a.reference.clone().or_else(|| {
+        let d = PathBuf::from("../shared/data/official-prompts");
+        d.is_dir().then_some(d)
+    });
+    let r = report::report(&m, &p, reference.as_deref())?;
+    println!("{}", r.markdown);
+    println!("report: {}", p.report_dir().display());
+    Ok(())
 }

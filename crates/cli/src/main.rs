@@ -197,6 +197,7 @@ fn run(cli: Cli) -> Result<()> {
                 a.out.display()
             );
         }
+        Command::Reproduce(a) => commands::reproduce(&a)?,
         Command::Bench(a) => {
             let cfg = a.to_config()?;
             let report = pdt_train::bench::run(&cfg)?;

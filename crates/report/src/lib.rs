@@ -34,6 +34,66 @@ pub use datasets::{
 };
 pub use error::ReportError;
 
+/// One line of a learning-curve figure drawn for another crate (the reproduction reports).
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Legend name.
+    pub name: String,
+    /// Grey line under the name in the legend (e.g. "3 seeds").
+    pub sub: String,
+    /// `(iteration, mean, std)`; non-finite points are left out.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// A rendered figure: PNG bytes and SVG text.
+#[derive(Debug, Clone)]
+pub struct Figure {
+    pub png: Vec<u8>,
+    pub svg: String,
+}
+
+/// Learning curves (return against training iteration, ± std bands) in the style of the `report`
+/// plots. `what` names the figure in errors.
+pub fn learning_curves(
+    caption: &str,
+    y_desc: &str,
+    series: &[Series],
+    notes: &[String],
+    what: &str,
+) -> Result<Figure, ReportError> {
+    let curves: Vec<plot::Curve> = series
+        .iter()
+        .enumerate()
+        .map(|(i, s)| plot::Curve {
+            name: s.name.clone(),
+            color: plot::PALETTE[i % plot::PALETTE.len()],
+            points: s
+                .points
+                .iter()
+                .copied()
+                .filter(|(x, m, d)| x.is_finite() && m.is_finite() && d.is_finite())
+                .collect(),
+        })
+        .collect();
+    let labels = plot::Labels {
+        caption: caption.to_string(),
+        x_desc: "Training iteration".to_string(),
+        y_desc: y_desc.to_string(),
+        legend_sub: series.iter().map(|s| s.sub.clone()).collect(),
+        notes: notes.to_vec(),
+    };
+    let fig = plot::render_figure(&curves, &labels, plot::XAxis::Iterations, what, what)?;
+    Ok(Figure { png: fig.png, svg: fig.svg })
+}
+
+/// Writes each `(file name, bytes)` into `out_dir` (created) atomically; returns the paths.
+pub fn write_files(
+    out_dir: &Path,
+    outputs: &[(String, Vec<u8>)],
+) -> Result<Vec<PathBuf>, ReportError> {
+    write_outputs(out_dir, outputs)
+}
+
 /// What to report on and where to write it.
 #[derive(Debug, Clone, Default)]
 pub struct ReportConfig {

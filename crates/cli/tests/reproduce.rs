@@ -1,0 +1,118 @@
+//! `promptdt reproduce`: every experiment end to end at the smoke budget, finished runs skipped on a
+//! second call, and `--emit jobs` run by plain `xargs -P 2` giving the same report as `reproduce`.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn promptdt(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(args)
+        .current_dir(repo())
+        .output()
+        .expect("binary runs");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn ok(args: &[&str]) -> String {
+    let (success, stdout, stderr) = promptdt(args);
+    assert!(success, "promptdt {args:?} failed:\n{stdout}\n{stderr}");
+    stdout
+}
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+const EXPERIMENTS: [&str; 7] = [
+    "fig2",
+    "table1",
+    "fig3",
+    "fig4",
+    "appendix_prompt_length_mt_bc",
+    "appendix_finetune_mt_bc",
+    "appendix_finetune_macaw",
+];
+
+#[test]
+fn list_names_every_experiment_with_its_budgets() {
+    let out = ok(&["reproduce", "--list"]);
+    for e in EXPERIMENTS {
+        assert!(out.contains(e), "{e} missing from:\n{out}");
+    }
+    assert!(out.contains("paper") && out.contains("cpu") && out.contains("smoke"), "{out}");
+}
+
+#[test]
+fn bad_input_is_refused_by_name() {
+    let (ok1, _, err) = promptdt(&["reproduce", "fig9", "--budget", "smoke"]);
+    assert!(!ok1 && err.contains("fig9") && err.contains("fig2"), "{err}");
+    let (ok2, _, err) =
+        promptdt(&["reproduce", "fig2", "--budget", "huge", "--out", "/nonexistent/x"]);
+    assert!(!ok2 && err.contains("huge") && err.contains("smoke"), "{err}");
+    let (ok3, _, err) = promptdt(&["reproduce", "fig2", "--budget", "smoke", "--emit", "slurm"]);
+    assert!(!ok3 && err.contains("--emit slurm"), "{err}");
+}
+
+/// Every experiment at the smoke budget, in one output directory (datasets collected once, shared
+/// runs reused), then the emitted jobs of one experiment run by xargs into another directory.
+#[test]
+fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("a");
+    let a_s = a.to_str().unwrap();
+    for e in EXPERIMENTS {
+        let out = ok(&["reproduce", e, "--budget", "smoke", "--out", a_s, "--jobs", "2"]);
+        assert!(out.contains("report:"), "{e}: {out}");
+        let report = a.join("reports").join(format!("{e}-smoke"));
+        for f in ["report.md", "cells.csv", "curves.csv", "report.json"] {
+            assert!(report.join(f).is_file(), "{e}: no {f}");
+        }
+    }
+    // Figure 2: one curve plot per MuJoCo family, every non-pending cell with a result.
+    let fig2 = a.join("reports/fig2-smoke");
+    for env in ["cheetah_dir", "cheetah_vel", "ant_dir"] {
+        assert!(fig2.join(format!("curves_{env}.png")).is_file(), "{env}");
+    }
+    let cells = std::fs::read_to_string(fig2.join("cells.csv")).unwrap();
+    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 12, "{cells}");
+    assert!(cells.contains("MACAW is not in promptdt yet"), "{cells}");
+    // Table 1 shares Figure 2's 1 x 5 Prompt-DT runs: a second call finds everything finished.
+    let again = ok(&["reproduce", "table1", "--budget", "smoke", "--out", a_s, "--jobs", "2"]);
+    assert!(again.contains("12 runs already finished, 0 started, 0 resumed"), "{again}");
+
+    // The same experiment through --emit jobs + xargs, then --report-only.
+    let b = tmp.path().join("b");
+    let b_s = b.to_str().unwrap();
+    let data = a.join("data");
+    let common = ["--budget", "smoke", "--jobs", "2"];
+    let mut args = vec!["reproduce", "fig4", "--out", a_s];
+    args.extend(common);
+    let mut emit = vec!["reproduce", "fig4", "--out", b_s, "--data-root", data.to_str().unwrap()];
+    emit.extend(common);
+    emit.extend(["--emit", "jobs"]);
+    ok(&emit);
+    let jobs = b.join("jobs/fig4-smoke/jobs.txt");
+    assert_eq!(std::fs::read_to_string(&jobs).unwrap().lines().count(), 4);
+    assert!(b.join("jobs/fig4-smoke/run.slurm").is_file());
+    let status = Command::new("sh")
+        .arg("-c")
+        .arg(format!("xargs -P 2 -I{{}} sh -c {{}} < '{}'", jobs.display()))
+        .current_dir(repo())
+        .status()
+        .unwrap();
+    assert!(status.success(), "xargs over the emitted jobs failed");
+    let mut report = vec!["reproduce", "fig4", "--out", b_s, "--data-root", data.to_str().unwrap()];
+    report.extend(common);
+    report.push("--report-only");
+    ok(&report);
+    let read = |d: &Path| std::fs::read_to_string(d.join("reports/fig4-smoke/cells.csv")).unwrap();
+    assert_eq!(read(&a), read(&b), "the emitted jobs gave another report");
+    let curves =
+        |d: &Path| std::fs::read_to_string(d.join("reports/fig4-smoke/curves.csv")).unwrap();
+    assert_eq!(curves(&a), curves(&b));
+}

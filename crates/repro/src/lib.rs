@@ -1,0 +1,85 @@
+//! `pdt-repro`: the paper's tables and figures, one command each (`promptdt reproduce`).
+//!
+//! - [`manifest`]: `experiments/*.toml`, one per paper artifact: cells, the paper's values, budgets.
+//! - [`plan`]: a manifest at a budget expanded into ordinary run directories and configurations.
+//! - [`exec`]: datasets, then every unfinished run as a `promptdt train` child process, `jobs` at a
+//!   time, resuming killed runs; or one command per run for a scheduler (`--emit jobs`).
+//! - [`report`]: ours next to the paper, raw and normalised, with the paper's claims checked.
+//!
+//! The library prints nothing; progress goes through a callback.
+
+pub mod exec;
+pub mod manifest;
+pub mod plan;
+pub mod report;
+
+pub use exec::{ExecOptions, ExecSummary, Progress, Stage};
+pub use manifest::{Manifest, BUILTIN};
+pub use plan::{Plan, PlanOptions, RunSpec, RunState};
+pub use report::Report;
+
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReproError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("experiment {origin}: {message}")]
+    Manifest { origin: String, message: String },
+    #[error("unknown experiment {name:?}: expected one of {known:?} or a manifest file")]
+    UnknownExperiment { name: String, known: Vec<String> },
+    #[error("experiment {experiment} has no budget {budget:?}; it has {known:?}")]
+    UnknownBudget { experiment: String, budget: String, known: Vec<String> },
+    #[error("no run {key:?} in this plan; runs: {known:?}")]
+    UnknownRun { key: String, known: Vec<String> },
+    #[error(
+        "{dir} holds a run started from another configuration (differs in: {keys}); move it away \
+         or use another --out"
+    )]
+    ConfigMismatch { dir: PathBuf, keys: String },
+    #[error("{what} failed: {message}")]
+    Child { what: String, message: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// One line of `promptdt reproduce --list`.
+#[derive(Debug, Clone)]
+pub struct ListEntry {
+    pub name: String,
+    pub title: String,
+    pub cells: usize,
+    pub pending: usize,
+    /// `(budget, runs, iterations per run (largest), hours if stated, note)`.
+    pub budgets: Vec<(String, usize, u64, Option<f64>, String)>,
+}
+
+/// Every committed experiment with its cost per budget.
+pub fn list() -> Result<Vec<ListEntry>, ReproError> {
+    let mut out = Vec::new();
+    for (name, _) in BUILTIN {
+        let m = Manifest::load(name)?;
+        let mut budgets = Vec::new();
+        for (b, budget) in &m.budgets {
+            let o = plan::PlanOptions {
+                budget: b.clone(),
+                out: ".".into(),
+                data_root: ".".into(),
+                threads: 1,
+                device: Default::default(),
+                seeds: None,
+            };
+            let p = plan::plan(&m, &o)?;
+            let iters = p.runs.iter().map(|r| r.config.train.iterations).max().unwrap_or(0);
+            budgets.push((b.clone(), p.runs.len(), iters, budget.hours, budget.note.clone()));
+        }
+        out.push(ListEntry {
+            name: m.name.clone(),
+            title: m.title.clone(),
+            cells: m.cells.len(),
+            pending: m.cells.iter().filter(|c| c.pending.is_some()).count(),
+            budgets,
+        });
+    }
+    Ok(out)
+}

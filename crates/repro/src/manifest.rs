@@ -1,0 +1,411 @@
+//! Experiment manifests (`experiments/*.toml`): one per paper artifact, each a list of cells (an
+//! environment, a method and its variant) with the paper's value for the cell, and budgets (how
+//! many iterations and seeds, and the reduced settings of the `cpu` and `smoke` budgets).
+//!
+//! The committed manifests are compiled in ([`builtin`]), so `promptdt reproduce fig2` works from
+//! any directory; a path to another manifest file works too.
+
+use crate::ReproError;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// The committed manifests, in the order `--list` shows them.
+pub const BUILTIN: &[(&str, &str)] = &[
+    ("fig2", include_str!("../../../experiments/fig2.toml")),
+    ("table1", include_str!("../../../experiments/table1.toml")),
+    ("fig3", include_str!("../../../experiments/fig3.toml")),
+    ("fig4", include_str!("../../../experiments/fig4.toml")),
+    (
+        "appendix_prompt_length_mt_bc",
+        include_str!("../../../experiments/appendix_prompt_length_mt_bc.toml"),
+    ),
+    ("appendix_finetune_mt_bc", include_str!("../../../experiments/appendix_finetune_mt_bc.toml")),
+    ("appendix_finetune_macaw", include_str!("../../../experiments/appendix_finetune_macaw.toml")),
+];
+
+/// How the report lays an experiment out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Layout {
+    /// Learning curves per environment (a panel per environment), like Figure 2.
+    Curves,
+    /// A table of final returns: rows x columns, like Table 1.
+    Table,
+}
+
+/// One experiment.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub name: String,
+    pub title: String,
+    /// What the paper shows and what the experiment checks.
+    pub description: String,
+    pub layout: Layout,
+    /// The paper's claims this experiment tests, each checked by the report (see [`Claim`]).
+    #[serde(default)]
+    pub claims: Vec<Claim>,
+    pub budgets: BTreeMap<String, Budget>,
+    pub cells: Vec<Cell>,
+}
+
+/// A statement of the paper the report checks on the measured numbers.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Claim {
+    pub text: String,
+    pub kind: ClaimKind,
+    /// Cell ids (see [`Cell::id`]) the claim compares, within one environment: for `better`,
+    /// `a` and `b`; for `insensitive` and `ordered`, all of `cells`.
+    #[serde(default)]
+    pub a: Option<String>,
+    #[serde(default)]
+    pub b: Option<String>,
+    #[serde(default)]
+    pub cells: Vec<String>,
+    /// `insensitive`: the largest spread of normalised scores still called insensitive.
+    #[serde(default)]
+    pub max_spread: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClaimKind {
+    /// Cell `a` scores higher than cell `b` (normalised, mean over seeds).
+    Better,
+    /// The cells' normalised scores lie within `max_spread` of each other.
+    Insensitive,
+    /// The cells score in the order listed, best first.
+    Ordered,
+}
+
+/// A budget: the settings every run of the experiment gets, then `rules` that change them for
+/// some environments or methods (applied in order; later rules win).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Budget {
+    /// What the budget is and how long it takes, in words (shown by `--list`).
+    pub note: String,
+    /// Wall time of the whole experiment at this budget on the machine named in `note`, hours.
+    #[serde(default)]
+    pub hours: Option<f64>,
+    #[serde(flatten)]
+    pub settings: Settings,
+    #[serde(default)]
+    pub rules: Vec<Rule>,
+}
+
+/// Settings of a budget or a rule; `None` keeps what came before (in the end, the reference code's
+/// default, as in `configs/`).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    pub seeds: Option<u32>,
+    pub iterations: Option<u64>,
+    pub steps_per_iteration: Option<u64>,
+    pub batch_size_per_task: Option<usize>,
+    pub eval_episodes: Option<usize>,
+    pub test_eval_interval: Option<u64>,
+    pub train_eval_interval: Option<u64>,
+    pub save_interval: Option<u64>,
+    /// Episodes per task and mode in the collected datasets (default: `collect`'s 100).
+    pub data_episodes: Option<usize>,
+    /// Episodes per task in each collected prompt set (default: `collect`'s 5).
+    pub prompt_set_episodes: Option<usize>,
+    /// MT-BC-Finetune's fine-tuning batch and steps, overriding the cells' (the smoke budget
+    /// shrinks them).
+    pub finetune_batch: Option<usize>,
+    pub finetune_steps: Option<u64>,
+    /// `false`: the matching cells are not run at this budget (the report says so).
+    pub run: Option<bool>,
+}
+
+impl Settings {
+    fn apply(&mut self, o: &Settings) {
+        macro_rules! take {
+            ($($f:ident),*) => { $( if o.$f.is_some() { self.$f = o.$f; } )* };
+        }
+        take!(
+            seeds,
+            iterations,
+            steps_per_iteration,
+            batch_size_per_task,
+            eval_episodes,
+            test_eval_interval,
+            train_eval_interval,
+            save_interval,
+            data_episodes,
+            prompt_set_episodes,
+            finetune_batch,
+            finetune_steps,
+            run
+        );
+    }
+}
+
+/// Changes settings for the cells that match (every listed field must match; an empty list
+/// matches everything).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Rule {
+    #[serde(default)]
+    pub envs: Vec<String>,
+    #[serde(default)]
+    pub methods: Vec<String>,
+    /// Cell ids.
+    #[serde(default)]
+    pub cells: Vec<String>,
+    #[serde(flatten)]
+    pub settings: Settings,
+}
+
+impl Rule {
+    fn matches(&self, cell: &Cell) -> bool {
+        (self.envs.is_empty() || self.envs.iter().any(|e| *e == cell.env))
+            && (self.methods.is_empty() || self.methods.iter().any(|m| *m == cell.method))
+            && (self.cells.is_empty() || self.cells.iter().any(|c| *c == cell.id()))
+    }
+}
+
+/// One cell of the paper's artifact: an environment, a method, its variant, and the paper's value.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Cell {
+    pub env: String,
+    /// Task split (`default`, or `ood` for Ant-Dir's out-of-distribution split).
+    #[serde(default)]
+    pub split: Option<String>,
+    pub method: String,
+    /// Prompt: J episodes x H steps (default: the environment's preset, 1 x 5).
+    #[serde(default)]
+    pub prompt: Option<[usize; 2]>,
+    /// Training data D and training prompts P (default `expert`).
+    #[serde(default)]
+    pub dataset: Option<String>,
+    /// Prompts given at test time (default: the training prompts' quality).
+    #[serde(default)]
+    pub test_prompt: Option<String>,
+    /// MT-BC-Finetune: segments per fine-tuning batch and gradient steps per test task.
+    #[serde(default)]
+    pub finetune_batch: Option<usize>,
+    #[serde(default)]
+    pub finetune_steps: Option<u64>,
+    /// Row and column of a table layout; the legend name of a curves layout (`row`).
+    #[serde(default)]
+    pub row: Option<String>,
+    #[serde(default)]
+    pub column: Option<String>,
+    /// The paper's value: final average return on the test tasks.
+    #[serde(default)]
+    pub paper: Option<f64>,
+    #[serde(default)]
+    pub paper_std: Option<f64>,
+    /// Where `paper` comes from ("Table 1", "Fig. 2, read off the plot, approximate").
+    #[serde(default)]
+    pub paper_source: Option<String>,
+    /// Set while the method or environment does not exist in promptdt yet (MACAW, Meta-World,
+    /// Dial): the cell is listed in the report with its paper value and this reason, not run.
+    #[serde(default)]
+    pub pending: Option<String>,
+}
+
+impl Cell {
+    /// The cell's identity, also the relative path of its runs: `env[-split]/method[-variant]`.
+    /// Cells of different experiments with the same id and budget share their runs.
+    pub fn id(&self) -> String {
+        let mut env = self.env.clone();
+        if let Some(s) = self.split.as_deref().filter(|s| *s != "default") {
+            env.push('-');
+            env.push_str(s);
+        }
+        let mut m = self.method.clone();
+        if let Some([j, h]) = self.prompt {
+            m.push_str(&format!("-k{j}x{h}"));
+        }
+        let d = self.dataset.as_deref().unwrap_or("expert");
+        let p = self.test_prompt.as_deref().unwrap_or(d);
+        if d != "expert" || p != "expert" {
+            m.push_str(&format!("-d{d}-p{p}"));
+        }
+        if self.finetune_batch.is_some() || self.finetune_steps.is_some() {
+            m.push_str(&format!(
+                "-ft{}x{}",
+                self.finetune_batch.map_or("def".into(), |b| b.to_string()),
+                self.finetune_steps.map_or("def".into(), |s| s.to_string())
+            ));
+        }
+        format!("{env}/{m}")
+    }
+
+    /// Legend or row name.
+    pub fn label(&self) -> String {
+        self.row.clone().unwrap_or_else(|| self.method.clone())
+    }
+}
+
+impl Manifest {
+    /// A committed manifest by name, or a manifest file.
+    pub fn load(name_or_path: &str) -> Result<Self, ReproError> {
+        if let Some((_, text)) = BUILTIN.iter().find(|(n, _)| *n == name_or_path) {
+            return Self::parse(text, name_or_path);
+        }
+        let path = Path::new(name_or_path);
+        if path.is_file() {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| ReproError::Io { path: path.to_path_buf(), source: e })?;
+            return Self::parse(&text, name_or_path);
+        }
+        Err(ReproError::UnknownExperiment {
+            name: name_or_path.to_string(),
+            known: BUILTIN.iter().map(|(n, _)| (*n).to_string()).collect(),
+        })
+    }
+
+    pub fn parse(text: &str, origin: &str) -> Result<Self, ReproError> {
+        let m: Manifest = toml::from_str(text)
+            .map_err(|e| ReproError::Manifest { origin: origin.into(), message: e.to_string() })?;
+        m.check(origin)?;
+        Ok(m)
+    }
+
+    fn check(&self, origin: &str) -> Result<(), ReproError> {
+        let bad = |message: String| Err(ReproError::Manifest { origin: origin.into(), message });
+        if self.cells.is_empty() {
+            return bad("no cells".into());
+        }
+        let mut ids = std::collections::HashSet::new();
+        for c in &self.cells {
+            if !ids.insert(c.id()) {
+                return bad(format!("cell {} appears twice", c.id()));
+            }
+            if c.pending.is_none() {
+                if pdt_envs::family(&c.env).is_err() {
+                    return bad(format!("cell {}: unknown environment {:?}", c.id(), c.env));
+                }
+                if c.method.parse::<MethodName>().is_err() {
+                    return bad(format!("cell {}: unknown method {:?}", c.id(), c.method));
+                }
+            }
+        }
+        for (name, b) in &self.budgets {
+            for r in &b.rules {
+                if let Some(c) = r.cells.iter().find(|c| !ids.contains(*c)) {
+                    return bad(format!("budget {name}: rule names unknown cell {c}"));
+                }
+            }
+        }
+        for claim in &self.claims {
+            let named = claim.a.iter().chain(claim.b.iter()).chain(claim.cells.iter());
+            for c in named {
+                if !ids.contains(c) {
+                    return bad(format!("claim {:?} names unknown cell {c}", claim.text));
+                }
+            }
+        }
+        if !self.budgets.contains_key("smoke") {
+            return bad("every experiment needs a smoke budget (CI runs it)".into());
+        }
+        Ok(())
+    }
+
+    /// The settings of `cell` at `budget`: the budget's, then every matching rule in order.
+    pub fn settings(&self, budget: &str, cell: &Cell) -> Result<Settings, ReproError> {
+        let b = self.budget(budget)?;
+        let mut s = b.settings.clone();
+        for r in b.rules.iter().filter(|r| r.matches(cell)) {
+            s.apply(&r.settings);
+        }
+        Ok(s)
+    }
+
+    pub fn budget(&self, budget: &str) -> Result<&Budget, ReproError> {
+        self.budgets.get(budget).ok_or_else(|| ReproError::UnknownBudget {
+            experiment: self.name.clone(),
+            budget: budget.into(),
+            known: self.budgets.keys().cloned().collect(),
+        })
+    }
+}
+
+/// A method name `pdt-train` knows (MACAW joins when it exists).
+pub(crate) struct MethodName(pub pdt_train::config::Method);
+
+impl std::str::FromStr for MethodName {
+    type Err = ();
+    fn from_str(s: &str) -> Result<Self, ()> {
+        use pdt_train::config::Method::*;
+        [PromptDt, PromptMtBc, MtOrl, MtBcFinetune]
+            .into_iter()
+            .find(|m| m.name() == s)
+            .map(MethodName)
+            .ok_or(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_builtin_manifest_parses_and_has_the_three_budgets() {
+        for (name, text) in BUILTIN {
+            let m = Manifest::parse(text, name).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(m.name, *name);
+            for b in ["paper", "cpu", "smoke"] {
+                assert!(m.budgets.contains_key(b), "{name}: no {b} budget");
+            }
+        }
+    }
+
+    #[test]
+    fn cell_ids_name_the_variant() {
+        let c = |s: &str| -> Cell { toml::from_str(s).expect("cell") };
+        assert_eq!(c("env = 'cheetah_dir'\nmethod = 'prompt-dt'").id(), "cheetah_dir/prompt-dt");
+        assert_eq!(
+            c("env = 'ant_dir'\nsplit = 'ood'\nmethod = 'mt-orl'").id(),
+            "ant_dir-ood/mt-orl"
+        );
+        assert_eq!(
+            c("env = 'cheetah_vel'\nmethod = 'prompt-dt'\nprompt = [2, 20]\ndataset = 'medium'\ntest_prompt = 'random'").id(),
+            "cheetah_vel/prompt-dt-k2x20-dmedium-prandom"
+        );
+    }
+
+    #[test]
+    fn rules_apply_in_order_and_unknown_keys_are_refused() {
+        let m = Manifest::parse(
+            r#"
+name = "t"
+title = "t"
+description = "t"
+layout = "curves"
+[[cells]]
+env = "cheetah_dir"
+method = "prompt-dt"
+[[cells]]
+env = "cheetah_dir"
+method = "mt-orl"
+[budgets.smoke]
+note = "n"
+iterations = 2
+seeds = 1
+[[budgets.smoke.rules]]
+methods = ["mt-orl"]
+seeds = 3
+[[budgets.smoke.rules]]
+envs = ["cheetah_dir"]
+iterations = 5
+"#,
+            "t",
+        )
+        .expect("parses");
+        let s = m.settings("smoke", &m.cells[1]).expect("settings");
+        assert_eq!((s.seeds, s.iterations), (Some(3), Some(5)));
+        let s = m.settings("smoke", &m.cells[0]).expect("settings");
+        assert_eq!((s.seeds, s.iterations), (Some(1), Some(5)));
+        assert!(m.settings("paper", &m.cells[0]).is_err());
+        let err = Manifest::parse("name = 'x'\nbogus = 1", "x").expect_err("unknown key");
+        assert!(err.to_string().contains("bogus"), "{err}");
+    }
+}

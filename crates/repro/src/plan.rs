@@ -1,0 +1,279 @@
+//! Expanding a manifest at a budget into ordinary run directories with their training
+//! configurations, and reading how far each run is.
+//!
+//! Layout under the output directory (`--out`, default `runs/repro`):
+//!
+//! ```text
+//! data/<env>[-e<episodes>]/          datasets (collect --from-pretrained, or scripted for point_robot)
+//! runs/<cell id>/<budget>/seed<N>/   one ordinary run directory per (cell, budget, seed)
+//! configs/<cell id>__<budget>__seed<N>.toml   the configuration each run was started from
+//! logs/<same name>.log               the run's own output
+//! reports/<experiment>-<budget>/     the report
+//! ```
+//!
+//! A run directory depends only on the cell's id, the budget and the seed, so experiments that
+//! share a cell (Figure 2's Prompt-DT and Table 1's 1 x 5 prompt) share its runs; before a run is
+//! reused its recorded configuration must equal the one this manifest asks for.
+
+use crate::manifest::{Cell, Manifest, MethodName};
+use crate::ReproError;
+use pdt_model::device::DeviceSpec;
+use pdt_train::config::TrainConfig;
+use std::path::{Path, PathBuf};
+
+/// Where the datasets of one environment come from and go.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DataSpec {
+    pub env: String,
+    pub dir: PathBuf,
+    pub episodes: Option<usize>,
+    pub prompt_episodes: Option<usize>,
+}
+
+/// One run of the plan.
+#[derive(Debug, Clone)]
+pub struct RunSpec {
+    /// `<cell id>/<budget>/seed<N>`: what `--only` takes.
+    pub key: String,
+    pub cell: usize,
+    pub seed: u64,
+    pub dir: PathBuf,
+    pub config_path: PathBuf,
+    pub log_path: PathBuf,
+    pub config: TrainConfig,
+    pub data: DataSpec,
+}
+
+/// A cell that is not run at this budget, and why.
+#[derive(Debug, Clone)]
+pub struct Skipped {
+    pub cell: usize,
+    pub reason: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct Plan {
+    pub experiment: String,
+    pub budget: String,
+    pub out: PathBuf,
+    pub runs: Vec<RunSpec>,
+    pub skipped: Vec<Skipped>,
+}
+
+impl Plan {
+    /// Every distinct dataset directory the runs need.
+    pub fn data(&self) -> Vec<DataSpec> {
+        let mut v: Vec<DataSpec> = Vec::new();
+        for r in &self.runs {
+            if !v.contains(&r.data) {
+                v.push(r.data.clone());
+            }
+        }
+        v
+    }
+
+    pub fn report_dir(&self) -> PathBuf {
+        self.out.join("reports").join(format!("{}-{}", self.experiment, self.budget))
+    }
+}
+
+/// How far a run directory is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RunState {
+    New,
+    Partial { iteration: u64 },
+    Finished,
+}
+
+/// What a plan needs besides the manifest.
+#[derive(Debug, Clone)]
+pub struct PlanOptions {
+    pub budget: String,
+    /// Run directories, configurations, logs and reports go under it.
+    pub out: PathBuf,
+    /// Datasets go under it (default `<out>/data`).
+    pub data_root: PathBuf,
+    /// Each run's libtorch thread count and device (recorded in its configuration; neither is part
+    /// of a run's identity, so a run may be resumed with others).
+    pub threads: usize,
+    pub device: DeviceSpec,
+    /// Overrides every cell's seed count.
+    pub seeds: Option<u32>,
+}
+
+/// Expands `m` at a budget into runs.
+pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
+    let (budget, out, data_root) = (o.budget.as_str(), o.out.as_path(), o.data_root.as_path());
+    m.budget(budget)?;
+    let mut runs = Vec::new();
+    let mut skipped = Vec::new();
+    for (i, cell) in m.cells.iter().enumerate() {
+        if let Some(reason) = &cell.pending {
+            skipped.push(Skipped { cell: i, reason: reason.clone() });
+            continue;
+        }
+        let s = m.settings(budget, cell)?;
+        if s.run == Some(false) {
+            skipped.push(Skipped { cell: i, reason: format!("not run at the {budget} budget") });
+            continue;
+        }
+        let data = DataSpec {
+            env: cell.env.clone(),
+            dir: data_root.join(match s.data_episodes {
+                Some(e) => format!("{}-e{e}", cell.env),
+                None => cell.env.clone(),
+            }),
+            episodes: s.data_episodes,
+            prompt_episodes: s.prompt_set_episodes,
+        };
+        let n = o.seeds.or(s.seeds).unwrap_or(3);
+        for seed in 0..u64::from(n) {
+            let key = format!("{}/{budget}/seed{seed}", cell.id());
+            let flat = key.replace('/', "__");
+            let mut config = config_for(cell, &s, seed, o.threads, &data.dir)?;
+            config.run.device = o.device;
+            runs.push(RunSpec {
+                dir: out.join("runs").join(&key),
+                config_path: out.join("configs").join(format!("{flat}.toml")),
+                log_path: out.join("logs").join(format!("{flat}.log")),
+                key,
+                cell: i,
+                seed,
+                config,
+                data: data.clone(),
+            });
+        }
+    }
+    Ok(Plan {
+        experiment: m.name.clone(),
+        budget: budget.into(),
+        out: out.to_path_buf(),
+        runs,
+        skipped,
+    })
+}
+
+/// The training configuration of one run: the reference code's defaults (as `configs/` has them),
+/// the cell's variant, then the budget's settings.
+pub fn config_for(
+    cell: &Cell,
+    s: &crate::manifest::Settings,
+    seed: u64,
+    threads: usize,
+    data_dir: &Path,
+) -> Result<TrainConfig, ReproError> {
+    let method = cell
+        .method
+        .parse::<MethodName>()
+        .map_err(|()| ReproError::Invalid(format!("unknown method {:?}", cell.method)))?
+        .0;
+    let mut c = TrainConfig::default();
+    c.run.method = method;
+    c.run.seed = seed;
+    c.run.threads = threads;
+    c.env.name = cell.env.clone();
+    c.env.split = cell.split.clone().unwrap_or_else(|| "default".into());
+    c.data.dir = data_dir.to_path_buf();
+    let d = cell.dataset.clone().unwrap_or_else(|| "expert".into());
+    c.data.dataset_mode = d.clone();
+    c.data.prompt_mode = d.clone();
+    c.data.test_dataset_mode = d.clone();
+    c.data.test_prompt_mode = cell.test_prompt.clone().unwrap_or(d);
+    if let Some([j, h]) = cell.prompt {
+        c.sampler.prompt_episodes = j;
+        c.sampler.prompt_length = Some(h);
+    }
+    if let Some(b) = cell.finetune_batch {
+        c.eval.finetune_batch = b;
+    }
+    if let Some(n) = cell.finetune_steps {
+        c.eval.finetune_steps = n;
+    }
+    if let Some(v) = s.iterations {
+        c.train.iterations = v;
+    }
+    if let Some(v) = s.steps_per_iteration {
+        c.train.steps_per_iteration = v;
+    }
+    if let Some(v) = s.batch_size_per_task {
+        c.sampler.batch_size_per_task = v;
+    }
+    if let Some(v) = s.eval_episodes {
+        c.eval.episodes = v;
+    }
+    if let Some(v) = s.test_eval_interval {
+        c.train.test_eval_interval = v;
+    }
+    if let Some(v) = s.train_eval_interval {
+        c.train.train_eval_interval = v;
+    }
+    if let Some(v) = s.save_interval {
+        c.train.save_interval = v;
+    }
+    if let Some(v) = s.finetune_batch {
+        c.eval.finetune_batch = v;
+    }
+    if let Some(v) = s.finetune_steps {
+        c.eval.finetune_steps = v;
+    }
+    c.validate().map_err(|e| ReproError::Invalid(format!("cell {}: {e}", cell.id())))?;
+    Ok(c)
+}
+
+/// A configuration without what does not change a run's meaning (its thread count) and with the
+/// data directory made absolute, as TOML.
+fn identity(c: &TrainConfig) -> toml::Value {
+    let mut c = c.clone();
+    c.run.threads = 0;
+    c.run.device = DeviceSpec::default();
+    c.data.dir = std::fs::canonicalize(&c.data.dir).unwrap_or(c.data.dir);
+    toml::Value::try_from(&c).unwrap_or(toml::Value::Boolean(false))
+}
+
+/// Keys whose values differ between two TOML documents (dotted paths).
+fn differing(a: &toml::Value, b: &toml::Value, at: &str, out: &mut Vec<String>) {
+    match (a, b) {
+        (toml::Value::Table(x), toml::Value::Table(y)) => {
+            let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+            for k in keys {
+                let path = if at.is_empty() { k.clone() } else { format!("{at}.{k}") };
+                match (x.get(k), y.get(k)) {
+                    (Some(p), Some(q)) => differing(p, q, &path, out),
+                    _ => out.push(path),
+                }
+            }
+        }
+        _ if a != b => out.push(format!("{at} ({a} vs {b})")),
+        _ => {}
+    }
+}
+
+/// The state of a run directory, after checking that a run already there was started from the
+/// same configuration (apart from the thread count).
+pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
+    let latest = spec.dir.join("checkpoints").join("latest.json");
+    if !latest.is_file() {
+        return Ok(RunState::New);
+    }
+    let recorded_path = spec.dir.join("config.toml");
+    let recorded = TrainConfig::from_file(&recorded_path)
+        .map_err(|e| ReproError::Invalid(format!("{}: {e}", recorded_path.display())))?;
+    let mut diff = Vec::new();
+    differing(&identity(&recorded), &identity(&spec.config), "", &mut diff);
+    if !diff.is_empty() {
+        return Err(ReproError::ConfigMismatch { dir: spec.dir.clone(), keys: diff.join(", ") });
+    }
+    #[derive(serde::Deserialize)]
+    struct Latest {
+        iteration: u64,
+    }
+    let text = std::fs::read_to_string(&latest)
+        .map_err(|e| ReproError::Io { path: latest.clone(), source: e })?;
+    let l: Latest = serde_json::from_str(&text)
+        .map_err(|e| ReproError::Invalid(format!("{}: {e}", latest.display())))?;
+    Ok(if l.iteration >= spec.config.train.iterations {
+        RunState::Finished
+    } else {
+        RunState::Partial { iteration: l.iteration }
+    })
+}

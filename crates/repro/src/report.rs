@@ -1,0 +1,582 @@
+//! The report of an experiment at a budget, read from the run directories alone: ours next to the
+//! paper, cell by cell, as raw returns and as normalised scores, with the paper's claims checked.
+//!
+//! Normalised score of a return R on test task i: `100 (R - R_random,i) / (R_expert,i - R_random,i)`,
+//! with R_expert,i and R_random,i the mean returns of task i's expert and random datasets (from the
+//! dataset card). A run's score is the mean over the test tasks of its last evaluation. Our experts
+//! are stronger than the reference's, so raw returns are not comparable across the two; the paper's
+//! numbers are normalised the same way with the reference's expert returns (its prompt files) where
+//! they are known, and with our random returns (a uniform random policy in the same environment).
+
+use crate::manifest::{ClaimKind, Layout, Manifest};
+use crate::plan::{self, Plan, RunState};
+use crate::ReproError;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Mean and standard deviation (population, as numpy's default) over seeds.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Stat {
+    pub mean: f64,
+    pub std: f64,
+    pub n: usize,
+}
+
+impl Stat {
+    fn of(v: &[f64]) -> Option<Self> {
+        if v.is_empty() {
+            return None;
+        }
+        let n = v.len();
+        let mean = v.iter().sum::<f64>() / n as f64;
+        let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
+        Some(Self { mean, std: var.sqrt(), n })
+    }
+}
+
+/// One cell's result.
+#[derive(Debug, Clone, Serialize)]
+pub struct CellResult {
+    pub id: String,
+    pub env: String,
+    pub label: String,
+    pub row: Option<String>,
+    pub column: Option<String>,
+    /// `ran`, `partial` (some run unfinished), `no results`, or why the cell was not run.
+    pub status: String,
+    /// Seeds with at least one test evaluation.
+    pub seeds: usize,
+    /// Iteration of the last evaluation used (the smallest over seeds).
+    pub iteration: Option<u64>,
+    pub iterations_planned: Option<u64>,
+    /// Average test return, over seeds.
+    pub ours: Option<Stat>,
+    /// Normalised score, over seeds.
+    pub ours_normalised: Option<Stat>,
+    pub paper: Option<f64>,
+    pub paper_std: Option<f64>,
+    pub paper_source: Option<String>,
+    /// The paper's value normalised with the reference's expert returns.
+    pub paper_normalised: Option<f64>,
+    pub paper_normalised_std: Option<f64>,
+    /// Whether our normalised mean is within the paper's (normalised) std of its value.
+    pub within_paper_std: Option<bool>,
+    /// `(iteration, mean over seeds, std)` of the average test return.
+    pub curve: Vec<(u64, f64, f64)>,
+}
+
+/// A checked claim.
+#[derive(Debug, Clone, Serialize)]
+pub struct ClaimResult {
+    pub text: String,
+    /// `holds`, `does not hold`, or `not measured`.
+    pub verdict: String,
+    pub detail: String,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub experiment: String,
+    pub title: String,
+    pub budget: String,
+    pub budget_note: String,
+    pub cells: Vec<CellResult>,
+    pub claims: Vec<ClaimResult>,
+    #[serde(skip)]
+    pub markdown: String,
+    #[serde(skip)]
+    pub files: Vec<PathBuf>,
+}
+
+#[derive(serde::Deserialize)]
+struct EvalLine {
+    iteration: u64,
+    split: String,
+    task_index: usize,
+    return_mean: Option<f64>,
+}
+
+/// Per test iteration, task index -> return.
+fn read_evals(dir: &Path) -> Result<BTreeMap<u64, BTreeMap<usize, f64>>, ReproError> {
+    let path = dir.join("eval.jsonl");
+    let mut out: BTreeMap<u64, BTreeMap<usize, f64>> = BTreeMap::new();
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(out),
+        Err(e) => return Err(ReproError::Io { path, source: e }),
+    };
+    for (n, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        // A line cut by a kill is the last one: stop there.
+        let Ok(l) = serde_json::from_str::<EvalLine>(line) else {
+            if n + 1 == text.lines().count() {
+                break;
+            }
+            return Err(ReproError::Invalid(format!(
+                "{}: line {} is not an evaluation",
+                path.display(),
+                n + 1
+            )));
+        };
+        if l.split == "test" {
+            out.entry(l.iteration)
+                .or_default()
+                .insert(l.task_index, l.return_mean.unwrap_or(f64::NAN));
+        }
+    }
+    Ok(out)
+}
+
+/// Expert and random mean return per task index, from a dataset card.
+#[derive(Debug, Clone, Default)]
+pub struct Baselines {
+    pub expert: BTreeMap<usize, f64>,
+    pub random: BTreeMap<usize, f64>,
+}
+
+pub fn baselines(data_dir: &Path) -> Result<Baselines, ReproError> {
+    #[derive(serde::Deserialize)]
+    struct Card {
+        tasks: Vec<Task>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Task {
+        index: usize,
+        files: Vec<File>,
+    }
+    #[derive(serde::Deserialize)]
+    struct File {
+        mode: String,
+        returns: Returns,
+    }
+    #[derive(serde::Deserialize)]
+    struct Returns {
+        mean: f64,
+    }
+    let path = data_dir.join("dataset.json");
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| ReproError::Io { path: path.clone(), source: e })?;
+    let card: Card = serde_json::from_str(&text)
+        .map_err(|e| ReproError::Invalid(format!("{}: {e}", path.display())))?;
+    let mut b = Baselines::default();
+    for t in card.tasks {
+        for f in t.files {
+            match f.mode.as_str() {
+                "expert" => {
+                    b.expert.insert(t.index, f.returns.mean);
+                }
+                "random" => {
+                    b.random.insert(t.index, f.returns.mean);
+                }
+                _ => {}
+            }
+        }
+    }
+    Ok(b)
+}
+
+/// The reference release's expert return per task (its prompt files), where they exist.
+fn reference_experts(dir: Option<&Path>, env: &str, tasks: &[usize]) -> Option<Vec<f64>> {
+    let dir = dir?;
+    tasks
+        .iter()
+        .map(|t| {
+            let p = dir.join(format!("{env}-{t}-prompt-expert.pkl"));
+            pdt_data::inspect::inspect_file(&p).ok().map(|r| r.return_mean)
+        })
+        .collect()
+}
+
+fn normalise(r: f64, expert: f64, random: f64) -> f64 {
+    100.0 * (r - random) / (expert - random)
+}
+
+/// Builds the report from the run directories of `plan` and writes it into its report directory.
+pub fn report(
+    m: &Manifest,
+    plan: &Plan,
+    reference_dir: Option<&Path>,
+) -> Result<Report, ReproError> {
+    let budget = m.budget(&plan.budget)?;
+    let mut cells = Vec::new();
+    let mut base_cache: BTreeMap<PathBuf, Baselines> = BTreeMap::new();
+    for (i, cell) in m.cells.iter().enumerate() {
+        let mut res = CellResult {
+            id: cell.id(),
+            env: cell.env.clone(),
+            label: cell.label(),
+            row: cell.row.clone(),
+            column: cell.column.clone(),
+            status: String::new(),
+            seeds: 0,
+            iteration: None,
+            iterations_planned: None,
+            ours: None,
+            ours_normalised: None,
+            paper: cell.paper,
+            paper_std: cell.paper_std,
+            paper_source: cell.paper_source.clone(),
+            paper_normalised: None,
+            paper_normalised_std: None,
+            within_paper_std: None,
+            curve: Vec::new(),
+        };
+        let test_tasks = pdt_envs::family(&cell.env)
+            .and_then(|f| f.split(cell.split.as_deref().unwrap_or("default")))
+            .map(|(_, test)| test)
+            .unwrap_or_default();
+        if let Some(s) = plan.skipped.iter().find(|s| s.cell == i) {
+            res.status = s.reason.clone();
+            cells.push(res);
+            continue;
+        }
+        let runs: Vec<&plan::RunSpec> = plan.runs.iter().filter(|r| r.cell == i).collect();
+        let Some(first) = runs.first() else { continue };
+        res.iterations_planned = Some(first.config.train.iterations);
+        let base = match base_cache.get(&first.data.dir) {
+            Some(b) => Some(b.clone()),
+            None => match baselines(&first.data.dir) {
+                Ok(b) => {
+                    base_cache.insert(first.data.dir.clone(), b.clone());
+                    Some(b)
+                }
+                Err(_) => None,
+            },
+        };
+        // Per seed: the last evaluation, and every evaluation for the curve.
+        let mut finals = Vec::new();
+        let mut norms = Vec::new();
+        let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
+        let mut partial = false;
+        let mut last_iter: Option<u64> = None;
+        for r in &runs {
+            if !matches!(plan::state(r), Ok(RunState::Finished)) {
+                partial = true;
+            }
+            let evals = read_evals(&r.dir)?;
+            let Some((&it, last)) = evals.iter().next_back() else { continue };
+            last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
+            let avg = last.values().sum::<f64>() / last.len() as f64;
+            finals.push(avg);
+            if let Some(b) = &base {
+                let n: Option<Vec<f64>> = last
+                    .iter()
+                    .map(|(t, r)| Some(normalise(*r, *b.expert.get(t)?, *b.random.get(t)?)))
+                    .collect();
+                if let Some(n) = n {
+                    norms.push(n.iter().sum::<f64>() / n.len() as f64);
+                }
+            }
+            curves.push(
+                evals
+                    .iter()
+                    .map(|(it, tasks)| (*it, tasks.values().sum::<f64>() / tasks.len() as f64))
+                    .collect(),
+            );
+        }
+        res.seeds = finals.len();
+        res.iteration = last_iter;
+        res.ours = Stat::of(&finals);
+        res.ours_normalised = Stat::of(&norms);
+        res.status = match (res.seeds, partial) {
+            (0, _) => "no results yet".into(),
+            (_, true) => "partial".into(),
+            _ => "ran".into(),
+        };
+        if let Some(first_curve) = curves.first() {
+            for it in first_curve.keys() {
+                let v: Vec<f64> = curves.iter().filter_map(|c| c.get(it).copied()).collect();
+                if v.len() == curves.len() {
+                    if let Some(s) = Stat::of(&v) {
+                        res.curve.push((*it, s.mean, s.std));
+                    }
+                }
+            }
+        }
+        if let (Some(p), Some(b)) = (cell.paper, &base) {
+            let randoms: Option<Vec<f64>> =
+                test_tasks.iter().map(|t| b.random.get(t).copied()).collect();
+            if let (Some(rand), Some(exp)) =
+                (randoms, reference_experts(reference_dir, &cell.env, &test_tasks))
+            {
+                let (r, e) = (mean(&rand), mean(&exp));
+                res.paper_normalised = Some(normalise(p, e, r));
+                res.paper_normalised_std = cell.paper_std.map(|s| 100.0 * s / (e - r));
+            }
+        }
+        if let (Some(o), Some(p), Some(s)) =
+            (res.ours_normalised, res.paper_normalised, res.paper_normalised_std)
+        {
+            res.within_paper_std = Some((o.mean - p).abs() <= s);
+        }
+        cells.push(res);
+    }
+    let claims = m.claims.iter().map(|c| check_claim(c, &cells)).collect();
+    let mut rep = Report {
+        experiment: m.name.clone(),
+        title: m.title.clone(),
+        budget: plan.budget.clone(),
+        budget_note: budget.note.clone(),
+        cells,
+        claims,
+        markdown: String::new(),
+        files: Vec::new(),
+    };
+    rep.markdown = markdown(m, &rep);
+    let mut outputs: Vec<(String, Vec<u8>)> = vec![
+        ("report.md".into(), rep.markdown.clone().into_bytes()),
+        ("cells.csv".into(), cells_csv(&rep).into_bytes()),
+        ("curves.csv".into(), curves_csv(&rep).into_bytes()),
+        ("report.json".into(), serde_json::to_string_pretty(&rep).unwrap_or_default().into_bytes()),
+    ];
+    if m.layout == Layout::Curves || rep.cells.iter().any(|c| c.curve.len() > 1) {
+        let mut envs: Vec<String> = Vec::new();
+        for c in &rep.cells {
+            if !envs.contains(&c.env) {
+                envs.push(c.env.clone());
+            }
+        }
+        for env in envs {
+            let of_env: Vec<&CellResult> = rep.cells.iter().filter(|c| c.env == env).collect();
+            let mut series: Vec<pdt_report::Series> = of_env
+                .iter()
+                .filter(|c| !c.curve.is_empty())
+                .map(|c| pdt_report::Series {
+                    name: c.label.clone(),
+                    sub: format!("{} seed{}", c.seeds, if c.seeds == 1 { "" } else { "s" }),
+                    points: c.curve.iter().map(|(i, m, s)| (*i as f64, *m, *s)).collect(),
+                })
+                .collect();
+            if series.is_empty() {
+                continue;
+            }
+            let x_end =
+                series.iter().flat_map(|s| s.points.iter().map(|p| p.0)).fold(1.0_f64, f64::max);
+            for c in of_env.iter().filter(|c| c.curve.len() > 0) {
+                if let Some(p) = c.paper {
+                    series.push(pdt_report::Series {
+                        name: format!("paper: {}", c.label),
+                        sub: c.paper_source.clone().unwrap_or_default(),
+                        points: vec![(0.0, p, 0.0), (x_end, p, 0.0)],
+                    });
+                }
+            }
+            let stem = env.replace(|c: char| !c.is_ascii_alphanumeric() && c != '_', "_");
+            let fig = pdt_report::learning_curves(
+                &format!("{} ({} budget): {env}", m.title, plan.budget),
+                "Average return on test tasks",
+                &series,
+                &[
+                    "line: mean over seeds, band: ± std".to_string(),
+                    "flat lines: the paper's final values".to_string(),
+                ],
+                &format!("curves_{stem}.png"),
+            )
+            .map_err(|e| ReproError::Invalid(e.to_string()))?;
+            outputs.push((format!("curves_{stem}.png"), fig.png));
+            outputs.push((format!("curves_{stem}.svg"), fig.svg.into_bytes()));
+        }
+    }
+    rep.files = pdt_report::write_files(&plan.report_dir(), &outputs)
+        .map_err(|e| ReproError::Invalid(e.to_string()))?;
+    Ok(rep)
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult {
+    let score = |id: &str| {
+        cells.iter().find(|x| x.id == id).and_then(|x| x.ours_normalised).map(|s| s.mean)
+    };
+    let fmt = |id: &str| score(id).map_or(format!("{id}: -"), |s| format!("{id}: {s:.1}"));
+    let (verdict, detail) = match c.kind {
+        ClaimKind::Better => {
+            let (a, b) = (c.a.as_deref().unwrap_or(""), c.b.as_deref().unwrap_or(""));
+            match (score(a), score(b)) {
+                (Some(x), Some(y)) => (x > y, format!("{} vs {}", fmt(a), fmt(b))),
+                _ => return not_measured(c, format!("{} vs {}", fmt(a), fmt(b))),
+            }
+        }
+        ClaimKind::Insensitive | ClaimKind::Ordered => {
+            let s: Option<Vec<f64>> = c.cells.iter().map(|id| score(id)).collect();
+            let detail = c.cells.iter().map(|id| fmt(id)).collect::<Vec<_>>().join(", ");
+            let Some(s) = s else { return not_measured(c, detail) };
+            if c.kind == ClaimKind::Insensitive {
+                let spread = s.iter().copied().fold(f64::MIN, f64::max)
+                    - s.iter().copied().fold(f64::MAX, f64::min);
+                let max = c.max_spread.unwrap_or(10.0);
+                (spread <= max, format!("{detail}; spread {spread:.1} (insensitive if <= {max})"))
+            } else {
+                (s.windows(2).all(|w| w[0] >= w[1]), detail)
+            }
+        }
+    };
+    ClaimResult {
+        text: c.text.clone(),
+        verdict: if verdict { "holds" } else { "does not hold" }.into(),
+        detail: format!("normalised scores: {detail}"),
+    }
+}
+
+fn not_measured(c: &crate::manifest::Claim, detail: String) -> ClaimResult {
+    ClaimResult { text: c.text.clone(), verdict: "not measured".into(), detail }
+}
+
+fn opt(v: Option<f64>, d: usize) -> String {
+    v.map_or("-".into(), |v| format!("{v:.d$}"))
+}
+
+fn stat(s: Option<Stat>, d: usize) -> String {
+    s.map_or("-".into(), |s| {
+        if s.n > 1 {
+            format!("{:.d$} ± {:.d$}", s.mean, s.std)
+        } else {
+            format!("{:.d$}", s.mean)
+        }
+    })
+}
+
+fn markdown(m: &Manifest, r: &Report) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# {} — `{}` budget\n", r.title, r.budget);
+    let _ = writeln!(s, "{}\n", m.description.trim());
+    let _ = writeln!(s, "Budget: {}\n", r.budget_note.trim());
+    let _ = writeln!(
+        s,
+        "Ours: mean ± std over seeds of the average return on the test tasks at the last evaluation; \
+         normalised = 100 (R - R_random) / (R_expert - R_random) per test task with our datasets' \
+         returns, averaged. Paper normalised: the paper's value with the reference release's expert \
+         returns (its prompt files) and our random returns; `-` where the reference's experts are \
+         unknown. Within: |ours - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
+    );
+    let _ = writeln!(
+        s,
+        "| cell | seeds | iteration | ours | ours normalised | paper | paper normalised | within paper std | status |"
+    );
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---|---|");
+    for c in &r.cells {
+        let paper = match (c.paper, c.paper_std) {
+            (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        let pn = match (c.paper_normalised, c.paper_normalised_std) {
+            (Some(p), Some(sd)) => format!("{p:.1} ± {sd:.1}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        let it = match (c.iteration, c.iterations_planned) {
+            (Some(i), Some(n)) => format!("{i} / {n}"),
+            (None, Some(n)) => format!("- / {n}"),
+            _ => "-".into(),
+        };
+        let _ = writeln!(
+            s,
+            "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} |",
+            c.id,
+            c.seeds,
+            it,
+            stat(c.ours, 2),
+            stat(c.ours_normalised, 1),
+            paper,
+            pn,
+            c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }),
+            c.status
+        );
+    }
+    if m.layout == Layout::Table {
+        let mut rows: Vec<String> = Vec::new();
+        let mut cols: Vec<String> = Vec::new();
+        for c in &r.cells {
+            if let (Some(row), Some(col)) = (&c.row, &c.column) {
+                if !rows.contains(row) {
+                    rows.push(row.clone());
+                }
+                if !cols.contains(col) {
+                    cols.push(col.clone());
+                }
+            }
+        }
+        let _ = writeln!(s, "\n## As the paper lays it out (ours normalised / paper normalised; raw in the table above)\n");
+        let _ = writeln!(s, "| | {} |", cols.join(" | "));
+        let _ = writeln!(s, "|---|{}|", cols.iter().map(|_| "---:").collect::<Vec<_>>().join("|"));
+        for row in &rows {
+            let line: Vec<String> = cols
+                .iter()
+                .map(|col| {
+                    r.cells
+                        .iter()
+                        .find(|c| c.row.as_ref() == Some(row) && c.column.as_ref() == Some(col))
+                        .map_or("".into(), |c| {
+                            format!(
+                                "{} / {}",
+                                stat(c.ours_normalised, 1),
+                                opt(c.paper_normalised, 1)
+                            )
+                        })
+                })
+                .collect();
+            let _ = writeln!(s, "| {row} | {} |", line.join(" | "));
+        }
+    }
+    if !r.claims.is_empty() {
+        let _ = writeln!(s, "\n## The paper's claims, on these numbers\n");
+        for c in &r.claims {
+            let _ = writeln!(s, "- **{}**: {} ({})", c.text, c.verdict, c.detail);
+        }
+    }
+    let _ =
+        writeln!(s, "\nFiles: `cells.csv`, `curves.csv`, `report.json`, `curves_<env>.png/.svg`.");
+    s
+}
+
+fn cells_csv(r: &Report) -> String {
+    let mut s = String::from(
+        "cell,env,label,row,column,status,seeds,iteration,iterations_planned,ours_mean,ours_std,\
+         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source\n",
+    );
+    let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
+    let q = |v: &str| format!("\"{}\"", v.replace('"', "\"\""));
+    for c in &r.cells {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            q(&c.id),
+            c.env,
+            q(&c.label),
+            q(c.row.as_deref().unwrap_or("")),
+            q(c.column.as_deref().unwrap_or("")),
+            q(&c.status),
+            c.seeds,
+            c.iteration.map_or(String::new(), |i| i.to_string()),
+            c.iterations_planned.map_or(String::new(), |i| i.to_string()),
+            f(c.ours.map(|s| s.mean)),
+            f(c.ours.map(|s| s.std)),
+            f(c.ours_normalised.map(|s| s.mean)),
+            f(c.ours_normalised.map(|s| s.std)),
+            f(c.paper),
+            f(c.paper_std),
+            f(c.paper_normalised),
+            f(c.paper_normalised_std),
+            c.within_paper_std.map_or(String::new(), |w| w.to_string()),
+            q(c.paper_source.as_deref().unwrap_or("")),
+        );
+    }
+    s
+}
+
+fn curves_csv(r: &Report) -> String {
+    let mut s = String::from("cell,iteration,return_mean,return_std\n");
+    for c in &r.cells {
+        for (i, m, sd) in &c.curve {
+            let _ = writeln!(s, "\"{}\",{i},{m},{sd}", c.id);
+        }
+    }
+    s
+}
