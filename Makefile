@@ -21,8 +21,10 @@ demo: setup
 	$(CARGO) run --release -p promptdt -- demo
 
 # --no-fail-fast: every test binary runs even when one fails, so a failure report is complete.
+# OMP_WAIT_POLICY=PASSIVE: tests run side by side, each with libtorch threads; spinning OpenMP
+# threads then slow everything down many times over (results do not depend on it).
 test: setup live-golden
-	PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) $(CARGO) test --release --workspace --no-fail-fast
+	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) $(CARGO) test --release --workspace --no-fail-fast
 
 live-golden:
 	@rm -rf $(LIVE_GOLDEN)

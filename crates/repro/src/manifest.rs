@@ -162,9 +162,9 @@ pub struct Rule {
 
 impl Rule {
     fn matches(&self, cell: &Cell) -> bool {
-        (self.envs.is_empty() || self.envs.iter().any(|e| *e == cell.env))
-            && (self.methods.is_empty() || self.methods.iter().any(|m| *m == cell.method))
-            && (self.cells.is_empty() || self.cells.iter().any(|c| *c == cell.id()))
+        (self.envs.is_empty() || self.envs.contains(&cell.env))
+            && (self.methods.is_empty() || self.methods.contains(&cell.method))
+            && (self.cells.is_empty() || self.cells.contains(&cell.id()))
     }
 }
 

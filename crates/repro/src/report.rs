@@ -356,11 +356,15 @@ pub fn report(
             }
             let x_end =
                 series.iter().flat_map(|s| s.points.iter().map(|p| p.0)).fold(1.0_f64, f64::max);
-            for c in of_env.iter().filter(|c| c.curve.len() > 0) {
+            for c in of_env.iter().filter(|c| !c.curve.is_empty()) {
                 if let Some(p) = c.paper {
                     series.push(pdt_report::Series {
                         name: format!("paper: {}", c.label),
-                        sub: c.paper_source.clone().unwrap_or_default(),
+                        sub: match c.paper_source.as_deref() {
+                            Some(src) if src.contains("approx") => "paper, approximate".into(),
+                            Some(src) => format!("paper, {src}"),
+                            None => "paper".into(),
+                        },
                         points: vec![(0.0, p, 0.0), (x_end, p, 0.0)],
                     });
                 }
