@@ -61,9 +61,10 @@ pub struct ReproduceArgs {
     /// Seeds per cell (default: the budget's).
     #[arg(long)]
     pub seeds: Option<u32>,
-    /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given.
-    #[arg(long, default_value_t = 1)]
-    pub jobs: usize,
+    /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given. Default:
+    /// one per core on the CPU (measured fastest: BENCHMARKS.md), 1 with --device cuda.
+    #[arg(long)]
+    pub jobs: Option<usize>,
     /// libtorch threads per run.
     #[arg(long)]
     pub threads: Option<usize>,
