@@ -196,7 +196,8 @@ def install_cpu():
 # What is installed is derived, not listed: the DT_NEEDED closure of CUDA_ROOTS, read with the ELF
 # reader below from the extracted files themselves, where each library comes from torch/lib of the
 # torch wheel or from the NVIDIA wheel that torch 2.11.0's METADATA pins (Requires-Dist, expanding
-# cuda-toolkit[...]==13.0.2 through that wheel's own METADATA). Nothing else of those wheels is taken.
+# cuda-toolkit[...]==13.0.2 through that wheel's own METADATA). Nothing else of those wheels is taken
+# but the libraries that CUDA_DLOPENED names.
 # ---------------------------------------------------------------------------------------------------
 
 # libtorch_cuda.so is what device.rs loads; libtorch loads the other two itself with dlopen the first
@@ -522,11 +523,12 @@ def install_cuda(dest, cpu_dest):
         used = sorted({(d, v) for d, v, _, _, _ in done.values()})
         lines = [marker_header()]
         for dist, v in used:
-            lines.append(f"wheel {dist} {v} {wheels[dist].url}")
+            lines.append(f"wheel {dist} {v} {wheels[dist].url} ({getattr(wheels[dist], 'why', 'the torch wheel')})")
         for dist, v, member, size, digest in sorted(done.values(), key=lambda x: x[2]):
             lines.append(f"file {member} {size} sha256={digest} {dist}=={v}")
         with open(os.path.join(tmp, CUDA_MARKER), "w") as out:
             out.write("\n".join(lines) + "\n")
+        os.chmod(tmp, 0o755)  # mkdtemp made it 0700
         if marker_ok(dest):  # a concurrent run finished first: keep its install
             print(f"fetch_libtorch: a concurrent run installed {dest} first; keeping it", file=sys.stderr)
             return True

@@ -30,10 +30,7 @@ impl std::str::FromStr for DeviceSpec {
 }
 
 #[derive(Debug, thiserror::Error)]
-#[error(
-    "CUDA was asked for but is not available: {0}. Put a CUDA build of libtorch {ver} on LD_LIBRARY_PATH.",
-    ver = "2.11.0"
-)]
+#[error("CUDA was asked for but is not available: {0}")]
 pub struct DeviceError(String);
 
 /// Loads `libtorch_cuda.so` (if it can be found on the library path) so that libtorch sees CUDA.
@@ -47,12 +44,19 @@ fn load_cuda_backend() -> Result<(), String> {
     #[allow(unsafe_code)]
     let handle = unsafe { libc::dlopen(name.as_ptr(), libc::RTLD_NOW | libc::RTLD_GLOBAL) };
     if handle.is_null() {
-        return Err("libtorch_cuda.so could not be loaded".into());
+        return Err(
+            "libtorch_cuda.so could not be loaded: install the CUDA part of libtorch 2.11.0 \
+                    (python3 scripts/fetch_libtorch.py --cuda) and put the directory it prints on \
+                    LD_LIBRARY_PATH"
+                .into(),
+        );
     }
     if tch::Cuda::is_available() {
         Ok(())
     } else {
-        Err("libtorch_cuda.so loaded but no CUDA device was found".into())
+        Err("libtorch_cuda.so loaded, but no CUDA device was found (is there a GPU, and an NVIDIA \
+             driver for CUDA 13?)"
+            .into())
     }
 }
 
