@@ -394,9 +394,12 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 String::new()
             };
             println!("{:<30} {} ({} cells{pending})", e.name, e.title, e.cells);
-            for (b, runs, iters, hours, note) in &e.budgets {
-                let h = hours.map_or(String::new(), |h| format!(", ~{h} h here"));
-                println!("    {b:<6} {runs:>3} runs x {iters} iterations{h}: {note}");
+            for b in &e.budgets {
+                let h = b.hours.map_or(String::new(), |h| format!(", ~{h} h here"));
+                println!(
+                    "    {:<6} {:>3} runs x {} iterations{h}: {}",
+                    b.budget, b.runs, b.iterations, b.note
+                );
             }
         }
         return Ok(());

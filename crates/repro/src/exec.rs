@@ -247,9 +247,7 @@ pub fn execute(
                     }
                 }
                 Ok(None) => i += 1,
-                Err(e) => {
-                    return Err(ReproError::Io { path: spec_dir(&running[i].0.dir), source: e })
-                }
+                Err(e) => return Err(ReproError::Io { path: running[i].0.dir.clone(), source: e }),
             }
         }
         if last.elapsed() >= Duration::from_secs(2) {
@@ -264,10 +262,6 @@ pub fn execute(
     }
     progress(&report(Stage::Done, finished, Vec::new()));
     Ok(summary)
-}
-
-fn spec_dir(p: &Path) -> PathBuf {
-    p.to_path_buf()
 }
 
 /// Writes one self-contained command per run (`jobs.txt`, for `xargs -P` or any scheduler) and a

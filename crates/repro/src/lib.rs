@@ -50,8 +50,19 @@ pub struct ListEntry {
     pub title: String,
     pub cells: usize,
     pub pending: usize,
-    /// `(budget, runs, iterations per run (largest), hours if stated, note)`.
-    pub budgets: Vec<(String, usize, u64, Option<f64>, String)>,
+    pub budgets: Vec<BudgetCost>,
+}
+
+/// What an experiment costs at one budget.
+#[derive(Debug, Clone)]
+pub struct BudgetCost {
+    pub budget: String,
+    pub runs: usize,
+    /// The largest iteration count of a run.
+    pub iterations: u64,
+    /// Wall time, where the manifest states it.
+    pub hours: Option<f64>,
+    pub note: String,
 }
 
 /// Every committed experiment with its cost per budget.
@@ -71,7 +82,13 @@ pub fn list() -> Result<Vec<ListEntry>, ReproError> {
             };
             let p = plan::plan(&m, &o)?;
             let iters = p.runs.iter().map(|r| r.config.train.iterations).max().unwrap_or(0);
-            budgets.push((b.clone(), p.runs.len(), iters, budget.hours, budget.note.clone()));
+            budgets.push(BudgetCost {
+                budget: b.clone(),
+                runs: p.runs.len(),
+                iterations: iters,
+                hours: budget.hours,
+                note: budget.note.clone(),
+            });
         }
         out.push(ListEntry {
             name: m.name.clone(),
