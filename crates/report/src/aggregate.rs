@@ -19,7 +19,7 @@ pub(crate) fn method_rank(method: &str) -> (usize, String) {
 }
 
 /// Mean and standard deviation over seeds.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Stat {
     pub mean: f64,
     /// Population standard deviation (divides by n, numpy's default), so one seed gives 0.
@@ -32,7 +32,7 @@ impl Stat {
     /// left out rather than turning the whole cell into NaN; `n` counts only what was used, so
     /// the cell shows "(n=k)" and a warning says which run it was. `None` when nothing is left:
     /// a cell nobody measured has no value, not 0.
-    pub(crate) fn of(values: &[f64]) -> Option<Stat> {
+    pub fn of(values: &[f64]) -> Option<Stat> {
         let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
         if finite.is_empty() {
             return None;

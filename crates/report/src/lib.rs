@@ -28,6 +28,7 @@ use std::fs;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
+pub use aggregate::Stat;
 pub use datasets::{
     dataset_report, BarStatus, DatasetReportConfig, DatasetReportSummary, FamilyReport, QualityBar,
     ReferenceReturn, ReturnStat, TaskMean, TaskRow,

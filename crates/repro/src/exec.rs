@@ -111,9 +111,7 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), ReproError> {
     if let Some(p) = path.parent() {
         std::fs::create_dir_all(p).map_err(io)?;
     }
-    let tmp = path.with_extension(format!("tmp-{}", std::process::id()));
-    std::fs::write(&tmp, text).map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(io)
+    pdt_model::checkpoint::write_atomic(path, text.as_bytes()).map_err(io)
 }
 
 /// The command line that runs (or resumes) one run.
@@ -162,11 +160,14 @@ pub fn execute(
     let states = runs.iter().map(|r| plan::state(r)).collect::<Result<Vec<_>, _>>()?;
     let total: u64 = runs.iter().map(|r| r.config.train.iterations).sum();
     let mut summary = ExecSummary::default();
-    let report = |stage: Stage, finished: usize, running: Vec<String>| Progress {
+    // Iterations done per run: read once here, then only for the runs in progress (a paper sweep
+    // has dozens of metrics files of thousands of lines; the finished ones do not change).
+    let mut done: Vec<u64> = runs.iter().map(|r| iterations_done(r)).collect();
+    let report = |stage: Stage, finished: usize, running: Vec<String>, done: &[u64]| Progress {
         stage,
         runs_total: runs.len(),
         runs_finished: finished,
-        iterations_done: runs.iter().map(|r| iterations_done(r)).sum(),
+        iterations_done: done.iter().sum(),
         iterations_total: total,
         running,
     };
@@ -178,32 +179,32 @@ pub fn execute(
         }
     }
     for d in &data {
-        progress(&report(Stage::Data(d.env.clone()), 0, Vec::new()));
+        progress(&report(Stage::Data(d.env.clone()), 0, Vec::new(), &done));
         ensure_data(d, opts)?;
     }
 
-    let mut queue: Vec<(&RunSpec, RunState)> = Vec::new();
-    for (r, s) in runs.iter().zip(&states) {
+    let mut queue: Vec<(usize, &RunSpec, RunState)> = Vec::new();
+    for (i, (r, s)) in runs.iter().zip(&states).enumerate() {
         match s {
             RunState::Finished => summary.already_finished += 1,
             RunState::Partial { .. } => {
                 summary.resumed += 1;
-                queue.push((r, *s));
+                queue.push((i, r, *s));
             }
             RunState::New => {
                 summary.started += 1;
                 write_atomic(&r.config_path, &r.config.to_toml())?;
-                queue.push((r, *s));
+                queue.push((i, r, *s));
             }
         }
     }
     queue.reverse(); // pop() takes them in plan order
-    let mut running: Vec<(&RunSpec, Child)> = Vec::new();
+    let mut running: Vec<(usize, &RunSpec, Child)> = Vec::new();
     let mut finished = summary.already_finished;
     let mut last = Instant::now() - Duration::from_secs(10);
     loop {
         while running.len() < opts.jobs.max(1) {
-            let Some((spec, state)) = queue.pop() else { break };
+            let Some((index, spec, state)) = queue.pop() else { break };
             if let Some(p) = spec.log_path.parent() {
                 std::fs::create_dir_all(p)
                     .map_err(|e| ReproError::Io { path: p.into(), source: e })?;
@@ -222,16 +223,17 @@ pub fn execute(
                 .stderr(err)
                 .spawn()
                 .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
-            running.push((spec, child));
+            running.push((index, spec, child));
         }
         if running.is_empty() {
             break;
         }
         let mut i = 0;
         while i < running.len() {
-            match running[i].1.try_wait() {
+            match running[i].2.try_wait() {
                 Ok(Some(status)) => {
-                    let (spec, _) = running.swap_remove(i);
+                    let (index, spec, _) = running.swap_remove(i);
+                    done[index] = iterations_done(spec);
                     finished += 1;
                     if !status.success() {
                         let tail = std::fs::read_to_string(&spec.log_path).unwrap_or_default();
@@ -247,20 +249,24 @@ pub fn execute(
                     }
                 }
                 Ok(None) => i += 1,
-                Err(e) => return Err(ReproError::Io { path: running[i].0.dir.clone(), source: e }),
+                Err(e) => return Err(ReproError::Io { path: running[i].1.dir.clone(), source: e }),
             }
         }
         if last.elapsed() >= Duration::from_secs(2) {
+            for (index, spec, _) in &running {
+                done[*index] = iterations_done(spec);
+            }
             progress(&report(
                 Stage::Training,
                 finished,
-                running.iter().map(|(s, _)| s.key.clone()).collect(),
+                running.iter().map(|(_, s, _)| s.key.clone()).collect(),
+                &done,
             ));
             last = Instant::now();
         }
         std::thread::sleep(Duration::from_millis(200));
     }
-    progress(&report(Stage::Done, finished, Vec::new()));
+    progress(&report(Stage::Done, finished, Vec::new(), &done));
     Ok(summary)
 }
 

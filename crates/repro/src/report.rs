@@ -16,25 +16,9 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-/// Mean and standard deviation (population, as numpy's default) over seeds.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct Stat {
-    pub mean: f64,
-    pub std: f64,
-    pub n: usize,
-}
-
-impl Stat {
-    fn of(v: &[f64]) -> Option<Self> {
-        if v.is_empty() {
-            return None;
-        }
-        let n = v.len();
-        let mean = v.iter().sum::<f64>() / n as f64;
-        let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
-        Some(Self { mean, std: var.sqrt(), n })
-    }
-}
+/// Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out
+/// and `n` says how many seeds were used), the rule of `promptdt report`.
+pub use pdt_report::Stat;
 
 /// One cell's result.
 #[derive(Debug, Clone, Serialize)]
@@ -139,32 +123,12 @@ pub struct Baselines {
 }
 
 pub fn baselines(data_dir: &Path) -> Result<Baselines, ReproError> {
-    #[derive(serde::Deserialize)]
-    struct Card {
-        tasks: Vec<Task>,
-    }
-    #[derive(serde::Deserialize)]
-    struct Task {
-        index: usize,
-        files: Vec<File>,
-    }
-    #[derive(serde::Deserialize)]
-    struct File {
-        mode: String,
-        returns: Returns,
-    }
-    #[derive(serde::Deserialize)]
-    struct Returns {
-        mean: f64,
-    }
-    let path = data_dir.join("dataset.json");
-    let text = std::fs::read_to_string(&path)
-        .map_err(|e| ReproError::Io { path: path.clone(), source: e })?;
-    let card: Card = serde_json::from_str(&text)
-        .map_err(|e| ReproError::Invalid(format!("{}: {e}", path.display())))?;
+    let card = pdt_data::native::read_card(data_dir)
+        .map_err(|e| ReproError::Invalid(e.to_string()))?
+        .ok_or_else(|| ReproError::Invalid(format!("{}: no dataset card", data_dir.display())))?;
     let mut b = Baselines::default();
-    for t in card.tasks {
-        for f in t.files {
+    for t in &card.tasks {
+        for f in &t.files {
             match f.mode.as_str() {
                 "expert" => {
                     b.expert.insert(t.index, f.returns.mean);
