@@ -109,6 +109,8 @@ pub struct Settings {
     pub test_eval_interval: Option<u64>,
     pub train_eval_interval: Option<u64>,
     pub save_interval: Option<u64>,
+    /// Resume points between checkpoints (`train.resume_interval`); not part of a run's identity.
+    pub resume_interval: Option<u64>,
     /// Episodes per task and mode in the collected datasets (default: `collect`'s 100).
     pub data_episodes: Option<usize>,
     /// Episodes per task in each collected prompt set (default: `collect`'s 5).
@@ -135,6 +137,7 @@ impl Settings {
             test_eval_interval,
             train_eval_interval,
             save_interval,
+            resume_interval,
             data_episodes,
             prompt_set_episodes,
             finetune_batch,

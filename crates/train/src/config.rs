@@ -202,8 +202,13 @@ pub struct TrainSection {
     pub test_eval_interval: u64,
     /// Same for the training tasks (reference 500; 0 = never).
     pub train_eval_interval: u64,
-    /// Checkpoint every n iterations and after the last (reference 500).
+    /// Checkpoint every n iterations and after the last (reference 500); these weights are kept.
     pub save_interval: u64,
+    /// Also write a resume point every n iterations (0 = only the checkpoints above). Not in the
+    /// reference: long runs on a machine that may stop lose at most n iterations. A resume point
+    /// that is not a checkpoint is removed when the next one is written, so it costs one extra
+    /// weights file; results do not depend on it (a resumed run is byte-identical).
+    pub resume_interval: u64,
 }
 
 impl Default for TrainSection {
@@ -215,6 +220,7 @@ impl Default for TrainSection {
             test_eval_interval: 100,
             train_eval_interval: 500,
             save_interval: 500,
+            resume_interval: 0,
         }
     }
 }

@@ -106,6 +106,14 @@ struct Latest {
     iteration: u64,
     model: String,
     state: String,
+    /// `false` for a resume point between checkpoints (`train.resume_interval`): its weights are
+    /// removed once a later checkpoint is in force. Absent in runs written before the option.
+    #[serde(default = "keep_default")]
+    keep: bool,
+}
+
+fn keep_default() -> bool {
+    true
 }
 
 /// Training state besides weights and moments (`checkpoints/state_<N>.json`).
@@ -487,6 +495,7 @@ fn save_checkpoint(
     learner: &Learner,
     state: &TrainState,
     n_positions: usize,
+    keep: bool,
 ) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");
     std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
@@ -506,11 +515,16 @@ fn save_checkpoint(
     let previous: Option<Latest> = read_json(&ck.join("latest.json")).ok();
     write_json(
         &ck.join("latest.json"),
-        &Latest { step: state.step, iteration: state.iteration, model, state: opt_state },
+        &Latest { step: state.step, iteration: state.iteration, model, state: opt_state, keep },
     )?;
-    // Optimiser moments are only needed to resume: keep the latest ones (weights are all kept).
+    // Optimiser moments are only needed to resume: keep the latest ones. Weights are kept at
+    // every checkpoint; a resume point's go once a later one is in force.
     if let Some(p) = previous.filter(|p| p.step != state.step) {
-        let _ = std::fs::remove_file(ck.join(p.state));
+        let _ = std::fs::remove_file(ck.join(&p.state));
+        if !p.keep {
+            let _ = std::fs::remove_file(ck.join(&p.model));
+            let _ = std::fs::remove_file(ck.join(format!("state_{}.json", p.step)));
+        }
     }
     Ok(())
 }
@@ -668,7 +682,8 @@ pub fn train(
             let res = eval_tasks(&setup, &mut learner, Split::Train, iteration)?;
             evals.append(&eval_rows(&res, iteration, step, "train", setup.stats.target_return))?;
         }
-        if iteration % t.save_interval == 0 || last {
+        let keep = iteration % t.save_interval == 0 || last;
+        if keep || (t.resume_interval > 0 && iteration % t.resume_interval == 0) {
             let state = TrainState {
                 iteration,
                 step,
@@ -677,7 +692,7 @@ pub fn train(
                 metrics_lines: metrics.lines,
                 eval_lines: evals.lines,
             };
-            save_checkpoint(dir, &learner, &state, setup.model_cfg.n_positions)?;
+            save_checkpoint(dir, &learner, &state, setup.model_cfg.n_positions, keep)?;
         }
         (opts.progress)(&Progress { iteration, iterations: t.iterations, loss, test_return });
     }

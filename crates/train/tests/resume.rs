@@ -130,3 +130,41 @@ fn starting_over_an_existing_run_is_refused() {
     .unwrap_err();
     assert!(err.to_string().contains("--resume"), "{err}");
 }
+
+/// Resume points between checkpoints (`train.resume_interval`): a run stopped just after one
+/// resumes from it, ends byte-identical to a run without them, and keeps only the checkpoints'
+/// weights.
+#[test]
+fn resume_points_between_checkpoints_lose_nothing_and_leave_no_files() {
+    let (tmp, data) = tiny_data();
+    let mut plain = config(&data, Method::PromptDt);
+    plain.train.save_interval = 3;
+    let mut frequent = plain.clone();
+    frequent.train.resume_interval = 1;
+    let (full, cut) = (tmp.path().join("full"), tmp.path().join("cut"));
+    assert!(run(Some(plain), &full, false, None).finished);
+    // Stopped after iteration 5: a resume point at 5, the last checkpoint at 3.
+    run(Some(frequent), &cut, false, Some(5));
+    let latest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(cut.join("checkpoints/latest.json")).unwrap())
+            .unwrap();
+    assert_eq!(latest["iteration"], 5, "{latest}");
+    assert_eq!(latest["keep"], false, "{latest}");
+    let names = |d: &Path| {
+        let mut v: Vec<String> = std::fs::read_dir(d.join("checkpoints"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("step_"))
+            .collect();
+        v.sort();
+        v
+    };
+    // the resume points at 1, 2 and 4 are gone; 3 (a checkpoint) and 5 (in force) remain
+    assert_eq!(names(&cut), ["step_10.safetensors", "step_6.safetensors"]);
+    assert!(run(None, &cut, true, None).finished);
+    assert_eq!(lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
+    assert_eq!(lines(&full.join("eval.jsonl")), lines(&cut.join("eval.jsonl")));
+    assert_eq!(names(&full), names(&cut));
+    let w = |d: &Path| std::fs::read(d.join("checkpoints/step_12.safetensors")).unwrap();
+    assert!(w(&full) == w(&cut), "final weights differ");
+}
