@@ -366,28 +366,30 @@ pub struct CollectArgs {
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// Experiment file (TOML; see configs/). Not needed with --resume.
-    #[arg(long, required_unless_present = "resume")]
+    /// Experiment file (TOML; see configs/). Not with --resume (the run's config.toml is used).
+    #[arg(long, required_unless_present = "resume", conflicts_with = "resume")]
     pub config: Option<PathBuf>,
     /// Run directory to write.
     #[arg(long, conflicts_with = "resume")]
     pub out: Option<PathBuf>,
-    /// Continue the (killed) run in this directory from its last checkpoint.
-    #[arg(long)]
+    /// Continue the (killed) run in this directory from its last checkpoint. With it, only
+    /// --iterations (to extend the run), --device and --data (the same data, moved) may be given.
+    #[arg(long, conflicts_with_all = ["seed", "method"])]
     pub resume: Option<PathBuf>,
     /// Override run.seed.
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Override train.iterations.
+    /// Override train.iterations; with --resume, extend the run to this many.
     #[arg(long)]
     pub iterations: Option<u64>,
     /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune).
     #[arg(long)]
     pub method: Option<String>,
-    /// Override run.device.
+    /// Override run.device (with --resume: for this invocation).
     #[arg(long)]
     pub device: Option<DeviceSpec>,
-    /// Override data.dir.
+    /// Override data.dir; with --resume, where the run's data moved (their content must be the
+    /// same: the run recorded a fingerprint).
     #[arg(long)]
     pub data: Option<PathBuf>,
     /// No progress bar.
@@ -408,6 +410,9 @@ pub struct EvalArgs {
     pub split: String,
     #[arg(long)]
     pub device: Option<DeviceSpec>,
+    /// Where the run's data moved (their content must be what the run trained on).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]

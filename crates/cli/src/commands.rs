@@ -102,8 +102,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let test = last_test.map_or(String::new(), |r| format!("  test return {r:.2}"));
         pb.set_message(format!("loss {:.5}{test}", p.loss));
     };
+    let resume_with = pdt_train::run::ResumeWith {
+        iterations: a.iterations,
+        device: a.device,
+        data: a.data.clone(),
+    };
     let opts = pdt_train::run::TrainOptions {
         resume: a.resume.is_some(),
+        resume_with,
         stop_after_iterations: None,
         progress: &mut progress,
     };
@@ -165,12 +171,13 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             };
             let opts = pdt_train::run::TrainOptions {
                 resume: false,
+                resume_with: Default::default(),
                 stop_after_iterations: None,
                 progress: &mut progress,
             };
             pdt_train::run::train(Some(cfg), &dir, opts)?;
             pb.finish_and_clear();
-            let r = pdt_train::run::evaluate_run(&dir, None, "test", Some(a.device))?;
+            let r = pdt_train::run::evaluate_run(&dir, None, "test", Some(a.device), None)?;
             println!("      held-out goals: average return {:.2}", r.mean_return);
             runs.push(dir);
         }

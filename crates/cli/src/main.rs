@@ -133,7 +133,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Collect(a) => collect(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            let r = pdt_train::run::evaluate_run(&a.run, a.episodes, &a.split, a.device)?;
+            let r = pdt_train::run::evaluate_run(
+                &a.run,
+                a.episodes,
+                &a.split,
+                a.device,
+                a.data.as_deref(),
+            )?;
             println!("{:<24} {:>12} {:>10} {:>9}", "task", "return mean", "std", "episodes");
             for t in &r.tasks {
                 println!(

@@ -157,6 +157,40 @@ impl TaskDataset {
     pub fn returns(&self) -> Vec<f64> {
         self.trajectories.iter().map(Trajectory::episode_return).collect()
     }
+
+    /// Checks that every value is finite and that every return-to-go fits an f32 with room to
+    /// spare: a NaN, an infinity or a reward of 3e38 would otherwise train on NaN losses and
+    /// surface only at the first evaluation. The message names the trajectory, field and step.
+    pub fn check_values(&self) -> Result<(), String> {
+        /// Returns-to-go are summed in f32 and then scaled; beyond this they lose all precision.
+        const MAX_RETURN: f64 = 1e30;
+        for (i, t) in self.trajectories.iter().enumerate() {
+            let fields: [(&str, &[f32], usize); 3] = [
+                ("observations", &t.observations, t.obs_dim),
+                ("actions", &t.actions, t.act_dim),
+                ("rewards", &t.rewards, 1),
+            ];
+            for (name, values, width) in fields {
+                if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+                    return Err(format!(
+                        "trajectory {i}: {name} at step {} is {} (every value must be finite)",
+                        k / width,
+                        values[k]
+                    ));
+                }
+            }
+            let mut rtg = 0.0f64;
+            for (step, r) in t.rewards.iter().enumerate().rev() {
+                rtg += f64::from(*r);
+                if rtg.abs() > MAX_RETURN {
+                    return Err(format!(
+                        "trajectory {i}: the return-to-go from step {step} is {rtg:e}, beyond                          {MAX_RETURN:e} (rewards this large overflow the f32 return tokens)"
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// D_i and P_i for one task.
@@ -201,5 +235,43 @@ impl MultiTaskDataset {
 
     pub fn task(&self, id: &TaskId) -> Option<&TaskData> {
         self.tasks.iter().find(|t| &t.id == id)
+    }
+
+    /// A content hash of every value of every task (ids, D_i and P_i, in order), independent of
+    /// the file format: `sha256:<hex>`. A run records it to refuse evaluating or resuming on data
+    /// other than what it trained on.
+    pub fn fingerprint(&self) -> String {
+        use sha2::{Digest, Sha256};
+        let mut h = Sha256::new();
+        let floats = |h: &mut Sha256, v: &[f32]| {
+            for x in v {
+                h.update(x.to_le_bytes());
+            }
+        };
+        for task in &self.tasks {
+            h.update(task.id.env.as_bytes());
+            h.update((task.id.index as u64).to_le_bytes());
+            for set in [&task.dataset, &task.prompts] {
+                h.update((set.trajectories.len() as u64).to_le_bytes());
+                for t in &set.trajectories {
+                    for n in [t.len(), t.obs_dim, t.act_dim] {
+                        h.update((n as u64).to_le_bytes());
+                    }
+                    floats(&mut h, &t.observations);
+                    floats(&mut h, &t.actions);
+                    floats(&mut h, &t.rewards);
+                    let flags: Vec<u8> = t
+                        .terminated
+                        .iter()
+                        .zip(&t.truncated)
+                        .map(|(&a, &b)| u8::from(a) | (u8::from(b) << 1))
+                        .collect();
+                    h.update(&flags);
+                }
+            }
+        }
+        let digest = h.finalize();
+        let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+        format!("sha256:{hex}")
     }
 }

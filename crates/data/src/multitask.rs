@@ -109,6 +109,18 @@ pub fn resolve_task_file(
     mode: &str,
     format: DataFormat,
 ) -> Result<PathBuf, DataError> {
+    // A missing directory (or a symlink loop) is named as such, not as "no data for task ...".
+    match fs::metadata(dir) {
+        Ok(m) if m.is_dir() => {}
+        Ok(_) => {
+            return Err(DataError::Format {
+                path: dir.to_path_buf(),
+                message: "not a directory (data.dir must name the directory of the task files)"
+                    .into(),
+            })
+        }
+        Err(source) => return Err(DataError::Io { path: dir.to_path_buf(), source }),
+    }
     let stem = native::task_file_stem(env, index, mode);
     let tried: Vec<PathBuf> =
         format.extensions().iter().map(|ext| dir.join(format!("{stem}.{ext}"))).collect();
@@ -159,16 +171,33 @@ pub fn load_multitask(spec: &DatasetSpec) -> Result<MultiTaskDataset, DataError>
     }
     let prompt_mode = spec.prompt_file_mode();
     let mut tasks = Vec::with_capacity(spec.tasks.len());
+    // The first file fixes the dims; a later file that disagrees is named with the first.
+    let mut first: Option<(PathBuf, usize, usize)> = None;
     for &index in &spec.tasks {
-        let load = |mode: &str| -> Result<TaskDataset, DataError> {
+        let mut load = |mode: &str| -> Result<TaskDataset, DataError> {
             let path = resolve_task_file(&spec.dir, &spec.env, index, mode, spec.format)?;
-            load_task_file(&path)
+            let d = load_task_file(&path)?;
+            match &first {
+                None => first = Some((path.clone(), d.obs_dim, d.act_dim)),
+                Some((p, o, a)) if (*o, *a) != (d.obs_dim, d.act_dim) => {
+                    return Err(DataError::Format {
+                        path,
+                        message: format!(
+                            "obs/act dims {}/{}, but {} has {o}/{a} (all files of a run must agree)",
+                            d.obs_dim,
+                            d.act_dim,
+                            p.display()
+                        ),
+                    })
+                }
+                Some(_) => {}
+            }
+            d.check_values().map_err(|message| DataError::Format { path, message })?;
+            Ok(d)
         };
-        tasks.push(TaskData {
-            id: TaskId { env: spec.env.clone(), index },
-            dataset: load(&spec.dataset_mode)?,
-            prompts: load(&prompt_mode)?,
-        });
+        let dataset = load(&spec.dataset_mode)?;
+        let prompts = load(&prompt_mode)?;
+        tasks.push(TaskData { id: TaskId { env: spec.env.clone(), index }, dataset, prompts });
     }
     MultiTaskDataset::new(tasks).map_err(|e| e.in_file(&spec.dir))
 }

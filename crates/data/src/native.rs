@@ -26,8 +26,7 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::fs::{self, File};
 use std::io::Read;
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::path::Path;
 
 use safetensors::tensor::{Dtype, Metadata, SafeTensorError, View};
 use serde::{Deserialize, Serialize};
@@ -445,79 +444,31 @@ impl View for &Column<'_> {
     }
 }
 
-/// Distinguishes temporary files of concurrent writers within one process (the pid and the time
-/// distinguish processes).
-static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// Removes the temporary file on drop unless the write committed it by renaming.
-struct TempFile {
-    path: PathBuf,
-    committed: bool,
-}
-
-impl Drop for TempFile {
-    fn drop(&mut self) {
-        if !self.committed {
-            // Best effort: the error that got us here is the one worth reporting.
-            let _ = fs::remove_file(&self.path);
-        }
-    }
-}
-
 /// Writes `bytes` to `path` atomically: a uniquely named temporary file beside it, fsynced, then
 /// renamed over `path`, so a crash leaves the old file or the new one, never a torn one.
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
     write_atomically(path, |tmp| fs::write(tmp, bytes).map_err(io_err(tmp)))
 }
 
-/// Writes a file through `write(temp_path)`, then fsyncs and renames it to `path`.
+/// Writes a file through `write(temp_path)`, then fsyncs and renames it to `path`
+/// (`pdt_base::fs::write_atomic_with`: a uniquely named temporary beside it, removed on failure).
 pub(crate) fn write_atomically(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), DataError>,
 ) -> Result<(), DataError> {
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| format_err(path, "not a file path (no file name)"))?
-        .to_string_lossy()
-        .into_owned();
     if path.is_dir() {
         // rename() would also refuse, but with a less helpful message.
         return Err(format_err(path, "is a directory; cannot write a dataset file over it"));
     }
-    // `Path::parent` of a bare file name is `Some("")`, meaning the current directory.
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.subsec_nanos())
-        .unwrap_or(0);
-    let tmp_path = dir.join(format!(
-        ".{file_name}.tmp-{}-{nanos}-{}",
-        std::process::id(),
-        TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    // `create_new` reserves the name (fails rather than reusing someone else's file). From here
-    // on the guard removes the file on every error path.
-    File::options().write(true).create_new(true).open(&tmp_path).map_err(io_err(&tmp_path))?;
-    let mut guard = TempFile { path: tmp_path, committed: false };
-    write(&guard.path)?;
-    // Flush the data to disk before the rename makes it visible, so a crash cannot leave a
-    // complete-looking name pointing at partially written data.
-    File::options()
-        .write(true)
-        .open(&guard.path)
-        .and_then(|f| f.sync_all())
-        .map_err(io_err(&guard.path))?;
-    fs::rename(&guard.path, path).map_err(io_err(path))?;
-    guard.committed = true;
-    // Make the rename itself durable. Best effort: some platforms cannot open or fsync a
-    // directory, and the file is already complete under its final name.
-    if let Ok(d) = File::open(&dir) {
-        let _ = d.sync_all();
-    }
-    Ok(())
+    let mut inner: Option<DataError> = None;
+    pdt_base::fs::write_atomic_with(path, |tmp| {
+        write(tmp).map_err(|e| {
+            let message = e.to_string();
+            inner = Some(e);
+            std::io::Error::other(message)
+        })
+    })
+    .map_err(|e| inner.take().unwrap_or_else(|| DataError::Io { path: path.into(), source: e }))
 }
 
 // ---------------------------------------------------------------------------------------------

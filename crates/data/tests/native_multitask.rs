@@ -114,7 +114,9 @@ fn tasks_with_different_dims_are_rejected() {
     }
     let msg =
         load_multitask(&DatasetSpec::new(dir.path(), "e", vec![0, 1])).unwrap_err().to_string();
-    assert!(msg.contains("e-1") && msg.contains("obs_dim 17"), "{msg}");
+    // the file at fault is named first, with the file that fixed the dims
+    assert!(msg.starts_with(&format!("{}", dir.path().join("e-1-expert").display())), "{msg}");
+    assert!(msg.contains("dims 17/") && msg.contains("e-0-expert") && msg.contains("20/"), "{msg}");
     let msg = load_multitask(&DatasetSpec::new(dir.path(), "e", vec![])).unwrap_err().to_string();
     assert!(msg.contains("no tasks"), "{msg}");
 }

@@ -25,7 +25,6 @@ mod plot;
 mod render;
 
 use std::fs;
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 pub use aggregate::Stat;
@@ -177,18 +176,5 @@ pub(crate) fn write_outputs(
 /// Writes via a temporary file in the same directory and a rename, so a reader (or a report
 /// interrupted half-way) never sees a partially written file.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ReportError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        fs::rename(&tmp, path)
-    })();
-    result.map_err(|e| {
-        // Best effort: do not leave the temporary file behind on failure.
-        let _ = fs::remove_file(&tmp);
-        ReportError::io(path, e)
-    })
+    pdt_base::fs::write_atomic(path, bytes).map_err(|e| ReportError::io(path, e))
 }

@@ -111,7 +111,7 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), ReproError> {
     if let Some(p) = path.parent() {
         std::fs::create_dir_all(p).map_err(io)?;
     }
-    pdt_model::checkpoint::write_atomic(path, text.as_bytes()).map_err(io)
+    pdt_base::fs::write_atomic(path, text.as_bytes()).map_err(io)
 }
 
 /// The command line that runs (or resumes) one run.
@@ -193,7 +193,11 @@ pub fn execute(
             }
             RunState::New => {
                 summary.started += 1;
-                write_atomic(&r.config_path, &r.config.to_toml())?;
+                let text = r
+                    .config
+                    .to_toml()
+                    .map_err(|e| ReproError::Invalid(format!("run {}: {e}", r.key)))?;
+                write_atomic(&r.config_path, &text)?;
                 queue.push((i, r, *s));
             }
         }

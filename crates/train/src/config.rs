@@ -286,37 +286,122 @@ pub enum ConfigError {
 impl TrainConfig {
     /// Reads a TOML file; unknown keys are errors (a typo must not silently fall back to a default).
     pub fn from_file(path: &std::path::Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path)
+        let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
             .map_err(|source| ConfigError::Io { path: path.into(), source })?;
         toml::from_str(&text)
             .map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })
     }
 
-    pub fn to_toml(&self) -> String {
-        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# could not serialise: {e}\n"))
+    /// The configuration as TOML. Fails rather than writing something that would not read back
+    /// (TOML integers are signed 64-bit: a seed of 2^63 or more has no TOML form).
+    pub fn to_toml(&self) -> Result<String, ConfigError> {
+        toml::to_string_pretty(self)
+            .map_err(|e| ConfigError::Invalid(format!("cannot be written as TOML: {e}")))
     }
 
-    /// Checks what can be checked without data.
+    /// Checks every setting that can be checked without data; the message names the setting and
+    /// the allowed range. Ranges are wide (a user may try unusual values) but exclude what cannot
+    /// train: a wrong sign, NaN, a size that could not be allocated.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |m: String| Err(ConfigError::Invalid(m));
-        if self.train.iterations == 0 || self.train.steps_per_iteration == 0 {
-            return bad("train.iterations and train.steps_per_iteration must be at least 1".into());
-        }
-        if self.train.test_eval_interval == 0 || self.train.save_interval == 0 {
-            return bad(
-                "train.test_eval_interval and train.save_interval must be at least 1".into()
-            );
-        }
-        if self.eval.episodes == 0 || self.eval.max_batch == 0 {
-            return bad("eval.episodes and eval.max_batch must be at least 1".into());
-        }
-        if !(self.optim.learning_rate > 0.0 && self.optim.learning_rate.is_finite()) {
-            return bad(format!(
-                "optim.learning_rate must be positive, got {}",
-                self.optim.learning_rate
+        let mut v = Checks::default();
+        const TOML_INT: u64 = i64::MAX as u64;
+        v.at_most("run.seed", self.run.seed, TOML_INT, "TOML integers are signed 64-bit");
+        v.at_most("run.threads", self.run.threads as u64, 1024, "0 = all cores");
+        let t = &self.train;
+        v.range("train.iterations", t.iterations, 1, 100_000_000);
+        v.range("train.steps_per_iteration", t.steps_per_iteration, 1, 100_000_000);
+        v.range("train.test_eval_interval", t.test_eval_interval, 1, TOML_INT);
+        v.at_most("train.train_eval_interval", t.train_eval_interval, TOML_INT, "0 = never");
+        v.range("train.save_interval", t.save_interval, 1, TOML_INT);
+        v.at_most("train.resume_interval", t.resume_interval, TOML_INT, "0 = only checkpoints");
+        let o = &self.optim;
+        v.real("optim.learning_rate", o.learning_rate, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        v.real("optim.beta1", o.beta1, |x| (0.0..1.0).contains(&x), "in [0, 1)");
+        v.real("optim.beta2", o.beta2, |x| (0.0..1.0).contains(&x), "in [0, 1)");
+        v.real("optim.eps", o.eps, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        v.real("optim.weight_decay", o.weight_decay, |x| (0.0..=1.0).contains(&x), "in [0, 1]");
+        v.real("optim.grad_clip_norm", o.grad_clip_norm, |x| x > 0.0 && x.is_finite(), "> 0");
+        v.at_most("optim.warmup_steps", o.warmup_steps, TOML_INT, "");
+        let m = &self.model;
+        v.range("model.hidden_size", m.hidden_size as u64, 1, 16_384);
+        v.range("model.n_layer", m.n_layer as u64, 1, 256);
+        v.range("model.n_head", m.n_head as u64, 1, 1024);
+        if m.n_head > 0 && m.hidden_size % m.n_head != 0 {
+            v.fail(format!(
+                "model.n_head = {} must divide model.hidden_size = {}",
+                m.n_head, m.hidden_size
             ));
         }
-        Ok(())
+        v.range("model.n_inner", m.n_inner as u64, 1, 65_536);
+        v.range("model.max_ep_len", m.max_ep_len as u64, 1, 1_000_000);
+        v.range("model.n_positions", m.n_positions as u64, 1, 1_000_000);
+        v.real("model.dropout", m.dropout, |x| (0.0..1.0).contains(&x), "in [0, 1)");
+        v.real("model.embd_dropout", m.embd_dropout, |x| (0.0..1.0).contains(&x), "in [0, 1)");
+        // Parameters (f32, plus two Adam moments): refuse what could not be allocated.
+        let (h, l, i) = (m.hidden_size as f64, m.n_layer as f64, m.n_inner as f64);
+        let params = l * (4.0 * h * h + 2.0 * h * i) + (m.max_ep_len + m.n_positions) as f64 * h;
+        if params > 2e9 {
+            v.fail(format!(
+                "the model would have about {:.1e} parameters ({:.0} GB with its Adam moments); \
+                 reduce model.hidden_size, model.n_layer or model.n_inner",
+                params,
+                params * 12.0 / 1e9
+            ));
+        }
+        let s = &self.sampler;
+        v.range("sampler.k", s.k as u64, 1, 100_000);
+        v.range("sampler.batch_size_per_task", s.batch_size_per_task as u64, 1, 1_000_000);
+        v.at_most("sampler.prompt_episodes", s.prompt_episodes as u64, 1000, "");
+        if let Some(h) = s.prompt_length {
+            v.range("sampler.prompt_length", h as u64, 1, 100_000);
+        }
+        if let Some(x) = s.rtg_scale {
+            v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
+        }
+        let e = &self.eval;
+        v.range("eval.episodes", e.episodes as u64, 1, 100_000);
+        v.range("eval.max_batch", e.max_batch as u64, 1, 1_000_000);
+        v.at_most("eval.env_threads", e.env_threads as u64, 1024, "0 = all cores");
+        if let Some(x) = e.target_return {
+            v.real("eval.target_return", f64::from(x), f64::is_finite, "finite");
+        }
+        v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
+        v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
+        v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        v.finish()
+    }
+}
+
+/// Collects every failed check, so one run of `validate` names all bad settings at once.
+#[derive(Default)]
+struct Checks(Vec<String>);
+
+impl Checks {
+    fn fail(&mut self, m: String) {
+        self.0.push(m);
+    }
+    fn range(&mut self, name: &str, x: u64, lo: u64, hi: u64) {
+        if x < lo || x > hi {
+            self.fail(format!("{name} must be between {lo} and {hi}, got {x}"));
+        }
+    }
+    fn at_most(&mut self, name: &str, x: u64, hi: u64, note: &str) {
+        if x > hi {
+            let note = if note.is_empty() { String::new() } else { format!(" ({note})") };
+            self.fail(format!("{name} must be at most {hi}{note}, got {x}"));
+        }
+    }
+    fn real(&mut self, name: &str, x: f64, ok: impl Fn(f64) -> bool, what: &str) {
+        if !ok(x) {
+            self.fail(format!("{name} must be {what}, got {x}"));
+        }
+    }
+    fn finish(self) -> Result<(), ConfigError> {
+        if self.0.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigError::Invalid(self.0.join("; ")))
+        }
     }
 }
 
@@ -333,7 +418,7 @@ mod tests {
         assert_eq!(c.optim.grad_clip_norm, 0.25);
         assert_eq!(c.train.iterations, 5000);
         assert_eq!(c.eval.episodes, 50);
-        let back: TrainConfig = toml::from_str(&c.to_toml()).unwrap();
+        let back: TrainConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
         assert_eq!(back, c);
     }
 

@@ -51,15 +51,8 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
     move |source| RunError::Io { path: path.into(), source }
 }
 
-/// Independent random streams derived from the run seed (SplitMix64 of seed, stream, counter).
-fn derive_seed(seed: u64, stream: u64, counter: u64) -> u64 {
-    let mut z = seed
-        ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        ^ counter.wrapping_mul(0xD1B5_4A32_D192_ED03);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+// Independent random streams derived from the run seed (SplitMix64 of seed, stream, counter).
+use pdt_base::seed::derive_seed;
 const STREAM_INIT: u64 = 1;
 const STREAM_BATCHES: u64 = 2;
 const STREAM_DROPOUT: u64 = 3;
@@ -97,6 +90,39 @@ pub struct TaskStats {
     pub horizon: usize,
     pub train_tasks: Vec<usize>,
     pub test_tasks: Vec<usize>,
+    /// Content hashes of the training and test data (`MultiTaskDataset::fingerprint`): a resumed
+    /// or evaluated run refuses data that differs. Empty in runs made before they were recorded.
+    #[serde(default)]
+    pub train_data_fingerprint: String,
+    #[serde(default)]
+    pub test_data_fingerprint: String,
+}
+
+impl TaskStats {
+    /// Compares the statistics recomputed from the data now with those recorded in a run;
+    /// `Err` says what differs. Fingerprints are compared when the run recorded them.
+    fn check_same_as(&self, recorded: &TaskStats) -> Result<(), String> {
+        let fp = |now: &str, then: &str, which: &str| {
+            if !then.is_empty() && now != then {
+                Err(format!(
+                    "the {which} data differ from what the run trained on ({then}, now {now})"
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        fp(&self.train_data_fingerprint, &recorded.train_data_fingerprint, "training")?;
+        fp(&self.test_data_fingerprint, &recorded.test_data_fingerprint, "test")?;
+        let mut mine = self.clone();
+        mine.train_data_fingerprint.clone_from(&recorded.train_data_fingerprint);
+        mine.test_data_fingerprint.clone_from(&recorded.test_data_fingerprint);
+        if &mine != recorded {
+            return Err("the state statistics, tasks or return settings recomputed from the \
+                        configuration and data differ from those the run recorded"
+                .into());
+        }
+        Ok(())
+    }
 }
 
 /// The commit point of a checkpoint (`checkpoints/latest.json`).
@@ -142,9 +168,24 @@ pub struct Progress {
 pub struct TrainOptions<'a> {
     /// Continue the run in the directory from its last checkpoint.
     pub resume: bool,
+    /// With `resume`: what may change when a run goes on (nothing else may).
+    pub resume_with: ResumeWith,
     /// Stop after this many iterations of this call (simulates an interruption in tests).
     pub stop_after_iterations: Option<u64>,
     pub progress: &'a mut dyn FnMut(&Progress),
+}
+
+/// What may change when a run is resumed. Anything else (seed, method, data settings) would make
+/// it another run; the CLI refuses those flags with `--resume`.
+#[derive(Debug, Clone, Default)]
+pub struct ResumeWith {
+    /// Extend `train.iterations` (at least the iterations already done); written to `config.toml`.
+    pub iterations: Option<u64>,
+    /// Run on this device this time (the results of a CPU and a GPU run differ in rounding only).
+    pub device: Option<pdt_model::device::DeviceSpec>,
+    /// The data moved: read it from here; it must have the fingerprint the run recorded. Written
+    /// to `config.toml`.
+    pub data: Option<PathBuf>,
 }
 
 /// What a finished (or stopped) call did.
@@ -228,6 +269,23 @@ impl Setup {
             ranking: s.ranking,
             zero_history_returns: cfg.run.method.zeroes_history_returns(),
         };
+        // Timesteps index the embedding table: an episode longer than it would index past it.
+        let longest = train_data
+            .tasks
+            .iter()
+            .chain(&test_data.tasks)
+            .flat_map(|t| t.dataset.trajectories.iter().chain(&t.prompts.trajectories))
+            .map(|t| t.len())
+            .max()
+            .unwrap_or(0)
+            .max(preset.horizon);
+        if cfg.model.max_ep_len < longest {
+            return Err(RunError::Invalid(format!(
+                "model.max_ep_len = {} is below the longest episode ({longest} steps: {}'s \
+                 horizon or its data); timesteps would index past the embedding table",
+                cfg.model.max_ep_len, env_name
+            )));
+        }
         let model_cfg = cfg.model.to_model_config(ds, da);
         model_cfg.validate().map_err(RunError::Invalid)?;
         sampler_cfg.validate(model_cfg.n_positions)?;
@@ -242,6 +300,8 @@ impl Setup {
             horizon: preset.horizon,
             train_tasks,
             test_tasks,
+            train_data_fingerprint: train_data.fingerprint(),
+            test_data_fingerprint: test_data.fingerprint(),
         };
         Ok(Self {
             cfg,
@@ -413,15 +473,53 @@ impl Log {
     fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
         let (jsonl, csv) = (dir.join(format!("{stem}.jsonl")), dir.join(format!("{stem}.csv")));
         // Keep exactly the lines the checkpoint knew about: a killed run may have written more.
-        for (path, keep) in [(&jsonl, keep_lines), (&csv, keep_lines + usize::from(keep_lines > 0))]
-        {
-            if path.exists() {
-                let text = std::fs::read_to_string(path).map_err(io_err(path))?;
-                let kept: String = text.lines().take(keep).map(|l| format!("{l}\n")).collect();
-                write_atomic(path, kept.as_bytes()).map_err(io_err(path))?;
+        // The JSON lines are the record; the CSV is rebuilt from them (a deleted or edited CSV
+        // is repaired, with its header).
+        let text = match std::fs::read_to_string(&jsonl) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+            Err(e) => return Err(RunError::Io { path: jsonl, source: e }),
+        };
+        let kept: Vec<&str> = text.lines().take(keep_lines).collect();
+        let mut log = Self { jsonl: jsonl.clone(), csv: csv.clone(), lines: 0 };
+        let mut rows = Vec::with_capacity(kept.len());
+        for (i, line) in kept.iter().enumerate() {
+            match serde_json::from_str::<serde_json::Value>(line) {
+                Ok(serde_json::Value::Object(m)) => rows.push(m),
+                _ => {
+                    return Err(RunError::Corrupt {
+                        path: jsonl,
+                        message: format!("line {} is not a JSON object", i + 1),
+                    })
+                }
             }
         }
-        Ok(Self { jsonl, csv, lines: keep_lines })
+        let (j, c) = log.render(&rows);
+        write_atomic(&jsonl, j.as_bytes()).map_err(io_err(&jsonl))?;
+        write_atomic(&csv, c.as_bytes()).map_err(io_err(&csv))?;
+        log.lines = rows.len();
+        Ok(log)
+    }
+
+    /// The JSON lines and CSV rows (with the header when the log is empty) of `rows`.
+    fn render(&self, rows: &[serde_json::Map<String, serde_json::Value>]) -> (String, String) {
+        let (mut j, mut c) = (String::new(), String::new());
+        for (i, row) in rows.iter().enumerate() {
+            if self.lines + i == 0 {
+                let header: Vec<&str> = row.keys().map(String::as_str).collect();
+                c.push_str(&header.join(","));
+                c.push('\n');
+            }
+            let values: Vec<String> = row
+                .values()
+                .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string))
+                .collect();
+            c.push_str(&values.join(","));
+            c.push('\n');
+            j.push_str(&serde_json::Value::Object(row.clone()).to_string());
+            j.push('\n');
+        }
+        (j, c)
     }
 
     fn append(
@@ -438,20 +536,10 @@ impl Log {
             .append(true)
             .open(&self.csv)
             .map_err(io_err(&self.csv))?;
-        for row in rows {
-            if self.lines == 0 {
-                let header: Vec<&str> = row.keys().map(String::as_str).collect();
-                writeln!(c, "{}", header.join(",")).map_err(io_err(&self.csv))?;
-            }
-            let values: Vec<String> = row
-                .values()
-                .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string))
-                .collect();
-            writeln!(c, "{}", values.join(",")).map_err(io_err(&self.csv))?;
-            writeln!(j, "{}", serde_json::Value::Object(row.clone()))
-                .map_err(io_err(&self.jsonl))?;
-            self.lines += 1;
-        }
+        let (text_j, text_c) = self.render(rows);
+        c.write_all(text_c.as_bytes()).map_err(io_err(&self.csv))?;
+        j.write_all(text_j.as_bytes()).map_err(io_err(&self.jsonl))?;
+        self.lines += rows.len();
         Ok(())
     }
 }
@@ -483,7 +571,8 @@ fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
 }
 
 fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
-    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
+        .map_err(io_err(path))?;
     serde_json::from_str(&text)
         .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })
 }
@@ -529,14 +618,71 @@ fn save_checkpoint(
     Ok(())
 }
 
-fn load_checkpoint(dir: &Path, learner: &mut Learner) -> Result<Option<TrainState>, RunError> {
+fn load_checkpoint(
+    dir: &Path,
+    setup: &Setup,
+    learner: &mut Learner,
+) -> Result<Option<TrainState>, RunError> {
     let ck = dir.join("checkpoints");
     let latest_path = ck.join("latest.json");
     if !latest_path.exists() {
         return Ok(None);
     }
     let latest: Latest = read_json(&latest_path)?;
-    let state: TrainState = read_json(&ck.join(format!("state_{}.json", latest.step)))?;
+    let corrupt = |path: &Path, message: String| RunError::Corrupt { path: path.into(), message };
+    // The files of a checkpoint are named by its step; anything else (another step's weights, a
+    // path outside the directory) is refused rather than resumed from.
+    let (model, opt) =
+        (format!("step_{}.safetensors", latest.step), format!("state_{}.safetensors", latest.step));
+    if latest.model != model || latest.state != opt {
+        return Err(corrupt(
+            &latest_path,
+            format!(
+                "names `{}` and `{}` for step {}; expected `{model}` and `{opt}`",
+                latest.model, latest.state, latest.step
+            ),
+        ));
+    }
+    let state_path = ck.join(format!("state_{}.json", latest.step));
+    let state: TrainState = read_json(&state_path)?;
+    let per = setup.cfg.train.steps_per_iteration;
+    if state.step != latest.step
+        || state.iteration != latest.iteration
+        || state.step != state.iteration.saturating_mul(per)
+    {
+        return Err(corrupt(
+            &state_path,
+            format!(
+                "iteration {} step {}, but latest.json says iteration {} step {} (and \
+                 train.steps_per_iteration = {per})",
+                state.iteration, state.step, latest.iteration, latest.step
+            ),
+        ));
+    }
+    if let Some((name, n)) = state.adam_steps.iter().find(|(_, &n)| n != state.step) {
+        return Err(corrupt(
+            &state_path,
+            format!("optimiser step {n} for `{name}` at step {}", state.step),
+        ));
+    }
+    for (stem, lines) in [("metrics", state.metrics_lines), ("eval", state.eval_lines)] {
+        let path = dir.join(format!("{stem}.jsonl"));
+        let have = match std::fs::read_to_string(&path) {
+            Ok(t) => t.lines().count(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
+            Err(e) => return Err(RunError::Io { path, source: e }),
+        };
+        if have < lines {
+            return Err(corrupt(
+                &path,
+                format!(
+                    "{have} lines, but the checkpoint at iteration {} recorded {lines}: the log \
+                     was truncated or deleted. Restore it, or start the run again",
+                    state.iteration
+                ),
+            ));
+        }
+    }
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), learner.model.cfg.n_layer)?;
     let opt_path = ck.join(&latest.state);
     let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(&opt_path)
@@ -561,6 +707,44 @@ fn load_checkpoint(dir: &Path, learner: &mut Learner) -> Result<Option<TrainStat
     Ok(Some(state))
 }
 
+/// The error of a non-finite loss or gradient: the step, the values and the likely causes.
+fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepStats) -> RunError {
+    RunError::Invalid(format!(
+        "{}: training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
+         norm {}. Likely causes: optim.learning_rate = {} too high, optim.eps = {} too small, or \
+         extreme values in the data (data.dir {}). Resuming would repeat the same steps: fix the \
+         configuration and train again.",
+        dir.display(),
+        st.loss,
+        st.grad_norm,
+        cfg.optim.learning_rate,
+        cfg.optim.eps,
+        cfg.data.dir.display()
+    ))
+}
+
+/// `path` made absolute against the current directory (not resolving symlinks; the path need
+/// not exist yet).
+fn absolute(path: &Path) -> PathBuf {
+    std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
+/// Takes ownership of a run directory for this process (see `pdt_base::fs::DirLock`).
+fn lock_run_dir(dir: &Path) -> Result<pdt_base::fs::DirLock, RunError> {
+    pdt_base::fs::DirLock::try_acquire(dir).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::WouldBlock {
+            RunError::Invalid(format!(
+                "{} is in use by another promptdt process (it holds {}); wait for it to finish, \
+                 or pick another --out",
+                dir.display(),
+                dir.join(".lock").display()
+            ))
+        } else {
+            RunError::Io { path: dir.join(".lock"), source: e }
+        }
+    })
+}
+
 fn now_utc() -> String {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -577,28 +761,70 @@ fn torch_rng_lock() -> std::sync::MutexGuard<'static, ()> {
 }
 
 /// Trains from `cfg` into `dir` (created), or with `opts.resume`, continues the run in `dir` (its
-/// `config.toml` is authoritative and `cfg` is ignored).
+/// `config.toml` is authoritative and `cfg` is ignored; `opts.resume_with` says what may change).
+///
+/// The directory has one owner: a second process on it gets an error, not interleaved files.
 pub fn train(
     cfg: Option<TrainConfig>,
     dir: &Path,
     opts: TrainOptions<'_>,
 ) -> Result<TrainSummary, RunError> {
+    let with = &opts.resume_with;
     let cfg = match (opts.resume, cfg) {
-        (true, _) => TrainConfig::from_file(&dir.join("config.toml"))?,
-        (false, Some(cfg)) => cfg,
+        (true, _) => {
+            let path = dir.join("config.toml");
+            if !path.is_file() {
+                return Err(RunError::Invalid(format!(
+                    "{}: no run to resume here (no config.toml)",
+                    dir.display()
+                )));
+            }
+            let mut c = TrainConfig::from_file(&path)?;
+            if let Some(n) = with.iterations {
+                c.train.iterations = n;
+            }
+            if let Some(d) = with.device {
+                c.run.device = d;
+            }
+            if let Some(d) = &with.data {
+                c.data.dir = absolute(d);
+            }
+            c
+        }
+        (false, Some(mut c)) => {
+            // Recorded absolute, so the run evaluates and resumes the same way from any directory.
+            c.data.dir = absolute(&c.data.dir);
+            c
+        }
         (false, None) => return Err(RunError::Invalid("no configuration given".into())),
     };
-    let setup = Setup::new(cfg)?;
+    // Refuse before anything is written (a seed of 2^63 has no TOML form).
+    let toml = cfg.to_toml()?;
+    let setup = Setup::new(cfg.clone())?;
     let _rng = torch_rng_lock();
-    let cfg = &setup.cfg;
-    let threads = if cfg.run.threads == 0 {
+    let threads = if setup.cfg.run.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
-        cfg.run.threads
+        setup.cfg.run.threads
     };
     tch::set_num_threads(threads as i32);
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-    if !opts.resume {
+    let _owner = lock_run_dir(dir)?;
+    // Temporary files of a killed writer (we own the directory, so none is live).
+    for d in [dir.to_path_buf(), dir.join("checkpoints")] {
+        pdt_base::fs::remove_stale_temps(&d).map_err(io_err(&d))?;
+    }
+    if opts.resume {
+        let recorded: TaskStats = read_json(&dir.join("task_stats.json"))?;
+        setup.stats.check_same_as(&recorded).map_err(|m| {
+            RunError::Invalid(format!(
+                "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \
+                 where it moved)",
+                dir.join("task_stats.json").display(),
+                setup.cfg.data.dir.display()
+            ))
+        })?;
+    } else {
         if dir.join("checkpoints").join("latest.json").exists() {
             return Err(RunError::Invalid(format!(
                 "{} already holds a run; use --resume to continue it or pick another --out",
@@ -606,22 +832,43 @@ pub fn train(
             )));
         }
         let info = RunInfo {
-            name: format!("{}-{}-seed{}", cfg.run.method.name(), setup.family.name(), cfg.run.seed),
-            method: cfg.run.method.name().into(),
+            name: format!(
+                "{}-{}-seed{}",
+                setup.cfg.run.method.name(),
+                setup.family.name(),
+                setup.cfg.run.seed
+            ),
+            method: setup.cfg.run.method.name().into(),
             env: setup.family.name().into(),
-            seed: cfg.run.seed,
-            split: cfg.env.split.clone(),
+            seed: setup.cfg.run.seed,
+            split: setup.cfg.env.split.clone(),
             created: now_utc(),
             promptdt_version: env!("CARGO_PKG_VERSION").into(),
         };
         write_json(&dir.join("run.json"), &info)?;
-        let toml = cfg.to_toml();
         write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
         write_json(&dir.join("task_stats.json"), &setup.stats)?;
     }
+    let cfg = &setup.cfg;
     let mut learner = Learner::new(&setup);
-    let state = if opts.resume { load_checkpoint(dir, &mut learner)? } else { None };
+    let state = if opts.resume { load_checkpoint(dir, &setup, &mut learner)? } else { None };
     let (mut iteration, mut step) = state.as_ref().map_or((0, 0), |s| (s.iteration, s.step));
+    if opts.resume && (with.iterations.is_some() || with.data.is_some()) {
+        if iteration > cfg.train.iterations {
+            return Err(RunError::Invalid(format!(
+                "--iterations {}: the run in {} has already done {iteration} iterations; give at \
+                 least that many to extend it",
+                cfg.train.iterations,
+                dir.display()
+            )));
+        }
+        // What changed goes on record (the device is this invocation's only).
+        let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
+        recorded.train.iterations = cfg.train.iterations;
+        recorded.data.dir.clone_from(&cfg.data.dir);
+        let text = recorded.to_toml()?;
+        write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
+    }
     let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
     let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
@@ -655,7 +902,11 @@ pub fn train(
                 cfg.run.method.uses_prompt(),
                 setup.device,
             );
-            stats.push(train_step(&learner.model, &mut learner.opt, &batch, t.loss_on, step));
+            let st = train_step(&learner.model, &mut learner.opt, &batch, t.loss_on, step);
+            if !(st.loss.is_finite() && st.grad_norm.is_finite()) {
+                return Err(diverged(dir, cfg, iteration + 1, step, &st));
+            }
+            stats.push(st);
             step += 1;
         }
         iteration += 1;
@@ -716,15 +967,36 @@ pub fn evaluate_run(
     episodes: Option<usize>,
     split: &str,
     device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
 ) -> Result<FinalEval, RunError> {
-    let mut cfg = TrainConfig::from_file(&dir.join("config.toml"))?;
+    let config = dir.join("config.toml");
+    if !config.is_file() {
+        return Err(RunError::Invalid(format!(
+            "{}: not a run directory (no config.toml)",
+            dir.display()
+        )));
+    }
+    let mut cfg = TrainConfig::from_file(&config)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
     }
     if let Some(d) = device {
         cfg.run.device = d;
     }
+    if let Some(d) = data {
+        cfg.data.dir = absolute(d);
+    }
     let setup = Setup::new(cfg)?;
+    let stats_path = dir.join("task_stats.json");
+    let recorded: TaskStats = read_json(&stats_path)?;
+    setup.stats.check_same_as(&recorded).map_err(|m| {
+        RunError::Invalid(format!(
+            "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
+             where it moved)",
+            stats_path.display(),
+            setup.cfg.data.dir.display()
+        ))
+    })?;
     let _rng = torch_rng_lock();
     let mut learner = Learner::new(&setup);
     let ck = dir.join("checkpoints");
@@ -734,6 +1006,12 @@ pub fn evaluate_run(
         }
         other => other,
     })?;
+    if latest.model != format!("step_{}.safetensors", latest.step) {
+        return Err(RunError::Corrupt {
+            path: ck.join("latest.json"),
+            message: format!("names weights `{}` for step {}", latest.model, latest.step),
+        });
+    }
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
     let which = match split {
         "test" => Split::Test,

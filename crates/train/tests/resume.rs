@@ -61,8 +61,17 @@ fn run(
     stop: Option<u64>,
 ) -> pdt_train::run::TrainSummary {
     let mut progress = |_: &pdt_train::run::Progress| {};
-    train(cfg, dir, TrainOptions { resume, stop_after_iterations: stop, progress: &mut progress })
-        .unwrap()
+    train(
+        cfg,
+        dir,
+        TrainOptions {
+            resume,
+            resume_with: Default::default(),
+            stop_after_iterations: stop,
+            progress: &mut progress,
+        },
+    )
+    .unwrap()
 }
 
 /// A temp dir with a small point-robot dataset in `data/`.
@@ -125,7 +134,12 @@ fn starting_over_an_existing_run_is_refused() {
     let err = train(
         Some(cfg),
         &dir,
-        TrainOptions { resume: false, stop_after_iterations: None, progress: &mut progress },
+        TrainOptions {
+            resume: false,
+            resume_with: Default::default(),
+            stop_after_iterations: None,
+            progress: &mut progress,
+        },
     )
     .unwrap_err();
     assert!(err.to_string().contains("--resume"), "{err}");
@@ -145,9 +159,10 @@ fn resume_points_between_checkpoints_lose_nothing_and_leave_no_files() {
     assert!(run(Some(plain), &full, false, None).finished);
     // Stopped after iteration 5: a resume point at 5, the last checkpoint at 3.
     run(Some(frequent), &cut, false, Some(5));
-    let latest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(cut.join("checkpoints/latest.json")).unwrap())
-            .unwrap();
+    let latest: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(cut.join("checkpoints/latest.json")).unwrap(),
+    )
+    .unwrap();
     assert_eq!(latest["iteration"], 5, "{latest}");
     assert_eq!(latest["keep"], false, "{latest}");
     let names = |d: &Path| {

@@ -1,0 +1,9 @@
+//! The plumbing every promptdt crate shares, in one place so it behaves the same everywhere:
+//!
+//! - [`fs`]: files written atomically (temp file, fsync, rename), files read with a size limit and
+//!   only when they are regular files (a FIFO or `/dev/zero` is refused, not read forever), the
+//!   temporary files a killed writer left behind, and the lock that gives a run directory one owner.
+//! - [`seed`]: independent seeds for every random choice, derived from one seed.
+
+pub mod fs;
+pub mod seed;
