@@ -156,6 +156,12 @@ pub fn read_text_limited(path: &Path, max_bytes: u64) -> io::Result<String> {
 /// metadata): far above any real one, far below what could hurt.
 pub const MAX_TEXT_BYTES: u64 = 64 << 20;
 
+/// Limit for weights, optimiser states and the tensors handed to `model forward`.
+pub const MAX_TENSOR_FILE_BYTES: u64 = 8 << 30;
+
+/// Limit for a reference pickle read into memory (the release's largest is a few hundred MB).
+pub const MAX_PICKLE_BYTES: u64 = 8 << 30;
+
 /// Exclusive ownership of a directory by one process, held until dropped: an advisory lock on
 /// `dir/.lock` (`flock`), released by the kernel when the process dies, so a killed owner never
 /// leaves a stale lock.

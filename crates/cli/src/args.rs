@@ -197,8 +197,12 @@ pub struct ForwardArgs {
     pub device: DeviceSpec,
     /// Intra-op threads of libtorch (default: all cores). Bit-for-bit comparisons with PyTorch need
     /// the thread count PyTorch ran with (the golden fixtures: 1).
-    #[arg(long)]
+    #[arg(long, value_parser = count(1, 1024))]
     pub threads: Option<usize>,
+    /// Attention heads, for weights that do not record them (a PyTorch state_dict export; the
+    /// reference model has 1). promptdt's checkpoints record it.
+    #[arg(long)]
+    pub n_head: Option<usize>,
 }
 
 #[derive(Debug, Args)]
@@ -300,11 +304,11 @@ pub struct CollectArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Episodes per task in each main dataset.
-    #[arg(long, default_value_t = 100)]
+    /// Episodes per task in each main dataset (1 to 100000).
+    #[arg(long, default_value_t = 100, value_parser = count(1, 100_000))]
     pub episodes: usize,
-    /// Episodes per task in each prompt set.
-    #[arg(long, default_value_t = 5)]
+    /// Episodes per task in each prompt set (1 to 10000).
+    #[arg(long, default_value_t = 5, value_parser = count(1, 10_000))]
     pub prompt_episodes: usize,
     /// Skip training: write the datasets from the committed agent (pretrained/<env>, or
     /// --pretrained-dir).
@@ -402,8 +406,8 @@ pub struct EvalArgs {
     /// Run directory.
     #[arg(long)]
     pub run: PathBuf,
-    /// Episodes per task (default: the run's eval.episodes).
-    #[arg(long)]
+    /// Episodes per task (default: the run's eval.episodes; 1 to 10000).
+    #[arg(long, value_parser = count(1, 10_000))]
     pub episodes: Option<usize>,
     /// `test` (held-out tasks) or `train`.
     #[arg(long, default_value = "test")]
@@ -450,4 +454,17 @@ pub struct ReplayArgs {
     /// Output JSON: observations, rewards, terminated, truncated.
     #[arg(long)]
     pub out: PathBuf,
+}
+
+/// A clap parser for a count in `lo..=hi`: sizes that could not be allocated (or would spend
+/// minutes spawning threads) are refused with the allowed range, before anything starts.
+fn count(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone {
+    move |s: &str| {
+        let n: usize = s.trim().parse().map_err(|e| format!("`{s}` is not a count: {e}"))?;
+        if (lo..=hi).contains(&n) {
+            Ok(n)
+        } else {
+            Err(format!("must be between {lo} and {hi}, got {n}"))
+        }
+    }
 }

@@ -85,7 +85,9 @@ fn run(cli: Cli) -> Result<()> {
                 None => {}
             }
             let device = pdt_model::device::resolve(a.device)?;
-            let s = pdt_model::forward_file::forward_file(&a.weights, &a.inputs, &a.out, device)?;
+            let s = pdt_model::forward_file::forward_file(
+                &a.weights, &a.inputs, &a.out, device, a.n_head,
+            )?;
             println!(
                 "wrote action_preds [{}, {}, {}] to {} (prompt: {} steps)",
                 s.batch,
@@ -177,7 +179,8 @@ fn run(cli: Cli) -> Result<()> {
                 qvel: Vec<f64>,
             }
             let read = |p: &std::path::Path| {
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))
+                pdt_base::fs::read_text_limited(p, pdt_base::fs::MAX_TEXT_BYTES)
+                    .with_context(|| format!("reading {}", p.display()))
             };
             let init: Init = serde_json::from_str(&read(&a.init)?).with_context(|| {
                 format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", a.init.display())

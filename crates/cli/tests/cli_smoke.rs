@@ -4,33 +4,12 @@
 #[path = "../../train/tests/support/golden.rs"]
 mod golden;
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+#[path = "support/cli.rs"]
+mod cli;
 
-fn promptdt<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_promptdt"))
-        .args(args.iter().map(AsRef::<str>::as_ref))
-        .output()
-        .expect("binary runs")
-}
-
-fn ok<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
-    let out = promptdt(args);
-    let (stdout, stderr) =
-        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
-    stdout.into_owned()
-}
-
-fn fails<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
-    let out = promptdt(args);
-    assert!(!out.status.success(), "promptdt {args:?} should fail");
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn repo(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
-}
+use cli::{fails, losses, ok, repo, tiny_setup};
+use std::path::PathBuf;
+use std::process::Command;
 
 fn official() -> Option<PathBuf> {
     let p = repo("../shared/data/official-prompts");
@@ -109,6 +88,8 @@ fn model_forward_reproduces_the_pytorch_golden_predictions() {
             out.to_str().unwrap(),
             "--threads",
             "1",
+            "--n-head",
+            "1",
         ]);
         assert!(msg.contains("[4, 20, 6]"), "{msg}");
         let ours = tch::Tensor::read_safetensors(&out).unwrap();
@@ -152,6 +133,8 @@ fn model_forward_errors_name_the_file_and_tensor() {
         w.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
+        "--n-head",
+        "1",
     ]);
     assert!(wrong.contains("`states` is missing"), "{wrong}");
     let garbage = tmp.path().join("garbage.safetensors");
@@ -230,71 +213,6 @@ fn demo_runs_end_to_end_on_a_tiny_budget() {
     ] {
         assert!(tmp.path().join(f).is_file(), "missing {f}");
     }
-}
-
-const TINY: &str = r#"
-[env]
-name = "point_robot"
-[sampler]
-k = 4
-batch_size_per_task = 1
-[model]
-hidden_size = 16
-n_layer = 1
-n_inner = 32
-[train]
-iterations = 8
-steps_per_iteration = 2
-test_eval_interval = 4
-train_eval_interval = 0
-save_interval = 2
-[eval]
-episodes = 2
-[run]
-threads = 1
-device = "cpu"
-"#;
-
-/// A tiny dataset and experiment file in `dir`.
-fn tiny_setup(dir: &Path) -> PathBuf {
-    let data = dir.join("data");
-    let msg = ok(&[
-        "collect",
-        "--env",
-        "point-robot",
-        "--out",
-        data.to_str().unwrap(),
-        "--episodes",
-        "3",
-        "--prompt-episodes",
-        "2",
-    ]);
-    assert!(msg.contains("wrote 240 datasets"), "{msg}");
-    assert!(
-        data.join("point_robot-7-prompt-expert.safetensors").is_file()
-            && data.join("dataset.json").is_file()
-    );
-    let cfg = dir.join("tiny.toml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "{TINY}
-[data]
-dir = {:?}
-",
-            data.to_str().unwrap()
-        ),
-    )
-    .unwrap();
-    cfg
-}
-
-fn losses(run: &Path) -> Vec<String> {
-    std::fs::read_to_string(run.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| l.split("\"time/elapsed_s\"").next().unwrap().to_string())
-        .collect()
 }
 
 #[test]

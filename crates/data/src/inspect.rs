@@ -50,6 +50,12 @@ pub fn inspect_path(path: &Path) -> Result<Vec<FileReport>, DataError> {
             files.push(file);
         }
     }
+    if files.is_empty() {
+        return Err(DataError::Format {
+            path: path.into(),
+            message: "no .pkl or .safetensors files in this directory".into(),
+        });
+    }
     files.sort_by(|a, b| natural_cmp(&file_label(a), &file_label(b)));
     files.iter().map(|f| inspect_file(f)).collect()
 }

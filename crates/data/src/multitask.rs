@@ -199,7 +199,31 @@ pub fn load_multitask(spec: &DatasetSpec) -> Result<MultiTaskDataset, DataError>
         let prompts = load(&prompt_mode)?;
         tasks.push(TaskData { id: TaskId { env: spec.env.clone(), index }, dataset, prompts });
     }
-    MultiTaskDataset::new(tasks).map_err(|e| e.in_file(&spec.dir))
+    let set = MultiTaskDataset::new(tasks).map_err(|e| e.in_file(&spec.dir))?;
+    // A card that contradicts the files (another family, other dims) means the directory is not
+    // what it claims to be: refuse rather than train on it silently.
+    if let Some(card) = native::read_card(&spec.dir)? {
+        let path = spec.dir.join(native::CARD_FILE_NAME);
+        if card.env != spec.env {
+            return Err(DataError::Format {
+                path,
+                message: format!(
+                    "describes `{}` data, but the files read are `{}`'s",
+                    card.env, spec.env
+                ),
+            });
+        }
+        if (card.obs_dim, card.act_dim) != (set.obs_dim, set.act_dim) {
+            return Err(DataError::Format {
+                path,
+                message: format!(
+                    "says obs/act dims {}/{}, but the files have {}/{}",
+                    card.obs_dim, card.act_dim, set.obs_dim, set.act_dim
+                ),
+            });
+        }
+    }
+    Ok(set)
 }
 
 /// One file converted by [`convert_reference_dir`].

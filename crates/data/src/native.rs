@@ -24,7 +24,7 @@
 
 use std::borrow::Cow;
 use std::collections::HashMap;
-use std::fs::{self, File};
+use std::fs;
 use std::io::Read;
 use std::path::Path;
 
@@ -477,8 +477,8 @@ pub(crate) fn write_atomically(
 
 /// Reads only the metadata of a native file (the header; the tensor data is not read).
 pub fn read_file_meta(path: &Path) -> Result<FileMeta, DataError> {
-    let mut file = File::open(path).map_err(io_err(path))?;
-    let file_len = file.metadata().map_err(io_err(path))?.len();
+    // A FIFO or device is refused before it is opened (opening a FIFO would block).
+    let (mut file, file_len) = pdt_base::fs::open_regular(path).map_err(io_err(path))?;
     let mut prefix = [0u8; 8];
     if file_len < 8 {
         return Err(too_short(path, file_len));
@@ -497,8 +497,7 @@ pub fn read_file_meta(path: &Path) -> Result<FileMeta, DataError> {
 /// floats, 0/1 flags set only at an episode's last step, and the metadata's `format` /
 /// `format_version` when present. Tensors with other names are ignored.
 pub fn read_task_dataset(path: &Path) -> Result<TaskDataset, DataError> {
-    let file = File::open(path).map_err(io_err(path))?;
-    let file_len = file.metadata().map_err(io_err(path))?.len();
+    let (file, file_len) = pdt_base::fs::open_regular(path).map_err(io_err(path))?;
     if file_len < 8 {
         // Also avoids mapping an empty file, which mmap rejects.
         return Err(too_short(path, file_len));
@@ -892,7 +891,7 @@ impl ReturnStats {
 /// Reads `dir/dataset.json`; `Ok(None)` if the directory has no card.
 pub fn read_card(dir: &Path) -> Result<Option<DatasetCard>, DataError> {
     let path = dir.join(CARD_FILE_NAME);
-    let text = match fs::read_to_string(&path) {
+    let text = match pdt_base::fs::read_text_limited(&path, pdt_base::fs::MAX_TEXT_BYTES) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(source) => return Err(DataError::Io { path, source }),
@@ -913,6 +912,18 @@ pub fn read_card(dir: &Path) -> Result<Option<DatasetCard>, DataError> {
                 card.format_version
             ),
         ));
+    }
+    // File names are names in this directory, never paths that lead out of it.
+    for f in card.tasks.iter().flat_map(|t| &t.files) {
+        let mut parts = Path::new(&f.name).components();
+        let plain =
+            matches!(parts.next(), Some(std::path::Component::Normal(_))) && parts.next().is_none();
+        if !plain {
+            return Err(format_err(
+                &path,
+                format!("file name {:?} is not a plain file name in this directory", f.name),
+            ));
+        }
     }
     Ok(Some(card))
 }

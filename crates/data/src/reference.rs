@@ -62,8 +62,8 @@ pub struct LoadedPickle {
 /// Reads a reference `.pkl` file. Errors name the file, and for content errors the trajectory
 /// index and the key.
 pub fn load_pickle(path: &Path, opts: &ReferenceOptions) -> Result<LoadedPickle, DataError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| DataError::Io { path: path.into(), source })?;
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_PICKLE_BYTES)
+        .map_err(|source| DataError::Io { path: path.into(), source })?;
     let value = pickle::parse(&bytes).map_err(|e| DataError::from(e).in_file(path))?;
     convert(&value, opts).map_err(|message| DataError::Format { path: path.into(), message })
 }

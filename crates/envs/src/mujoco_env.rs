@@ -98,6 +98,9 @@ impl MujocoTask {
     }
 }
 
+/// MuJoCo's `mjMAXVAL`: state magnitudes above it count as a diverged simulation.
+const MJ_MAXVAL: f64 = 1e10;
+
 /// Routes MuJoCo's log to the `log` crate, once per process, before the first model is loaded.
 ///
 /// Without this MuJoCo prints warnings to stdout and appends them to `MUJOCO_LOG.TXT` in the
@@ -238,9 +241,28 @@ impl MujocoEnv {
                     message: format!("{what}[{i}] is {v}, not a finite number"),
                 });
             }
+            // MuJoCo treats a magnitude above mjMAXVAL as a diverged simulation and silently
+            // resets it at the next step (mjWARN_BADQPOS / BADQVEL): refuse it here instead.
+            if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| v.abs() > MJ_MAXVAL) {
+                return Err(EnvError::BadState {
+                    env: env.into(),
+                    message: format!(
+                        "{what}[{i}] is {v:e}, beyond MuJoCo's limit of {MJ_MAXVAL:e} (it would \
+                         reset the simulation)"
+                    ),
+                });
+            }
         }
         self.set_state(qpos, qvel);
         Ok(self.observation())
+    }
+
+    /// How many times MuJoCo has found this simulation diverged (bad qpos, qvel or qacc) and
+    /// reset it since the last reset; a replay reports the step where this happens.
+    pub fn instability_resets(&self) -> i64 {
+        // mjtWarning: mjWARN_BADQPOS = 3, mjWARN_BADQVEL = 4, mjWARN_BADQACC = 5.
+        let w = self.data.warning();
+        [3usize, 4, 5].iter().map(|&i| i64::from(w[i].number)).sum()
     }
 
     fn set_state(&mut self, qpos: &[f64], qvel: &[f64]) {

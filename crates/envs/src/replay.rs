@@ -91,7 +91,19 @@ pub fn replay_env(
         unused_actions: 0,
     };
     for (t, action) in actions.iter().enumerate() {
+        let resets = env.instability_resets();
         let step = env.step(action).map_err(|e| at_step(e, t))?;
+        if env.instability_resets() > resets {
+            // MuJoCo reset the state mid-replay: what follows is not a continuation of the input.
+            return Err(EnvError::BadState {
+                env: format!("{family} task {task}"),
+                message: format!(
+                    "the simulation diverged at step {t} (MuJoCo found a bad position, velocity \
+                     or acceleration and reset it); the replay stops rather than continue from \
+                     the reset state"
+                ),
+            });
+        }
         result.observations.push(step.obs);
         result.rewards.push(step.reward);
         result.terminated.push(step.terminated);

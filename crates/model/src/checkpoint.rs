@@ -69,8 +69,8 @@ fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
 
 /// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`]).
 pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), CheckpointError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| CheckpointError::Io { path: path.into(), source })?;
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+        .map_err(|source| CheckpointError::Io { path: path.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
     let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
@@ -145,13 +145,19 @@ fn check_buffer(
     Ok(())
 }
 
-/// Writes the weights of `vs` plus the reference buffers, atomically (temp file + rename).
+/// The safetensors metadata key of the architecture a weights file was written with (JSON of
+/// [`crate::PromptDtConfig`]'s shape fields). The number of attention heads cannot be read off the
+/// tensors' shapes, so without it a reader would have to guess.
+pub const ARCHITECTURE_KEY: &str = "promptdt_architecture";
+
+/// Writes the weights of `vs` plus the reference buffers, atomically (temp file + rename), with
+/// the architecture in the metadata ([`ARCHITECTURE_KEY`]).
 pub fn save(
     vs: &VarStore,
     path: &Path,
-    n_layer: usize,
-    n_positions: usize,
+    cfg: &crate::PromptDtConfig,
 ) -> Result<(), CheckpointError> {
+    let (n_layer, n_positions) = (cfg.n_layer, cfg.n_positions);
     let io = |source| CheckpointError::Io { path: path.into(), source };
     let mut named: Vec<(String, Vec<u8>, Dtype, Vec<usize>)> = Vec::new();
     for (name, var) in vs.variables() {
@@ -182,7 +188,14 @@ pub fn save(
         })
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
-    let bytes = safetensors::serialize(views, &None)
+    let arch = serde_json::json!({
+        "state_dim": cfg.state_dim, "act_dim": cfg.act_dim, "hidden_size": cfg.hidden_size,
+        "n_layer": cfg.n_layer, "n_head": cfg.n_head, "n_inner": cfg.n_inner,
+        "max_ep_len": cfg.max_ep_len, "n_positions": cfg.n_positions,
+    });
+    let meta: std::collections::HashMap<String, String> =
+        [(ARCHITECTURE_KEY.to_string(), arch.to_string())].into_iter().collect();
+    let bytes = safetensors::serialize(views, &Some(meta))
         .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
     write_atomic(path, &bytes).map_err(io)
 }

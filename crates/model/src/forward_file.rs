@@ -47,10 +47,16 @@ pub enum ForwardFileError {
     Architecture { path: PathBuf, message: String },
 }
 
-/// Reads the architecture (dims, width, depth, MLP size, timestep table) off a weights file.
-pub fn infer_config(path: &Path) -> Result<PromptDtConfig, ForwardFileError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| ForwardFileError::Io { path: path.into(), source })?;
+/// Reads the architecture (dims, width, depth, MLP size, timestep table) off a weights file. The
+/// number of attention heads comes from the file's metadata (promptdt writes it) or `n_head`; a
+/// file without it (a PyTorch `state_dict` export) needs `n_head`, since every divisor of the
+/// width would load and run, with different results.
+pub fn infer_config(
+    path: &Path,
+    n_head: Option<usize>,
+) -> Result<PromptDtConfig, ForwardFileError> {
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+        .map_err(|source| ForwardFileError::Io { path: path.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| ForwardFileError::Format { path: path.into(), message: e.to_string() })?;
     let arch = |message: String| ForwardFileError::Architecture { path: path.into(), message };
@@ -61,6 +67,40 @@ pub fn infer_config(path: &Path) -> Result<PromptDtConfig, ForwardFileError> {
         match shape(name)?.as_slice() {
             [a, b] => Ok((*a, *b)),
             s => Err(arch(format!("`{name}` has shape {s:?}, expected 2 dims"))),
+        }
+    };
+    let header = SafeTensors::read_metadata(&bytes)
+        .map_err(|e| ForwardFileError::Format { path: path.into(), message: e.to_string() })?
+        .1;
+    let recorded: Option<usize> = match header.metadata() {
+        Some(meta) => match meta.get(checkpoint::ARCHITECTURE_KEY) {
+            Some(text) => {
+                let v: serde_json::Value = serde_json::from_str(text).map_err(|e| {
+                    arch(format!("metadata `{}` is not JSON: {e}", checkpoint::ARCHITECTURE_KEY))
+                })?;
+                Some(v["n_head"].as_u64().filter(|&n| n >= 1).ok_or_else(|| {
+                    arch(format!("metadata `{}` has no n_head >= 1", checkpoint::ARCHITECTURE_KEY))
+                })? as usize)
+            }
+            None => None,
+        },
+        None => None,
+    };
+    let n_head = match (recorded, n_head) {
+        (Some(r), Some(g)) if r != g => {
+            return Err(arch(format!(
+                "the weights record n_head = {r}, but --n-head {g} was given"
+            )))
+        }
+        (Some(r), _) => r,
+        (None, Some(g)) => g,
+        (None, None) => {
+            return Err(arch(
+                "the number of attention heads is not recorded in the weights (a PyTorch \
+                 state_dict export carries none) and cannot be read off their shapes; give \
+                 --n-head N (the reference model has 1)"
+                    .into(),
+            ))
         }
     };
     let (hidden, state_dim) = two("embed_state.weight")?;
@@ -78,6 +118,7 @@ pub fn infer_config(path: &Path) -> Result<PromptDtConfig, ForwardFileError> {
         act_dim,
         hidden_size: hidden,
         n_layer,
+        n_head,
         n_inner,
         max_ep_len,
         n_positions,
@@ -203,12 +244,13 @@ pub fn forward_file(
     inputs: &Path,
     out: &Path,
     device: Device,
+    n_head: Option<usize>,
 ) -> Result<ForwardSummary, ForwardFileError> {
-    let cfg = infer_config(weights)?;
+    let cfg = infer_config(weights, n_head)?;
     let mut vs = VarStore::new(device);
     let model = PromptDt::new(&vs.root(), &cfg);
     checkpoint::load(&mut vs, weights, cfg.n_layer)?;
-    let bytes = std::fs::read(inputs)
+    let bytes = pdt_base::fs::read_limited(inputs, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
     let st = SafeTensors::deserialize(&bytes)
         .map_err(|e| ForwardFileError::Format { path: inputs.into(), message: e.to_string() })?;

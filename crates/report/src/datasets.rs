@@ -414,6 +414,18 @@ fn check_card(dir: &Path, stats: &BTreeMap<PathBuf, ReturnStat>, warnings: &mut 
     };
     let card_path = dir.join(native::CARD_FILE_NAME);
     for file in card.tasks.iter().flat_map(|t| &t.files) {
+        if let Some((env, _, _)) = native::parse_task_file_stem(
+            file.name.strip_suffix(".safetensors").unwrap_or(&file.name),
+        ) {
+            if env != card.env {
+                warnings.push(format!(
+                    "{}: says the data are `{}`'s but lists {} (the card is wrong)",
+                    card_path.display(),
+                    card.env,
+                    file.name
+                ));
+            }
+        }
         let path = dir.join(&file.name);
         let Some(s) = stats.get(&path) else { continue };
         let tol = 1e-6 * s.mean.abs().max(1.0);

@@ -196,7 +196,7 @@ pub(crate) fn load_run(dir: &Path, warnings: &mut Vec<String>) -> Result<Run, Re
 }
 
 fn read_to_string_opt(path: &Path) -> Result<Option<String>, ReportError> {
-    match fs::read_to_string(path) {
+    match pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES) {
         Ok(s) => Ok(Some(s)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(ReportError::io(path, e)),

@@ -255,7 +255,7 @@ impl Manifest {
         }
         let path = Path::new(name_or_path);
         if path.is_file() {
-            let text = std::fs::read_to_string(path)
+            let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
                 .map_err(|e| ReproError::Io { path: path.to_path_buf(), source: e })?;
             return Self::parse(&text, name_or_path);
         }

@@ -272,7 +272,7 @@ pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
     struct Latest {
         iteration: u64,
     }
-    let text = std::fs::read_to_string(&latest)
+    let text = pdt_base::fs::read_text_limited(&latest, pdt_base::fs::MAX_TEXT_BYTES)
         .map_err(|e| ReproError::Io { path: latest.clone(), source: e })?;
     let l: Latest = serde_json::from_str(&text)
         .map_err(|e| ReproError::Invalid(format!("{}: {e}", latest.display())))?;

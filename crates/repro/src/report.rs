@@ -86,7 +86,7 @@ struct EvalLine {
 fn read_evals(dir: &Path) -> Result<BTreeMap<u64, BTreeMap<usize, f64>>, ReproError> {
     let path = dir.join("eval.jsonl");
     let mut out: BTreeMap<u64, BTreeMap<usize, f64>> = BTreeMap::new();
-    let text = match std::fs::read_to_string(&path) {
+    let text = match pdt_base::fs::read_text_limited(&path, pdt_base::fs::MAX_TEXT_BYTES) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(out),
         Err(e) => return Err(ReproError::Io { path, source: e }),

@@ -359,7 +359,7 @@ impl TrainConfig {
             v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
         }
         let e = &self.eval;
-        v.range("eval.episodes", e.episodes as u64, 1, 100_000);
+        v.range("eval.episodes", e.episodes as u64, 1, 10_000);
         v.range("eval.max_batch", e.max_batch as u64, 1, 1_000_000);
         v.at_most("eval.env_threads", e.env_threads as u64, 1024, "0 = all cores");
         if let Some(x) = e.target_return {

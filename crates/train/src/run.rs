@@ -583,14 +583,13 @@ fn save_checkpoint(
     dir: &Path,
     learner: &Learner,
     state: &TrainState,
-    n_positions: usize,
     keep: bool,
 ) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");
     std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
     let (model, opt_state) =
         (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
-    checkpoint::save(&learner.vs, &ck.join(&model), learner.model.cfg.n_layer, n_positions)?;
+    checkpoint::save(&learner.vs, &ck.join(&model), &learner.model.cfg)?;
     let mut named: Vec<(String, Tensor)> = Vec::new();
     for (name, st) in &learner.opt.state {
         named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
@@ -798,7 +797,8 @@ pub fn train(
         }
         (false, None) => return Err(RunError::Invalid("no configuration given".into())),
     };
-    // Refuse before anything is written (a seed of 2^63 has no TOML form).
+    // Refuse before anything is written, each bad setting by name.
+    cfg.validate()?;
     let toml = cfg.to_toml()?;
     let setup = Setup::new(cfg.clone())?;
     let _rng = torch_rng_lock();
@@ -943,7 +943,7 @@ pub fn train(
                 metrics_lines: metrics.lines,
                 eval_lines: evals.lines,
             };
-            save_checkpoint(dir, &learner, &state, setup.model_cfg.n_positions, keep)?;
+            save_checkpoint(dir, &learner, &state, keep)?;
         }
         (opts.progress)(&Progress { iteration, iterations: t.iterations, loss, test_return });
     }

@@ -224,7 +224,7 @@ fn weights_round_trip_through_safetensors_with_reference_buffers() {
     let (vs, _) = model(set);
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("w.safetensors");
-    checkpoint::save(&vs, &path, 3, 1024).expect("save");
+    checkpoint::save(&vs, &path, &PromptDtConfig::reference(20, 6)).expect("save");
     let ours = Tensor::read_safetensors(&path).expect("readable");
     let theirs = read(set, "prompt_dt_state_dict.safetensors");
     assert_eq!(ours.len(), 67);

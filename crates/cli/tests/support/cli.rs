@@ -1,0 +1,112 @@
+//! Helpers shared by the CLI tests: the real binary, a tiny point-robot dataset and experiment.
+#![allow(dead_code)] // each test file uses a part
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+pub fn promptdt<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(args.iter().map(AsRef::<str>::as_ref))
+        .output()
+        .expect("binary runs")
+}
+
+/// Runs the binary in `cwd`.
+pub fn promptdt_in<S: AsRef<str> + std::fmt::Debug>(cwd: &Path, args: &[S]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .current_dir(cwd)
+        .args(args.iter().map(AsRef::<str>::as_ref))
+        .output()
+        .expect("binary runs")
+}
+
+pub fn check_ok<S: AsRef<str> + std::fmt::Debug>(args: &[S], out: Output) -> String {
+    let (stdout, stderr) =
+        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
+    stdout.into_owned()
+}
+
+pub fn check_fails<S: AsRef<str> + std::fmt::Debug>(args: &[S], out: Output) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "promptdt {args:?} should fail");
+    // A clear error, never a panic or an abort.
+    assert!(
+        !stderr.contains("panicked") && out.status.code().is_some(),
+        "promptdt {args:?} crashed:\n{stderr}"
+    );
+    stderr
+}
+
+pub fn ok<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
+    check_ok(args, promptdt(args))
+}
+
+pub fn fails<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
+    check_fails(args, promptdt(args))
+}
+
+pub fn repo(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
+}
+
+pub const TINY: &str = r#"
+[env]
+name = "point_robot"
+[sampler]
+k = 4
+batch_size_per_task = 1
+[model]
+hidden_size = 16
+n_layer = 1
+n_inner = 32
+[train]
+iterations = 8
+steps_per_iteration = 2
+test_eval_interval = 4
+train_eval_interval = 0
+save_interval = 2
+[eval]
+episodes = 2
+[run]
+threads = 1
+device = "cpu"
+"#;
+
+/// Collects a tiny point-robot dataset into `data`.
+pub fn tiny_data(data: &Path) {
+    let msg = ok(&[
+        "collect",
+        "--env",
+        "point-robot",
+        "--out",
+        data.to_str().unwrap(),
+        "--episodes",
+        "3",
+        "--prompt-episodes",
+        "2",
+    ]);
+    assert!(msg.contains("wrote 240 datasets"), "{msg}");
+}
+
+/// A tiny dataset and experiment file in `dir`.
+pub fn tiny_setup(dir: &Path) -> PathBuf {
+    let data = dir.join("data");
+    tiny_data(&data);
+    assert!(
+        data.join("point_robot-7-prompt-expert.safetensors").is_file()
+            && data.join("dataset.json").is_file()
+    );
+    let cfg = dir.join("tiny.toml");
+    std::fs::write(&cfg, format!("{TINY}\n[data]\ndir = {:?}\n", data.to_str().unwrap())).unwrap();
+    cfg
+}
+
+/// The training losses of a run (its metrics lines without the wall-clock field).
+pub fn losses(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| l.split("\"time/elapsed_s\"").next().unwrap().to_string())
+        .collect()
+}
