@@ -240,14 +240,14 @@ pub struct BenchArgs {
 }
 
 impl BenchArgs {
-    pub fn to_config(&self) -> Result<pdt_train::bench::BenchConfig> {
+    pub fn to_config(&self) -> Result<pdt_bench::BenchConfig> {
         let threads = self
             .threads
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
         if threads == 0 || self.iters == 0 {
             bail!("--threads and --iters must be at least 1");
         }
-        let pytorch = self.python.as_ref().map(|python| pdt_train::bench::PyTorchBaseline {
+        let pytorch = self.python.as_ref().map(|python| pdt_bench::PyTorchBaseline {
             python: python.clone(),
             script: self.script.clone(),
         });
@@ -256,7 +256,7 @@ impl BenchArgs {
                 bail!("PyTorch benchmark script {} not found (run from the repository root or pass --script)", p.script.display());
             }
         }
-        Ok(pdt_train::bench::BenchConfig {
+        Ok(pdt_bench::BenchConfig {
             threads,
             iters: self.iters,
             warmup: self.warmup,

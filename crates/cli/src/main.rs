@@ -209,8 +209,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Reproduce(a) => commands::reproduce(&a)?,
         Command::Bench(a) => {
             let cfg = a.to_config()?;
-            let report = pdt_train::bench::run(&cfg)?;
-            let md = pdt_train::bench::render_markdown(&report);
+            let report = pdt_bench::run(&cfg)?;
+            let md = pdt_bench::render_markdown(&report);
             print!("{md}");
             if let Some(dir) = &a.out {
                 std::fs::create_dir_all(dir)

@@ -418,11 +418,11 @@ fn case_11_env_replay_refuses_states_mujoco_would_reset() {
             s(&out),
         ])
     };
-    let mut qpos = vec!["0.0"; 9];
+    let mut qpos = ["0.0"; 9];
     qpos[1] = "1e308";
     std::fs::write(
         &init,
-        format!("{{\"qpos\": [{}], \"qvel\": [{}]}}", qpos.join(","), vec!["0.0"; 9].join(",")),
+        format!("{{\"qpos\": [{}], \"qvel\": [{}]}}", qpos.join(","), ["0.0"; 9].join(",")),
     )
     .unwrap();
     let e = replay();
@@ -433,8 +433,8 @@ fn case_11_env_replay_refuses_states_mujoco_would_reset() {
         &init,
         format!(
             "{{\"qpos\": [{}], \"qvel\": [{}]}}",
-            vec!["0.0"; 9].join(","),
-            vec!["9e9"; 9].join(",")
+            ["0.0"; 9].join(","),
+            ["9e9"; 9].join(",")
         ),
     )
     .unwrap();

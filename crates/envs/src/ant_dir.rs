@@ -10,7 +10,7 @@
 //! - Terminated when the state (`qpos` ‖ `qvel`) is not finite or the torso height `qpos[2]` leaves
 //!   [0.2, 1.0].
 
-use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, HORIZON};
+use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, StepState, HORIZON};
 use crate::{Env, EnvError, EnvFamily, EnvPreset};
 
 /// Family name, as used in file names (`ant_dir-3-prompt-expert.pkl`).
@@ -136,6 +136,32 @@ pub fn is_terminal(qpos: &[f64], qvel: &[f64]) -> bool {
     !(finite && z >= HEALTHY_Z.0 && z <= HEALTHY_Z.1)
 }
 
+/// An Ant-Dir task: walk in the direction at angle `goal` (radians) in the x-y plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AntDirTask {
+    pub goal: f64,
+    pub contact_cost: ContactCost,
+}
+
+impl MujocoTask for AntDirTask {
+    fn body(&self) -> Body {
+        Body::Ant
+    }
+
+    fn env_name(&self) -> &'static str {
+        ENV_NAME
+    }
+
+    fn reward(&self, s: &mut StepState<'_>, action: &[f32]) -> (f64, bool) {
+        let contact = match self.contact_cost {
+            ContactCost::Reference => 0.0,
+            ContactCost::Computed => contact_cost(s.contact_forces()),
+        };
+        let r = reward(self.goal, s.torso_before, s.torso_after, s.dt, action, contact);
+        (r, is_terminal(s.qpos(), s.qvel()))
+    }
+}
+
 fn check_task(task: usize) -> Result<(), EnvError> {
     if task < NUM_TASKS {
         Ok(())
@@ -158,7 +184,7 @@ impl AntDirFamily {
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
         check_task(task)?;
-        MujocoEnv::new(MujocoTask::AntDir { goal: GOALS[task], contact_cost: self.contact_cost })
+        MujocoEnv::new(Box::new(AntDirTask { goal: GOALS[task], contact_cost: self.contact_cost }))
     }
 }
 

@@ -9,7 +9,7 @@
 //! - Reward, with `x = qpos[0]` (fresh) before and after the step and `v = (x_after - x_before)/dt`:
 //!   Dir: `direction * v - 0.05 ||a||^2`; Vel: `-|v - v_goal| - 0.05 ||a||^2`.
 
-use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, HORIZON};
+use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, StepState, HORIZON};
 use crate::{Env, EnvError, EnvFamily, EnvPreset};
 
 /// Family names, as used in file names (`cheetah_vel-3-prompt-expert.pkl`).
@@ -94,6 +94,46 @@ pub fn vel_reward(velocity: f64, x_before: f64, x_after: f64, dt: f64, action: &
     -(forward_vel - velocity).abs() - CTRL_COST_WEIGHT * action_sq_norm(action)
 }
 
+/// A HalfCheetah-Dir task: run in direction `direction` (+1 forward, -1 backward).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CheetahDirTask {
+    pub direction: f64,
+}
+
+impl MujocoTask for CheetahDirTask {
+    fn body(&self) -> Body {
+        Body::HalfCheetah
+    }
+
+    fn env_name(&self) -> &'static str {
+        DIR_ENV_NAME
+    }
+
+    fn reward(&self, s: &mut StepState<'_>, action: &[f32]) -> (f64, bool) {
+        (dir_reward(self.direction, s.x_before, s.x_after, s.dt, action), false)
+    }
+}
+
+/// A HalfCheetah-Vel task: run forward at `velocity` m/s.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CheetahVelTask {
+    pub velocity: f64,
+}
+
+impl MujocoTask for CheetahVelTask {
+    fn body(&self) -> Body {
+        Body::HalfCheetah
+    }
+
+    fn env_name(&self) -> &'static str {
+        VEL_ENV_NAME
+    }
+
+    fn reward(&self, s: &mut StepState<'_>, action: &[f32]) -> (f64, bool) {
+        (vel_reward(self.velocity, s.x_before, s.x_after, s.dt, action), false)
+    }
+}
+
 /// Recovers the fresh root x position from a recorded cheetah observation: `obs[17]` is the torso
 /// x one sub-step (h = 0.01 s) before the step ended, and semi-implicit Euler moved it by
 /// `h * qvel[0] = 0.01 * obs[8]` since. `first` marks the reset observation, where `xpos` is fresh.
@@ -128,7 +168,7 @@ impl CheetahDirFamily {
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
         check_task(DIR_ENV_NAME, task, DIRECTIONS.len())?;
-        MujocoEnv::new(MujocoTask::CheetahDir { direction: DIRECTIONS[task] })
+        MujocoEnv::new(Box::new(CheetahDirTask { direction: DIRECTIONS[task] }))
     }
 }
 
@@ -186,7 +226,7 @@ impl CheetahVelFamily {
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
         check_task(VEL_ENV_NAME, task, NUM_VEL_TASKS)?;
-        MujocoEnv::new(MujocoTask::CheetahVel { velocity: VELOCITIES[task] })
+        MujocoEnv::new(Box::new(CheetahVelTask { velocity: VELOCITIES[task] }))
     }
 }
 

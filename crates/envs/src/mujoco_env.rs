@@ -1,7 +1,8 @@
 //! The MuJoCo environments of the reference (`promptdt-reference.md` e.1-e.3): one simulator wrapper
 //! [`MujocoEnv`] for HalfCheetah-Dir, HalfCheetah-Vel and Ant-Dir, on MuJoCo 3.17.0 through
 //! mujoco-rs. The per-family constants, reward functions and task families live in
-//! [`crate::cheetah`] and [`crate::ant_dir`]; `docs/mujoco-envs.md` describes them all.
+//! [`crate::cheetah`] and [`crate::ant_dir`], which implement [`MujocoTask`]; this module knows
+//! none of them. `docs/mujoco-envs.md` describes them all.
 //!
 //! What each step does, as gym's `MujocoEnv` did for the reference:
 //! 1. `ctrl <- action` (f32 widened to f64; MuJoCo clamps to the ctrlrange [-1, 1] itself),
@@ -18,8 +19,6 @@ use mujoco_rs::prelude::{MjData, MjModel, MjtObjBase};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::ant_dir::{self, ContactCost};
-use crate::cheetah;
 use crate::{Env, EnvError, StepResult};
 
 /// Simulator steps per environment step (gym's `frame_skip` for both bodies).
@@ -69,32 +68,44 @@ impl Body {
     }
 }
 
-/// The task of one environment: which reward it pays.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum MujocoTask {
-    /// HalfCheetah-Dir: run in direction `direction` (+1 forward, -1 backward).
-    CheetahDir { direction: f64 },
-    /// HalfCheetah-Vel: run forward at `velocity` m/s.
-    CheetahVel { velocity: f64 },
-    /// Ant-Dir: walk in the direction at angle `goal` (radians) in the x-y plane.
-    AntDir { goal: f64, contact_cost: ContactCost },
+/// A family's task: the body it runs on and the reward it pays. The families implement it
+/// (`crate::cheetah`, `crate::ant_dir`); this simulator wrapper knows none of them.
+pub trait MujocoTask: std::fmt::Debug + Send + Sync {
+    fn body(&self) -> Body;
+    /// The family name, used in error messages.
+    fn env_name(&self) -> &'static str;
+    /// The reward of the step just taken and whether it terminated the episode.
+    fn reward(&self, step: &mut StepState<'_>, action: &[f32]) -> (f64, bool);
 }
 
-impl MujocoTask {
-    pub fn body(&self) -> Body {
-        match self {
-            MujocoTask::CheetahDir { .. } | MujocoTask::CheetahVel { .. } => Body::HalfCheetah,
-            MujocoTask::AntDir { .. } => Body::Ant,
-        }
+/// What a reward may read about the step just taken.
+pub struct StepState<'a> {
+    /// `qpos[0]` (the root's x) before and after the step.
+    pub x_before: f64,
+    pub x_after: f64,
+    /// The torso's frame position before and after the step, as `mj_step` left it (stale by one
+    /// sub-step, see the module docs).
+    pub torso_before: [f64; 3],
+    pub torso_after: [f64; 3],
+    /// Environment time step (0.05 s).
+    pub dt: f64,
+    data: &'a mut MjData<Arc<MjModel>>,
+}
+
+impl StepState<'_> {
+    pub fn qpos(&self) -> &[f64] {
+        self.data.qpos()
     }
 
-    /// The family name, used in error messages.
-    pub fn env_name(&self) -> &'static str {
-        match self {
-            MujocoTask::CheetahDir { .. } => cheetah::DIR_ENV_NAME,
-            MujocoTask::CheetahVel { .. } => cheetah::VEL_ENV_NAME,
-            MujocoTask::AntDir { .. } => ant_dir::ENV_NAME,
-        }
+    pub fn qvel(&self) -> &[f64] {
+        self.data.qvel()
+    }
+
+    /// External contact forces on every body, after `mj_rnePostConstraint` (which fills
+    /// `cfrc_ext` and changes no state).
+    pub fn contact_forces(&mut self) -> &[[f64; 6]] {
+        self.data.rne_post_constraint();
+        self.data.cfrc_ext()
     }
 }
 
@@ -142,7 +153,7 @@ fn load_model(body: Body) -> Result<Arc<MjModel>, EnvError> {
 /// One MuJoCo environment instance (see the module docs).
 #[derive(Debug)]
 pub struct MujocoEnv {
-    task: MujocoTask,
+    task: Box<dyn MujocoTask>,
     data: MjData<Arc<MjModel>>,
     /// Body id of `torso` (1 in both models).
     torso: usize,
@@ -159,7 +170,7 @@ pub struct MujocoEnv {
 
 impl MujocoEnv {
     /// An environment for `task`, already reset with seed 0 (so `step` may be called at once).
-    pub fn new(task: MujocoTask) -> Result<Self, EnvError> {
+    pub fn new(task: Box<dyn MujocoTask>) -> Result<Self, EnvError> {
         let model = load_model(task.body())?;
         let torso = model.name_to_id(MjtObjBase::mjOBJ_BODY, "torso").ok_or_else(|| {
             EnvError::Simulation {
@@ -179,8 +190,8 @@ impl MujocoEnv {
         Ok(env)
     }
 
-    pub fn task(&self) -> MujocoTask {
-        self.task
+    pub fn task(&self) -> &dyn MujocoTask {
+        self.task.as_ref()
     }
 
     /// Environment time step in seconds (0.05).
@@ -296,13 +307,6 @@ impl MujocoEnv {
         obs
     }
 
-    /// Ant-Dir's contact cost term for the current state, with `mj_rnePostConstraint` (which fills
-    /// `cfrc_ext`; it changes no state). See [`ContactCost`].
-    fn computed_contact_cost(&mut self) -> f64 {
-        self.data.rne_post_constraint();
-        ant_dir::contact_cost(self.data.cfrc_ext())
-    }
-
     fn check_action(&self, action: &[f32]) -> Result<(), EnvError> {
         let env = self.task.env_name();
         if self.finished {
@@ -367,22 +371,15 @@ impl Env for MujocoEnv {
         // No mj_forward here: the observation and Ant-Dir's reward read xpos as mj_step left it.
         let x_after = self.data.qpos()[0];
         let p_after = self.torso_xpos();
-        let (reward, terminated) = match self.task {
-            MujocoTask::CheetahDir { direction } => {
-                (cheetah::dir_reward(direction, x_before, x_after, self.dt, action), false)
-            }
-            MujocoTask::CheetahVel { velocity } => {
-                (cheetah::vel_reward(velocity, x_before, x_after, self.dt, action), false)
-            }
-            MujocoTask::AntDir { goal, contact_cost } => {
-                let contact = match contact_cost {
-                    ContactCost::Reference => 0.0,
-                    ContactCost::Computed => self.computed_contact_cost(),
-                };
-                let reward = ant_dir::reward(goal, p_before, p_after, self.dt, action, contact);
-                (reward, ant_dir::is_terminal(self.data.qpos(), self.data.qvel()))
-            }
+        let mut state = StepState {
+            x_before,
+            x_after,
+            torso_before: p_before,
+            torso_after: p_after,
+            dt: self.dt,
+            data: &mut self.data,
         };
+        let (reward, terminated) = self.task.reward(&mut state, action);
         self.t += 1;
         let truncated = !terminated && self.t >= HORIZON;
         self.finished = terminated || truncated;
@@ -409,7 +406,7 @@ mod tests {
     use super::*;
 
     fn cheetah() -> MujocoEnv {
-        match MujocoEnv::new(MujocoTask::CheetahDir { direction: 1.0 }) {
+        match MujocoEnv::new(Box::new(crate::cheetah::CheetahDirTask { direction: 1.0 })) {
             Ok(env) => env,
             Err(e) => panic!("{e}"),
         }

@@ -3,14 +3,15 @@
 //! goal.
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
+use pdt_envs::ant_dir::AntDirTask;
 use pdt_envs::ant_dir::{ContactCost, Symmetry, GOALS};
-use pdt_envs::mujoco_env::{MujocoEnv, MujocoTask};
+use pdt_envs::mujoco_env::MujocoEnv;
 use pdt_envs::Env;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 fn ant(goal: f64) -> MujocoEnv {
-    MujocoEnv::new(MujocoTask::AntDir { goal, contact_cost: ContactCost::default() }).unwrap()
+    MujocoEnv::new(Box::new(AntDirTask { goal, contact_cost: ContactCost::default() })).unwrap()
 }
 
 #[test]

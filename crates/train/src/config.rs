@@ -326,7 +326,7 @@ impl TrainConfig {
         v.range("model.hidden_size", m.hidden_size as u64, 1, 16_384);
         v.range("model.n_layer", m.n_layer as u64, 1, 256);
         v.range("model.n_head", m.n_head as u64, 1, 1024);
-        if m.n_head > 0 && m.hidden_size % m.n_head != 0 {
+        if m.n_head > 0 && !m.hidden_size.is_multiple_of(m.n_head) {
             v.fail(format!(
                 "model.n_head = {} must divide model.hidden_size = {}",
                 m.n_head, m.hidden_size

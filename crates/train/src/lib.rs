@@ -9,7 +9,6 @@
 // on the cold path only (a failed run), where their size costs nothing.
 #![allow(clippy::result_large_err)]
 
-pub mod bench;
 pub mod config;
 pub mod optim;
 pub mod run;

@@ -1,377 +1,11 @@
-//! A reader for Python pickles of numpy data that never executes code.
-//!
-//! A pickle is a program for a small stack machine. Its `GLOBAL`/`STACK_GLOBAL` opcodes import any
-//! Python callable and `REDUCE` calls it, which is why `pickle.load` on an untrusted file can run
-//! anything. This module implements the stack machine itself and knows exactly the callables that
-//! numpy arrays, numpy scalars and `bytes` are pickled with (see [`parse`]); any other global is
-//! refused when it is named, before anything could use it. Those few "calls" are re-implemented
-//! here as plain data transformations, so nothing is imported or run.
-//!
-//! Bounds, so that a hostile file cannot exhaust memory or the stack:
-//! - every length field is checked against the bytes actually left before anything is allocated;
-//! - array sizes are `product(shape) * itemsize` with checked multiplication and must equal the
-//!   data length;
-//! - the stack, the mark stack and the memo grow by at most one entry per opcode, so they are
-//!   bounded by the input length;
-//! - values the reader creates (copied array data, the returned tree) are charged against a budget
-//!   proportional to the input size, which stops "billion laughs" files that reference one
-//!   memoised object many times;
-//! - the returned tree is at most [`MAX_DEPTH`] containers deep (this also rejects cycles, e.g. a
-//!   list that contains itself).
+//! The pickle stack machine: the opcode table, the object arena and the [`Machine`] that runs it.
 
 use std::collections::HashMap;
-use std::fmt;
 
-/// Deepest nesting of containers in the returned tree. The reference files nest 3 deep (list ->
-/// dict -> array); the limit keeps a hostile file (or a list that contains itself) from
-/// exhausting the Rust stack while the tree is built.
-pub const MAX_DEPTH: usize = 64;
-
-/// Memory the reader may spend on values it creates (copied array data, decoded bytes, the
-/// returned tree), per input byte, plus a fixed allowance. The tree costs roughly one `PyValue`
-/// per input opcode; 64 per byte covers that (a list of a million `None`s is a 1 MB file and a
-/// 48 MB tree) while stopping files that expand a small memoised object a million times.
-const BUDGET_PER_INPUT_BYTE: usize = 64;
-const BUDGET_BASE: usize = 1 << 20;
-
-/// Highest pickle protocol this reader knows (Python 3.8+ writes 5).
-const MAX_PROTOCOL: u8 = 5;
-
-/// A Python value as read from a pickle.
-#[derive(Debug, Clone, PartialEq)]
-pub enum PyValue {
-    None,
-    Bool(bool),
-    /// Python ints that fit in 64 bits; wider ones are an error.
-    Int(i64),
-    Float(f64),
-    Str(String),
-    /// `bytes` and `bytearray`.
-    Bytes(Vec<u8>),
-    List(Vec<PyValue>),
-    Tuple(Vec<PyValue>),
-    /// Keys in insertion order, as Python keeps them. A key written twice keeps its first position
-    /// and its last value, as Python's `dict` would.
-    Dict(Vec<(PyValue, PyValue)>),
-    /// A numpy array; numpy scalars (`np.float32(1.5)`) are 0-dimensional arrays (`shape == []`).
-    NdArray(NdArray),
-    /// A bare numpy dtype object (pickled on its own, not as part of an array).
-    DType(DType),
-}
-
-impl PyValue {
-    /// Python's name for the value's type, for error messages.
-    pub fn type_name(&self) -> &'static str {
-        match self {
-            PyValue::None => "None",
-            PyValue::Bool(_) => "bool",
-            PyValue::Int(_) => "int",
-            PyValue::Float(_) => "float",
-            PyValue::Str(_) => "str",
-            PyValue::Bytes(_) => "bytes",
-            PyValue::List(_) => "list",
-            PyValue::Tuple(_) => "tuple",
-            PyValue::Dict(_) => "dict",
-            PyValue::NdArray(_) => "numpy.ndarray",
-            PyValue::DType(_) => "numpy.dtype",
-        }
-    }
-
-    /// The value under the string key `key`, if this is a dict that has it.
-    pub fn get(&self, key: &str) -> Option<&PyValue> {
-        match self {
-            PyValue::Dict(pairs) => pairs.iter().find_map(|(k, v)| match k {
-                PyValue::Str(s) if s == key => Some(v),
-                _ => None,
-            }),
-            _ => None,
-        }
-    }
-}
-
-/// The numpy element types this reader understands. Data is always held little-endian.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum DType {
-    Bool,
-    Int8,
-    Int16,
-    Int32,
-    Int64,
-    UInt8,
-    UInt16,
-    UInt32,
-    UInt64,
-    Float32,
-    Float64,
-}
-
-impl DType {
-    /// numpy's `dtype.name`, e.g. `"float32"`.
-    pub fn name(self) -> &'static str {
-        match self {
-            DType::Bool => "bool",
-            DType::Int8 => "int8",
-            DType::Int16 => "int16",
-            DType::Int32 => "int32",
-            DType::Int64 => "int64",
-            DType::UInt8 => "uint8",
-            DType::UInt16 => "uint16",
-            DType::UInt32 => "uint32",
-            DType::UInt64 => "uint64",
-            DType::Float32 => "float32",
-            DType::Float64 => "float64",
-        }
-    }
-
-    /// numpy's `dtype.str` of the little-endian form, e.g. `"<f4"` or `"|b1"`.
-    pub fn descr(self) -> &'static str {
-        match self {
-            DType::Bool => "|b1",
-            DType::Int8 => "|i1",
-            DType::Int16 => "<i2",
-            DType::Int32 => "<i4",
-            DType::Int64 => "<i8",
-            DType::UInt8 => "|u1",
-            DType::UInt16 => "<u2",
-            DType::UInt32 => "<u4",
-            DType::UInt64 => "<u8",
-            DType::Float32 => "<f4",
-            DType::Float64 => "<f8",
-        }
-    }
-
-    /// Bytes per element.
-    pub fn itemsize(self) -> usize {
-        match self {
-            DType::Bool | DType::Int8 | DType::UInt8 => 1,
-            DType::Int16 | DType::UInt16 => 2,
-            DType::Int32 | DType::UInt32 | DType::Float32 => 4,
-            DType::Int64 | DType::UInt64 | DType::Float64 => 8,
-        }
-    }
-
-    /// Parses numpy's type code without byte order (`"f4"`, `"b1"`, `"O8"`), as `numpy.dtype` is
-    /// called in pickles. The error says why a known-but-unsupported code is refused.
-    fn from_code(code: &str) -> Result<DType, String> {
-        let mut chars = code.chars();
-        let kind = chars.next().ok_or_else(|| "empty type code".to_string())?;
-        let size: Option<usize> = chars.as_str().parse().ok();
-        let dtype = match (kind, size) {
-            ('b', Some(1)) => DType::Bool,
-            ('i', Some(1)) => DType::Int8,
-            ('i', Some(2)) => DType::Int16,
-            ('i', Some(4)) => DType::Int32,
-            ('i', Some(8)) => DType::Int64,
-            ('u', Some(1)) => DType::UInt8,
-            ('u', Some(2)) => DType::UInt16,
-            ('u', Some(4)) => DType::UInt32,
-            ('u', Some(8)) => DType::UInt64,
-            ('f', Some(4)) => DType::Float32,
-            ('f', Some(8)) => DType::Float64,
-            ('O', _) => {
-                return Err("object arrays are not supported (their elements are arbitrary \
-                            Python objects)"
-                    .into())
-            }
-            ('f', _) => return Err("only float32 and float64 are supported".into()),
-            ('c', _) => return Err("complex dtypes are not supported".into()),
-            ('U' | 'S' | 'a', _) => return Err("string dtypes are not supported".into()),
-            ('V', _) => return Err("structured (void) dtypes are not supported".into()),
-            ('M' | 'm', _) => return Err("datetime dtypes are not supported".into()),
-            _ => return Err("unknown type code".into()),
-        };
-        Ok(dtype)
-    }
-}
-
-impl fmt::Display for DType {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-/// A numpy array. `data` holds the elements little-endian, `product(shape) * itemsize` bytes, in
-/// C (row-major) order, or in Fortran (column-major) order when `fortran_order` is set, as the
-/// file stored it; [`NdArray::to_c_order`] gives the row-major form.
-#[derive(Debug, Clone, PartialEq)]
-pub struct NdArray {
-    pub dtype: DType,
-    pub shape: Vec<usize>,
-    pub fortran_order: bool,
-    pub data: Vec<u8>,
-}
-
-impl NdArray {
-    /// Number of elements (1 for a 0-dimensional array).
-    pub fn num_elements(&self) -> usize {
-        // Saturating: arrays from `parse` are always consistent, but the fields are public.
-        self.shape.iter().fold(1usize, |n, &d| n.saturating_mul(d))
-    }
-
-    /// The same array with its data in C order (a copy).
-    ///
-    /// An array whose `data` does not hold exactly `product(shape) * itemsize` bytes (only possible
-    /// if built by hand) is returned unchanged.
-    pub fn to_c_order(&self) -> NdArray {
-        if !self.fortran_order {
-            return self.clone();
-        }
-        // Fortran-order data of shape S is C-order data of shape reverse(S); reversing the axes
-        // of that gives shape S in C order.
-        let reversed: Vec<usize> = self.shape.iter().rev().copied().collect();
-        let axes: Vec<usize> = (0..self.shape.len()).rev().collect();
-        match permute_axes(&self.data, self.dtype.itemsize(), &reversed, &axes) {
-            Some(data) => {
-                NdArray { dtype: self.dtype, shape: self.shape.clone(), fortran_order: false, data }
-            }
-            None => self.clone(),
-        }
-    }
-
-    /// The elements as `f32`, in C order, for float32 and float64 arrays (float64 is rounded to
-    /// the nearest `f32`, as numpy's `astype(np.float32)` does). `None` for other dtypes.
-    pub fn to_f32_vec(&self) -> Option<Vec<f32>> {
-        let c = self.to_c_order();
-        match self.dtype {
-            DType::Float32 => Some(chunks::<4>(&c.data).map(f32::from_le_bytes).collect()),
-            DType::Float64 => {
-                Some(chunks::<8>(&c.data).map(|b| f64::from_le_bytes(b) as f32).collect())
-            }
-            _ => None,
-        }
-    }
-
-    /// The elements as `f64`, in C order, for any dtype (bool is 0 or 1; 64-bit integers beyond
-    /// 2^53 are rounded).
-    pub fn to_f64_vec(&self) -> Vec<f64> {
-        let c = self.to_c_order();
-        let d = &c.data;
-        match self.dtype {
-            DType::Bool => d.iter().map(|&b| f64::from(u8::from(b != 0))).collect(),
-            DType::Int8 => d.iter().map(|&b| f64::from(b as i8)).collect(),
-            DType::UInt8 => d.iter().map(|&b| f64::from(b)).collect(),
-            DType::Int16 => chunks::<2>(d).map(|b| f64::from(i16::from_le_bytes(b))).collect(),
-            DType::UInt16 => chunks::<2>(d).map(|b| f64::from(u16::from_le_bytes(b))).collect(),
-            DType::Int32 => chunks::<4>(d).map(|b| f64::from(i32::from_le_bytes(b))).collect(),
-            DType::UInt32 => chunks::<4>(d).map(|b| f64::from(u32::from_le_bytes(b))).collect(),
-            DType::Int64 => chunks::<8>(d).map(|b| i64::from_le_bytes(b) as f64).collect(),
-            DType::UInt64 => chunks::<8>(d).map(|b| u64::from_le_bytes(b) as f64).collect(),
-            DType::Float32 => chunks::<4>(d).map(|b| f64::from(f32::from_le_bytes(b))).collect(),
-            DType::Float64 => chunks::<8>(d).map(f64::from_le_bytes).collect(),
-        }
-    }
-}
-
-/// Fixed-size little-endian chunks of `data` (a trailing partial chunk is ignored; arrays from
-/// `parse` never have one).
-fn chunks<const N: usize>(data: &[u8]) -> impl Iterator<Item = [u8; N]> + '_ {
-    data.chunks_exact(N).filter_map(|c| <[u8; N]>::try_from(c).ok())
-}
-
-/// Transposes C-order data of shape `shape` by `axes` (numpy's `transpose(axes)`), returning the
-/// result in C order. `None` if the data length, shape and axes are inconsistent.
-fn permute_axes(data: &[u8], itemsize: usize, shape: &[usize], axes: &[usize]) -> Option<Vec<u8>> {
-    let n = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d))?;
-    if axes.len() != shape.len() || n.checked_mul(itemsize)? != data.len() {
-        return None;
-    }
-    let mut seen = vec![false; shape.len()];
-    for &a in axes {
-        let slot = seen.get_mut(a)?;
-        if *slot {
-            return None;
-        }
-        *slot = true;
-    }
-    // Element strides of the input, in C order.
-    let mut in_strides = vec![0usize; shape.len()];
-    let mut s = 1usize;
-    for (stride, &dim) in in_strides.iter_mut().zip(shape).rev() {
-        *stride = s;
-        s = s.checked_mul(dim)?;
-    }
-    let out_shape: Vec<usize> =
-        axes.iter().map(|&a| shape.get(a).copied()).collect::<Option<_>>()?;
-    let out_strides: Vec<usize> =
-        axes.iter().map(|&a| in_strides.get(a).copied()).collect::<Option<_>>()?;
-
-    let mut out = Vec::with_capacity(data.len());
-    let mut index = vec![0usize; out_shape.len()];
-    let mut offset = 0usize; // element offset into the input of the current output element
-    for _ in 0..n {
-        let start = offset.checked_mul(itemsize)?;
-        out.extend_from_slice(data.get(start..start.checked_add(itemsize)?)?);
-        // Odometer step over the output index, last axis fastest.
-        for k in (0..out_shape.len()).rev() {
-            let (i, dim, stride) = (index.get_mut(k)?, *out_shape.get(k)?, *out_strides.get(k)?);
-            *i += 1;
-            offset += stride;
-            if *i < dim {
-                break;
-            }
-            offset -= stride * dim;
-            *i = 0;
-        }
-    }
-    Some(out)
-}
-
-/// Why a pickle was refused. Every variant says where (byte offset of the opcode) and, where it
-/// helps, which opcode.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum PickleError {
-    #[error("truncated at byte {offset} while reading {opcode} {what}: {available} bytes left")]
-    Truncated { offset: usize, opcode: &'static str, what: String, available: usize },
-    #[error("input ended at byte {offset} without a STOP opcode (is the file truncated?)")]
-    NoStop { offset: usize },
-    #[error("unknown opcode 0x{byte:02x} at byte {offset}")]
-    UnknownOpcode { offset: usize, byte: u8 },
-    #[error("opcode {opcode} at byte {offset} is not supported: {reason}")]
-    UnsupportedOpcode { offset: usize, opcode: &'static str, reason: &'static str },
-    #[error(
-        "global {module}.{name} is not allowed ({opcode} at byte {offset}); only the numpy array, \
-         numpy scalar and bytes constructors are"
-    )]
-    GlobalNotAllowed { offset: usize, opcode: &'static str, module: String, name: String },
-    #[error("{opcode} at byte {offset}: {message}")]
-    Invalid { offset: usize, opcode: &'static str, message: String },
-    #[error("{opcode} at byte {offset}: {message}")]
-    Limit { offset: usize, opcode: &'static str, message: String },
-}
-
-impl PickleError {
-    /// Byte offset of the opcode at fault (or of the end of input).
-    pub fn offset(&self) -> usize {
-        match self {
-            PickleError::Truncated { offset, .. }
-            | PickleError::NoStop { offset }
-            | PickleError::UnknownOpcode { offset, .. }
-            | PickleError::UnsupportedOpcode { offset, .. }
-            | PickleError::GlobalNotAllowed { offset, .. }
-            | PickleError::Invalid { offset, .. }
-            | PickleError::Limit { offset, .. } => *offset,
-        }
-    }
-}
-
-/// Parses a pickle (protocols 2 to 5) into a value tree without executing anything.
-///
-/// Understood: `None`, `bool`, `int` (64-bit), `float`, `str`, `bytes`, `bytearray`, `list`,
-/// `tuple`, `dict`, numpy arrays and numpy scalars of the [`DType`]s, as numpy 1.x and 2.x pickle
-/// them. The only globals accepted, and only as callables, are
-/// `numpy.core.multiarray._reconstruct` / `numpy._core.multiarray._reconstruct` (with
-/// `numpy.ndarray`), `numpy.dtype`, `numpy.core.multiarray.scalar` / `numpy._core.multiarray.scalar`,
-/// `numpy.core.numeric._frombuffer` / `numpy._core.numeric._frombuffer` (protocol-5 in-band
-/// buffers), `_codecs.encode` (how protocol 2 writes `bytes`) and `builtins.bytes` /
-/// `__builtin__.bytes` with no arguments (protocol 2's empty `bytes`). Big-endian arrays are
-/// byte-swapped to little-endian. Bytes after the `STOP` opcode are ignored, as Python does.
-pub fn parse(bytes: &[u8]) -> Result<PyValue, PickleError> {
-    Machine::new(bytes).run()
-}
-
-// ------------------------------------------------------------------------------------------------
-// The stack machine
-// ------------------------------------------------------------------------------------------------
+use super::tree::TreeBuilder;
+use super::value::permute_axes;
+use super::{DType, NdArray, PickleError, PyValue};
+use super::{BUDGET_BASE, BUDGET_PER_INPUT_BYTE, MAX_PROTOCOL};
 
 mod op {
     pub const MARK: u8 = b'(';
@@ -517,7 +151,7 @@ fn unsupported_reason(code: u8) -> &'static str {
 /// which gives Python's sharing semantics (a memoised list appended to later is the same list)
 /// without reference counting, and keeps cycles harmless until the tree is built.
 #[derive(Debug, Clone, Copy)]
-enum Val {
+pub(super) enum Val {
     None,
     Bool(bool),
     Int(i64),
@@ -527,7 +161,7 @@ enum Val {
 
 /// The callables a pickle may name. Each is re-implemented in [`Machine::call`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Callable {
+pub(super) enum Callable {
     /// `numpy.core.multiarray._reconstruct(numpy.ndarray, (0,), b'b')`: an empty array that a
     /// later BUILD fills with `(version, shape, dtype, is_fortran, rawdata)`.
     Reconstruct,
@@ -562,7 +196,7 @@ impl Callable {
         })
     }
 
-    fn name(self) -> &'static str {
+    pub(super) fn name(self) -> &'static str {
         match self {
             Callable::Reconstruct => "numpy.core.multiarray._reconstruct",
             Callable::NdarrayType => "numpy.ndarray",
@@ -576,7 +210,7 @@ impl Callable {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum ByteOrder {
+pub(super) enum ByteOrder {
     Little,
     Big,
     /// `|`: single-byte types.
@@ -584,7 +218,7 @@ enum ByteOrder {
 }
 
 #[derive(Debug)]
-enum Obj {
+pub(super) enum Obj {
     Str(String),
     Bytes(Vec<u8>),
     List(Vec<Val>),
@@ -602,7 +236,7 @@ enum Obj {
     Array(NdArray),
 }
 
-struct Machine<'a> {
+pub(super) struct Machine<'a> {
     input: &'a [u8],
     pos: usize,
     /// Offset and name of the opcode being executed, for error messages.
@@ -618,10 +252,10 @@ struct Machine<'a> {
     budget: usize,
 }
 
-type Res<T> = Result<T, PickleError>;
+pub(super) type Res<T> = Result<T, PickleError>;
 
 impl<'a> Machine<'a> {
-    fn new(input: &'a [u8]) -> Self {
+    pub(super) fn new(input: &'a [u8]) -> Self {
         let budget = input.len().saturating_mul(BUDGET_PER_INPUT_BYTE).saturating_add(BUDGET_BASE);
         Machine {
             input,
@@ -836,7 +470,7 @@ impl<'a> Machine<'a> {
 
     // --- running --------------------------------------------------------------------------------
 
-    fn run(mut self) -> Res<PyValue> {
+    pub(super) fn run(mut self) -> Res<PyValue> {
         loop {
             self.op_at = self.pos;
             let Some(&code) = self.input.get(self.pos) else {
@@ -1421,245 +1055,9 @@ fn clip(s: &str) -> String {
     }
 }
 
-fn over_budget_message(input_len: usize) -> String {
+pub(super) fn over_budget_message(input_len: usize) -> String {
     format!(
         "the values would take more than {BUDGET_PER_INPUT_BYTE} x {input_len} + {BUDGET_BASE} \
          bytes: the file reuses memoised objects more than any data file does"
     )
-}
-
-/// Turns the arena of objects into an owned tree, within the depth and memory budget.
-struct TreeBuilder<'m> {
-    objs: &'m [Obj],
-    budget: &'m mut usize,
-    input_len: usize,
-    op_at: usize,
-}
-
-impl TreeBuilder<'_> {
-    fn error(&self, message: String) -> PickleError {
-        PickleError::Invalid { offset: self.op_at, opcode: "STOP", message }
-    }
-
-    fn charge(&mut self, bytes: usize) -> Res<()> {
-        match self.budget.checked_sub(bytes) {
-            Some(left) => {
-                *self.budget = left;
-                Ok(())
-            }
-            None => Err(PickleError::Limit {
-                offset: self.op_at,
-                opcode: "STOP",
-                message: over_budget_message(self.input_len),
-            }),
-        }
-    }
-
-    fn value(&mut self, v: Val, depth: usize) -> Res<PyValue> {
-        self.charge(std::mem::size_of::<PyValue>())?;
-        let id = match v {
-            Val::None => return Ok(PyValue::None),
-            Val::Bool(b) => return Ok(PyValue::Bool(b)),
-            Val::Int(i) => return Ok(PyValue::Int(i)),
-            Val::Float(f) => return Ok(PyValue::Float(f)),
-            Val::Obj(id) => id,
-        };
-        let objs = self.objs;
-        let Some(obj) = objs.get(id) else {
-            return Err(self.error("internal: dangling object".into()));
-        };
-        let is_container = matches!(obj, Obj::List(_) | Obj::Tuple(_) | Obj::Dict(_));
-        if is_container && depth >= MAX_DEPTH {
-            return Err(PickleError::Limit {
-                offset: self.op_at,
-                opcode: "STOP",
-                message: format!(
-                    "containers nested more than {MAX_DEPTH} deep (or a container that contains \
-                     itself)"
-                ),
-            });
-        }
-        Ok(match obj {
-            Obj::Str(s) => {
-                self.charge(s.len())?;
-                PyValue::Str(s.clone())
-            }
-            Obj::Bytes(b) => {
-                self.charge(b.len())?;
-                PyValue::Bytes(b.clone())
-            }
-            Obj::List(items) => PyValue::List(self.values(items, depth)?),
-            Obj::Tuple(items) => PyValue::Tuple(self.values(items, depth)?),
-            Obj::Dict(pairs) => self.dict(pairs, depth)?,
-            Obj::Array(a) => {
-                self.charge(a.data.len())?;
-                PyValue::NdArray(a.clone())
-            }
-            Obj::Dtype { dtype, .. } => PyValue::DType(*dtype),
-            Obj::Callable(c) => {
-                return Err(self.error(format!(
-                    "global {} appears as a value; it is only accepted as something to call",
-                    c.name()
-                )))
-            }
-            Obj::PendingArray => {
-                return Err(self.error(
-                    "a numpy array made by _reconstruct never received its data (no BUILD)".into(),
-                ))
-            }
-        })
-    }
-
-    fn values(&mut self, items: &[Val], depth: usize) -> Res<Vec<PyValue>> {
-        items.iter().map(|&item| self.value(item, depth + 1)).collect()
-    }
-
-    /// Builds a dict as Python would: a repeated key keeps its first position and takes the
-    /// last value.
-    fn dict(&mut self, pairs: &[(Val, Val)], depth: usize) -> Res<PyValue> {
-        let mut out: Vec<(PyValue, PyValue)> = Vec::new();
-        let mut index: HashMap<String, usize> = HashMap::new();
-        for &(k, v) in pairs {
-            let key = self.value(k, depth + 1)?;
-            let value = self.value(v, depth + 1)?;
-            let Some(hash_key) = hash_key(&key) else {
-                return Err(self.error(format!("unhashable dict key of type {}", key.type_name())));
-            };
-            self.charge(hash_key.len())?;
-            match index.get(&hash_key).and_then(|&i| out.get_mut(i)) {
-                Some(slot) => slot.1 = value,
-                None => {
-                    index.insert(hash_key, out.len());
-                    out.push((key, value));
-                }
-            }
-        }
-        Ok(PyValue::Dict(out))
-    }
-}
-
-/// A string equal for keys that Python's dict treats as the same key (`1 == 1.0 == True`), or
-/// `None` for unhashable values.
-fn hash_key(v: &PyValue) -> Option<String> {
-    Some(match v {
-        PyValue::None => "n".into(),
-        PyValue::Bool(b) => format!("i{}", i64::from(*b)),
-        PyValue::Int(i) => format!("i{i}"),
-        PyValue::Float(f) => {
-            if f.fract() == 0.0 && f.abs() < 9.2e18 {
-                format!("i{}", *f as i64)
-            } else {
-                format!("f{}", f.to_bits())
-            }
-        }
-        PyValue::Str(s) => format!("s{s}"),
-        PyValue::Bytes(b) => format!("b{b:?}"),
-        PyValue::DType(d) => format!("d{}", d.name()),
-        PyValue::Tuple(items) => {
-            let parts: Option<Vec<String>> = items.iter().map(hash_key).collect();
-            format!("t({})", parts?.join(","))
-        }
-        PyValue::List(_) | PyValue::Dict(_) | PyValue::NdArray(_) => return None,
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn err(bytes: &[u8]) -> PickleError {
-        match parse(bytes) {
-            Ok(v) => panic!("expected an error, parsed {v:?}"),
-            Err(e) => e,
-        }
-    }
-
-    #[test]
-    fn small_values() {
-        assert_eq!(parse(b"\x80\x02N.").ok(), Some(PyValue::None));
-        assert_eq!(parse(b"\x80\x02K\x07.").ok(), Some(PyValue::Int(7)));
-        assert_eq!(parse(b"\x80\x02J\xff\xff\xff\xff.").ok(), Some(PyValue::Int(-1)));
-        assert_eq!(parse(b"\x80\x02\x8a\x01\xff.").ok(), Some(PyValue::Int(-1)));
-        assert_eq!(parse(b"\x80\x02\x8a\x00.").ok(), Some(PyValue::Int(0)));
-        assert_eq!(
-            parse(b"\x80\x02G?\xf8\x00\x00\x00\x00\x00\x00.").ok(),
-            Some(PyValue::Float(1.5))
-        );
-    }
-
-    #[test]
-    fn memo_shares_mutable_lists() {
-        // l = []; memo[0] = l; push memo[0]; append 1 to the top one; (l, l): both see the 1.
-        let v = parse(b"\x80\x02]q\x00h\x00K\x01a\x86.").ok();
-        let inner = PyValue::List(vec![PyValue::Int(1)]);
-        assert_eq!(v, Some(PyValue::Tuple(vec![inner.clone(), inner])));
-    }
-
-    #[test]
-    fn duplicate_keys_keep_first_position_and_last_value() {
-        let v = parse(b"\x80\x02}(K\x01K\x02K\x05K\x06\x88K\x03u.").ok();
-        assert_eq!(
-            v,
-            Some(PyValue::Dict(vec![
-                (PyValue::Int(1), PyValue::Int(3)),
-                (PyValue::Int(5), PyValue::Int(6)),
-            ]))
-        );
-    }
-
-    #[test]
-    fn errors_name_offset_and_opcode() {
-        let e = err(b"\x80\x04\x8e\x00\x00\x00\x00\x00\x00\x00\x10abc.");
-        assert_eq!(
-            e.to_string(),
-            format!(
-                "truncated at byte 2 while reading BINBYTES8 length {}: 4 bytes left",
-                1u64 << 60
-            )
-        );
-        assert_eq!(err(b"\x80\x02\xff.").to_string(), "unknown opcode 0xff at byte 2");
-        let e = err(b"\x80\x02cposix\nsystem\n.");
-        assert!(e.to_string().starts_with("global posix.system is not allowed (GLOBAL at byte 2)"));
-        assert_eq!(
-            err(b"").to_string(),
-            "input ended at byte 0 without a STOP opcode (is the file truncated?)"
-        );
-        assert!(matches!(
-            err(b"\x80\x02J\x01\x00"),
-            PickleError::Truncated { offset: 2, opcode: "BININT", .. }
-        ));
-    }
-
-    #[test]
-    fn permute_matches_numpy_transpose() {
-        // np.arange(6).reshape(2, 3).T -> [[0, 3], [1, 4], [2, 5]]
-        let data: Vec<u8> = (0u8..6).collect();
-        assert_eq!(permute_axes(&data, 1, &[2, 3], &[1, 0]), Some(vec![0, 3, 1, 4, 2, 5]));
-        // Not a permutation.
-        assert_eq!(permute_axes(&data, 1, &[2, 3], &[0, 0]), None);
-        assert_eq!(permute_axes(&data, 1, &[2, 3], &[0, 5]), None);
-        // Fortran-order (2, 3): memory [a00, a10, a01, a11, a02, a12].
-        let f = NdArray { dtype: DType::UInt8, shape: vec![2, 3], fortran_order: true, data };
-        assert_eq!(f.to_c_order().data, vec![0, 2, 4, 1, 3, 5]);
-    }
-
-    #[test]
-    fn hand_built_arrays_never_panic() {
-        let odd = NdArray {
-            dtype: DType::Float32,
-            shape: vec![3, 3],
-            fortran_order: true,
-            data: vec![1, 2, 3],
-        };
-        assert_eq!(odd.to_c_order(), odd);
-        assert_eq!(odd.to_f32_vec(), Some(vec![]));
-        let huge = NdArray {
-            dtype: DType::Float64,
-            shape: vec![usize::MAX, 4],
-            fortran_order: true,
-            data: vec![],
-        };
-        assert_eq!(huge.num_elements(), usize::MAX);
-        assert_eq!(huge.to_c_order(), huge);
-    }
 }

@@ -6,8 +6,8 @@
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
-use crate::optim::{AdamW, AdamWConfig};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_train::optim::{AdamW, AdamWConfig};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::Command;
