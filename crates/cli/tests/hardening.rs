@@ -431,11 +431,7 @@ fn case_11_env_replay_refuses_states_mujoco_would_reset() {
     // within the limit, but so fast that the first step diverges
     std::fs::write(
         &init,
-        format!(
-            "{{\"qpos\": [{}], \"qvel\": [{}]}}",
-            ["0.0"; 9].join(","),
-            ["9e9"; 9].join(",")
-        ),
+        format!("{{\"qpos\": [{}], \"qvel\": [{}]}}", ["0.0"; 9].join(","), ["9e9"; 9].join(",")),
     )
     .unwrap();
     let e = replay();
