@@ -71,7 +71,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, eval_point_robot, sac_h<H>_b<B> or td3_h<H>_b<B>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<point_robot|cheetah_vel>[_full][_b<N>], sac_h<H>_b<B> or td3_h<H>_b<B>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -80,16 +80,58 @@ pub enum BenchError {
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
 pub const EVAL_CASE: &str = "eval_point_robot";
 
-fn parse_case(name: &str) -> Result<(bool, i64), BenchError> {
+/// What a model case times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    /// `train_b<N>`: one training step.
+    Train,
+    /// `infer_b<N>`: one rollout step by the reference's path, the full forward.
+    Infer,
+    /// `act_b<N>`: one rollout step by `PromptDt::act` with the prompt's keys and values cached
+    /// (promptdt only; compare with `infer_b<N>` of the same run).
+    Act,
+}
+
+fn parse_case(name: &str) -> Result<(Mode, i64), BenchError> {
     let bad = || BenchError::UnknownCase(name.to_string());
-    let (train, b) = if let Some(b) = name.strip_prefix("train_b") {
-        (true, b)
+    let (mode, b) = if let Some(b) = name.strip_prefix("train_b") {
+        (Mode::Train, b)
     } else if let Some(b) = name.strip_prefix("infer_b") {
-        (false, b)
+        (Mode::Infer, b)
+    } else if let Some(b) = name.strip_prefix("act_b") {
+        (Mode::Act, b)
     } else {
         return Err(bad());
     };
-    b.parse::<i64>().ok().filter(|&b| b > 0).map(|b| (train, b)).ok_or_else(bad)
+    b.parse::<i64>().ok().filter(|&b| b > 0).map(|b| (mode, b)).ok_or_else(bad)
+}
+
+/// An evaluation-protocol case: `eval_<point_robot|cheetah_vel>[_full][_b<N>]`. `_full` uses the
+/// reference's full forward at every step (default: the cached path); `_b<N>` steps at most N
+/// episodes together (default: all of them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct EvalCase {
+    env: &'static str,
+    inference: pdt_eval::Inference,
+    max_batch: usize,
+}
+
+fn parse_eval_case(name: &str) -> Option<EvalCase> {
+    let rest = name.strip_prefix("eval_")?;
+    let (env, rest) = if let Some(r) = rest.strip_prefix("point_robot") {
+        ("point_robot", r)
+    } else {
+        ("cheetah_vel", rest.strip_prefix("cheetah_vel")?)
+    };
+    let (inference, rest) = match rest.strip_prefix("_full") {
+        Some(r) => (pdt_eval::Inference::Full, r),
+        None => (pdt_eval::Inference::Cached, rest),
+    };
+    let max_batch = match rest {
+        "" => 1 << 20,
+        r => r.strip_prefix("_b")?.parse().ok().filter(|&b| b > 0)?,
+    };
+    Some(EvalCase { env, inference, max_batch })
 }
 
 /// Random segments of `b` samples x `t` steps; histories left-padded to a random length.
@@ -141,12 +183,19 @@ fn time_case(
     name: &str,
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
-    let (train, b) = parse_case(name)?;
+    let (mode, b) = parse_case(name)?;
     let dev = cfg.device;
     let history = random_segments(b, 20, 20, 6, false, dev);
     let prompt = random_segments(b, 5, 20, 6, true, dev);
+    // As in an evaluation: the prompts' keys and values once (5 tasks), then rows per step.
+    let tasks = random_segments(5, 5, 20, 6, true, dev);
+    let cache = tch::no_grad(|| model.prefix(&tasks));
+    let rows = Tensor::arange(b, (Kind::Int64, dev)).remainder(5);
     let mut run = || {
-        if train {
+        if mode == Mode::Act {
+            let a = tch::no_grad(|| model.act(&history, Some(&cache.select(&rows))));
+            let _ = a.to_device(Device::Cpu);
+        } else if mode == Mode::Train {
             let preds = model.forward(&history, Some(&prompt), true);
             let loss = PromptDt::action_loss(&preds, &history.actions, &history.mask);
             let mut grads = opt.backward(&loss);
@@ -210,44 +259,54 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
     })
 }
 
-/// Times the whole evaluation protocol: 5 tasks x `eval_episodes` episodes x 20 steps, all episodes
-/// stepped together (reference architecture with point-robot dims, K = 20, prompt 5 steps).
-fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
+/// Times the whole evaluation protocol of `case`: 5 held-out tasks x `eval_episodes` episodes
+/// (point robot: 20 steps, goals 2, 10, 18, 26, 34; Cheetah-Vel: 200 steps, its default test
+/// tasks), K = 20, a 5-step prompt per task, the reference architecture with the family's dims.
+fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
     use pdt_prompt::{SegmentBatch, StateNorm};
+    let err = |why: String| BenchError::Baseline { cmd: case.env.into(), why };
+    let family = pdt_envs::family(case.env).map_err(|e| err(e.to_string()))?;
+    let preset = family.preset();
+    let (ds, da) = (preset.obs_dim, preset.act_dim);
     tch::manual_seed(0);
     let vs = VarStore::new(cfg.device);
-    let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
-    let family = pdt_envs::family("point_robot")
-        .map_err(|e| BenchError::Baseline { cmd: "point_robot".into(), why: e.to_string() })?;
+    let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(ds, da));
+    let (_, test) = family.split("default").map_err(|e| err(e.to_string()))?;
+    let task_ids: Vec<usize> =
+        if case.env == "point_robot" { vec![2, 10, 18, 26, 34] } else { test };
     let tasks = || -> Result<Vec<EvalTask>, BenchError> {
-        [2usize, 10, 18, 26, 34]
+        task_ids
             .iter()
             .map(|&i| {
+                // A deterministic demonstration-like prompt: the point robot's walks to its goal.
                 let goal = pdt_envs::point_robot::goal(i).unwrap_or([0.0, 1.0]);
+                let states: Vec<f32> = (0..5)
+                    .flat_map(|t| {
+                        (0..ds).map(move |j| {
+                            let g = if j % 2 == 0 { goal[0] } else { goal[1] };
+                            g * (15 + t) as f32 / 20.0 + 0.01 * j as f32
+                        })
+                    })
+                    .collect();
+                let actions: Vec<f32> =
+                    (0..5 * da).map(|j| 0.1 * if j % 2 == 0 { goal[0] } else { goal[1] }).collect();
                 let prompt = SegmentBatch {
                     batch: 1,
                     steps: 5,
-                    state_dim: 2,
-                    act_dim: 2,
-                    states: (0..5)
-                        .flat_map(|t| {
-                            [goal[0] * (15 + t) as f32 / 20.0, goal[1] * (15 + t) as f32 / 20.0]
-                        })
-                        .collect(),
-                    actions: (0..5).flat_map(|_| [0.1 * goal[0], 0.1 * goal[1]]).collect(),
+                    state_dim: ds,
+                    act_dim: da,
+                    states,
+                    actions,
                     returns_to_go: vec![-0.05; 5],
                     timesteps: (14..19).collect(),
                     mask: vec![1.0; 5],
                 };
                 let envs =
                     (0..cfg.eval_episodes).map(|_| family.make(i)).collect::<Result<Vec<_>, _>>();
-                let envs = envs.map_err(|e| BenchError::Baseline {
-                    cmd: "point_robot".into(),
-                    why: e.to_string(),
-                })?;
+                let envs = envs.map_err(|e| err(e.to_string()))?;
                 Ok(EvalTask {
-                    name: format!("point_robot-{i}"),
+                    name: format!("{}-{i}", case.env),
                     index: i,
                     envs,
                     seeds: (0..cfg.eval_episodes as u64).collect(),
@@ -258,28 +317,28 @@ fn time_eval(cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     };
     let settings = EvalSettings {
         k: 20,
-        horizon: 20,
-        rtg_scale: 10.0,
-        target_return: 0.0,
+        horizon: preset.horizon,
+        rtg_scale: preset.rtg_scale,
+        target_return: preset.target_return,
         returns: EvalReturns::Decreasing,
-        norm: StateNorm::identity(2),
-        max_batch: 4096,
+        norm: StateNorm::identity(ds),
+        max_batch: case.max_batch,
         device: cfg.device,
         env_threads: 1,
+        inference: case.inference,
     };
     let mut secs = Vec::new();
     for i in 0..cfg.iters.min(5) + 1 {
         let t = tasks()?;
         let t0 = Instant::now();
-        evaluate(&model, t, &settings)
-            .map_err(|e| BenchError::Baseline { cmd: EVAL_CASE.into(), why: e.to_string() })?;
+        evaluate(&model, t, &settings).map_err(|e| err(e.to_string()))?;
         if i > 0 {
             secs.push(t0.elapsed().as_secs_f64() * 1e3);
         }
     }
     secs.sort_by(f64::total_cmp);
     Ok(CaseTiming {
-        name: EVAL_CASE.into(),
+        name: name.into(),
         median_ms: percentile(&secs, 0.5),
         p10_ms: percentile(&secs, 0.1),
         p90_ms: percentile(&secs, 0.9),
@@ -329,7 +388,8 @@ fn run_pytorch_eval(
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
-    for c in cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE && !is_rl(c)) {
+    let is_eval = |c: &String| parse_eval_case(c).is_some();
+    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c)) {
         parse_case(c)?;
     }
     tch::set_num_threads(cfg.threads as i32);
@@ -340,8 +400,8 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
     let mut results = Vec::new();
     for c in &cfg.cases {
-        results.push(if c == EVAL_CASE {
-            time_eval(cfg)?
+        results.push(if let Some(case) = parse_eval_case(c) {
+            time_eval(c, case, cfg)?
         } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
             let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
             timing(c, ms)
@@ -355,8 +415,13 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         threads: cfg.threads,
         results,
     };
-    let train_cases: Vec<String> =
-        cfg.cases.iter().filter(|c| c.as_str() != EVAL_CASE && !is_rl(c)).cloned().collect();
+    // PyTorch runs the reference's paths only: training steps and full forwards.
+    let train_cases: Vec<String> = cfg
+        .cases
+        .iter()
+        .filter(|c| !is_eval(c) && !is_rl(c) && !c.starts_with("act_b"))
+        .cloned()
+        .collect();
     let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();
     let mut pytorch = match &cfg.pytorch {
         Some(b) if !train_cases.is_empty() => {

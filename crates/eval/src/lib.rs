@@ -43,6 +43,19 @@ pub struct EvalTask {
 }
 
 /// Settings shared by all tasks.
+/// How the policy computes an action at each step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Inference {
+    /// `PromptDt::act`: the prompt's keys and values computed once per task and evaluation, the
+    /// last layer for the last state token only. Equal to `Full` within 1e-6 (a few f32 ulps:
+    /// other kernel paths), not bit for bit. Not in the reference.
+    #[default]
+    Cached,
+    /// The reference's `get_action`: the full forward of prompt and history at every step.
+    Full,
+}
+
 #[derive(Debug, Clone)]
 pub struct EvalSettings {
     /// History length K the model sees.
@@ -59,6 +72,7 @@ pub struct EvalSettings {
     /// Threads stepping the environments of a batch (each environment is independent, so results
     /// do not depend on this number; MuJoCo steps are worth spreading, the point robot's are not).
     pub env_threads: usize,
+    pub inference: Inference,
 }
 
 /// One finished episode.
@@ -208,6 +222,14 @@ pub fn evaluate(
         prompts.push(task.prompt);
     }
     let n = envs.len();
+    // The prompts' keys and values, once per task (all tasks have a prompt or none does).
+    let all_prompts: Option<Vec<&SegmentBatch>> = prompts.iter().map(Option::as_ref).collect();
+    let prefix = match (cfg.inference, all_prompts) {
+        (Inference::Cached, Some(all)) if !all.is_empty() => {
+            Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device))))
+        }
+        _ => None,
+    };
     // Every environment takes `da` values (checked above), so episode `id`'s action sits at
     // `id * da` of the flat action buffer.
     let mut venv = VecEnv::new(envs, cfg.env_threads);
@@ -233,12 +255,26 @@ pub fn evaluate(
         while !active.is_empty() {
             let eps: Vec<&Running> = active.iter().collect();
             let history = history_batch(&eps, cfg.k, ds, da, cfg.device);
-            let task_prompts: Option<Vec<&SegmentBatch>> =
-                eps.iter().map(|e| prompts[e.task].as_ref()).collect();
-            let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
-            let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
-            let last =
-                preds.select(1, cfg.k as i64 - 1).to_kind(Kind::Float).to_device(Device::Cpu); // [A, da]
+            let last = match (cfg.inference, &prefix) {
+                (Inference::Cached, Some(c)) => {
+                    let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
+                    let rows = Tensor::from_slice(&rows).to_device(cfg.device);
+                    tch::no_grad(|| model.act(&history, Some(&c.select(&rows))))
+                    // [A, da]
+                }
+                (Inference::Cached, None) if prompts.iter().all(Option::is_none) => {
+                    tch::no_grad(|| model.act(&history, None)) // [A, da]
+                }
+                _ => {
+                    let task_prompts: Option<Vec<&SegmentBatch>> =
+                        eps.iter().map(|e| prompts[e.task].as_ref()).collect();
+                    let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
+                    let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
+                    preds.select(1, cfg.k as i64 - 1) // [A, da]
+                }
+            }
+            .to_kind(Kind::Float)
+            .to_device(Device::Cpu);
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
             for (ep, a) in active.iter().zip(acts.chunks_exact(da)) {

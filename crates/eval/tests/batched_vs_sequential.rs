@@ -3,7 +3,7 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::EnvFamily;
-use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
+use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask, Inference};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use tch::{nn::VarStore, Device};
@@ -64,6 +64,8 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
             max_batch,
             device: Device::Cpu,
             env_threads: max_batch.min(3),
+            // The reference's forward: batched and one-at-a-time take the same kernels.
+            inference: Inference::Full,
         };
         let batched =
             evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(4096)).unwrap();
@@ -86,6 +88,51 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
         // The episodes of different tasks behave differently (the prompt carries the goal).
         if with_prompt {
             assert_ne!(batched[0].actions, batched[7 * 4].actions);
+        }
+    }
+}
+
+/// The cached path (`Inference::Cached`: prompt keys and values once per task, last layer for
+/// the last state token) takes the full forward's actions within float rounding, batched or not.
+#[test]
+fn cached_inference_takes_the_full_forwards_actions() {
+    tch::set_num_threads(1);
+    tch::manual_seed(7);
+    let vs = VarStore::new(Device::Cpu);
+    let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
+    let family = pdt_envs::family("point_robot").unwrap();
+    for with_prompt in [true, false] {
+        let settings = |max_batch, inference| EvalSettings {
+            k: 10,
+            horizon: 20,
+            rtg_scale: 10.0,
+            target_return: 0.0,
+            returns: EvalReturns::Decreasing,
+            norm: StateNorm { mean: vec![0.1, 0.3], std: vec![0.5, 0.4] },
+            max_batch,
+            device: Device::Cpu,
+            env_threads: 1,
+            inference,
+        };
+        let full =
+            evaluate(&model, tasks(family.as_ref(), with_prompt), &settings(4096, Inference::Full))
+                .unwrap();
+        for max_batch in [4096, 1] {
+            let cached = evaluate(
+                &model,
+                tasks(family.as_ref(), with_prompt),
+                &settings(max_batch, Inference::Cached),
+            )
+            .unwrap();
+            let mut worst = 0f32;
+            for (f, c) in full.iter().zip(&cached) {
+                assert_eq!((f.task_index, f.seed, f.length), (c.task_index, c.seed, c.length));
+                for (x, y) in f.actions.iter().zip(&c.actions) {
+                    worst = worst.max((x - y).abs());
+                }
+                assert!((f.episode_return - c.episode_return).abs() < 1e-4);
+            }
+            assert!(worst < 1e-5, "prompt {with_prompt} batch {max_batch}: {worst:e}");
         }
     }
 }

@@ -4,7 +4,7 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::{Env, EnvError, StepResult};
-use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask};
+use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask, Inference};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::StateNorm;
 use tch::{nn::VarStore, Device};
@@ -79,6 +79,7 @@ fn settings(max_batch: usize, env_threads: usize) -> EvalSettings {
         max_batch,
         device: Device::Cpu,
         env_threads,
+        inference: Inference::Full,
     }
 }
 

@@ -69,6 +69,50 @@ impl Attention {
         let a = a.permute([0, 2, 1, 3]).contiguous().view([b, l, self.hidden]); // [B, L, H]
         self.c_proj.forward(&a).dropout(self.resid_pdrop, train)
     }
+
+    /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
+    fn keys_values(&self, x: &Tensor) -> (Tensor, Tensor) {
+        let (b, l) = (x.size()[0], x.size()[1]);
+        let hd = self.hidden / self.n_head;
+        let qkv = self.c_attn.forward(x).split(self.hidden, 2);
+        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]);
+        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]);
+        (k, v)
+    }
+
+    /// Eval-mode attention of `x` (`[B, L, H]`, after `ln_1`) over a cached prefix and itself,
+    /// for the query rows `rows` (the last `rows` positions). The same ops as [`Self::forward`],
+    /// on a prefix of keys and values computed earlier.
+    ///
+    /// # Shapes
+    /// `prefix`: keys `[B, nh, hd, P]`, values `[B, nh, P, hd]`; `causal`: bool `[1, 1, rows, P+L]`;
+    /// `pad_bias`: `[B, 1, 1, P+L]`. Returns `[B, rows, H]`.
+    fn forward_cached(
+        &self,
+        x: &Tensor,
+        prefix: Option<&LayerCache>,
+        causal: &Tensor,
+        masked_bias: &Tensor,
+        pad_bias: &Tensor,
+        rows: i64,
+    ) -> Tensor {
+        let (b, l) = (x.size()[0], x.size()[1]);
+        let hd = self.hidden / self.n_head;
+        let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
+        let q =
+            qkv[0].narrow(1, l - rows, rows).view([b, rows, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, rows, hd]
+        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]); // [B, nh, hd, L]
+        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, L, hd]
+        let (k, v) = match prefix {
+            Some(c) => (Tensor::cat(&[&c.keys, &k], 3), Tensor::cat(&[&c.values, &v], 2)), // P+L
+            None => (k, v),
+        };
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, rows, P+L]
+        let w = w.where_self(causal, masked_bias) + pad_bias;
+        let a = w.softmax(-1, None::<Kind>).matmul(&v); // [B, nh, rows, hd]
+        let a = a.permute([0, 2, 1, 3]).contiguous().view([b, rows, self.hidden]); // [B, rows, H]
+        self.c_proj.forward(&a)
+    }
 }
 
 #[derive(Debug)]
@@ -119,6 +163,80 @@ impl Block {
     fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
         let h = x + self.attn.forward(&self.ln_1.forward(x), masks, train);
         &h + self.mlp.forward(&self.ln_2.forward(&h), train)
+    }
+
+    /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
+    /// returns `[B, rows, H]`. Keys and values still come from every position of `x`.
+    fn forward_cached(
+        &self,
+        x: &Tensor,
+        prefix: Option<&LayerCache>,
+        causal: &Tensor,
+        masked_bias: &Tensor,
+        pad_bias: &Tensor,
+        rows: i64,
+    ) -> Tensor {
+        let l = x.size()[1];
+        let a = self.attn.forward_cached(
+            &self.ln_1.forward(x),
+            prefix,
+            causal,
+            masked_bias,
+            pad_bias,
+            rows,
+        );
+        let h = x.narrow(1, l - rows, rows) + a; // [B, rows, H]
+        &h + self.mlp.forward(&self.ln_2.forward(&h), false)
+    }
+}
+
+/// The keys and values of a prefix at one layer.
+#[derive(Debug)]
+pub struct LayerCache {
+    /// `[B, nh, hd, P]`
+    keys: Tensor,
+    /// `[B, nh, P, hd]`
+    values: Tensor,
+}
+
+/// The keys and values of a prefix (the prompt) at every layer, and its padding bias. Attention is
+/// causal and the prefix comes first, so these do not depend on what follows: a prompted policy
+/// computes them once per prompt instead of once per step (`Gpt2::prefix`).
+#[derive(Debug)]
+pub struct PrefixCache {
+    layers: Vec<LayerCache>,
+    /// `[B, 1, 1, P]`: 0 for real tokens, -1e4 for padding.
+    pad_bias: Tensor,
+}
+
+impl PrefixCache {
+    /// Number of prefixes (rows).
+    pub fn rows(&self) -> i64 {
+        self.pad_bias.size()[0]
+    }
+
+    /// Number of prefix tokens.
+    pub fn len(&self) -> i64 {
+        self.pad_bias.size()[3]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The prefixes of `index` (`[B]` int64 rows into this cache): one per sequence of a batch.
+    pub fn select(&self, index: &Tensor) -> PrefixCache {
+        PrefixCache {
+            layers: self
+                .layers
+                .iter()
+                .map(|c| LayerCache {
+                    keys: c.keys.index_select(0, index),
+                    values: c.values.index_select(0, index),
+                })
+                .collect(),
+            pad_bias: self.pad_bias.index_select(0, index),
+        }
     }
 }
 
@@ -180,5 +298,68 @@ impl Gpt2 {
             x = block.forward(&x, &masks, train);
         }
         self.ln_f.forward(&x)
+    }
+
+    /// The keys and values of a prefix at every layer (eval mode), for [`Self::forward_last`].
+    ///
+    /// # Shapes
+    /// `embeds`: `[P, Lp, H]`; `token_mask`: `[P, Lp]` float (1 real, 0 padding).
+    pub fn prefix(&self, embeds: &Tensor, token_mask: &Tensor) -> PrefixCache {
+        let l = embeds.size()[1];
+        let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+        let pad_bias = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [P, 1, 1, Lp]
+        let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
+        let mut layers = Vec::with_capacity(self.h.len());
+        let mut x = embeds.shallow_clone();
+        for block in &self.h {
+            let (keys, values) = block.attn.keys_values(&block.ln_1.forward(&x));
+            layers.push(LayerCache { keys, values });
+            x = block.forward(&x, &masks, false);
+        }
+        PrefixCache { layers, pad_bias }
+    }
+
+    /// Eval mode: the output at the last position only of `[prefix ‖ embeds]`, with the prefix's
+    /// keys and values taken from `prefix` (one row per sequence, see [`PrefixCache::select`]).
+    /// Every layer but the last runs on all positions of `embeds` (their keys and values are
+    /// needed); the last runs attention and MLP for the last position only.
+    ///
+    /// # Shapes
+    /// `embeds`: `[B, L, H]`; `token_mask`: `[B, L]`. Returns `[B, H]`.
+    pub fn forward_last(
+        &self,
+        prefix: Option<&PrefixCache>,
+        embeds: &Tensor,
+        token_mask: &Tensor,
+    ) -> Tensor {
+        let (b, l) = (embeds.size()[0], embeds.size()[1]);
+        let p = prefix.map_or(0, PrefixCache::len);
+        let total = p + l;
+        debug_assert!(total <= self.n_positions, "caller checks the sequence length");
+        let pad = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [B, 1, 1, L]
+        let pad_bias = match prefix {
+            Some(c) => Tensor::cat(&[&c.pad_bias, &pad], 3), // [B, 1, 1, P+L]
+            None => pad,
+        };
+        // Rows P..P+L of the causal mask of the whole sequence.
+        let rows_of = |rows: i64| {
+            self.causal
+                .narrow(0, total - rows, rows)
+                .narrow(1, 0, total)
+                .contiguous()
+                .view([1, 1, rows, total])
+        };
+        let (all, last) = (rows_of(l), rows_of(1));
+        let mut x = embeds.shallow_clone();
+        let n = self.h.len();
+        for (i, block) in self.h.iter().enumerate() {
+            let cache = prefix.map(|c| &c.layers[i]);
+            x = if i + 1 < n {
+                block.forward_cached(&x, cache, &all, &self.masked_bias, &pad_bias, l)
+            } else {
+                block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, 1)
+            };
+        }
+        self.ln_f.forward(&x).view([b, -1]) // [B, H]
     }
 }

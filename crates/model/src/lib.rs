@@ -24,4 +24,5 @@ pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;
 pub use config::PromptDtConfig;
+pub use gpt2::PrefixCache;
 pub use prompt_dt::{PromptDt, Segments};

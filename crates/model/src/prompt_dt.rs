@@ -5,7 +5,7 @@
 //! *state* token, so it sees R_t and s_t but not a_t (causal attention).
 
 use crate::config::PromptDtConfig;
-use crate::gpt2::Gpt2;
+use crate::gpt2::{Gpt2, PrefixCache};
 use tch::nn::{self, Init, Module};
 use tch::{Device, Kind, Tensor};
 
@@ -266,6 +266,33 @@ impl PromptDt {
         let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
         let state_hidden = x.select(1, 1); // [B, Lp+K, H]: hidden state at each state token
         let actions = self.predict_action.forward(&state_hidden); // [B, Lp+K, da]
+        if self.cfg.action_tanh {
+            actions.tanh()
+        } else {
+            actions
+        }
+    }
+
+    /// The prompt's keys and values at every layer, once per prompt (eval mode), for
+    /// [`PromptDt::act`]. One row per prompt of `prompt` (`[P, Lp, ...]`).
+    pub fn prefix(&self, prompt: &Segments) -> PrefixCache {
+        let (tokens, mask) = self.prompt.tokens(prompt, self.cfg.hidden_size as i64); // [P, 3Lp, H]
+        self.transformer.prefix(&tokens, &mask)
+    }
+
+    /// The action of the last history step (eval mode): what the evaluator and a deployed policy
+    /// need, `[B, da]`, equal to `forward(history, prompt, false)[:, K-1]` (`tests/act.rs`) with
+    /// less work: the prompt's keys and values come from `prompt` (computed once by
+    /// [`PromptDt::prefix`], one row per sequence via [`PrefixCache::select`]), the trailing
+    /// action token is not fed, and the last layer runs for the last state token only.
+    pub fn act(&self, history: &Segments, prompt: Option<&PrefixCache>) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let (tokens, mask) = self.history.tokens(history, hidden);
+        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
+        let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
+        let last_state =
+            self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, H]
+        let actions = self.predict_action.forward(&last_state); // [B, da]
         if self.cfg.action_tanh {
             actions.tanh()
         } else {

@@ -5,6 +5,7 @@
 use crate::optim::AdamWConfig;
 use crate::step::LossOn;
 use pdt_data::multitask::DataFormat;
+use pdt_eval::Inference;
 use pdt_model::device::DeviceSpec;
 use pdt_prompt::{NormalizationScope, PromptPosition, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
@@ -242,6 +243,10 @@ pub struct EvalSection {
     /// MT-BC-Finetune: segments per fine-tuning batch (reference 256).
     pub finetune_batch: usize,
     pub finetune_lr: f64,
+    /// `cached` (default): the prompt's keys and values once per task and evaluation, the last
+    /// layer for the last state token only; `full`: the reference's full forward at every step.
+    /// Equal within 1e-6, not bit for bit (`crates/model/tests/act.rs`).
+    pub inference: Inference,
 }
 
 impl Default for EvalSection {
@@ -255,6 +260,7 @@ impl Default for EvalSection {
             finetune_steps: 10,
             finetune_batch: 256,
             finetune_lr: 1e-4,
+            inference: Inference::Cached,
         }
     }
 }

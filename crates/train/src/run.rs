@@ -396,6 +396,7 @@ fn eval_tasks(
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
             n => n,
         },
+        inference: setup.cfg.eval.inference,
     };
     // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
     // whose episodes carry `task_index == k`.
