@@ -45,6 +45,38 @@ pub enum Command {
     /// Reproduce a table or figure of the paper: run what is not finished, then report it next to
     /// the paper's numbers (`--list` shows the experiments).
     Reproduce(ReproduceArgs),
+    /// Serve a trained run's prompted policy over HTTP+JSON (docs/serve.md).
+    Serve(ServeArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// Run directory (its latest checkpoint is served).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Address to listen on (port 0: any free port; the address is printed).
+    #[arg(long, default_value = "127.0.0.1:8000")]
+    pub listen: std::net::SocketAddr,
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+    /// Where the run's data moved (for `task` prompts).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Episodes open at once.
+    #[arg(long, default_value_t = 1024, value_parser = count(1, 1_000_000))]
+    pub max_episodes: usize,
+    /// Requests answered by one forward at most.
+    #[arg(long, default_value_t = 256, value_parser = count(1, 65_536))]
+    pub max_batch: usize,
+    /// How long to wait for more requests before a forward, in milliseconds.
+    #[arg(long, default_value_t = 2)]
+    pub batch_wait_ms: u64,
+    /// Close an episode after this many seconds without a request.
+    #[arg(long, default_value_t = 300)]
+    pub idle_timeout_s: u64,
+    /// Largest request body in bytes.
+    #[arg(long, default_value_t = 1 << 20, value_parser = count(64, 1 << 30))]
+    pub max_body_bytes: usize,
 }
 
 #[derive(Debug, Args)]

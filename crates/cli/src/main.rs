@@ -207,6 +207,24 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Reproduce(a) => commands::reproduce(&a)?,
+        Command::Serve(a) => {
+            let run = pdt_train::run::ServedRun::load(&a.run, a.device, a.data.as_deref())?;
+            let opts = pdt_serve::ServeOptions {
+                listen: a.listen,
+                max_episodes: a.max_episodes,
+                max_batch: a.max_batch,
+                batch_wait: std::time::Duration::from_millis(a.batch_wait_ms),
+                idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s.max(1)),
+                max_body_bytes: a.max_body_bytes,
+                ..Default::default()
+            };
+            let server = pdt_serve::Server::start(run, opts)?;
+            // The first line of output: clients (and tests) read the address from it.
+            println!("listening on http://{}", server.addr);
+            use std::io::Write as _;
+            let _ = std::io::stdout().flush();
+            server.wait_for_ctrl_c()?;
+        }
         Command::Bench(a) => {
             let cfg = a.to_config()?;
             let report = pdt_bench::run(&cfg)?;

@@ -48,7 +48,7 @@ pub struct EvalTask {
 #[serde(rename_all = "snake_case")]
 pub enum Inference {
     /// `PromptDt::act`: the prompt's keys and values computed once per task and evaluation, the
-    /// last layer for the last state token only. Equal to `Full` within 1e-6 (a few f32 ulps:
+    /// last layer for the last 8 positions only. Equal to `Full` within 1e-6 (a few f32 ulps:
     /// other kernel paths), not bit for bit. Not in the reference.
     #[default]
     Cached,
@@ -107,20 +107,67 @@ pub enum EvalError {
     Setup { task: String, why: String },
 }
 
+/// What a prompted policy remembers of one episode, as the reference's
+/// `prompt_evaluate_episode_rtg` keeps it: the normalised states, the actions taken, the
+/// returns-to-go. The evaluator and `promptdt serve` both act through it, so a served episode
+/// takes the evaluator's actions.
+#[derive(Debug, Clone, Default)]
+pub struct History {
+    /// Normalised states so far, `[(t+1) * ds]`.
+    pub states: Vec<f32>,
+    /// Actions so far, `[t * da]`.
+    pub actions: Vec<f32>,
+    /// Returns-to-go (already divided by the scale), `[t+1]`.
+    pub rtg: Vec<f32>,
+    /// Undiscounted return so far.
+    pub ret: f64,
+    /// Steps taken.
+    pub t: usize,
+}
+
+impl History {
+    /// An episode at its first observation; `first_rtg` from [`first_rtg`].
+    pub fn start(norm: &StateNorm, obs: &[f32], first_rtg: f32) -> Self {
+        Self { states: normalise(norm, obs), rtg: vec![first_rtg], ..Self::default() }
+    }
+
+    /// Records the action taken, the reward it earned and the observation that followed.
+    pub fn record(
+        &mut self,
+        action: &[f32],
+        reward: f32,
+        obs: &[f32],
+        norm: &StateNorm,
+        returns: EvalReturns,
+        rtg_scale: f32,
+    ) {
+        self.actions.extend_from_slice(action);
+        self.states.extend(normalise(norm, obs));
+        self.ret += reward as f64;
+        let prev = *self.rtg.last().unwrap_or(&0.0);
+        self.rtg.push(match returns {
+            EvalReturns::Decreasing => prev - reward / rtg_scale,
+            EvalReturns::Constant | EvalReturns::Zero => prev,
+        });
+        self.t += 1;
+    }
+}
+
+/// The first return-to-go token of an episode (already divided by the scale).
+pub fn first_rtg(returns: EvalReturns, target_return: f32, rtg_scale: f32) -> f32 {
+    match returns {
+        EvalReturns::Zero => 0.0,
+        _ => target_return / rtg_scale,
+    }
+}
+
 /// An episode in progress (its environment is slot `id` of the evaluation's `VecEnv`).
 struct Running {
     /// Position of the episode, in (task, episode) order.
     id: usize,
     task: usize,
     seed: u64,
-    /// Normalised states so far, `[(t+1) * ds]`.
-    states: Vec<f32>,
-    /// Actions so far, `[t * da]`.
-    actions: Vec<f32>,
-    /// Returns-to-go (already divided by the scale), `[t+1]`.
-    rtg: Vec<f32>,
-    ret: f64,
-    t: usize,
+    h: History,
 }
 
 /// Normalises one raw observation in f32, as the reference does it on torch tensors at evaluation.
@@ -129,7 +176,7 @@ fn normalise(norm: &StateNorm, obs: &[f32]) -> Vec<f32> {
 }
 
 /// Builds the `[A, K]` history of the given episodes (last K steps, left zero-padding).
-fn history_batch(eps: &[&Running], k: usize, ds: usize, da: usize, device: Device) -> Segments {
+pub fn history_batch(eps: &[&History], k: usize, ds: usize, da: usize, device: Device) -> Segments {
     let a = eps.len();
     let (mut s, mut act) = (vec![0f32; a * k * ds], vec![0f32; a * k * da]);
     let (mut r, mut ts, mut m) = (vec![0f32; a * k], vec![0i64; a * k], vec![0f32; a * k]);
@@ -152,7 +199,7 @@ fn history_batch(eps: &[&Running], k: usize, ds: usize, da: usize, device: Devic
 }
 
 /// Stacks the prompts of the given episodes' tasks into `[A, J*H]`.
-fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
+pub fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
     let p0 = prompts[0];
     let cat_f = |f: fn(&SegmentBatch) -> &Vec<f32>| {
         prompts.iter().flat_map(|p| f(p).iter().copied()).collect::<Vec<f32>>()
@@ -182,10 +229,7 @@ pub fn evaluate(
     cfg: &EvalSettings,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
-    let first_rtg = match cfg.returns {
-        EvalReturns::Zero => 0.0,
-        _ => cfg.target_return / cfg.rtg_scale,
-    };
+    let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
     let mut names: Vec<String> = Vec::with_capacity(tasks.len());
     let mut prompts: Vec<Option<SegmentBatch>> = Vec::with_capacity(tasks.len());
     let mut envs: Vec<Box<dyn Env>> = Vec::new();
@@ -206,16 +250,7 @@ pub fn evaluate(
                 );
                 return Err(EvalError::Setup { task: task.name, why });
             }
-            queue.push(Running {
-                id: envs.len(),
-                task: ti,
-                seed,
-                states: vec![],
-                actions: vec![],
-                rtg: vec![],
-                ret: 0.0,
-                t: 0,
-            });
+            queue.push(Running { id: envs.len(), task: ti, seed, h: History::default() });
             envs.push(env);
         }
         names.push(task.name);
@@ -249,12 +284,12 @@ pub fn evaluate(
         let resets: Vec<(usize, u64)> = active.iter().map(|e| (e.id, e.seed)).collect();
         let first = venv.reset_some(&resets).map_err(|source| batch_error(&active, source))?;
         for (ep, obs) in active.iter_mut().zip(first) {
-            ep.states = normalise(&cfg.norm, &obs);
-            ep.rtg = vec![first_rtg];
+            ep.h = History::start(&cfg.norm, &obs, first_rtg);
         }
         while !active.is_empty() {
             let eps: Vec<&Running> = active.iter().collect();
-            let history = history_batch(&eps, cfg.k, ds, da, cfg.device);
+            let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
+            let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
             let last = match (cfg.inference, &prefix) {
                 (Inference::Cached, Some(c)) => {
                     let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
@@ -296,22 +331,14 @@ pub fn evaluate(
                         return Err(EvalError::Setup { task: name(), why });
                     }
                 };
-                ep.actions.extend_from_slice(a);
-                ep.states.extend(normalise(&cfg.norm, &step.obs));
-                ep.ret += step.reward as f64;
-                let prev = *ep.rtg.last().unwrap_or(&0.0);
-                ep.rtg.push(match cfg.returns {
-                    EvalReturns::Decreasing => prev - step.reward / cfg.rtg_scale,
-                    EvalReturns::Constant | EvalReturns::Zero => prev,
-                });
-                ep.t += 1;
-                if step.terminated || step.truncated || ep.t >= cfg.horizon {
+                ep.h.record(a, step.reward, &step.obs, &cfg.norm, cfg.returns, cfg.rtg_scale);
+                if step.terminated || step.truncated || ep.h.t >= cfg.horizon {
                     let record = EpisodeRecord {
                         task_index: ep.task,
                         seed: ep.seed,
-                        episode_return: ep.ret,
-                        length: ep.t,
-                        actions: ep.actions,
+                        episode_return: ep.h.ret,
+                        length: ep.h.t,
+                        actions: ep.h.actions,
                     };
                     done.push((ep.id, record));
                 } else {

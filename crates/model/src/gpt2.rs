@@ -190,6 +190,9 @@ impl Block {
     }
 }
 
+/// Positions the last layer of [`Gpt2::forward_last`] runs for (see there).
+pub const LAST_ROWS: i64 = 8;
+
 /// The keys and values of a prefix at one layer.
 #[derive(Debug)]
 pub struct LayerCache {
@@ -222,6 +225,25 @@ impl PrefixCache {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+
+    /// Stacks caches of prefixes of the same length, rows in order (`None` if any length differs).
+    pub fn cat(caches: &[&PrefixCache]) -> Option<PrefixCache> {
+        let first = caches.first()?;
+        if caches.iter().any(|c| c.len() != first.len() || c.layers.len() != first.layers.len()) {
+            return None;
+        }
+        let layers = (0..first.layers.len())
+            .map(|i| LayerCache {
+                keys: Tensor::cat(&caches.iter().map(|c| &c.layers[i].keys).collect::<Vec<_>>(), 0),
+                values: Tensor::cat(
+                    &caches.iter().map(|c| &c.layers[i].values).collect::<Vec<_>>(),
+                    0,
+                ),
+            })
+            .collect();
+        let pad_bias = Tensor::cat(&caches.iter().map(|c| &c.pad_bias).collect::<Vec<_>>(), 0);
+        Some(PrefixCache { layers, pad_bias })
     }
 
     /// The prefixes of `index` (`[B]` int64 rows into this cache): one per sequence of a batch.
@@ -319,13 +341,13 @@ impl Gpt2 {
         PrefixCache { layers, pad_bias }
     }
 
-    /// Eval mode: the output at the last position only of `[prefix ‖ embeds]`, with the prefix's
+    /// Eval mode: the outputs at the last (at most [`LAST_ROWS`]) positions of `[prefix ‖ embeds]`, with the prefix's
     /// keys and values taken from `prefix` (one row per sequence, see [`PrefixCache::select`]).
     /// Every layer but the last runs on all positions of `embeds` (their keys and values are
     /// needed); the last runs attention and MLP for the last position only.
     ///
     /// # Shapes
-    /// `embeds`: `[B, L, H]`; `token_mask`: `[B, L]`. Returns `[B, H]`.
+    /// `embeds`: `[B, L, H]`; `token_mask`: `[B, L]`. Returns `[B, min(L, LAST_ROWS), H]`.
     pub fn forward_last(
         &self,
         prefix: Option<&PrefixCache>,
@@ -349,7 +371,12 @@ impl Gpt2 {
                 .contiguous()
                 .view([1, 1, rows, total])
         };
-        let (all, last) = (rows_of(l), rows_of(1));
+        // The last layer runs for the last LAST_ROWS positions, not one: BLAS picks its kernels by
+        // matrix size, and with one or two rows per sequence an episode alone (a 1- or 2-row
+        // product) got other bits than the same episode batched with others. Measured on AVX2:
+        // 2 or 3 rows differ, 4 and more are batch-invariant (`tests/act.rs`); 8 leaves margin.
+        let tail = l.min(LAST_ROWS);
+        let (all, last) = (rows_of(l), rows_of(tail));
         let mut x = embeds.shallow_clone();
         let n = self.h.len();
         for (i, block) in self.h.iter().enumerate() {
@@ -357,9 +384,10 @@ impl Gpt2 {
             x = if i + 1 < n {
                 block.forward_cached(&x, cache, &all, &self.masked_bias, &pad_bias, l)
             } else {
-                block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, 1)
+                block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, tail)
             };
         }
-        self.ln_f.forward(&x).view([b, -1]) // [B, H]
+        let _ = b;
+        self.ln_f.forward(&x) // [B, tail, H]
     }
 }

@@ -284,15 +284,18 @@ impl PromptDt {
     /// need, `[B, da]`, equal to `forward(history, prompt, false)[:, K-1]` (`tests/act.rs`) with
     /// less work: the prompt's keys and values come from `prompt` (computed once by
     /// [`PromptDt::prefix`], one row per sequence via [`PrefixCache::select`]), the trailing
-    /// action token is not fed, and the last layer runs for the last state token only.
+    /// action token is not fed, and the last layer runs for the last few positions only.
     pub fn act(&self, history: &Segments, prompt: Option<&PrefixCache>) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
         let (tokens, mask) = self.history.tokens(history, hidden);
         let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
         let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
-        let last_state =
-            self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, H]
-        let actions = self.predict_action.forward(&last_state); // [B, da]
+        let tail =
+            self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, R, H]
+                                                                                                   // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
+                                                                                                   // the last, the state token of the last step.
+        let rows = tail.size()[1];
+        let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
         if self.cfg.action_tanh {
             actions.tanh()
         } else {

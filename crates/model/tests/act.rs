@@ -90,3 +90,49 @@ fn act_equals_the_full_forward_at_the_last_step() {
     eprintln!("largest |act - forward| over all cases: {worst:e}");
     assert!(worst < 1e-6, "{worst:e}");
 }
+
+/// An episode's action does not depend on the episodes batched with it (1 thread).
+#[test]
+fn act_is_the_same_alone_or_batched() {
+    tch::set_num_threads(1);
+    tch::manual_seed(11);
+    let cfg = PromptDtConfig::reference(2, 2);
+    let vs = VarStore::new(Device::Cpu);
+    let model = PromptDt::new(&vs.root(), &cfg);
+    let (b, k) = (8, 4);
+    let history = segments(b, k, 2, 2);
+    let prompts = segments(b, 5, 2, 2);
+    let all = Tensor::arange(b, (Kind::Int64, Device::Cpu));
+    let (batched, full_batched) = tch::no_grad(|| {
+        let c = model.prefix(&prompts);
+        (
+            model.act(&history, Some(&c.select(&all))),
+            model.forward(&history, Some(&prompts), false).select(1, k - 1),
+        )
+    });
+    let np = tch::no_grad(|| model.act(&history, None));
+    let mut same_np = 0;
+    for i in 0..b {
+        let one = Tensor::from_slice(&[i]);
+        let alone = tch::no_grad(|| model.act(&rows(&history, &one), None));
+        same_np += i64::from(alone.equal(&np.get(i).unsqueeze(0)));
+    }
+    eprintln!("no prompt: {same_np} of {b}");
+    let mut same = 0;
+    let mut same_full = 0;
+    for i in 0..b {
+        let one = Tensor::from_slice(&[i]);
+        let h = rows(&history, &one);
+        let p = rows(&prompts, &one);
+        let (alone, full_alone) = tch::no_grad(|| {
+            (
+                model.act(&h, Some(&model.prefix(&p))),
+                model.forward(&h, Some(&p), false).select(1, k - 1),
+            )
+        });
+        same += i64::from(alone.equal(&batched.get(i).unsqueeze(0)));
+        same_full += i64::from(full_alone.equal(&full_batched.get(i).unsqueeze(0)));
+    }
+    eprintln!("act: {same} of {b} bit-identical alone and batched; forward: {same_full} of {b}");
+    assert_eq!(same, b);
+}

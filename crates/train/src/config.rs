@@ -244,7 +244,7 @@ pub struct EvalSection {
     pub finetune_batch: usize,
     pub finetune_lr: f64,
     /// `cached` (default): the prompt's keys and values once per task and evaluation, the last
-    /// layer for the last state token only; `full`: the reference's full forward at every step.
+    /// layer for the last 8 positions only; `full`: the reference's full forward at every step.
     /// Equal within 1e-6, not bit for bit (`crates/model/tests/act.rs`).
     pub inference: Inference,
 }

@@ -15,7 +15,9 @@ use pdt_envs::{EnvError, EnvFamily, EnvPreset};
 use pdt_eval::{evaluate, summarise, EvalError, EvalReturns, EvalSettings, EvalTask, TaskResult};
 use pdt_model::checkpoint::{self, write_atomic, CheckpointError};
 use pdt_model::{PromptDt, PromptDtConfig};
-use pdt_prompt::{BatchSampler, NormalizationScope, Rng, SamplerConfig, SamplerError, StateNorm};
+use pdt_prompt::{
+    BatchSampler, NormalizationScope, Rng, SamplerConfig, SamplerError, SegmentBatch, StateNorm,
+};
 use rand::{RngCore, SeedableRng};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -1032,4 +1034,137 @@ pub fn evaluate_run(
     };
     write_json(&dir.join("eval_final.json"), &result)?;
     Ok(result)
+}
+
+/// A trained run, loaded to act (`promptdt serve`): the model with its latest weights and
+/// everything an episode needs besides (normalisation, return tokens, K), and, when the run's data
+/// can be read, its tasks' prompt sets to draw prompts from as its evaluation does.
+pub struct ServedRun {
+    pub model: PromptDt,
+    _vs: VarStore,
+    pub device: Device,
+    pub stats: TaskStats,
+    pub method: Method,
+    pub k: usize,
+    /// Prompt steps of a prompt drawn from the data (J x H).
+    pub prompt_steps: usize,
+    pub returns: pdt_eval::EvalReturns,
+    pub iteration: u64,
+    /// `Err`: why task prompts are unavailable (the data could not be read or changed).
+    prompts: Result<PromptSource, String>,
+}
+
+struct PromptSource {
+    tasks: Vec<TaskData>,
+    sampler_cfg: SamplerConfig,
+    norm: StateNorm,
+    n_positions: usize,
+}
+
+impl ServedRun {
+    /// Loads the run in `dir` (latest checkpoint) on `device`; `data` overrides where its data are.
+    pub fn load(
+        dir: &Path,
+        device: Option<pdt_model::device::DeviceSpec>,
+        data: Option<&Path>,
+    ) -> Result<Self, RunError> {
+        let config = dir.join("config.toml");
+        if !config.is_file() {
+            return Err(RunError::Invalid(format!(
+                "{}: not a run directory (no config.toml)",
+                dir.display()
+            )));
+        }
+        let mut cfg = TrainConfig::from_file(&config)?;
+        if let Some(d) = device {
+            cfg.run.device = d;
+        }
+        if let Some(d) = data {
+            cfg.data.dir = absolute(d);
+        }
+        cfg.validate()?;
+        let stats: TaskStats = read_json(&dir.join("task_stats.json"))?;
+        let family = pdt_envs::family(&cfg.env.name)?;
+        let preset = family.preset();
+        let model_cfg = cfg.model.to_model_config(stats.obs_dim, stats.act_dim);
+        model_cfg.validate().map_err(RunError::Invalid)?;
+        let device = pdt_model::device::resolve(cfg.run.device)?;
+        let mut vs = VarStore::new(device);
+        let model = PromptDt::new(&vs.root(), &model_cfg);
+        let ck = dir.join("checkpoints");
+        let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
+            RunError::Io { .. } => {
+                RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
+            }
+            other => other,
+        })?;
+        if latest.model != format!("step_{}.safetensors", latest.step) {
+            return Err(RunError::Corrupt {
+                path: ck.join("latest.json"),
+                message: format!("names weights `{}` for step {}", latest.model, latest.step),
+            });
+        }
+        checkpoint::load(&mut vs, &ck.join(&latest.model), model_cfg.n_layer)?;
+        let method = cfg.run.method;
+        let returns = match (method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
+            (false, _) => pdt_eval::EvalReturns::Decreasing,
+            (true, MtBcEval::Reference) => pdt_eval::EvalReturns::Constant,
+            (true, MtBcEval::Paper) => pdt_eval::EvalReturns::Zero,
+        };
+        let prompt_steps =
+            cfg.sampler.prompt_episodes * cfg.sampler.prompt_length.unwrap_or(preset.prompt_length);
+        let k = cfg.sampler.k;
+        // Task prompts: the run's data, checked against what it trained on.
+        let prompts = Setup::new(cfg).map_err(|e| e.to_string()).and_then(|setup| {
+            setup
+                .stats
+                .check_same_as(&stats)
+                .map_err(|m| format!("{m}; data.dir is {}", setup.cfg.data.dir.display()))?;
+            let mut tasks: Vec<TaskData> = setup.test_data.tasks.clone();
+            for t in &setup.train_data.tasks {
+                if !tasks.iter().any(|u| u.id == t.id) {
+                    tasks.push(t.clone());
+                }
+            }
+            Ok(PromptSource {
+                tasks,
+                sampler_cfg: setup.sampler_cfg.clone(),
+                norm: setup.norm.clone(),
+                n_positions: setup.model_cfg.n_positions,
+            })
+        });
+        Ok(Self {
+            model,
+            _vs: vs,
+            device,
+            stats,
+            method,
+            k,
+            prompt_steps,
+            returns,
+            iteration: latest.iteration,
+            prompts,
+        })
+    }
+
+    /// The tasks whose prompts [`ServedRun::task_prompt`] can draw, or why there are none.
+    pub fn prompt_tasks(&self) -> Result<Vec<usize>, String> {
+        self.prompts
+            .as_ref()
+            .map(|p| p.tasks.iter().map(|t| t.id.index).collect())
+            .map_err(Clone::clone)
+    }
+
+    /// A prompt of task `task` drawn as the evaluation draws one (`BatchSampler::eval_prompt`),
+    /// from a generator seeded with `seed`.
+    pub fn task_prompt(&self, task: usize, seed: u64) -> Result<SegmentBatch, String> {
+        let p = self.prompts.as_ref().map_err(|why| format!("no task prompts: {why}"))?;
+        let t = p.tasks.iter().find(|t| t.id.index == task).ok_or_else(|| {
+            let known: Vec<String> = p.tasks.iter().map(|t| t.id.index.to_string()).collect();
+            format!("task {task} is not one of the run's tasks ({})", known.join(", "))
+        })?;
+        let sampler = BatchSampler::new(p.sampler_cfg.clone(), &[t], p.norm.clone(), p.n_positions)
+            .map_err(|e| e.to_string())?;
+        Ok(sampler.eval_prompt(0, &mut Rng::seed_from_u64(seed)))
+    }
 }
