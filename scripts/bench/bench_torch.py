@@ -100,11 +100,17 @@ def main():
                 model(*hist, prompt=prompt)
         return step, lambda: model.eval()
 
-    makers = {"train_b560": lambda: train_case(560), "train_b64": lambda: train_case(64),
-              "infer_b1": lambda: infer_case(1), "infer_b50": lambda: infer_case(50)}
+    def make(name):
+        # train_b<N> / infer_b<N>, any batch size N
+        kind, _, batch = name.partition("_b")
+        makers = {"train": train_case, "infer": infer_case}
+        if kind not in makers or not batch.isdigit() or int(batch) < 1:
+            raise SystemExit(f"unknown case {name!r} (train_b<N> or infer_b<N>)")
+        return makers[kind](int(batch))
+
     results = []
     for name in args.cases.split(","):
-        step, set_mode = makers[name]()
+        step, set_mode = make(name)
         set_mode()
         results.append({"name": name, **timed(step, args.warmup, args.iters, sync)})
 

@@ -7,6 +7,8 @@
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+pub mod serve;
+
 use pdt_train::optim::{AdamW, AdamWConfig};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -33,6 +35,22 @@ pub struct BenchConfig {
     pub eval_episodes: usize,
     /// The PyTorch SAC / TD3 script, for the `sac_h*_b*` / `td3_h*_b*` cases.
     pub pytorch_rl_script: Option<PathBuf>,
+    /// The run `serve_c<N>` cases serve.
+    pub serve_run: Option<PathBuf>,
+    /// Steps per served episode (and episodes per client) of `serve_c<N>`.
+    pub serve_steps: usize,
+    pub serve_episodes: usize,
+}
+
+/// One `serve_c<N>` case: N episodes at once against `promptdt serve` on loopback.
+#[derive(Debug, Clone, Serialize)]
+pub struct ServeCase {
+    pub name: String,
+    pub clients: usize,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+    pub actions_per_s: f64,
+    pub requests: usize,
 }
 
 #[derive(Debug, Clone)]
@@ -64,6 +82,7 @@ pub struct EngineReport {
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchReport {
     pub device: String,
+    pub serve: Vec<ServeCase>,
     pub promptdt: EngineReport,
     pub pytorch: Option<EngineReport>,
     pub speedup: Vec<(String, f64)>,
@@ -389,8 +408,29 @@ fn run_pytorch_eval(
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
     let is_eval = |c: &String| parse_eval_case(c).is_some();
-    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c)) {
+    let serve_clients = |c: &String| -> Option<usize> {
+        c.strip_prefix("serve_c")?.parse().ok().filter(|&n: &usize| n > 0)
+    };
+    let is_serve = |c: &String| serve_clients(c).is_some();
+    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c)) {
         parse_case(c)?;
+    }
+    let mut serve = Vec::new();
+    for c in cfg.cases.iter().filter(|c| is_serve(c)) {
+        let n = serve_clients(c).unwrap_or(1);
+        let run = cfg.serve_run.as_ref().ok_or_else(|| BenchError::Baseline {
+            cmd: c.clone(),
+            why: "serve cases need --serve-run DIR (a trained run)".into(),
+        })?;
+        let t = serve::time_serve(run, n, cfg.serve_steps.max(2), cfg.serve_episodes.max(1))?;
+        serve.push(ServeCase {
+            name: c.clone(),
+            clients: n,
+            p50_ms: t.p50_ms,
+            p99_ms: t.p99_ms,
+            actions_per_s: t.actions_per_s,
+            requests: t.requests,
+        });
     }
     tch::set_num_threads(cfg.threads as i32);
     tch::manual_seed(0);
@@ -399,7 +439,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let model = PromptDt::new(&vs.root(), &mcfg);
     let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
     let mut results = Vec::new();
-    for c in &cfg.cases {
+    for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
         results.push(if let Some(case) = parse_eval_case(c) {
             time_eval(c, case, cfg)?
         } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
@@ -419,7 +459,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let train_cases: Vec<String> = cfg
         .cases
         .iter()
-        .filter(|c| !is_eval(c) && !is_rl(c) && !c.starts_with("act_b"))
+        .filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !c.starts_with("act_b"))
         .cloned()
         .collect();
     let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();
@@ -467,7 +507,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
             .collect(),
         None => Vec::new(),
     };
-    Ok(BenchReport { device: format!("{:?}", cfg.device), promptdt, pytorch, speedup })
+    Ok(BenchReport { device: format!("{:?}", cfg.device), serve, promptdt, pytorch, speedup })
 }
 
 /// A Markdown table of the report.
@@ -488,6 +528,15 @@ pub fn render_markdown(r: &BenchReport) -> String {
             theirs.map_or("not run".into(), fmt),
             ratio
         );
+    }
+    if !r.serve.is_empty() {
+        s += "\n| serve case | concurrent episodes | p50 ms per step | p99 ms per step | actions/s | requests |\n|---|---:|---:|---:|---:|---:|\n";
+        for c in &r.serve {
+            s += &format!(
+                "| {} | {} | {:.3} | {:.3} | {:.0} | {} |\n",
+                c.name, c.clients, c.p50_ms, c.p99_ms, c.actions_per_s, c.requests
+            );
+        }
     }
     s
 }

@@ -266,6 +266,15 @@ pub struct BenchArgs {
     /// The PyTorch SAC / TD3 script (for `sac_h<H>_b<B>` and `td3_h<H>_b<B>` cases).
     #[arg(long, default_value = "scripts/bench/bench_rl_torch.py")]
     pub rl_script: PathBuf,
+    /// A trained run, served by the `serve_c<N>` cases (N concurrent episodes on loopback).
+    #[arg(long)]
+    pub serve_run: Option<PathBuf>,
+    /// Steps per served episode in `serve_c<N>`.
+    #[arg(long, default_value_t = 100)]
+    pub serve_steps: usize,
+    /// Episodes per client in `serve_c<N>`.
+    #[arg(long, default_value_t = 2)]
+    pub serve_episodes: usize,
     /// Directory for bench.json and bench.md.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -301,6 +310,9 @@ impl BenchArgs {
                 .collect(),
             pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
             pytorch_rl_script: pytorch.as_ref().map(|_| self.rl_script.clone()),
+            serve_run: self.serve_run.clone(),
+            serve_steps: self.serve_steps,
+            serve_episodes: self.serve_episodes,
             pytorch,
             eval_episodes: self.eval_episodes.max(1),
         })
