@@ -77,6 +77,10 @@ pub struct ServeArgs {
     /// Largest request body in bytes.
     #[arg(long, default_value_t = 1 << 20, value_parser = count(64, 1 << 30))]
     pub max_body_bytes: usize,
+    /// libtorch threads of the model thread. With 1 (the default) an episode's actions are
+    /// bit-identical to `promptdt eval`'s and do not depend on the other episodes of its batch.
+    #[arg(long, default_value_t = 1, value_parser = count(1, 1024))]
+    pub threads: usize,
 }
 
 #[derive(Debug, Args)]

@@ -216,6 +216,7 @@ fn run(cli: Cli) -> Result<()> {
                 batch_wait: std::time::Duration::from_millis(a.batch_wait_ms),
                 idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s.max(1)),
                 max_body_bytes: a.max_body_bytes,
+                threads: a.threads,
                 ..Default::default()
             };
             let server = pdt_serve::Server::start(run, opts)?;

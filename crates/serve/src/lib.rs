@@ -605,6 +605,15 @@ pub struct Server {
 impl Server {
     /// Starts serving `run` on a thread of its own; returns once the socket is bound.
     pub fn start(run: ServedRun, opts: ServeOptions) -> Result<Self, ServeError> {
+        if run.method == pdt_train::config::Method::MtBcFinetune {
+            // Its evaluation fine-tunes on each task's demonstrations before acting; served as is
+            // it would be another policy than the one evaluated.
+            return Err(ServeError::Invalid(
+                "an mt-bc-finetune run adapts to each task by fine-tuning before it acts; serving \
+                 it is not supported (serve prompt-dt, prompt-mt-bc or mt-orl runs)"
+                    .into(),
+            ));
+        }
         if opts.max_batch == 0 || opts.max_episodes == 0 || opts.queue == 0 {
             return Err(ServeError::Invalid(
                 "max_batch, max_episodes and the queue must be at least 1".into(),
