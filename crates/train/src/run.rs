@@ -330,11 +330,16 @@ impl Setup {
     }
 
     fn eval_returns(&self) -> EvalReturns {
-        match (self.cfg.run.method.zeroes_history_returns(), self.cfg.eval.mt_bc_returns) {
-            (false, _) => EvalReturns::Decreasing,
-            (true, MtBcEval::Reference) => EvalReturns::Constant,
-            (true, MtBcEval::Paper) => EvalReturns::Zero,
-        }
+        eval_returns(&self.cfg)
+    }
+}
+
+/// The return tokens an acting policy feeds (Prompt-MT-BC and MT-BC-Finetune: constant or zero).
+fn eval_returns(cfg: &TrainConfig) -> EvalReturns {
+    match (cfg.run.method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
+        (false, _) => EvalReturns::Decreasing,
+        (true, MtBcEval::Reference) => EvalReturns::Constant,
+        (true, MtBcEval::Paper) => EvalReturns::Zero,
     }
 }
 
@@ -953,6 +958,49 @@ pub fn train(
     Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: true, last_test })
 }
 
+/// A finished or running run's configuration, for acting with it (`eval`, `serve`): its
+/// `config.toml` with this invocation's device and the place its data moved to.
+fn run_config(
+    dir: &Path,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+) -> Result<TrainConfig, RunError> {
+    let config = dir.join("config.toml");
+    if !config.is_file() {
+        return Err(RunError::Invalid(format!(
+            "{}: not a run directory (no config.toml)",
+            dir.display()
+        )));
+    }
+    let mut cfg = TrainConfig::from_file(&config)?;
+    if let Some(d) = device {
+        cfg.run.device = d;
+    }
+    if let Some(d) = data {
+        cfg.data.dir = absolute(d);
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+/// The latest checkpoint of the run in `dir` (its weights must be the ones of its step).
+fn latest_checkpoint(dir: &Path) -> Result<Latest, RunError> {
+    let ck = dir.join("checkpoints");
+    let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
+        RunError::Io { .. } => {
+            RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
+        }
+        other => other,
+    })?;
+    if latest.model != format!("step_{}.safetensors", latest.step) {
+        return Err(RunError::Corrupt {
+            path: ck.join("latest.json"),
+            message: format!("names weights `{}` for step {}", latest.model, latest.step),
+        });
+    }
+    Ok(latest)
+}
+
 /// The final evaluation of a run's latest checkpoint (`promptdt eval`), written to `eval_final.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FinalEval {
@@ -972,22 +1020,9 @@ pub fn evaluate_run(
     device: Option<pdt_model::device::DeviceSpec>,
     data: Option<&Path>,
 ) -> Result<FinalEval, RunError> {
-    let config = dir.join("config.toml");
-    if !config.is_file() {
-        return Err(RunError::Invalid(format!(
-            "{}: not a run directory (no config.toml)",
-            dir.display()
-        )));
-    }
-    let mut cfg = TrainConfig::from_file(&config)?;
+    let mut cfg = run_config(dir, device, data)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
-    }
-    if let Some(d) = device {
-        cfg.run.device = d;
-    }
-    if let Some(d) = data {
-        cfg.data.dir = absolute(d);
     }
     let setup = Setup::new(cfg)?;
     let stats_path = dir.join("task_stats.json");
@@ -1003,18 +1038,7 @@ pub fn evaluate_run(
     let _rng = torch_rng_lock();
     let mut learner = Learner::new(&setup);
     let ck = dir.join("checkpoints");
-    let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
-        RunError::Io { .. } => {
-            RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
-        }
-        other => other,
-    })?;
-    if latest.model != format!("step_{}.safetensors", latest.step) {
-        return Err(RunError::Corrupt {
-            path: ck.join("latest.json"),
-            message: format!("names weights `{}` for step {}", latest.model, latest.step),
-        });
-    }
+    let latest = latest_checkpoint(dir)?;
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
     let which = match split {
         "test" => Split::Test,
@@ -1068,21 +1092,7 @@ impl ServedRun {
         device: Option<pdt_model::device::DeviceSpec>,
         data: Option<&Path>,
     ) -> Result<Self, RunError> {
-        let config = dir.join("config.toml");
-        if !config.is_file() {
-            return Err(RunError::Invalid(format!(
-                "{}: not a run directory (no config.toml)",
-                dir.display()
-            )));
-        }
-        let mut cfg = TrainConfig::from_file(&config)?;
-        if let Some(d) = device {
-            cfg.run.device = d;
-        }
-        if let Some(d) = data {
-            cfg.data.dir = absolute(d);
-        }
-        cfg.validate()?;
+        let cfg = run_config(dir, device, data)?;
         let stats: TaskStats = read_json(&dir.join("task_stats.json"))?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
@@ -1092,25 +1102,10 @@ impl ServedRun {
         let mut vs = VarStore::new(device);
         let model = PromptDt::new(&vs.root(), &model_cfg);
         let ck = dir.join("checkpoints");
-        let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
-            RunError::Io { .. } => {
-                RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
-            }
-            other => other,
-        })?;
-        if latest.model != format!("step_{}.safetensors", latest.step) {
-            return Err(RunError::Corrupt {
-                path: ck.join("latest.json"),
-                message: format!("names weights `{}` for step {}", latest.model, latest.step),
-            });
-        }
+        let latest = latest_checkpoint(dir)?;
         checkpoint::load(&mut vs, &ck.join(&latest.model), model_cfg.n_layer)?;
         let method = cfg.run.method;
-        let returns = match (method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
-            (false, _) => pdt_eval::EvalReturns::Decreasing,
-            (true, MtBcEval::Reference) => pdt_eval::EvalReturns::Constant,
-            (true, MtBcEval::Paper) => pdt_eval::EvalReturns::Zero,
-        };
+        let returns = eval_returns(&cfg);
         let prompt_steps =
             cfg.sampler.prompt_episodes * cfg.sampler.prompt_length.unwrap_or(preset.prompt_length);
         let k = cfg.sampler.k;
