@@ -56,10 +56,20 @@ fn case_02_a_run_directory_has_one_owner() {
     let tmp = tempfile::tempdir().unwrap();
     let cfg = variant(&tiny_setup(tmp.path()), "train", "iterations", "100000");
     let run = tmp.path().join("r");
-    let mut first = Command::new(env!("CARGO_BIN_EXE_promptdt"))
-        .args(["train", "--config", s(&cfg), "--out", s(&run), "--quiet"])
-        .spawn()
-        .unwrap();
+    // Killed on drop too, so a failing assertion leaves no 100000-iteration training behind.
+    struct KillOnDrop(std::process::Child);
+    impl Drop for KillOnDrop {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut first = KillOnDrop(
+        Command::new(env!("CARGO_BIN_EXE_promptdt"))
+            .args(["train", "--config", s(&cfg), "--out", s(&run), "--quiet"])
+            .spawn()
+            .unwrap(),
+    );
     let metrics = run.join("metrics.jsonl");
     let t0 = std::time::Instant::now();
     while losses_len(&metrics) < 2 && t0.elapsed().as_secs() < 120 {
@@ -70,8 +80,8 @@ fn case_02_a_run_directory_has_one_owner() {
     assert!(e.contains("in use by another promptdt process"), "{e}");
     let e = fails(&["train", "--resume", s(&run)]);
     assert!(e.contains("in use by another promptdt process"), "{e}");
-    first.kill().unwrap();
-    first.wait().unwrap();
+    first.0.kill().unwrap();
+    first.0.wait().unwrap();
     // the kernel released the lock with the process: the run resumes
     let text = std::fs::read_to_string(run.join("config.toml")).unwrap();
     assert!(text.contains("seed = 0"), "the second process wrote nothing: {text}");
