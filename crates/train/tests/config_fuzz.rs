@@ -123,3 +123,22 @@ proptest! {
         }
     }
 }
+
+/// Every experiment file shipped in `configs/` reads and validates.
+#[test]
+fn every_shipped_config_validates() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+    let mut n = 0;
+    for family in std::fs::read_dir(&root).unwrap() {
+        for f in std::fs::read_dir(family.unwrap().path()).unwrap() {
+            let path = f.unwrap().path();
+            if path.extension().and_then(|e| e.to_str()) != Some("toml") {
+                continue;
+            }
+            let cfg = TrainConfig::from_file(&path).unwrap_or_else(|e| panic!("{e}"));
+            cfg.validate().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            n += 1;
+        }
+    }
+    assert!(n >= 5, "found {n} configs");
+}
