@@ -9,7 +9,7 @@
 //! batched forward. Each episode acts exactly as `promptdt eval` would (`pdt_eval::History`,
 //! `PromptDt::act`, the prompt's keys and values computed once when the episode opens).
 
-use axum::extract::rejection::JsonRejection;
+use axum::extract::rejection::{JsonRejection, PathRejection};
 use axum::extract::{DefaultBodyLimit, Path, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
@@ -169,6 +169,12 @@ impl IntoResponse for ApiError {
 impl From<JsonRejection> for ApiError {
     fn from(r: JsonRejection) -> Self {
         Self::new(r.status(), r.body_text())
+    }
+}
+
+impl From<PathRejection> for ApiError {
+    fn from(r: PathRejection) -> Self {
+        Self::new(r.status(), format!("episode id: {}", r.body_text()))
     }
 }
 
@@ -577,14 +583,19 @@ async fn open(
 
 async fn step(
     State(s): State<AppState>,
-    Path(id): Path<u64>,
+    id: Result<Path<u64>, PathRejection>,
     body: Result<Json<StepRequest>, JsonRejection>,
 ) -> Result<Json<ActionReply>, ApiError> {
+    let Path(id) = id?;
     let Json(req) = body?;
     s.ask(|r| Msg::Step(id, req, r)).await.map(Json)
 }
 
-async fn close(State(s): State<AppState>, Path(id): Path<u64>) -> Result<StatusCode, ApiError> {
+async fn close(
+    State(s): State<AppState>,
+    id: Result<Path<u64>, PathRejection>,
+) -> Result<StatusCode, ApiError> {
+    let Path(id) = id?;
     s.ask(|r| Msg::Close(id, r)).await.map(|()| StatusCode::NO_CONTENT)
 }
 

@@ -219,6 +219,7 @@ fn bad_requests_get_clear_errors_and_the_server_keeps_serving() {
         ("/v1/episodes/77/step", r#"{"reward": 0.0, "observation": [0.0, 0.0]}"#.into(), 404, "no open episode 77"),
         ("/v1/episodes", format!(r#"{{"task": 34, "observation": [{}]}}"#, vec!["0.0"; 2000].join(",")), 413, ""),
         ("/v1/nowhere", "{}".into(), 404, "unknown route"),
+        ("/v1/episodes/abc/step", r#"{"reward": 0.0, "observation": [0.0, 0.0]}"#.into(), 400, "episode id"),
     ];
     for (path, body, status, says) in &cases {
         let (got, reply) = http(addr, "POST", path, Some(body));
