@@ -53,13 +53,22 @@ struct Attention {
 impl Attention {
     /// # Shapes
     /// `x`: `[B, L, H]`; `causal`: bool `[1, 1, L, L]`; `pad_bias`: `[B, 1, 1, L]` (0 keep, -1e4 pad).
-    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
+    /// Queries of the last `rows` positions `[B, nh, rows, hd]`, keys `[B, nh, hd, L]` and values
+    /// `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
+    fn qkv(&self, x: &Tensor, rows: i64) -> (Tensor, Tensor, Tensor) {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
-        let q = qkv[0].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, L, hd]
-        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]); // [B, nh, hd, L]
-        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, L, hd]
+        let q = qkv[0].narrow(1, l - rows, rows).view([b, rows, self.n_head, hd]);
+        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]);
+        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]);
+        (q.permute([0, 2, 1, 3]), k, v)
+    }
+
+    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
+        let (b, l) = (x.size()[0], x.size()[1]);
+        let hd = self.hidden / self.n_head;
+        let (q, k, v) = self.qkv(x, l); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
                                                       // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
                                                       // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
@@ -72,11 +81,7 @@ impl Attention {
 
     /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
     fn keys_values(&self, x: &Tensor) -> (Tensor, Tensor) {
-        let (b, l) = (x.size()[0], x.size()[1]);
-        let hd = self.hidden / self.n_head;
-        let qkv = self.c_attn.forward(x).split(self.hidden, 2);
-        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]);
-        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]);
+        let (_, k, v) = self.qkv(x, 0);
         (k, v)
     }
 
@@ -96,13 +101,9 @@ impl Attention {
         pad_bias: &Tensor,
         rows: i64,
     ) -> Tensor {
-        let (b, l) = (x.size()[0], x.size()[1]);
+        let b = x.size()[0];
         let hd = self.hidden / self.n_head;
-        let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
-        let q =
-            qkv[0].narrow(1, l - rows, rows).view([b, rows, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, rows, hd]
-        let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]); // [B, nh, hd, L]
-        let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]); // [B, nh, L, hd]
+        let (q, k, v) = self.qkv(x, rows); // [B, nh, rows, hd], [B, nh, hd, L], [B, nh, L, hd]
         let (k, v) = match prefix {
             Some(c) => (Tensor::cat(&[&c.keys, &k], 3), Tensor::cat(&[&c.values, &v], 2)), // P+L
             None => (k, v),
@@ -354,7 +355,7 @@ impl Gpt2 {
         embeds: &Tensor,
         token_mask: &Tensor,
     ) -> Tensor {
-        let (b, l) = (embeds.size()[0], embeds.size()[1]);
+        let l = embeds.size()[1];
         let p = prefix.map_or(0, PrefixCache::len);
         let total = p + l;
         debug_assert!(total <= self.n_positions, "caller checks the sequence length");
@@ -387,7 +388,6 @@ impl Gpt2 {
                 block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, tail)
             };
         }
-        let _ = b;
         self.ln_f.forward(&x) // [B, tail, H]
     }
 }

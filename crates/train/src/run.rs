@@ -489,6 +489,16 @@ impl Log {
             Err(e) => return Err(RunError::Io { path: jsonl, source: e }),
         };
         let kept: Vec<&str> = text.lines().take(keep_lines).collect();
+        if kept.len() < keep_lines {
+            return Err(RunError::Corrupt {
+                path: jsonl,
+                message: format!(
+                    "{} lines, but the checkpoint recorded {keep_lines}: the log was truncated or \
+                     deleted. Restore it, or start the run again",
+                    kept.len()
+                ),
+            });
+        }
         let mut log = Self { jsonl: jsonl.clone(), csv: csv.clone(), lines: 0 };
         let mut rows = Vec::with_capacity(kept.len());
         for (i, line) in kept.iter().enumerate() {
@@ -672,24 +682,6 @@ fn load_checkpoint(
             format!("optimiser step {n} for `{name}` at step {}", state.step),
         ));
     }
-    for (stem, lines) in [("metrics", state.metrics_lines), ("eval", state.eval_lines)] {
-        let path = dir.join(format!("{stem}.jsonl"));
-        let have = match std::fs::read_to_string(&path) {
-            Ok(t) => t.lines().count(),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => 0,
-            Err(e) => return Err(RunError::Io { path, source: e }),
-        };
-        if have < lines {
-            return Err(corrupt(
-                &path,
-                format!(
-                    "{have} lines, but the checkpoint at iteration {} recorded {lines}: the log \
-                     was truncated or deleted. Restore it, or start the run again",
-                    state.iteration
-                ),
-            ));
-        }
-    }
     checkpoint::load(&mut learner.vs, &ck.join(&latest.model), learner.model.cfg.n_layer)?;
     let opt_path = ck.join(&latest.state);
     let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(&opt_path)
@@ -808,7 +800,7 @@ pub fn train(
     // Refuse before anything is written, each bad setting by name.
     cfg.validate()?;
     let toml = cfg.to_toml()?;
-    let setup = Setup::new(cfg.clone())?;
+    let setup = Setup::new(cfg)?;
     let _rng = torch_rng_lock();
     let threads = if setup.cfg.run.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
@@ -861,15 +853,17 @@ pub fn train(
     let mut learner = Learner::new(&setup);
     let state = if opts.resume { load_checkpoint(dir, &setup, &mut learner)? } else { None };
     let (mut iteration, mut step) = state.as_ref().map_or((0, 0), |s| (s.iteration, s.step));
+    if opts.resume && with.iterations.is_some() && iteration > cfg.train.iterations {
+        return Err(RunError::Invalid(format!(
+            "--iterations {}: the run in {} has already done {iteration} iterations; give at \
+             least that many to extend it",
+            cfg.train.iterations,
+            dir.display()
+        )));
+    }
+    let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
+    let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
     if opts.resume && (with.iterations.is_some() || with.data.is_some()) {
-        if iteration > cfg.train.iterations {
-            return Err(RunError::Invalid(format!(
-                "--iterations {}: the run in {} has already done {iteration} iterations; give at \
-                 least that many to extend it",
-                cfg.train.iterations,
-                dir.display()
-            )));
-        }
         // What changed goes on record (the device is this invocation's only).
         let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
         recorded.train.iterations = cfg.train.iterations;
@@ -877,8 +871,6 @@ pub fn train(
         let text = recorded.to_toml()?;
         write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
     }
-    let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
-    let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
     if let Some(s) = &state {
         let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt {
