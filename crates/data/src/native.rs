@@ -915,9 +915,11 @@ pub fn read_card(dir: &Path) -> Result<Option<DatasetCard>, DataError> {
     }
     // File names are names in this directory, never paths that lead out of it.
     for f in card.tasks.iter().flat_map(|t| &t.files) {
+        // Separators are refused outright: `components()` ignores a trailing `/` ("a/" reads "a").
         let mut parts = Path::new(&f.name).components();
-        let plain =
-            matches!(parts.next(), Some(std::path::Component::Normal(_))) && parts.next().is_none();
+        let plain = !f.name.contains(['/', '\\'])
+            && matches!(parts.next(), Some(std::path::Component::Normal(_)))
+            && parts.next().is_none();
         if !plain {
             return Err(format_err(
                 &path,

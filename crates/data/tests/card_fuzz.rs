@@ -158,3 +158,17 @@ proptest! {
         let _ = load_multitask(&DatasetSpec::new(dir.path(), "e", vec![0, 1]));
     }
 }
+
+/// Found by the property test above: `Path::components` ignores a trailing separator, so "x/"
+/// looked like a plain name.
+#[test]
+fn a_name_with_a_trailing_separator_is_not_plain() {
+    for name in ["x/", "\u{a1}/", "a\\b", "..", "/etc/passwd", "a/../b"] {
+        let dir = tempfile::tempdir().unwrap();
+        let quoted = serde_json::to_string(name).unwrap();
+        let text = valid_dir(dir.path()).replacen("\"e-0-expert.safetensors\"", &quoted, 1);
+        std::fs::write(dir.path().join("dataset.json"), text).unwrap();
+        let e = read_card(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("not a plain file name"), "{name}: {e}");
+    }
+}
