@@ -29,7 +29,8 @@ test: setup live-golden
 live-golden:
 	@rm -rf $(LIVE_GOLDEN)
 	@if $(TORCH_PYTHON) -c "import torch" 2>/dev/null; then \
-		$(TORCH_PYTHON) scripts/golden/make_prompt_dt_fixtures.py --out $(LIVE_GOLDEN) --threads 1; \
+		$(TORCH_PYTHON) scripts/golden/make_prompt_dt_fixtures.py --out $(LIVE_GOLDEN) --threads 1 && \
+		$(TORCH_PYTHON) scripts/golden/make_macaw_fixtures.py --out $(LIVE_GOLDEN) --threads 1; \
 	else \
 		echo "no torch at $(TORCH_PYTHON): bitwise parity against PyTorch on this CPU skipped (make torch-venv)"; \
 	fi

@@ -1,0 +1,747 @@
+//! MACAW (Mitchell et al., ICML 2021): MAML over a value function V_phi(s) and an
+//! advantage-weighted policy pi_theta(a|s), neither told the task. One SGD step with learned
+//! per-tensor learning rates adapts both to a task's offline data; the outer losses are evaluated
+//! with the adapted parameters and their gradients flow back through that step (second order).
+//!
+//! Written from `../shared/reference/macaw.md` (the official code at commit 3dfd4f9 pinned down line
+//! by line; its section numbers are cited below as "spec 4" etc.). Parameters are explicit tensors,
+//! so the inner step is `p - softplus(rho) * grad(loss, p, create_graph)`: no `higher`, no modules.
+//! The PyTorch twin of this file is `scripts/golden/macaw_torch.py`: the same ops in the same order,
+//! which the parity test (`tests/parity.rs`) checks bit for bit on one CPU thread.
+//!
+//! Deliberate differences from the official code are marked `DIFFERENCE` where they live and listed
+//! in `docs/macaw.md`.
+
+pub mod buffer;
+pub mod rollout;
+
+pub use buffer::{Batch, BufferSpec, TaskBuffer};
+
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor};
+
+/// The weight transform's latent size, hard-coded to 100 in the official `nn.py`.
+pub const LATENT: i64 = 100;
+/// Hidden width of the advantage head (`policy_head = [32, 1]`).
+pub const HEAD: i64 = 32;
+
+#[derive(Debug, thiserror::Error)]
+pub enum MacawError {
+    #[error("task {task}: {message}")]
+    Data { task: String, message: String },
+    #[error("invalid MACAW configuration: {0}")]
+    Config(String),
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint { path: String, message: String },
+    #[error(transparent)]
+    Env(#[from] pdt_envs::EnvError),
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+}
+
+/// Hidden-layer activation. The official code uses ReLU; the Prompt-DT paper's table says tanh
+/// (spec 7.1, probably a mis-report): one flag away.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Activation {
+    #[default]
+    Relu,
+    Tanh,
+}
+
+/// The order of the test-time adaptation steps when there are several (spec 5.5; the paper does
+/// not say).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AdaptOrder {
+    /// All value steps, then all policy steps against the final value function (as the training
+    /// inner loop does with `maml_steps > 1`).
+    #[default]
+    ValueFirst,
+    /// Value step, policy step, value step, ...
+    Interleaved,
+}
+
+/// The two configurations of spec 7.1.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// `config/alg/standard.json` of the official code.
+    Official,
+    /// The Prompt-DT paper's "Hyperparameters of MACAW" table: width 300, each task's last 20k
+    /// steps, adaptation on K* transitions with 10 steps; everything it does not list official.
+    Promptdt,
+}
+
+impl Preset {
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Official => "official",
+            Preset::Promptdt => "promptdt",
+        }
+    }
+}
+
+/// Every MACAW hyper-parameter; the defaults are the official `standard.json` (spec 7).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MacawConfig {
+    /// MLP width (official 100; Prompt-DT table 300).
+    pub width: usize,
+    /// Hidden layers (3).
+    pub depth: usize,
+    pub hidden_activation: Activation,
+    /// Keep each task's last `buffer_rows` transitions (0 = all; Prompt-DT table 20000).
+    pub buffer_rows: usize,
+    /// Then every `buffer_skip`-th of them (official 7).
+    pub buffer_skip: usize,
+    /// Store each episode in reverse time order, as the official buffer writer does (spec 2.2);
+    /// matters only for the contiguous inner batches at episode boundaries.
+    pub reverse_episodes: bool,
+    /// Discount of the Monte-Carlo returns and bootstrap factors.
+    pub discount: f64,
+    /// Inner (adaptation) batch in training (256), drawn as one contiguous window when
+    /// `contiguous_inner`.
+    pub inner_batch: usize,
+    pub contiguous_inner: bool,
+    /// Outer batch in training (256), uniform without replacement.
+    pub outer_batch: usize,
+    /// Training tasks per meta-step (5; all of them when there are fewer).
+    pub task_batch: usize,
+    /// Initial values of the learned inner learning rates (the raw parameter is ln of it).
+    pub inner_value_lr: f64,
+    pub inner_policy_lr: f64,
+    /// Outer Adam learning rates of V, pi, and of the raw inner learning rates and adv. coefficient.
+    pub outer_value_lr: f64,
+    pub outer_policy_lr: f64,
+    pub lrlr: f64,
+    /// Initial advantage-head coefficient (learned; spec 5.2).
+    pub advantage_head_coef: f64,
+    /// Fixed policy standard deviation (0.2).
+    pub action_sigma: f64,
+    /// AWR weights are exp(min(A_normalised, ln exp_advantage_clip)).
+    pub exp_advantage_clip: f64,
+    pub adaptation_temp: f64,
+    /// Soft target of the outer value loss: 0.9 * phi + 0.1 * phi'.
+    pub target_vf_alpha: f64,
+    /// Test-time adaptation: transitions (official 256, Prompt-DT K*), uniform from the test task's
+    /// dataset; gradient steps (official 1, Prompt-DT 10); their order.
+    pub adapt_batch: usize,
+    pub adapt_steps: usize,
+    pub adapt_order: AdaptOrder,
+}
+
+impl Default for MacawConfig {
+    fn default() -> Self {
+        Self {
+            width: 100,
+            depth: 3,
+            hidden_activation: Activation::Relu,
+            buffer_rows: 0,
+            buffer_skip: 7,
+            reverse_episodes: true,
+            discount: 0.99,
+            inner_batch: 256,
+            contiguous_inner: true,
+            outer_batch: 256,
+            task_batch: 5,
+            inner_value_lr: 1e-3,
+            inner_policy_lr: 1e-3,
+            outer_value_lr: 1e-5,
+            outer_policy_lr: 1e-4,
+            lrlr: 1e-3,
+            advantage_head_coef: 0.01,
+            action_sigma: 0.2,
+            exp_advantage_clip: 20.0,
+            adaptation_temp: 1.0,
+            target_vf_alpha: 0.9,
+            adapt_batch: 256,
+            adapt_steps: 1,
+            adapt_order: AdaptOrder::ValueFirst,
+        }
+    }
+}
+
+impl MacawConfig {
+    /// A preset; `prompt_length` is the environment's K* (the Prompt-DT table's evaluation batch).
+    pub fn preset(preset: Preset, prompt_length: usize) -> Self {
+        match preset {
+            Preset::Official => Self::default(),
+            // The rows of the Prompt-DT table that differ from standard.json (spec 7.1). Its
+            // "activation tanh" row is left at ReLU (the official hidden activation; the table most
+            // likely names the output squash): `hidden_activation = "tanh"` follows the table.
+            Preset::Promptdt => Self {
+                width: 300,
+                buffer_rows: 20_000,
+                adapt_batch: prompt_length,
+                adapt_steps: 10,
+                ..Self::default()
+            },
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), MacawError> {
+        let bad = |m: String| Err(MacawError::Config(m));
+        if self.width == 0 || self.depth == 0 {
+            return bad(format!("macaw.width = {} and macaw.depth = {} must be at least 1", self.width, self.depth));
+        }
+        if self.width > 4096 {
+            return bad(format!("macaw.width = {} is above 4096 (the generator matrices grow as width^2 x 100)", self.width));
+        }
+        if self.buffer_skip == 0 {
+            return bad("macaw.buffer_skip must be at least 1".into());
+        }
+        if !(self.discount > 0.0 && self.discount <= 1.0) {
+            return bad(format!("macaw.discount = {} must be in (0, 1]", self.discount));
+        }
+        // The AWR weights normalise by the batch's standard deviation: one row gives NaN (spec 4).
+        for (name, v) in [("inner_batch", self.inner_batch), ("outer_batch", self.outer_batch), ("adapt_batch", self.adapt_batch)] {
+            if v < 2 {
+                return bad(format!("macaw.{name} = {v}: at least 2 (the advantages are normalised by their standard deviation)"));
+            }
+        }
+        if self.task_batch == 0 {
+            return bad("macaw.task_batch must be at least 1".into());
+        }
+        for (name, v) in [
+            ("inner_value_lr", self.inner_value_lr),
+            ("inner_policy_lr", self.inner_policy_lr),
+            ("outer_value_lr", self.outer_value_lr),
+            ("outer_policy_lr", self.outer_policy_lr),
+            ("lrlr", self.lrlr),
+            ("advantage_head_coef", self.advantage_head_coef),
+            ("action_sigma", self.action_sigma),
+            ("adaptation_temp", self.adaptation_temp),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(format!("macaw.{name} = {v} must be a positive number"));
+            }
+        }
+        if !(self.exp_advantage_clip.is_finite() && self.exp_advantage_clip > 1.0) {
+            return bad(format!("macaw.exp_advantage_clip = {} must be above 1", self.exp_advantage_clip));
+        }
+        if !(0.0..=1.0).contains(&self.target_vf_alpha) {
+            return bad(format!("macaw.target_vf_alpha = {} must be in [0, 1]", self.target_vf_alpha));
+        }
+        if self.adapt_steps > 1000 {
+            return bad(format!("macaw.adapt_steps = {} is above 1000", self.adapt_steps));
+        }
+        Ok(())
+    }
+
+    pub fn buffer_spec(&self) -> BufferSpec {
+        BufferSpec {
+            rows: self.buffer_rows,
+            skip: self.buffer_skip,
+            reverse_episodes: self.reverse_episodes,
+            discount: self.discount,
+        }
+    }
+}
+
+/// Layer shapes `(in, out)` of both networks (spec 3.3).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Dims {
+    pub obs: i64,
+    pub act: i64,
+    /// fc_0 .. fc_depth: [O, W, .., W, 1].
+    pub value: Vec<(i64, i64)>,
+    /// fc_0 .. fc_depth ([O, W, .., W, A]), then head_0 (W + A -> 32) and head_1 (32 -> 1).
+    pub policy: Vec<(i64, i64)>,
+}
+
+impl Dims {
+    pub fn new(obs: usize, act: usize, width: usize, depth: usize) -> Self {
+        let (o, a, w) = (obs as i64, act as i64, width as i64);
+        let mut trunk = vec![o];
+        trunk.extend(std::iter::repeat_n(w, depth));
+        let layers = |last: i64| -> Vec<(i64, i64)> {
+            trunk.iter().copied().zip(trunk[1..].iter().copied().chain([last])).collect()
+        };
+        let value = layers(1);
+        let mut policy = layers(a);
+        policy.extend([(w + a, HEAD), (HEAD, 1)]);
+        Self { obs: o, act: a, value, policy }
+    }
+
+    /// Parameter names in the official order: per layer `z`, `weight` (the generator's, aliased
+    /// `fc.weight`), `bias`.
+    pub fn names(&self) -> (Vec<String>, Vec<String>) {
+        let names = |net: &str, layers: usize, head: bool| -> Vec<String> {
+            (0..layers)
+                .flat_map(|i| {
+                    let tag = if head && i >= layers - 2 {
+                        format!("head_{}", i - (layers - 2))
+                    } else {
+                        format!("fc_{i}")
+                    };
+                    ["z", "weight", "bias"].map(|p| format!("{net}.{tag}.{p}"))
+                })
+                .collect()
+        };
+        (names("value", self.value.len(), false), names("policy", self.policy.len(), true))
+    }
+}
+
+/// Every trained tensor of MACAW. All are leaves that require a gradient.
+#[derive(Debug)]
+pub struct Params {
+    /// 3 tensors per layer of `Dims::value`.
+    pub value: Vec<Tensor>,
+    /// 3 tensors per layer of `Dims::policy` (the head's last).
+    pub policy: Vec<Tensor>,
+    /// Raw learned inner learning rates, one per value tensor: lr = softplus(rho).
+    pub rho_v: Tensor,
+    /// One per policy tensor (the head's never get a gradient: spec 5.2).
+    pub rho_pi: Tensor,
+    /// Raw advantage-head coefficient (0-d): softplus(rho_adv).
+    pub rho_adv: Tensor,
+}
+
+impl Params {
+    /// The official initialisation (spec 3.2): z ~ N(0, (1/out)^2), the generator's weight and bias
+    /// U(-0.1, 0.1) (PyTorch's nn.Linear default for fan-in 100, not tch's Kaiming default). Draws
+    /// from libtorch's global generator: seed it first (`tch::manual_seed`).
+    pub fn init(dims: &Dims, cfg: &MacawConfig, kind: Kind, device: Device) -> Self {
+        let opts = (kind, device);
+        let bound = 1.0 / (LATENT as f64).sqrt();
+        let make = |layers: &[(i64, i64)]| -> Vec<Tensor> {
+            layers
+                .iter()
+                .flat_map(|&(n_in, n_out)| {
+                    let rows = n_in * n_out + n_out;
+                    let z = Tensor::randn([LATENT], opts) / n_out as f64;
+                    let w = (Tensor::rand([rows, LATENT], opts) * 2.0 - 1.0) * bound;
+                    let b = (Tensor::rand([rows], opts) * 2.0 - 1.0) * bound;
+                    [z, w, b].map(|t| t.set_requires_grad(true))
+                })
+                .collect()
+        };
+        let value = make(&dims.value);
+        let policy = make(&dims.policy);
+        let rho = |n: usize, init: f64| {
+            Tensor::full([n as i64], init.ln(), opts).set_requires_grad(true)
+        };
+        Self {
+            rho_v: rho(value.len(), cfg.inner_value_lr),
+            rho_pi: rho(policy.len(), cfg.inner_policy_lr),
+            rho_adv: Tensor::from(cfg.advantage_head_coef.ln())
+                .to_kind(kind)
+                .to_device(device)
+                .set_requires_grad(true),
+            value,
+            policy,
+        }
+    }
+
+    /// Every tensor with its name (`value.fc_0.z`, ..., `rho_v`, `rho_pi`, `rho_adv`).
+    pub fn named(&self, dims: &Dims) -> Vec<(String, &Tensor)> {
+        let (vn, pn) = dims.names();
+        let mut out: Vec<(String, &Tensor)> =
+            vn.into_iter().zip(&self.value).chain(pn.into_iter().zip(&self.policy)).collect();
+        out.push(("rho_v".into(), &self.rho_v));
+        out.push(("rho_pi".into(), &self.rho_pi));
+        out.push(("rho_adv".into(), &self.rho_adv));
+        out
+    }
+
+    /// The parameter groups of the outer optimisers, in the official order (spec 5.1 step 4).
+    pub fn groups(&self) -> [Vec<&Tensor>; 5] {
+        [
+            self.value.iter().collect(),
+            self.policy.iter().collect(),
+            vec![&self.rho_v],
+            vec![&self.rho_pi],
+            vec![&self.rho_adv],
+        ]
+    }
+
+    pub fn zero_grad(&mut self) {
+        for t in self.value.iter_mut().chain(self.policy.iter_mut()) {
+            t.zero_grad();
+        }
+        self.rho_v.zero_grad();
+        self.rho_pi.zero_grad();
+        self.rho_adv.zero_grad();
+    }
+
+    pub fn count(&self) -> i64 {
+        self.value.iter().chain(&self.policy).map(Tensor::numel).sum::<usize>() as i64
+    }
+}
+
+// ---------------------------------------------------------------- networks (spec 3) ---------
+
+fn activation(x: &Tensor, a: Activation) -> Tensor {
+    match a {
+        Activation::Relu => x.relu(),
+        Activation::Tanh => x.tanh(),
+    }
+}
+
+/// The weight transform: theta = Wg z + bg, y = x M + b with M = theta[:in*out].view(in, out).
+fn wlinear(x: &Tensor, p: &[Tensor], (n_in, n_out): (i64, i64)) -> Tensor {
+    let theta = p[0].linear(&p[1], Some(&p[2])); // [in*out + out]
+    let m = theta.narrow(0, 0, n_in * n_out).view([n_in, n_out]); // input index major
+    x.matmul(&m) + theta.narrow(0, n_in * n_out, n_out)
+}
+
+/// V_phi(s): `[B, O]` -> `[B, 1]`.
+pub fn value_forward(p: &[Tensor], dims: &Dims, s: &Tensor, act: Activation) -> Tensor {
+    let mut x = s.shallow_clone();
+    for (i, &d) in dims.value.iter().enumerate() {
+        if i > 0 {
+            x = activation(&x, act);
+        }
+        x = wlinear(&x, &p[3 * i..3 * i + 3], d);
+    }
+    x
+}
+
+/// The policy mean mu(s) `[B, A]`, and with dataset actions `a` the advantage head's prediction
+/// `[B, 1]`.
+pub fn policy_forward(
+    p: &[Tensor],
+    dims: &Dims,
+    s: &Tensor,
+    a: Option<&Tensor>,
+    act: Activation,
+) -> (Tensor, Option<Tensor>) {
+    let n_trunk = dims.policy.len() - 2;
+    let mut x = s.shallow_clone();
+    for i in 0..n_trunk - 1 {
+        if i > 0 {
+            x = activation(&x, act);
+        }
+        x = wlinear(&x, &p[3 * i..3 * i + 3], dims.policy[i]);
+    }
+    let h = x; // pre-activation output of the last hidden layer (official `pre_seq`)
+    let j = n_trunk - 1;
+    let mu = wlinear(&activation(&h, act), &p[3 * j..3 * j + 3], dims.policy[j]).tanh();
+    let head = a.map(|a| {
+        // Official quirk: the activation is applied to the concatenation, so negative action
+        // components are zeroed (spec 3.3).
+        let y = activation(&Tensor::cat(&[&h, a], -1), act);
+        let k = n_trunk;
+        let y = wlinear(&y, &p[3 * k..3 * k + 3], dims.policy[k]);
+        wlinear(&activation(&y, act), &p[3 * k + 3..3 * k + 6], dims.policy[k + 1])
+    });
+    (mu, head)
+}
+
+// ---------------------------------------------------------------- losses (spec 4) -----------
+
+/// Inner (`target` None): mean (V(s) - G)^2. Outer: the target bootstraps at the episode end with
+/// the soft target network, G + kappa V_target(s_T).
+pub fn value_loss(
+    p: &[Tensor],
+    dims: &Dims,
+    b: &Batch,
+    target: Option<&[Tensor]>,
+    cfg: &MacawConfig,
+) -> Tensor {
+    let ret = tch::no_grad(|| match target {
+        None => b.mc_return.shallow_clone(),
+        Some(t) => {
+            &b.mc_return
+                + &b.terminal_discount
+                    * value_forward(t, dims, &b.terminal_obs, cfg.hidden_activation)
+        }
+    });
+    let v = value_forward(p, dims, &b.obs, cfg.hidden_activation);
+    (v - ret).pow_tensor_scalar(2).mean(None::<Kind>)
+}
+
+/// The advantages A = G + kappa V(s_T) - V(s) `[B]` (always bootstrapped) and the AWR weights
+/// exp(min((A - mean A) / std A / T, ln clip)) `[B]`, without gradient.
+pub fn advantages(vp: &[Tensor], dims: &Dims, b: &Batch, cfg: &MacawConfig) -> (Tensor, Tensor) {
+    tch::no_grad(|| {
+        let act = cfg.hidden_activation;
+        let est = &b.mc_return + &b.terminal_discount * value_forward(vp, dims, &b.terminal_obs, act);
+        let adv = (est - value_forward(vp, dims, &b.obs, act)).squeeze_dim(-1); // [B]
+        let norm = (&adv - adv.mean(None::<Kind>)) / adv.std(true) / cfg.adaptation_temp;
+        let weights = norm.clamp_max(cfg.exp_advantage_clip.ln()).exp();
+        (adv, weights)
+    })
+}
+
+/// The AWR loss, plus in the inner loss the advantage-regression term softplus(rho_adv) (A_hat - A)^2.
+pub fn policy_loss(
+    p: &[Tensor],
+    dims: &Dims,
+    vp: &[Tensor],
+    b: &Batch,
+    rho_adv: &Tensor,
+    inner: bool,
+    cfg: &MacawConfig,
+) -> Tensor {
+    let (adv, weights) = advantages(vp, dims, b, cfg);
+    let (mu, pred) =
+        policy_forward(p, dims, &b.obs, inner.then_some(&b.act), cfg.hidden_activation);
+    // torch.distributions.Normal(mu, sigma).log_prob(a), summed over the action dims.
+    let sigma = cfg.action_sigma;
+    let var = sigma.powf(2.0);
+    let log_prob = (-(&b.act - mu).pow_tensor_scalar(2)) / (2.0 * var)
+        - sigma.ln()
+        - (2.0 * std::f64::consts::PI).sqrt().ln();
+    let mut losses = -(log_prob.sum_dim_intlist(-1, false, None::<Kind>) * weights);
+    if let Some(pred) = pred {
+        losses = losses + rho_adv.softplus() * (pred.squeeze_dim(-1) - adv).pow_tensor_scalar(2);
+    }
+    losses.mean(None::<Kind>)
+}
+
+/// One SGD step with per-tensor learning rates softplus(rho): p - lr_i * grad_i. With
+/// `create_graph` the result stays differentiable in p and rho (training); without, the result is
+/// detached and ready for another step (test-time adaptation).
+pub fn sgd_step(p: &[Tensor], loss: &Tensor, rho: &Tensor, create_graph: bool) -> Vec<Tensor> {
+    let grads = Tensor::run_backward(&[loss], p, create_graph, create_graph);
+    let lrs = rho.softplus();
+    p.iter()
+        .zip(grads)
+        .enumerate()
+        .map(|(i, (p, g))| {
+            let q = p - lrs.get(i as i64) * g;
+            if create_graph {
+                q
+            } else {
+                q.detach().set_requires_grad(true)
+            }
+        })
+        .collect()
+}
+
+// ---------------------------------------------------------------- meta-training (spec 5.1) --
+
+/// The losses of one task of a meta-step.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct TaskLosses {
+    pub value_inner: f64,
+    pub value_outer: f64,
+    pub policy_inner: f64,
+    pub policy_outer: f64,
+}
+
+/// One task of a meta-training step: adapts V and pi on `d_in`, evaluates the outer losses with the
+/// adapted parameters on `d_out`, and accumulates their gradients (divided by `n_train`, the
+/// number of training tasks, as the official code does) into the leaves of `p`. Returns the
+/// losses and the adapted parameters (phi', theta'), detached.
+pub fn meta_task(
+    p: &Params,
+    dims: &Dims,
+    d_in: &Batch,
+    d_out: &Batch,
+    n_train: usize,
+    cfg: &MacawConfig,
+) -> (TaskLosses, Vec<Tensor>, Vec<Tensor>) {
+    let l_v_in = value_loss(&p.value, dims, d_in, None, cfg);
+    let v2 = sgd_step(&p.value, &l_v_in, &p.rho_v, true);
+    let a = cfg.target_vf_alpha;
+    let target: Vec<Tensor> =
+        tch::no_grad(|| p.value.iter().zip(&v2).map(|(p, q)| p * a + q * (1.0 - a)).collect());
+    let l_v_out = value_loss(&v2, dims, d_out, Some(&target), cfg);
+    (&l_v_out / n_train as f64).backward();
+    let v2: Vec<Tensor> = v2.iter().map(Tensor::detach).collect();
+    let l_p_in = policy_loss(&p.policy, dims, &v2, d_in, &p.rho_adv, true, cfg);
+    let p2 = sgd_step(&p.policy, &l_p_in, &p.rho_pi, true);
+    let l_p_out = policy_loss(&p2, dims, &v2, d_out, &p.rho_adv, false, cfg);
+    (&l_p_out / n_train as f64).backward();
+    let losses = TaskLosses {
+        value_inner: l_v_in.double_value(&[]),
+        value_outer: l_v_out.double_value(&[]),
+        policy_inner: l_p_in.double_value(&[]),
+        policy_outer: l_p_out.double_value(&[]),
+    };
+    (losses, v2, p2.iter().map(Tensor::detach).collect())
+}
+
+/// PyTorch's Adam (`foreach=False`, no weight decay, no amsgrad), over a fixed list of tensors:
+/// the same operations in the same order as `torch.optim.adam._single_tensor_adam`.
+#[derive(Debug)]
+pub struct Adam {
+    pub lr: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+    /// Steps taken per tensor (a tensor without a gradient is skipped, as PyTorch does).
+    pub steps: Vec<u64>,
+    pub exp_avg: Vec<Tensor>,
+    pub exp_avg_sq: Vec<Tensor>,
+}
+
+impl Adam {
+    pub fn new(params: &[&Tensor], lr: f64) -> Self {
+        Self {
+            lr,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            steps: vec![0; params.len()],
+            exp_avg: params.iter().map(|p| p.zeros_like()).collect(),
+            exp_avg_sq: params.iter().map(|p| p.zeros_like()).collect(),
+        }
+    }
+
+    pub fn step(&mut self, params: &[&Tensor]) {
+        let (b1, b2, lr, eps) = (self.beta1, self.beta2, self.lr, self.eps);
+        tch::no_grad(|| {
+            for (i, p) in params.iter().enumerate() {
+                let grad = p.grad();
+                if !grad.defined() {
+                    continue;
+                }
+                self.steps[i] += 1;
+                let step = self.steps[i] as f64;
+                let _ = self.exp_avg[i].lerp_(&grad, 1.0 - b1);
+                // addcmul_(g, g, value=v) computes self + (v * g) * g; tch's has no value argument.
+                let _ = self.exp_avg_sq[i].g_mul_scalar_(b2).addcmul_(&(&grad * (1.0 - b2)), &grad);
+                let bias_correction1 = 1.0 - b1.powf(step);
+                let bias_correction2 = 1.0 - b2.powf(step);
+                let step_size = lr / bias_correction1;
+                let denom = (self.exp_avg_sq[i].sqrt() / bias_correction2.powf(0.5)) + eps;
+                let mut p = p.shallow_clone();
+                let _ = p.addcdiv_(&(&self.exp_avg[i] * -step_size), &denom);
+            }
+        });
+    }
+}
+
+/// The five outer optimisers of spec 5.1 step 4, in their order.
+#[derive(Debug)]
+pub struct Optimisers {
+    pub adams: [Adam; 5],
+}
+
+impl Optimisers {
+    pub const GROUPS: [&'static str; 5] = ["value", "policy", "rho_v", "rho_pi", "rho_adv"];
+
+    pub fn new(p: &Params, cfg: &MacawConfig) -> Self {
+        let g = p.groups();
+        let lrs = [cfg.outer_value_lr, cfg.outer_policy_lr, cfg.lrlr, cfg.lrlr, cfg.lrlr];
+        Self { adams: std::array::from_fn(|i| Adam::new(&g[i], lrs[i])) }
+    }
+
+    pub fn step(&mut self, p: &Params) {
+        for (adam, group) in self.adams.iter_mut().zip(p.groups()) {
+            adam.step(&group);
+        }
+    }
+}
+
+/// Statistics of one meta-step.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct StepStats {
+    /// Means over the step's tasks.
+    pub losses: TaskLosses,
+    /// Global norm of the meta-gradient of V, pi (no clipping: the official `grad_clip` is 1e9).
+    pub value_grad_norm: f64,
+    pub policy_grad_norm: f64,
+    /// Mean effective inner learning rates and the advantage coefficient after the step.
+    pub value_lr: f64,
+    pub policy_lr: f64,
+    pub adv_coef: f64,
+}
+
+impl StepStats {
+    pub fn is_finite(&self) -> bool {
+        let l = &self.losses;
+        [l.value_inner, l.value_outer, l.policy_inner, l.policy_outer, self.value_grad_norm, self.policy_grad_norm]
+            .iter()
+            .all(|v| v.is_finite())
+    }
+}
+
+fn grad_norm(ts: &[Tensor]) -> f64 {
+    ts.iter()
+        .map(|t| {
+            let g = t.grad();
+            if g.defined() {
+                g.to_kind(Kind::Double).pow_tensor_scalar(2).sum(None::<Kind>).double_value(&[])
+            } else {
+                0.0
+            }
+        })
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// A whole meta-training step over `tasks` (pairs of inner and outer batches): zero the gradients,
+/// accumulate every task's meta-gradient, step the five Adams.
+pub fn meta_step(
+    p: &mut Params,
+    opt: &mut Optimisers,
+    dims: &Dims,
+    tasks: &[(Batch, Batch)],
+    n_train: usize,
+    cfg: &MacawConfig,
+) -> StepStats {
+    p.zero_grad();
+    let mut sum = TaskLosses::default();
+    for (d_in, d_out) in tasks {
+        let (l, _, _) = meta_task(p, dims, d_in, d_out, n_train, cfg);
+        sum.value_inner += l.value_inner;
+        sum.value_outer += l.value_outer;
+        sum.policy_inner += l.policy_inner;
+        sum.policy_outer += l.policy_outer;
+    }
+    let n = tasks.len().max(1) as f64;
+    let (value_grad_norm, policy_grad_norm) = (grad_norm(&p.value), grad_norm(&p.policy));
+    opt.step(p);
+    let mean_lr =
+        |rho: &Tensor| tch::no_grad(|| rho.softplus().mean(Kind::Double).double_value(&[]));
+    StepStats {
+        losses: TaskLosses {
+            value_inner: sum.value_inner / n,
+            value_outer: sum.value_outer / n,
+            policy_inner: sum.policy_inner / n,
+            policy_outer: sum.policy_outer / n,
+        },
+        value_grad_norm,
+        policy_grad_norm,
+        value_lr: mean_lr(&p.rho_v),
+        policy_lr: mean_lr(&p.rho_pi),
+        adv_coef: tch::no_grad(|| p.rho_adv.softplus().to_kind(Kind::Double).double_value(&[])),
+    }
+}
+
+// ---------------------------------------------------------------- adaptation (spec 5.4, 5.5) --
+
+/// Test-time adaptation on one batch of a task's data: `cfg.adapt_steps` SGD steps of the inner
+/// value loss (MC targets) and of the inner policy loss against the adapted value function, with
+/// the learned learning rates, in `cfg.adapt_order`. The meta-parameters are untouched; returns
+/// (phi', theta').
+pub fn adapt(p: &Params, dims: &Dims, b: &Batch, cfg: &MacawConfig) -> (Vec<Tensor>, Vec<Tensor>) {
+    let fresh = |ts: &[Tensor]| -> Vec<Tensor> {
+        ts.iter().map(|t| t.detach().set_requires_grad(true)).collect()
+    };
+    let (rho_v, rho_pi, rho_adv) = (p.rho_v.detach(), p.rho_pi.detach(), p.rho_adv.detach());
+    let mut v = fresh(&p.value);
+    let mut pi = fresh(&p.policy);
+    let value_step = |v: &[Tensor]| sgd_step(v, &value_loss(v, dims, b, None, cfg), &rho_v, false);
+    let policy_step = |pi: &[Tensor], v: &[Tensor]| {
+        let vd: Vec<Tensor> = v.iter().map(Tensor::detach).collect();
+        sgd_step(pi, &policy_loss(pi, dims, &vd, b, &rho_adv, true, cfg), &rho_pi, false)
+    };
+    match cfg.adapt_order {
+        AdaptOrder::ValueFirst => {
+            for _ in 0..cfg.adapt_steps {
+                v = value_step(&v);
+            }
+            for _ in 0..cfg.adapt_steps {
+                pi = policy_step(&pi, &v);
+            }
+        }
+        AdaptOrder::Interleaved => {
+            for _ in 0..cfg.adapt_steps {
+                v = value_step(&v);
+                pi = policy_step(&pi, &v);
+            }
+        }
+    }
+    (v.iter().map(Tensor::detach).collect(), pi.iter().map(Tensor::detach).collect())
+}
+
+/// The deterministic action clip(mu(s), -1, 1) for a batch of raw observations `[N, O]`.
+pub fn act(policy: &[Tensor], dims: &Dims, obs: &Tensor, cfg: &MacawConfig) -> Tensor {
+    tch::no_grad(|| policy_forward(policy, dims, obs, None, cfg.hidden_activation).0.clamp(-1.0, 1.0))
+}
