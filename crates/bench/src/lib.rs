@@ -35,6 +35,8 @@ pub struct BenchConfig {
     pub eval_episodes: usize,
     /// The PyTorch SAC / TD3 script, for the `sac_h*_b*` / `td3_h*_b*` cases.
     pub pytorch_rl_script: Option<PathBuf>,
+    /// The PyTorch MACAW script, for the `macaw_w<W>_t<T>` cases.
+    pub pytorch_macaw_script: Option<PathBuf>,
     /// The run `serve_c<N>` cases serve.
     pub serve_run: Option<PathBuf>,
     /// Steps per served episode (and episodes per client) of `serve_c<N>`.
@@ -90,7 +92,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<point_robot|cheetah_vel>[_full][_b<N>], sac_h<H>_b<B> or td3_h<H>_b<B>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<point_robot|cheetah_vel>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B> or macaw_w<W>_t<T>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -407,12 +409,13 @@ fn run_pytorch_eval(
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
+    let is_macaw = |c: &String| pdt_macaw::bench::parse_case(c).is_some();
     let is_eval = |c: &String| parse_eval_case(c).is_some();
     let serve_clients = |c: &String| -> Option<usize> {
         c.strip_prefix("serve_c")?.parse().ok().filter(|&n: &usize| n > 0)
     };
     let is_serve = |c: &String| serve_clients(c).is_some();
-    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c)) {
+    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c)) {
         parse_case(c)?;
     }
     let mut serve = Vec::new();
@@ -442,6 +445,9 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
         results.push(if let Some(case) = parse_eval_case(c) {
             time_eval(c, case, cfg)?
+        } else if let Some((w, t)) = pdt_macaw::bench::parse_case(c) {
+            let ms = pdt_macaw::bench::time_meta_steps(w, t, cfg.warmup, cfg.iters, cfg.device);
+            timing(c, ms)
         } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
             let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
             timing(c, ms)
@@ -459,10 +465,11 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let train_cases: Vec<String> = cfg
         .cases
         .iter()
-        .filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !c.starts_with("act_b"))
+        .filter(|c| !is_eval(c) && !is_rl(c) && !is_macaw(c) && !is_serve(c) && !c.starts_with("act_b"))
         .cloned()
         .collect();
     let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();
+    let macaw_cases: Vec<String> = cfg.cases.iter().filter(|c| is_macaw(c)).cloned().collect();
     let mut pytorch = match &cfg.pytorch {
         Some(b) if !train_cases.is_empty() => {
             Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?)
@@ -486,6 +493,19 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     {
         let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
         let t = run_pytorch(&base, &BenchConfig { cases: rl_cases, ..cfg.clone() })?;
+        let report = pytorch.get_or_insert_with(|| EngineReport {
+            engine: "pytorch".into(),
+            torch_version: t.torch_version.clone(),
+            threads: cfg.threads,
+            results: vec![],
+        });
+        report.results.extend(t.results);
+    }
+    if let (Some(b), Some(script), false) =
+        (&cfg.pytorch, &cfg.pytorch_macaw_script, macaw_cases.is_empty())
+    {
+        let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
+        let t = run_pytorch(&base, &BenchConfig { cases: macaw_cases, ..cfg.clone() })?;
         let report = pytorch.get_or_insert_with(|| EngineReport {
             engine: "pytorch".into(),
             torch_version: t.torch_version.clone(),

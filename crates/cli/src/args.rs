@@ -270,6 +270,9 @@ pub struct BenchArgs {
     /// The PyTorch SAC / TD3 script (for `sac_h<H>_b<B>` and `td3_h<H>_b<B>` cases).
     #[arg(long, default_value = "scripts/bench/bench_rl_torch.py")]
     pub rl_script: PathBuf,
+    /// The PyTorch MACAW script (for `macaw_w<W>_t<T>` cases: one meta-step of T tasks, width W).
+    #[arg(long, default_value = "scripts/bench/bench_macaw_torch.py")]
+    pub macaw_script: PathBuf,
     /// A trained run, served by the `serve_c<N>` cases (N concurrent episodes on loopback).
     #[arg(long)]
     pub serve_run: Option<PathBuf>,
@@ -314,6 +317,7 @@ impl BenchArgs {
                 .collect(),
             pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
             pytorch_rl_script: pytorch.as_ref().map(|_| self.rl_script.clone()),
+            pytorch_macaw_script: pytorch.as_ref().map(|_| self.macaw_script.clone()),
             serve_run: self.serve_run.clone(),
             serve_steps: self.serve_steps,
             serve_episodes: self.serve_episodes,
@@ -426,7 +430,7 @@ pub struct TrainArgs {
     pub out: Option<PathBuf>,
     /// Continue the (killed) run in this directory from its last checkpoint. With it, only
     /// --iterations (to extend the run), --device and --data (the same data, moved) may be given.
-    #[arg(long, conflicts_with_all = ["seed", "method"])]
+    #[arg(long, conflicts_with_all = ["seed", "method", "macaw_preset"])]
     pub resume: Option<PathBuf>,
     /// Override run.seed.
     #[arg(long)]
@@ -434,9 +438,14 @@ pub struct TrainArgs {
     /// Override train.iterations; with --resume, extend the run to this many.
     #[arg(long)]
     pub iterations: Option<u64>,
-    /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune).
+    /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune, macaw).
     #[arg(long)]
     pub method: Option<String>,
+    /// MACAW: replace the [macaw] section with a preset: `official` (the official
+    /// standard.json) or `promptdt` (the Prompt-DT paper's table: width 300, the last 20k steps
+    /// per task, adaptation on K* transitions with 10 steps). Every row stays a named option.
+    #[arg(long, value_enum)]
+    pub macaw_preset: Option<MacawPresetArg>,
     /// Override run.device (with --resume: for this invocation).
     #[arg(long)]
     pub device: Option<DeviceSpec>,
@@ -447,6 +456,12 @@ pub struct TrainArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum MacawPresetArg {
+    Official,
+    Promptdt,
 }
 
 #[derive(Debug, Args)]

@@ -67,9 +67,19 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                     serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
                         .with_context(|| {
                             format!(
-                        "--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl or mt-bc-finetune"
+                        "--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune or macaw"
                     )
                         })?;
+            }
+            if let Some(p) = a.macaw_preset {
+                let preset = match p {
+                    crate::args::MacawPresetArg::Official => pdt_macaw::Preset::Official,
+                    crate::args::MacawPresetArg::Promptdt => pdt_macaw::Preset::Promptdt,
+                };
+                let env = pdt_envs::family(&cfg.env.name)?;
+                let k = cfg.sampler.prompt_episodes
+                    * cfg.sampler.prompt_length.unwrap_or(env.preset().prompt_length);
+                cfg.macaw = pdt_macaw::MacawConfig::preset(preset, k);
             }
             if let Some(d) = a.device {
                 cfg.run.device = d;

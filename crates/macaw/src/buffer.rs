@@ -82,7 +82,8 @@ impl TaskBuffer {
                 acc = f64::from(t.rewards[i]) + gamma * acc;
                 g[i] = acc;
             }
-            if let Some(i) = g.iter().position(|v| !v.is_finite()) {
+            // Checked as stored (f32): a finite f64 return may still overflow f32.
+            if let Some(i) = g.iter().position(|&v| !(v as f32).is_finite()) {
                 return Err(err(format!(
                     "episode {e}: the discounted return at step {i} is not finite ({}); the \
                      rewards are too large or not numbers",

@@ -12,6 +12,7 @@
 //! Deliberate differences from the official code are marked `DIFFERENCE` where they live and listed
 //! in `docs/macaw.md`.
 
+pub mod bench;
 pub mod buffer;
 pub mod rollout;
 
@@ -706,42 +707,164 @@ pub fn meta_step(
 
 // ---------------------------------------------------------------- adaptation (spec 5.4, 5.5) --
 
+/// The result of a test-time adaptation.
+#[derive(Debug)]
+pub struct Adapted {
+    /// phi' and theta'.
+    pub value: Vec<Tensor>,
+    pub policy: Vec<Tensor>,
+    /// Steps taken (equal to `adapt_steps` unless the adaptation diverged).
+    pub value_steps: usize,
+    pub policy_steps: usize,
+}
+
+impl Adapted {
+    pub fn diverged(&self, cfg: &MacawConfig) -> bool {
+        self.value_steps < cfg.adapt_steps || self.policy_steps < cfg.adapt_steps
+    }
+}
+
+fn all_finite(ts: &[Tensor]) -> bool {
+    ts.iter().all(|t| t.isfinite().all().int64_value(&[]) != 0)
+}
+
 /// Test-time adaptation on one batch of a task's data: `cfg.adapt_steps` SGD steps of the inner
 /// value loss (MC targets) and of the inner policy loss against the adapted value function, with
-/// the learned learning rates, in `cfg.adapt_order`. The meta-parameters are untouched; returns
-/// (phi', theta').
-pub fn adapt(p: &Params, dims: &Dims, b: &Batch, cfg: &MacawConfig) -> (Vec<Tensor>, Vec<Tensor>) {
+/// the learned learning rates, in `cfg.adapt_order`. The meta-parameters are untouched.
+///
+/// DIFFERENCE: a step whose loss or result is not finite is not taken, and that chain (value or
+/// policy) stops there (`Adapted::value_steps` / `policy_steps` say where). The official protocol
+/// takes one step; the Prompt-DT protocol's 10 steps can run away before meta-training has shaped
+/// the initialisation (measured on Cheetah-Dir from the initial parameters: value loss 1.0e5, then
+/// 6.2e10, then NaN), and a NaN action would end the evaluation.
+pub fn adapt(p: &Params, dims: &Dims, b: &Batch, cfg: &MacawConfig) -> Adapted {
     let fresh = |ts: &[Tensor]| -> Vec<Tensor> {
         ts.iter().map(|t| t.detach().set_requires_grad(true)).collect()
     };
     let (rho_v, rho_pi, rho_adv) = (p.rho_v.detach(), p.rho_pi.detach(), p.rho_adv.detach());
-    let mut v = fresh(&p.value);
-    let mut pi = fresh(&p.policy);
-    let value_step = |v: &[Tensor]| sgd_step(v, &value_loss(v, dims, b, None, cfg), &rho_v, false);
-    let policy_step = |pi: &[Tensor], v: &[Tensor]| {
-        let vd: Vec<Tensor> = v.iter().map(Tensor::detach).collect();
-        sgd_step(pi, &policy_loss(pi, dims, &vd, b, &rho_adv, true, cfg), &rho_pi, false)
+    let mut out = Adapted { value: fresh(&p.value), policy: fresh(&p.policy), value_steps: 0, policy_steps: 0 };
+    let (mut value_live, mut policy_live) = (true, true);
+    let value_step = |out: &mut Adapted, live: &mut bool| {
+        if !*live {
+            return;
+        }
+        let loss = value_loss(&out.value, dims, b, None, cfg);
+        let next = sgd_step(&out.value, &loss, &rho_v, false);
+        if loss.double_value(&[]).is_finite() && all_finite(&next) {
+            out.value = next;
+            out.value_steps += 1;
+        } else {
+            *live = false;
+        }
+    };
+    let policy_step = |out: &mut Adapted, live: &mut bool| {
+        if !*live {
+            return;
+        }
+        let vd: Vec<Tensor> = out.value.iter().map(Tensor::detach).collect();
+        let loss = policy_loss(&out.policy, dims, &vd, b, &rho_adv, true, cfg);
+        let next = sgd_step(&out.policy, &loss, &rho_pi, false);
+        if loss.double_value(&[]).is_finite() && all_finite(&next) {
+            out.policy = next;
+            out.policy_steps += 1;
+        } else {
+            *live = false;
+        }
     };
     match cfg.adapt_order {
         AdaptOrder::ValueFirst => {
             for _ in 0..cfg.adapt_steps {
-                v = value_step(&v);
+                value_step(&mut out, &mut value_live);
             }
             for _ in 0..cfg.adapt_steps {
-                pi = policy_step(&pi, &v);
+                policy_step(&mut out, &mut policy_live);
             }
         }
         AdaptOrder::Interleaved => {
             for _ in 0..cfg.adapt_steps {
-                v = value_step(&v);
-                pi = policy_step(&pi, &v);
+                value_step(&mut out, &mut value_live);
+                policy_step(&mut out, &mut policy_live);
             }
         }
     }
-    (v.iter().map(Tensor::detach).collect(), pi.iter().map(Tensor::detach).collect())
+    out.value = out.value.iter().map(Tensor::detach).collect();
+    out.policy = out.policy.iter().map(Tensor::detach).collect();
+    out
 }
 
 /// The deterministic action clip(mu(s), -1, 1) for a batch of raw observations `[N, O]`.
 pub fn act(policy: &[Tensor], dims: &Dims, obs: &Tensor, cfg: &MacawConfig) -> Tensor {
     tch::no_grad(|| policy_forward(policy, dims, obs, None, cfg.hidden_activation).0.clamp(-1.0, 1.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parameter_counts_equal_the_official_networks() {
+        // spec 3.3's table (each WLinear: 100 + 101 (in out + out)).
+        for (o, a, w, policy, value) in [
+            (20, 6, 100, 2_663_263, 2_262_901),
+            (20, 6, 300, 20_055_463, 18_907_701),
+            (27, 8, 100, 2_760_829, 2_333_601),
+            (27, 8, 300, 20_334_829, 19_119_801),
+        ] {
+            let dims = Dims::new(o, a, w, 3);
+            let count = |layers: &[(i64, i64)]| -> i64 {
+                layers.iter().map(|&(i, o)| LATENT + (LATENT + 1) * (i * o + o)).sum()
+            };
+            assert_eq!((count(&dims.policy), count(&dims.value)), (policy, value), "{o}/{a} W {w}");
+        }
+        let (v, p) = Dims::new(20, 6, 100, 3).names();
+        assert_eq!((v.len(), p.len()), (12, 18));
+        assert_eq!(v[0], "value.fc_0.z");
+        assert_eq!(p[12], "policy.head_0.z");
+        assert_eq!(p[17], "policy.head_1.bias");
+    }
+
+    #[test]
+    fn the_promptdt_preset_differs_from_the_official_in_the_tables_rows_only() {
+        let (o, p) = (MacawConfig::preset(Preset::Official, 5), MacawConfig::preset(Preset::Promptdt, 5));
+        assert_eq!(o, MacawConfig::default());
+        assert_eq!((p.width, p.buffer_rows, p.adapt_batch, p.adapt_steps), (300, 20_000, 5, 10));
+        let back = MacawConfig { width: 100, buffer_rows: 0, adapt_batch: 256, adapt_steps: 1, ..p };
+        assert_eq!(back, o);
+        assert!(o.validate().is_ok() && p.validate().is_ok());
+    }
+
+    #[test]
+    fn bad_settings_are_named() {
+        for (cfg, name) in [
+            (MacawConfig { adapt_batch: 1, ..Default::default() }, "macaw.adapt_batch"),
+            (MacawConfig { outer_value_lr: f64::NAN, ..Default::default() }, "macaw.outer_value_lr"),
+            (MacawConfig { discount: 1.5, ..Default::default() }, "macaw.discount"),
+            (MacawConfig { buffer_skip: 0, ..Default::default() }, "macaw.buffer_skip"),
+            (MacawConfig { width: 0, ..Default::default() }, "macaw.width"),
+        ] {
+            let e = cfg.validate().unwrap_err().to_string();
+            assert!(e.contains(name), "{e}");
+        }
+    }
+
+    #[test]
+    fn adaptation_stops_before_a_step_that_is_not_finite() {
+        tch::manual_seed(0);
+        let cfg = MacawConfig { width: 8, adapt_steps: 10, ..Default::default() };
+        let dims = Dims::new(3, 2, 8, 3);
+        let p = Params::init(&dims, &cfg, Kind::Float, Device::Cpu);
+        // Returns of 1e18: the first value step overshoots far past f32's range.
+        let b = Batch {
+            obs: Tensor::randn([6, 3], (Kind::Float, Device::Cpu)) * 50.0,
+            act: Tensor::zeros([6, 2], (Kind::Float, Device::Cpu)),
+            terminal_obs: Tensor::randn([6, 3], (Kind::Float, Device::Cpu)),
+            terminal_discount: Tensor::ones([6, 1], (Kind::Float, Device::Cpu)),
+            mc_return: Tensor::randn([6, 1], (Kind::Float, Device::Cpu)) * 1e18,
+        };
+        let a = adapt(&p, &dims, &b, &cfg);
+        assert!(a.diverged(&cfg) && a.value_steps < 10, "{} {}", a.value_steps, a.policy_steps);
+        assert!(all_finite(&a.value) && all_finite(&a.policy));
+        let mu = act(&a.policy, &dims, &b.obs, &cfg);
+        assert!(mu.isfinite().all().int64_value(&[]) == 1);
+    }
 }

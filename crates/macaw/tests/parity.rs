@@ -149,7 +149,9 @@ fn run(path: &Path, bitwise: bool) -> (f64, String, usize) {
             cmp.check(&key, t, get(&f, &key));
         }
     }
-    let (v2, p2) = adapt(&p, &dims, &batch(&f, "adapt.batch"), &cfg);
+    let a = adapt(&p, &dims, &batch(&f, "adapt.batch"), &cfg);
+    assert_eq!((a.value_steps, a.policy_steps), (2, 2));
+    let (v2, p2) = (a.value, a.policy);
     for (n, t) in names.iter().zip(v2.iter().chain(&p2)) {
         let key = format!("adapt.{n}");
         cmp.check(&key, t, get(&f, &key));

@@ -119,6 +119,13 @@ pub struct Settings {
     /// shrinks them).
     pub finetune_batch: Option<usize>,
     pub finetune_steps: Option<u64>,
+    /// MACAW cells: the preset (`official` or `promptdt`, default `promptdt`: the paper's table),
+    /// then its width, its inner and outer batch size and its buffer stride (the smaller budgets
+    /// shrink them).
+    pub macaw_preset: Option<pdt_macaw::Preset>,
+    pub macaw_width: Option<usize>,
+    pub macaw_batch: Option<usize>,
+    pub macaw_buffer_skip: Option<usize>,
     /// `false`: the matching cells are not run at this budget (the report says so).
     pub run: Option<bool>,
 }
@@ -141,6 +148,10 @@ impl Settings {
             data_episodes,
             prompt_set_episodes,
             finetune_batch,
+            macaw_preset,
+            macaw_width,
+            macaw_batch,
+            macaw_buffer_skip,
             finetune_steps,
             run
         );
@@ -331,14 +342,14 @@ impl Manifest {
     }
 }
 
-/// A method name `pdt-train` knows (MACAW joins when it exists).
+/// A method name `pdt-train` knows.
 pub(crate) struct MethodName(pub pdt_train::config::Method);
 
 impl std::str::FromStr for MethodName {
     type Err = ();
     fn from_str(s: &str) -> Result<Self, ()> {
         use pdt_train::config::Method::*;
-        [PromptDt, PromptMtBc, MtOrl, MtBcFinetune]
+        [PromptDt, PromptMtBc, MtOrl, MtBcFinetune, Macaw]
             .into_iter()
             .find(|m| m.name() == s)
             .map(MethodName)

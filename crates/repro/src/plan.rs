@@ -219,6 +219,35 @@ pub fn config_for(
     if let Some(v) = s.finetune_steps {
         c.eval.finetune_steps = v;
     }
+    if method == pdt_train::config::Method::Macaw {
+        // The Prompt-DT paper's MACAW protocol by default: its table's settings, adapted on as
+        // many transitions as the prompt has steps (K* = J x H) with 10 steps. The cell's and the
+        // budget's fine-tuning data and steps are MACAW's adaptation data and steps.
+        let family = pdt_envs::family(&c.env.name)
+            .map_err(|e| ReproError::Invalid(format!("cell {}: {e}", cell.id())))?;
+        let k = c.sampler.prompt_episodes
+            * c.sampler.prompt_length.unwrap_or(family.preset().prompt_length);
+        c.macaw = pdt_macaw::MacawConfig::preset(
+            s.macaw_preset.unwrap_or(pdt_macaw::Preset::Promptdt),
+            k,
+        );
+        for b in [cell.finetune_batch, s.finetune_batch].into_iter().flatten() {
+            c.macaw.adapt_batch = b;
+        }
+        for n in [cell.finetune_steps, s.finetune_steps].into_iter().flatten() {
+            c.macaw.adapt_steps = n as usize;
+        }
+        if let Some(w) = s.macaw_width {
+            c.macaw.width = w;
+        }
+        if let Some(b) = s.macaw_batch {
+            c.macaw.inner_batch = b;
+            c.macaw.outer_batch = b;
+        }
+        if let Some(k) = s.macaw_buffer_skip {
+            c.macaw.buffer_skip = k;
+        }
+    }
     c.validate().map_err(|e| ReproError::Invalid(format!("cell {}: {e}", cell.id())))?;
     Ok(c)
 }

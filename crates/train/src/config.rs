@@ -25,6 +25,9 @@ pub enum Method {
     /// MT-BC-Finetune: no prompt, no returns-to-go; fine-tuned on each test task's demonstrations
     /// before evaluation (`--no-prompt --no-rtg --no-r --finetune`).
     MtBcFinetune,
+    /// MACAW (Mitchell et al. 2021): meta-learned value function and policy, adapted to each test
+    /// task's data with a few gradient steps (`[macaw]` section; `crates/macaw`).
+    Macaw,
 }
 
 impl Method {
@@ -42,6 +45,7 @@ impl Method {
             Method::PromptMtBc => "prompt-mt-bc",
             Method::MtOrl => "mt-orl",
             Method::MtBcFinetune => "mt-bc-finetune",
+            Method::Macaw => "macaw",
         }
     }
 }
@@ -277,6 +281,9 @@ pub struct TrainConfig {
     pub optim: AdamWConfig,
     pub train: TrainSection,
     pub eval: EvalSection,
+    /// MACAW's hyper-parameters (used when `run.method = "macaw"`; default: the official
+    /// `standard.json`).
+    pub macaw: pdt_macaw::MacawConfig,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -374,6 +381,9 @@ impl TrainConfig {
         v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
         v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
         v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        if let Err(e) = self.macaw.validate() {
+            v.fail(e.to_string());
+        }
         v.finish()
     }
 }

@@ -10,6 +10,7 @@
 #![allow(clippy::result_large_err)]
 
 pub mod config;
+mod macaw;
 pub mod optim;
 pub mod run;
 pub mod smoke;

@@ -49,21 +49,21 @@ pub enum RunError {
     Invalid(String),
 }
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
     move |source| RunError::Io { path: path.into(), source }
 }
 
 // Independent random streams derived from the run seed (SplitMix64 of seed, stream, counter).
 use pdt_base::seed::derive_seed;
-const STREAM_INIT: u64 = 1;
-const STREAM_BATCHES: u64 = 2;
+pub(crate) const STREAM_INIT: u64 = 1;
+pub(crate) const STREAM_BATCHES: u64 = 2;
 const STREAM_DROPOUT: u64 = 3;
-const STREAM_EVAL_TEST: u64 = 4;
-const STREAM_EVAL_TRAIN: u64 = 5;
+pub(crate) const STREAM_EVAL_TEST: u64 = 4;
+pub(crate) const STREAM_EVAL_TRAIN: u64 = 5;
 
 /// Which tasks an evaluation covers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Split {
+pub(crate) enum Split {
     Test,
     Train,
 }
@@ -129,15 +129,15 @@ impl TaskStats {
 
 /// The commit point of a checkpoint (`checkpoints/latest.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-struct Latest {
-    step: u64,
-    iteration: u64,
-    model: String,
-    state: String,
+pub(crate) struct Latest {
+    pub(crate) step: u64,
+    pub(crate) iteration: u64,
+    pub(crate) model: String,
+    pub(crate) state: String,
     /// `false` for a resume point between checkpoints (`train.resume_interval`): its weights are
     /// removed once a later checkpoint is in force. Absent in runs written before the option.
     #[serde(default = "keep_default")]
-    keep: bool,
+    pub(crate) keep: bool,
 }
 
 fn keep_default() -> bool {
@@ -200,17 +200,17 @@ pub struct TrainSummary {
 }
 
 /// Everything built from the configuration and the data.
-struct Setup {
-    cfg: TrainConfig,
-    family: Box<dyn EnvFamily>,
-    preset: EnvPreset,
-    train_data: MultiTaskDataset,
-    test_data: MultiTaskDataset,
+pub(crate) struct Setup {
+    pub(crate) cfg: TrainConfig,
+    pub(crate) family: Box<dyn EnvFamily>,
+    pub(crate) preset: EnvPreset,
+    pub(crate) train_data: MultiTaskDataset,
+    pub(crate) test_data: MultiTaskDataset,
     norm: StateNorm,
-    sampler_cfg: SamplerConfig,
+    pub(crate) sampler_cfg: SamplerConfig,
     model_cfg: PromptDtConfig,
-    device: Device,
-    stats: TaskStats,
+    pub(crate) device: Device,
+    pub(crate) stats: TaskStats,
 }
 
 impl Setup {
@@ -471,14 +471,14 @@ fn eval_tasks(
 }
 
 /// Appends JSON lines (and matching CSV rows) to a log.
-struct Log {
+pub(crate) struct Log {
     jsonl: PathBuf,
     csv: PathBuf,
-    lines: usize,
+    pub(crate) lines: usize,
 }
 
 impl Log {
-    fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
+    pub(crate) fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
         let (jsonl, csv) = (dir.join(format!("{stem}.jsonl")), dir.join(format!("{stem}.csv")));
         // Keep exactly the lines the checkpoint knew about: a killed run may have written more.
         // The JSON lines are the record; the CSV is rebuilt from them (a deleted or edited CSV
@@ -540,7 +540,7 @@ impl Log {
         (j, c)
     }
 
-    fn append(
+    pub(crate) fn append(
         &mut self,
         rows: &[serde_json::Map<String, serde_json::Value>],
     ) -> Result<(), RunError> {
@@ -562,7 +562,7 @@ impl Log {
     }
 }
 
-fn eval_rows(
+pub(crate) fn eval_rows(
     results: &[TaskResult],
     iteration: u64,
     step: u64,
@@ -582,13 +582,13 @@ fn eval_rows(
         .collect()
 }
 
-fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
+pub(crate) fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
     let text = serde_json::to_string_pretty(value)
         .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?;
     write_atomic(path, text.as_bytes()).map_err(io_err(path))
 }
 
-fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
+pub(crate) fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
     let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
         .map_err(io_err(path))?;
     serde_json::from_str(&text)
@@ -755,7 +755,7 @@ fn now_utc() -> String {
 /// take turns, so that each run's draws depend on its seed alone.
 static TORCH_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-fn torch_rng_lock() -> std::sync::MutexGuard<'static, ()> {
+pub(crate) fn torch_rng_lock() -> std::sync::MutexGuard<'static, ()> {
     TORCH_RNG.lock().unwrap_or_else(|e| e.into_inner())
 }
 
@@ -849,6 +849,9 @@ pub fn train(
         write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
         write_json(&dir.join("task_stats.json"), &setup.stats)?;
     }
+    if setup.cfg.run.method == Method::Macaw {
+        return crate::macaw::train(&setup, dir, opts);
+    }
     let cfg = &setup.cfg;
     let mut learner = Learner::new(&setup);
     let state = if opts.resume { load_checkpoint(dir, &setup, &mut learner)? } else { None };
@@ -863,14 +866,7 @@ pub fn train(
     }
     let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
     let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
-    if opts.resume && (with.iterations.is_some() || with.data.is_some()) {
-        // What changed goes on record (the device is this invocation's only).
-        let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
-        recorded.train.iterations = cfg.train.iterations;
-        recorded.data.dir.clone_from(&cfg.data.dir);
-        let text = recorded.to_toml()?;
-        write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
-    }
+    record_resume_changes(dir, cfg, with, opts.resume)?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
     if let Some(s) = &state {
         let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt {
@@ -950,6 +946,24 @@ pub fn train(
     Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: true, last_test })
 }
 
+/// On resume with a longer run or moved data, what changed goes on record in `config.toml` (the
+/// device is this invocation's only).
+pub(crate) fn record_resume_changes(
+    dir: &Path,
+    cfg: &TrainConfig,
+    with: &ResumeWith,
+    resume: bool,
+) -> Result<(), RunError> {
+    if resume && (with.iterations.is_some() || with.data.is_some()) {
+        let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
+        recorded.train.iterations = cfg.train.iterations;
+        recorded.data.dir.clone_from(&cfg.data.dir);
+        let text = recorded.to_toml()?;
+        write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
+    }
+    Ok(())
+}
+
 /// A finished or running run's configuration, for acting with it (`eval`, `serve`): its
 /// `config.toml` with this invocation's device and the place its data moved to.
 fn run_config(
@@ -976,7 +990,7 @@ fn run_config(
 }
 
 /// The latest checkpoint of the run in `dir` (its weights must be the ones of its step).
-fn latest_checkpoint(dir: &Path) -> Result<Latest, RunError> {
+pub(crate) fn latest_checkpoint(dir: &Path) -> Result<Latest, RunError> {
     let ck = dir.join("checkpoints");
     let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
         RunError::Io { .. } => {
@@ -1027,18 +1041,23 @@ pub fn evaluate_run(
             setup.cfg.data.dir.display()
         ))
     })?;
-    let _rng = torch_rng_lock();
-    let mut learner = Learner::new(&setup);
-    let ck = dir.join("checkpoints");
-    let latest = latest_checkpoint(dir)?;
-    checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
     let which = match split {
         "test" => Split::Test,
         "train" => Split::Train,
         other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
     };
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
-    let tasks = eval_tasks(&setup, &mut learner, which, u64::MAX - latest.iteration)?;
+    let (latest, tasks) = if setup.cfg.run.method == Method::Macaw {
+        crate::macaw::evaluate(&setup, dir, which)?
+    } else {
+        let _rng = torch_rng_lock();
+        let mut learner = Learner::new(&setup);
+        let ck = dir.join("checkpoints");
+        let latest = latest_checkpoint(dir)?;
+        checkpoint::load(&mut learner.vs, &ck.join(&latest.model), setup.model_cfg.n_layer)?;
+        let tasks = eval_tasks(&setup, &mut learner, which, u64::MAX - latest.iteration)?;
+        (latest, tasks)
+    };
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
         iteration: latest.iteration,
@@ -1085,6 +1104,12 @@ impl ServedRun {
         data: Option<&Path>,
     ) -> Result<Self, RunError> {
         let cfg = run_config(dir, device, data)?;
+        if cfg.run.method == Method::Macaw {
+            return Err(RunError::Invalid(format!(
+                "{}: a MACAW run adapts to a task's data before it acts; serving it is not                  supported (evaluate it with `promptdt eval`)",
+                dir.display()
+            )));
+        }
         let stats: TaskStats = read_json(&dir.join("task_stats.json"))?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
