@@ -465,7 +465,9 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let train_cases: Vec<String> = cfg
         .cases
         .iter()
-        .filter(|c| !is_eval(c) && !is_rl(c) && !is_macaw(c) && !is_serve(c) && !c.starts_with("act_b"))
+        .filter(|c| {
+            !is_eval(c) && !is_rl(c) && !is_macaw(c) && !is_serve(c) && !c.starts_with("act_b")
+        })
         .cloned()
         .collect();
     let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();

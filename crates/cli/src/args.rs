@@ -480,6 +480,12 @@ pub struct EvalArgs {
     /// Where the run's data moved (their content must be what the run trained on).
     #[arg(long)]
     pub data: Option<PathBuf>,
+    /// MACAW runs: adaptation steps for this evaluation (default: the run's macaw.adapt_steps).
+    #[arg(long, value_parser = count(1, 1000))]
+    pub adapt_steps: Option<usize>,
+    /// MACAW runs: transitions per task to adapt on (default: the run's macaw.adapt_batch).
+    #[arg(long, value_parser = count(2, 1_000_000))]
+    pub adapt_batch: Option<usize>,
 }
 
 #[derive(Debug, Args)]

@@ -135,12 +135,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Collect(a) => collect(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            let r = pdt_train::run::evaluate_run(
+            let r = pdt_train::run::evaluate_run_with(
                 &a.run,
                 a.episodes,
                 &a.split,
                 a.device,
                 a.data.as_deref(),
+                &pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
             )?;
             println!("{:<24} {:>12} {:>10} {:>9}", "task", "return mean", "std", "episodes");
             for t in &r.tasks {
@@ -150,6 +151,9 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             println!("{:<24} {:>12.2}", format!("average ({})", r.split), r.mean_return);
+            if let Some(how) = &r.adaptation {
+                println!("adapted to each task with {how}");
+            }
             println!(
                 "checkpoint {} (iteration {}); wrote {}/eval_final.json",
                 r.checkpoint,

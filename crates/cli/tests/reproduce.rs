@@ -79,8 +79,15 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
         assert!(fig2.join(format!("curves_{env}.png")).is_file(), "{env}");
     }
     let cells = std::fs::read_to_string(fig2.join("cells.csv")).unwrap();
-    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 12, "{cells}");
-    assert!(cells.contains("MACAW is not in promptdt yet"), "{cells}");
+    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 15, "{cells}");
+    assert!(cells.contains("Meta-World reach-v2 is not in promptdt yet"), "{cells}");
+    // MACAW's cells ran (its adaptation logged with the evaluations)
+    let macaw = a.join("runs/cheetah_vel/macaw/smoke/seed0/eval.jsonl");
+    assert!(
+        std::fs::read_to_string(&macaw).unwrap().contains("adapt_policy_steps"),
+        "{}",
+        macaw.display()
+    );
     // Table 1 shares Figure 2's 1 x 5 Prompt-DT runs: a second call finds everything finished.
     let again = ok(&["reproduce", "table1", "--budget", "smoke", "--out", a_s, "--jobs", "2"]);
     assert!(again.contains("12 runs already finished, 0 started, 0 resumed"), "{again}");
@@ -97,7 +104,7 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
     emit.extend(["--emit", "jobs"]);
     ok(&emit);
     let jobs = b.join("jobs/fig4-smoke/jobs.txt");
-    assert_eq!(std::fs::read_to_string(&jobs).unwrap().lines().count(), 4);
+    assert_eq!(std::fs::read_to_string(&jobs).unwrap().lines().count(), 5);
     assert!(b.join("jobs/fig4-smoke/run.slurm").is_file());
     let status = Command::new("sh")
         .arg("-c")

@@ -32,7 +32,13 @@ fn random_batch(device: Device) -> Batch {
 }
 
 /// Milliseconds per meta-step, `iters` of them after `warmup` untimed ones.
-pub fn time_meta_steps(width: usize, tasks: usize, warmup: usize, iters: usize, device: Device) -> Vec<f64> {
+pub fn time_meta_steps(
+    width: usize,
+    tasks: usize,
+    warmup: usize,
+    iters: usize,
+    device: Device,
+) -> Vec<f64> {
     tch::manual_seed(0);
     let cfg = MacawConfig { width, ..MacawConfig::default() };
     let dims = Dims::new(OBS, ACT, width, cfg.depth);

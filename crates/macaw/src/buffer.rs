@@ -52,7 +52,11 @@ impl TaskBuffer {
     /// DIFFERENCE: promptdt's datasets do not store the observation after an episode's last step,
     /// so s_T is the episode's last stored observation s_{T-1} (the official writer uses
     /// next_obs[T-1]); it only enters the bootstrap terms kappa V(s_T), where kappa <= gamma.
-    pub fn from_dataset(task: &str, ds: &TaskDataset, spec: &BufferSpec) -> Result<Self, MacawError> {
+    pub fn from_dataset(
+        task: &str,
+        ds: &TaskDataset,
+        spec: &BufferSpec,
+    ) -> Result<Self, MacawError> {
         let err = |message: String| MacawError::Data { task: task.to_string(), message };
         if spec.skip == 0 {
             return Err(err("buffer skip 0".into()));

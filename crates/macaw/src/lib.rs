@@ -184,10 +184,16 @@ impl MacawConfig {
     pub fn validate(&self) -> Result<(), MacawError> {
         let bad = |m: String| Err(MacawError::Config(m));
         if self.width == 0 || self.depth == 0 {
-            return bad(format!("macaw.width = {} and macaw.depth = {} must be at least 1", self.width, self.depth));
+            return bad(format!(
+                "macaw.width = {} and macaw.depth = {} must be at least 1",
+                self.width, self.depth
+            ));
         }
         if self.width > 4096 {
-            return bad(format!("macaw.width = {} is above 4096 (the generator matrices grow as width^2 x 100)", self.width));
+            return bad(format!(
+                "macaw.width = {} is above 4096 (the generator matrices grow as width^2 x 100)",
+                self.width
+            ));
         }
         if self.buffer_skip == 0 {
             return bad("macaw.buffer_skip must be at least 1".into());
@@ -196,7 +202,11 @@ impl MacawConfig {
             return bad(format!("macaw.discount = {} must be in (0, 1]", self.discount));
         }
         // The AWR weights normalise by the batch's standard deviation: one row gives NaN (spec 4).
-        for (name, v) in [("inner_batch", self.inner_batch), ("outer_batch", self.outer_batch), ("adapt_batch", self.adapt_batch)] {
+        for (name, v) in [
+            ("inner_batch", self.inner_batch),
+            ("outer_batch", self.outer_batch),
+            ("adapt_batch", self.adapt_batch),
+        ] {
             if v < 2 {
                 return bad(format!("macaw.{name} = {v}: at least 2 (the advantages are normalised by their standard deviation)"));
             }
@@ -219,10 +229,16 @@ impl MacawConfig {
             }
         }
         if !(self.exp_advantage_clip.is_finite() && self.exp_advantage_clip > 1.0) {
-            return bad(format!("macaw.exp_advantage_clip = {} must be above 1", self.exp_advantage_clip));
+            return bad(format!(
+                "macaw.exp_advantage_clip = {} must be above 1",
+                self.exp_advantage_clip
+            ));
         }
         if !(0.0..=1.0).contains(&self.target_vf_alpha) {
-            return bad(format!("macaw.target_vf_alpha = {} must be in [0, 1]", self.target_vf_alpha));
+            return bad(format!(
+                "macaw.target_vf_alpha = {} must be in [0, 1]",
+                self.target_vf_alpha
+            ));
         }
         if self.adapt_steps > 1000 {
             return bad(format!("macaw.adapt_steps = {} is above 1000", self.adapt_steps));
@@ -320,9 +336,8 @@ impl Params {
         };
         let value = make(&dims.value);
         let policy = make(&dims.policy);
-        let rho = |n: usize, init: f64| {
-            Tensor::full([n as i64], init.ln(), opts).set_requires_grad(true)
-        };
+        let rho =
+            |n: usize, init: f64| Tensor::full([n as i64], init.ln(), opts).set_requires_grad(true);
         Self {
             rho_v: rho(value.len(), cfg.inner_value_lr),
             rho_pi: rho(policy.len(), cfg.inner_policy_lr),
@@ -458,7 +473,8 @@ pub fn value_loss(
 pub fn advantages(vp: &[Tensor], dims: &Dims, b: &Batch, cfg: &MacawConfig) -> (Tensor, Tensor) {
     tch::no_grad(|| {
         let act = cfg.hidden_activation;
-        let est = &b.mc_return + &b.terminal_discount * value_forward(vp, dims, &b.terminal_obs, act);
+        let est =
+            &b.mc_return + &b.terminal_discount * value_forward(vp, dims, &b.terminal_obs, act);
         let adv = (est - value_forward(vp, dims, &b.obs, act)).squeeze_dim(-1); // [B]
         let norm = (&adv - adv.mean(None::<Kind>)) / adv.std(true) / cfg.adaptation_temp;
         let weights = norm.clamp_max(cfg.exp_advantage_clip.ln()).exp();
@@ -485,10 +501,13 @@ pub fn policy_loss(
     let log_prob = (-(&b.act - mu).pow_tensor_scalar(2)) / (2.0 * var)
         - sigma.ln()
         - (2.0 * std::f64::consts::PI).sqrt().ln();
-    let mut losses = -(log_prob.sum_dim_intlist(-1, false, None::<Kind>) * weights);
-    if let Some(pred) = pred {
-        losses = losses + rho_adv.softplus() * (pred.squeeze_dim(-1) - adv).pow_tensor_scalar(2);
-    }
+    let awr = -(log_prob.sum_dim_intlist(-1, false, None::<Kind>) * weights);
+    // Out of place, as the PyTorch twin (an in-place add would round the same, but keep the graph
+    // the same shape as PyTorch's).
+    let losses = match pred {
+        Some(pred) => awr + rho_adv.softplus() * (pred.squeeze_dim(-1) - adv).pow_tensor_scalar(2),
+        None => awr,
+    };
     losses.mean(None::<Kind>)
 }
 
@@ -646,9 +665,16 @@ pub struct StepStats {
 impl StepStats {
     pub fn is_finite(&self) -> bool {
         let l = &self.losses;
-        [l.value_inner, l.value_outer, l.policy_inner, l.policy_outer, self.value_grad_norm, self.policy_grad_norm]
-            .iter()
-            .all(|v| v.is_finite())
+        [
+            l.value_inner,
+            l.value_outer,
+            l.policy_inner,
+            l.policy_outer,
+            self.value_grad_norm,
+            self.policy_grad_norm,
+        ]
+        .iter()
+        .all(|v| v.is_finite())
     }
 }
 
@@ -742,7 +768,12 @@ pub fn adapt(p: &Params, dims: &Dims, b: &Batch, cfg: &MacawConfig) -> Adapted {
         ts.iter().map(|t| t.detach().set_requires_grad(true)).collect()
     };
     let (rho_v, rho_pi, rho_adv) = (p.rho_v.detach(), p.rho_pi.detach(), p.rho_adv.detach());
-    let mut out = Adapted { value: fresh(&p.value), policy: fresh(&p.policy), value_steps: 0, policy_steps: 0 };
+    let mut out = Adapted {
+        value: fresh(&p.value),
+        policy: fresh(&p.policy),
+        value_steps: 0,
+        policy_steps: 0,
+    };
     let (mut value_live, mut policy_live) = (true, true);
     let value_step = |out: &mut Adapted, live: &mut bool| {
         if !*live {
@@ -794,7 +825,9 @@ pub fn adapt(p: &Params, dims: &Dims, b: &Batch, cfg: &MacawConfig) -> Adapted {
 
 /// The deterministic action clip(mu(s), -1, 1) for a batch of raw observations `[N, O]`.
 pub fn act(policy: &[Tensor], dims: &Dims, obs: &Tensor, cfg: &MacawConfig) -> Tensor {
-    tch::no_grad(|| policy_forward(policy, dims, obs, None, cfg.hidden_activation).0.clamp(-1.0, 1.0))
+    tch::no_grad(|| {
+        policy_forward(policy, dims, obs, None, cfg.hidden_activation).0.clamp(-1.0, 1.0)
+    })
 }
 
 #[cfg(test)]
@@ -825,10 +858,12 @@ mod tests {
 
     #[test]
     fn the_promptdt_preset_differs_from_the_official_in_the_tables_rows_only() {
-        let (o, p) = (MacawConfig::preset(Preset::Official, 5), MacawConfig::preset(Preset::Promptdt, 5));
+        let (o, p) =
+            (MacawConfig::preset(Preset::Official, 5), MacawConfig::preset(Preset::Promptdt, 5));
         assert_eq!(o, MacawConfig::default());
         assert_eq!((p.width, p.buffer_rows, p.adapt_batch, p.adapt_steps), (300, 20_000, 5, 10));
-        let back = MacawConfig { width: 100, buffer_rows: 0, adapt_batch: 256, adapt_steps: 1, ..p };
+        let back =
+            MacawConfig { width: 100, buffer_rows: 0, adapt_batch: 256, adapt_steps: 1, ..p };
         assert_eq!(back, o);
         assert!(o.validate().is_ok() && p.validate().is_ok());
     }
@@ -837,7 +872,10 @@ mod tests {
     fn bad_settings_are_named() {
         for (cfg, name) in [
             (MacawConfig { adapt_batch: 1, ..Default::default() }, "macaw.adapt_batch"),
-            (MacawConfig { outer_value_lr: f64::NAN, ..Default::default() }, "macaw.outer_value_lr"),
+            (
+                MacawConfig { outer_value_lr: f64::NAN, ..Default::default() },
+                "macaw.outer_value_lr",
+            ),
             (MacawConfig { discount: 1.5, ..Default::default() }, "macaw.discount"),
             (MacawConfig { buffer_skip: 0, ..Default::default() }, "macaw.buffer_skip"),
             (MacawConfig { width: 0, ..Default::default() }, "macaw.width"),

@@ -13,10 +13,17 @@ pub struct Episode {
     pub seed: u64,
     pub episode_return: f64,
     pub length: usize,
+    /// The policy gave a non-finite action, which ended the episode there (its return so far).
+    pub failed: bool,
 }
 
 /// Runs one episode per seed on task `task` of `family` with the policy parameters `policy`,
 /// stepping the environments on `threads` threads. The result does not depend on `threads`.
+///
+/// DIFFERENCE: an adapted policy whose parameters are finite can still overflow on an observation
+/// and act NaN. The official code would pass NaN to MuJoCo and log a NaN return; here the episode
+/// ends at that step with the return so far and is marked `failed`, so one bad adaptation does not
+/// end the run's evaluation.
 #[allow(clippy::too_many_arguments)]
 pub fn run_episodes(
     family: &dyn EnvFamily,
@@ -45,6 +52,7 @@ pub fn run_episodes(
     let mut done = vec![false; n];
     let mut returns = vec![0f64; n];
     let mut lengths = vec![0usize; n];
+    let mut failed = vec![false; n];
     let mut flat = vec![0f32; n * a];
     while done.iter().any(|d| !d) {
         let active: Vec<usize> = (0..n).filter(|&i| !done[i]).collect();
@@ -57,9 +65,18 @@ pub fn run_episodes(
             .view([-1]);
         let y: Vec<f32> = Vec::<f32>::try_from(&y)?;
         for (k, &i) in active.iter().enumerate() {
-            flat[i * a..(i + 1) * a].copy_from_slice(&y[k * a..(k + 1) * a]);
+            let ai = &y[k * a..(k + 1) * a];
+            if ai.iter().all(|v| v.is_finite()) {
+                flat[i * a..(i + 1) * a].copy_from_slice(ai);
+            } else {
+                failed[i] = true;
+                done[i] = true;
+            }
         }
         let mask: Vec<bool> = done.iter().map(|d| !d).collect();
+        if !mask.iter().any(|&m| m) {
+            break;
+        }
         for (i, slot) in venv.step_flat(&flat, Some(&mask))?.into_iter().enumerate() {
             if let Some(r) = slot {
                 let r = r?;
@@ -73,6 +90,11 @@ pub fn run_episodes(
     Ok(seeds
         .iter()
         .enumerate()
-        .map(|(i, &seed)| Episode { seed, episode_return: returns[i], length: lengths[i] })
+        .map(|(i, &seed)| Episode {
+            seed,
+            episode_return: returns[i],
+            length: lengths[i],
+            failed: failed[i],
+        })
         .collect())
 }

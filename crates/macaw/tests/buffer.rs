@@ -70,8 +70,7 @@ fn batches_are_contiguous_windows_or_distinct_rows() {
         assert!(start + 16 < b.len(), "the last window is never drawn (randint(0, n - B))");
         let u = b.sample(100, false, &mut rng, Device::Cpu).unwrap();
         let obs: Vec<f32> = Vec::try_from(u.obs.view([-1])).unwrap();
-        let mut keys: Vec<(i64, i64)> =
-            obs.chunks(2).map(|c| (c[0] as i64, c[1] as i64)).collect();
+        let mut keys: Vec<(i64, i64)> = obs.chunks(2).map(|c| (c[0] as i64, c[1] as i64)).collect();
         keys.sort_unstable();
         keys.dedup();
         assert_eq!(keys.len(), 100, "uniform rows are drawn without replacement");
@@ -84,7 +83,10 @@ fn too_little_data_and_non_finite_returns_are_named_errors() {
     let b = TaskBuffer::from_dataset("cheetah_vel-3", &ds, &spec(0, 1, true)).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let e = b.sample(10, true, &mut rng, Device::Cpu).unwrap_err().to_string();
-    assert!(e.contains("cheetah_vel-3") && e.contains("10 transitions") && e.contains("at least 11"), "{e}");
+    assert!(
+        e.contains("cheetah_vel-3") && e.contains("10 transitions") && e.contains("at least 11"),
+        "{e}"
+    );
     assert!(b.sample(10, false, &mut rng, Device::Cpu).is_ok());
     let e = b.sample(11, false, &mut rng, Device::Cpu).unwrap_err().to_string();
     assert!(e.contains("uniform batch of 11"), "{e}");

@@ -77,7 +77,11 @@ impl Compare {
             self.worst = rel;
             self.worst_name = name.to_string();
         }
-        assert!(rel <= bound(theirs.kind()), "{name}: relative difference {rel:e} above {:e}", bound(theirs.kind()));
+        assert!(
+            rel <= bound(theirs.kind()),
+            "{name}: relative difference {rel:e} above {:e}",
+            bound(theirs.kind())
+        );
     }
 }
 
@@ -179,7 +183,9 @@ fn sets() -> Vec<(PathBuf, &'static str, bool)> {
             out.push((dir, "live", true));
         }
         _ if std::env::var("PROMPTDT_REQUIRE_LIVE_GOLDEN").as_deref() == Ok("1") => {
-            panic!("PROMPTDT_REQUIRE_LIVE_GOLDEN=1 but no live MACAW fixtures (make test writes them)")
+            panic!(
+                "PROMPTDT_REQUIRE_LIVE_GOLDEN=1 but no live MACAW fixtures (make test writes them)"
+            )
         }
         _ => eprintln!("live MACAW parity skipped: no PyTorch fixtures made on this machine"),
     }
@@ -195,7 +201,11 @@ fn meta_training_and_adaptation_equal_pytorch() {
             let (worst, name, n) = run(&path, bitwise);
             eprintln!(
                 "{label} {dtype}: {n} tensors {}",
-                if bitwise { "bit for bit".to_string() } else { format!("within bounds, worst {worst:e} at {name}") }
+                if bitwise {
+                    "bit for bit".to_string()
+                } else {
+                    format!("within bounds, worst {worst:e} at {name}")
+                }
             );
         }
     }
@@ -206,10 +216,17 @@ fn meta_training_and_adaptation_equal_pytorch() {
 #[test]
 fn float32_within_rounding_of_float64() {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/golden");
-    let (a, b) = (load(&dir.join("macaw_f32.safetensors")), load(&dir.join("macaw_f64.safetensors")));
+    let (a, b) =
+        (load(&dir.join("macaw_f32.safetensors")), load(&dir.join("macaw_f64.safetensors")));
     let mut worst: f64 = 0.0;
     for (k, t32) in &a {
-        if k.contains(".grad.") || k.starts_with("init.") || k.contains(".inner.") || k.contains(".outer.") || k.starts_with("adapt.batch") || k == "adapt.probe_obs" {
+        if k.contains(".grad.")
+            || k.starts_with("init.")
+            || k.contains(".inner.")
+            || k.contains(".outer.")
+            || k.starts_with("adapt.batch")
+            || k == "adapt.probe_obs"
+        {
             continue;
         }
         let t64 = get(&b, k);

@@ -8,8 +8,8 @@
 
 use crate::run::{
     eval_rows, io_err, latest_checkpoint, read_json, torch_rng_lock, write_json, Latest, Log,
-    Progress, RunError, Setup, Split, TrainOptions, TrainSummary, STREAM_BATCHES,
-    STREAM_EVAL_TEST, STREAM_EVAL_TRAIN, STREAM_INIT,
+    Progress, RunError, Setup, Split, TrainOptions, TrainSummary, STREAM_BATCHES, STREAM_EVAL_TEST,
+    STREAM_EVAL_TRAIN, STREAM_INIT,
 };
 use pdt_base::seed::derive_seed;
 use pdt_eval::{summarise, EpisodeRecord, TaskResult};
@@ -56,7 +56,10 @@ fn model(setup: &Setup) -> Model {
     Model { dims, params }
 }
 
-fn buffers(data: &pdt_data::MultiTaskDataset, m: &MacawConfig) -> Result<Vec<TaskBuffer>, RunError> {
+fn buffers(
+    data: &pdt_data::MultiTaskDataset,
+    m: &MacawConfig,
+) -> Result<Vec<TaskBuffer>, RunError> {
     let spec = m.buffer_spec();
     Ok(data
         .tasks
@@ -78,7 +81,13 @@ fn check_sizes(train: &[TaskBuffer], test: &[TaskBuffer], m: &MacawConfig) -> Re
     Ok(())
 }
 
-fn save(dir: &Path, mdl: &Model, opt: &Optimisers, state: &MacawState, keep: bool) -> Result<(), RunError> {
+fn save(
+    dir: &Path,
+    mdl: &Model,
+    opt: &Optimisers,
+    state: &MacawState,
+    keep: bool,
+) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");
     std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
     let (model, moments) =
@@ -119,7 +128,10 @@ fn save(dir: &Path, mdl: &Model, opt: &Optimisers, state: &MacawState, keep: boo
 fn read_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>, RunError> {
     let meta = std::fs::metadata(path).map_err(io_err(path))?;
     if meta.len() > pdt_base::fs::MAX_TENSOR_FILE_BYTES {
-        return Err(RunError::Corrupt { path: path.into(), message: format!("{} bytes, above the limit", meta.len()) });
+        return Err(RunError::Corrupt {
+            path: path.into(),
+            message: format!("{} bytes, above the limit", meta.len()),
+        });
     }
     Ok(Tensor::read_safetensors(path)
         .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?
@@ -159,7 +171,12 @@ fn load_weights(path: &Path, mdl: &mut Model) -> Result<(), RunError> {
     Ok(())
 }
 
-fn load(dir: &Path, setup: &Setup, mdl: &mut Model, opt: &mut Optimisers) -> Result<Option<MacawState>, RunError> {
+fn load(
+    dir: &Path,
+    setup: &Setup,
+    mdl: &mut Model,
+    opt: &mut Optimisers,
+) -> Result<Option<MacawState>, RunError> {
     let ck = dir.join("checkpoints");
     if !ck.join("latest.json").exists() {
         return Ok(None);
@@ -187,26 +204,40 @@ fn load(dir: &Path, setup: &Setup, mdl: &mut Model, opt: &mut Optimisers) -> Res
     let path = ck.join(&latest.state);
     let moments = read_tensors(&path)?;
     if state.adam_steps.len() != opt.adams.len() {
-        return Err(RunError::Corrupt { path: state_path, message: "adam_steps: one list per optimiser expected".into() });
+        return Err(RunError::Corrupt {
+            path: state_path,
+            message: "adam_steps: one list per optimiser expected".into(),
+        });
     }
     let device = setup.device;
-    for ((g, a), steps) in Optimisers::GROUPS.iter().zip(opt.adams.iter_mut()).zip(&state.adam_steps) {
+    for ((g, a), steps) in
+        Optimisers::GROUPS.iter().zip(opt.adams.iter_mut()).zip(&state.adam_steps)
+    {
         if steps.len() != a.steps.len() {
             return Err(RunError::Corrupt {
                 path: state_path.clone(),
-                message: format!("adam_steps of `{g}`: {} entries for {} tensors", steps.len(), a.steps.len()),
+                message: format!(
+                    "adam_steps of `{g}`: {} entries for {} tensors",
+                    steps.len(),
+                    a.steps.len()
+                ),
             });
         }
         a.steps.clone_from(steps);
         for i in 0..a.steps.len() {
-            for (key, slot) in [("exp_avg", &mut a.exp_avg[i]), ("exp_avg_sq", &mut a.exp_avg_sq[i])] {
+            for (key, slot) in
+                [("exp_avg", &mut a.exp_avg[i]), ("exp_avg_sq", &mut a.exp_avg_sq[i])]
+            {
                 let name = format!("{g}.{i}.{key}");
                 let t = moments.get(&name).ok_or_else(|| RunError::Corrupt {
                     path: path.clone(),
                     message: format!("missing `{name}`"),
                 })?;
                 if t.size() != slot.size() {
-                    return Err(RunError::Corrupt { path: path.clone(), message: format!("`{name}`: shape {:?}", t.size()) });
+                    return Err(RunError::Corrupt {
+                        path: path.clone(),
+                        message: format!("`{name}`: shape {:?}", t.size()),
+                    });
                 }
                 *slot = t.to_kind(slot.kind()).to_device(device);
             }
@@ -220,16 +251,25 @@ pub(crate) struct MacawResult {
     result: TaskResult,
     value_steps: usize,
     policy_steps: usize,
+    /// Episodes ended by a non-finite action (`pdt_macaw::rollout::run_episodes`).
+    failed_episodes: usize,
 }
 
 /// Evaluation log rows with the adaptation steps taken (fewer than `macaw.adapt_steps` where the
-/// adaptation diverged: `pdt_macaw::adapt`).
-fn rows(res: &[MacawResult], iteration: u64, step: u64, split: &str, target: f32) -> Vec<serde_json::Map<String, serde_json::Value>> {
+/// adaptation diverged: `pdt_macaw::adapt`) and the episodes a non-finite action ended.
+fn rows(
+    res: &[MacawResult],
+    iteration: u64,
+    step: u64,
+    split: &str,
+    target: f32,
+) -> Vec<serde_json::Map<String, serde_json::Value>> {
     let plain: Vec<TaskResult> = res.iter().map(|r| r.result.clone()).collect();
     let mut rows = eval_rows(&plain, iteration, step, split, target);
     for (row, r) in rows.iter_mut().zip(res) {
         row.insert("adapt_value_steps".into(), r.value_steps.into());
         row.insert("adapt_policy_steps".into(), r.policy_steps.into());
+        row.insert("failed_episodes".into(), r.failed_episodes.into());
     }
     rows
 }
@@ -284,6 +324,7 @@ fn eval_tasks(
             result: summarise(&t.id.to_string(), t.id.index, &refs),
             value_steps: adapted.value_steps,
             policy_steps: adapted.policy_steps,
+            failed_episodes: eps.iter().filter(|e| e.failed).count(),
         });
     }
     Ok(out)
@@ -291,7 +332,12 @@ fn eval_tasks(
 
 /// One meta-step's batches: `task_batch` training tasks drawn without replacement (all when there
 /// are fewer), in task order, each with an inner and an outer batch.
-fn draw(bufs: &[TaskBuffer], m: &MacawConfig, rng: &mut Rng, device: Device) -> Result<Vec<(Batch, Batch)>, RunError> {
+fn draw(
+    bufs: &[TaskBuffer],
+    m: &MacawConfig,
+    rng: &mut Rng,
+    device: Device,
+) -> Result<Vec<(Batch, Batch)>, RunError> {
     let mut tasks: Vec<usize> = if bufs.len() <= m.task_batch {
         (0..bufs.len()).collect()
     } else {
@@ -326,7 +372,11 @@ fn diverged(dir: &Path, iteration: u64, step: u64, st: &StepStats, m: &MacawConf
 
 /// Trains (or resumes) a MACAW run in `dir`, set up by `run::train` (directory owned, `run.json`,
 /// `config.toml` and `task_stats.json` written or checked).
-pub(crate) fn train(setup: &Setup, dir: &Path, opts: TrainOptions<'_>) -> Result<TrainSummary, RunError> {
+pub(crate) fn train(
+    setup: &Setup,
+    dir: &Path,
+    opts: TrainOptions<'_>,
+) -> Result<TrainSummary, RunError> {
     let cfg = &setup.cfg;
     let m = &cfg.macaw;
     let train_bufs = buffers(&setup.train_data, m)?;
@@ -362,7 +412,12 @@ pub(crate) fn train(setup: &Setup, dir: &Path, opts: TrainOptions<'_>) -> Result
     let progress = opts.progress;
     while iteration < t.iterations {
         if opts.stop_after_iterations.is_some_and(|n| done_here >= n) {
-            return Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: false, last_test });
+            return Ok(TrainSummary {
+                dir: dir.into(),
+                iterations_done: iteration,
+                finished: false,
+                last_test,
+            });
         }
         let mut stats: Vec<StepStats> = Vec::with_capacity(t.steps_per_iteration as usize);
         for _ in 0..t.steps_per_iteration {
@@ -398,7 +453,8 @@ pub(crate) fn train(setup: &Setup, dir: &Path, opts: TrainOptions<'_>) -> Result
             let res = eval_tasks(setup, &mdl, &test_bufs, Split::Test, iteration)?;
             evals.append(&rows(&res, iteration, step, "test", setup.stats.target_return))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
-            test_return = Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
+            test_return =
+                Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
@@ -424,7 +480,11 @@ pub(crate) fn train(setup: &Setup, dir: &Path, opts: TrainOptions<'_>) -> Result
 }
 
 /// `promptdt eval` of a MACAW run: its latest weights, adapted to each task of `split` afresh.
-pub(crate) fn evaluate(setup: &Setup, dir: &Path, split: Split) -> Result<(Latest, Vec<TaskResult>), RunError> {
+pub(crate) fn evaluate(
+    setup: &Setup,
+    dir: &Path,
+    split: Split,
+) -> Result<(Latest, Vec<TaskResult>), RunError> {
     let _rng = torch_rng_lock();
     let m = &setup.cfg.macaw;
     let data = match split {

@@ -1016,6 +1016,9 @@ pub struct FinalEval {
     pub split: String,
     pub tasks: Vec<TaskResult>,
     pub mean_return: f64,
+    /// MACAW runs: the test-time adaptation used.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptation: Option<String>,
 }
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
@@ -1026,10 +1029,50 @@ pub fn evaluate_run(
     device: Option<pdt_model::device::DeviceSpec>,
     data: Option<&Path>,
 ) -> Result<FinalEval, RunError> {
+    evaluate_run_with(dir, episodes, split, device, data, &MacawAdaptation::default())
+}
+
+/// A MACAW run's test-time adaptation, changed for one evaluation (`promptdt eval --adapt-steps
+/// --adapt-batch`): e.g. the official protocol (1 step on 256 transitions) for a run trained with
+/// the Prompt-DT one. `None` keeps the run's.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MacawAdaptation {
+    pub steps: Option<usize>,
+    pub batch: Option<usize>,
+}
+
+/// [`evaluate_run`] with a MACAW run's adaptation changed (refused for the other methods).
+pub fn evaluate_run_with(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+    adaptation: &MacawAdaptation,
+) -> Result<FinalEval, RunError> {
     let mut cfg = run_config(dir, device, data)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
     }
+    if *adaptation != MacawAdaptation::default() {
+        if cfg.run.method != Method::Macaw {
+            return Err(RunError::Invalid(format!(
+                "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",
+                dir.display(),
+                cfg.run.method.name()
+            )));
+        }
+        if let Some(n) = adaptation.steps {
+            cfg.macaw.adapt_steps = n;
+        }
+        if let Some(b) = adaptation.batch {
+            cfg.macaw.adapt_batch = b;
+        }
+        cfg.validate()?;
+    }
+    let adaptation = (cfg.run.method == Method::Macaw).then(|| {
+        format!("{} steps on {} transitions", cfg.macaw.adapt_steps, cfg.macaw.adapt_batch)
+    });
     let setup = Setup::new(cfg)?;
     let stats_path = dir.join("task_stats.json");
     let recorded: TaskStats = read_json(&stats_path)?;
@@ -1060,6 +1103,7 @@ pub fn evaluate_run(
     };
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
+        adaptation,
         iteration: latest.iteration,
         step: latest.step,
         checkpoint: format!("checkpoints/{}", latest.model),

@@ -142,3 +142,18 @@ fn every_shipped_config_validates() {
     }
     assert!(n >= 5, "found {n} configs");
 }
+
+/// The shipped MACAW experiment files are the Prompt-DT table's preset, written out.
+#[test]
+fn shipped_macaw_configs_are_the_promptdt_preset() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+    for env in ["cheetah_dir", "cheetah_vel", "ant_dir"] {
+        let cfg = TrainConfig::from_file(&root.join(env).join("macaw.toml")).unwrap();
+        assert_eq!(cfg.run.method, pdt_train::config::Method::Macaw);
+        assert_eq!(
+            cfg.macaw,
+            pdt_macaw::MacawConfig::preset(pdt_macaw::Preset::Promptdt, 5),
+            "{env}"
+        );
+    }
+}
