@@ -79,7 +79,7 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
         assert!(fig2.join(format!("curves_{env}.png")).is_file(), "{env}");
     }
     let cells = std::fs::read_to_string(fig2.join("cells.csv")).unwrap();
-    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 15, "{cells}");
+    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 18, "{cells}");
     assert!(cells.contains("Meta-World reach-v2 is not in promptdt yet"), "{cells}");
     // MACAW's cells ran (its adaptation logged with the evaluations)
     let macaw = a.join("runs/cheetah_vel/macaw/smoke/seed0/eval.jsonl");
