@@ -490,31 +490,21 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         });
         report.results.push(t);
     }
-    if let (Some(b), Some(script), false) =
-        (&cfg.pytorch, &cfg.pytorch_rl_script, rl_cases.is_empty())
+    // The SAC / TD3 and MACAW cases each have their own PyTorch script.
+    for (script, cases) in
+        [(&cfg.pytorch_rl_script, rl_cases), (&cfg.pytorch_macaw_script, macaw_cases)]
     {
-        let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
-        let t = run_pytorch(&base, &BenchConfig { cases: rl_cases, ..cfg.clone() })?;
-        let report = pytorch.get_or_insert_with(|| EngineReport {
-            engine: "pytorch".into(),
-            torch_version: t.torch_version.clone(),
-            threads: cfg.threads,
-            results: vec![],
-        });
-        report.results.extend(t.results);
-    }
-    if let (Some(b), Some(script), false) =
-        (&cfg.pytorch, &cfg.pytorch_macaw_script, macaw_cases.is_empty())
-    {
-        let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
-        let t = run_pytorch(&base, &BenchConfig { cases: macaw_cases, ..cfg.clone() })?;
-        let report = pytorch.get_or_insert_with(|| EngineReport {
-            engine: "pytorch".into(),
-            torch_version: t.torch_version.clone(),
-            threads: cfg.threads,
-            results: vec![],
-        });
-        report.results.extend(t.results);
+        if let (Some(b), Some(script), false) = (&cfg.pytorch, script, cases.is_empty()) {
+            let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
+            let t = run_pytorch(&base, &BenchConfig { cases, ..cfg.clone() })?;
+            let report = pytorch.get_or_insert_with(|| EngineReport {
+                engine: "pytorch".into(),
+                torch_version: t.torch_version.clone(),
+                threads: cfg.threads,
+                results: vec![],
+            });
+            report.results.extend(t.results);
+        }
     }
     let speedup = match &pytorch {
         Some(p) => promptdt

@@ -109,19 +109,10 @@ fn save(
         std::fs::rename(&tmp, ck.join(name)).map_err(io_err(&tmp))?;
     }
     write_json(&ck.join(format!("state_{}.json", state.step)), state)?;
-    let previous: Option<Latest> = read_json(&ck.join("latest.json")).ok();
-    write_json(
-        &ck.join("latest.json"),
-        &Latest { step: state.step, iteration: state.iteration, model, state: moments, keep },
-    )?;
-    if let Some(p) = previous.filter(|p| p.step != state.step) {
-        let _ = std::fs::remove_file(ck.join(&p.state));
-        if !p.keep {
-            let _ = std::fs::remove_file(ck.join(&p.model));
-            let _ = std::fs::remove_file(ck.join(format!("state_{}.json", p.step)));
-        }
-    }
-    Ok(())
+    crate::run::commit_checkpoint(
+        &ck,
+        Latest { step: state.step, iteration: state.iteration, model, state: moments, keep },
+    )
 }
 
 /// Reads a safetensors file of ours (size-checked) into a map.

@@ -618,14 +618,21 @@ fn save_checkpoint(
         .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
     std::fs::rename(&tmp, ck.join(&opt_state)).map_err(io_err(&tmp))?;
     write_json(&ck.join(format!("state_{}.json", state.step)), state)?;
+    commit_checkpoint(
+        &ck,
+        Latest { step: state.step, iteration: state.iteration, model, state: opt_state, keep },
+    )
+}
+
+/// Makes a checkpoint whose files are written the one in force: `latest.json` last, so a crash
+/// before it leaves the previous one in force; then what the previous one no longer needs goes.
+pub(crate) fn commit_checkpoint(ck: &Path, latest: Latest) -> Result<(), RunError> {
     let previous: Option<Latest> = read_json(&ck.join("latest.json")).ok();
-    write_json(
-        &ck.join("latest.json"),
-        &Latest { step: state.step, iteration: state.iteration, model, state: opt_state, keep },
-    )?;
+    let step = latest.step;
+    write_json(&ck.join("latest.json"), &latest)?;
     // Optimiser moments are only needed to resume: keep the latest ones. Weights are kept at
     // every checkpoint; a resume point's go once a later one is in force.
-    if let Some(p) = previous.filter(|p| p.step != state.step) {
+    if let Some(p) = previous.filter(|p| p.step != step) {
         let _ = std::fs::remove_file(ck.join(&p.state));
         if !p.keep {
             let _ = std::fs::remove_file(ck.join(&p.model));
