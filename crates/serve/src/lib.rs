@@ -15,7 +15,7 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use pdt_eval::{first_rtg, history_batch, prompt_batch, History};
+use pdt_eval::{first_rtg, History};
 use pdt_model::PrefixCache;
 use pdt_prompt::{SegmentBatch, StateNorm};
 use pdt_train::run::ServedRun;
@@ -24,7 +24,6 @@ use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
-use tch::Kind;
 
 /// Limits and batching of a server.
 #[derive(Debug, Clone)]
@@ -77,16 +76,8 @@ pub enum ServeError {
 // The wire format
 // ------------------------------------------------------------------------------------------------
 
-/// A prompt sent by the client: raw (unnormalised) states, the actions taken, raw returns-to-go
-/// (not divided by the scale) and the demonstration's timesteps, one entry per step.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PromptArrays {
-    pub states: Vec<Vec<f64>>,
-    pub actions: Vec<Vec<f64>>,
-    pub returns_to_go: Vec<f64>,
-    pub timesteps: Vec<i64>,
-}
+/// A prompt sent by the client (the same arrays a Python `Policy` takes).
+pub use pdt_train::run::PromptArrays;
 
 /// `POST /v1/episodes`.
 #[derive(Debug, Clone, Deserialize)]
@@ -217,8 +208,7 @@ struct Pending {
 
 impl Worker {
     fn new(run: ServedRun, opts: ServeOptions) -> Self {
-        let norm =
-            StateNorm { mean: run.stats.state_mean.clone(), std: run.stats.state_std.clone() };
+        let norm = run.norm();
         Self { run, opts, norm, episodes: HashMap::new(), next_id: 1 }
     }
 
@@ -320,14 +310,7 @@ impl Worker {
     }
 
     fn observation(&self, obs: &[f64]) -> Result<Vec<f32>, ApiError> {
-        let ds = self.run.stats.obs_dim;
-        if obs.len() != ds {
-            return Err(ApiError::bad(format!(
-                "observation has {} values, the policy takes {ds}",
-                obs.len()
-            )));
-        }
-        finite("observation", obs)
+        self.run.observation(obs).map_err(ApiError::bad)
     }
 
     fn open(&mut self, req: OpenRequest) -> Result<u64, ApiError> {
@@ -369,10 +352,10 @@ impl Worker {
             Some(g) => g as f32,
             None => self.run.stats.target_return,
         };
-        let device = self.run.device;
-        let prefix = prompt
-            .as_ref()
-            .map(|p| tch::no_grad(|| self.run.model.prefix(&prompt_batch(&[p], device))));
+        let prefix = match &prompt {
+            Some(p) => Some(self.run.prefix(&[p]).map_err(ApiError::bad)?),
+            None => None,
+        };
         let rtg0 = first_rtg(self.run.returns, target, self.run.stats.rtg_scale);
         let id = self.next_id;
         self.next_id += 1;
@@ -389,58 +372,7 @@ impl Worker {
     }
 
     fn prompt_from_arrays(&self, p: &PromptArrays) -> Result<SegmentBatch, ApiError> {
-        let (ds, da) = (self.run.stats.obs_dim, self.run.stats.act_dim);
-        let n = p.states.len();
-        if n == 0 || n != p.actions.len() || n != p.returns_to_go.len() || n != p.timesteps.len() {
-            return Err(ApiError::bad(format!(
-                "prompt: states, actions, returns_to_go and timesteps need one entry per step \
-                 (at least 1); got {}, {}, {}, {}",
-                n,
-                p.actions.len(),
-                p.returns_to_go.len(),
-                p.timesteps.len()
-            )));
-        }
-        let k_max = self.run.model.cfg.n_positions / 3;
-        if n + self.run.k > k_max {
-            return Err(ApiError::bad(format!(
-                "prompt of {n} steps: with K = {} history steps it exceeds the model's {} positions",
-                self.run.k, self.run.model.cfg.n_positions
-            )));
-        }
-        let max_t = self.run.model.cfg.max_ep_len as i64;
-        let mut states = Vec::with_capacity(n * ds);
-        let mut actions = Vec::with_capacity(n * da);
-        for (t, (s, a)) in p.states.iter().zip(&p.actions).enumerate() {
-            if s.len() != ds || a.len() != da {
-                return Err(ApiError::bad(format!(
-                    "prompt step {t}: state has {} values and action {}, the policy takes {ds} and {da}",
-                    s.len(),
-                    a.len()
-                )));
-            }
-            let s = finite(&format!("prompt.states[{t}]"), s)?;
-            states.extend(s.iter().enumerate().map(|(j, &x)| self.norm.apply(j, x)));
-            actions.extend(finite(&format!("prompt.actions[{t}]"), a)?);
-        }
-        let rtg = finite("prompt.returns_to_go", &p.returns_to_go)?;
-        let scale = self.run.stats.rtg_scale as f64;
-        if let Some(t) = p.timesteps.iter().find(|&&t| !(0..max_t).contains(&t)) {
-            return Err(ApiError::bad(format!(
-                "prompt.timesteps: {t} is outside [0, {max_t}) (the model's max_ep_len)"
-            )));
-        }
-        Ok(SegmentBatch {
-            batch: 1,
-            steps: n,
-            state_dim: ds,
-            act_dim: da,
-            states,
-            actions,
-            returns_to_go: rtg.iter().map(|&r| (r as f64 / scale) as f32).collect(),
-            timesteps: p.timesteps.clone(),
-            mask: vec![1.0; n],
-        })
+        self.run.prompt_from_arrays(p).map_err(ApiError::bad)
     }
 
     fn step(&mut self, id: u64, req: StepRequest) -> Result<(), ApiError> {
@@ -481,8 +413,7 @@ impl Worker {
                 None => groups.push((len, vec![p])),
             }
         }
-        let (ds, da, k, device) =
-            (self.run.stats.obs_dim, self.run.stats.act_dim, self.run.k, self.run.device);
+        let da = self.run.stats.act_dim;
         for (_, group) in groups {
             let eps: Vec<&Episode> =
                 group.iter().filter_map(|p| self.episodes.get(&p.id)).collect();
@@ -496,15 +427,10 @@ impl Worker {
                 continue;
             }
             let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
-            let history = history_batch(&hs, k, ds, da, device);
             let prefixes: Option<Vec<&PrefixCache>> =
                 eps.iter().map(|e| e.prefix.as_ref()).collect();
             let prefix = prefixes.and_then(|p| PrefixCache::cat(&p));
-            let out = tch::no_grad(|| self.run.model.act(&history, prefix.as_ref()))
-                .to_kind(Kind::Float)
-                .to_device(tch::Device::Cpu); // [A, da]
-            let mut flat = vec![0f32; group.len() * da];
-            out.contiguous().view([-1]).copy_data(&mut flat, group.len() * da);
+            let flat = self.run.act(&hs, prefix.as_ref()); // [A * da]
             for (p, a) in group.into_iter().zip(flat.chunks_exact(da)) {
                 if let Some(e) = self.episodes.get_mut(&p.id) {
                     e.last_action = a.to_vec();
@@ -524,22 +450,6 @@ fn unknown(id: u64) -> ApiError {
         StatusCode::NOT_FOUND,
         format!("no open episode {id} (closed, timed out, or never opened)"),
     )
-}
-
-/// `values` as f32, refusing what is not finite there (a huge f64 becomes an f32 infinity).
-fn finite(name: &str, values: &[f64]) -> Result<Vec<f32>, ApiError> {
-    values
-        .iter()
-        .enumerate()
-        .map(|(i, &x)| {
-            let y = x as f32;
-            if y.is_finite() {
-                Ok(y)
-            } else {
-                Err(ApiError::bad(format!("{name}[{i}] = {x:e} is not a finite f32")))
-            }
-        })
-        .collect()
 }
 
 // ------------------------------------------------------------------------------------------------

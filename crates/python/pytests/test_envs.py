@@ -1,0 +1,65 @@
+"""make_vec equals the Rust environments stepped one by one; gymnasium's API."""
+import numpy as np
+import pytest
+
+import promptdt
+from promptdt import _native
+from promptdt.envs import make_vec
+
+gym = pytest.importorskip("gymnasium")
+
+
+@pytest.mark.parametrize("family,tasks", [("cheetah_vel", [0, 3, 7]), ("ant_dir", [1, 2]), ("point_robot", [0, 39])])
+def test_vector_env_equals_single_envs_step_for_step(family, tasks):
+    env = make_vec(family, tasks, threads=2)
+    obs, info = env.reset(seed=[5, 6, 7][: len(tasks)])
+    singles = [_native.VecEnv(family, [t], 0) for t in tasks]
+    first = np.concatenate([s.reset([seed]) for s, seed in zip(singles, [5, 6, 7])])
+    np.testing.assert_array_equal(obs, first)
+    rng = np.random.default_rng(0)
+    for t in range(30):
+        a = rng.uniform(-1, 1, env.action_space.shape).astype(np.float32)
+        o, r, term, trunc, _ = env.step(a)
+        for i, s in enumerate(singles):
+            so, sr, st, su = s.step(a[i : i + 1])
+            np.testing.assert_array_equal(o[i], so[0])
+            assert r[i] == np.float64(sr[0]) and term[i] == st[0] and trunc[i] == su[0]
+        if (term | trunc).any():
+            break
+
+
+def test_gymnasium_api_and_autoreset():
+    env = make_vec("point_robot", 3, num_envs=2)
+    assert isinstance(env, gym.vector.VectorEnv)
+    assert env.observation_space.shape == (2, 2) and env.action_space.shape == (2, 2)
+    obs, info = env.reset(seed=0)
+    assert obs.dtype == np.float32 and list(info["seed"]) == [0, 1]
+    again, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(obs, again)
+    ends = 0
+    for t in range(env.horizon + 1):
+        obs, rew, term, trunc, _ = env.step(env.action_space.sample())
+        ends += int((term | trunc).sum())
+        if t == env.horizon - 1:
+            assert trunc.all()
+    assert ends == 2
+    # The step after the end reset both (reward 0, the start state).
+    assert np.all(rew == 0.0)
+
+
+def test_make_vec_tasks_and_errors():
+    env = make_vec("cheetah_vel", [2, 7], num_envs=4)
+    assert env.tasks == [2, 2, 7, 7]
+    with pytest.raises(ValueError, match="unknown environment `nope`"):
+        make_vec("nope", [0])
+    with pytest.raises(ValueError, match="unknown task 99 of cheetah_vel"):
+        make_vec("cheetah_vel", [99])
+    env.reset(seed=1)
+    with pytest.raises(ValueError, match=r"actions: shape"):
+        env.step(np.zeros((4, 5)))
+    with pytest.raises(ValueError, match="not a finite number"):
+        env.step(np.full((4, 6), np.nan))
+    fams = promptdt.families()
+    assert fams["cheetah_vel"]["num_tasks"] == 40 and fams["ant_dir"]["obs_dim"] == 27
+    assert promptdt.task_params("cheetah_vel", 3) == {"velocity": 0.3}
+    assert set(promptdt.task_params("point_robot", 3)) == {"angle", "goal"}

@@ -1,0 +1,186 @@
+"""promptdt: the Prompt-based Decision Transformer (Prompt-DT) in Rust, from Python.
+
+A trained run's policy (``Policy``), the environment families as a gymnasium vector env
+(``promptdt.envs.make_vec``), the dataset readers (``load_dataset``), and training, evaluation and
+collection (``train``, ``evaluate``, ``collect``), over the same library code as the ``promptdt``
+command. Arrays are numpy arrays; errors are Python exceptions (``ValueError``,
+``FileNotFoundError``) that name the file, field or shape.
+"""
+from __future__ import annotations
+
+import json as _json
+import os as _os
+import sys as _sys
+from dataclasses import dataclass as _dataclass
+from pathlib import Path as _Path
+from typing import List, Optional, Union
+
+import numpy as _np
+
+_TORCH = "2.11.0"
+# The module links the libtorch bundled in promptdt/_libs. A PyTorch imported before it provides
+# libtorch_cpu.so under the same name, and the dynamic loader then uses that one: it must be the
+# same version, or the process would mix two libtorch builds.
+if "torch" in _sys.modules:
+    _v = getattr(_sys.modules["torch"], "__version__", "").split("+")[0]
+    if _v and _v != _TORCH:
+        raise ImportError(
+            f"promptdt is built on libtorch {_TORCH}, but torch {_v} is already imported in this "
+            "process; import promptdt first, or use torch 2.11.0"
+        )
+
+from . import _native  # noqa: E402
+from ._native import Policy, Prompt, TaskPlan, families, set_num_threads  # noqa: E402,F401
+
+__version__ = _native.__version__
+
+PathLike = Union[str, "_os.PathLike[str]"]
+
+
+@_dataclass
+class Trajectory:
+    """One episode: ``observations[t]`` is the observation before ``actions[t]``."""
+
+    observations: _np.ndarray  # [T, obs_dim] float32
+    actions: _np.ndarray  # [T, act_dim] float32
+    rewards: _np.ndarray  # [T] float32
+    terminated: _np.ndarray  # [T] bool: the MDP ended here
+    truncated: _np.ndarray  # [T] bool: a time limit cut the episode here
+
+    def __len__(self) -> int:
+        return len(self.rewards)
+
+    @property
+    def episode_return(self) -> float:
+        return float(self.rewards.astype(_np.float64).sum())
+
+
+@_dataclass
+class Dataset:
+    """The trajectories of one file (one task's D_i or prompt set P_i)."""
+
+    obs_dim: int
+    act_dim: int
+    trajectories: List[Trajectory]
+    #: family, task index and mode (``expert``, ``prompt-expert``, ...) of a native file; None for
+    #: a reference pickle (its name says them)
+    env: Optional[str] = None
+    task: Optional[int] = None
+    mode: Optional[str] = None
+
+    def __len__(self) -> int:
+        return len(self.trajectories)
+
+
+def load_dataset(path: PathLike) -> Dataset:
+    """Reads a dataset file: a native ``.safetensors`` file (``promptdt collect``) or a reference
+    release ``.pkl`` (read by promptdt's safe reader: nothing in the file is executed). The arrays
+    are handed over without a copy."""
+    d = _native.load_dataset(_os.fspath(path))
+    meta = d["meta"] or {}
+    return Dataset(
+        obs_dim=d["obs_dim"],
+        act_dim=d["act_dim"],
+        trajectories=[Trajectory(**t) for t in d["trajectories"]],
+        env=meta.get("env"),
+        task=meta.get("task"),
+        mode=meta.get("mode"),
+    )
+
+
+def task_params(family: str, task: int) -> dict:
+    """A task's parameters (``{"velocity": v}``, ``{"goal": [x, y]}``, ...)."""
+    return _json.loads(_native.task_params(family, task))
+
+
+def train(
+    out: PathLike,
+    config: Optional[PathLike] = None,
+    *,
+    resume: bool = False,
+    seed: Optional[int] = None,
+    iterations: Optional[int] = None,
+    method: Optional[str] = None,
+    device: Optional[str] = None,
+    data: Optional[PathLike] = None,
+) -> dict:
+    """``promptdt train``: trains from ``config`` (TOML) into ``out``, or continues the run in
+    ``out`` exactly where it stopped (``resume=True``). Returns ``{"dir", "iterations_done",
+    "finished", "last_test_mean"}``."""
+    return _native.train(
+        _os.fspath(out),
+        config=None if config is None else _os.fspath(config),
+        resume=resume,
+        seed=seed,
+        iterations=iterations,
+        method=method,
+        device=device,
+        data=None if data is None else _os.fspath(data),
+    )
+
+
+def evaluate(
+    run: PathLike,
+    *,
+    episodes: Optional[int] = None,
+    split: str = "test",
+    device: Optional[str] = None,
+    data: Optional[PathLike] = None,
+) -> dict:
+    """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
+    run's ``eval_final.json``; returns its content."""
+    return _json.loads(
+        _native.evaluate(
+            _os.fspath(run),
+            episodes=episodes,
+            split=split,
+            device=device,
+            data=None if data is None else _os.fspath(data),
+        )
+    )
+
+
+def collect(
+    env: str,
+    out: PathLike,
+    *,
+    seed: int = 0,
+    episodes: Optional[int] = None,
+    prompt_episodes: Optional[int] = None,
+    pretrained_dir: Optional[PathLike] = None,
+    device: str = "cpu",
+) -> int:
+    """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
+    ``point_robot`` uses its scripted expert; the MuJoCo families use a trained agent directory
+    (``pretrained_dir``, default ``pretrained/<env>`` of the checkout, as ``--from-pretrained``).
+    Returns the number of files written."""
+    if env in ("point_robot", "point-robot"):
+        return _native.collect_point_robot(
+            _os.fspath(out), seed=seed, episodes=episodes, prompt_episodes=prompt_episodes
+        )
+    if pretrained_dir is None:
+        pretrained_dir = _Path("pretrained") / env
+    return _native.collect_from_agent(
+        _os.fspath(pretrained_dir),
+        _os.fspath(out),
+        seed=seed,
+        episodes=episodes,
+        prompt_episodes=prompt_episodes,
+        device=device,
+    )
+
+
+__all__ = [
+    "Dataset",
+    "Policy",
+    "Prompt",
+    "TaskPlan",
+    "Trajectory",
+    "collect",
+    "evaluate",
+    "families",
+    "load_dataset",
+    "set_num_threads",
+    "task_params",
+    "train",
+]

@@ -1,0 +1,149 @@
+"""promptdt's environment families as gymnasium vector environments.
+
+``make_vec(family, tasks, num_envs)`` returns a ``gymnasium.vector.VectorEnv`` over the Rust
+environments (real MuJoCo 3.17 for the MuJoCo families), stepped on worker threads. It follows
+gymnasium 1.x's vector API: ``reset(seed=...)`` -> ``(obs, infos)``, ``step(actions)`` -> ``(obs,
+rewards, terminations, truncations, infos)``, autoreset in gymnasium's default ``NEXT_STEP`` mode
+(the step after an episode ends resets that environment and ignores its action).
+
+Seeds: ``reset(seed=s)`` gives environment i the seed ``s + i`` (gymnasium's convention);
+``reset(seed=[s0, s1, ...])`` gives each its own (the seeds ``Policy.eval_plan`` lists, for
+instance). Later automatic resets draw their seeds from a generator seeded at the last
+``reset(seed=...)``, so a rollout is fully determined by its seeds and actions.
+"""
+from __future__ import annotations
+
+from typing import Any, List, Optional, Sequence, Union
+
+import numpy as np
+
+from . import _native
+
+try:
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode, VectorEnv
+except ImportError as e:  # pragma: no cover - exercised only without gymnasium
+    raise ImportError(
+        "promptdt.envs needs gymnasium >= 1.0 (pip install gymnasium); the native "
+        "promptdt._native.VecEnv works without it"
+    ) from e
+
+#: Action bounds per family (MuJoCo clamps controls to [-1, 1]; the point robot clips its
+#: velocity to [-0.1, 0.1]).
+_ACTION_BOUND = {"point_robot": 0.1}
+
+
+def families() -> dict:
+    """Every family's tasks, dims, horizon and splits."""
+    return _native.families()
+
+
+class PromptDTVectorEnv(VectorEnv):
+    """Environments of one family, one per entry of ``tasks``, stepped together in Rust."""
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(self, family: str, tasks: Sequence[int], threads: int = 0):
+        self._env = _native.VecEnv(family, [int(t) for t in tasks], threads)
+        self.family = self._env.family
+        self.tasks = list(self._env.tasks)
+        self.num_envs = self._env.num_envs
+        self.horizon = self._env.horizon
+        bound = _ACTION_BOUND.get(self.family, 1.0)
+        self.single_observation_space = gym.spaces.Box(
+            -np.inf, np.inf, (self._env.obs_dim,), np.float32
+        )
+        self.single_action_space = gym.spaces.Box(-bound, bound, (self._env.act_dim,), np.float32)
+        self.observation_space = gym.vector.utils.batch_space(
+            self.single_observation_space, self.num_envs
+        )
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._started = False
+        self._seed_rng = np.random.default_rng()
+
+    def _draw_seeds(self, n: int) -> List[int]:
+        return [int(s) for s in self._seed_rng.integers(0, 2**63, size=n, dtype=np.int64)]
+
+    def reset(
+        self,
+        *,
+        seed: Optional[Union[int, Sequence[Optional[int]]]] = None,
+        options: Optional[dict] = None,
+    ):
+        """Resets every environment; returns ``(obs [num_envs, obs_dim], infos)``."""
+        if seed is None:
+            seeds = self._draw_seeds(self.num_envs)
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+            self._seed_rng = np.random.default_rng(int(seed))
+        else:
+            seed = list(seed)
+            if len(seed) != self.num_envs:
+                raise ValueError(f"reset: {len(seed)} seeds for {self.num_envs} environments")
+            drawn = self._draw_seeds(self.num_envs)
+            seeds = [int(s) if s is not None else d for s, d in zip(seed, drawn)]
+            self._seed_rng = np.random.default_rng([s % 2**63 for s in seeds])
+        if any(s < 0 or s >= 2**64 for s in seeds):
+            raise ValueError("reset: seeds must be in [0, 2**64)")
+        obs = self._env.reset(seeds)
+        self._autoreset[:] = False
+        self._started = True
+        return obs, {"task": np.asarray(self.tasks), "seed": np.asarray(seeds, dtype=np.uint64)}
+
+    def step(self, actions: Any):
+        """Steps every environment with its row of ``actions`` ``[num_envs, act_dim]``; one that
+        ended at the previous step is reset instead (its action ignored, reward 0)."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = np.asarray(actions, dtype=np.float32)
+        if actions.shape != (self.num_envs, self.single_action_space.shape[0]):
+            raise ValueError(
+                f"actions: shape {actions.shape}, expected "
+                f"{(self.num_envs, self.single_action_space.shape[0])} (num_envs, act_dim)"
+            )
+        stepped = ~self._autoreset
+        obs, rewards, term, trunc = self._env.step(actions, stepped.tolist())
+        infos: dict = {}
+        if self._autoreset.any():
+            idx = np.flatnonzero(self._autoreset)
+            first = self._env.reset(self._draw_seeds(len(idx)), idx.tolist())
+            obs[idx] = first
+        self._autoreset = term | trunc
+        return obs, rewards.astype(np.float64), term, trunc, infos
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._env = None
+
+
+def make_vec(
+    family: str,
+    tasks: Union[int, Sequence[int]],
+    num_envs: Optional[int] = None,
+    *,
+    threads: int = 0,
+) -> PromptDTVectorEnv:
+    """A gymnasium vector env of ``family`` (``cheetah_vel``, ``cheetah_dir``, ``ant_dir``,
+    ``point_robot``). ``tasks``: one task index for all ``num_envs`` environments, or one per
+    environment (a list; ``num_envs`` then defaults to its length, or repeats it task by task:
+    ``make_vec("cheetah_vel", [2, 7], num_envs=4)`` is tasks ``[2, 2, 7, 7]``). ``threads``: worker
+    threads stepping them (0: one per core)."""
+    if isinstance(tasks, (int, np.integer)):
+        task_list = [int(tasks)] * (num_envs or 1)
+    else:
+        base = [int(t) for t in tasks]
+        if not base:
+            raise ValueError("tasks: give at least one task")
+        if num_envs is None or num_envs == len(base):
+            task_list = base
+        elif num_envs % len(base) == 0:
+            per = num_envs // len(base)
+            task_list = [t for t in base for _ in range(per)]
+        else:
+            raise ValueError(
+                f"num_envs {num_envs} is not a multiple of the {len(base)} tasks given"
+            )
+    return PromptDTVectorEnv(family, task_list, threads=threads)
+
+
+__all__ = ["PromptDTVectorEnv", "families", "make_vec"]

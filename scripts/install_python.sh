@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Builds the promptdt Python package (a wheel, with maturin) and installs it into a virtual
+# environment, from a clean clone, idempotently:
+#
+#   bash scripts/install_python.sh [VENV]        (default .venv-promptdt; PYTHON picks the interpreter)
+#   VENV/bin/python -c "import promptdt"
+#
+# What it does:
+#   1. fetches libtorch 2.11.0 (CPU part) and MuJoCo 3.17.0 into third_party/ if they are not there
+#      (the same scripts as `make setup`);
+#   2. creates VENV if needed and installs the build and test tools in it (maturin, numpy,
+#      gymnasium, pytest; minari with PROMPTDT_PY_EXTRAS=minari);
+#   3. copies the shared libraries the module links (libtorch_cpu, libc10, libgomp, the CUDA runtime
+#      and CUPTI stubs libtorch_cpu names, libmujoco) into promptdt/_libs, where the module's
+#      $ORIGIN/_libs rpath finds them: the wheel is self-contained (no torch, no environment
+#      variables), and it does not depend on this checkout once installed;
+#   4. builds the wheel into target/wheels (release, stripped) and pip-installs it into VENV.
+#
+# The build reuses target/ (a second run after a change only rebuilds the extension). Cost and
+# wheel size: see docs/python.md.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+venv="${1:-.venv-promptdt}"
+python="${PYTHON:-python3}"
+start=$(date +%s)
+
+python3 scripts/fetch_libtorch.py
+python3 scripts/fetch_mujoco.py
+
+if [ ! -x "$venv/bin/python" ]; then
+    "$python" -m venv "$venv"
+fi
+pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7")
+if [[ ",${PROMPTDT_PY_EXTRAS:-}," == *",minari,"* ]]; then
+    pkgs+=("minari>=0.5,<0.6")
+fi
+"$venv/bin/python" -m pip install -q --disable-pip-version-check "${pkgs[@]}"
+
+libs=crates/python/python/promptdt/_libs
+rm -rf "$libs.tmp"
+mkdir -p "$libs.tmp"
+for f in third_party/libtorch/torch/lib/libtorch_cpu.so third_party/libtorch/torch/lib/libc10.so \
+         third_party/libtorch/torch/lib/libgomp.so.1 \
+         third_party/libtorch/nvidia/cu13/lib/libcudart.so.13 \
+         third_party/libtorch/nvidia/cu13/lib/libcupti.so.13 \
+         third_party/mujoco/lib/libmujoco.so.3.17.0; do
+    # Hard links where the file system allows (no 450 MB copy), copies elsewhere.
+    ln "$f" "$libs.tmp/" 2>/dev/null || cp "$f" "$libs.tmp/"
+done
+rm -rf "$libs"
+mv "$libs.tmp" "$libs"
+
+# maturin's own rpath and linker settings are not wanted: the workspace's .cargo/config.toml
+# rustflags stay as they are (so the library crates are not rebuilt), and crates/python/build.rs
+# adds the $ORIGIN/_libs rpath.
+rm -f target/wheels/promptdt-*.whl
+"$venv/bin/maturin" build --release --strip --manifest-path crates/python/Cargo.toml \
+    --interpreter "$venv/bin/python" --out target/wheels
+wheel=$(ls target/wheels/promptdt-*.whl)
+"$venv/bin/python" -m pip install -q --disable-pip-version-check --force-reinstall --no-deps "$wheel"
+"$venv/bin/python" -c "import promptdt; print('install_python: promptdt', promptdt.__version__, 'in', '$venv')"
+echo "install_python: wheel $wheel ($(du -h "$wheel" | cut -f1)), done in $(( $(date +%s) - start )) s"
