@@ -11,7 +11,7 @@ PYTHON ?= python3
 TORCH_PYTHON ?= .venv/bin/python
 LIVE_GOLDEN := target/golden-live
 
-.PHONY: demo test setup bench fmt lint torch-venv live-golden
+.PHONY: demo test setup bench fmt lint torch-venv live-golden python python-test
 
 setup:
 	$(PYTHON) scripts/fetch_libtorch.py
@@ -37,6 +37,14 @@ live-golden:
 
 torch-venv:
 	bash scripts/setup_torch_venv.sh
+
+# The Python package (docs/python.md): build the wheel, install it into PY_VENV, run its tests.
+PY_VENV ?= .venv-promptdt
+python:
+	bash scripts/install_python.sh $(PY_VENV)
+
+python-test: python
+	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} $(PY_VENV)/bin/python -m pytest -q crates/python/pytests
 
 # Side-by-side with PyTorch (needs a Python with torch 2.11: see scripts/requirements-torch.txt).
 bench: setup

@@ -9,7 +9,7 @@
 #   1. fetches libtorch 2.11.0 (CPU part) and MuJoCo 3.17.0 into third_party/ if they are not there
 #      (the same scripts as `make setup`);
 #   2. creates VENV if needed and installs the build and test tools in it (maturin, numpy,
-#      gymnasium, pytest; minari with PROMPTDT_PY_EXTRAS=minari);
+#      gymnasium, pytest, safetensors; minari with PROMPTDT_PY_EXTRAS=minari);
 #   3. copies the shared libraries the module links (libtorch_cpu, libc10, libgomp, the CUDA runtime
 #      and CUPTI stubs libtorch_cpu names, libmujoco) into promptdt/_libs, where the module's
 #      $ORIGIN/_libs rpath finds them: the wheel is self-contained (no torch, no environment
@@ -30,7 +30,7 @@ python3 scripts/fetch_mujoco.py
 if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
-pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7")
+pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7" "safetensors>=0.4")
 if [[ ",${PROMPTDT_PY_EXTRAS:-}," == *",minari,"* ]]; then
     pkgs+=("minari>=0.5,<0.6")
 fi

@@ -448,7 +448,9 @@ impl Policy {
             tch::set_num_threads(t as i32);
         }
         let run = py
-            .detach(|| ServedRun::load(&run_dir, Some(device), data.as_deref()))
+            .detach(|| {
+                ServedRun::load(&run_dir, Some(device), data.as_deref()).map_err(|e| e.to_string())
+            })
             .map_err(value_error)?;
         let norm = run.norm();
         let first = first_rtg(run.returns, run.stats.target_return, run.stats.rtg_scale);
@@ -770,7 +772,7 @@ fn train<'py>(
                 stop_after_iterations: None,
                 progress: &mut progress,
             };
-            pdt_train::run::train(cfg, &out, opts)
+            pdt_train::run::train(cfg, &out, opts).map_err(|e| e.to_string())
         })
         .map_err(value_error)?;
     let d = PyDict::new(py);
@@ -800,7 +802,10 @@ fn evaluate(
     let device: Option<pdt_model::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
     let r = py
-        .detach(|| pdt_train::run::evaluate_run(&run_dir, episodes, split, device, data.as_deref()))
+        .detach(|| {
+            pdt_train::run::evaluate_run(&run_dir, episodes, split, device, data.as_deref())
+                .map_err(|e| e.to_string())
+        })
         .map_err(value_error)?;
     serde_json::to_string(&r).map_err(value_error)
 }

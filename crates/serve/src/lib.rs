@@ -43,7 +43,8 @@ pub struct ServeOptions {
     /// Requests waiting for the model thread at most (503 beyond).
     pub queue: usize,
     /// libtorch intra-op threads of the model thread (0: libtorch's default, all cores). With 1,
-    /// an episode gets the same bits alone or batched with others.
+    /// an episode gets the same bits alone or batched with others on AVX2 CPUs (within 1e-6 on
+    /// AVX-512 ones, whose kernels depend on the batch size).
     pub threads: usize,
 }
 
