@@ -43,7 +43,8 @@ PY_VENV ?= .venv-promptdt
 python:
 	bash scripts/install_python.sh $(PY_VENV)
 
-python-test: python
+python-test:
+	PROMPTDT_PY_EXTRAS=minari bash scripts/install_python.sh $(PY_VENV)
 	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} $(PY_VENV)/bin/python -m pytest -q crates/python/pytests
 
 # Side-by-side with PyTorch (needs a Python with torch 2.11: see scripts/requirements-torch.txt).

@@ -32,7 +32,7 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7" "safetensors>=0.4")
 if [[ ",${PROMPTDT_PY_EXTRAS:-}," == *",minari,"* ]]; then
-    pkgs+=("minari>=0.5,<0.6")
+    pkgs+=("minari[hdf5]>=0.5,<0.6" "pillow")  # minari 0.5.4's hdf5 storage imports PIL
 fi
 "$venv/bin/python" -m pip install -q --disable-pip-version-check "${pkgs[@]}"
 

@@ -100,6 +100,80 @@ fn load_dataset<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDi
     Ok(out)
 }
 
+/// One trajectory's arrays from Python, checked against the dims.
+fn trajectory_from_py(
+    i: usize,
+    t: &Bound<'_, PyDict>,
+    obs_dim: usize,
+    act_dim: usize,
+) -> PyResult<pdt_data::Trajectory> {
+    let get = |key: &str| -> PyResult<Bound<'_, PyAny>> {
+        t.get_item(key)?.ok_or_else(|| value_error(format!("trajectory {i}: no `{key}`")))
+    };
+    let floats = |key: &str, cols: usize| -> PyResult<Vec<f32>> {
+        let item = get(key)?;
+        let a: PyArrayLike2<'_, f32, AllowTypeChange> = if cols == 0 {
+            let v: PyArrayLike1<'_, f32, AllowTypeChange> = item.extract().map_err(|e| {
+                value_error(format!("trajectory {i}: `{key}` is not a 1-D float array ({e})"))
+            })?;
+            return Ok(v.as_array().to_vec());
+        } else {
+            item.extract().map_err(|e| {
+                value_error(format!("trajectory {i}: `{key}` is not a 2-D float array ({e})"))
+            })?
+        };
+        if a.shape()[1] != cols {
+            return Err(value_error(format!(
+                "trajectory {i}: `{key}` has shape {:?}, expected [T, {cols}]",
+                a.shape()
+            )));
+        }
+        Ok(a.as_array().iter().copied().collect())
+    };
+    let flags = |key: &str| -> PyResult<Vec<bool>> {
+        let v: PyArrayLike1<'_, bool, AllowTypeChange> = get(key)?.extract().map_err(|e| {
+            value_error(format!("trajectory {i}: `{key}` is not a 1-D bool array ({e})"))
+        })?;
+        Ok(v.as_array().to_vec())
+    };
+    pdt_data::Trajectory::new(
+        obs_dim,
+        act_dim,
+        floats("observations", obs_dim)?,
+        floats("actions", act_dim)?,
+        floats("rewards", 0)?,
+        flags("terminated")?,
+        flags("truncated")?,
+    )
+    .map_err(|e| value_error(format!("trajectory {i}: {e}")))
+}
+
+/// Writes trajectories (dicts with the keys `load_dataset` returns) as a native `.safetensors`
+/// file, atomically (a temporary file, then a rename), after the reader's checks (finite values,
+/// flags only at an episode's last step, shapes).
+#[pyfunction]
+#[pyo3(signature = (path, trajectories, obs_dim, act_dim, env = None, task = None, mode = None))]
+#[allow(clippy::too_many_arguments)]
+fn write_dataset(
+    py: Python<'_>,
+    path: PathBuf,
+    trajectories: Vec<Bound<'_, PyDict>>,
+    obs_dim: usize,
+    act_dim: usize,
+    env: Option<String>,
+    task: Option<usize>,
+    mode: Option<String>,
+) -> PyResult<()> {
+    let trajs = trajectories
+        .iter()
+        .enumerate()
+        .map(|(i, t)| trajectory_from_py(i, t, obs_dim, act_dim))
+        .collect::<PyResult<Vec<_>>>()?;
+    let ds = pdt_data::TaskDataset { obs_dim, act_dim, trajectories: trajs };
+    let meta = pdt_data::native::FileMeta { env, task_index: task, mode };
+    py.detach(|| pdt_data::native::write_task_dataset(&path, &ds, &meta)).map_err(value_error)
+}
+
 // ------------------------------------------------------------------------------------------------
 // Environments
 // ------------------------------------------------------------------------------------------------
@@ -878,6 +952,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("LIBTORCH_VERSION", "2.11.0")?;
     m.add_function(wrap_pyfunction!(load_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(write_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(families, m)?)?;
     m.add_function(wrap_pyfunction!(task_params, m)?)?;
     m.add_function(wrap_pyfunction!(train, m)?)?;

@@ -170,7 +170,35 @@ def collect(
     )
 
 
+def export_minari(*args, **kwargs):
+    """promptdt files -> a Minari dataset (see ``promptdt.minari_io.export_minari``)."""
+    from .minari_io import export_minari as f
+
+    return f(*args, **kwargs)
+
+
+def import_minari(*args, **kwargs):
+    """A Minari dataset -> promptdt files (see ``promptdt.minari_io.import_minari``)."""
+    from .minari_io import import_minari as f
+
+    return f(*args, **kwargs)
+
+
+def write_dataset(path: PathLike, dataset: "Dataset") -> None:
+    """Writes ``dataset`` as a native ``.safetensors`` file, atomically, after the reader's checks."""
+    trajs = [
+        dict(observations=t.observations, actions=t.actions, rewards=t.rewards,
+             terminated=t.terminated, truncated=t.truncated)
+        for t in dataset.trajectories
+    ]
+    _native.write_dataset(_os.fspath(path), trajs, dataset.obs_dim, dataset.act_dim,
+                          env=dataset.env, task=dataset.task, mode=dataset.mode)
+
+
 __all__ = [
+    "export_minari",
+    "import_minari",
+    "write_dataset",
     "Dataset",
     "Policy",
     "Prompt",

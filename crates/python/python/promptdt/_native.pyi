@@ -102,3 +102,13 @@ class Policy:
     def restart(self, episodes: Sequence[int]) -> None: ...
     def act(self, obs: npt.ArrayLike, reward: Optional[npt.ArrayLike] = None) -> F32: ...
     def episode_returns(self) -> List[Optional[float]]: ...
+
+def write_dataset(
+    path: _Path,
+    trajectories: Sequence[Dict[str, Any]],
+    obs_dim: int,
+    act_dim: int,
+    env: Optional[str] = None,
+    task: Optional[int] = None,
+    mode: Optional[str] = None,
+) -> None: ...

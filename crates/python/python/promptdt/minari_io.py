@@ -1,0 +1,199 @@
+"""Minari interop: promptdt datasets to Minari datasets and back, through the ``minari`` library.
+
+Minari (the maintained successor of D4RL) stores episodes with ``T + 1`` observations (the one after
+the last action included). promptdt's files keep the ``T`` observations before each action: the one
+after the last action was not recorded. The export therefore repeats the last observation and says
+so in every episode's options (``"final_observation": "repeated"``) and in the dataset's metadata. A
+learner that bootstraps from the last step's next observation must not use it (for time-limit
+truncations D4RL-style pipelines drop that step anyway). The import drops the extra observation, so
+promptdt -> Minari -> promptdt gives back the same bits.
+
+Per episode, the options hold the task index, its parameters (``{"velocity": 0.3}``), the split it
+belongs to (``train``/``test`` of the family's named split) and the set (``expert``,
+``prompt-expert``, ...); the import regroups episodes into one native file per task and set.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _native
+
+PathLike = Union[str, "os.PathLike[str]"]
+_NAME = re.compile(r"^(?P<env>.+?)-(?P<task>\d+)-(?P<mode>[A-Za-z][\w-]*)\.(safetensors|pkl)$")
+
+
+def _minari():
+    try:
+        import minari
+    except ImportError as e:
+        raise ImportError(
+            "Minari interop needs the minari package with a storage backend: "
+            "pip install 'minari[hdf5]' (or PROMPTDT_PY_EXTRAS=minari bash scripts/install_python.sh)"
+        ) from e
+    return minari
+
+
+def _task_files(data: PathLike, mode: str, tasks: Optional[Sequence[int]]) -> List[Tuple[str, int, Path]]:
+    data = Path(data)
+    if not data.is_dir():
+        raise FileNotFoundError(f"{data}: not a directory of dataset files")
+    found: Dict[int, Tuple[str, Path]] = {}
+    envs = set()
+    for p in sorted(data.iterdir()):
+        m = _NAME.match(p.name)
+        if not m or m.group("mode") != mode:
+            continue
+        task = int(m.group("task"))
+        if task in found and found[task][1].suffix == ".safetensors":
+            continue  # the native file wins over a pickle of the same task, as `auto` picks it
+        found[task] = (m.group("env"), p)
+        envs.add(m.group("env"))
+    if len(envs) > 1:
+        raise ValueError(f"{data}: files of several families ({', '.join(sorted(envs))}) for mode {mode}")
+    if tasks is not None:
+        missing = [t for t in tasks if t not in found]
+        if missing:
+            raise ValueError(f"{data}: no {mode} file for tasks {missing}")
+        found = {t: found[t] for t in tasks}
+    if not found:
+        raise ValueError(f"{data}: no `{{env}}-{{task}}-{mode}.safetensors` (or .pkl) files")
+    return [(env, t, p) for t, (env, p) in sorted(found.items())]
+
+
+def export_minari(
+    data: PathLike,
+    dataset_id: str,
+    *,
+    mode: str = "expert",
+    tasks: Optional[Sequence[int]] = None,
+    split: str = "default",
+    author: Optional[str] = None,
+    description: Optional[str] = None,
+):
+    """Writes the ``mode`` files of ``data`` (a directory ``promptdt collect`` wrote, or the
+    reference release's pickles) as the Minari dataset ``dataset_id`` (under
+    ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``). Returns the ``MinariDataset``."""
+    minari = _minari()
+    import gymnasium as gym
+
+    files = _task_files(data, mode, tasks)
+    env = files[0][0]
+    fams = _native.families()
+    if env not in fams:
+        raise ValueError(f"{env}: not a promptdt family ({', '.join(fams)})")
+    fam = fams[env]
+    if split not in fam["splits"]:
+        raise ValueError(f"unknown split `{split}` of {env} (known: {', '.join(fam['splits'])})")
+    train, test = (set(x) for x in fam["splits"][split])
+    buffers = []
+    obs_dim = act_dim = None
+    for _, task, path in files:
+        ds = _native.load_dataset(os.fspath(path))
+        obs_dim, act_dim = ds["obs_dim"], ds["act_dim"]
+        which = "train" if task in train else "test" if task in test else "none"
+        options = {
+            "task": task,
+            "task_params": json.loads(_native.task_params(env, task)),
+            "split": which,
+            "mode": mode,
+            "final_observation": "repeated",
+        }
+        for t in ds["trajectories"]:
+            obs = t["observations"]
+            buffers.append(
+                minari.data_collector.EpisodeBuffer(
+                    id=len(buffers),
+                    observations=np.concatenate([obs, obs[-1:]]),
+                    actions=t["actions"],
+                    rewards=t["rewards"],
+                    terminations=t["terminated"],
+                    truncations=t["truncated"],
+                    options=dict(options),
+                )
+            )
+    bound = 0.1 if env == "point_robot" else 1.0
+    dataset = minari.create_dataset_from_buffers(
+        dataset_id=dataset_id,
+        buffer=buffers,
+        observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
+        action_space=gym.spaces.Box(-bound, bound, (act_dim,), np.float32),
+        algorithm_name="promptdt collect",
+        author=author or "promptdt",
+        code_permalink="https://github.com/promptdt/promptdt",
+        description=description
+        or f"promptdt {env} {mode} data, {len(files)} tasks (split `{split}`); the last observation "
+        "of each episode is a repeat (not recorded)",
+    )
+    dataset.storage.update_metadata(
+        {
+            "promptdt_env": env,
+            "promptdt_mode": mode,
+            "promptdt_split": split,
+            "promptdt_tasks": [t for _, t, _ in files],
+            "promptdt_final_observation": "repeated",
+        }
+    )
+    return dataset
+
+
+def import_minari(
+    dataset,
+    out: PathLike,
+    *,
+    env: Optional[str] = None,
+    task: Optional[int] = None,
+    mode: Optional[str] = None,
+) -> List[Path]:
+    """Writes a Minari dataset (an id or a ``MinariDataset``) as native files in ``out``: one per
+    task and set, as the episodes' options say (an export of promptdt's), or one file
+    ``{env}-{task}-{mode}.safetensors`` for a dataset from elsewhere (give ``env``, ``task`` and
+    ``mode``). The observation after each episode's last action is dropped. Returns the files."""
+    minari = _minari()
+    if isinstance(dataset, str):
+        dataset = minari.load_dataset(dataset)
+    meta = dataset.storage.metadata
+    env = env or meta.get("promptdt_env")
+    if env is None:
+        raise ValueError("the dataset was not exported by promptdt: give env, task and mode")
+    groups: Dict[Tuple[int, str], List[dict]] = {}
+    episode_meta = list(dataset.storage.get_episode_metadata(dataset.episode_indices))
+    for ep, em in zip(dataset.iterate_episodes(), episode_meta):
+        opts = em.get("options") or {}
+        t = task if task is not None else opts.get("task")
+        m = mode or opts.get("mode")
+        if t is None or m is None:
+            raise ValueError(f"episode {ep.id}: no task/mode in its options; give task and mode")
+        obs = np.asarray(ep.observations)
+        if obs.ndim != 2 or len(obs) != len(ep.rewards) + 1:
+            raise ValueError(
+                f"episode {ep.id}: observations of shape {obs.shape} for {len(ep.rewards)} steps "
+                "(promptdt takes Box observations, T + 1 of them)"
+            )
+        groups.setdefault((int(t), str(m)), []).append(
+            {
+                "observations": obs[:-1],
+                "actions": np.asarray(ep.actions),
+                "rewards": np.asarray(ep.rewards),
+                "terminated": np.asarray(ep.terminations, dtype=bool),
+                "truncated": np.asarray(ep.truncations, dtype=bool),
+            }
+        )
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for (t, m), trajs in sorted(groups.items()):
+        path = out / f"{env}-{t}-{m}.safetensors"
+        obs_dim = trajs[0]["observations"].shape[1]
+        act_dim = trajs[0]["actions"].shape[1]
+        _native.write_dataset(os.fspath(path), trajs, obs_dim, act_dim, env=env, task=t, mode=m)
+        written.append(path)
+    return written
+
+
+__all__ = ["export_minari", "import_minari"]
