@@ -937,6 +937,23 @@ fn collect_from_agent(
     Ok(summary.entries.len())
 }
 
+/// The Rust environment benchmark (`pdt_envs::bench`, no Python in the loop), for comparison with
+/// the same stepping from Python: JSON text of its results.
+#[pyfunction]
+#[pyo3(signature = (families, steps_per_env, vec_envs, threads, seed = 0))]
+fn bench_envs(
+    py: Python<'_>,
+    families: Vec<String>,
+    steps_per_env: usize,
+    vec_envs: usize,
+    threads: Vec<usize>,
+    seed: u64,
+) -> PyResult<String> {
+    let cfg = pdt_envs::bench::EnvBenchConfig { families, steps_per_env, vec_envs, threads, seed };
+    let r = py.detach(|| pdt_envs::bench::run(&cfg)).map_err(value_error)?;
+    serde_json::to_string(&r).map_err(value_error)
+}
+
 /// Sets libtorch's intra-op threads for this process.
 #[pyfunction]
 fn set_num_threads(threads: usize) -> PyResult<()> {
@@ -960,6 +977,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(collect_point_robot, m)?)?;
     m.add_function(wrap_pyfunction!(collect_from_agent, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;
+    m.add_function(wrap_pyfunction!(bench_envs, m)?)?;
     m.add_class::<VecEnv>()?;
     m.add_class::<Policy>()?;
     m.add_class::<Prompt>()?;

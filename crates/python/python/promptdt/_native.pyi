@@ -112,3 +112,6 @@ def write_dataset(
     task: Optional[int] = None,
     mode: Optional[str] = None,
 ) -> None: ...
+def bench_envs(
+    families: Sequence[str], steps_per_env: int, vec_envs: int, threads: Sequence[int], seed: int = 0
+) -> str: ...
