@@ -78,12 +78,24 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
             let same = b.actions.iter().zip(&s.actions).all(|(x, y)| x.to_bits() == y.to_bits());
             let diff =
                 b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
-            assert!(
-                same,
-                "task {} seed {}: batched actions differ by up to {diff:e}",
-                b.task_index, b.seed
-            );
-            assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
+            // Bit for bit where the CPU's kernels are batch-invariant (AVX2), within
+            // BATCH_TOLERANCE elsewhere (AVX-512; pdt_model::cpu::batch_invariant).
+            if pdt_model::cpu::batch_invariant() {
+                assert!(
+                    same,
+                    "task {} seed {}: batched actions differ by up to {diff:e}",
+                    b.task_index, b.seed
+                );
+                assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
+            } else {
+                assert!(
+                    diff <= pdt_model::cpu::BATCH_TOLERANCE,
+                    "task {} seed {}: batched actions differ by up to {diff:e}",
+                    b.task_index,
+                    b.seed
+                );
+                assert!((b.episode_return - s.episode_return).abs() <= 1e-4);
+            }
         }
         // The episodes of different tasks behave differently (the prompt carries the goal).
         if with_prompt {

@@ -105,8 +105,17 @@ fn episodes_leaving_batches_take_the_sequential_actions_on_any_thread_count() {
         for (b, s) in batched.iter().zip(&sequential) {
             assert_eq!((b.task_index, b.seed, b.length), (s.task_index, s.seed, s.length));
             let same = b.actions.iter().zip(&s.actions).all(|(x, y)| x.to_bits() == y.to_bits());
-            assert!(same, "max_batch {max_batch}, {env_threads} threads, seed {}", b.seed);
-            assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
+            let diff =
+                b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+            let what = format!("max_batch {max_batch}, {env_threads} threads, seed {}", b.seed);
+            // Bit for bit on batch-invariant kernels (AVX2), within BATCH_TOLERANCE on AVX-512.
+            if pdt_model::cpu::batch_invariant() {
+                assert!(same, "{what}: actions differ by up to {diff:e}");
+                assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
+            } else {
+                assert!(diff <= pdt_model::cpu::BATCH_TOLERANCE, "{what}: {diff:e}");
+                assert!((b.episode_return - s.episode_return).abs() <= 1e-4, "{what}");
+            }
         }
     }
 }
