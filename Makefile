@@ -16,6 +16,7 @@ LIVE_GOLDEN := target/golden-live
 setup:
 	$(PYTHON) scripts/fetch_libtorch.py
 	$(PYTHON) scripts/fetch_mujoco.py
+	$(PYTHON) scripts/fetch_metaworld.py
 
 demo: setup
 	$(CARGO) run --release -p promptdt -- demo

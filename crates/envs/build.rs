@@ -11,13 +11,16 @@
 //!    puts such paths (inside the target dir) on the library path of `cargo run` / `cargo test`
 //!    for every crate that depends on pdt-envs;
 //! 3. adds an rpath to pdt-envs's own test, bench and example binaries, so they also run straight
-//!    from `target/` without `LD_LIBRARY_PATH`.
+//!    from `target/` without `LD_LIBRARY_PATH`;
+//! 4. runs `scripts/fetch_metaworld.py` when `third_party/metaworld` (Meta-World 3.1.1's reach
+//!    scene, which `src/metaworld_reach.rs` embeds with `include_bytes!`) is not installed yet.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const MUJOCO_VERSION: &str = "3.17.0";
 const LIB_NAME: &str = "libmujoco.so.3.17.0";
+const METAWORLD_VERSION: &str = "3.1.1";
 
 fn main() {
     let manifest_dir = PathBuf::from(env("CARGO_MANIFEST_DIR"));
@@ -30,6 +33,10 @@ fn main() {
     println!("cargo::rerun-if-changed={}", script.display());
     println!("cargo::rerun-if-changed={}", stamp.display());
     println!("cargo::rerun-if-env-changed=PYTHON");
+    let mw_stamp = root.join("third_party").join("metaworld").join("build-version");
+    let mw_script = root.join("scripts").join("fetch_metaworld.py");
+    println!("cargo::rerun-if-changed={}", mw_script.display());
+    println!("cargo::rerun-if-changed={}", mw_stamp.display());
 
     if std::env::var("DOCS_RS").is_ok() {
         return; // docs.rs builds without linking
@@ -37,7 +44,17 @@ fn main() {
 
     let installed = std::fs::read_to_string(&stamp).map(|s| s.trim() == MUJOCO_VERSION);
     if !matches!(installed, Ok(true)) {
-        fetch(&script);
+        fetch(&script, &format!("MuJoCo {MUJOCO_VERSION} not found in third_party/mujoco"));
+    }
+    // (4) Before compiling: the crate include_bytes!'s these files.
+    let mw_installed = std::fs::read_to_string(&mw_stamp).map(|s| s.trim() == METAWORLD_VERSION);
+    if !matches!(mw_installed, Ok(true)) {
+        fetch(
+            &mw_script,
+            &format!(
+                "the Meta-World {METAWORLD_VERSION} reach scene is not in third_party/metaworld"
+            ),
+        );
     }
     let lib_dir = install.join("lib");
     let lib = lib_dir.join(LIB_NAME);
@@ -63,12 +80,9 @@ fn main() {
     println!("cargo::rustc-link-arg=-Wl,-rpath,{}", lib_dir.display());
 }
 
-fn fetch(script: &Path) {
+fn fetch(script: &Path, why: &str) {
     let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".to_string());
-    println!(
-        "cargo::warning=MuJoCo {MUJOCO_VERSION} not found in third_party/mujoco: running {}",
-        script.display()
-    );
+    println!("cargo::warning={why}: running {}", script.display());
     let status = Command::new(&python).arg(script).status();
     match status {
         Ok(s) if s.success() => {}

@@ -347,8 +347,8 @@ pub struct DemoArgs {
 
 #[derive(Debug, Args)]
 pub struct CollectArgs {
-    /// Task family: `point_robot` (scripted policies), `cheetah_dir`, `cheetah_vel`, `ant_dir`
-    /// (trains an RL agent, then writes its datasets).
+    /// Task family: `point_robot`, `metaworld_reach` (scripted policies), `cheetah_dir`,
+    /// `cheetah_vel`, `ant_dir` (trains an RL agent, then writes its datasets).
     #[arg(long)]
     pub env: String,
     /// Output directory of the datasets (default: data/<env>).
@@ -356,9 +356,13 @@ pub struct CollectArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Episodes per task in each main dataset (1 to 100000).
-    #[arg(long, default_value_t = 100, value_parser = count(1, 100_000))]
-    pub episodes: usize,
+    /// Episodes per task in each main dataset, 1 to 100000 (default: 200 for metaworld_reach, the
+    /// paper's count; 100 otherwise).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub episodes: Option<usize>,
+    /// Scripted families only: which datasets to write (default `expert,medium,random`).
+    #[arg(long, value_delimiter = ',')]
+    pub modes: Option<Vec<String>>,
     /// Episodes per task in each prompt set (1 to 10000).
     #[arg(long, default_value_t = 5, value_parser = count(1, 10_000))]
     pub prompt_episodes: usize,
@@ -396,6 +400,8 @@ pub struct CollectArgs {
     pub checkpoint_every: Option<u64>,
     /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all. With
     /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
+    /// Scripted families: collect these tasks only (default: point robot all 40, metaworld_reach
+    /// the paper's 20, tasks 1 to 20).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
     /// Minibatches from the most recent N transitions only (0: the whole replay buffer); with

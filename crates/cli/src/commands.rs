@@ -14,32 +14,47 @@ pub fn bar(len: u64, template: &str) -> ProgressBar {
 }
 
 pub fn collect(a: &CollectArgs) -> Result<()> {
+    use pdt_envs::collect_scripted::{CollectConfig, Mode, ScriptedFamily};
     let family = pdt_envs::family(&a.env)?;
-    if family.name() != "point_robot" {
+    let Some(scripted) = ScriptedFamily::from_name(family.name()) else {
+        if a.modes.is_some() {
+            bail!("--modes is for the scripted families (point_robot, metaworld_reach)");
+        }
         return collect_rl(a, family.name());
-    }
-    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family.name()));
-    let cfg = pdt_envs::collect_scripted::CollectConfig {
-        seed: a.seed,
-        episodes_per_task: a.episodes,
-        prompt_episodes: a.prompt_episodes,
-        ..Default::default()
     };
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family.name()));
+    let mut cfg = CollectConfig::for_family(scripted);
+    cfg.seed = a.seed;
+    cfg.prompt_episodes = a.prompt_episodes;
+    if let Some(n) = a.episodes {
+        cfg.episodes_per_task = n;
+    }
+    if let Some(t) = &a.tasks {
+        cfg.tasks = t.clone();
+    }
+    if let Some(m) = &a.modes {
+        cfg.modes = m.iter().map(|m| m.parse::<Mode>()).collect::<Result<_, _>>()?;
+    }
     let pb = bar(0, "collect {bar:30} {pos}/{len} datasets [{elapsed} < {eta}]");
     let summary = pdt_envs::collect_scripted::collect(&cfg, &out, &mut |done, total| {
         pb.set_length(total as u64);
         pb.set_position(done as u64);
     })?;
     pb.finish_and_clear();
-    println!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
-    for e in summary.entries.iter().filter(|e| e.task % 8 == 2) {
-        println!(
+    let success = summary.entries.iter().any(|e| e.success_rate.is_some());
+    print!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
+    println!("{}", if success { format!(" {:>10}", "success") } else { String::new() });
+    // The point robot has 40 tasks: a sample of them; other families: every task.
+    let shown = |t: usize| scripted != ScriptedFamily::PointRobot || t % 8 == 2;
+    for e in summary.entries.iter().filter(|e| shown(e.task)) {
+        print!(
             "{:<6} {:<8} {:>14.2} {:>14.2}",
             e.task,
-            format!("{:?}", e.mode).to_lowercase(),
+            e.mode.name(),
             e.dataset.mean,
             e.prompts.mean
         );
+        println!("{}", e.success_rate.map_or(String::new(), |r| format!(" {:>9.1}%", 100.0 * r)));
     }
     println!(
         "wrote {} datasets and {} to {}",
@@ -341,7 +356,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
     };
     let dcfg = pdt_rl::datasets::DatasetConfig {
         seed: a.seed,
-        episodes: a.episodes,
+        episodes: a.episodes.unwrap_or(100),
         prompt_episodes: a.prompt_episodes,
         noise: match (a.deterministic, a.explore) {
             (true, _) => Some(Noise::Deterministic),

@@ -1,15 +1,17 @@
-//! Scripted point-robot policies and a deterministic writer for their datasets.
+//! Scripted policies of the families that have them (point robot, Meta-World reach) and a
+//! deterministic writer for their datasets.
 //!
 //! Three policies of decreasing quality ([`Mode`]): `expert` heads straight for the goal,
-//! `medium` heads for a goal misremembered once per episode, `random` moves uniformly at random.
+//! `medium` heads for a goal misremembered once per episode, `random` moves uniformly at random
+//! ([`ScriptedFamily::policy_description`] gives each family's exact formulas).
 //! [`collect`] writes, for every task `i` and mode `m`, the main dataset D_i
-//! (`point_robot-{i}-{m}.safetensors`) and the prompt set P_i
-//! (`point_robot-{i}-prompt-{m}.safetensors`) in the native format, plus a `dataset.json` card.
+//! (`{env}-{i}-{m}.safetensors`) and the prompt set P_i (`{env}-{i}-prompt-{m}.safetensors`) in
+//! the native format, plus a `dataset.json` card.
 //!
 //! Every episode draws its randomness from its own ChaCha8 generator keyed by
 //! `(seed, task, mode, set, episode)`, so the data does not depend on the order in which episodes
 //! are generated, on thread count, or on which other tasks and modes are collected in the same run.
-//! `docs/point-robot.md` describes the policies and the file layout.
+//! `docs/point-robot.md` and `docs/metaworld-reach.md` describe the policies and the file layout.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -26,6 +28,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
 use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
 use crate::{Env, EnvError, EnvFamily};
 
@@ -35,6 +38,105 @@ pub const EXPERT_ACTION_NOISE: f64 = 0.01;
 pub const MEDIUM_GOAL_NOISE: f64 = 0.5;
 /// Standard deviation of the medium policy's per-coordinate action noise.
 pub const MEDIUM_ACTION_NOISE: f64 = 0.05;
+
+/// Meta-World reach: standard deviation of the expert's (and medium policy's) action noise on
+/// every dimension, Meta-World's test-harness model `a ~ N(a, (pct * 2)^2)` at pct 0.1, under which
+/// Meta-World's own tests require reach's expert to succeed (spec §3: measured 100 % ever-success).
+pub const REACH_ACTION_NOISE: f64 = 0.2;
+/// Meta-World reach: standard deviation (m) of the medium policy's per-coordinate goal error,
+/// drawn once per episode: it reaches, steadily, about 0.17 m from the goal (outside the 0.05 m
+/// success radius), which earns roughly a third of the expert's reward per step.
+pub const REACH_MEDIUM_GOAL_NOISE: f64 = 0.1;
+
+/// A family with scripted policies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ScriptedFamily {
+    #[default]
+    PointRobot,
+    MetaWorldReach,
+}
+
+impl ScriptedFamily {
+    /// The family of `name` (as [`crate::family`] spells it), if it has scripted policies.
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            point_robot::ENV_NAME => Some(Self::PointRobot),
+            reach::ENV_NAME => Some(Self::MetaWorldReach),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PointRobot => ENV_NAME,
+            Self::MetaWorldReach => reach::ENV_NAME,
+        }
+    }
+
+    fn num_tasks(self) -> usize {
+        match self {
+            Self::PointRobot => NUM_TASKS,
+            Self::MetaWorldReach => reach::NUM_TASKS,
+        }
+    }
+
+    fn dims(self) -> (usize, usize) {
+        match self {
+            Self::PointRobot => (OBS_DIM, ACT_DIM),
+            Self::MetaWorldReach => (reach::OBS_DIM, reach::ACT_DIM),
+        }
+    }
+
+    /// The tasks collected by default: every point-robot goal; the 20 reach tasks of the paper's
+    /// split (1..=20; the family's other 30 tasks are in no split).
+    pub fn default_tasks(self) -> Vec<usize> {
+        match self {
+            Self::PointRobot => (0..NUM_TASKS).collect(),
+            Self::MetaWorldReach => {
+                let mut t: Vec<usize> =
+                    reach::TRAIN_TASKS.iter().chain(&reach::TEST_TASKS).copied().collect();
+                t.sort_unstable();
+                t
+            }
+        }
+    }
+
+    /// Episodes per task in D_i by default: the point robot's 100; reach's 200 (the paper's
+    /// "200 episodes for each task").
+    pub fn default_episodes(self) -> usize {
+        match self {
+            Self::PointRobot => 100,
+            Self::MetaWorldReach => 200,
+        }
+    }
+
+    fn params(self, task: usize) -> Result<serde_json::Value, EnvError> {
+        match self {
+            Self::PointRobot => point_robot::PointRobotFamily::default().task_params(task),
+            Self::MetaWorldReach => MetaWorldReachFamily::default().task_params(task),
+        }
+    }
+
+    /// One-line description of `mode`'s policy in this family, recorded in the dataset card.
+    pub fn policy_description(self, mode: Mode) -> &'static str {
+        match self {
+            Self::PointRobot => mode.description(),
+            Self::MetaWorldReach => match mode {
+                Mode::Expert => {
+                    "a = f32(5 (goal - hand), 0) + N(0, 0.2^2) per dimension (Meta-World's \
+                     SawyerReachV3Policy with its test harness's noise at pct 0.1; the true goal \
+                     is read from the env, the recorded observation hides it)"
+                }
+                Mode::Medium => {
+                    "g' = goal + N(0, 0.1^2) per coordinate, drawn once per episode; a = \
+                     f32(5 (g' - hand), 0) + N(0, 0.2^2) per dimension"
+                }
+                Mode::Random => "a ~ Uniform[-1, 1] per dimension (the action space)",
+            },
+        }
+    }
+}
 
 /// A scripted policy, and the dataset kind it produces (the `mode` in file names).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -121,19 +223,23 @@ impl Set {
 /// What to collect.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CollectConfig {
+    /// Which family (default: the point robot).
+    #[serde(default)]
+    pub family: ScriptedFamily,
     pub seed: u64,
     /// Episodes in each main dataset D_i.
     pub episodes_per_task: usize,
     /// Episodes in each prompt set P_i.
     pub prompt_episodes: usize,
     pub modes: Vec<Mode>,
-    /// Task indices, `0..40`.
+    /// Task indices of the family (point robot `0..40`, reach `0..50`).
     pub tasks: Vec<usize>,
 }
 
 impl Default for CollectConfig {
     fn default() -> Self {
         Self {
+            family: ScriptedFamily::PointRobot,
             seed: 0,
             episodes_per_task: 100,
             prompt_episodes: 5,
@@ -144,6 +250,16 @@ impl Default for CollectConfig {
 }
 
 impl CollectConfig {
+    /// The defaults of `family`: its default tasks and episodes, every mode, seed 0.
+    pub fn for_family(family: ScriptedFamily) -> Self {
+        Self {
+            family,
+            episodes_per_task: family.default_episodes(),
+            tasks: family.default_tasks(),
+            ..Self::default()
+        }
+    }
+
     /// Checks the config before anything is written.
     pub fn validate(&self) -> Result<(), CollectError> {
         let bad = |m: String| Err(CollectError::Config(m));
@@ -159,10 +275,9 @@ impl CollectConfig {
         if self.tasks.is_empty() {
             return bad("no tasks given".into());
         }
-        if let Some(&t) = self.tasks.iter().find(|&&t| t >= NUM_TASKS) {
-            return Err(
-                EnvError::UnknownTask { env: ENV_NAME.into(), task: t, n: NUM_TASKS }.into()
-            );
+        let n = self.family.num_tasks();
+        if let Some(&t) = self.tasks.iter().find(|&&t| t >= n) {
+            return Err(EnvError::UnknownTask { env: self.family.name().into(), task: t, n }.into());
         }
         // A duplicate would write the same files twice and list them twice in the card.
         for (i, t) in self.tasks.iter().enumerate() {
@@ -190,6 +305,9 @@ pub struct TaskModeSummary {
     pub prompts: ReturnStats,
     pub dataset_file: PathBuf,
     pub prompt_file: PathBuf,
+    /// Fraction of D_i's episodes in which the task counted as solved at some step (Meta-World's
+    /// `success`); `None` for families without a success criterion.
+    pub success_rate: Option<f64>,
 }
 
 /// What [`collect`] wrote.
@@ -244,8 +362,9 @@ pub enum CollectError {
     #[error("stopped after an earlier error")]
     Stopped,
     /// The generated episodes did not form a valid dataset (a bug here, not a user error).
-    #[error("generated data for {ENV_NAME}-{task} ({mode}) is invalid: {source}")]
+    #[error("generated data for {env}-{task} ({mode}) is invalid: {source}")]
     Data {
+        env: &'static str,
         task: usize,
         mode: Mode,
         #[source]
@@ -330,10 +449,63 @@ pub fn run_episode(
         }
     }
     Trajectory::new(OBS_DIM, ACT_DIM, observations, actions, rewards, terminated, truncated)
-        .map_err(|source| CollectError::Data { task, mode, source })
+        .map_err(|source| CollectError::Data { env: ENV_NAME, task, mode, source })
 }
 
-/// Generates `episodes` episodes of `(task, mode)` for one set.
+/// One episode of `mode` on a Meta-World reach task (`env`, reset here); all randomness comes from
+/// `rng`. Returns the episode and whether it ever succeeded.
+///
+/// The recorded observations are the ML1 ones (goal slot zeroed); the expert and medium policies
+/// read the true goal from the environment, as Meta-World's scripted policies need it (spec §4.2).
+pub fn run_reach_episode(
+    env: &mut MetaWorldReach,
+    task: usize,
+    mode: Mode,
+    rng: &mut ChaCha8Rng,
+) -> Result<(Trajectory, bool), CollectError> {
+    let (od, ad) = (reach::OBS_DIM, reach::ACT_DIM);
+    let goal = env.goal();
+    let aim = match mode {
+        Mode::Medium => goal.map(|g| g + REACH_MEDIUM_GOAL_NOISE * standard_normal(rng)),
+        Mode::Expert | Mode::Random => goal,
+    };
+    let horizon = reach::HORIZON;
+    let mut observations = Vec::with_capacity(horizon * od);
+    let mut actions = Vec::with_capacity(horizon * ad);
+    let mut rewards = Vec::with_capacity(horizon);
+    let mut terminated = Vec::with_capacity(horizon);
+    let mut truncated = Vec::with_capacity(horizon);
+    let mut succeeded = false;
+    let mut obs = Env::reset(env, 0);
+    loop {
+        let action: [f32; 4] = match mode {
+            Mode::Expert | Mode::Medium => {
+                let full = env.obs_f64();
+                let a = reach::expert_action([full[0], full[1], full[2]], aim);
+                // The noise is added to the f32 action in f64 and rounded back, as numpy's
+                // `normal(a_f32, std)` returns f64 that the f32 dataset then stores.
+                a.map(|v| (f64::from(v) + REACH_ACTION_NOISE * standard_normal(rng)) as f32)
+            }
+            Mode::Random => std::array::from_fn(|_| rng.random_range(-1.0f32..=1.0)),
+        };
+        let step = Env::step(env, &action)?;
+        succeeded |= step.success == Some(true);
+        observations.extend_from_slice(&obs);
+        actions.extend_from_slice(&action);
+        rewards.push(step.reward);
+        terminated.push(step.terminated);
+        truncated.push(step.truncated);
+        obs = step.obs;
+        if step.terminated || step.truncated {
+            break;
+        }
+    }
+    let traj = Trajectory::new(od, ad, observations, actions, rewards, terminated, truncated)
+        .map_err(|source| CollectError::Data { env: reach::ENV_NAME, task, mode, source })?;
+    Ok((traj, succeeded))
+}
+
+/// Generates `episodes` point-robot episodes of `(task, mode)` for one set.
 pub fn generate(
     seed: u64,
     task: usize,
@@ -341,10 +513,49 @@ pub fn generate(
     set: Set,
     episodes: usize,
 ) -> Result<TaskDataset, CollectError> {
-    let trajectories = (0..episodes)
-        .map(|e| run_episode(task, mode, &mut episode_rng(seed, task, mode, set, e)))
-        .collect::<Result<Vec<_>, _>>()?;
-    TaskDataset::new(trajectories).map_err(|source| CollectError::Data { task, mode, source })
+    Ok(generate_for(ScriptedFamily::PointRobot, seed, task, mode, set, episodes)?.0)
+}
+
+/// Generates `episodes` episodes of `(task, mode)` of `family` for one set; also returns the
+/// fraction of episodes that succeeded (`None` for a family without a success criterion).
+pub fn generate_for(
+    family: ScriptedFamily,
+    seed: u64,
+    task: usize,
+    mode: Mode,
+    set: Set,
+    episodes: usize,
+) -> Result<(TaskDataset, Option<f64>), CollectError> {
+    let env = family.name();
+    let (trajectories, success) = match family {
+        ScriptedFamily::PointRobot => {
+            let t = (0..episodes)
+                .map(|e| run_episode(task, mode, &mut episode_rng(seed, task, mode, set, e)))
+                .collect::<Result<Vec<_>, _>>()?;
+            (t, None)
+        }
+        ScriptedFamily::MetaWorldReach => {
+            // One simulator for the whole set: every reset restores the same start state, so the
+            // episodes do not depend on what ran before them (tests/metaworld_parity.rs).
+            let mut sim = MetaWorldReachFamily::default().make_env(task)?;
+            let mut t = Vec::with_capacity(episodes);
+            let mut wins = 0usize;
+            for e in 0..episodes {
+                let mut rng = episode_rng(seed, task, mode, set, e);
+                let (traj, ok) = run_reach_episode(&mut sim, task, mode, &mut rng)?;
+                wins += usize::from(ok);
+                t.push(traj);
+            }
+            (t, Some(wins as f64 / episodes.max(1) as f64))
+        }
+    };
+    let ds = TaskDataset::new(trajectories).map_err(|source| CollectError::Data {
+        env,
+        task,
+        mode,
+        source,
+    })?;
+    Ok((ds, success))
 }
 
 /// Writes the datasets of `cfg` into `out_dir` (created if missing) and a `dataset.json` card
@@ -361,7 +572,7 @@ pub fn collect(
     cfg.validate()?;
     std::fs::create_dir_all(out_dir)
         .map_err(|source| CollectError::CreateDir { path: out_dir.to_path_buf(), source })?;
-    let family = point_robot::PointRobotFamily::default();
+    let family = cfg.family;
     let total = cfg.tasks.len() * cfg.modes.len();
     // One job per file, in card order: pair p = task position * modes + mode position, and its
     // jobs 2p (D_i) and 2p + 1 (P_i).
@@ -377,7 +588,7 @@ pub fn collect(
             })
         })
         .collect();
-    let mut results = run_jobs(cfg.seed, &jobs, out_dir, total, progress);
+    let mut results = run_jobs(family, cfg.seed, &jobs, out_dir, total, progress);
     // Report the real failure, not a job skipped because of it.
     let failure =
         results.iter().position(|r| matches!(r, Err(e) if !matches!(e, CollectError::Stopped)));
@@ -392,8 +603,9 @@ pub fn collect(
         let mut files = Vec::with_capacity(2 * cfg.modes.len());
         for &mode in &cfg.modes {
             // `run_jobs` returns one result per job, so both are present, and none is an error.
-            let (main, dataset_file) = results.next().ok_or(CollectError::Stopped)??;
-            let (prompt, prompt_file) = results.next().ok_or(CollectError::Stopped)??;
+            let (main, dataset_file, success_rate) =
+                results.next().ok_or(CollectError::Stopped)??;
+            let (prompt, prompt_file, _) = results.next().ok_or(CollectError::Stopped)??;
             entries.push(TaskModeSummary {
                 task,
                 mode,
@@ -401,18 +613,20 @@ pub fn collect(
                 prompts: prompt.returns,
                 dataset_file,
                 prompt_file,
+                success_rate,
             });
             files.push(main);
             files.push(prompt);
         }
-        card_tasks.push(CardTask { index: task, params: family.task_params(task)?, files });
+        card_tasks.push(CardTask { index: task, params: family.params(task)?, files });
     }
+    let (obs_dim, act_dim) = family.dims();
     let card = DatasetCard {
         format: CARD_FORMAT_NAME.to_owned(),
         format_version: FORMAT_VERSION.to_owned(),
-        env: ENV_NAME.to_owned(),
-        obs_dim: OBS_DIM,
-        act_dim: ACT_DIM,
+        env: family.name().to_owned(),
+        obs_dim,
+        act_dim,
         tasks: card_tasks,
         generator: generator_info(cfg),
     };
@@ -426,13 +640,14 @@ pub fn collect(
 /// thread. The data does not depend on this number (each file has its own RNGs).
 const WRITE_THREADS: usize = 16;
 
-type JobResult = Result<(CardFile, PathBuf), CollectError>;
+type JobResult = Result<(CardFile, PathBuf, Option<f64>), CollectError>;
 
 /// Generates and writes every job on [`WRITE_THREADS`] threads; returns the results in job order.
 /// After the first failure no new job starts (its result is [`CollectError::Stopped`]).
 /// `progress(done, total)` runs on this thread each time both files of a (task, mode) pair (jobs
 /// `2p` and `2p + 1`) are written.
 fn run_jobs(
+    family: ScriptedFamily,
     seed: u64,
     jobs: &[(usize, Mode, Set, usize)],
     out_dir: &Path,
@@ -456,7 +671,7 @@ fn run_jobs(
                         if failed.load(Ordering::Relaxed) {
                             break;
                         }
-                        let result = write_set(seed, task, mode, set, episodes, out_dir);
+                        let result = write_set(family, seed, task, mode, set, episodes, out_dir);
                         if result.is_err() {
                             failed.store(true, Ordering::Relaxed);
                         } else {
@@ -497,30 +712,29 @@ fn run_jobs(
     results
 }
 
-/// Generates and writes one file; returns its card entry and path.
+/// Generates and writes one file; returns its card entry, path and success rate.
 fn write_set(
+    family: ScriptedFamily,
     seed: u64,
     task: usize,
     mode: Mode,
     set: Set,
     episodes: usize,
     out_dir: &Path,
-) -> Result<(CardFile, PathBuf), CollectError> {
+) -> JobResult {
     let file_mode = match set {
         Set::Dataset => mode.name().to_owned(),
         Set::Prompt => format!("prompt-{}", mode.name()),
     };
-    let name = format!(
-        "{}.{}",
-        native::task_file_stem(ENV_NAME, task, &file_mode),
-        native::FILE_EXTENSION
-    );
+    let env = family.name();
+    let name =
+        format!("{}.{}", native::task_file_stem(env, task, &file_mode), native::FILE_EXTENSION);
     let path = out_dir.join(&name);
-    let ds = generate(seed, task, mode, set, episodes)?;
-    let meta = FileMeta::new(ENV_NAME, task, file_mode.clone());
+    let (ds, success) = generate_for(family, seed, task, mode, set, episodes)?;
+    let meta = FileMeta::new(env, task, file_mode.clone());
     native::write_task_dataset(&path, &ds, &meta)
         .map_err(|source| CollectError::Write { path: path.clone(), source })?;
-    Ok((CardFile::describe(name, file_mode, &ds), path))
+    Ok((CardFile::describe(name, file_mode, &ds), path, success))
 }
 
 /// The card's `generator` entry: enough to regenerate the data.
@@ -528,7 +742,7 @@ fn generator_info(cfg: &CollectConfig) -> serde_json::Value {
     let policies: serde_json::Map<String, serde_json::Value> = cfg
         .modes
         .iter()
-        .map(|m| (m.name().to_owned(), serde_json::Value::from(m.description())))
+        .map(|m| (m.name().to_owned(), serde_json::Value::from(cfg.family.policy_description(*m))))
         .collect();
     serde_json::json!({
         "name": "pdt-envs collect_scripted",

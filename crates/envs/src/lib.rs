@@ -6,6 +6,7 @@ pub mod ant_dir;
 pub mod bench;
 pub mod cheetah;
 pub mod collect_scripted;
+pub mod metaworld_reach;
 pub mod mujoco_env;
 pub mod point_robot;
 pub mod replay;
@@ -25,6 +26,9 @@ pub struct StepResult {
     pub terminated: bool,
     /// The time limit cut the episode; the MDP itself did not end.
     pub truncated: bool,
+    /// Whether the task counts as solved after this step (Meta-World's `info["success"]`); `None`
+    /// for families without a success criterion.
+    pub success: Option<bool>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -94,7 +98,8 @@ pub trait EnvFamily: Send + Sync {
 }
 
 /// Names of the families [`family`] knows.
-pub const FAMILY_NAMES: [&str; 4] = ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir"];
+pub const FAMILY_NAMES: [&str; 5] =
+    ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach"];
 
 /// Looks up a family by name.
 pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
@@ -104,6 +109,10 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         "cheetah_vel" => Ok(Box::new(cheetah::CheetahVelFamily::default())),
         // The contact cost as the reference computed it (zero): see `ant_dir::ContactCost`.
         "ant_dir" => Ok(Box::new(ant_dir::AntDirFamily::default())),
+        // ML1('reach-v2', seed=1) train tasks, goal hidden: see `metaworld_reach`.
+        "metaworld_reach" | "metaworld-reach" => {
+            Ok(Box::new(metaworld_reach::MetaWorldReachFamily::default()))
+        }
         other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
     }
 }

@@ -117,7 +117,7 @@ const MJ_MAXVAL: f64 = 1e10;
 /// Without this MuJoCo prints warnings to stdout and appends them to `MUJOCO_LOG.TXT` in the
 /// working directory (gym's `half_cheetah.xml` triggers one at every load: `settotalmass` is
 /// deprecated). The `log` crate lets the program decide where they go.
-fn init_logging() {
+pub(crate) fn init_logging() {
     static HOOK: Once = Once::new();
     HOOK.call_once(|| {
         // SAFETY: mujoco-rs requires that no other thread uses MuJoCo during the call. Every MuJoCo
@@ -383,12 +383,18 @@ impl Env for MujocoEnv {
         self.t += 1;
         let truncated = !terminated && self.t >= HORIZON;
         self.finished = terminated || truncated;
-        Ok(StepResult { obs: self.observation(), reward: reward as f32, terminated, truncated })
+        Ok(StepResult {
+            obs: self.observation(),
+            reward: reward as f32,
+            terminated,
+            truncated,
+            success: None,
+        })
     }
 }
 
 /// A standard normal sample (Box-Muller), from two uniforms of `rng`.
-fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
+pub(crate) fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
     // `random::<f64>()` is in [0, 1); 1 - u is in (0, 1], so the logarithm is finite.
     let u1 = 1.0 - rng.random::<f64>();
     let u2 = rng.random::<f64>();

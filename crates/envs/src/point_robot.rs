@@ -171,6 +171,7 @@ impl Env for PointRobot {
             // Navigation has no failure state: the episode only ends by the time limit.
             terminated: false,
             truncated: self.t >= HORIZON,
+            success: None,
         })
     }
 }

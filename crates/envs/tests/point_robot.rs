@@ -8,13 +8,15 @@ use std::time::Instant;
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::native::{self, read_card, read_file_meta, read_task_dataset, FileMeta};
 use pdt_envs::collect_scripted::{
-    collect, episode_rng, generate, run_episode, CollectConfig, CollectError, Mode, Set,
+    collect, episode_rng, generate, run_episode, CollectConfig, CollectError, Mode, ScriptedFamily,
+    Set,
 };
 use pdt_envs::point_robot::{self, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS};
 use pdt_envs::{family, EnvError, EnvFamily};
 
 fn small_config(seed: u64) -> CollectConfig {
     CollectConfig {
+        family: ScriptedFamily::PointRobot,
         seed,
         episodes_per_task: 10,
         prompt_episodes: 3,

@@ -145,7 +145,13 @@ impl Env for Fragile {
         if action[0] > 100.0 {
             panic!("fragile environment {} broke", self.0);
         }
-        Ok(StepResult { obs: vec![action[0]], reward: 0.0, terminated: false, truncated: false })
+        Ok(StepResult {
+            obs: vec![action[0]],
+            reward: 0.0,
+            terminated: false,
+            truncated: false,
+            success: None,
+        })
     }
 }
 

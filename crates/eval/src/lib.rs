@@ -82,6 +82,10 @@ pub struct EpisodeRecord {
     pub seed: u64,
     pub episode_return: f64,
     pub length: usize,
+    /// Whether the task counted as solved at some step of the episode (Meta-World's `success`,
+    /// as its evaluations count it); `None` for families without a success criterion.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success: Option<bool>,
     /// Actions taken, `[length * act_dim]` (kept for the batched-vs-sequential test).
     #[serde(skip)]
     pub actions: Vec<f32>,
@@ -97,6 +101,9 @@ pub struct TaskResult {
     pub length_mean: f64,
     pub episodes: usize,
     pub returns: Vec<f64>,
+    /// Fraction of the episodes that succeeded; `None` for families without a success criterion.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success_rate: Option<f64>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -168,6 +175,8 @@ struct Running {
     task: usize,
     seed: u64,
     h: History,
+    /// `None` until a step reports a success criterion, then whether any step succeeded.
+    success: Option<bool>,
 }
 
 /// Normalises one raw observation in f32, as the reference does it on torch tensors at evaluation.
@@ -250,7 +259,13 @@ pub fn evaluate(
                 );
                 return Err(EvalError::Setup { task: task.name, why });
             }
-            queue.push(Running { id: envs.len(), task: ti, seed, h: History::default() });
+            queue.push(Running {
+                id: envs.len(),
+                task: ti,
+                seed,
+                h: History::default(),
+                success: None,
+            });
             envs.push(env);
         }
         names.push(task.name);
@@ -332,12 +347,16 @@ pub fn evaluate(
                     }
                 };
                 ep.h.record(a, step.reward, &step.obs, &cfg.norm, cfg.returns, cfg.rtg_scale);
+                if let Some(ok) = step.success {
+                    ep.success = Some(ep.success.unwrap_or(false) || ok);
+                }
                 if step.terminated || step.truncated || ep.h.t >= cfg.horizon {
                     let record = EpisodeRecord {
                         task_index: ep.task,
                         seed: ep.seed,
                         episode_return: ep.h.ret,
                         length: ep.h.t,
+                        success: ep.success,
                         actions: ep.h.actions,
                     };
                     done.push((ep.id, record));
@@ -360,6 +379,11 @@ pub fn summarise(name: &str, task_index: usize, episodes: &[&EpisodeRecord]) -> 
     let mean = returns.iter().sum::<f64>() / n;
     let std = (returns.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / n).sqrt();
     let length_mean = episodes.iter().map(|e| e.length as f64).sum::<f64>() / n;
+    // A rate only where every episode reports one (a family has a success criterion or not).
+    let wins: Option<Vec<bool>> = episodes.iter().map(|e| e.success).collect();
+    let success_rate = wins
+        .filter(|w| !w.is_empty())
+        .map(|w| w.iter().filter(|&&ok| ok).count() as f64 / w.len() as f64);
     TaskResult {
         task: name.to_string(),
         task_index,
@@ -368,6 +392,7 @@ pub fn summarise(name: &str, task_index: usize, episodes: &[&EpisodeRecord]) -> 
         length_mean,
         episodes: returns.len(),
         returns,
+        success_rate,
     }
 }
 

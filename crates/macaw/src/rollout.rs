@@ -15,6 +15,8 @@ pub struct Episode {
     pub length: usize,
     /// The policy gave a non-finite action, which ended the episode there (its return so far).
     pub failed: bool,
+    /// Whether some step solved the task (families with a success criterion), else `None`.
+    pub success: Option<bool>,
 }
 
 /// Runs one episode per seed on task `task` of `family` with the policy parameters `policy`,
@@ -53,6 +55,7 @@ pub fn run_episodes(
     let mut returns = vec![0f64; n];
     let mut lengths = vec![0usize; n];
     let mut failed = vec![false; n];
+    let mut success: Vec<Option<bool>> = vec![None; n];
     let mut flat = vec![0f32; n * a];
     while done.iter().any(|d| !d) {
         let active: Vec<usize> = (0..n).filter(|&i| !done[i]).collect();
@@ -82,6 +85,9 @@ pub fn run_episodes(
                 let r = r?;
                 returns[i] += f64::from(r.reward);
                 lengths[i] += 1;
+                if let Some(ok) = r.success {
+                    success[i] = Some(success[i].unwrap_or(false) || ok);
+                }
                 done[i] = r.terminated || r.truncated;
                 obs[i] = r.obs;
             }
@@ -95,6 +101,7 @@ pub fn run_episodes(
             episode_return: returns[i],
             length: lengths[i],
             failed: failed[i],
+            success: success[i],
         })
         .collect())
 }

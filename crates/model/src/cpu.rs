@@ -87,6 +87,25 @@ impl std::fmt::Display for CpuFingerprint {
     }
 }
 
+/// Largest difference allowed between a row computed alone and the same row computed in a batch,
+/// where [`batch_invariant`] does not hold (measured: at most 3e-7 on actions).
+pub const BATCH_TOLERANCE: f32 = 1e-6;
+
+/// Whether, with one libtorch thread, a row's result is the same bits whatever batch it is computed
+/// in. Measured: yes where libtorch runs its AVX2 kernels (AMD EPYC, 2026-11), and on an earlier
+/// AVX-512 CPU; no on an Intel Xeon with AVX-512 VNNI/VBMI2 (2026-11-24: a policy's actions alone
+/// and batched differ by up to 3e-7). So this answers yes for AVX2 kernels only; tests of batching
+/// compare bit for bit where it holds and within [`BATCH_TOLERANCE`] elsewhere. `ATEN_CPU_CAPABILITY=avx2` (or `default`)
+/// makes libtorch use the narrower kernels, and then this holds again.
+pub fn batch_invariant() -> bool {
+    if let Ok(v) = std::env::var("ATEN_CPU_CAPABILITY") {
+        if matches!(v.to_ascii_lowercase().as_str(), "avx2" | "default") {
+            return true;
+        }
+    }
+    CpuFingerprint::detect().is_none_or(|f| f.aten_capability() != "AVX512")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -116,23 +135,4 @@ mod tests {
             serde_json::from_str(&serde_json::to_string(&c).expect("json")).expect("parsed");
         assert_eq!(back, c);
     }
-}
-
-/// Largest difference allowed between a row computed alone and the same row computed in a batch,
-/// where [`batch_invariant`] does not hold (measured: at most 3e-7 on actions).
-pub const BATCH_TOLERANCE: f32 = 1e-6;
-
-/// Whether, with one libtorch thread, a row's result is the same bits whatever batch it is computed
-/// in. Measured: yes where libtorch runs its AVX2 kernels (AMD EPYC, 2026-11), and on an earlier
-/// AVX-512 CPU; no on an Intel Xeon with AVX-512 VNNI/VBMI2 (2026-11-24: a policy's actions alone
-/// and batched differ by up to 3e-7). So this answers yes for AVX2 kernels only; tests of batching
-/// compare bit for bit where it holds and within [`BATCH_TOLERANCE`] elsewhere. `ATEN_CPU_CAPABILITY=avx2` (or `default`)
-/// makes libtorch use the narrower kernels, and then this holds again.
-pub fn batch_invariant() -> bool {
-    if let Ok(v) = std::env::var("ATEN_CPU_CAPABILITY") {
-        if matches!(v.to_ascii_lowercase().as_str(), "avx2" | "default") {
-            return true;
-        }
-    }
-    CpuFingerprint::detect().is_none_or(|f| f.aten_capability() != "AVX512")
 }

@@ -57,8 +57,16 @@ def test_make_vec_tasks_and_errors():
     env.reset(seed=1)
     with pytest.raises(ValueError, match=r"actions: shape"):
         env.step(np.zeros((4, 5)))
-    with pytest.raises(ValueError, match="not a finite number"):
-        env.step(np.full((4, 6), np.nan))
+    bad = np.zeros((4, 6))
+    bad[2, 3] = np.nan
+    with pytest.raises(ValueError, match=r"actions\[2, 3\] = NaN is not a finite number \(environment 2, task 7\)"):
+        env.step(bad)
+    # Nothing stepped: the next good step is every environment's first.
+    obs, *_ = env.step(np.zeros((4, 6)))
+    fresh = make_vec("cheetah_vel", [2, 7], num_envs=4)
+    fresh.reset(seed=1)
+    first, *_ = fresh.step(np.zeros((4, 6)))
+    np.testing.assert_array_equal(obs, first)
     fams = promptdt.families()
     assert fams["cheetah_vel"]["num_tasks"] == 40 and fams["ant_dir"]["obs_dim"] == 27
     assert promptdt.task_params("cheetah_vel", 3) == {"velocity": 0.3}

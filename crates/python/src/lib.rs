@@ -322,6 +322,15 @@ impl VecEnv {
             )));
         }
         let flat: Vec<f32> = actions.as_array().iter().copied().collect();
+        // Checked here, before any environment steps: an environment refusing its action would
+        // otherwise raise after the others had stepped, and their results would be lost.
+        if let Some(k) = flat.iter().position(|x| !x.is_finite()) {
+            let (i, j) = (k / self.act_dim, k % self.act_dim);
+            return Err(value_error(format!(
+                "actions[{i}, {j}] = {} is not a finite number (environment {i}, task {})",
+                flat[k], self.tasks[i]
+            )));
+        }
         if let Some(m) = &mask {
             if m.len() != n {
                 return Err(value_error(format!("mask: {} entries for {n} environments", m.len())));

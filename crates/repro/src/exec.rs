@@ -71,7 +71,8 @@ pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError>
     let _ = std::fs::remove_dir_all(&tmp);
     let mut cmd = Command::new(&opts.exe);
     cmd.args(["collect", "--env", &d.env, "--out"]).arg(&tmp);
-    if d.env != "point_robot" {
+    // Families with scripted policies collect from those; the others from their committed agents.
+    if pdt_envs::collect_scripted::ScriptedFamily::from_name(&d.env).is_none() {
         cmd.arg("--from-pretrained").arg("--pretrained-dir").arg(opts.pretrained_root.join(&d.env));
     }
     if let Some(e) = d.episodes {

@@ -307,6 +307,7 @@ fn eval_tasks(
                 seed: e.seed,
                 episode_return: e.episode_return,
                 length: e.length,
+                success: e.success,
                 actions: Vec::new(),
             })
             .collect();

@@ -608,7 +608,12 @@ pub(crate) fn eval_rows(
                 "return_mean": r.return_mean, "return_std": r.return_std, "length_mean": r.length_mean,
                 "episodes": r.episodes, "target_return": target,
             });
-            v.as_object().cloned().unwrap_or_default()
+            let mut row = v.as_object().cloned().unwrap_or_default();
+            // Only families with a success criterion (Meta-World) have the column.
+            if let Some(rate) = r.success_rate {
+                row.insert("success_rate".into(), rate.into());
+            }
+            row
         })
         .collect()
 }
