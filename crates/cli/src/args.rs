@@ -508,21 +508,23 @@ pub struct ReportArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum EnvCommand {
-    /// Replay an initial state and actions through a MuJoCo environment (format: docs/mujoco-envs.md).
+    /// Replay an initial state and actions through a MuJoCo environment (format: docs/mujoco-envs.md;
+    /// metaworld_reach: docs/metaworld-reach.md).
     Replay(ReplayArgs),
 }
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
-    /// Family: cheetah_dir, cheetah_vel or ant_dir.
+    /// Family: cheetah_dir, cheetah_vel, ant_dir or metaworld_reach.
     #[arg(long)]
     pub env: String,
     /// Task index within the family.
     #[arg(long)]
     pub task: usize,
-    /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values).
+    /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values). Not for
+    /// metaworld_reach, whose episodes start from the task's reset state.
     #[arg(long)]
-    pub init: PathBuf,
+    pub init: Option<PathBuf>,
     /// JSON array of actions, one array per step.
     #[arg(long)]
     pub actions: PathBuf,

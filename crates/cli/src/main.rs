@@ -4,7 +4,7 @@
 mod args;
 mod commands;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand};
 use clap::Parser;
 use commands::{collect, train};
@@ -80,7 +80,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Model(ModelCommand::Forward(a)) => {
             match a.threads {
-                Some(0) => anyhow::bail!("--threads must be at least 1"),
+                Some(0) => bail!("--threads must be at least 1"),
                 Some(t) => tch::set_num_threads(i32::try_from(t).unwrap_or(i32::MAX)),
                 None => {}
             }
@@ -143,14 +143,34 @@ fn run(cli: Cli) -> Result<()> {
                 a.data.as_deref(),
                 &pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
             )?;
-            println!("{:<24} {:>12} {:>10} {:>9}", "task", "return mean", "std", "episodes");
+            // Families with a success criterion (Meta-World) also show the success rate.
+            let rates: Option<Vec<f64>> = r.tasks.iter().map(|t| t.success_rate).collect();
+            let rates = rates.filter(|v| !v.is_empty());
+            let success_col = |x: Option<f64>| match (&rates, x) {
+                (Some(_), Some(v)) => format!(" {:>8.1}%", 100.0 * v),
+                _ => String::new(),
+            };
+            let head = if rates.is_some() { format!(" {:>9}", "success") } else { String::new() };
+            println!("{:<24} {:>12} {:>10} {:>9}{head}", "task", "return mean", "std", "episodes");
             for t in &r.tasks {
                 println!(
-                    "{:<24} {:>12.2} {:>10.2} {:>9}",
-                    t.task, t.return_mean, t.return_std, t.episodes
+                    "{:<24} {:>12.2} {:>10.2} {:>9}{}",
+                    t.task,
+                    t.return_mean,
+                    t.return_std,
+                    t.episodes,
+                    success_col(t.success_rate)
                 );
             }
-            println!("{:<24} {:>12.2}", format!("average ({})", r.split), r.mean_return);
+            let mean_rate = rates.as_ref().map(|v| v.iter().sum::<f64>() / v.len() as f64);
+            println!(
+                "{:<24} {:>12.2} {:>10} {:>9}{}",
+                format!("average ({})", r.split),
+                r.mean_return,
+                "",
+                "",
+                success_col(mean_rate)
+            );
             if let Some(how) = &r.adaptation {
                 println!("adapted to each task with {how}");
             }
@@ -186,9 +206,6 @@ fn run(cli: Cli) -> Result<()> {
                 pdt_base::fs::read_text_limited(p, pdt_base::fs::MAX_TEXT_BYTES)
                     .with_context(|| format!("reading {}", p.display()))
             };
-            let init: Init = serde_json::from_str(&read(&a.init)?).with_context(|| {
-                format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", a.init.display())
-            })?;
             let actions: Vec<Vec<f32>> =
                 serde_json::from_str(&read(&a.actions)?).with_context(|| {
                     format!(
@@ -196,7 +213,23 @@ fn run(cli: Cli) -> Result<()> {
                         a.actions.display()
                     )
                 })?;
-            let r = pdt_envs::replay(&a.env, a.task, &init.qpos, &init.qvel, &actions)?;
+            let r = match (a.env.as_str(), &a.init) {
+                ("metaworld_reach" | "metaworld-reach", None) => {
+                    pdt_envs::replay::replay_reach(a.task, &actions)?
+                }
+                ("metaworld_reach" | "metaworld-reach", Some(p)) => bail!(
+                    "--init {}: metaworld_reach episodes start from the task's reset state \
+                     (no initial state is taken)",
+                    p.display()
+                ),
+                (_, None) => bail!("--init is required for {} (its initial qpos and qvel)", a.env),
+                (_, Some(p)) => {
+                    let init: Init = serde_json::from_str(&read(p)?).with_context(|| {
+                        format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", p.display())
+                    })?;
+                    pdt_envs::replay(&a.env, a.task, &init.qpos, &init.qvel, &actions)?
+                }
+            };
             let text = serde_json::to_string(&r)?;
             pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes())
                 .with_context(|| format!("writing {}", a.out.display()))?;

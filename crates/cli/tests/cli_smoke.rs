@@ -420,3 +420,123 @@ fn data_report_on_a_collected_point_robot_dataset() {
     let e = fails(&["data", "report", other.to_str().unwrap()]);
     assert!(e.contains("no data files") && e.contains(other.to_str().unwrap()), "{e}");
 }
+
+/// Meta-World reach end to end on a tiny budget: scripted collection (success shown), the data
+/// report's success column and bar, a replay of the expert's first actions, Prompt-DT trained for
+/// two iterations, and an evaluation that reports the success rate beside the return.
+#[test]
+fn metaworld_reach_collect_report_replay_train_eval() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let d = data.to_str().unwrap();
+    let out = ok(&[
+        "collect",
+        "--env",
+        "metaworld_reach",
+        "--episodes",
+        "1",
+        "--prompt-episodes",
+        "1",
+        "--modes",
+        "expert",
+        "--out",
+        d,
+    ]);
+    // Every task of the paper's split (1-20), each with its success rate.
+    assert!(out.contains("success") && out.contains("wrote 40 datasets"), "{out}");
+    assert_eq!(out.matches("100.0%").count(), 20, "{out}");
+    let e = fails(&["collect", "--env", "metaworld_reach", "--modes", "expert,best", "--out", d]);
+    assert!(e.contains("unknown mode \"best\""), "{e}");
+    let e = fails(&["collect", "--env", "metaworld_reach", "--tasks", "50", "--out", d]);
+    assert!(e.contains("unknown task 50 of metaworld_reach"), "{e}");
+
+    let rep = ok(&["data", "report", d]);
+    assert!(rep.contains("(success 100 %)"), "{rep}");
+    assert!(
+        rep.contains("expert succeeds in every episode of every task**: met")
+            || rep.contains("**met**: expert succeeds in every episode of every task"),
+        "{rep}"
+    );
+    let csv =
+        std::fs::read_to_string(data.join("report/dataset_returns_metaworld_reach.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().contains("expert_success_rate"), "{csv}");
+
+    // Replay the recorded expert actions of task 6: the recorded rewards come back.
+    let ds =
+        pdt_data::native::read_task_dataset(&data.join("metaworld_reach-6-expert.safetensors"))
+            .unwrap();
+    let t = &ds.trajectories[0];
+    let actions: Vec<Vec<f32>> = t.actions.chunks(4).take(60).map(<[f32]>::to_vec).collect();
+    let acts = tmp.path().join("actions.json");
+    std::fs::write(&acts, serde_json::to_string(&actions).unwrap()).unwrap();
+    let res = tmp.path().join("replay.json");
+    let a = acts.to_str().unwrap();
+    ok(&[
+        "env",
+        "replay",
+        "--env",
+        "metaworld_reach",
+        "--task",
+        "6",
+        "--actions",
+        a,
+        "--out",
+        res.to_str().unwrap(),
+    ]);
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&res).unwrap()).unwrap();
+    let rewards: Vec<f32> =
+        r["rewards"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+    assert_eq!(rewards, t.rewards[..60]);
+    assert_eq!(r["success"].as_array().unwrap().len(), 60);
+    let init = tmp.path().join("init.json");
+    std::fs::write(&init, r#"{"qpos": [], "qvel": []}"#).unwrap();
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "metaworld_reach",
+        "--task",
+        "6",
+        "--actions",
+        a,
+        "--init",
+        init.to_str().unwrap(),
+        "--out",
+        res.to_str().unwrap(),
+    ]);
+    assert!(e.contains("reset state"), "{e}");
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "cheetah_vel",
+        "--task",
+        "6",
+        "--actions",
+        a,
+        "--out",
+        res.to_str().unwrap(),
+    ]);
+    assert!(e.contains("--init is required"), "{e}");
+
+    let cfg = tmp.path().join("reach.toml");
+    let text = format!(
+        "[env]\nname = \"metaworld_reach\"\n[data]\ndir = {d:?}\n[sampler]\nk = 4\n\
+         batch_size_per_task = 1\n[model]\nhidden_size = 16\nn_layer = 1\nn_inner = 32\n\
+         [train]\niterations = 2\nsteps_per_iteration = 2\ntest_eval_interval = 2\n\
+         train_eval_interval = 0\nsave_interval = 2\n[eval]\nepisodes = 1\n\
+         [run]\nthreads = 1\ndevice = \"cpu\"\n"
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let run = tmp.path().join("run");
+    ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
+    let rows = std::fs::read_to_string(run.join("eval.jsonl")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(rows.lines().next().unwrap()).unwrap();
+    let rate = first["success_rate"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&rate), "{first}");
+    assert_eq!(first["length_mean"], 500.0);
+    let ev = ok(&["eval", "--run", run.to_str().unwrap(), "--episodes", "1"]);
+    assert!(ev.contains("success") && ev.contains("metaworld_reach-20"), "{ev}");
+    assert!(ev.lines().filter(|l| l.trim_end().ends_with('%')).count() == 6, "{ev}");
+}

@@ -101,6 +101,16 @@ pub trait EnvFamily: Send + Sync {
 pub const FAMILY_NAMES: [&str; 5] =
     ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach"];
 
+/// The reward at or above which a step of `family` solved its task, for families whose success
+/// can be read off their recorded rewards: Meta-World reach ([`metaworld_reach::SUCCESS_REWARD`]).
+/// `None` for families without a success criterion.
+pub fn success_reward(family: &str) -> Option<f32> {
+    match family {
+        metaworld_reach::ENV_NAME => Some(metaworld_reach::SUCCESS_REWARD),
+        _ => None,
+    }
+}
+
 /// Looks up a family by name.
 pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
     match name {

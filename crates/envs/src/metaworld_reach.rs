@@ -60,6 +60,11 @@ pub const RESET_LOW: [f64; 6] = [-0.1, 0.6, 0.02, -0.1, 0.8, 0.05];
 pub const RESET_HIGH: [f64; 6] = [0.1, 0.7, 0.02, 0.1, 0.9, 0.3];
 /// Success radius and the tolerance's flat region.
 pub const TARGET_RADIUS: f64 = 0.05;
+/// The reward of a step that succeeded: `10 * tolerance` is exactly 10 where the distance is within
+/// [`TARGET_RADIUS`] and below 10 elsewhere, so a recorded (f32) reward of 10 marks success. After
+/// the rounding to f32 this also counts distances up to about 2e-5 m beyond the radius (tolerance
+/// above 1 - 5e-8); the environment's own `success` flag is exact.
+pub const SUCCESS_REWARD: f32 = 10.0;
 /// Mocap orientation Meta-World writes before every step (unnormalised; MuJoCo normalises it).
 const MOCAP_QUAT: [f64; 4] = [1.0, 0.0, 1.0, 0.0];
 /// Hand displacement per unit action, applied as an f32 product (spec §2.7).

@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::ant_dir::AntDirFamily;
 use crate::cheetah::{CheetahDirFamily, CheetahVelFamily};
+use crate::metaworld_reach::{self, MetaWorldReachFamily};
 use crate::mujoco_env::MujocoEnv;
 use crate::{Env, EnvError};
 
@@ -37,8 +38,12 @@ pub struct ReplayResult {
     pub terminated: Vec<bool>,
     pub truncated: Vec<bool>,
     /// Actions not applied because the episode had ended (terminated, or truncated at the
-    /// 200-step horizon) before them.
+    /// horizon: 200 steps for the MuJoCo families, 500 for Meta-World reach) before them.
     pub unused_actions: usize,
+    /// One per step for families with a success criterion (Meta-World reach: the hand within
+    /// 0.05 m of the goal); absent for the others.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub success: Vec<bool>,
 }
 
 /// The concrete environment of a MuJoCo family's task (Ant-Dir with the reference's contact cost).
@@ -89,6 +94,7 @@ pub fn replay_env(
         terminated: Vec::with_capacity(actions.len()),
         truncated: Vec::with_capacity(actions.len()),
         unused_actions: 0,
+        success: Vec::new(),
     };
     for (t, action) in actions.iter().enumerate() {
         let resets = env.instability_resets();
@@ -108,6 +114,37 @@ pub fn replay_env(
         result.rewards.push(step.reward);
         result.terminated.push(step.terminated);
         result.truncated.push(step.truncated);
+        if step.terminated || step.truncated {
+            result.unused_actions = actions.len() - t - 1;
+            break;
+        }
+    }
+    Ok(result)
+}
+
+/// Replays `actions` on task `task` of Meta-World reach (goal hidden, as the family's tasks are)
+/// from its reset state: a reach task has no start-state noise, so there is no initial state to
+/// give. The observations are the f32 ones the datasets and the evaluation see.
+pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
+    let mut env = MetaWorldReachFamily::default().make_env(task)?;
+    let first = Env::reset(&mut env, 0);
+    let mut result = ReplayResult {
+        family: metaworld_reach::ENV_NAME.to_string(),
+        task,
+        observations: vec![first],
+        rewards: Vec::with_capacity(actions.len()),
+        terminated: Vec::with_capacity(actions.len()),
+        truncated: Vec::with_capacity(actions.len()),
+        unused_actions: 0,
+        success: Vec::with_capacity(actions.len()),
+    };
+    for (t, action) in actions.iter().enumerate() {
+        let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
+        result.observations.push(step.obs);
+        result.rewards.push(step.reward);
+        result.terminated.push(step.terminated);
+        result.truncated.push(step.truncated);
+        result.success.push(step.success == Some(true));
         if step.terminated || step.truncated {
             result.unused_actions = actions.len() - t - 1;
             break;

@@ -3,7 +3,8 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use super::bars::{
-    evaluate_mean_bar, evaluate_medium_bar, evaluate_reference_bar, mean_bar, reference_bar,
+    evaluate_mean_bar, evaluate_medium_bar, evaluate_reference_bar, evaluate_success_bar, mean_bar,
+    reference_bar,
 };
 use super::{FamilyReport, ReferenceReturn, ReturnStat, TaskMean, TaskRow};
 
@@ -94,6 +95,9 @@ pub(super) fn build_family(
         bars.push(evaluate_mean_bar(&bar, &modes, &tasks, expert_mode.as_deref()));
     }
     bars.push(evaluate_medium_bar(&modes, &tasks));
+    if pdt_envs::success_reward(env).is_some() {
+        bars.push(evaluate_success_bar(&modes, &tasks, expert_mode.as_deref()));
+    }
 
     FamilyReport {
         env: env.to_string(),

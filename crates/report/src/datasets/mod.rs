@@ -44,6 +44,9 @@ pub struct ReturnStat {
     pub mean: f64,
     pub std: f64,
     pub episodes: usize,
+    /// Fraction of the episodes that solved their task at some step, for families whose success
+    /// shows in the rewards (Meta-World reach: a reward of 10); `None` for the others.
+    pub success: Option<f64>,
 }
 
 impl ReturnStat {
@@ -55,7 +58,7 @@ impl ReturnStat {
         let n = returns.len() as f64;
         let mean = returns.iter().sum::<f64>() / n;
         let var = returns.iter().map(|r| (r - mean) * (r - mean)).sum::<f64>() / n;
-        Some(Self { mean, std: var.sqrt(), episodes: returns.len() })
+        Some(Self { mean, std: var.sqrt(), episodes: returns.len(), success: None })
     }
 }
 
@@ -178,7 +181,9 @@ pub fn dataset_report(cfg: &DatasetReportConfig) -> Result<DatasetReportSummary,
     let mut ours: BTreeMap<String, BTreeMap<usize, BTreeMap<String, ReturnStat>>> = BTreeMap::new();
     let mut stats_by_path: BTreeMap<PathBuf, ReturnStat> = BTreeMap::new();
     for ((env, index, mode), path) in &ours_files {
-        let Some(stat) = ReturnStat::of(&read_returns(path)?) else { continue };
+        let (returns, success) = read_returns(path, env)?;
+        let Some(mut stat) = ReturnStat::of(&returns) else { continue };
+        stat.success = success;
         stats_by_path.insert(path.clone(), stat);
         ours.entry(env.clone()).or_default().entry(*index).or_default().insert(mode.clone(), stat);
     }
@@ -233,7 +238,7 @@ mod tests {
     use super::*;
 
     fn stat(mean: f64) -> ReturnStat {
-        ReturnStat { mean, std: 1.0, episodes: 5 }
+        ReturnStat { mean, std: 1.0, episodes: 5, success: None }
     }
 
     /// `tasks` of (index, [(mode, mean)]).

@@ -13,6 +13,9 @@ use crate::render::{csv_line, md, num, warnings_markdown};
 
 fn cell(s: Option<ReturnStat>) -> String {
     match s {
+        Some(ReturnStat { mean, std, success: Some(r), .. }) => {
+            format!("{mean:.2} ± {std:.2} (success {:.0} %)", 100.0 * r)
+        }
         Some(s) => format!("{:.2} ± {:.2}", s.mean, s.std),
         None => "—".to_string(),
     }
@@ -40,7 +43,8 @@ pub(super) fn family_markdown(
     let _ = writeln!(
         out,
         "Episode return per task, mean ± std over the file's episodes (population std), \
-         recomputed from the data files. `reference`: the reference's `expert` file, else its \
+         recomputed from the data files (for Meta-World reach also the share of episodes that \
+         succeeded, i.e. reached a reward of 10, the hand within 0.05 of the goal). `reference`: the reference's `expert` file, else its \
          `prompt-expert` file. Our expert data: `{}`. ratio = ours / reference (only for a \
          positive reference); gap = (ours − reference) / |reference|.\n",
         f.expert_mode.as_deref().unwrap_or("none")
@@ -104,8 +108,13 @@ pub(super) fn family_markdown(
 /// `dataset_returns_<env>.csv`: the table at full precision; empty cells where not applicable.
 pub(super) fn family_csv(f: &FamilyReport) -> String {
     let mut header = vec!["task".to_string()];
+    // Families whose success shows in the rewards (Meta-World reach) get a success column per mode.
+    let success = pdt_envs::success_reward(&f.env).is_some();
     for m in &f.modes {
         header.extend([format!("{m}_mean"), format!("{m}_std"), format!("{m}_episodes")]);
+        if success {
+            header.push(format!("{m}_success_rate"));
+        }
     }
     header.extend(
         [
@@ -129,6 +138,9 @@ pub(super) fn family_csv(f: &FamilyReport) -> String {
                 opt(s.map(|s| s.std)),
                 s.map(|s| s.episodes.to_string()).unwrap_or_default(),
             ]);
+            if success {
+                row.push(opt(s.and_then(|s| s.success)));
+            }
         }
         let r = t.reference.as_ref();
         row.extend([

@@ -102,8 +102,10 @@ fn file_key(path: &Path, warnings: &mut Vec<String>) -> Result<Option<FileKey>, 
     Ok(Some((env, index, mode)))
 }
 
-/// The undiscounted return of every episode in a native file or a reference pickle.
-pub(super) fn read_returns(path: &Path) -> Result<Vec<f64>, ReportError> {
+/// The undiscounted return of every episode in a native file or a reference pickle, and, for a
+/// family whose success shows in its rewards ([`pdt_envs::success_reward`]), the fraction of
+/// episodes with a successful step.
+pub(super) fn read_returns(path: &Path, env: &str) -> Result<(Vec<f64>, Option<f64>), ReportError> {
     let data = |source| ReportError::Data { path: path.to_path_buf(), source };
     let dataset: TaskDataset = if path.extension().and_then(|e| e.to_str()) == Some(FILE_EXTENSION)
     {
@@ -111,7 +113,11 @@ pub(super) fn read_returns(path: &Path) -> Result<Vec<f64>, ReportError> {
     } else {
         load_pickle(path, &ReferenceOptions::default()).map_err(data)?.dataset
     };
-    Ok(dataset.returns())
+    let success = pdt_envs::success_reward(env).map(|bar| {
+        let wins = dataset.trajectories.iter().filter(|t| t.rewards.iter().any(|&r| r >= bar));
+        wins.count() as f64 / dataset.trajectories.len().max(1) as f64
+    });
+    Ok((dataset.returns(), success))
 }
 
 /// Per task of `env`, the reference's expert return: its `expert` file if there is one, else its
@@ -133,7 +139,7 @@ pub(super) fn load_reference(
     }
     let mut out = BTreeMap::new();
     for (index, (mode, path)) in chosen {
-        if let Some(stat) = ReturnStat::of(&read_returns(path)?) {
+        if let Some(stat) = ReturnStat::of(&read_returns(path, env)?.0) {
             out.insert(index, ReferenceReturn { mode: mode.to_string(), path: path.clone(), stat });
         }
     }
