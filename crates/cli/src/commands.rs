@@ -421,7 +421,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     if a.list {
         for e in pdt_repro::list()? {
             let pending = if e.pending > 0 {
-                format!(", {} waiting for Meta-World/Dial", e.pending)
+                format!(", {} waiting for Dial", e.pending)
             } else {
                 String::new()
             };

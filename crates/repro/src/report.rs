@@ -39,6 +39,9 @@ pub struct CellResult {
     pub ours: Option<Stat>,
     /// Normalised score, over seeds.
     pub ours_normalised: Option<Stat>,
+    /// Success rate on the test tasks at the last evaluation, over seeds (families with a success
+    /// criterion: Meta-World reach); `None` for the others.
+    pub success: Option<Stat>,
     pub paper: Option<f64>,
     pub paper_std: Option<f64>,
     pub paper_source: Option<String>,
@@ -80,6 +83,26 @@ struct EvalLine {
     split: String,
     task_index: usize,
     return_mean: Option<f64>,
+    #[serde(default)]
+    success_rate: Option<f64>,
+}
+
+/// The mean success rate over the test tasks of a run's last test evaluation, where its rows have
+/// one (Meta-World reach).
+fn last_success(dir: &Path) -> Option<f64> {
+    let text =
+        pdt_base::fs::read_text_limited(&dir.join("eval.jsonl"), pdt_base::fs::MAX_TEXT_BYTES)
+            .ok()?;
+    let rows: Vec<EvalLine> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<EvalLine>(l).ok())
+        .filter(|l| l.split == "test")
+        .collect();
+    let last = rows.iter().map(|l| l.iteration).max()?;
+    let rates: Option<Vec<f64>> =
+        rows.iter().filter(|l| l.iteration == last).map(|l| l.success_rate).collect();
+    let rates = rates.filter(|r| !r.is_empty())?;
+    Some(rates.iter().sum::<f64>() / rates.len() as f64)
 }
 
 /// Per test iteration, task index -> return.
@@ -181,6 +204,7 @@ pub fn report(
             iterations_planned: None,
             ours: None,
             ours_normalised: None,
+            success: None,
             paper: cell.paper,
             paper_std: cell.paper_std,
             paper_source: cell.paper_source.clone(),
@@ -214,6 +238,7 @@ pub fn report(
         // Per seed: the last evaluation, and every evaluation for the curve.
         let mut finals = Vec::new();
         let mut norms = Vec::new();
+        let mut successes = Vec::new();
         let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
         let mut partial = false;
         let mut last_iter: Option<u64> = None;
@@ -226,6 +251,7 @@ pub fn report(
             last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
             let avg = last.values().sum::<f64>() / last.len() as f64;
             finals.push(avg);
+            successes.extend(last_success(&r.dir));
             if let Some(b) = &base {
                 let n: Option<Vec<f64>> = last
                     .iter()
@@ -246,6 +272,10 @@ pub fn report(
         res.iteration = last_iter;
         res.ours = Stat::of(&finals);
         res.ours_normalised = Stat::of(&norms);
+        // Only where every seed's run reports a success rate.
+        if successes.len() == finals.len() {
+            res.success = Stat::of(&successes);
+        }
         res.status = match (res.seeds, partial) {
             (0, _) => "no results yet".into(),
             (_, true) => "partial".into(),
@@ -450,7 +480,10 @@ fn markdown(m: &Manifest, r: &Report) -> String {
             c.id,
             c.seeds,
             it,
-            stat(c.ours, 2),
+            match c.success {
+                Some(sr) => format!("{} (success {:.0} %)", stat(c.ours, 2), 100.0 * sr.mean),
+                None => stat(c.ours, 2),
+            },
             stat(c.ours_normalised, 1),
             paper,
             pn,
@@ -507,14 +540,14 @@ fn markdown(m: &Manifest, r: &Report) -> String {
 fn cells_csv(r: &Report) -> String {
     let mut s = String::from(
         "cell,env,label,row,column,status,seeds,iteration,iterations_planned,ours_mean,ours_std,\
-         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source\n",
+         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source,success_mean,success_std\n",
     );
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
     let q = |v: &str| format!("\"{}\"", v.replace('"', "\"\""));
     for c in &r.cells {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             q(&c.id),
             c.env,
             q(&c.label),
@@ -534,6 +567,8 @@ fn cells_csv(r: &Report) -> String {
             f(c.paper_normalised_std),
             c.within_paper_std.map_or(String::new(), |w| w.to_string()),
             q(c.paper_source.as_deref().unwrap_or("")),
+            f(c.success.map(|s| s.mean)),
+            f(c.success.map(|s| s.std)),
         );
     }
     s
