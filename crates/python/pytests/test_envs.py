@@ -71,3 +71,19 @@ def test_make_vec_tasks_and_errors():
     assert fams["cheetah_vel"]["num_tasks"] == 40 and fams["ant_dir"]["obs_dim"] == 27
     assert promptdt.task_params("cheetah_vel", 3) == {"velocity": 0.3}
     assert set(promptdt.task_params("point_robot", 3)) == {"angle", "goal"}
+
+
+def test_make_vec_metaworld_reach_reports_success():
+    env = make_vec("metaworld_reach", [1, 6], num_envs=2)
+    obs, _ = env.reset(seed=0)
+    # ML1 observations: 39 values, the goal slot zeroed.
+    assert obs.shape == (2, 39) and np.all(obs[:, 36:39] == 0)
+    obs, rew, term, trunc, infos = env.step(np.zeros((2, 4)))
+    assert infos["success"].dtype == np.bool_ and infos["success"].shape == (2,)
+    assert not infos["success"].any() and infos["_success"].all()
+    assert (rew > 0).all() and not term.any() and not trunc.any()
+    # Families without a success criterion put none in infos.
+    c = make_vec("cheetah_vel", [2], num_envs=1)
+    c.reset(seed=0)
+    *_, info = c.step(np.zeros((1, 6)))
+    assert "success" not in info

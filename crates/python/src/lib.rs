@@ -214,6 +214,8 @@ fn task_params(family: &str, task: usize) -> PyResult<String> {
 struct VecState {
     venv: pdt_envs::vec_env::VecEnv,
     obs_dim: usize,
+    /// The last step's success flags (Meta-World reach); `None` for families without them.
+    success: Option<Vec<bool>>,
 }
 
 /// Environments of one family (each of its own task) stepped together on worker threads.
@@ -253,7 +255,7 @@ impl VecEnv {
         };
         let venv = pdt_envs::vec_env::VecEnv::new(envs, threads);
         Ok(Self {
-            state: Mutex::new(VecState { venv, obs_dim }),
+            state: Mutex::new(VecState { venv, obs_dim, success: None }),
             family: f.name().to_string(),
             tasks,
             obs_dim,
@@ -342,6 +344,7 @@ impl VecEnv {
             let slots = st.venv.step_flat(&flat, mask.as_deref()).map_err(value_error)?;
             let (mut obs, mut rew) = (vec![0f32; n * ds], vec![0f32; n]);
             let (mut term, mut trunc) = (vec![false; n], vec![false; n]);
+            let mut success: Option<Vec<bool>> = None;
             for (i, slot) in slots.into_iter().enumerate() {
                 if let Some(r) = slot {
                     let s = r.map_err(|e| value_error(format!("environment {i}: {e}")))?;
@@ -349,8 +352,12 @@ impl VecEnv {
                     rew[i] = s.reward;
                     term[i] = s.terminated;
                     trunc[i] = s.truncated;
+                    if let Some(ok) = s.success {
+                        success.get_or_insert_with(|| vec![false; n])[i] = ok;
+                    }
                 }
             }
+            st.success = success;
             Ok((obs, rew, term, trunc))
         })?;
         Ok((
@@ -359,6 +366,14 @@ impl VecEnv {
             term.into_pyarray(py),
             trunc.into_pyarray(py),
         ))
+    }
+
+    /// The last `step`'s success flags `[n] bool` (Meta-World reach: the hand within 0.05 of the
+    /// goal; false for environments not stepped), or `None` for families without a success
+    /// criterion or before the first step.
+    fn last_success<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray1<bool>>>> {
+        let st = lock(&self.state)?;
+        Ok(st.success.clone().map(|v| v.into_pyarray(py)))
     }
 }
 

@@ -56,6 +56,7 @@ class VecEnv:
     def step(
         self, actions: npt.ArrayLike, mask: Optional[Sequence[bool]] = None
     ) -> Tuple[F32, F32, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]: ...
+    def last_success(self) -> Optional[npt.NDArray[np.bool_]]: ...
 
 class Prompt:
     steps: int

@@ -105,6 +105,12 @@ class PromptDTVectorEnv(VectorEnv):
         stepped = ~self._autoreset
         obs, rewards, term, trunc = self._env.step(actions, stepped.tolist())
         infos: dict = {}
+        success = self._env.last_success()
+        if success is not None:
+            # gymnasium's vector-info convention: the values, and `_success` marking the
+            # environments that stepped (an environment being reset has no success value).
+            infos["success"] = success
+            infos["_success"] = stepped.copy()
         if self._autoreset.any():
             idx = np.flatnonzero(self._autoreset)
             first = self._env.reset(self._draw_seeds(len(idx)), idx.tolist())
