@@ -363,6 +363,11 @@ pub struct CollectArgs {
     /// Scripted families only: which datasets to write (default `expert,medium,random`).
     #[arg(long, value_delimiter = ',')]
     pub modes: Option<Vec<String>>,
+    /// metaworld_reach only: standard deviation of the expert's (and medium policy's) Gaussian
+    /// action noise, 0 to 10 (default 0.2, Meta-World's test-harness noise; 0 = the deterministic
+    /// expert, every episode of a task the same).
+    #[arg(long)]
+    pub action_noise: Option<f64>,
     /// Episodes per task in each prompt set (1 to 10000).
     #[arg(long, default_value_t = 5, value_parser = count(1, 10_000))]
     pub prompt_episodes: usize,

@@ -20,6 +20,9 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
         if a.modes.is_some() {
             bail!("--modes is for the scripted families (point_robot, metaworld_reach)");
         }
+        if a.action_noise.is_some() {
+            bail!("--action-noise is for metaworld_reach");
+        }
         return collect_rl(a, family.name());
     };
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family.name()));
@@ -34,6 +37,12 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     }
     if let Some(m) = &a.modes {
         cfg.modes = m.iter().map(|m| m.parse::<Mode>()).collect::<Result<_, _>>()?;
+    }
+    if let Some(s) = a.action_noise {
+        if scripted != ScriptedFamily::MetaWorldReach {
+            bail!("--action-noise is for metaworld_reach");
+        }
+        cfg.reach_action_noise = s;
     }
     let pb = bar(0, "collect {bar:30} {pos}/{len} datasets [{elapsed} < {eta}]");
     let summary = pdt_envs::collect_scripted::collect(&cfg, &out, &mut |done, total| {

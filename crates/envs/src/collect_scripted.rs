@@ -124,13 +124,14 @@ impl ScriptedFamily {
             Self::PointRobot => mode.description(),
             Self::MetaWorldReach => match mode {
                 Mode::Expert => {
-                    "a = f32(5 (goal - hand), 0) + N(0, 0.2^2) per dimension (Meta-World's \
-                     SawyerReachV3Policy with its test harness's noise at pct 0.1; the true goal \
-                     is read from the env, the recorded observation hides it)"
+                    "a = f32(5 (goal - hand), 0) + N(0, s^2) per dimension, s = action_noise_std \
+                     (Meta-World's SawyerReachV3Policy; s = 0.2 is its test harness's noise at \
+                     pct 0.1; the true goal is read from the env, the recorded observation hides \
+                     it)"
                 }
                 Mode::Medium => {
                     "g' = goal + N(0, 0.1^2) per coordinate, drawn once per episode; a = \
-                     f32(5 (g' - hand), 0) + N(0, 0.2^2) per dimension"
+                     f32(5 (g' - hand), 0) + N(0, s^2) per dimension, s = action_noise_std"
                 }
                 Mode::Random => "a ~ Uniform[-1, 1] per dimension (the action space)",
             },
@@ -221,7 +222,7 @@ impl Set {
 }
 
 /// What to collect.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CollectConfig {
     /// Which family (default: the point robot).
     #[serde(default)]
@@ -234,6 +235,15 @@ pub struct CollectConfig {
     pub modes: Vec<Mode>,
     /// Task indices of the family (point robot `0..40`, reach `0..50`).
     pub tasks: Vec<usize>,
+    /// Meta-World reach: standard deviation of the expert's and medium policy's Gaussian action
+    /// noise ([`REACH_ACTION_NOISE`] by default). 0 gives the deterministic expert, whose episodes
+    /// of a task are then all the same (spec §5: "200 copies").
+    #[serde(default = "default_reach_noise")]
+    pub reach_action_noise: f64,
+}
+
+fn default_reach_noise() -> f64 {
+    REACH_ACTION_NOISE
 }
 
 impl Default for CollectConfig {
@@ -245,6 +255,7 @@ impl Default for CollectConfig {
             prompt_episodes: 5,
             modes: Mode::ALL.to_vec(),
             tasks: (0..NUM_TASKS).collect(),
+            reach_action_noise: REACH_ACTION_NOISE,
         }
     }
 }
@@ -268,6 +279,13 @@ impl CollectConfig {
         }
         if self.prompt_episodes == 0 {
             return bad("prompt_episodes must be at least 1".into());
+        }
+        if !(self.reach_action_noise.is_finite() && (0.0..=10.0).contains(&self.reach_action_noise))
+        {
+            return bad(format!(
+                "reach_action_noise must be a standard deviation between 0 and 10, got {}",
+                self.reach_action_noise
+            ));
         }
         if self.modes.is_empty() {
             return bad("no modes given".into());
@@ -461,6 +479,7 @@ pub fn run_reach_episode(
     env: &mut MetaWorldReach,
     task: usize,
     mode: Mode,
+    noise: f64,
     rng: &mut ChaCha8Rng,
 ) -> Result<(Trajectory, bool), CollectError> {
     let (od, ad) = (reach::OBS_DIM, reach::ACT_DIM);
@@ -484,7 +503,12 @@ pub fn run_reach_episode(
                 let a = reach::expert_action([full[0], full[1], full[2]], aim);
                 // The noise is added to the f32 action in f64 and rounded back, as numpy's
                 // `normal(a_f32, std)` returns f64 that the f32 dataset then stores.
-                a.map(|v| (f64::from(v) + REACH_ACTION_NOISE * standard_normal(rng)) as f32)
+                // With no noise the expert's action is kept as it is (no draw, no rounding).
+                if noise > 0.0 {
+                    a.map(|v| (f64::from(v) + noise * standard_normal(rng)) as f32)
+                } else {
+                    a
+                }
             }
             Mode::Random => std::array::from_fn(|_| rng.random_range(-1.0f32..=1.0)),
         };
@@ -513,19 +537,21 @@ pub fn generate(
     set: Set,
     episodes: usize,
 ) -> Result<TaskDataset, CollectError> {
-    Ok(generate_for(ScriptedFamily::PointRobot, seed, task, mode, set, episodes)?.0)
+    let cfg = CollectConfig { seed, ..CollectConfig::default() };
+    Ok(generate_for(&cfg, task, mode, set, episodes)?.0)
 }
 
-/// Generates `episodes` episodes of `(task, mode)` of `family` for one set; also returns the
-/// fraction of episodes that succeeded (`None` for a family without a success criterion).
+/// Generates `episodes` episodes of `(task, mode)` of `cfg`'s family with its seed (and noise) for
+/// one set; also returns the fraction of episodes that succeeded (`None` for a family without a
+/// success criterion).
 pub fn generate_for(
-    family: ScriptedFamily,
-    seed: u64,
+    cfg: &CollectConfig,
     task: usize,
     mode: Mode,
     set: Set,
     episodes: usize,
 ) -> Result<(TaskDataset, Option<f64>), CollectError> {
+    let (family, seed) = (cfg.family, cfg.seed);
     let env = family.name();
     let (trajectories, success) = match family {
         ScriptedFamily::PointRobot => {
@@ -542,7 +568,8 @@ pub fn generate_for(
             let mut wins = 0usize;
             for e in 0..episodes {
                 let mut rng = episode_rng(seed, task, mode, set, e);
-                let (traj, ok) = run_reach_episode(&mut sim, task, mode, &mut rng)?;
+                let noise = cfg.reach_action_noise;
+                let (traj, ok) = run_reach_episode(&mut sim, task, mode, noise, &mut rng)?;
                 wins += usize::from(ok);
                 t.push(traj);
             }
@@ -588,7 +615,7 @@ pub fn collect(
             })
         })
         .collect();
-    let mut results = run_jobs(family, cfg.seed, &jobs, out_dir, total, progress);
+    let mut results = run_jobs(cfg, &jobs, out_dir, total, progress);
     // Report the real failure, not a job skipped because of it.
     let failure =
         results.iter().position(|r| matches!(r, Err(e) if !matches!(e, CollectError::Stopped)));
@@ -647,8 +674,7 @@ type JobResult = Result<(CardFile, PathBuf, Option<f64>), CollectError>;
 /// `progress(done, total)` runs on this thread each time both files of a (task, mode) pair (jobs
 /// `2p` and `2p + 1`) are written.
 fn run_jobs(
-    family: ScriptedFamily,
-    seed: u64,
+    cfg: &CollectConfig,
     jobs: &[(usize, Mode, Set, usize)],
     out_dir: &Path,
     total_pairs: usize,
@@ -671,7 +697,7 @@ fn run_jobs(
                         if failed.load(Ordering::Relaxed) {
                             break;
                         }
-                        let result = write_set(family, seed, task, mode, set, episodes, out_dir);
+                        let result = write_set(cfg, task, mode, set, episodes, out_dir);
                         if result.is_err() {
                             failed.store(true, Ordering::Relaxed);
                         } else {
@@ -714,8 +740,7 @@ fn run_jobs(
 
 /// Generates and writes one file; returns its card entry, path and success rate.
 fn write_set(
-    family: ScriptedFamily,
-    seed: u64,
+    cfg: &CollectConfig,
     task: usize,
     mode: Mode,
     set: Set,
@@ -726,11 +751,11 @@ fn write_set(
         Set::Dataset => mode.name().to_owned(),
         Set::Prompt => format!("prompt-{}", mode.name()),
     };
-    let env = family.name();
+    let env = cfg.family.name();
     let name =
         format!("{}.{}", native::task_file_stem(env, task, &file_mode), native::FILE_EXTENSION);
     let path = out_dir.join(&name);
-    let (ds, success) = generate_for(family, seed, task, mode, set, episodes)?;
+    let (ds, success) = generate_for(cfg, task, mode, set, episodes)?;
     let meta = FileMeta::new(env, task, file_mode.clone());
     native::write_task_dataset(&path, &ds, &meta)
         .map_err(|source| CollectError::Write { path: path.clone(), source })?;
@@ -744,7 +769,7 @@ fn generator_info(cfg: &CollectConfig) -> serde_json::Value {
         .iter()
         .map(|m| (m.name().to_owned(), serde_json::Value::from(cfg.family.policy_description(*m))))
         .collect();
-    serde_json::json!({
+    let mut info = serde_json::json!({
         "name": "pdt-envs collect_scripted",
         "version": env!("CARGO_PKG_VERSION"),
         "seed": cfg.seed,
@@ -753,5 +778,9 @@ fn generator_info(cfg: &CollectConfig) -> serde_json::Value {
         "policies": policies,
         "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode); \
                 normal noise by Box-Muller",
-    })
+    });
+    if cfg.family == ScriptedFamily::MetaWorldReach {
+        info["action_noise_std"] = cfg.reach_action_noise.into();
+    }
+    info
 }

@@ -20,6 +20,7 @@ fn config(seed: u64) -> CollectConfig {
         modes: Mode::ALL.to_vec(),
         // A training task and a test task of the paper's split.
         tasks: vec![1, 6],
+        reach_action_noise: 0.2,
     }
 }
 
@@ -119,4 +120,26 @@ fn reach_collection_refuses_unknown_tasks() {
     let d = CollectConfig::for_family(ScriptedFamily::MetaWorldReach);
     assert_eq!(d.tasks, (1..=20).collect::<Vec<_>>());
     assert_eq!(d.episodes_per_task, 200);
+}
+
+#[test]
+fn reach_without_noise_repeats_the_deterministic_expert() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cfg = config(0);
+    cfg.episodes_per_task = 3;
+    cfg.modes = vec![Mode::Expert];
+    cfg.tasks = vec![1];
+    cfg.reach_action_noise = 0.0;
+    let summary = collect(&cfg, dir.path(), &mut |_, _| {}).expect("collect");
+    let e = summary.get(1, Mode::Expert).expect("collected");
+    assert_eq!(e.success_rate, Some(1.0));
+    let ds = native::read_task_dataset(&e.dataset_file).expect("read");
+    // Every episode is the same: Meta-World's deterministic expert on a frozen task.
+    assert_eq!(ds.trajectories[0], ds.trajectories[1]);
+    assert_eq!(ds.trajectories[0], ds.trajectories[2]);
+    // Its first action is SawyerReachV3Policy's: 5 (goal - hand), gripper 0.
+    let a = &ds.trajectories[0].actions[..4];
+    assert_eq!(a[3], 0.0);
+    let card = native::read_card(dir.path()).expect("card").expect("card present");
+    assert_eq!(card.generator["action_noise_std"], 0.0);
 }

@@ -22,6 +22,7 @@ fn small_config(seed: u64) -> CollectConfig {
         prompt_episodes: 3,
         modes: Mode::ALL.to_vec(),
         tasks: vec![0, 2, 39],
+        ..CollectConfig::default()
     }
 }
 
@@ -283,6 +284,8 @@ fn config_errors() {
         CollectConfig { tasks: vec![], ..base.clone() },
         CollectConfig { tasks: vec![1, 1], ..base.clone() },
         CollectConfig { modes: vec![Mode::Random, Mode::Random], ..base.clone() },
+        CollectConfig { reach_action_noise: f64::NAN, ..base.clone() },
+        CollectConfig { reach_action_noise: -0.1, ..base.clone() },
     ] {
         assert!(matches!(bad(cfg.clone()), Err(CollectError::Config(_))), "{cfg:?}");
     }

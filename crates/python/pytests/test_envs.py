@@ -87,3 +87,17 @@ def test_make_vec_metaworld_reach_reports_success():
     c.reset(seed=0)
     *_, info = c.step(np.zeros((1, 6)))
     assert "success" not in info
+
+
+def test_collect_metaworld_reach_from_python(tmp_path):
+    out = tmp_path / "reach"
+    n = promptdt.collect("metaworld_reach", out, episodes=2, prompt_episodes=1, action_noise=0.0)
+    assert n == 20 * 3 * 2  # the paper's 20 tasks x expert/medium/random x (D_i, P_i)
+    ds = promptdt.load_dataset(out / "metaworld_reach-6-expert.safetensors")
+    assert (ds.obs_dim, ds.act_dim, ds.env, ds.task) == (39, 4, "metaworld_reach", 6)
+    a, b = ds.trajectories
+    # No noise: the deterministic expert repeats itself, and it reaches the goal (reward 10).
+    np.testing.assert_array_equal(a.actions, b.actions)
+    assert a.rewards.max() == 10.0 and a.observations.shape == (500, 39)
+    with pytest.raises(ValueError, match="action_noise is for metaworld_reach"):
+        promptdt.collect("point_robot", tmp_path / "p", episodes=1, action_noise=0.1)

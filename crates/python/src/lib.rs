@@ -908,23 +908,41 @@ fn evaluate(
     serde_json::to_string(&r).map_err(value_error)
 }
 
-/// `promptdt collect --env point_robot`: the scripted expert/medium/random datasets and prompt
-/// sets of every goal, into `out`.
+/// `promptdt collect --env point_robot|metaworld_reach`: the scripted expert/medium/random
+/// datasets and prompt sets of the family's default tasks, into `out`. `action_noise`: reach's
+/// expert noise (standard deviation; default 0.2, 0 = deterministic).
 #[pyfunction]
-#[pyo3(signature = (out, seed = 0, episodes = None, prompt_episodes = None))]
-fn collect_point_robot(
+#[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None))]
+fn collect_scripted(
     py: Python<'_>,
+    family: &str,
     out: PathBuf,
     seed: u64,
     episodes: Option<usize>,
     prompt_episodes: Option<usize>,
+    action_noise: Option<f64>,
 ) -> PyResult<usize> {
-    let mut cfg = pdt_envs::collect_scripted::CollectConfig { seed, ..Default::default() };
+    use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
+    let fam = pdt_envs::family(family).map_err(value_error)?;
+    let scripted = ScriptedFamily::from_name(fam.name()).ok_or_else(|| {
+        value_error(format!(
+            "{family} has no scripted policies (point_robot and metaworld_reach do); use \
+             collect_from_agent"
+        ))
+    })?;
+    let mut cfg = CollectConfig::for_family(scripted);
+    cfg.seed = seed;
     if let Some(e) = episodes {
         cfg.episodes_per_task = e;
     }
     if let Some(e) = prompt_episodes {
         cfg.prompt_episodes = e;
+    }
+    if let Some(n) = action_noise {
+        if scripted != ScriptedFamily::MetaWorldReach {
+            return Err(value_error("action_noise is for metaworld_reach"));
+        }
+        cfg.reach_action_noise = n;
     }
     let summary = py
         .detach(|| pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}))
@@ -998,7 +1016,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(task_params, m)?)?;
     m.add_function(wrap_pyfunction!(train, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
-    m.add_function(wrap_pyfunction!(collect_point_robot, m)?)?;
+    m.add_function(wrap_pyfunction!(collect_scripted, m)?)?;
     m.add_function(wrap_pyfunction!(collect_from_agent, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;
     m.add_function(wrap_pyfunction!(bench_envs, m)?)?;

@@ -149,14 +149,22 @@ def collect(
     prompt_episodes: Optional[int] = None,
     pretrained_dir: Optional[PathLike] = None,
     device: str = "cpu",
+    action_noise: Optional[float] = None,
 ) -> int:
     """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
-    ``point_robot`` uses its scripted expert; the MuJoCo families use a trained agent directory
+    ``point_robot`` and ``metaworld_reach`` use their scripted policies (reach: the paper's 20
+    tasks, 200 episodes each by default; ``action_noise`` is its expert's noise, 0.2 by default,
+    0 for the deterministic expert); the MuJoCo families use a trained agent directory
     (``pretrained_dir``, default ``pretrained/<env>`` of the checkout, as ``--from-pretrained``).
     Returns the number of files written."""
-    if env in ("point_robot", "point-robot"):
-        return _native.collect_point_robot(
-            _os.fspath(out), seed=seed, episodes=episodes, prompt_episodes=prompt_episodes
+    if env in ("point_robot", "point-robot", "metaworld_reach", "metaworld-reach"):
+        return _native.collect_scripted(
+            env,
+            _os.fspath(out),
+            seed=seed,
+            episodes=episodes,
+            prompt_episodes=prompt_episodes,
+            action_noise=action_noise,
         )
     if pretrained_dir is None:
         pretrained_dir = _Path("pretrained") / env

@@ -31,8 +31,13 @@ def evaluate(
     device: Optional[str] = None,
     data: Optional[_Path] = None,
 ) -> str: ...
-def collect_point_robot(
-    out: _Path, seed: int = 0, episodes: Optional[int] = None, prompt_episodes: Optional[int] = None
+def collect_scripted(
+    family: str,
+    out: _Path,
+    seed: int = 0,
+    episodes: Optional[int] = None,
+    prompt_episodes: Optional[int] = None,
+    action_noise: Optional[float] = None,
 ) -> int: ...
 def collect_from_agent(
     agent_dir: _Path,
