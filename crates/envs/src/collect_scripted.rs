@@ -44,8 +44,9 @@ pub const MEDIUM_ACTION_NOISE: f64 = 0.05;
 /// Meta-World's own tests require reach's expert to succeed (spec §3: measured 100 % ever-success).
 pub const REACH_ACTION_NOISE: f64 = 0.2;
 /// Meta-World reach: standard deviation (m) of the medium policy's per-coordinate goal error,
-/// drawn once per episode: it reaches, steadily, about 0.17 m from the goal (outside the 0.05 m
-/// success radius), which earns roughly a third of the expert's reward per step.
+/// drawn once per episode: it settles about 0.17 m from the goal (outside the 0.05 m success
+/// radius), which earns about half the expert's return (measured over the paper's 20 tasks, 200
+/// episodes each: medium 2,629, expert 4,826, random 777; medium succeeds in 11 % of episodes).
 pub const REACH_MEDIUM_GOAL_NOISE: f64 = 0.1;
 
 /// A family with scripted policies.
