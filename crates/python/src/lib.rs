@@ -908,6 +908,34 @@ fn evaluate(
     serde_json::to_string(&r).map_err(value_error)
 }
 
+/// `promptdt reproduce --list`: every committed experiment with its cells and its cost per budget,
+/// as JSON text (a list of `{name, title, cells, pending, budgets: [{budget, runs, iterations,
+/// hours, note}]}`).
+#[pyfunction]
+fn experiments() -> PyResult<String> {
+    let list = pdt_repro::list().map_err(value_error)?;
+    let v: Vec<serde_json::Value> = list
+        .iter()
+        .map(|e| {
+            let budgets: Vec<serde_json::Value> = e
+                .budgets
+                .iter()
+                .map(|b| {
+                    serde_json::json!({
+                        "budget": b.budget, "runs": b.runs, "iterations": b.iterations,
+                        "hours": b.hours, "note": b.note,
+                    })
+                })
+                .collect();
+            serde_json::json!({
+                "name": e.name, "title": e.title, "cells": e.cells, "pending": e.pending,
+                "budgets": budgets,
+            })
+        })
+        .collect();
+    serde_json::to_string(&v).map_err(value_error)
+}
+
 /// `promptdt collect --env point_robot|metaworld_reach`: the scripted expert/medium/random
 /// datasets and prompt sets of the family's default tasks, into `out`. `action_noise`: reach's
 /// expert noise (standard deviation; default 0.2, 0 = deterministic).
@@ -1017,6 +1045,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(train, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(collect_scripted, m)?)?;
+    m.add_function(wrap_pyfunction!(experiments, m)?)?;
     m.add_function(wrap_pyfunction!(collect_from_agent, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;
     m.add_function(wrap_pyfunction!(bench_envs, m)?)?;

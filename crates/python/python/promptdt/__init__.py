@@ -178,6 +178,72 @@ def collect(
     )
 
 
+def experiments() -> list:
+    """``promptdt reproduce --list``: every committed experiment (``fig2``, ``table1``, ...) with its
+    cells and, per budget (``paper``, ``cpu``, ``smoke``), its runs, iterations and stated cost."""
+    return _json.loads(_native.experiments())
+
+
+def reproduce(
+    experiment: str,
+    *,
+    budget: str = "cpu",
+    out: PathLike = "runs/repro",
+    seeds: Optional[int] = None,
+    jobs: Optional[int] = None,
+    threads: Optional[int] = None,
+    device: Optional[str] = None,
+    data_root: Optional[PathLike] = None,
+    pretrained_root: Optional[PathLike] = None,
+    only: Optional[str] = None,
+    report_only: bool = False,
+    exe: Optional[PathLike] = None,
+) -> Optional[dict]:
+    """``promptdt reproduce``: runs what is unfinished of a paper artifact at a budget, then writes
+    its report under ``out/reports/<experiment>-<budget>/`` and returns ``report.json`` (``None``
+    with ``only``, which runs one run and writes no report).
+
+    The sweep starts the ``promptdt`` binary once per run (as the CLI does, so a killed sweep
+    resumes and runs can be spread over machines), so it needs that binary: ``exe``, else
+    ``$PROMPTDT_BIN``, else ``promptdt`` on ``PATH`` (``cargo build --release -p promptdt`` makes
+    ``target/release/promptdt``). Raises ``RuntimeError`` with the command's error output when it
+    fails."""
+    import shutil as _shutil
+    import subprocess as _subprocess
+
+    binary = exe or _os.environ.get("PROMPTDT_BIN") or _shutil.which("promptdt")
+    if binary is None or not _Path(binary).is_file():
+        raise FileNotFoundError(
+            "reproduce needs the promptdt binary: pass exe=..., set PROMPTDT_BIN, or put promptdt "
+            f"on PATH (cargo build --release -p promptdt); got {binary!r}"
+        )
+    out = _Path(out)
+    args = [_os.fspath(binary), "reproduce", experiment, "--budget", budget, "--out", _os.fspath(out)]
+    for flag, value in (
+        ("--seeds", seeds),
+        ("--jobs", jobs),
+        ("--threads", threads),
+        ("--device", device),
+        ("--data-root", data_root),
+        ("--pretrained-root", pretrained_root),
+        ("--only", only),
+    ):
+        if value is not None:
+            args += [flag, _os.fspath(value) if isinstance(value, _os.PathLike) else str(value)]
+    if report_only:
+        args.append("--report-only")
+    done = _subprocess.run(args, stdin=_subprocess.DEVNULL, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(
+            f"promptdt reproduce {experiment} --budget {budget} failed "
+            f"(exit {done.returncode}): {done.stderr.strip()[-2000:]}"
+        )
+    if only is not None:
+        return None
+    report = out / "reports" / f"{experiment}-{budget}" / "report.json"
+    return _json.loads(report.read_text())
+
+
 def export_minari(*args, **kwargs):
     """promptdt files -> a Minari dataset (see ``promptdt.minari_io.export_minari``)."""
     from .minari_io import export_minari as f
@@ -214,8 +280,10 @@ __all__ = [
     "Trajectory",
     "collect",
     "evaluate",
+    "experiments",
     "families",
     "load_dataset",
+    "reproduce",
     "set_num_threads",
     "task_params",
     "train",

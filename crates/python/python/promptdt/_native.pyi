@@ -31,6 +31,7 @@ def evaluate(
     device: Optional[str] = None,
     data: Optional[_Path] = None,
 ) -> str: ...
+def experiments() -> str: ...
 def collect_scripted(
     family: str,
     out: _Path,
