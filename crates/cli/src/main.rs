@@ -213,6 +213,8 @@ fn run(cli: Cli) -> Result<()> {
                         a.actions.display()
                     )
                 })?;
+            // An unknown family is named as such, before asking for its initial state.
+            pdt_envs::family(&a.env)?;
             let r = match (a.env.as_str(), &a.init) {
                 ("metaworld_reach" | "metaworld-reach", None) => {
                     pdt_envs::replay::replay_reach(a.task, &actions)?

@@ -519,6 +519,19 @@ fn metaworld_reach_collect_report_replay_train_eval() {
         res.to_str().unwrap(),
     ]);
     assert!(e.contains("--init is required"), "{e}");
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "nope",
+        "--task",
+        "6",
+        "--actions",
+        a,
+        "--out",
+        res.to_str().unwrap(),
+    ]);
+    assert!(e.contains("unknown environment `nope`"), "{e}");
 
     let cfg = tmp.path().join("reach.toml");
     let text = format!(
