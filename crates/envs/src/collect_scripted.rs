@@ -30,7 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
 use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
-use crate::{Env, EnvError, EnvFamily};
+use crate::{Env, EnvError, EnvFamily, StepResult};
 
 /// Standard deviation of the expert's per-coordinate action noise.
 pub const EXPERT_ACTION_NOISE: f64 = 0.01;
@@ -417,6 +417,47 @@ fn normal(rng: &mut ChaCha8Rng, std: f64) -> f32 {
     (std * standard_normal(rng)) as f32
 }
 
+/// The arrays of one episode as it is played, for [`Trajectory::new`].
+struct EpisodeLog {
+    obs_dim: usize,
+    act_dim: usize,
+    observations: Vec<f32>,
+    actions: Vec<f32>,
+    rewards: Vec<f32>,
+    terminated: Vec<bool>,
+    truncated: Vec<bool>,
+}
+
+impl EpisodeLog {
+    fn new(obs_dim: usize, act_dim: usize, horizon: usize) -> Self {
+        Self {
+            obs_dim,
+            act_dim,
+            observations: Vec::with_capacity(horizon * obs_dim),
+            actions: Vec::with_capacity(horizon * act_dim),
+            rewards: Vec::with_capacity(horizon),
+            terminated: Vec::with_capacity(horizon),
+            truncated: Vec::with_capacity(horizon),
+        }
+    }
+
+    /// Records `action`, taken at observation `obs`, and its step; returns whether the episode
+    /// ended there.
+    fn record(&mut self, obs: &[f32], action: &[f32], step: &StepResult) -> bool {
+        self.observations.extend_from_slice(obs);
+        self.actions.extend_from_slice(action);
+        self.rewards.push(step.reward);
+        self.terminated.push(step.terminated);
+        self.truncated.push(step.truncated);
+        step.terminated || step.truncated
+    }
+
+    fn finish(self) -> Result<Trajectory, DataError> {
+        let Self { obs_dim, act_dim, observations, actions, rewards, terminated, truncated } = self;
+        Trajectory::new(obs_dim, act_dim, observations, actions, rewards, terminated, truncated)
+    }
+}
+
 /// Runs one episode of `mode` on `task`; all randomness comes from `rng`.
 pub fn run_episode(
     task: usize,
@@ -433,12 +474,7 @@ pub fn run_episode(
         }
         Mode::Expert | Mode::Random => goal,
     };
-    let horizon = env.horizon();
-    let mut observations = Vec::with_capacity(horizon * OBS_DIM);
-    let mut actions = Vec::with_capacity(horizon * ACT_DIM);
-    let mut rewards = Vec::with_capacity(horizon);
-    let mut terminated = Vec::with_capacity(horizon);
-    let mut truncated = Vec::with_capacity(horizon);
+    let mut log = EpisodeLog::new(OBS_DIM, ACT_DIM, env.horizon());
     let mut obs = env.reset(0);
     loop {
         let pos = env.position();
@@ -457,18 +493,13 @@ pub fn run_episode(
             }
         };
         let step = env.step(&action)?;
-        observations.extend_from_slice(&obs);
-        actions.extend_from_slice(&action);
-        rewards.push(step.reward);
-        terminated.push(step.terminated);
-        truncated.push(step.truncated);
+        let ended = log.record(&obs, &action, &step);
         obs = step.obs;
-        if step.terminated || step.truncated {
+        if ended {
             break;
         }
     }
-    Trajectory::new(OBS_DIM, ACT_DIM, observations, actions, rewards, terminated, truncated)
-        .map_err(|source| CollectError::Data { env: ENV_NAME, task, mode, source })
+    log.finish().map_err(|source| CollectError::Data { env: ENV_NAME, task, mode, source })
 }
 
 /// One episode of `mode` on a Meta-World reach task (`env`, reset here); all randomness comes from
@@ -483,18 +514,12 @@ pub fn run_reach_episode(
     noise: f64,
     rng: &mut ChaCha8Rng,
 ) -> Result<(Trajectory, bool), CollectError> {
-    let (od, ad) = (reach::OBS_DIM, reach::ACT_DIM);
     let goal = env.goal();
     let aim = match mode {
         Mode::Medium => goal.map(|g| g + REACH_MEDIUM_GOAL_NOISE * standard_normal(rng)),
         Mode::Expert | Mode::Random => goal,
     };
-    let horizon = reach::HORIZON;
-    let mut observations = Vec::with_capacity(horizon * od);
-    let mut actions = Vec::with_capacity(horizon * ad);
-    let mut rewards = Vec::with_capacity(horizon);
-    let mut terminated = Vec::with_capacity(horizon);
-    let mut truncated = Vec::with_capacity(horizon);
+    let mut log = EpisodeLog::new(reach::OBS_DIM, reach::ACT_DIM, reach::HORIZON);
     let mut succeeded = false;
     let mut obs = Env::reset(env, 0);
     loop {
@@ -515,18 +540,18 @@ pub fn run_reach_episode(
         };
         let step = Env::step(env, &action)?;
         succeeded |= step.success == Some(true);
-        observations.extend_from_slice(&obs);
-        actions.extend_from_slice(&action);
-        rewards.push(step.reward);
-        terminated.push(step.terminated);
-        truncated.push(step.truncated);
+        let ended = log.record(&obs, &action, &step);
         obs = step.obs;
-        if step.terminated || step.truncated {
+        if ended {
             break;
         }
     }
-    let traj = Trajectory::new(od, ad, observations, actions, rewards, terminated, truncated)
-        .map_err(|source| CollectError::Data { env: reach::ENV_NAME, task, mode, source })?;
+    let traj = log.finish().map_err(|source| CollectError::Data {
+        env: reach::ENV_NAME,
+        task,
+        mode,
+        source,
+    })?;
     Ok((traj, succeeded))
 }
 

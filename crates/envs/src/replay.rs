@@ -8,7 +8,7 @@ use crate::ant_dir::AntDirFamily;
 use crate::cheetah::{CheetahDirFamily, CheetahVelFamily};
 use crate::metaworld_reach::{self, MetaWorldReachFamily};
 use crate::mujoco_env::MujocoEnv;
-use crate::{Env, EnvError};
+use crate::{Env, EnvError, StepResult};
 
 /// Families that [`replay`] accepts (the MuJoCo ones).
 pub const REPLAY_FAMILIES: [&str; 3] = ["cheetah_dir", "cheetah_vel", "ant_dir"];
@@ -44,6 +44,39 @@ pub struct ReplayResult {
     /// 0.05 m of the goal); absent for the others.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub success: Vec<bool>,
+}
+
+impl ReplayResult {
+    /// A replay of `family`'s task `task` that starts at the observation `first`.
+    fn start(family: &str, task: usize, first: Vec<f32>, steps: usize) -> Self {
+        Self {
+            family: family.to_string(),
+            task,
+            observations: vec![first],
+            rewards: Vec::with_capacity(steps),
+            terminated: Vec::with_capacity(steps),
+            truncated: Vec::with_capacity(steps),
+            unused_actions: 0,
+            success: Vec::new(),
+        }
+    }
+
+    /// Records the step of action `t` of `n` (its success flag where the family has one); returns
+    /// whether the episode ended there, counting the actions left unused.
+    fn record(&mut self, step: StepResult, t: usize, n: usize) -> bool {
+        self.observations.push(step.obs);
+        self.rewards.push(step.reward);
+        self.terminated.push(step.terminated);
+        self.truncated.push(step.truncated);
+        if let Some(ok) = step.success {
+            self.success.push(ok);
+        }
+        let ended = step.terminated || step.truncated;
+        if ended {
+            self.unused_actions = n - t - 1;
+        }
+        ended
+    }
 }
 
 /// The concrete environment of a MuJoCo family's task (Ant-Dir with the reference's contact cost).
@@ -86,16 +119,7 @@ pub fn replay_env(
     actions: &[Vec<f32>],
 ) -> Result<ReplayResult, EnvError> {
     let first = env.reset_to(init_qpos, init_qvel)?;
-    let mut result = ReplayResult {
-        family: family.to_string(),
-        task,
-        observations: vec![first],
-        rewards: Vec::with_capacity(actions.len()),
-        terminated: Vec::with_capacity(actions.len()),
-        truncated: Vec::with_capacity(actions.len()),
-        unused_actions: 0,
-        success: Vec::new(),
-    };
+    let mut result = ReplayResult::start(family, task, first, actions.len());
     for (t, action) in actions.iter().enumerate() {
         let resets = env.instability_resets();
         let step = env.step(action).map_err(|e| at_step(e, t))?;
@@ -110,12 +134,7 @@ pub fn replay_env(
                 ),
             });
         }
-        result.observations.push(step.obs);
-        result.rewards.push(step.reward);
-        result.terminated.push(step.terminated);
-        result.truncated.push(step.truncated);
-        if step.terminated || step.truncated {
-            result.unused_actions = actions.len() - t - 1;
+        if result.record(step, t, actions.len()) {
             break;
         }
     }
@@ -128,25 +147,10 @@ pub fn replay_env(
 pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
     let mut env = MetaWorldReachFamily::default().make_env(task)?;
     let first = Env::reset(&mut env, 0);
-    let mut result = ReplayResult {
-        family: metaworld_reach::ENV_NAME.to_string(),
-        task,
-        observations: vec![first],
-        rewards: Vec::with_capacity(actions.len()),
-        terminated: Vec::with_capacity(actions.len()),
-        truncated: Vec::with_capacity(actions.len()),
-        unused_actions: 0,
-        success: Vec::with_capacity(actions.len()),
-    };
+    let mut result = ReplayResult::start(metaworld_reach::ENV_NAME, task, first, actions.len());
     for (t, action) in actions.iter().enumerate() {
         let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
-        result.observations.push(step.obs);
-        result.rewards.push(step.reward);
-        result.terminated.push(step.terminated);
-        result.truncated.push(step.truncated);
-        result.success.push(step.success == Some(true));
-        if step.terminated || step.truncated {
-            result.unused_actions = actions.len() - t - 1;
+        if result.record(step, t, actions.len()) {
             break;
         }
     }
