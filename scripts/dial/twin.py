@@ -15,6 +15,7 @@ Needs numpy and mujoco==3.17.0 (`targets` also scipy). Scratch venv, outside the
   python3 -m venv /tmp/mjvenv && /tmp/mjvenv/bin/pip install mujoco==3.17.0 numpy scipy
 """
 import argparse
+import base64
 import json
 import math
 import os
@@ -322,15 +323,138 @@ def cmd_expert(args):
               f"{succ}/{args.episodes}, median {int(np.median(lens))}, max {max(lens)}")
 
 
+# ------------------------------------------------------------------------------------------------
+# Fixtures for crates/envs/tests/dial_parity.rs
+# ------------------------------------------------------------------------------------------------
+def fnv1a64(data):
+    h = 0xCBF29CE484222325
+    for b in data:
+        h ^= b
+        h = (h * 0x100000001B3) & 0xFFFFFFFFFFFFFFFF
+    return f"{h:016x}"
+
+
+def obs_f64(env):
+    """The observation at full precision (what the Rust env's obs_f64 holds)."""
+    q = [float(x) for x in env.data.qpos]
+    p = env.ee_pos()
+    out = q[:]
+    for k in range(10):
+        for i in range(3):
+            out.append(p[i] - env.press[k][i])
+    return out
+
+
+def step_digest(obs, reward, success, truncated):
+    data = np.array(obs, dtype="<f8").tobytes() + np.array([reward], dtype="<f8").tobytes()
+    return fnv1a64(data + bytes([int(success), int(truncated)]))
+
+
+def run_case(digit, start, policy, rng, targets):
+    env = DialEnv(digit, targets)
+    env.reset(start)
+    reset_obs = obs_f64(env)
+    expert = Expert(digit, targets)
+    amount = 0.3 if policy == "noisy_expert" else 0.0
+    actions, digests, rewards, flags = [], [], [], []
+    full = {"0": reset_obs}
+    obs32 = env.obs()
+    noise = [0.0] * 9
+    for t in range(HORIZON):
+        if policy in ("expert", "noisy_expert"):
+            a = expert.act(obs32)
+            if amount > 0:
+                if t % 2 == 0:
+                    noise = [rng.gauss(0.0, abs(C_LOW[j]) * amount) for j in range(9)]
+                a = [a[j] + noise[j] for j in range(9)]
+        elif policy == "random":
+            a = [rng.uniform(1.5 * C_LOW[j], 1.5 * C_HIGH[j]) for j in range(9)]
+        elif policy == "saturate":
+            # Full lift and a push into the pad, alternating every 25 steps, beyond the box.
+            a = [0.2, -2.0, 0.3, 0.1, -0.1, 0.1, 0.1, -0.1, 0.1] if (t // 25) % 2 == 0 else \
+                [-0.2, 2.0, -0.3, -0.1, 0.1, -0.1, -0.1, 0.1, -0.1]
+        a32 = np.array(a, dtype=np.float32)
+        obs32, r, term, trunc = env.step(a32)
+        o = obs_f64(env)
+        actions.append(a32)
+        digests.append(step_digest(o, r, term, trunc))
+        rewards.append(r)
+        flags.append((term, trunc))
+        if t < 2 or term or trunc:
+            full[str(t + 1)] = o
+        if term or trunc:
+            break
+    acts = np.stack(actions).astype("<f4")
+    return {
+        "digit": digit,
+        "policy": policy,
+        "start": start,
+        "actions_f32_b64": base64.b64encode(acts.tobytes()).decode(),
+        "expected": {
+            "reset_digest": step_digest(reset_obs, 0.0, False, False),
+            "step_digests": digests,
+            "rewards": rewards,
+            "success": "".join("1" if f[0] else "0" for f in flags),
+            "truncated": "".join("1" if f[1] else "0" for f in flags),
+            "full_observations": full,
+        },
+    }
+
+
+def cmd_fixtures(args):
+    targets = load_targets()
+    rng = random.Random(1234)
+    cases = [run_case(d, None, "expert", rng, targets) for d in range(10)]
+    for d in (1, 6):
+        start = [targets["init"][j] + rng.uniform(-0.1, 0.1) for j in range(9)]
+        start[0] += rng.uniform(0.0, 0.2)
+        start[1] += rng.uniform(-0.2, 0.0)
+        cases.append(run_case(d, start, "noisy_expert", rng, targets))
+    cases.append(run_case(9, None, "random", rng, targets))
+    cases.append(run_case(0, None, "saturate", rng, targets))
+    out = {"mujoco": mujoco.__version__, "cases": cases}
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "replay-dial.json")
+    with open(path + ".tmp", "w") as f:
+        json.dump(out, f)
+    os.replace(path + ".tmp", path)
+    for c in cases:
+        e = c["expected"]
+        print(c["digit"], c["policy"], len(e["step_digests"]), "steps, success" if "1" in e["success"] else "steps")
+    print(f"wrote {path}")
+
+
+def cmd_bench(args):
+    targets = load_targets()
+    env = DialEnv(9, targets)
+    env.reset()
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(np.array(C_LOW) * 1.5, np.array(C_HIGH) * 1.5, (args.steps, 9)).astype(np.float32)
+    n = 0
+    t0 = time.perf_counter()
+    for a in acts:
+        _, _, term, trunc = env.step(a)
+        n += 1
+        if term or trunc:
+            env.reset()
+    dt = time.perf_counter() - t0
+    print(json.dumps({"impl": "python-twin", "steps": n, "seconds": dt, "steps_per_s": n / dt}))
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("targets")
     p.add_argument("--out", default=TARGETS)
+    p = sub.add_parser("fixtures")
+    p.add_argument("--out", default=os.path.join(ROOT, "testdata", "dial"))
+    p = sub.add_parser("bench")
+    p.add_argument("--steps", type=int, default=20000)
     p = sub.add_parser("expert")
     p.add_argument("--episodes", type=int, default=20)
     args = ap.parse_args()
-    {"targets": cmd_targets, "expert": cmd_expert}[args.cmd](args)
+    {"targets": cmd_targets, "expert": cmd_expert, "fixtures": cmd_fixtures,
+     "bench": cmd_bench}[args.cmd](args)
 
 
 if __name__ == "__main__":

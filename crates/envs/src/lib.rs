@@ -6,6 +6,7 @@ pub mod ant_dir;
 pub mod bench;
 pub mod cheetah;
 pub mod collect_scripted;
+pub mod dial;
 pub mod metaworld_reach;
 pub mod mujoco_env;
 pub mod point_robot;
@@ -98,15 +99,17 @@ pub trait EnvFamily: Send + Sync {
 }
 
 /// Names of the families [`family`] knows.
-pub const FAMILY_NAMES: [&str; 5] =
-    ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach"];
+pub const FAMILY_NAMES: [&str; 6] =
+    ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"];
 
 /// The reward at or above which a step of `family` solved its task, for families whose success
-/// can be read off their recorded rewards: Meta-World reach ([`metaworld_reach::SUCCESS_REWARD`]).
+/// can be read off their recorded rewards: Meta-World reach ([`metaworld_reach::SUCCESS_REWARD`])
+/// and Dial ([`dial::SUCCESS_REWARD`]).
 /// `None` for families without a success criterion.
 pub fn success_reward(family: &str) -> Option<f32> {
     match family {
         metaworld_reach::ENV_NAME => Some(metaworld_reach::SUCCESS_REWARD),
+        dial::ENV_NAME => Some(dial::SUCCESS_REWARD),
         _ => None,
     }
 }
@@ -123,6 +126,8 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         "metaworld_reach" | "metaworld-reach" => {
             Ok(Box::new(metaworld_reach::MetaWorldReachFamily::default()))
         }
+        // The reconstructed Jaco pin-pad: see `dial`.
+        "dial" => Ok(Box::new(dial::DialFamily)),
         other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
     }
 }
