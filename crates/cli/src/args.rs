@@ -347,7 +347,7 @@ pub struct DemoArgs {
 
 #[derive(Debug, Args)]
 pub struct CollectArgs {
-    /// Task family: `point_robot`, `metaworld_reach` (scripted policies), `cheetah_dir`,
+    /// Task family: `point_robot`, `metaworld_reach`, `dial` (scripted policies), `cheetah_dir`,
     /// `cheetah_vel`, `ant_dir` (trains an RL agent, then writes its datasets).
     #[arg(long)]
     pub env: String,
@@ -356,8 +356,8 @@ pub struct CollectArgs {
     pub out: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Episodes per task in each main dataset, 1 to 100000 (default: 200 for metaworld_reach, the
-    /// paper's count; 100 otherwise).
+    /// Episodes per task in each main dataset, 1 to 100000 (default: 200 for metaworld_reach and
+    /// dial, the paper's count; 100 otherwise).
     #[arg(long, value_parser = count(1, 100_000))]
     pub episodes: Option<usize>,
     /// Scripted families only: which datasets to write (default `expert,medium,random`).
@@ -406,7 +406,7 @@ pub struct CollectArgs {
     /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all. With
     /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
     /// Scripted families: collect these tasks only (default: point robot all 40, metaworld_reach
-    /// the paper's 20, tasks 1 to 20).
+    /// the paper's 20, tasks 1 to 20, dial all 10 digits).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
     /// Minibatches from the most recent N transitions only (0: the whole replay buffer); with
@@ -514,20 +514,22 @@ pub struct ReportArgs {
 #[derive(Debug, Subcommand)]
 pub enum EnvCommand {
     /// Replay an initial state and actions through a MuJoCo environment (format: docs/mujoco-envs.md;
-    /// metaworld_reach: docs/metaworld-reach.md).
+    /// metaworld_reach: docs/metaworld-reach.md; dial: docs/dial.md).
     Replay(ReplayArgs),
 }
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
-    /// Family: cheetah_dir, cheetah_vel, ant_dir or metaworld_reach.
+    /// Family: cheetah_dir, cheetah_vel, ant_dir, metaworld_reach or dial.
     #[arg(long)]
     pub env: String,
     /// Task index within the family.
     #[arg(long)]
     pub task: usize,
     /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values). Not for
-    /// metaworld_reach, whose episodes start from the task's reset state.
+    /// metaworld_reach, whose episodes start from the task's reset state. dial: optional
+    /// `{"qpos": [9 joint angles]}`, a start pose settled back as collection episodes start
+    /// (default: the deterministic reset).
     #[arg(long)]
     pub init: Option<PathBuf>,
     /// JSON array of actions, one array per step.

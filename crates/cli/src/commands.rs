@@ -18,7 +18,7 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     let family = pdt_envs::family(&a.env)?;
     let Some(scripted) = ScriptedFamily::from_name(family.name()) else {
         if a.modes.is_some() {
-            bail!("--modes is for the scripted families (point_robot, metaworld_reach)");
+            bail!("--modes is for the scripted families (point_robot, metaworld_reach, dial)");
         }
         if a.action_noise.is_some() {
             bail!("--action-noise is for metaworld_reach");
@@ -429,11 +429,8 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     use pdt_repro::{exec, plan, report, Manifest, Stage};
     if a.list {
         for e in pdt_repro::list()? {
-            let pending = if e.pending > 0 {
-                format!(", {} waiting for Dial", e.pending)
-            } else {
-                String::new()
-            };
+            let pending =
+                if e.pending > 0 { format!(", {} pending", e.pending) } else { String::new() };
             println!("{:<30} {} ({} cells{pending})", e.name, e.title, e.cells);
             for b in &e.budgets {
                 let h = b.hours.map_or(String::new(), |h| format!(", ~{h} h here"));

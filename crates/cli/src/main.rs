@@ -224,6 +224,18 @@ fn run(cli: Cli) -> Result<()> {
                      (no initial state is taken)",
                     p.display()
                 ),
+                ("dial", None) => pdt_envs::replay::replay_dial(a.task, None, &actions)?,
+                ("dial", Some(p)) => {
+                    #[derive(serde::Deserialize)]
+                    #[serde(deny_unknown_fields)]
+                    struct Start {
+                        qpos: Vec<f64>,
+                    }
+                    let s: Start = serde_json::from_str(&read(p)?).with_context(|| {
+                        format!("{}: expected {{\"qpos\": [9 joint angles]}}", p.display())
+                    })?;
+                    pdt_envs::replay::replay_dial(a.task, Some(&s.qpos), &actions)?
+                }
                 (_, None) => bail!("--init is required for {} (its initial qpos and qvel)", a.env),
                 (_, Some(p)) => {
                     let init: Init = serde_json::from_str(&read(p)?).with_context(|| {

@@ -75,15 +75,17 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
     }
     // Figure 2: one curve plot per MuJoCo family, every non-pending cell with a result.
     let fig2 = a.join("reports/fig2-smoke");
-    for env in ["cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach"] {
+    for env in ["cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"] {
         assert!(fig2.join(format!("curves_{env}.png")).is_file(), "{env}");
     }
     let cells = std::fs::read_to_string(fig2.join("cells.csv")).unwrap();
-    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 23, "{cells}");
-    assert!(cells.contains("Dial is not in promptdt yet"), "{cells}");
-    // Meta-World reach's cells report the success rate beside the return.
-    let reach = a.join("runs/metaworld_reach/prompt-dt/smoke/seed0/eval.jsonl");
-    assert!(std::fs::read_to_string(&reach).unwrap().contains("success_rate"));
+    assert_eq!(cells.lines().filter(|l| l.contains(",\"ran\",")).count(), 28, "{cells}");
+    assert!(!cells.contains("not in promptdt yet"), "{cells}");
+    // Meta-World reach's and Dial's cells report the success rate beside the return.
+    for env in ["metaworld_reach", "dial"] {
+        let run = a.join(format!("runs/{env}/prompt-dt/smoke/seed0/eval.jsonl"));
+        assert!(std::fs::read_to_string(&run).unwrap().contains("success_rate"), "{env}");
+    }
     // MACAW's cells ran (its adaptation logged with the evaluations)
     let macaw = a.join("runs/cheetah_vel/macaw/smoke/seed0/eval.jsonl");
     assert!(

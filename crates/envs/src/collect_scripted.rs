@@ -28,6 +28,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::dial::{self, Dial, DialExpert, DialFamily};
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
 use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
 use crate::{Env, EnvError, EnvFamily, StepResult};
@@ -49,6 +50,15 @@ pub const REACH_ACTION_NOISE: f64 = 0.2;
 /// episodes each: medium 2,629, expert 4,826, random 777; medium succeeds in 11 % of episodes).
 pub const REACH_MEDIUM_GOAL_NOISE: f64 = 0.1;
 
+/// Dial: the expert's per-episode DART noise amounts (the original collector's, spec §3.2), drawn
+/// uniformly; the noise on joint j is N(0, (|c_low[j]| amount)^2), plus U(0, 0.1) on joint 1's
+/// standard deviation, redrawn every 1 or 2 steps (drawn per episode).
+pub const DIAL_DART_AMOUNTS: [f64; 3] = [0.0, 0.2, 0.3];
+/// Dial: standard deviation (rad) of the medium policy's per-episode error on each arm joint of
+/// its target pose (it then settles near, not at, the key: see `docs/dial.md` for its measured
+/// success rate).
+pub const DIAL_MEDIUM_TARGET_NOISE: f64 = 0.15;
+
 /// A family with scripted policies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -56,6 +66,7 @@ pub enum ScriptedFamily {
     #[default]
     PointRobot,
     MetaWorldReach,
+    Dial,
 }
 
 impl ScriptedFamily {
@@ -64,6 +75,7 @@ impl ScriptedFamily {
         match name {
             point_robot::ENV_NAME => Some(Self::PointRobot),
             reach::ENV_NAME => Some(Self::MetaWorldReach),
+            dial::ENV_NAME => Some(Self::Dial),
             _ => None,
         }
     }
@@ -72,6 +84,7 @@ impl ScriptedFamily {
         match self {
             Self::PointRobot => ENV_NAME,
             Self::MetaWorldReach => reach::ENV_NAME,
+            Self::Dial => dial::ENV_NAME,
         }
     }
 
@@ -79,6 +92,7 @@ impl ScriptedFamily {
         match self {
             Self::PointRobot => NUM_TASKS,
             Self::MetaWorldReach => reach::NUM_TASKS,
+            Self::Dial => dial::NUM_TASKS,
         }
     }
 
@@ -86,11 +100,12 @@ impl ScriptedFamily {
         match self {
             Self::PointRobot => (OBS_DIM, ACT_DIM),
             Self::MetaWorldReach => (reach::OBS_DIM, reach::ACT_DIM),
+            Self::Dial => (dial::OBS_DIM, dial::ACT_DIM),
         }
     }
 
     /// The tasks collected by default: every point-robot goal; the 20 reach tasks of the paper's
-    /// split (1..=20; the family's other 30 tasks are in no split).
+    /// split (1..=20; the family's other 30 tasks are in no split); the 10 digits of Dial.
     pub fn default_tasks(self) -> Vec<usize> {
         match self {
             Self::PointRobot => (0..NUM_TASKS).collect(),
@@ -100,15 +115,16 @@ impl ScriptedFamily {
                 t.sort_unstable();
                 t
             }
+            Self::Dial => (0..dial::NUM_TASKS).collect(),
         }
     }
 
-    /// Episodes per task in D_i by default: the point robot's 100; reach's 200 (the paper's
-    /// "200 episodes for each task").
+    /// Episodes per task in D_i by default: the point robot's 100; reach's and Dial's 200 (the
+    /// paper's "200 episodes for each task").
     pub fn default_episodes(self) -> usize {
         match self {
             Self::PointRobot => 100,
-            Self::MetaWorldReach => 200,
+            Self::MetaWorldReach | Self::Dial => 200,
         }
     }
 
@@ -116,6 +132,7 @@ impl ScriptedFamily {
         match self {
             Self::PointRobot => point_robot::PointRobotFamily::default().task_params(task),
             Self::MetaWorldReach => MetaWorldReachFamily::default().task_params(task),
+            Self::Dial => DialFamily.task_params(task),
         }
     }
 
@@ -135,6 +152,20 @@ impl ScriptedFamily {
                      f32(5 (g' - hand), 0) + N(0, s^2) per dimension, s = action_noise_std"
                 }
                 Mode::Random => "a ~ Uniform[-1, 1] per dimension (the action space)",
+            },
+            Self::Dial => match mode {
+                Mode::Expert => {
+                    "start: init pose + U(-0.1, 0.1) per joint, joint 1 + U(0, 0.2), joint 2 + \
+                     U(-0.2, 0), settled back by the PI controller; a = the original's PI \
+                     controller toward the digit's hover pose (recorded); executed: a + DART noise \
+                     N(0, (|c_low| m)^2), m drawn per episode from {0, 0.2, 0.3} (joint 1's std + \
+                     U(0, 0.1)), redrawn every 1 or 2 steps (drawn per episode)"
+                }
+                Mode::Medium => {
+                    "as the expert, toward the hover pose with N(0, 0.15^2) rad added to each arm \
+                     joint once per episode (it settles near, not always within reach of, the key)"
+                }
+                Mode::Random => "a ~ Uniform[c_low, c_high] per dimension (the action box)",
             },
         }
     }
@@ -555,6 +586,73 @@ pub fn run_reach_episode(
     Ok((traj, succeeded))
 }
 
+/// One Dial episode of `mode` on `env` (reset here from a perturbed start); all randomness comes
+/// from `rng`. Returns the episode and whether it reached the digit.
+///
+/// As in the original collector (DART), the expert's and medium policy's recorded action is the
+/// controller's clean action and the executed one carries the noise, so the data teaches recovery
+/// from the states the noise leads to; replaying a noisy episode's recorded actions does not
+/// reproduce it.
+pub fn run_dial_episode(
+    env: &mut Dial,
+    mode: Mode,
+    rng: &mut ChaCha8Rng,
+) -> Result<(Trajectory, bool), CollectError> {
+    let task = env.digit();
+    let start = dial::noisy_start(rng)?;
+    let mut obs: Vec<f32> = env.reset_from(&start)?.iter().map(|&v| v as f32).collect();
+    let mut expert = DialExpert::new(task)?;
+    if mode == Mode::Medium {
+        let t = dial::targets()?.hover[task];
+        let mut aim = t;
+        for v in aim.iter_mut().take(6) {
+            *v += DIAL_MEDIUM_TARGET_NOISE * standard_normal(rng);
+        }
+        expert = DialExpert::with_target(aim);
+    }
+    let amount = DIAL_DART_AMOUNTS[rng.random_range(0..DIAL_DART_AMOUNTS.len())];
+    let hold = rng.random_range(1..=2usize);
+    let mut noise = [0.0f64; dial::ACT_DIM];
+    let mut log = EpisodeLog::new(dial::OBS_DIM, dial::ACT_DIM, dial::HORIZON);
+    let mut succeeded = false;
+    for t in 0.. {
+        let (recorded, executed): ([f32; dial::ACT_DIM], [f32; dial::ACT_DIM]) = match mode {
+            Mode::Expert | Mode::Medium => {
+                let a = expert.act(&obs);
+                if amount > 0.0 && t % hold == 0 {
+                    let extra = rng.random_range(0.0..0.1);
+                    for (j, n) in noise.iter_mut().enumerate() {
+                        let std = dial::C_LOW[j].abs() * amount + if j == 0 { extra } else { 0.0 };
+                        *n = std * standard_normal(rng);
+                    }
+                }
+                let executed = std::array::from_fn(|j| (f64::from(a[j]) + noise[j]) as f32);
+                (a, executed)
+            }
+            Mode::Random => {
+                let a = std::array::from_fn(|j| {
+                    rng.random_range(dial::C_LOW[j] as f32..=dial::C_HIGH[j] as f32)
+                });
+                (a, a)
+            }
+        };
+        let step = Env::step(env, &executed)?;
+        succeeded |= step.success == Some(true);
+        let ended = log.record(&obs, &recorded, &step);
+        obs = step.obs;
+        if ended {
+            break;
+        }
+    }
+    let traj = log.finish().map_err(|source| CollectError::Data {
+        env: dial::ENV_NAME,
+        task,
+        mode,
+        source,
+    })?;
+    Ok((traj, succeeded))
+}
+
 /// Generates `episodes` point-robot episodes of `(task, mode)` for one set.
 pub fn generate(
     seed: u64,
@@ -596,6 +694,19 @@ pub fn generate_for(
                 let mut rng = episode_rng(seed, task, mode, set, e);
                 let noise = cfg.reach_action_noise;
                 let (traj, ok) = run_reach_episode(&mut sim, task, mode, noise, &mut rng)?;
+                wins += usize::from(ok);
+                t.push(traj);
+            }
+            (t, Some(wins as f64 / episodes.max(1) as f64))
+        }
+        ScriptedFamily::Dial => {
+            // One simulator for the whole set: every episode starts with a full reset.
+            let mut sim = DialFamily.make_env(task)?;
+            let mut t = Vec::with_capacity(episodes);
+            let mut wins = 0usize;
+            for e in 0..episodes {
+                let mut rng = episode_rng(seed, task, mode, set, e);
+                let (traj, ok) = run_dial_episode(&mut sim, mode, &mut rng)?;
                 wins += usize::from(ok);
                 t.push(traj);
             }

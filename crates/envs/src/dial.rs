@@ -444,7 +444,12 @@ impl DialExpert {
             task: digit,
             n: NUM_TASKS,
         })?;
-        Ok(Self { target, pi: PiController::default() })
+        Ok(Self::with_target(target))
+    }
+
+    /// The same controller toward another pose (the medium policy's misremembered target).
+    pub fn with_target(target: [f64; NQ]) -> Self {
+        Self { target, pi: PiController::default() }
     }
 
     /// The clean action for observation `obs` (its first 9 values are the joint angles).

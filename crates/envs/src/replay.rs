@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::ant_dir::AntDirFamily;
 use crate::cheetah::{CheetahDirFamily, CheetahVelFamily};
+use crate::dial::{self, DialFamily};
 use crate::metaworld_reach::{self, MetaWorldReachFamily};
 use crate::mujoco_env::MujocoEnv;
 use crate::{Env, EnvError, StepResult};
@@ -148,6 +149,32 @@ pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, E
     let mut env = MetaWorldReachFamily::default().make_env(task)?;
     let first = Env::reset(&mut env, 0);
     let mut result = ReplayResult::start(metaworld_reach::ENV_NAME, task, first, actions.len());
+    for (t, action) in actions.iter().enumerate() {
+        let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
+        if result.record(step, t, actions.len()) {
+            break;
+        }
+    }
+    Ok(result)
+}
+
+/// Replays `actions` on Dial's digit `task` from its deterministic reset, or, with `start_qpos`
+/// (9 joint angles), from that pose at rest settled back toward the init pose as a collection
+/// episode starts ([`dial::Dial::reset_from`]). The observations are the f32 ones the datasets see.
+/// Note: a collected episode with DART noise recorded its clean actions, not the executed ones, so
+/// replaying its recorded actions does not reproduce it (`docs/dial.md`).
+pub fn replay_dial(
+    task: usize,
+    start_qpos: Option<&[f64]>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    let mut env = DialFamily.make_env(task)?;
+    let first = match start_qpos {
+        Some(q) => env.reset_from(q)?,
+        None => env.reset_f64(),
+    };
+    let first = first.iter().map(|&v| v as f32).collect();
+    let mut result = ReplayResult::start(dial::ENV_NAME, task, first, actions.len());
     for (t, action) in actions.iter().enumerate() {
         let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
         if result.record(step, t, actions.len()) {

@@ -954,7 +954,7 @@ fn collect_scripted(
     let fam = pdt_envs::family(family).map_err(value_error)?;
     let scripted = ScriptedFamily::from_name(fam.name()).ok_or_else(|| {
         value_error(format!(
-            "{family} has no scripted policies (point_robot and metaworld_reach do); use \
+            "{family} has no scripted policies (point_robot, metaworld_reach and dial do); use \
              collect_from_agent"
         ))
     })?;
