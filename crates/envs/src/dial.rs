@@ -531,6 +531,52 @@ mod tests {
         assert_eq!(model.opt().timestep, 0.002);
     }
 
+    /// The environment with the arm posed at `q` (at rest, kinematics fresh), for geometry checks.
+    fn posed(digit: usize, q: &[f64; NQ]) -> Dial {
+        let mut env = Dial::new(digit).unwrap_or_else(|e| panic!("{e}"));
+        env.data.reset();
+        env.data.qpos_mut().copy_from_slice(q);
+        env.data.forward();
+        env
+    }
+
+    #[test]
+    fn observation_block_k_is_zero_at_digit_ks_press_pose() {
+        let t = targets().unwrap_or_else(|e| panic!("{e}"));
+        for k in 0..NUM_TASKS {
+            let env = posed(k, &t.press[k]);
+            let obs = env.observation();
+            let block = &obs[NQ + 3 * k..NQ + 3 * k + 3];
+            assert!(block.iter().all(|v| v.abs() < 1e-9), "digit {k}: {block:?}");
+            assert!(env.distance() < 1e-9);
+            // Every other digit's block is farther than the success radius: the reward of a task
+            // cannot fire at another digit's press point.
+            for j in (0..NUM_TASKS).filter(|&j| j != k) {
+                let b = &obs[NQ + 3 * j..NQ + 3 * j + 3];
+                let l1 = b[0].abs() + b[1].abs() + b[2].abs();
+                assert!(l1 >= SUCCESS_L1, "digit {k}'s press point is within reach of {j}: {l1}");
+            }
+        }
+    }
+
+    #[test]
+    fn poses_hold_the_originals_sign_convention_and_touch_nothing() {
+        let t = targets().unwrap_or_else(|e| panic!("{e}"));
+        for k in 0..NUM_TASKS {
+            for (name, q) in [("press", &t.press[k]), ("hover", &t.hover[k])] {
+                let env = posed(k, q);
+                // A negative joint-2 torque lifts the arm (the original's action box assumes it).
+                let bias = env.data.qfrc_bias()[1];
+                assert!(bias < 0.0, "digit {k} {name}: joint-2 gravity bias {bias}");
+                assert_eq!(env.data.ffi().ncon, 0, "digit {k} {name}: contacts");
+            }
+            // The hover point is within the success radius of the press point (as in the
+            // original, where reaching the hover pose already counts).
+            let hover = posed(k, &t.hover[k]);
+            assert!(hover.distance() < SUCCESS_L1, "digit {k}: hover {}", hover.distance());
+        }
+    }
+
     #[test]
     fn wrap_is_pythons_floored_modulo() {
         use std::f64::consts::PI;
