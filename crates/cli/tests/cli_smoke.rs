@@ -553,3 +553,126 @@ fn metaworld_reach_collect_report_replay_train_eval() {
     assert!(ev.contains("success") && ev.contains("metaworld_reach-20"), "{ev}");
     assert!(ev.lines().filter(|l| l.trim_end().ends_with('%')).count() == 6, "{ev}");
 }
+
+#[test]
+fn dial_collect_report_replay_train_eval() {
+    use pdt_envs::Env;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let d = data.to_str().unwrap();
+    let out = ok(&[
+        "collect",
+        "--env",
+        "dial",
+        "--episodes",
+        "2",
+        "--prompt-episodes",
+        "1",
+        "--modes",
+        "expert,random",
+        "--tasks",
+        "1,2,3,4,5,8,6,7,9,0",
+        "--out",
+        d,
+    ]);
+    assert!(out.contains("success") && out.contains("wrote 40 datasets"), "{out}");
+    assert_eq!(out.matches("100.0%").count(), 10, "{out}");
+    let e = fails(&["collect", "--env", "dial", "--tasks", "10", "--out", d]);
+    assert!(e.contains("unknown task 10 of dial"), "{e}");
+    let e = fails(&["collect", "--env", "dial", "--action-noise", "0.1", "--out", d]);
+    assert!(e.contains("--action-noise is for metaworld_reach"), "{e}");
+    let rep = ok(&["data", "report", d]);
+    assert!(rep.contains("(success 100 %)"), "{rep}");
+    assert!(rep.contains("**met**: expert succeeds in every episode of every task"), "{rep}");
+
+    // The noiseless expert's actions on digit 7, replayed: it reaches the digit at the same step.
+    let mut env = pdt_envs::dial::Dial::new(7).unwrap();
+    let mut expert = pdt_envs::dial::DialExpert::new(7).unwrap();
+    let mut obs = env.reset(0);
+    let mut actions: Vec<Vec<f32>> = Vec::new();
+    loop {
+        let a = expert.act(&obs);
+        actions.push(a.to_vec());
+        let s = env.step(&a).unwrap();
+        obs = s.obs;
+        if s.terminated || s.truncated {
+            break;
+        }
+    }
+    let n = actions.len();
+    actions.extend(std::iter::repeat_n(vec![0.0; 9], 3));
+    let acts = tmp.path().join("actions.json");
+    std::fs::write(&acts, serde_json::to_string(&actions).unwrap()).unwrap();
+    let (a, res) = (acts.to_str().unwrap(), tmp.path().join("replay.json"));
+    let r = res.to_str().unwrap();
+    let shown = ok(&["env", "replay", "--env", "dial", "--task", "7", "--actions", a, "--out", r]);
+    assert!(shown.contains("return 1.000, terminated true"), "{shown}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&res).unwrap()).unwrap();
+    assert_eq!(v["rewards"].as_array().unwrap().len(), n);
+    assert_eq!(v["unused_actions"], 3);
+    assert_eq!(v["success"].as_array().unwrap().last().unwrap(), true);
+    // From a start pose (settled back first), and bad start poses named.
+    let init = tmp.path().join("init.json");
+    let q = pdt_envs::dial::targets().unwrap().init;
+    std::fs::write(&init, format!("{{\"qpos\": {:?}}}", q.map(|x| x + 0.05))).unwrap();
+    let i = init.to_str().unwrap();
+    ok(&["env", "replay", "--env", "dial", "--task", "7", "--actions", a, "--init", i, "--out", r]);
+    std::fs::write(&init, r#"{"qpos": [0, 0, 0]}"#).unwrap();
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "dial",
+        "--task",
+        "7",
+        "--actions",
+        a,
+        "--init",
+        i,
+        "--out",
+        r,
+    ]);
+    assert!(e.contains("initial qpos has 3 values, expected 9"), "{e}");
+    std::fs::write(&init, r#"{"qpos": [0, 0, 0, 0, 0, 0, 0, 0, 0], "qvel": []}"#).unwrap();
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "dial",
+        "--task",
+        "7",
+        "--actions",
+        a,
+        "--init",
+        i,
+        "--out",
+        r,
+    ]);
+    assert!(e.contains("qvel"), "{e}");
+    std::fs::write(&acts, "[[0, 0, 0, 0, 0, 0, 0, 0]]").unwrap();
+    let e = fails(&["env", "replay", "--env", "dial", "--task", "7", "--actions", a, "--out", r]);
+    assert!(e.contains("action has 8 values, expected 9"), "{e}");
+
+    let cfg = tmp.path().join("dial.toml");
+    let text = format!(
+        "[env]\nname = \"dial\"\n[data]\ndir = {d:?}\n[sampler]\nk = 4\n\
+         batch_size_per_task = 1\n[model]\nhidden_size = 16\nn_layer = 1\nn_inner = 32\n\
+         [train]\niterations = 2\nsteps_per_iteration = 2\ntest_eval_interval = 2\n\
+         train_eval_interval = 0\nsave_interval = 2\n[eval]\nepisodes = 1\n\
+         [run]\nthreads = 1\ndevice = \"cpu\"\n"
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let run = tmp.path().join("run");
+    ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
+    let rows = std::fs::read_to_string(run.join("eval.jsonl")).unwrap();
+    // The four test digits (at iterations 1 and 2), each with its success rate.
+    assert_eq!(rows.lines().count(), 8, "{rows}");
+    for row in rows.lines() {
+        let v: serde_json::Value = serde_json::from_str(row).unwrap();
+        let rate = v["success_rate"].as_f64().unwrap();
+        assert_eq!(rate, v["return_mean"].as_f64().unwrap(), "{v}");
+    }
+    let ev = ok(&["eval", "--run", run.to_str().unwrap(), "--episodes", "1"]);
+    assert!(ev.contains("success") && ev.contains("dial-0"), "{ev}");
+}
