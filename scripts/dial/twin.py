@@ -10,6 +10,8 @@ Usage:
   twin.py fixtures [--out DIR]   regenerate testdata/dial/replay-dial.json
   twin.py expert [--episodes N]  expert success rate and episode lengths per digit
   twin.py bench [--steps N]      env steps/s of the twin (1 env)
+  twin.py lengths DIR            expert episode lengths per digit of a collected dataset, beside
+                                 the original's (needs safetensors)
 
 Needs numpy and mujoco==3.17.0 (`targets` also scipy). Scratch venv, outside the repository:
   python3 -m venv /tmp/mjvenv && /tmp/mjvenv/bin/pip install mujoco==3.17.0 numpy scipy
@@ -441,6 +443,33 @@ def cmd_bench(args):
     print(json.dumps({"impl": "python-twin", "steps": n, "seconds": dt, "steps_per_s": n / dt}))
 
 
+# The original's measured episode lengths (shared/reference/dial.md sec. 5.2 and 6.4: TACO's scene
+# in MuJoCo 3.17, its expert through the env): deterministic, and noisy medians, digits 0..9.
+ORIGINAL_DETERMINISTIC = [19, 104, 40, 36, 95, 66, 35, 108, 55, 29]
+ORIGINAL_NOISY_MEDIAN = [11, 44, 30, 33, 28, 28, 31, 38, 34, 31]
+
+
+def cmd_lengths(args):
+    """Per digit: the noiseless expert's steps (twin), and the median / min / max episode length
+    of the expert dataset in DIR (what `promptdt collect --env dial` wrote), beside the original's."""
+    from safetensors.numpy import load_file
+
+    targets = load_targets()
+    rows = []
+    for digit in range(10):
+        _, n0 = run_expert(digit, targets, random.Random(0))
+        d = load_file(os.path.join(args.dir, f"dial-{digit}-expert.safetensors"))
+        s = d["episode_starts"]
+        lens = np.diff(s)
+        rows.append((digit, n0, ORIGINAL_DETERMINISTIC[digit], int(np.median(lens)),
+                     ORIGINAL_NOISY_MEDIAN[digit], int(lens.min()), int(lens.max()), len(lens)))
+    print("| digit | noiseless (ours) | noiseless (original) | noisy median (ours) | noisy median "
+          "(original) | noisy min-max (ours) | episodes |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]} | {r[4]} | {r[5]}-{r[6]} | {r[7]} |")
+
+
 def main():
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -450,11 +479,13 @@ def main():
     p.add_argument("--out", default=os.path.join(ROOT, "testdata", "dial"))
     p = sub.add_parser("bench")
     p.add_argument("--steps", type=int, default=20000)
+    p = sub.add_parser("lengths")
+    p.add_argument("dir")
     p = sub.add_parser("expert")
     p.add_argument("--episodes", type=int, default=20)
     args = ap.parse_args()
     {"targets": cmd_targets, "expert": cmd_expert, "fixtures": cmd_fixtures,
-     "bench": cmd_bench}[args.cmd](args)
+     "bench": cmd_bench, "lengths": cmd_lengths}[args.cmd](args)
 
 
 if __name__ == "__main__":

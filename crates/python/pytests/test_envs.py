@@ -101,3 +101,27 @@ def test_collect_metaworld_reach_from_python(tmp_path):
     assert a.rewards.max() == 10.0 and a.observations.shape == (500, 39)
     with pytest.raises(ValueError, match="action_noise is for metaworld_reach"):
         promptdt.collect("point_robot", tmp_path / "p", episodes=1, action_noise=0.1)
+
+
+def test_dial_from_python(tmp_path):
+    fams = promptdt.families()
+    d = fams["dial"]
+    assert (d["num_tasks"], d["obs_dim"], d["act_dim"], d["horizon"], d["prompt_length"]) == (10, 39, 9, 200, 15)
+    assert d["splits"]["default"] == ([1, 2, 3, 4, 5, 8], [6, 7, 9, 0])
+    env = make_vec("dial", [6, 0], num_envs=2)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (2, 39)
+    obs, rew, term, trunc, infos = env.step(np.zeros((2, 9)))
+    assert infos["success"].dtype == np.bool_ and not infos["success"].any() and infos["_success"].all()
+    assert (rew == 0).all() and not term.any() and not trunc.any()
+    with pytest.raises(ValueError, match="9"):
+        env.step(np.zeros((2, 6)))
+    n = promptdt.collect("dial", tmp_path / "dial", episodes=2, prompt_episodes=1)
+    assert n == 10 * 3 * 2  # 10 digits x expert/medium/random x (D_i, P_i)
+    ds = promptdt.load_dataset(tmp_path / "dial" / "dial-7-expert.safetensors")
+    assert (ds.obs_dim, ds.act_dim, ds.env, ds.task) == (39, 9, "dial", 7)
+    for t in ds.trajectories:
+        # Sparse reward: 1 on the last step, where the episode terminates.
+        assert t.rewards[-1] == 1.0 and t.rewards[:-1].sum() == 0.0
+    with pytest.raises(ValueError, match="action_noise is for metaworld_reach"):
+        promptdt.collect("dial", tmp_path / "d2", episodes=1, action_noise=0.1)

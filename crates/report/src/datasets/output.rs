@@ -44,7 +44,9 @@ pub(super) fn family_markdown(
         out,
         "Episode return per task, mean ± std over the file's episodes (population std), \
          recomputed from the data files (for Meta-World reach also the share of episodes that \
-         succeeded, i.e. reached a reward of 10, the hand within 0.05 of the goal). `reference`: the reference's `expert` file, else its \
+         succeeded, i.e. reached a reward of 10, the hand within 0.05 of the goal; for Dial the \
+         share that reached the digit, a reward of 1). `reference`: the reference's `expert` \
+         file, else its \
          `prompt-expert` file. Our expert data: `{}`. ratio = ours / reference (only for a \
          positive reference); gap = (ours − reference) / |reference|.\n",
         f.expert_mode.as_deref().unwrap_or("none")
