@@ -152,12 +152,13 @@ def collect(
     action_noise: Optional[float] = None,
 ) -> int:
     """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
-    ``point_robot`` and ``metaworld_reach`` use their scripted policies (reach: the paper's 20
-    tasks, 200 episodes each by default; ``action_noise`` is its expert's noise, 0.2 by default,
-    0 for the deterministic expert); the MuJoCo families use a trained agent directory
+    ``point_robot``, ``metaworld_reach`` and ``dial`` use their scripted policies (reach: the
+    paper's 20 tasks, 200 episodes each by default; ``action_noise`` is its expert's noise, 0.2 by
+    default, 0 for the deterministic expert; dial: the 10 digits, 200 episodes each); the MuJoCo
+    families use a trained agent directory
     (``pretrained_dir``, default ``pretrained/<env>`` of the checkout, as ``--from-pretrained``).
     Returns the number of files written."""
-    if env in ("point_robot", "point-robot", "metaworld_reach", "metaworld-reach"):
+    if env in ("point_robot", "point-robot", "metaworld_reach", "metaworld-reach", "dial"):
         return _native.collect_scripted(
             env,
             _os.fspath(out),
