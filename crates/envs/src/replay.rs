@@ -148,9 +148,22 @@ pub fn replay_env(
 pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
     let mut env = MetaWorldReachFamily::default().make_env(task)?;
     let first = Env::reset(&mut env, 0);
-    let mut result = ReplayResult::start(metaworld_reach::ENV_NAME, task, first, actions.len());
+    play(
+        &mut env,
+        ReplayResult::start(metaworld_reach::ENV_NAME, task, first, actions.len()),
+        actions,
+    )
+}
+
+/// Applies `actions` to `env` (already at `result`'s first observation) until they run out or the
+/// episode ends, recording each step.
+fn play(
+    env: &mut dyn Env,
+    mut result: ReplayResult,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
     for (t, action) in actions.iter().enumerate() {
-        let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
+        let step = env.step(action).map_err(|e| at_step(e, t))?;
         if result.record(step, t, actions.len()) {
             break;
         }
@@ -174,14 +187,7 @@ pub fn replay_dial(
         None => env.reset_f64(),
     };
     let first = first.iter().map(|&v| v as f32).collect();
-    let mut result = ReplayResult::start(dial::ENV_NAME, task, first, actions.len());
-    for (t, action) in actions.iter().enumerate() {
-        let step = Env::step(&mut env, action).map_err(|e| at_step(e, t))?;
-        if result.record(step, t, actions.len()) {
-            break;
-        }
-    }
-    Ok(result)
+    play(&mut env, ReplayResult::start(dial::ENV_NAME, task, first, actions.len()), actions)
 }
 
 /// Adds the step index to an action error, so that a bad action in a long file can be found.

@@ -4,14 +4,14 @@
 //! step that ends within L1 0.1 of the digit's press point, terminated there; 0 before), and the
 //! same configuration gives the same bytes.
 
-use std::collections::BTreeMap;
-use std::path::Path;
-
 use pdt_data::native;
 use pdt_envs::collect_scripted::{collect, run_dial_episode, CollectConfig, Mode, ScriptedFamily};
 use pdt_envs::dial::{Dial, DialExpert, ACT_DIM, C_HIGH, C_LOW, HORIZON, NUM_TASKS, SUCCESS_L1};
 use pdt_envs::Env;
 use rand::{Rng, SeedableRng};
+
+mod common;
+use common::dir_bytes;
 
 fn config(seed: u64, episodes: usize, modes: Vec<Mode>, tasks: Vec<usize>) -> CollectConfig {
     CollectConfig {
@@ -23,16 +23,6 @@ fn config(seed: u64, episodes: usize, modes: Vec<Mode>, tasks: Vec<usize>) -> Co
         tasks,
         ..CollectConfig::default()
     }
-}
-
-fn dir_bytes(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(dir).expect("read_dir") {
-        let entry = entry.expect("entry");
-        let name = entry.file_name().to_string_lossy().into_owned();
-        out.insert(name, std::fs::read(entry.path()).expect("read"));
-    }
-    out
 }
 
 #[test]

@@ -17,6 +17,9 @@ use serde::Deserialize;
 use pdt_envs::dial::{Dial, DialExpert, DialStep, ACT_DIM, HORIZON};
 use pdt_envs::{Env, EnvError};
 
+mod common;
+use common::{base64_decode, fnv1a64};
+
 #[derive(Deserialize)]
 struct Fixture {
     mujoco: String,
@@ -47,15 +50,6 @@ fn read(name: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
-fn fnv1a64(bytes: impl IntoIterator<Item = u8>) -> u64 {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in bytes {
-        h ^= u64::from(b);
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    h
-}
-
 fn digest(obs: &[f64], reward: f64, success: bool, truncated: bool) -> String {
     let bytes = obs
         .iter()
@@ -63,24 +57,6 @@ fn digest(obs: &[f64], reward: f64, success: bool, truncated: bool) -> String {
         .chain(reward.to_le_bytes())
         .chain([u8::from(success), u8::from(truncated)]);
     format!("{:016x}", fnv1a64(bytes))
-}
-
-/// Standard base64 (with padding), as Python's `base64.b64encode` writes it.
-fn base64_decode(text: &str) -> Vec<u8> {
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let value = |c: u8| match ALPHABET.iter().position(|&a| a == c) {
-        Some(v) => v as u32,
-        None => panic!("not base64: {:?}", c as char),
-    };
-    let text = text.as_bytes();
-    assert_eq!(text.len() % 4, 0, "base64 length");
-    let mut out = Vec::with_capacity(text.len() / 4 * 3);
-    for quad in text.chunks_exact(4) {
-        let pad = quad.iter().filter(|&&c| c == b'=').count();
-        let n = quad[..4 - pad].iter().fold(0u32, |acc, &c| (acc << 6) | value(c)) << (6 * pad);
-        out.extend_from_slice(&n.to_be_bytes()[1..4 - pad]);
-    }
-    out
 }
 
 fn actions(case: &Case) -> Vec<[f32; ACT_DIM]> {

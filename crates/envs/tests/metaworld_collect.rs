@@ -3,13 +3,13 @@
 //! `promptdt data report` uses for success agrees with the environment's flag, and the same
 //! configuration gives the same bytes.
 
-use std::collections::BTreeMap;
-use std::path::Path;
-
 use pdt_data::native;
 use pdt_envs::collect_scripted::{collect, CollectConfig, CollectError, Mode, ScriptedFamily};
 use pdt_envs::metaworld_reach::{ENV_NAME, HORIZON, OBS_DIM, SUCCESS_REWARD};
 use pdt_envs::EnvError;
+
+mod common;
+use common::dir_bytes;
 
 fn config(seed: u64) -> CollectConfig {
     CollectConfig {
@@ -22,16 +22,6 @@ fn config(seed: u64) -> CollectConfig {
         tasks: vec![1, 6],
         reach_action_noise: 0.2,
     }
-}
-
-fn dir_bytes(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(dir).expect("read_dir") {
-        let entry = entry.expect("entry");
-        let name = entry.file_name().to_string_lossy().into_owned();
-        out.insert(name, std::fs::read(entry.path()).expect("read"));
-    }
-    out
 }
 
 #[test]

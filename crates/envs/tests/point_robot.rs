@@ -2,7 +2,6 @@
 //! written files, and that the files load with pdt-data's readers.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 use std::time::Instant;
 
 use pdt_data::multitask::{load_multitask, DatasetSpec};
@@ -13,6 +12,9 @@ use pdt_envs::collect_scripted::{
 };
 use pdt_envs::point_robot::{self, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS};
 use pdt_envs::{family, EnvError, EnvFamily};
+
+mod common;
+use common::dir_bytes;
 
 fn small_config(seed: u64) -> CollectConfig {
     CollectConfig {
@@ -28,17 +30,6 @@ fn small_config(seed: u64) -> CollectConfig {
 
 fn no_progress() -> impl FnMut(usize, usize) {
     |_, _| {}
-}
-
-/// Every regular file of `dir`, name -> bytes.
-fn dir_bytes(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(dir).expect("read_dir") {
-        let entry = entry.expect("entry");
-        let name = entry.file_name().to_string_lossy().into_owned();
-        out.insert(name, std::fs::read(entry.path()).expect("read"));
-    }
-    out
 }
 
 #[test]
