@@ -38,6 +38,13 @@ pub enum EnvError {
     ActionDim { env: String, got: usize, expected: usize },
     #[error("{env}: action[{index}] is {value}, not a finite number")]
     NonFiniteAction { env: String, index: usize, value: f32 },
+    /// A finite action so large that a number computed from it (e.g. a control cost) would not be
+    /// finite in f32.
+    #[error(
+        "{env}: action[{index}] is {value:e}, beyond the largest magnitude accepted ({limit:e}: its \
+         control cost would overflow the f32 reward; the motors saturate far below it anyway)"
+    )]
+    ActionTooLarge { env: String, index: usize, value: f32, limit: f32 },
     #[error("{env}: step called after the episode ended (call reset first)")]
     Finished { env: String },
     #[error("unknown task {task} of {env} (it has tasks 0..{n})")]

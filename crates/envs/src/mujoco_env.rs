@@ -321,9 +321,26 @@ impl MujocoEnv {
             // bug, so refuse it before it reaches the simulator.
             return Err(EnvError::NonFiniteAction { env: env.into(), index, value });
         }
+        // The control cost sums the squares in f64 and the reward is stored in f32: beyond this
+        // bound a finite action could give an infinite reward (found by tests/replay_fuzz.rs).
+        if let Some((index, &value)) =
+            action.iter().enumerate().find(|(_, v)| v.abs() > MAX_ACTION_MAGNITUDE)
+        {
+            return Err(EnvError::ActionTooLarge {
+                env: env.into(),
+                index,
+                value,
+                limit: MAX_ACTION_MAGNITUDE,
+            });
+        }
         Ok(())
     }
 }
+
+/// The largest action magnitude a MuJoCo family accepts: squares up to 1e30, so a control cost of
+/// any weight up to 1 over 8 actuators stays far below f32's limit (3.4e38). MuJoCo clamps the
+/// controls to [-1, 1], so no meaningful action comes near it.
+pub const MAX_ACTION_MAGNITUDE: f32 = 1e15;
 
 impl Env for MujocoEnv {
     fn obs_dim(&self) -> usize {
@@ -416,6 +433,20 @@ mod tests {
             Ok(env) => env,
             Err(e) => panic!("{e}"),
         }
+    }
+
+    #[test]
+    fn an_action_whose_cost_would_overflow_the_reward_is_refused_and_changes_nothing() {
+        // tests/replay_fuzz.rs found it: ctrl 1.34e33 gave a reward of -inf in f32.
+        let mut env = cheetah();
+        let obs = env.reset(0);
+        let err = env.step(&[0.0, 0.0, 1.342_946_4e33, -1e10, 0.0, 0.0]).expect_err("refused");
+        assert!(matches!(err, EnvError::ActionTooLarge { index: 2, .. }), "{err}");
+        assert!(err.to_string().contains("action[2]"), "{err}");
+        assert_eq!(env.steps(), 0);
+        assert_eq!(env.observation(), obs);
+        let ok = env.step(&[0.0, 0.0, 1e15, -1e15, 0.0, 0.0]).expect("at the bound");
+        assert!(ok.reward.is_finite(), "{}", ok.reward);
     }
 
     #[test]

@@ -199,6 +199,9 @@ fn at_step(e: EnvError, t: usize) -> EnvError {
         EnvError::NonFiniteAction { env, index, value } => {
             EnvError::NonFiniteAction { env: format!("{env} (step {t})"), index, value }
         }
+        EnvError::ActionTooLarge { env, index, value, limit } => {
+            EnvError::ActionTooLarge { env: format!("{env} (step {t})"), index, value, limit }
+        }
         other => other,
     }
 }
