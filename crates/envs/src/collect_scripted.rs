@@ -601,15 +601,14 @@ pub fn run_dial_episode(
     let task = env.digit();
     let start = dial::noisy_start(rng)?;
     let mut obs: Vec<f32> = env.reset_from(&start)?.iter().map(|&v| v as f32).collect();
-    let mut expert = DialExpert::new(task)?;
+    // The medium policy aims at the hover pose misremembered once per episode (arm joints only).
+    let mut aim = dial::targets()?.hover[task];
     if mode == Mode::Medium {
-        let t = dial::targets()?.hover[task];
-        let mut aim = t;
         for v in aim.iter_mut().take(6) {
             *v += DIAL_MEDIUM_TARGET_NOISE * standard_normal(rng);
         }
-        expert = DialExpert::with_target(aim);
     }
+    let mut expert = DialExpert::with_target(aim);
     let amount = DIAL_DART_AMOUNTS[rng.random_range(0..DIAL_DART_AMOUNTS.len())];
     let hold = rng.random_range(1..=2usize);
     let mut noise = [0.0f64; dial::ACT_DIM];
