@@ -52,7 +52,7 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     pb.finish_and_clear();
     let success = summary.entries.iter().any(|e| e.success_rate.is_some());
     print!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
-    println!("{}", if success { format!(" {:>10}", "success") } else { String::new() });
+    out!("{}", if success { format!(" {:>10}", "success") } else { String::new() });
     // The point robot has 40 tasks: a sample of them; other families: every task.
     let shown = |t: usize| scripted != ScriptedFamily::PointRobot || t % 8 == 2;
     for e in summary.entries.iter().filter(|e| shown(e.task)) {
@@ -63,9 +63,9 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
             e.dataset.mean,
             e.prompts.mean
         );
-        println!("{}", e.success_rate.map_or(String::new(), |r| format!(" {:>9.1}%", 100.0 * r)));
+        out!("{}", e.success_rate.map_or(String::new(), |r| format!(" {:>9.1}%", 100.0 * r)));
     }
-    println!(
+    out!(
         "wrote {} datasets and {} to {}",
         summary.entries.len() * 2,
         summary.card.display(),
@@ -151,12 +151,12 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     pb.finish_and_clear();
     if let Some(tasks) = &summary.last_test {
         let mean = tasks.iter().map(|t| t.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
-        println!(
+        out!(
             "held-out tasks after iteration {}: average return {mean:.2}",
             summary.iterations_done
         );
     }
-    println!("run directory: {}", summary.dir.display());
+    out!("run directory: {}", summary.dir.display());
     Ok(())
 }
 
@@ -172,7 +172,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         std::fs::remove_dir_all(out).with_context(|| format!("clearing {}", out.display()))?;
     }
     let data = out.join("data");
-    println!(
+    out!(
         "[1/4] collecting point-robot datasets (40 goals x expert/medium/random) into {}",
         data.display()
     );
@@ -191,7 +191,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 cfg.train.iterations = i;
             }
             let dir = out.join(format!("{}-seed{seed}", method.name()));
-            println!("[{}/4] training {} (seed {seed}) -> {}", n + 2, method.name(), dir.display());
+            out!("[{}/4] training {} (seed {seed}) -> {}", n + 2, method.name(), dir.display());
             let pb = bar(
                 cfg.train.iterations,
                 "      {bar:30} {pos}/{len} it [{elapsed} < {eta}] {msg}",
@@ -212,11 +212,11 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             pdt_train::run::train(Some(cfg), &dir, opts)?;
             pb.finish_and_clear();
             let r = pdt_train::run::evaluate_run(&dir, None, "test", Some(a.device), None)?;
-            println!("      held-out goals: average return {:.2}", r.mean_return);
+            out!("      held-out goals: average return {:.2}", r.mean_return);
             runs.push(dir);
         }
     }
-    println!("[4/4] report");
+    out!("[4/4] report");
     let report_dir = out.join("report");
     let cfg = pdt_report::ReportConfig {
         runs,
@@ -225,11 +225,11 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     };
     let summary = pdt_report::run(&cfg)?;
     print!("\n{}", summary.markdown);
-    println!(
+    out!(
         "\nplots and tables: {}/ (curves_point_robot.png, table.md, table.csv, curves.csv)",
         report_dir.display()
     );
-    println!("demo finished in {:.0} s", started.elapsed().as_secs_f64());
+    out!("demo finished in {:.0} s", started.elapsed().as_secs_f64());
     Ok(())
 }
 
@@ -249,7 +249,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                 .pretrained_dir
                 .clone()
                 .unwrap_or_else(|| PathBuf::from("pretrained").join(family));
-            println!("using the pretrained agent in {}", dir.display());
+            out!("using the pretrained agent in {}", dir.display());
             dir
         }
         false => {
@@ -343,13 +343,13 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                 pdt_rl::train::train(start, &run_dir, a.stop_after, device, &mut on_progress)?;
             pb.finish_and_clear();
             let Some(card) = card else {
-                println!(
+                out!(
                     "stopped as asked (--stop-after); continue with --resume --run-dir {}",
                     run_dir.display()
                 );
                 return Ok(());
             };
-            println!(
+            out!(
                 "trained {} on {family} for {} steps in {:.0} s; expert: step {} (mean {:.1}), medium: step {} (mean {:.1}), random: mean {:.1}",
                 card.algorithm.name(),
                 card.config.total_steps,
@@ -382,9 +382,13 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
             pb.set_position(done as u64);
         })?;
     pb.finish_and_clear();
-    println!(
+    out!(
         "{:<6} {:>12} {:>12} {:>12} {:>14}",
-        "task", "expert", "medium", "random", "prompt-expert"
+        "task",
+        "expert",
+        "medium",
+        "random",
+        "prompt-expert"
     );
     let tasks: Vec<usize> = {
         let mut t: Vec<usize> = summary.entries.iter().map(|e| e.task).collect();
@@ -401,7 +405,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
     for &t in &tasks {
         let p =
             summary.get(t, Mode::Expert).map_or("-".into(), |e| format!("{:.1}", e.prompts.mean));
-        println!(
+        out!(
             "{:<6} {:>12} {:>12} {:>12} {:>14}",
             t,
             get(t, Mode::Expert),
@@ -410,7 +414,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
             p
         );
     }
-    println!(
+    out!(
         "wrote {} files ({} steps) and {} in {:.1} s",
         summary.files,
         summary.steps,
@@ -431,12 +435,15 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         for e in pdt_repro::list()? {
             let pending =
                 if e.pending > 0 { format!(", {} pending", e.pending) } else { String::new() };
-            println!("{:<30} {} ({} cells{pending})", e.name, e.title, e.cells);
+            out!("{:<30} {} ({} cells{pending})", e.name, e.title, e.cells);
             for b in &e.budgets {
                 let h = b.hours.map_or(String::new(), |h| format!(", ~{h} h here"));
-                println!(
+                out!(
                     "    {:<6} {:>3} runs x {} iterations{h}: {}",
-                    b.budget, b.runs, b.iterations, b.note
+                    b.budget,
+                    b.runs,
+                    b.iterations,
+                    b.note
                 );
             }
         }
@@ -492,13 +499,13 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 false => name.to_string(),
             };
             let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra)?;
-            println!(
+            out!(
                 "{} runs; wrote {}",
                 p.runs.len(),
                 files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
             );
-            println!("run them, e.g.: xargs -P 2 -I{{}} sh -c {{}} < {}", files[0].display());
-            println!(
+            out!("run them, e.g.: xargs -P 2 -I{{}} sh -c {{}} < {}", files[0].display());
+            out!(
                 "then: promptdt reproduce {name} --budget {} --out {} --report-only",
                 p.budget,
                 out.display()
@@ -535,7 +542,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             }
         })?;
         pb.finish_and_clear();
-        println!(
+        out!(
             "{}: {} runs already finished, {} started, {} resumed, {} failed",
             p.experiment,
             summary.already_finished,
@@ -562,7 +569,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         d.is_dir().then_some(d)
     });
     let r = report::report(&m, &p, reference.as_deref())?;
-    println!("{}", r.markdown);
-    println!("report: {}", p.report_dir().display());
+    out!("{}", r.markdown);
+    out!("report: {}", p.report_dir().display());
     Ok(())
 }

@@ -1,6 +1,15 @@
 //! `promptdt`: a thin shell over the library crates. Each subcommand turns its arguments into a
 //! library call; errors are printed with their causes and give a nonzero exit code.
 
+/// `println!` that hands a failed write back as an error instead of panicking:
+/// `promptdt reproduce --list | head` closes the pipe early, and `main` ends quietly on that.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*).map_err($crate::StdoutError)?
+    }};
+}
+
 mod args;
 mod commands;
 
@@ -8,12 +17,32 @@ use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand};
 use clap::Parser;
 use commands::{collect, train};
+use std::io::ErrorKind;
 use std::process::ExitCode;
+
+/// A write to standard output failed (see `out!`).
+#[derive(Debug)]
+pub struct StdoutError(pub std::io::Error);
+
+impl std::fmt::Display for StdoutError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "writing to standard output: {}", self.0)
+    }
+}
+
+impl std::error::Error for StdoutError {}
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of our standard output went away (`| head`): not an error of ours.
+        Err(e)
+            if e.downcast_ref::<StdoutError>()
+                .is_some_and(|s| s.0.kind() == ErrorKind::BrokenPipe) =>
+        {
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("error: {}", error_chain(&e));
             ExitCode::FAILURE
@@ -43,7 +72,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Data(DataCommand::Inspect(a)) => {
             let reports = pdt_data::inspect::inspect_path(&a.path)?;
             if a.json {
-                println!("{}", serde_json::to_string_pretty(&reports)?);
+                out!("{}", serde_json::to_string_pretty(&reports)?);
             } else {
                 print!("{}", pdt_data::inspect::render_table(&reports));
             }
@@ -51,7 +80,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Data(DataCommand::Convert(a)) => {
             let files = pdt_data::multitask::convert_reference_dir(&a.src, &a.dst)?;
             for f in &files {
-                println!(
+                out!(
                     "{} -> {} ({} trajectories, {} steps)",
                     f.source.display(),
                     f.dest.display(),
@@ -59,7 +88,7 @@ fn run(cli: Cli) -> Result<()> {
                     f.steps
                 );
             }
-            println!("converted {} files into {}", files.len(), a.dst.display());
+            out!("converted {} files into {}", files.len(), a.dst.display());
         }
         Command::Data(DataCommand::Report(a)) => {
             let cfg = pdt_report::DatasetReportConfig {
@@ -75,7 +104,7 @@ fn run(cli: Cli) -> Result<()> {
                 eprintln!("warning: {w}");
             }
             for f in &summary.files {
-                println!("wrote {}", f.display());
+                out!("wrote {}", f.display());
             }
         }
         Command::Model(ModelCommand::Forward(a)) => {
@@ -88,7 +117,7 @@ fn run(cli: Cli) -> Result<()> {
             let s = pdt_model::forward_file::forward_file(
                 &a.weights, &a.inputs, &a.out, device, a.n_head,
             )?;
-            println!(
+            out!(
                 "wrote action_preds [{}, {}, {}] to {} (prompt: {} steps)",
                 s.batch,
                 s.history_steps,
@@ -117,16 +146,13 @@ fn run(cli: Cli) -> Result<()> {
                 pb.set_position(done as u64);
             })?;
             pb.finish_and_clear();
-            println!("{:<6} {:>12} {:>10} {:>10}  file", "task", "return", "step", "mirror");
+            out!("{:<6} {:>12} {:>10} {:>10}  file", "task", "return", "step", "mirror");
             for e in &card.task_experts {
                 let m = e.mirror.as_deref().unwrap_or("-");
-                println!(
-                    "{:<6} {:>12.1} {:>10} {m:>10}  {}",
-                    e.task, e.eval_return, e.step, e.file
-                );
+                out!("{:<6} {:>12.1} {:>10} {m:>10}  {}", e.task, e.eval_return, e.step, e.file);
             }
             let m = card.expert_eval.iter().sum::<f64>() / card.expert_eval.len().max(1) as f64;
-            println!(
+            out!(
                 "mean expert return {m:.1} over {} tasks; wrote {}/agent.json",
                 card.expert_eval.len(),
                 a.out.display()
@@ -151,9 +177,9 @@ fn run(cli: Cli) -> Result<()> {
                 _ => String::new(),
             };
             let head = if rates.is_some() { format!(" {:>9}", "success") } else { String::new() };
-            println!("{:<24} {:>12} {:>10} {:>9}{head}", "task", "return mean", "std", "episodes");
+            out!("{:<24} {:>12} {:>10} {:>9}{head}", "task", "return mean", "std", "episodes");
             for t in &r.tasks {
-                println!(
+                out!(
                     "{:<24} {:>12.2} {:>10.2} {:>9}{}",
                     t.task,
                     t.return_mean,
@@ -163,7 +189,7 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
             let mean_rate = rates.as_ref().map(|v| v.iter().sum::<f64>() / v.len() as f64);
-            println!(
+            out!(
                 "{:<24} {:>12.2} {:>10} {:>9}{}",
                 format!("average ({})", r.split),
                 r.mean_return,
@@ -172,9 +198,9 @@ fn run(cli: Cli) -> Result<()> {
                 success_col(mean_rate)
             );
             if let Some(how) = &r.adaptation {
-                println!("adapted to each task with {how}");
+                out!("adapted to each task with {how}");
             }
-            println!(
+            out!(
                 "checkpoint {} (iteration {}); wrote {}/eval_final.json",
                 r.checkpoint,
                 r.iteration,
@@ -193,7 +219,7 @@ fn run(cli: Cli) -> Result<()> {
                 eprintln!("warning: {w}");
             }
             for f in &summary.files {
-                println!("wrote {}", f.display());
+                out!("wrote {}", f.display());
             }
         }
         Command::Env(EnvCommand::Replay(a)) => {
@@ -248,7 +274,7 @@ fn run(cli: Cli) -> Result<()> {
             pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes())
                 .with_context(|| format!("writing {}", a.out.display()))?;
             let ret: f64 = r.rewards.iter().map(|&x| x as f64).sum();
-            println!(
+            out!(
                 "{} task {}: {} steps, return {ret:.3}, terminated {}, wrote {}",
                 r.family,
                 r.task,
@@ -272,7 +298,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             let server = pdt_serve::Server::start(run, opts)?;
             // The first line of output: clients (and tests) read the address from it.
-            println!("listening on http://{}", server.addr);
+            out!("listening on http://{}", server.addr);
             use std::io::Write as _;
             let _ = std::io::stdout().flush();
             server.wait_for_ctrl_c()?;
@@ -287,15 +313,17 @@ fn run(cli: Cli) -> Result<()> {
                     .with_context(|| format!("creating {}", dir.display()))?;
                 std::fs::write(dir.join("bench.json"), serde_json::to_string_pretty(&report)?)?;
                 std::fs::write(dir.join("bench.md"), md)?;
-                println!("wrote {}/bench.json and bench.md", dir.display());
+                out!("wrote {}/bench.json and bench.md", dir.display());
             }
         }
         Command::Demo(a) if a.smoke => {
             let device = pdt_model::device::resolve(a.device)?;
             for (i, s) in pdt_train::smoke::run(0, 20, device).iter().enumerate() {
-                println!(
+                out!(
                     "step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}",
-                    s.loss, s.grad_norm, s.lr
+                    s.loss,
+                    s.grad_norm,
+                    s.lr
                 );
             }
         }
