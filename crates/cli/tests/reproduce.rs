@@ -124,6 +124,28 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
     let again = ok(&["reproduce", "table1", "--budget", "smoke", "--out", a_s, "--jobs", "2"]);
     assert!(again.contains("12 runs already finished, 0 started, 0 resumed"), "{again}");
 
+    // While a sweep runs, a cell shows its finished seeds only: a second seed of one Table 1 cell,
+    // made to look unfinished (its resume point set back to iteration 1 of 2), is left out, so the
+    // cell is seed 0's result alone, marked partial.
+    let table1 = a.join("reports/table1-smoke/cells.csv");
+    let row = |csv: &str| -> Vec<String> {
+        let line = csv.lines().find(|l| l.starts_with("\"cheetah_dir/prompt-dt-k1x2\"")).unwrap();
+        line.split(',').map(str::to_string).collect()
+    };
+    let before = row(&std::fs::read_to_string(&table1).unwrap());
+    let cell = "cheetah_dir/prompt-dt-k1x2/smoke";
+    let seed1 = format!("{cell}/seed1");
+    let two = ["reproduce", "table1", "--budget", "smoke", "--seeds", "2", "--out", a_s];
+    ok(&[&two[..], &["--only", &seed1]].concat());
+    let latest = a.join(format!("runs/{seed1}/checkpoints/latest.json"));
+    let text = std::fs::read_to_string(&latest).unwrap();
+    assert!(text.contains("\"iteration\": 2,"), "{text}");
+    std::fs::write(&latest, text.replace("\"iteration\": 2,", "\"iteration\": 1,")).unwrap();
+    ok(&[&two[..], &["--report-only"]].concat());
+    let after = row(&std::fs::read_to_string(&table1).unwrap());
+    assert_eq!(after[5], "\"partial: 1 of 2 seeds finished\"", "{after:?}");
+    assert_eq!((&after[6], &after[9], &after[11]), (&before[6], &before[9], &before[11]));
+
     // The same experiment through --emit jobs + xargs, then --report-only.
     let b = tmp.path().join("b");
     let b_s = b.to_str().unwrap();

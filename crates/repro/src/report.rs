@@ -28,9 +28,11 @@ pub struct CellResult {
     pub label: String,
     pub row: Option<String>,
     pub column: Option<String>,
-    /// `ran`, `partial` (some run unfinished), `no results`, or why the cell was not run.
+    /// `ran`, `partial` (no run finished yet: the running ones are shown), `partial: N of M seeds
+    /// finished` (only the finished ones are shown), `no results yet`, or why the cell was not run.
     pub status: String,
-    /// Seeds with at least one test evaluation.
+    /// Seeds in the result: the finished ones, or while none has finished, those with at least one
+    /// test evaluation.
     pub seeds: usize,
     /// Iteration of the last evaluation used (the smallest over seeds).
     pub iteration: Option<u64>,
@@ -235,17 +237,26 @@ pub fn report(
                 Err(_) => None,
             },
         };
+        // While a sweep runs, its finished seeds are the cell's result and the seeds still running
+        // are left out (their last evaluation is from an earlier iteration: mixing them in would
+        // average a 2000-iteration model with a 1-iteration one). With no seed finished yet, the
+        // running ones are shown, marked partial.
+        let finished: Vec<bool> =
+            runs.iter().map(|r| matches!(plan::state(r), Ok(RunState::Finished))).collect();
+        let n_finished = finished.iter().filter(|f| **f).count();
+        let used: Vec<&plan::RunSpec> = runs
+            .iter()
+            .zip(&finished)
+            .filter(|(_, f)| n_finished == 0 || **f)
+            .map(|(r, _)| *r)
+            .collect();
         // Per seed: the last evaluation, and every evaluation for the curve.
         let mut finals = Vec::new();
         let mut norms = Vec::new();
         let mut successes = Vec::new();
         let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
-        let mut partial = false;
         let mut last_iter: Option<u64> = None;
-        for r in &runs {
-            if !matches!(plan::state(r), Ok(RunState::Finished)) {
-                partial = true;
-            }
+        for r in &used {
             let evals = read_evals(&r.dir)?;
             let Some((&it, last)) = evals.iter().next_back() else { continue };
             last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
@@ -276,10 +287,14 @@ pub fn report(
         if successes.len() == finals.len() {
             res.success = Stat::of(&successes);
         }
-        res.status = match (res.seeds, partial) {
-            (0, _) => "no results yet".into(),
-            (_, true) => "partial".into(),
-            _ => "ran".into(),
+        res.status = if res.seeds == 0 {
+            "no results yet".into()
+        } else if n_finished == runs.len() {
+            "ran".into()
+        } else if n_finished == 0 {
+            "partial".into()
+        } else {
+            format!("partial: {n_finished} of {} seeds finished", runs.len())
         };
         if let Some(first_curve) = curves.first() {
             for it in first_curve.keys() {
