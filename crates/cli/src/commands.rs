@@ -51,12 +51,12 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     })?;
     pb.finish_and_clear();
     let success = summary.entries.iter().any(|e| e.success_rate.is_some());
-    print!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
+    out_inline!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
     out!("{}", if success { format!(" {:>10}", "success") } else { String::new() });
     // The point robot has 40 tasks: a sample of them; other families: every task.
     let shown = |t: usize| scripted != ScriptedFamily::PointRobot || t % 8 == 2;
     for e in summary.entries.iter().filter(|e| shown(e.task)) {
-        print!(
+        out_inline!(
             "{:<6} {:<8} {:>14.2} {:>14.2}",
             e.task,
             e.mode.name(),
@@ -224,7 +224,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         title: Some("promptdt demo".into()),
     };
     let summary = pdt_report::run(&cfg)?;
-    print!("\n{}", summary.markdown);
+    out_inline!("\n{}", summary.markdown);
     out!(
         "\nplots and tables: {}/ (curves_point_robot.png, table.md, table.csv, curves.csv)",
         report_dir.display()

@@ -10,6 +10,14 @@ macro_rules! out {
     }};
 }
 
+/// `print!` the same way as `out!` (no newline added).
+macro_rules! out_inline {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        write!(std::io::stdout().lock(), $($arg)*).map_err($crate::StdoutError)?
+    }};
+}
+
 mod args;
 mod commands;
 
@@ -74,7 +82,7 @@ fn run(cli: Cli) -> Result<()> {
             if a.json {
                 out!("{}", serde_json::to_string_pretty(&reports)?);
             } else {
-                print!("{}", pdt_data::inspect::render_table(&reports));
+                out_inline!("{}", pdt_data::inspect::render_table(&reports));
             }
         }
         Command::Data(DataCommand::Convert(a)) => {
@@ -98,7 +106,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             let summary = pdt_report::dataset_report(&cfg)?;
             for f in &summary.families {
-                print!("{}", f.markdown);
+                out_inline!("{}", f.markdown);
             }
             for w in &summary.warnings {
                 eprintln!("warning: {w}");
@@ -214,7 +222,7 @@ fn run(cli: Cli) -> Result<()> {
                 title: a.title.clone(),
             };
             let summary = pdt_report::run(&cfg)?;
-            print!("{}", summary.markdown);
+            out_inline!("{}", summary.markdown);
             for w in &summary.warnings {
                 eprintln!("warning: {w}");
             }
@@ -307,7 +315,7 @@ fn run(cli: Cli) -> Result<()> {
             let cfg = a.to_config()?;
             let report = pdt_bench::run(&cfg)?;
             let md = pdt_bench::render_markdown(&report);
-            print!("{md}");
+            out_inline!("{md}");
             if let Some(dir) = &a.out {
                 std::fs::create_dir_all(dir)
                     .with_context(|| format!("creating {}", dir.display()))?;
