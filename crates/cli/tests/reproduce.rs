@@ -52,28 +52,27 @@ fn list_names_every_experiment_with_its_budgets() {
 /// full disk is still an error that says what failed.
 #[test]
 fn list_into_a_closed_pipe_ends_quietly_and_a_full_disk_is_an_error() {
-    let (reader, writer) = std::io::pipe().unwrap();
-    drop(reader); // closed before the child starts: every write gets EPIPE
-    let out = Command::new(env!("CARGO_BIN_EXE_promptdt"))
-        .args(["reproduce", "--list"])
-        .current_dir(repo())
-        .stdout(writer)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "exit {:?}: {stderr}", out.status);
-    assert!(stderr.is_empty(), "{stderr}");
-    if let Ok(full) = std::fs::File::create("/dev/full") {
+    // `reproduce --list` with its standard output on `stdout`: (success, stderr).
+    let list_into = |stdout: std::process::Stdio| {
         let out = Command::new(env!("CARGO_BIN_EXE_promptdt"))
             .args(["reproduce", "--list"])
             .current_dir(repo())
-            .stdout(full)
+            .stdout(stdout)
             .output()
             .unwrap();
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && stderr.contains("writing to standard output"), "{stderr}");
+        (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader); // closed before the child starts: every write gets EPIPE
+    let (success, stderr) = list_into(writer.into());
+    assert!(success, "{stderr}");
+    assert!(stderr.is_empty(), "{stderr}");
+    if let Ok(full) = std::fs::File::create("/dev/full") {
+        let (success, stderr) = list_into(full.into());
+        assert!(!success && stderr.contains("writing to standard output"), "{stderr}");
     }
 }
+
 #[test]
 fn bad_input_is_refused_by_name() {
     let (ok1, _, err) = promptdt(&["reproduce", "fig9", "--budget", "smoke"]);
