@@ -144,6 +144,20 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
     let after = row(&std::fs::read_to_string(&table1).unwrap());
     assert_eq!(after[5], "\"partial: 1 of 2 seeds finished\"", "{after:?}");
     assert_eq!((&after[6], &after[9], &after[11]), (&before[6], &before[9], &before[11]));
+    // With no seed of the cell finished, its running seeds are shown, but the paper's claims that
+    // name it are not checked on them.
+    let claim = || {
+        let md = std::fs::read_to_string(a.join("reports/table1-smoke/report.md")).unwrap();
+        md.lines().find(|l| l.contains("Cheetah-Dir: insensitive")).unwrap().to_string()
+    };
+    assert!(!claim().contains("not measured"), "{}", claim());
+    let latest0 = a.join(format!("runs/{cell}/seed0/checkpoints/latest.json"));
+    let text = std::fs::read_to_string(&latest0).unwrap();
+    std::fs::write(&latest0, text.replace("\"iteration\": 2,", "\"iteration\": 1,")).unwrap();
+    ok(&[&two[..], &["--report-only"]].concat());
+    assert_eq!(row(&std::fs::read_to_string(&table1).unwrap())[5], "\"partial\"");
+    let c = claim();
+    assert!(c.contains("not measured") && c.contains("k1x2: ") && c.contains("(running"), "{c}");
 
     // The same experiment through --emit jobs + xargs, then --report-only.
     let b = tmp.path().join("b");

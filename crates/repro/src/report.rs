@@ -34,6 +34,9 @@ pub struct CellResult {
     /// Seeds in the result: the finished ones, or while none has finished, those with at least one
     /// test evaluation.
     pub seeds: usize,
+    /// Seeds whose run has finished. The paper's claims are checked only on cells with at least
+    /// one: a cell whose runs are all still going says nothing yet about the trained method.
+    pub seeds_finished: usize,
     /// Iteration of the last evaluation used (the smallest over seeds).
     pub iteration: Option<u64>,
     pub iterations_planned: Option<u64>,
@@ -202,6 +205,7 @@ pub fn report(
             column: cell.column.clone(),
             status: String::new(),
             seeds: 0,
+            seeds_finished: 0,
             iteration: None,
             iterations_planned: None,
             ours: None,
@@ -280,6 +284,7 @@ pub fn report(
             );
         }
         res.seeds = finals.len();
+        res.seeds_finished = n_finished;
         res.iteration = last_iter;
         res.ours = Stat::of(&finals);
         res.ours_normalised = Stat::of(&norms);
@@ -404,10 +409,24 @@ fn mean(v: &[f64]) -> f64 {
 }
 
 fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult {
+    let cell = |id: &str| cells.iter().find(|x| x.id == id);
+    // Only cells with a finished seed count: a claim checked on a model still at iteration 1
+    // would read "does not hold" for no reason.
     let score = |id: &str| {
-        cells.iter().find(|x| x.id == id).and_then(|x| x.ours_normalised).map(|s| s.mean)
+        cell(id).filter(|x| x.seeds_finished > 0).and_then(|x| x.ours_normalised).map(|s| s.mean)
     };
-    let fmt = |id: &str| score(id).map_or(format!("{id}: -"), |s| format!("{id}: {s:.1}"));
+    let fmt = |id: &str| match (score(id), cell(id)) {
+        (Some(s), _) => format!("{id}: {s:.1}"),
+        (None, Some(x)) if x.seeds > 0 => match x.ours_normalised {
+            Some(s) => format!(
+                "{id}: {:.1} so far (running, iteration {})",
+                s.mean,
+                x.iteration.map_or("-".into(), |i| i.to_string())
+            ),
+            None => format!("{id}: - (running)"),
+        },
+        _ => format!("{id}: -"),
+    };
     let (verdict, detail) = match c.kind {
         ClaimKind::Better => {
             let (a, b) = (c.a.as_deref().unwrap_or(""), c.b.as_deref().unwrap_or(""));
