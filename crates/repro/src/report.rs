@@ -417,7 +417,7 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
     };
     let fmt = |id: &str| match (score(id), cell(id)) {
         (Some(s), _) => format!("{id}: {s:.1}"),
-        (None, Some(x)) if x.seeds > 0 => match x.ours_normalised {
+        (None, Some(x)) if x.seeds > 0 && x.seeds_finished == 0 => match x.ours_normalised {
             Some(s) => format!(
                 "{id}: {:.1} so far (running, iteration {})",
                 s.mean,
