@@ -415,17 +415,13 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
     let score = |id: &str| {
         cell(id).filter(|x| x.seeds_finished > 0).and_then(|x| x.ours_normalised).map(|s| s.mean)
     };
-    let fmt = |id: &str| match (score(id), cell(id)) {
-        (Some(s), _) => format!("{id}: {s:.1}"),
-        (None, Some(x)) if x.seeds > 0 && x.seeds_finished == 0 => match x.ours_normalised {
-            Some(s) => format!(
-                "{id}: {:.1} so far (running, iteration {})",
-                s.mean,
-                x.iteration.map_or("-".into(), |i| i.to_string())
-            ),
-            None => format!("{id}: - (running)"),
-        },
-        _ => format!("{id}: -"),
+    let fmt = |id: &str| {
+        let Some(x) = cell(id) else { return format!("{id}: -") };
+        let value = x.ours_normalised.map_or("-".into(), |s| format!("{:.1}", s.mean));
+        match x.iteration.filter(|_| x.seeds_finished == 0) {
+            Some(it) => format!("{id}: {value} so far (running, iteration {it})"),
+            None => format!("{id}: {value}"),
+        }
     };
     let (verdict, detail) = match c.kind {
         ClaimKind::Better => {
