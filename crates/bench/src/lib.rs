@@ -373,6 +373,7 @@ fn run_pytorch_eval(
     script: &std::path::Path,
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
+    let device = if let Device::Cuda(_) = cfg.device { "cuda" } else { "cpu" };
     let mut cmd = Command::new(python);
     cmd.arg(script).args([
         "--threads",
@@ -381,6 +382,8 @@ fn run_pytorch_eval(
         &cfg.eval_episodes.to_string(),
         "--repeats",
         "3",
+        "--device",
+        device,
     ]);
     let shown = format!("{cmd:?}");
     let out = cmd

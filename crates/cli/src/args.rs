@@ -98,7 +98,7 @@ pub struct ReproduceArgs {
     #[arg(long)]
     pub seeds: Option<u32>,
     /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given. Default:
-    /// one per core on the CPU (measured fastest: BENCHMARKS.md), 1 with --device cuda.
+    /// one per core on the CPU, 2 on a GPU (both measured fastest: BENCHMARKS.md).
     #[arg(long)]
     pub jobs: Option<usize>,
     /// libtorch threads per run.

@@ -453,12 +453,13 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     let m = Manifest::load(name)?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     // Measured on 2 cores (BENCHMARKS.md, "Sharing the cores"): 2 runs of 1 thread each finish a set
-    // of runs 1.36x sooner than 1 run of 2 threads. One GPU is shared best by one run at a time.
+    // of runs 1.36x sooner than 1 run of 2 threads. On an H200 (BENCHMARKS.md, "GPU"), two
+    // Cheetah-Dir runs at once made 1.7x the iterations per hour of one alone, and four no more.
     let on_gpu = matches!(pdt_model::device::resolve(a.device), Ok(d) if d.is_cuda());
     let jobs = match a.jobs {
         Some(0) => bail!("--jobs must be at least 1"),
         Some(j) => j,
-        None if on_gpu => 1,
+        None if on_gpu => 2,
         None => cores,
     };
     let threads = match a.threads {
@@ -486,7 +487,17 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     match a.emit.as_deref() {
         Some("jobs") => {
             let dir = out.join("jobs").join(format!("{}-{}", p.experiment, p.budget));
-            let mut extra = vec!["--threads".to_string(), threads.to_string()];
+            // Each job resolves its own device and OpenMP policy: pass the ones asked for here, so a
+            // sweep emitted with `--device cuda` does not quietly fall back to the CPU on a node
+            // without a CUDA libtorch.
+            let mut extra = vec![
+                "--threads".to_string(),
+                threads.to_string(),
+                "--device".into(),
+                a.device.as_str().into(),
+                "--omp-wait-policy".into(),
+                a.omp_wait_policy.clone(),
+            ];
             if a.data_root.is_some() {
                 extra.push("--data-root".into());
                 extra.push(opts.data_root.to_string_lossy().into_owned());

@@ -168,10 +168,13 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
     args.extend(common);
     let mut emit = vec!["reproduce", "fig4", "--out", b_s, "--data-root", data.to_str().unwrap()];
     emit.extend(common);
-    emit.extend(["--emit", "jobs"]);
+    emit.extend(["--emit", "jobs", "--device", "cpu"]);
     ok(&emit);
     let jobs = b.join("jobs/fig4-smoke/jobs.txt");
-    assert_eq!(std::fs::read_to_string(&jobs).unwrap().lines().count(), 5);
+    let lines = std::fs::read_to_string(&jobs).unwrap();
+    assert_eq!(lines.lines().count(), 5);
+    // Each job runs on the device asked for here, not on its own `auto`.
+    assert!(lines.lines().all(|l| l.contains("'--device' 'cpu'")), "{lines}");
     assert!(b.join("jobs/fig4-smoke/run.slurm").is_file());
     let status = Command::new("sh")
         .arg("-c")

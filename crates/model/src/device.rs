@@ -29,15 +29,27 @@ impl std::str::FromStr for DeviceSpec {
     }
 }
 
+impl DeviceSpec {
+    /// The name `from_str` takes back (`auto`, `cpu` or `cuda`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Cpu => "cpu",
+            Self::Cuda => "cuda",
+        }
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 #[error("CUDA was asked for but is not available: {0}")]
 pub struct DeviceError(String);
 
 /// Loads `libtorch_cuda.so` (if it can be found on the library path) so that libtorch sees CUDA.
 fn load_cuda_backend() -> Result<(), String> {
-    if tch::Cuda::is_available() {
-        return Ok(());
-    }
+    // No `tch::Cuda::is_available()` before the dlopen: libtorch looks its CUDA hooks up once and
+    // keeps the answer, so asking before `libtorch_cuda.so` is loaded pins "no CUDA" for the rest of
+    // the process (seen on an H200: loaded, yet "no CUDA device"). dlopen of a loaded library is a
+    // cheap reference count, so it is always done first.
     let name = c"libtorch_cuda.so";
     // SAFETY: dlopen with a valid NUL-terminated name; the handle is intentionally never closed, since
     // the library registers global state (the CUDA dispatch keys) that must outlive this call.
@@ -68,5 +80,18 @@ pub fn resolve(spec: DeviceSpec) -> Result<Device, DeviceError> {
         DeviceSpec::Auto => {
             Ok(if load_cuda_backend().is_ok() { Device::Cuda(0) } else { Device::Cpu })
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_names_round_trip() {
+        for spec in [DeviceSpec::Auto, DeviceSpec::Cpu, DeviceSpec::Cuda] {
+            assert_eq!(spec.as_str().parse::<DeviceSpec>(), Ok(spec));
+        }
+        assert!("gpu".parse::<DeviceSpec>().unwrap_err().contains("gpu"));
     }
 }
