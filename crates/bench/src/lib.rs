@@ -251,8 +251,17 @@ fn time_case(
     })
 }
 
+/// The `--device` value of the PyTorch baseline scripts for `dev`.
+fn torch_device_arg(dev: Device) -> &'static str {
+    if dev.is_cuda() {
+        "cuda"
+    } else {
+        "cpu"
+    }
+}
+
 fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport, BenchError> {
-    let device = if let Device::Cuda(_) = cfg.device { "cuda" } else { "cpu" };
+    let device = torch_device_arg(cfg.device);
     let mut cmd = Command::new(&base.python);
     cmd.arg(&base.script)
         .args(["--threads", &cfg.threads.to_string(), "--iters", &cfg.iters.to_string()])
@@ -373,7 +382,7 @@ fn run_pytorch_eval(
     script: &std::path::Path,
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
-    let device = if let Device::Cuda(_) = cfg.device { "cuda" } else { "cpu" };
+    let device = torch_device_arg(cfg.device);
     let mut cmd = Command::new(python);
     cmd.arg(script).args([
         "--threads",
