@@ -436,7 +436,7 @@ pub(crate) fn train(
             "train/value_grad_norm": mean(&|s| s.value_grad_norm),
             "train/policy_grad_norm": mean(&|s| s.policy_grad_norm),
             "train/inner_value_lr": last_st.value_lr, "train/inner_policy_lr": last_st.policy_lr,
-            "train/adv_coef": last_st.adv_coef, "time/elapsed_s": started.elapsed().as_secs_f64(),
+            "train/adv_coef": last_st.adv_coef, "time/elapsed_s": metrics.elapsed_before + started.elapsed().as_secs_f64(),
         });
         metrics.append(&[row.as_object().cloned().unwrap_or_default()])?;
         let last = iteration == t.iterations;

@@ -506,6 +506,10 @@ pub(crate) struct Log {
     jsonl: PathBuf,
     csv: PathBuf,
     pub(crate) lines: usize,
+    /// `time/elapsed_s` of the last kept line (0 for a new log). A resumed run adds its own time to
+    /// it, so the column is the training time of the kept iterations, not the time since the last
+    /// resume (the time between the last resume point and a kill is not counted: that work is redone).
+    pub(crate) elapsed_before: f64,
 }
 
 impl Log {
@@ -530,7 +534,8 @@ impl Log {
                 ),
             });
         }
-        let mut log = Self { jsonl: jsonl.clone(), csv: csv.clone(), lines: 0 };
+        let mut log =
+            Self { jsonl: jsonl.clone(), csv: csv.clone(), lines: 0, elapsed_before: 0.0 };
         let mut rows = Vec::with_capacity(kept.len());
         for (i, line) in kept.iter().enumerate() {
             match serde_json::from_str::<serde_json::Value>(line) {
@@ -547,6 +552,11 @@ impl Log {
         write_atomic(&jsonl, j.as_bytes()).map_err(io_err(&jsonl))?;
         write_atomic(&csv, c.as_bytes()).map_err(io_err(&csv))?;
         log.lines = rows.len();
+        log.elapsed_before = rows
+            .last()
+            .and_then(|r| r.get("time/elapsed_s"))
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or(0.0);
         Ok(log)
     }
 
@@ -955,7 +965,7 @@ pub fn train(
         let row = serde_json::json!({
             "iteration": iteration, "step": step, "train/action_loss": loss,
             "train/grad_norm": stats.iter().map(|s| s.grad_norm).sum::<f64>() / n,
-            "train/lr": stats.last().map_or(0.0, |s| s.lr), "time/elapsed_s": started.elapsed().as_secs_f64(),
+            "train/lr": stats.last().map_or(0.0, |s| s.lr), "time/elapsed_s": metrics.elapsed_before + started.elapsed().as_secs_f64(),
         });
         metrics.append(&[row.as_object().cloned().unwrap_or_default()])?;
         let last = iteration == t.iterations;

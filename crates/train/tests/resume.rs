@@ -106,6 +106,17 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
         let (a, b) = (lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
         assert_eq!(a.len(), 6);
         assert_eq!(a, b, "{method:?}: training losses differ after resume");
+        // The training time carries over the resume: it never goes back.
+        let elapsed: Vec<f64> = std::fs::read_to_string(cut.join("metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<serde_json::Value>(l).unwrap()["time/elapsed_s"]
+                    .as_f64()
+                    .unwrap()
+            })
+            .collect();
+        assert!(elapsed.windows(2).all(|w| w[0] <= w[1]), "{method:?}: elapsed {elapsed:?}");
         assert_eq!(
             lines(&full.join("eval.jsonl")),
             lines(&cut.join("eval.jsonl")),
