@@ -67,12 +67,17 @@ pub struct Claim {
     /// `insensitive`: the largest spread of normalised scores still called insensitive.
     #[serde(default)]
     pub max_spread: Option<f64>,
+    /// `better`: how many normalised points `a` must lead `b` by for the claim to hold (default
+    /// 10, the band the manifests call "similar"). A lead or a lag inside it reads "too close to
+    /// call": with one or two seeds a few points are noise, not evidence.
+    #[serde(default)]
+    pub min_margin: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ClaimKind {
-    /// Cell `a` scores higher than cell `b` (normalised, mean over seeds).
+    /// Cell `a` scores higher than cell `b` by more than `min_margin` (normalised, mean over seeds).
     Better,
     /// The cells' normalised scores lie within `max_spread` of each other.
     Insensitive,

@@ -63,7 +63,8 @@ pub struct CellResult {
 #[derive(Debug, Clone, Serialize)]
 pub struct ClaimResult {
     pub text: String,
-    /// `holds`, `does not hold`, or `not measured`.
+    /// `holds`, `does not hold`, `too close to call` (a `better` claim whose two scores lie within
+    /// its margin), or `not measured`.
     pub verdict: String,
     pub detail: String,
 }
@@ -426,10 +427,24 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
     let (verdict, detail) = match c.kind {
         ClaimKind::Better => {
             let (a, b) = (c.a.as_deref().unwrap_or(""), c.b.as_deref().unwrap_or(""));
-            match (score(a), score(b)) {
-                (Some(x), Some(y)) => (x > y, format!("{} vs {}", fmt(a), fmt(b))),
-                _ => return not_measured(c, format!("{} vs {}", fmt(a), fmt(b))),
+            let (Some(x), Some(y)) = (score(a), score(b)) else {
+                return not_measured(c, format!("{} vs {}", fmt(a), fmt(b)));
+            };
+            let margin = c.min_margin.unwrap_or(10.0);
+            let detail = format!(
+                "{} vs {}; lead {:.1} (a call needs more than {margin})",
+                fmt(a),
+                fmt(b),
+                x - y
+            );
+            if (x - y).abs() <= margin {
+                return ClaimResult {
+                    text: c.text.clone(),
+                    verdict: "too close to call".into(),
+                    detail: format!("normalised scores: {detail}"),
+                };
             }
+            (x > y, detail)
         }
         ClaimKind::Insensitive | ClaimKind::Ordered => {
             let s: Option<Vec<f64>> = c.cells.iter().map(|id| score(id)).collect();
@@ -612,4 +627,65 @@ fn curves_csv(r: &Report) -> String {
         }
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::manifest::{Claim, ClaimKind};
+
+    fn cell(id: &str, score: f64) -> CellResult {
+        CellResult {
+            id: id.into(),
+            env: "ant_dir".into(),
+            label: id.into(),
+            row: None,
+            column: None,
+            status: "ran".into(),
+            seeds: 1,
+            seeds_finished: 1,
+            iteration: Some(500),
+            iterations_planned: Some(500),
+            ours: None,
+            ours_normalised: Some(Stat { mean: score, std: 0.0, n: 1 }),
+            success: None,
+            paper: None,
+            paper_std: None,
+            paper_source: None,
+            paper_normalised: None,
+            paper_normalised_std: None,
+            within_paper_std: None,
+            curve: vec![],
+        }
+    }
+
+    fn better(margin: Option<f64>) -> Claim {
+        Claim {
+            text: "a beats b".into(),
+            kind: ClaimKind::Better,
+            a: Some("a".into()),
+            b: Some("b".into()),
+            cells: vec![],
+            max_spread: None,
+            min_margin: margin,
+        }
+    }
+
+    #[test]
+    fn a_better_claim_needs_a_lead_beyond_its_margin() {
+        let verdict = |a: f64, b: f64, m: Option<f64>| {
+            check_claim(&better(m), &[cell("a", a), cell("b", b)]).verdict
+        };
+        assert_eq!(verdict(36.4, 32.2, None), "too close to call");
+        assert_eq!(verdict(32.2, 36.4, None), "too close to call");
+        assert_eq!(verdict(75.0, 50.0, None), "holds");
+        assert_eq!(verdict(50.0, 75.0, None), "does not hold");
+        assert_eq!(verdict(36.4, 32.2, Some(2.0)), "holds");
+        let r = check_claim(&better(None), &[cell("a", 36.4), cell("b", 32.2)]);
+        assert!(r.detail.contains("lead 4.2"), "{}", r.detail);
+        // a cell with no finished seed is not measured, whatever the scores
+        let mut running = cell("a", 90.0);
+        running.seeds_finished = 0;
+        assert_eq!(check_claim(&better(None), &[running, cell("b", 0.0)]).verdict, "not measured");
+    }
 }
