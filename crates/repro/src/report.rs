@@ -437,14 +437,8 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
                 fmt(b),
                 x - y
             );
-            if (x - y).abs() <= margin {
-                return ClaimResult {
-                    text: c.text.clone(),
-                    verdict: "too close to call".into(),
-                    detail: format!("normalised scores: {detail}"),
-                };
-            }
-            (x > y, detail)
+            let verdict = if (x - y).abs() <= margin { "too close to call" } else { holds(x > y) };
+            (verdict, detail)
         }
         ClaimKind::Insensitive | ClaimKind::Ordered => {
             let s: Option<Vec<f64>> = c.cells.iter().map(|id| score(id)).collect();
@@ -454,16 +448,27 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
                 let spread = s.iter().copied().fold(f64::MIN, f64::max)
                     - s.iter().copied().fold(f64::MAX, f64::min);
                 let max = c.max_spread.unwrap_or(10.0);
-                (spread <= max, format!("{detail}; spread {spread:.1} (insensitive if <= {max})"))
+                (
+                    holds(spread <= max),
+                    format!("{detail}; spread {spread:.1} (insensitive if <= {max})"),
+                )
             } else {
-                (s.windows(2).all(|w| w[0] >= w[1]), detail)
+                (holds(s.windows(2).all(|w| w[0] >= w[1])), detail)
             }
         }
     };
     ClaimResult {
         text: c.text.clone(),
-        verdict: if verdict { "holds" } else { "does not hold" }.into(),
+        verdict: verdict.into(),
         detail: format!("normalised scores: {detail}"),
+    }
+}
+
+fn holds(yes: bool) -> &'static str {
+    if yes {
+        "holds"
+    } else {
+        "does not hold"
     }
 }
 
