@@ -34,8 +34,12 @@ fn read_st(path: &Path) -> St {
             meta = v.as_object().unwrap().clone();
             continue;
         }
-        let off: Vec<usize> =
-            v["data_offsets"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect();
+        let off: Vec<usize> = v["data_offsets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap() as usize)
+            .collect();
         let shape = v["shape"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize);
         tensors.push((
             name,
@@ -127,9 +131,11 @@ fn a_file_truncated_while_it_is_read_is_an_error_not_a_crash() {
         // Truncate the moment the reader has the file open.
         let fds = PathBuf::from(format!("/proc/{}/fd", child.id()));
         while child.try_wait().unwrap().is_none() {
-            let open = std::fs::read_dir(&fds).into_iter().flatten().flatten().any(|e| {
-                std::fs::read_link(e.path()).is_ok_and(|target| target == real)
-            });
+            let open = std::fs::read_dir(&fds)
+                .into_iter()
+                .flatten()
+                .flatten()
+                .any(|e| std::fs::read_link(e.path()).is_ok_and(|target| target == real));
             if open {
                 std::fs::OpenOptions::new().write(true).open(&path).unwrap().set_len(4096).unwrap();
                 truncated_while_open += 1;
@@ -207,7 +213,10 @@ fn a_directory_or_symlink_loop_under_a_data_name_is_named() {
     std::fs::remove_file(&path).unwrap();
     let e = fails(&["train", "--config", s(&cfg), "--out", s(&run)]);
     assert!(e.contains("no expert data for task point_robot-0"), "{e}");
-    assert!(e.contains("tried point_robot-0-expert.safetensors and point_robot-0-expert.pkl"), "{e}");
+    assert!(
+        e.contains("tried point_robot-0-expert.safetensors and point_robot-0-expert.pkl"),
+        "{e}"
+    );
     assert_eq!(count(&e, s(&tmp.path().join("data"))), 1, "the directory once: {e}");
 }
 
@@ -293,8 +302,10 @@ fn model_forward_says_when_a_file_is_not_prompt_dt_weights() {
     let state = std::fs::read_dir(run.join("checkpoints"))
         .unwrap()
         .map(|e| e.unwrap().path())
-        .find(|p| p.file_name().unwrap().to_str().unwrap().starts_with("state_")
-            && p.extension().is_some_and(|x| x == "safetensors"))
+        .find(|p| {
+            p.file_name().unwrap().to_str().unwrap().starts_with("state_")
+                && p.extension().is_some_and(|x| x == "safetensors")
+        })
         .unwrap();
     let e = forward_fails(&state, &i, &out, &[]);
     assert!(e.contains("not a Prompt-DT model") && e.contains("that are not Prompt-DT's"), "{e}");
@@ -345,7 +356,8 @@ fn model_forward_says_the_batch_must_not_be_empty() {
 #[test]
 fn model_forward_explains_broken_files_in_plain_words() {
     let tmp = tempfile::tempdir().unwrap();
-    let (w, i) = (golden("prompt_dt_state_dict.safetensors"), golden("prompt_dt_inputs.safetensors"));
+    let (w, i) =
+        (golden("prompt_dt_state_dict.safetensors"), golden("prompt_dt_inputs.safetensors"));
     let out = tmp.path().join("o.safetensors");
     let short = tmp.path().join("short.safetensors");
     std::fs::write(&short, b"abc").unwrap();

@@ -124,15 +124,93 @@ pub fn resolve_task_file(
     let stem = native::task_file_stem(env, index, mode);
     let tried: Vec<PathBuf> =
         format.extensions().iter().map(|ext| dir.join(format!("{stem}.{ext}"))).collect();
-    if let Some(found) = tried.iter().find(|p| p.is_file()) {
-        return Ok(found.clone());
+    for candidate in &tried {
+        // Only a name that does not exist at all moves on to the next extension. Anything else
+        // under the data file's name (a directory, a FIFO, a symlink loop or a dangling link) is
+        // named as what it is: "no data" would send the user looking for a missing file.
+        match fs::metadata(candidate) {
+            Ok(m) if m.is_file() => return Ok(candidate.clone()),
+            Ok(m) => {
+                return Err(DataError::Format {
+                    path: candidate.clone(),
+                    message: format!(
+                        "is {}, not a data file (expected the {mode} data of task {env}-{index})",
+                        file_kind(&m.file_type())
+                    ),
+                })
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                if fs::symlink_metadata(candidate).is_ok() {
+                    return Err(DataError::Format {
+                        path: candidate.clone(),
+                        message: "is a symbolic link to a file that does not exist".into(),
+                    });
+                }
+            }
+            Err(source) => return Err(DataError::Io { path: candidate.clone(), source }),
+        }
     }
-    let list: Vec<String> = tried.iter().map(|p| p.display().to_string()).collect();
+    // The directory is the error's path; the names tried are listed without it, so the message
+    // names the directory once.
+    let list: Vec<String> = format.extensions().iter().map(|ext| format!("{stem}.{ext}")).collect();
     Err(DataError::Format {
         path: dir.to_path_buf(),
         message: format!(
-            "no {mode} data for task {env}-{index} (format {format}); tried: {}",
-            list.join(", ")
+            "no {mode} data for task {env}-{index} (format {format}): tried {} in this directory",
+            list.join(" and ")
+        ),
+    })
+}
+
+/// What a non-regular file is, for messages.
+fn file_kind(ft: &fs::FileType) -> &'static str {
+    if ft.is_dir() {
+        return "a directory";
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if ft.is_fifo() {
+            return "a FIFO (named pipe)";
+        } else if ft.is_char_device() || ft.is_block_device() {
+            return "a device";
+        } else if ft.is_socket() {
+            return "a socket";
+        }
+    }
+    "not a regular file"
+}
+
+/// Refuses a native file whose metadata says it holds another task's data than its name: the
+/// loader finds files by name, so such a file would silently train the wrong task. Each field
+/// the metadata states must agree with the name; a field it leaves out is not checked (files
+/// written by hand may carry no metadata).
+pub fn check_meta_matches_name(
+    path: &Path,
+    meta: &FileMeta,
+    env: &str,
+    index: usize,
+    mode: &str,
+) -> Result<(), DataError> {
+    let mut wrong = Vec::new();
+    if let Some(e) = meta.env.as_deref().filter(|e| *e != env) {
+        wrong.push(format!("`{}` is {e:?} but the name says {env:?}", native::meta_keys::ENV));
+    }
+    if let Some(i) = meta.task_index.filter(|i| *i != index) {
+        wrong.push(format!("`{}` is {i} but the name says {index}", native::meta_keys::TASK_INDEX));
+    }
+    if let Some(m) = meta.mode.as_deref().filter(|m| *m != mode) {
+        wrong.push(format!("`{}` is {m:?} but the name says {mode:?}", native::meta_keys::MODE));
+    }
+    if wrong.is_empty() {
+        return Ok(());
+    }
+    Err(DataError::Format {
+        path: path.to_path_buf(),
+        message: format!(
+            "the file's metadata contradicts its name: {} (another task's data under this name; \
+             rename the file or fix its metadata)",
+            wrong.join("; ")
         ),
     })
 }
@@ -176,7 +254,14 @@ pub fn load_multitask(spec: &DatasetSpec) -> Result<MultiTaskDataset, DataError>
     for &index in &spec.tasks {
         let mut load = |mode: &str| -> Result<TaskDataset, DataError> {
             let path = resolve_task_file(&spec.dir, &spec.env, index, mode, spec.format)?;
-            let d = load_task_file(&path)?;
+            let d = if path.extension().and_then(|e| e.to_str()) == Some(native::FILE_EXTENSION) {
+                let (d, meta) = native::read_task_dataset_with_meta(&path)?;
+                check_meta_matches_name(&path, &meta, &spec.env, index, mode)?;
+                d
+            } else {
+                // A reference pickle carries no metadata: its name is all there is.
+                load_task_file(&path)?
+            };
             match &first {
                 None => first = Some((path.clone(), d.obs_dim, d.act_dim)),
                 Some((p, o, a)) if (*o, *a) != (d.obs_dim, d.act_dim) => {

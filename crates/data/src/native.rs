@@ -492,27 +492,48 @@ pub fn read_file_meta(path: &Path) -> Result<FileMeta, DataError> {
     FileMeta::from_safetensors_map(path, metadata.metadata().as_ref())
 }
 
+/// Files up to this size are read into memory; larger ones are memory-mapped. Reading costs a
+/// second copy of the file for the duration of the decode, which is nothing for the files of a
+/// real run (the largest in the reference release is a few hundred MB, most are a few MB) but
+/// makes the reader immune to the file changing under it: a mapped file that another process
+/// truncates while it is decoded kills the reader with SIGBUS, with no message. Above the bound
+/// the copy would cost real memory, so those files are mapped and carry that caveat
+/// (`docs/data-format.md`, "Reading while another process writes").
+pub const MAX_READ_INTO_MEMORY_BYTES: u64 = 256 << 20;
+
 /// Reads and fully validates a native file: dtypes and shapes of every tensor, episode offsets
 /// (start at 0, end at `N`, strictly increasing: no empty episode), `obs_dim, act_dim >= 1`, finite
 /// floats, 0/1 flags set only at an episode's last step, and the metadata's `format` /
 /// `format_version` when present. Tensors with other names are ignored.
 pub fn read_task_dataset(path: &Path) -> Result<TaskDataset, DataError> {
+    read_task_dataset_with_meta(path).map(|(ds, _)| ds)
+}
+
+/// [`read_task_dataset`], also returning what the file's metadata says about itself.
+pub fn read_task_dataset_with_meta(path: &Path) -> Result<(TaskDataset, FileMeta), DataError> {
     let (file, file_len) = pdt_base::fs::open_regular(path).map_err(io_err(path))?;
     if file_len < 8 {
         // Also avoids mapping an empty file, which mmap rejects.
         return Err(too_short(path, file_len));
     }
+    if file_len <= MAX_READ_INTO_MEMORY_BYTES {
+        // A file truncated or rewritten while it is read gives short or mixed bytes here, which
+        // `decode` refuses with a message (truncated file, bad offsets, ...), never a signal.
+        let mut bytes = Vec::with_capacity(file_len as usize);
+        file.take(MAX_READ_INTO_MEMORY_BYTES + 1).read_to_end(&mut bytes).map_err(io_err(path))?;
+        return decode(path, &bytes);
+    }
     // Memory-map rather than read: the data is decoded straight from the page cache into the
     // per-episode vectors, so a file is copied once instead of twice and peak memory is the
-    // dataset rather than dataset + file (the full release has files of hundreds of MB).
+    // dataset rather than dataset + file.
     //
     // SAFETY: a mapping is undefined behaviour if the file changes while mapped. The file is
     // opened read-only, every byte is copied out (decoded) before this function returns, and the
     // map is dropped then. This crate never modifies a dataset file in place: writers replace
     // files by renaming a new file over the name (`write_atomically`), which leaves the inode we
     // mapped unchanged. Only a foreign process truncating or rewriting the file in place during
-    // the few milliseconds of the read could break this, the same caveat every mmap-based
-    // safetensors loader carries.
+    // the read could break this (the process then dies with SIGBUS), the same caveat every
+    // mmap-based safetensors loader carries; `docs/data-format.md` says so.
     #[allow(unsafe_code)]
     let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io_err(path))?;
     decode(path, &map)
@@ -572,7 +593,7 @@ struct Raw<'a> {
     bytes: &'a [u8],
 }
 
-fn decode(path: &Path, buf: &[u8]) -> Result<TaskDataset, DataError> {
+fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError> {
     let file_len = buf.len() as u64;
     let mut prefix = [0u8; 8];
     prefix.copy_from_slice(buf.get(..8).ok_or_else(|| too_short(path, file_len))?);
@@ -585,9 +606,8 @@ fn decode(path: &Path, buf: &[u8]) -> Result<TaskDataset, DataError> {
     // turn its terse errors into ones that say what is wrong.
     safetensors::SafeTensors::read_metadata(buf)
         .map_err(|e| layout_err(path, &metadata, data.len(), e))?;
-    // Parsed for its checks (format, format_version, task_index); a TaskDataset does not carry
-    // the metadata, which `read_file_meta` returns.
-    FileMeta::from_safetensors_map(path, metadata.metadata().as_ref())?;
+    // Parsed for its checks (format, format_version, task_index) and returned beside the data.
+    let meta = FileMeta::from_safetensors_map(path, metadata.metadata().as_ref())?;
 
     let tensor = |name: &'static str| -> Result<Raw<'_>, DataError> {
         let info = metadata.info(name).ok_or_else(|| {
@@ -675,7 +695,8 @@ fn decode(path: &Path, buf: &[u8]) -> Result<TaskDataset, DataError> {
             .map_err(|m| format_err(path, format!("{m} (episode {e} is steps {s}..{t})")))?;
         trajectories.push(traj);
     }
-    TaskDataset::new(trajectories).map_err(|e| e.in_file(path))
+    let dataset = TaskDataset::new(trajectories).map_err(|e| e.in_file(path))?;
+    Ok((dataset, meta))
 }
 
 fn expect_dtype(path: &Path, t: &Raw<'_>, allowed: &[Dtype]) -> Result<(), DataError> {

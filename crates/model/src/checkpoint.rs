@@ -7,7 +7,7 @@
 //! PyTorch accepts the file. Anything else (an unknown name, a wrong shape or dtype, NaN) is an
 //! error naming the file and tensor.
 
-use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use safetensors::tensor::{Dtype, SafeTensorError, SafeTensors, TensorView};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use tch::{nn::VarStore, Kind, Tensor};
@@ -16,10 +16,12 @@ use tch::{nn::VarStore, Kind, Tensor};
 pub enum CheckpointError {
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: not a safetensors file: {message}")]
+    #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
     #[error("{path}: tensor `{name}` is missing")]
     Missing { path: PathBuf, name: String },
+    #[error("{path}: tensor `{name}` has dtype {dtype:?}, expected {expected}")]
+    Dtype { path: PathBuf, name: String, dtype: Dtype, expected: &'static str },
     #[error("{path}: unexpected tensor `{name}` (not a parameter or buffer of this model)")]
     Unexpected { path: PathBuf, name: String },
     #[error("{path}: tensor `{name}` has shape {got:?} and dtype {dtype}, expected shape {expected:?} ({what})")]
@@ -67,12 +69,102 @@ fn to_f32(view: &TensorView<'_>) -> Option<Vec<f32>> {
     }
 }
 
+/// Says in plain words what is wrong with a file the safetensors crate refuses: its own error
+/// names (`HeaderTooSmall`, `InvalidHeaderLength`, ...) mean nothing to someone holding the file.
+pub fn describe_safetensors_error(e: &SafeTensorError, file_len: usize) -> String {
+    let not_st = "truncated, corrupt or not a safetensors file";
+    match e {
+        SafeTensorError::HeaderTooSmall => format!(
+            "the file is {file_len} bytes, too short for a safetensors file (an 8-byte header \
+             length, then the header): {not_st}"
+        ),
+        SafeTensorError::InvalidHeaderLength => format!(
+            "the header length in the first 8 bytes is more than the {file_len}-byte file holds: \
+             {not_st}"
+        ),
+        SafeTensorError::HeaderTooLarge => {
+            format!("the header length in the first 8 bytes is over 100 MB: {not_st}")
+        }
+        SafeTensorError::InvalidHeader => format!("the header is not UTF-8 text: {not_st}"),
+        SafeTensorError::InvalidHeaderStart => {
+            format!("the header does not start with `{{`: {not_st}")
+        }
+        SafeTensorError::InvalidHeaderDeserialization => {
+            format!("the header is not a valid safetensors JSON header: {not_st}")
+        }
+        SafeTensorError::JsonError(e) => {
+            format!("the header is not a valid safetensors JSON header ({e}): {not_st}")
+        }
+        SafeTensorError::TensorInvalidInfo => {
+            "a tensor's dtype and shape do not match the size of its data".into()
+        }
+        SafeTensorError::InvalidOffset(name) => format!(
+            "tensor `{name}`: its data does not follow on from the previous tensor's (tensors must \
+             tile the data section without gaps or overlaps)"
+        ),
+        SafeTensorError::MetadataIncompleteBuffer => format!(
+            "the tensors' data does not end where the {file_len}-byte file ends: truncated file or \
+             trailing bytes"
+        ),
+        SafeTensorError::ValidationOverflow => {
+            "a tensor's shape overflows when multiplied out".into()
+        }
+        SafeTensorError::TensorNotFound(name) => format!("there is no tensor `{name}`"),
+        SafeTensorError::InvalidTensorView(dtype, shape, len) => {
+            format!("{len} bytes do not make a {dtype:?} tensor of shape {shape:?}")
+        }
+        SafeTensorError::IoError(e) => e.to_string(),
+    }
+}
+
+/// Parses a weights file's bytes, with a plain message on failure.
+pub(crate) fn deserialize<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+) -> Result<SafeTensors<'a>, CheckpointError> {
+    SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::Format {
+        path: path.into(),
+        message: describe_safetensors_error(&e, bytes.len()),
+    })
+}
+
+/// Checks every tensor's dtype before anything reads values: parameters are float32 (float64 is
+/// accepted and converted), the causal-mask buffers uint8, `masked_bias` float. A half-precision
+/// export would otherwise be reported as whatever is read first (a "wrong" `masked_bias`).
+pub(crate) fn check_dtypes(
+    path: &Path,
+    st: &SafeTensors<'_>,
+    n_layer: usize,
+) -> Result<(), CheckpointError> {
+    let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
+    let mut names: Vec<&String> = st.names();
+    names.sort();
+    for name in names {
+        let Ok(view) = st.tensor(name) else { continue };
+        let (ok, expected) = match buffers.get(name.as_str()) {
+            Some(&"bias") => (view.dtype() == Dtype::U8, "U8 (the causal-mask buffer)"),
+            _ => (
+                matches!(view.dtype(), Dtype::F32 | Dtype::F64),
+                "F32 (F64 is accepted too; convert half-precision weights with .float())",
+            ),
+        };
+        if !ok {
+            return Err(CheckpointError::Dtype {
+                path: path.into(),
+                name: name.clone(),
+                dtype: view.dtype(),
+                expected,
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`]).
 pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), CheckpointError> {
     let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| CheckpointError::Io { path: path.into(), source })?;
-    let st = SafeTensors::deserialize(&bytes)
-        .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
+    let st = deserialize(path, &bytes)?;
     let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
     let mut vars = vs.variables();
     for name in st.names() {
@@ -80,6 +172,7 @@ pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), Checkp
             return Err(CheckpointError::Unexpected { path: path.into(), name: name.clone() });
         }
     }
+    check_dtypes(path, &st, n_layer)?;
     for (name, kind) in &buffers {
         if let Ok(view) = st.tensor(name) {
             check_buffer(path, name, kind, &view)?;

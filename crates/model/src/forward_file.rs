@@ -29,8 +29,15 @@ pub enum ForwardFileError {
     Checkpoint(#[from] CheckpointError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
-    #[error("{path}: not a safetensors file: {message}")]
+    #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
+    #[error("{path}: not a Prompt-DT model: {message}")]
+    NotPromptDt { path: PathBuf, message: String },
+    #[error(
+        "{path}: `{name}`[{index}] is {value}; an attention mask holds 1 (a real step) or 0 \
+         (padding)"
+    )]
+    Mask { path: PathBuf, name: String, index: usize, value: f32 },
     #[error("{path}: tensor `{name}` is missing")]
     Missing { path: PathBuf, name: &'static str },
     #[error("{path}: tensor `{name}` has dtype {dtype:?}, expected {expected}")]
@@ -47,18 +54,78 @@ pub enum ForwardFileError {
     Architecture { path: PathBuf, message: String },
 }
 
+/// Refuses a file that is not Prompt-DT weights (a SAC policy, an optimiser state, MACAW
+/// weights, ...) by its tensor names, before anything asks for a number of heads: every name of
+/// the reference `state_dict` for the file's number of blocks must be there, and nothing else
+/// but the two per-block buffers.
+fn check_names(path: &Path, st: &SafeTensors<'_>, n_layer: usize) -> Result<(), ForwardFileError> {
+    // With no block at all, report block 0's tensors as missing too.
+    let names = PromptDtConfig { n_layer: n_layer.max(1), ..PromptDtConfig::reference(1, 1) }
+        .parameter_names();
+    let present: std::collections::BTreeSet<&str> =
+        st.names().into_iter().map(|n| n.as_str()).collect();
+    let buffer = |name: &str| {
+        (0..n_layer).any(|i| {
+            name == format!("transformer.h.{i}.attn.bias")
+                || name == format!("transformer.h.{i}.attn.masked_bias")
+        })
+    };
+    let mut missing: Vec<&str> =
+        names.iter().map(String::as_str).filter(|n| !present.contains(n)).collect();
+    missing.sort_unstable();
+    let unexpected: Vec<&str> =
+        present.iter().copied().filter(|n| !names.iter().any(|e| e == n) && !buffer(n)).collect();
+    if missing.is_empty() && unexpected.is_empty() {
+        return Ok(());
+    }
+    // A few names of each kind say what the file is; all of them would bury the message.
+    let list = |v: &[&str]| {
+        let shown: Vec<String> = v.iter().take(4).map(|n| format!("`{n}`")).collect();
+        match v.len() {
+            n if n > 4 => format!("{} and {} more", shown.join(", "), n - 4),
+            _ => shown.join(", "),
+        }
+    };
+    let mut parts = Vec::new();
+    if !missing.is_empty() {
+        parts.push(if missing.len() == names.len() {
+            format!(
+                "none of the {} tensors of the reference state_dict ({})",
+                names.len(),
+                list(&missing)
+            )
+        } else {
+            format!(
+                "missing {} of the {} tensors of the reference state_dict ({})",
+                missing.len(),
+                names.len(),
+                list(&missing)
+            )
+        });
+    }
+    if !unexpected.is_empty() {
+        parts.push(format!(
+            "{} tensors that are not Prompt-DT's ({})",
+            unexpected.len(),
+            list(&unexpected)
+        ));
+    }
+    Err(ForwardFileError::NotPromptDt { path: path.into(), message: parts.join("; ") })
+}
+
 /// Reads the architecture (dims, width, depth, MLP size, timestep table) off a weights file. The
 /// number of attention heads comes from the file's metadata (promptdt writes it) or `n_head`; a
 /// file without it (a PyTorch `state_dict` export) needs `n_head`, since every divisor of the
-/// width would load and run, with different results.
+/// width would load and run, with different results. Every other field the metadata records must
+/// agree with the shapes: metadata that disagrees with the tensors is not trusted for the heads
+/// either.
 pub fn infer_config(
     path: &Path,
     n_head: Option<usize>,
 ) -> Result<PromptDtConfig, ForwardFileError> {
     let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| ForwardFileError::Io { path: path.into(), source })?;
-    let st = SafeTensors::deserialize(&bytes)
-        .map_err(|e| ForwardFileError::Format { path: path.into(), message: e.to_string() })?;
+    let st = checkpoint::deserialize(path, &bytes)?;
     let arch = |message: String| ForwardFileError::Architecture { path: path.into(), message };
     let shape = |name: &str| -> Result<Vec<usize>, ForwardFileError> {
         st.tensor(name).map(|t| t.shape().to_vec()).map_err(|_| arch(format!("no tensor `{name}`")))
@@ -69,24 +136,44 @@ pub fn infer_config(
             s => Err(arch(format!("`{name}` has shape {s:?}, expected 2 dims"))),
         }
     };
+    let n_layer =
+        (0..).take_while(|i| st.tensor(&format!("transformer.h.{i}.ln_1.weight")).is_ok()).count();
+    check_names(path, &st, n_layer)?;
+    checkpoint::check_dtypes(path, &st, n_layer)?;
     let header = SafeTensors::read_metadata(&bytes)
-        .map_err(|e| ForwardFileError::Format { path: path.into(), message: e.to_string() })?
+        .map_err(|e| ForwardFileError::Format {
+            path: path.into(),
+            message: checkpoint::describe_safetensors_error(&e, bytes.len()),
+        })?
         .1;
-    let recorded: Option<usize> = match header.metadata() {
-        Some(meta) => match meta.get(checkpoint::ARCHITECTURE_KEY) {
-            Some(text) => {
-                let v: serde_json::Value = serde_json::from_str(text).map_err(|e| {
-                    arch(format!("metadata `{}` is not JSON: {e}", checkpoint::ARCHITECTURE_KEY))
-                })?;
-                Some(v["n_head"].as_u64().filter(|&n| n >= 1).ok_or_else(|| {
-                    arch(format!("metadata `{}` has no n_head >= 1", checkpoint::ARCHITECTURE_KEY))
-                })? as usize)
-            }
+    let key = checkpoint::ARCHITECTURE_KEY;
+    let recorded: Option<serde_json::Map<String, serde_json::Value>> =
+        match header.metadata().as_ref().and_then(|m| m.get(key)) {
+            Some(text) => match serde_json::from_str(text) {
+                Ok(serde_json::Value::Object(map)) => Some(map),
+                Ok(_) => return Err(arch(format!("metadata `{key}` is not a JSON object"))),
+                Err(e) => return Err(arch(format!("metadata `{key}` is not JSON: {e}"))),
+            },
             None => None,
-        },
-        None => None,
+        };
+    // A recorded field must be a whole number; a missing one is not checked.
+    let field = |name: &str| -> Result<Option<usize>, ForwardFileError> {
+        match recorded.as_ref().and_then(|m| m.get(name)) {
+            None => Ok(None),
+            Some(v) => {
+                v.as_u64().and_then(|n| usize::try_from(n).ok()).map(Some).ok_or_else(|| {
+                    arch(format!("metadata `{key}` has {name} = {v}, expected a whole number"))
+                })
+            }
+        }
     };
-    let n_head = match (recorded, n_head) {
+    let recorded_heads = match (&recorded, field("n_head")?) {
+        (Some(_), None) | (Some(_), Some(0)) => {
+            return Err(arch(format!("metadata `{key}` has no n_head >= 1")))
+        }
+        (_, heads) => heads,
+    };
+    let n_head = match (recorded_heads, n_head) {
         (Some(r), Some(g)) if r != g => {
             return Err(arch(format!(
                 "the weights record n_head = {r}, but --n-head {g} was given"
@@ -107,11 +194,37 @@ pub fn infer_config(
     let (_, act_dim) = two("embed_action.weight")?;
     let (max_ep_len, _) = two("embed_timestep.weight")?;
     let (_, n_inner) = two("transformer.h.0.mlp.c_fc.weight")?;
-    let n_layer =
-        (0..).take_while(|i| st.tensor(&format!("transformer.h.{i}.ln_1.weight")).is_ok()).count();
+    // The causal-mask buffer gives the context length; without it, the recorded value or GPT-2's.
     let n_positions = match shape("transformer.h.0.attn.bias") {
-        Ok(s) if s.len() == 4 => s[3],
-        _ => 1024,
+        Ok(s) if s.len() == 4 => Some(s[3]),
+        _ => None,
+    };
+    let from_shapes: [(&str, Option<usize>, &str); 7] = [
+        ("state_dim", Some(state_dim), "`embed_state.weight` is [hidden_size, state_dim]"),
+        ("act_dim", Some(act_dim), "`embed_action.weight` is [hidden_size, act_dim]"),
+        ("hidden_size", Some(hidden), "`embed_state.weight` is [hidden_size, state_dim]"),
+        ("n_layer", Some(n_layer), "the blocks `transformer.h.<i>`"),
+        ("n_inner", Some(n_inner), "`transformer.h.0.mlp.c_fc.weight` is [hidden_size, n_inner]"),
+        ("max_ep_len", Some(max_ep_len), "`embed_timestep.weight` is [max_ep_len, hidden_size]"),
+        (
+            "n_positions",
+            n_positions,
+            "`transformer.h.0.attn.bias` is [1, 1, n_positions, n_positions]",
+        ),
+    ];
+    for (name, actual, source) in from_shapes {
+        if let (Some(said), Some(actual)) = (field(name)?, actual) {
+            if said != actual {
+                return Err(arch(format!(
+                    "metadata `{key}` says {name} = {said}, but the weights have {actual} \
+                     ({source}): the metadata does not describe these weights"
+                )));
+            }
+        }
+    }
+    let n_positions = match n_positions {
+        Some(n) => n,
+        None => field("n_positions")?.unwrap_or(1024),
     };
     let cfg = PromptDtConfig {
         state_dim,
@@ -184,6 +297,18 @@ fn decode(
             if v.iter().any(|x| !x.is_finite()) {
                 return Err(ForwardFileError::NonFinite { path: path.into(), name: name.into() });
             }
+            // The model turns the mask into an additive bias without looking at its values, so a
+            // 7 or a -3 would run and silently weight attention; only 0 and 1 have a meaning.
+            if name.ends_with("attention_mask") {
+                if let Some(index) = v.iter().position(|&x| x != 0.0 && x != 1.0) {
+                    return Err(ForwardFileError::Mask {
+                        path: path.into(),
+                        name: name.into(),
+                        index,
+                        value: v[index],
+                    });
+                }
+            }
             Ok(Tensor::from_slice(&v))
         }
     }
@@ -252,8 +377,10 @@ pub fn forward_file(
     checkpoint::load(&mut vs, weights, cfg.n_layer)?;
     let bytes = pdt_base::fs::read_limited(inputs, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
-    let st = SafeTensors::deserialize(&bytes)
-        .map_err(|e| ForwardFileError::Format { path: inputs.into(), message: e.to_string() })?;
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| ForwardFileError::Format {
+        path: inputs.into(),
+        message: checkpoint::describe_safetensors_error(&e, bytes.len()),
+    })?;
     let to_dev = |s: Segments| Segments {
         states: s.states.to_device(device),
         actions: s.actions.to_device(device),

@@ -127,6 +127,8 @@ impl Embeddings {
 pub enum ForwardError {
     #[error("input `{name}` has shape {got:?}, expected {expected}")]
     Shape { name: &'static str, got: Vec<i64>, expected: String },
+    #[error("input `{name}` has shape {got:?}: {what}")]
+    Empty { name: &'static str, got: Vec<i64>, what: &'static str },
     #[error(
         "sequence of {tokens} tokens (3 x ({prompt} prompt + {history} history steps)) exceeds n_positions = {max}"
     )]
@@ -182,6 +184,23 @@ impl PromptDt {
         for (which, seg) in [("history", Some(history)), ("prompt", prompt)] {
             let Some(seg) = seg else { continue };
             let t = seg.states.size().get(1).copied().unwrap_or(0);
+            // An empty batch or sequence is named as such: "expected [0, 20, 20]" would read as
+            // if a shape of 0 were fine.
+            let states = if which == "prompt" { "prompt_states" } else { "states" };
+            if b == 0 {
+                return Err(ForwardError::Empty {
+                    name: states,
+                    got: seg.states.size(),
+                    what: "the batch size (dimension 0) must be at least 1",
+                });
+            }
+            if t == 0 && seg.states.dim() == 3 {
+                return Err(ForwardError::Empty {
+                    name: states,
+                    got: seg.states.size(),
+                    what: "the number of steps (dimension 1) must be at least 1",
+                });
+            }
             let expect = [
                 ("states", &seg.states, vec![b, t, ds]),
                 ("actions", &seg.actions, vec![b, t, da]),
