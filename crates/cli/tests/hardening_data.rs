@@ -89,9 +89,9 @@ fn count(hay: &str, needle: &str) -> usize {
     hay.matches(needle).count()
 }
 
-/// 1. A data file truncated by another process while `promptdt` reads it: an error naming the
-/// file (or a complete read, if the read won the race), never a SIGBUS. Files of this size are
-/// read into memory, so nothing is left mapped for a truncation to pull away.
+/// Item 1: A data file truncated by another process while `promptdt` reads it: an error naming the
+/// file (or a complete read, if the read won the race), never a SIGBUS. Files of this size are read
+/// into memory, so nothing is left mapped for a truncation to pull away.
 #[test]
 fn a_file_truncated_while_it_is_read_is_an_error_not_a_crash() {
     use std::os::unix::process::ExitStatusExt;
@@ -157,7 +157,7 @@ fn a_file_truncated_while_it_is_read_is_an_error_not_a_crash() {
     assert!(truncated_while_open > 0, "no round truncated the file while it was open");
 }
 
-/// 2. A file whose metadata says it holds another task's data than its name says is refused,
+/// Item 2: A file whose metadata says it holds another task's data than its name says is refused,
 /// naming the file and each field that disagrees.
 #[test]
 fn a_file_named_for_one_task_holding_another_is_refused() {
@@ -185,7 +185,7 @@ fn a_file_named_for_one_task_holding_another_is_refused() {
     ok(&["train", "--config", s(&cfg), "--out", s(&run), "--iterations", "1", "--quiet"]);
 }
 
-/// 4 (data). Something under a data file's name that is not a file is named as what it is, not
+/// Item 4 (data): Something under a data file's name that is not a file is named as what it is, not
 /// reported as missing data.
 #[test]
 fn a_directory_or_symlink_loop_under_a_data_name_is_named() {
@@ -220,7 +220,7 @@ fn a_directory_or_symlink_loop_under_a_data_name_is_named() {
     assert_eq!(count(&e, s(&tmp.path().join("data"))), 1, "the directory once: {e}");
 }
 
-/// 3. An attention mask must hold 0 and 1 only.
+/// Item 3: An attention mask must hold 0 and 1 only.
 #[test]
 fn model_forward_refuses_attention_masks_other_than_0_and_1() {
     let tmp = tempfile::tempdir().unwrap();
@@ -251,7 +251,7 @@ fn model_forward_refuses_attention_masks_other_than_0_and_1() {
     ]);
 }
 
-/// 3. Architecture metadata must describe the weights it comes with.
+/// Item 3: Architecture metadata must describe the weights it comes with.
 #[test]
 fn model_forward_checks_recorded_architecture_against_the_shapes() {
     let tmp = tempfile::tempdir().unwrap();
@@ -284,8 +284,8 @@ fn model_forward_checks_recorded_architecture_against_the_shapes() {
     ok(&["model", "forward", "--weights", s(&good), "--inputs", s(&i), "--out", s(&out)]);
 }
 
-/// 3. Files that are not Prompt-DT weights are called that, with the names that show it, instead
-/// of being asked for a number of heads.
+/// Item 3: Files that are not Prompt-DT weights are called that, with the names that show it,
+/// instead of being asked for a number of heads.
 #[test]
 fn model_forward_says_when_a_file_is_not_prompt_dt_weights() {
     let tmp = tempfile::tempdir().unwrap();
@@ -313,7 +313,7 @@ fn model_forward_says_when_a_file_is_not_prompt_dt_weights() {
     assert_eq!(count(&e, s(&state)), 1, "the path once: {e}");
 }
 
-/// 4. Half-precision weights are reported by dtype and tensor.
+/// Item 4: Half-precision weights are reported by dtype and tensor.
 #[test]
 fn model_forward_names_the_dtype_of_half_precision_weights() {
     let tmp = tempfile::tempdir().unwrap();
@@ -334,7 +334,7 @@ fn model_forward_names_the_dtype_of_half_precision_weights() {
     assert!(!e.contains("masked_bias"), "{e}");
 }
 
-/// 4. A batch of 0 is called that, not "expected [0, 20, 20]".
+/// Item 4: A batch of 0 is called that, not "expected [0, 20, 20]".
 #[test]
 fn model_forward_says_the_batch_must_not_be_empty() {
     let tmp = tempfile::tempdir().unwrap();
@@ -351,7 +351,7 @@ fn model_forward_says_the_batch_must_not_be_empty() {
     assert!(!e.contains("expected [0"), "{e}");
 }
 
-/// 4. Files that are not safetensors at all get a plain message naming the file once, not the
+/// Item 4: Files that are not safetensors at all get a plain message naming the file once, not the
 /// safetensors crate's error names.
 #[test]
 fn model_forward_explains_broken_files_in_plain_words() {
