@@ -260,8 +260,10 @@ fn run_04_a_half_created_run_directory_resumes_or_is_named() {
         std::fs::read_to_string(straight.join("task_stats.json")).unwrap()
     );
     // killed before config.toml: named, with what to do
-    std::fs::remove_file(run.join("config.toml")).unwrap();
-    let e = clean(fails(&["train", "--resume", s(&run)]));
+    let early = tmp.path().join("early");
+    std::fs::create_dir(&early).unwrap();
+    std::fs::copy(run.join("run.json"), early.join("run.json")).unwrap();
+    let e = clean(fails(&["train", "--resume", s(&early)]));
     assert!(
         e.contains("interrupted while being created") && e.contains("delete it or rerun"),
         "{e}"

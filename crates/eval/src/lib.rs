@@ -125,7 +125,8 @@ pub fn compact<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(x: 
     if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) {
         format!("{x}")
     } else {
-        // The value's own type, so an f32 prints its shortest form (1e30, not 1.0000000150474662e30).
+        // In the value's own type, so an f32 prints its shortest form (1e30, not
+        // 1.0000000150474662e30).
         format!("{x:e}")
     }
 }
@@ -346,7 +347,8 @@ pub fn evaluate(
             .to_device(Device::Cpu);
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
-            // A non-finite action is the model's failure, not the environment's: say what it was fed.
+            // A non-finite action is the model's failure, not the environment's: say what it was
+            // fed.
             if let Some(i) = acts.iter().position(|a| !a.is_finite()) {
                 let ep = eps[i / da];
                 let detail = format!(

@@ -372,8 +372,8 @@ impl TrainConfig {
         if let Some(x) = s.rtg_scale {
             v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
         }
-        // The modes become part of file names (`{env}-{task}-{mode}.{ext}`): a path there would read
-        // files from elsewhere, an empty one a file no writer makes.
+        // The modes become part of file names (`{env}-{task}-{mode}.{ext}`): a path there would
+        // read files from elsewhere, an empty one a file no writer makes.
         let d = &self.data;
         for (name, mode) in [
             ("data.dataset_mode", &d.dataset_mode),

@@ -1009,8 +1009,8 @@ pub(crate) fn temp_name(name: &str) -> String {
     format!(".{name}.tmp-{}-0", std::process::id())
 }
 
-/// What a checkpoint file is, by its name: `step_<N>.safetensors` (weights), `state_<N>.safetensors`
-/// (optimiser moments) or `state_<N>.json` (training state).
+/// What a checkpoint file is, by its name: `step_<N>.safetensors` (weights),
+/// `state_<N>.safetensors` (optimiser moments) or `state_<N>.json` (training state).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum CheckpointFile {
     Weights,
@@ -1040,9 +1040,10 @@ fn checkpoint_file(name: &str) -> Option<(CheckpointFile, u64)> {
 /// moments of any other step than the latest (only the latest are needed to resume), a resume
 /// point's weights and state whose removal was cut short (`keep: false` in its state file, or a
 /// state file without its weights; weights without a state file are kept, no kill leaves those),
-/// and the temporary files of the writers of older versions (`.state_<N>.safetensors.tmp`). Without `latest.json` nothing was committed: every checkpoint
-/// file goes (training starts from iteration 0 and writes them again, identically). Call it only
-/// while owning the run directory. Returns the names removed.
+/// and the temporary files of the writers of older versions (`.state_<N>.safetensors.tmp`).
+/// Without `latest.json` nothing was committed: every checkpoint file goes (training starts from
+/// iteration 0 and writes them again, identically). Call it only while owning the run directory.
+/// Returns the names removed.
 pub(crate) fn remove_orphans(ck: &Path) -> Result<Vec<String>, RunError> {
     let entries = match std::fs::read_dir(ck) {
         Ok(e) => e,
