@@ -303,3 +303,37 @@ fn run_05_messages_are_compact_and_data_modes_are_plain_names() {
         assert!(!out.join("config.toml").exists(), "{section}.{key}: nothing written");
     }
 }
+
+/// Item 4c: `train` killed with SIGKILL at several moments (while creating the directory, while
+/// training, while checkpointing), then resumed each time: the run finishes with the losses and the
+/// checkpoint files of a run never killed, and nothing unreferenced is left in `checkpoints/`.
+#[test]
+fn run_04_a_run_killed_again_and_again_ends_as_if_never_killed() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = variant(&tiny_setup(tmp.path()), "train", "resume_interval", "1");
+    let (run, straight) = (tmp.path().join("r"), tmp.path().join("straight"));
+    train(&cfg, &straight, &[]);
+    for delay_ms in [5, 40, 120, 250, 400, 700, 1000] {
+        // Until config.toml exists there is nothing to resume: start the run again.
+        let args: Vec<&str> = if run.join("config.toml").is_file() {
+            vec!["train", "--resume", s(&run), "--quiet"]
+        } else {
+            vec!["train", "--config", s(&cfg), "--out", s(&run), "--quiet"]
+        };
+        let mut child =
+            std::process::Command::new(env!("CARGO_BIN_EXE_promptdt")).args(&args).spawn().unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
+        let _ = child.kill(); // SIGKILL; it may have finished already
+        child.wait().unwrap();
+    }
+    if run.join("config.toml").is_file() {
+        ok(&["train", "--resume", s(&run), "--quiet"]);
+    } else {
+        train(&cfg, &run, &[]);
+    }
+    assert_eq!(losses(&run), losses(&straight));
+    let files = |d: &Path| -> Vec<String> {
+        names_in(&d.join("checkpoints")).into_iter().filter(|n| n != "latest.json").collect()
+    };
+    assert_eq!(files(&run), files(&straight));
+}
