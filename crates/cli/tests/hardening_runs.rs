@@ -139,6 +139,18 @@ fn run_02_absurd_state_statistics_are_refused_by_name() {
     );
     assert!(!e.contains("00000000"), "compact numbers: {e}");
     assert!(!out.join("task_stats.json").exists(), "nothing written: {e}");
+    // a run's recorded statistics are checked when read back, by name
+    edit_task0(&data, |t| t.observations[1] = 0.5);
+    train(&cfg, &out, &["--iterations", "1"]);
+    let path = out.join("task_stats.json");
+    let good = std::fs::read_to_string(&path).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&good).unwrap();
+    v["state_std"][0] = 0.0.into();
+    std::fs::write(&path, v.to_string()).unwrap();
+    let e = clean(fails(&["eval", "--run", s(&out), "--episodes", "1"]));
+    assert!(e.contains("task_stats.json") && e.contains("state_std[0] = 0"), "{e}");
+    let e = fails(&["train", "--resume", s(&out), "--iterations", "2"]);
+    assert!(e.contains("task_stats.json") && e.contains("state_std[0] = 0"), "{e}");
 }
 
 /// Item 3: A checkpoint's state file must account for every log line its iteration implies.
