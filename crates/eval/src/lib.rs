@@ -112,6 +112,23 @@ pub enum EvalError {
     Env { task: String, source: EnvError },
     #[error("task {task}: {why}")]
     Setup { task: String, why: String },
+    /// The policy produced an action that is not finite. Caught before the environment sees it, so
+    /// the message can name what the model was fed rather than only "action[0] is NaN".
+    #[error("task {task}, {detail}")]
+    NonFiniteAction { task: String, detail: String },
+}
+
+/// A number as messages print it: plainly when it is of ordinary size, in exponent form when it
+/// is huge or tiny (`{}` prints 1e300 with all its 301 digits).
+pub fn compact<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(x: T) -> String {
+    let v: f64 = x.into();
+    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) {
+        format!("{x}")
+    } else {
+        // In the value's own type, so an f32 prints its shortest form (1e30, not
+        // 1.0000000150474662e30).
+        format!("{x:e}")
+    }
 }
 
 /// What a prompted policy remembers of one episode, as the reference's
@@ -173,6 +190,8 @@ struct Running {
     /// Position of the episode, in (task, episode) order.
     id: usize,
     task: usize,
+    /// Index of the episode within its task.
+    episode: usize,
     seed: u64,
     h: History,
     /// `None` until a step reports a success criterion, then whether any step succeeded.
@@ -250,7 +269,7 @@ pub fn evaluate(
                 why: "one seed per environment is needed".into(),
             });
         }
-        for (env, seed) in task.envs.into_iter().zip(task.seeds) {
+        for (episode, (env, seed)) in task.envs.into_iter().zip(task.seeds).enumerate() {
             if env.obs_dim() != ds || env.act_dim() != da {
                 let why = format!(
                     "environment dims {}/{} differ from the model's {ds}/{da}",
@@ -262,6 +281,7 @@ pub fn evaluate(
             queue.push(Running {
                 id: envs.len(),
                 task: ti,
+                episode,
                 seed,
                 h: History::default(),
                 success: None,
@@ -327,6 +347,27 @@ pub fn evaluate(
             .to_device(Device::Cpu);
             let mut acts = vec![0f32; eps.len() * da];
             last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
+            // A non-finite action is the model's failure, not the environment's: say what it was
+            // fed.
+            if let Some(i) = acts.iter().position(|a| !a.is_finite()) {
+                let ep = eps[i / da];
+                let detail = format!(
+                    "episode {} (reset seed {}), step {}: the policy's action[{}] is {}, not \
+                     finite. The return token was {} (eval.target_return = {} over rtg_scale = {} \
+                     at the first step): a token far outside the training data's range makes the \
+                     model overflow f32. Other causes: absurd (huge but finite) weights in the \
+                     checkpoint, or absurd state statistics",
+                    ep.episode,
+                    ep.seed,
+                    ep.h.t,
+                    i % da,
+                    acts[i],
+                    compact(ep.h.rtg.last().copied().unwrap_or(0.0)),
+                    compact(cfg.target_return),
+                    compact(cfg.rtg_scale)
+                );
+                return Err(EvalError::NonFiniteAction { task: names[ep.task].clone(), detail });
+            }
             for (ep, a) in active.iter().zip(acts.chunks_exact(da)) {
                 flat[ep.id * da..(ep.id + 1) * da].copy_from_slice(a);
                 mask[ep.id] = true;

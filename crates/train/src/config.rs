@@ -5,6 +5,7 @@
 use crate::optim::AdamWConfig;
 use crate::step::LossOn;
 use pdt_data::multitask::DataFormat;
+pub use pdt_eval::compact;
 use pdt_eval::Inference;
 use pdt_model::device::DeviceSpec;
 use pdt_prompt::{NormalizationScope, PromptPosition, TrajectoryRanking};
@@ -371,6 +372,22 @@ impl TrainConfig {
         if let Some(x) = s.rtg_scale {
             v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
         }
+        // The modes become part of file names (`{env}-{task}-{mode}.{ext}`): a path there would
+        // read files from elsewhere, an empty one a file no writer makes.
+        let d = &self.data;
+        for (name, mode) in [
+            ("data.dataset_mode", &d.dataset_mode),
+            ("data.prompt_mode", &d.prompt_mode),
+            ("data.test_dataset_mode", &d.test_dataset_mode),
+            ("data.test_prompt_mode", &d.test_prompt_mode),
+        ] {
+            if !is_plain_mode(mode) {
+                v.fail(format!(
+                    "{name} = {mode:?} must be a plain name (letters, digits, '-', '_' or '.', not \
+                     starting with '.'): it becomes part of the data file names"
+                ));
+            }
+        }
         let e = &self.eval;
         v.range("eval.episodes", e.episodes as u64, 1, 10_000);
         v.range("eval.max_batch", e.max_batch as u64, 1, 1_000_000);
@@ -387,6 +404,25 @@ impl TrainConfig {
         v.finish()
     }
 }
+
+/// A data mode usable in a file name: non-empty, letters, digits, `-`, `_` and `.`, not starting
+/// with `.` (no path separators, no `..`, no hidden files).
+fn is_plain_mode(mode: &str) -> bool {
+    !mode.is_empty()
+        && !mode.starts_with('.')
+        && mode.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+}
+
+/// The largest return-to-go token (a return divided by the rtg scale) accepted, in magnitude: the
+/// target return's and the data's. The training data's tokens are of order 1 to 10; at 1e6 the
+/// timestep embedding and bias added to the return embedding are already near f32 rounding, and
+/// near 1e19 the squares of the embedding layer norm overflow f32 and every action is NaN.
+pub const MAX_RETURN_TOKEN: f64 = 1e6;
+
+/// The largest state mean (in magnitude) and state standard deviation accepted in a run's state
+/// statistics. The families' observations are of order 1 to 100; a dimension whose std exceeds
+/// 1e6 comes from corrupt data, and normalising by it maps every ordinary state to about 0.
+pub const MAX_STATE_STAT: f64 = 1e6;
 
 /// Collects every failed check, so one run of `validate` names all bad settings at once.
 #[derive(Default)]
@@ -409,7 +445,7 @@ impl Checks {
     }
     fn real(&mut self, name: &str, x: f64, ok: impl Fn(f64) -> bool, what: &str) {
         if !ok(x) {
-            self.fail(format!("{name} must be {what}, got {x}"));
+            self.fail(format!("{name} must be {what}, got {}", compact(x)));
         }
     }
     fn finish(self) -> Result<(), ConfigError> {

@@ -39,6 +39,13 @@ struct MacawState {
     adam_steps: Vec<Vec<u64>>,
     metrics_lines: usize,
     eval_lines: usize,
+    /// `false` for a resume point (see `run::TrainState::keep`); absent in older runs.
+    #[serde(default = "keep_default")]
+    keep: bool,
+}
+
+fn keep_default() -> bool {
+    true
 }
 
 /// The model of a MACAW run: shapes, parameters, and the training tasks' and evaluation tasks'
@@ -103,7 +110,7 @@ fn save(
         }
     }
     for (name, tensors) in [(&model, &weights), (&moments, &adam)] {
-        let tmp = ck.join(format!(".{name}.tmp"));
+        let tmp = ck.join(crate::run::temp_name(name));
         Tensor::write_safetensors(tensors, &tmp)
             .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
         std::fs::rename(&tmp, ck.join(name)).map_err(io_err(&tmp))?;
@@ -191,6 +198,13 @@ fn load(
             ),
         });
     }
+    crate::run::check_log_counts(
+        &state_path,
+        state.iteration,
+        (state.metrics_lines, state.eval_lines),
+        &setup.cfg,
+        (setup.test_data.tasks.len(), setup.train_data.tasks.len()),
+    )?;
     load_weights(&ck.join(&latest.model), mdl)?;
     let path = ck.join(&latest.state);
     let moments = read_tensors(&path)?;
@@ -354,11 +368,11 @@ fn diverged(dir: &Path, iteration: u64, step: u64, st: &StepStats, m: &MacawConf
          repeat the same steps: fix the configuration and train again.",
         dir.display(),
         st.losses,
-        st.value_grad_norm,
-        st.policy_grad_norm,
-        m.outer_value_lr,
-        m.outer_policy_lr,
-        m.lrlr
+        crate::config::compact(st.value_grad_norm),
+        crate::config::compact(st.policy_grad_norm),
+        crate::config::compact(m.outer_value_lr),
+        crate::config::compact(m.outer_policy_lr),
+        crate::config::compact(m.lrlr)
     ))
 }
 
@@ -463,6 +477,7 @@ pub(crate) fn train(
                 adam_steps: opt.adams.iter().map(|a| a.steps.clone()).collect(),
                 metrics_lines: metrics.lines,
                 eval_lines: evals.lines,
+                keep,
             };
             save(dir, &mdl, &opt, &state, keep)?;
         }

@@ -6,7 +6,9 @@
 //! iteration, evaluation per iteration), so a resumed run draws exactly what an uninterrupted one
 //! would, and evaluation never disturbs training.
 
-use crate::config::{ConfigError, Method, MtBcEval, TrainConfig};
+use crate::config::{
+    compact, ConfigError, Method, MtBcEval, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT,
+};
 use crate::optim::{AdamW, AdamWConfig, ParamState};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use pdt_data::multitask::{load_multitask, DatasetSpec};
@@ -101,6 +103,43 @@ pub struct TaskStats {
 }
 
 impl TaskStats {
+    /// The values a policy can act with: one mean and std per state dimension, finite, each std
+    /// positive, all within [`MAX_STATE_STAT`]; a positive finite rtg scale; a finite target.
+    pub fn check(&self) -> Result<(), String> {
+        let n = self.obs_dim;
+        if self.state_mean.len() != n || self.state_std.len() != n {
+            return Err(format!(
+                "state_mean has {} values and state_std {}, but obs_dim is {n}",
+                self.state_mean.len(),
+                self.state_std.len()
+            ));
+        }
+        for (j, (&m, &s)) in self.state_mean.iter().zip(&self.state_std).enumerate() {
+            let ok = within(f64::from(m), MAX_STATE_STAT)
+                && s > 0.0
+                && within(f64::from(s), MAX_STATE_STAT);
+            if !ok {
+                return Err(format!(
+                    "state_mean[{j}] = {}, state_std[{j}] = {}: each must be finite and within {} \
+                     in magnitude, the std positive",
+                    compact(m),
+                    compact(s),
+                    compact(MAX_STATE_STAT)
+                ));
+            }
+        }
+        let ok =
+            self.rtg_scale > 0.0 && self.rtg_scale.is_finite() && self.target_return.is_finite();
+        if !ok {
+            return Err(format!(
+                "rtg_scale = {} must be positive and finite, target_return = {} finite",
+                compact(self.rtg_scale),
+                compact(self.target_return)
+            ));
+        }
+        Ok(())
+    }
+
     /// Compares the statistics recomputed from the data now with those recorded in a run;
     /// `Err` says what differs. Fingerprints are compared when the run recorded them.
     fn check_same_as(&self, recorded: &TaskStats) -> Result<(), String> {
@@ -154,6 +193,11 @@ struct TrainState {
     adam_steps: BTreeMap<String, u64>,
     metrics_lines: usize,
     eval_lines: usize,
+    /// As `latest.json`'s `keep`: `false` for a resume point, whose files go once a later one is
+    /// in force. Recorded here too, so a removal cut short by a kill is finished on the next start
+    /// (`remove_orphans`). Absent in runs written before it was recorded (then kept).
+    #[serde(default = "keep_default")]
+    keep: bool,
 }
 
 /// Progress reported after every iteration.
@@ -271,6 +315,12 @@ impl Setup {
             ranking: s.ranking,
             zero_history_returns: cfg.run.method.zeroes_history_returns(),
         };
+        if cfg.run.method != Method::Macaw {
+            check_return_tokens(&cfg, &preset, &env_name, &train_data, &test_data)?;
+        }
+        if cfg.data.normalization != NormalizationScope::None {
+            check_state_stats(&cfg, &env_name, &norm, &train_data, &test_data)?;
+        }
         // Timesteps index the embedding table: an episode longer than it would index past it.
         let longest = train_data
             .tasks
@@ -332,6 +382,156 @@ impl Setup {
     fn eval_returns(&self) -> EvalReturns {
         eval_returns(&self.cfg)
     }
+}
+
+/// How a setting with a preset default is named in messages: `sampler.rtg_scale = 1e-30` when set,
+/// `the rtg scale 10 (point_robot's preset; sampler.rtg_scale)` when not.
+fn setting(name: &str, what: &str, set: Option<f32>, preset: f32, env: &str) -> String {
+    match set {
+        Some(x) => format!("{name} = {}", compact(x)),
+        None => format!("the {what} {} ({env}'s preset; {name})", compact(preset)),
+    }
+}
+
+/// A value computed in f64 from f32 settings, printed as the f32 it is close to (`1e29`, not
+/// `1.0000000150474662e29`) when it is one.
+fn shown(x: f64) -> String {
+    let y = x as f32;
+    if y.is_finite() {
+        compact(y)
+    } else {
+        compact(x)
+    }
+}
+
+/// The file of task `t`'s data of kind `mode` (`expert`, `prompt-expert`), for messages; the task
+/// and mode when it cannot be found again.
+fn task_file(cfg: &TrainConfig, env: &str, t: &TaskData, mode: &str) -> String {
+    pdt_data::multitask::resolve_task_file(&cfg.data.dir, env, t.id.index, mode, cfg.data.format)
+        .map_or_else(|_| format!("task {}'s {mode} data", t.id), |p| p.display().to_string())
+}
+
+/// `|x| <= bound`, false for NaN.
+fn within(x: f64, bound: f64) -> bool {
+    x.abs() <= bound
+}
+
+/// Refuses return-to-go tokens the model cannot represent: the target return's (the first token of
+/// every evaluation episode) and the data's (training and prompt tokens), each over the rtg scale,
+/// must stay within [`MAX_RETURN_TOKEN`] in magnitude.
+fn check_return_tokens(
+    cfg: &TrainConfig,
+    preset: &EnvPreset,
+    env: &str,
+    train: &MultiTaskDataset,
+    test: &MultiTaskDataset,
+) -> Result<(), RunError> {
+    let scale = cfg.sampler.rtg_scale.unwrap_or(preset.rtg_scale);
+    let scale_name = setting("sampler.rtg_scale", "rtg scale", cfg.sampler.rtg_scale, scale, env);
+    let target = cfg.eval.target_return.unwrap_or(preset.target_return);
+    let token = f64::from(target) / f64::from(scale);
+    if !within(token, MAX_RETURN_TOKEN) {
+        let target_name =
+            setting("eval.target_return", "target return", cfg.eval.target_return, target, env);
+        return Err(RunError::Invalid(format!(
+            "{target_name} over {scale_name} gives the return token {}, beyond {} in magnitude: \
+             the model cannot represent it (its return embedding overflows f32 and the actions \
+             come out NaN). Lower eval.target_return or raise sampler.rtg_scale",
+            shown(token),
+            compact(MAX_RETURN_TOKEN)
+        )));
+    }
+    // The largest return-to-go of the data (from any step, D_i and P_i alike), and where it is.
+    let d = &cfg.data;
+    let mut worst: Option<(f64, &TaskData, String, usize, usize)> = None;
+    for (set, modes) in [
+        (train, (&d.dataset_mode, &d.prompt_mode)),
+        (test, (&d.test_dataset_mode, &d.test_prompt_mode)),
+    ] {
+        for t in &set.tasks {
+            for (trajs, mode) in
+                [(&t.dataset, modes.0.clone()), (&t.prompts, format!("prompt-{}", modes.1))]
+            {
+                for (k, tr) in trajs.trajectories.iter().enumerate() {
+                    let mut rtg = 0f64;
+                    for (step, r) in tr.rewards.iter().enumerate().rev() {
+                        rtg += f64::from(*r);
+                        if worst.as_ref().is_none_or(|w| rtg.abs() > w.0.abs()) {
+                            worst = Some((rtg, t, mode.clone(), k, step));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    if let Some((rtg, t, mode, k, step)) = worst {
+        let token = rtg / f64::from(scale);
+        if !within(token, MAX_RETURN_TOKEN) {
+            return Err(RunError::Invalid(format!(
+                "the return-to-go {} of {} (trajectory {k}, from step {step}) over {scale_name} \
+                 gives the return token {}, beyond {} in magnitude: the model cannot represent \
+                 it. Raise sampler.rtg_scale",
+                shown(rtg),
+                task_file(cfg, env, t, &mode),
+                shown(token),
+                compact(MAX_RETURN_TOKEN)
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Refuses state statistics that are not finite or absurd (beyond [`MAX_STATE_STAT`]), naming the
+/// dimension and the file holding the observation that made them so. A non-finite statistic
+/// could not even be recorded (`task_stats.json` would hold `null`).
+fn check_state_stats(
+    cfg: &TrainConfig,
+    env: &str,
+    norm: &StateNorm,
+    train: &MultiTaskDataset,
+    test: &MultiTaskDataset,
+) -> Result<(), RunError> {
+    let bad = |x: f32| !within(f64::from(x), MAX_STATE_STAT);
+    let Some(j) = (0..norm.mean.len()).find(|&j| bad(norm.mean[j]) || bad(norm.std[j])) else {
+        return Ok(());
+    };
+    // The datasets the statistics were computed over (`StateNorm::from_datasets` in `Setup::new`).
+    let mut sets: Vec<(&TaskData, &str)> =
+        train.tasks.iter().map(|t| (t, cfg.data.dataset_mode.as_str())).collect();
+    if cfg.data.normalization == NormalizationScope::TrainAndTest {
+        sets.extend(test.tasks.iter().map(|t| (t, cfg.data.test_dataset_mode.as_str())));
+    }
+    let od = norm.mean.len();
+    let mut worst: Option<(f32, &TaskData, &str, usize, usize)> = None;
+    for &(t, mode) in &sets {
+        for (k, tr) in t.dataset.trajectories.iter().enumerate() {
+            for (step, row) in tr.observations.chunks_exact(od).enumerate() {
+                if worst.as_ref().is_none_or(|w| row[j].abs() > w.0.abs()) {
+                    worst = Some((row[j], t, mode, k, step));
+                }
+            }
+        }
+    }
+    let at = match worst {
+        Some((x, t, mode, k, step)) => {
+            let file = task_file(cfg, env, t, mode);
+            format!(
+                "; the largest magnitude there is observations[{j}] = {} in {file} (trajectory \
+                 {k}, step {step})",
+                compact(x)
+            )
+        }
+        None => String::new(),
+    };
+    Err(RunError::Invalid(format!(
+        "the state statistics (data.normalization = {}) have state_mean[{j}] = {} and \
+         state_std[{j}] = {}: each must be finite and within {} in magnitude{at}. Normalising by \
+         them would map every ordinary state to about 0 (or NaN); fix the data",
+        serde_json::to_string(&cfg.data.normalization).unwrap_or_default(),
+        compact(norm.mean[j]),
+        compact(norm.std[j]),
+        compact(MAX_STATE_STAT)
+    )))
 }
 
 /// The return tokens an acting policy feeds (Prompt-MT-BC and MT-BC-Finetune: constant or zero).
@@ -659,7 +859,7 @@ fn save_checkpoint(
         named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
         named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
     }
-    let tmp = ck.join(format!(".{opt_state}.tmp"));
+    let tmp = ck.join(temp_name(&opt_state));
     Tensor::write_safetensors(&named, &tmp)
         .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
     std::fs::rename(&tmp, ck.join(&opt_state)).map_err(io_err(&tmp))?;
@@ -729,6 +929,13 @@ fn load_checkpoint(
             ),
         ));
     }
+    check_log_counts(
+        &state_path,
+        state.iteration,
+        (state.metrics_lines, state.eval_lines),
+        &setup.cfg,
+        (setup.test_data.tasks.len(), setup.train_data.tasks.len()),
+    )?;
     if let Some((name, n)) = state.adam_steps.iter().find(|(_, &n)| n != state.step) {
         return Err(corrupt(
             &state_path,
@@ -759,6 +966,154 @@ fn load_checkpoint(
     Ok(Some(state))
 }
 
+/// A state file's log line counts against what its iteration implies: one metrics line per
+/// iteration, and at least one evaluation line per task for each scheduled evaluation (after
+/// iteration 1 and every interval after it; the last iteration of each earlier call adds more, so
+/// this is a lower bound). A smaller count would truncate the logs on resume: refused, naming both.
+pub(crate) fn check_log_counts(
+    state_path: &Path,
+    iteration: u64,
+    (metrics_lines, eval_lines): (usize, usize),
+    cfg: &TrainConfig,
+    (test_tasks, train_tasks): (usize, usize),
+) -> Result<(), RunError> {
+    let corrupt = |message: String| RunError::Corrupt { path: state_path.into(), message };
+    if metrics_lines as u64 != iteration {
+        return Err(corrupt(format!(
+            "metrics_lines = {metrics_lines}, but iteration {iteration} implies {iteration} (one \
+             metrics line per iteration); the state file was edited or is corrupt, and resuming \
+             would cut metrics.jsonl to its count. Nothing was changed"
+        )));
+    }
+    // Evaluations after iterations 1, 1 + n, ... up to `iteration`.
+    let scheduled = |n: u64| if iteration == 0 || n == 0 { 0 } else { (iteration - 1) / n + 1 };
+    let t = &cfg.train;
+    let least = scheduled(t.test_eval_interval)
+        .saturating_mul(test_tasks as u64)
+        .saturating_add(scheduled(t.train_eval_interval).saturating_mul(train_tasks as u64));
+    if (eval_lines as u64) < least {
+        return Err(corrupt(format!(
+            "eval_lines = {eval_lines}, but iteration {iteration} implies at least {least} \
+             ({test_tasks} test tasks every train.test_eval_interval = {}, {train_tasks} training \
+             tasks every train.train_eval_interval = {}); the state file was edited or is \
+             corrupt, and resuming would cut eval.jsonl to its count. Nothing was changed",
+            t.test_eval_interval, t.train_eval_interval
+        )));
+    }
+    Ok(())
+}
+
+/// The temporary name a checkpoint file is written under before its rename: one that
+/// `pdt_base::fs::remove_stale_temps` recognises, so a kill mid-write leaves nothing behind.
+pub(crate) fn temp_name(name: &str) -> String {
+    format!(".{name}.tmp-{}-0", std::process::id())
+}
+
+/// What a checkpoint file is, by its name: `step_<N>.safetensors` (weights),
+/// `state_<N>.safetensors` (optimiser moments) or `state_<N>.json` (training state).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum CheckpointFile {
+    Weights,
+    Moments,
+    State,
+}
+
+fn checkpoint_file(name: &str) -> Option<(CheckpointFile, u64)> {
+    let (kind, rest) = if let Some(r) = name.strip_prefix("step_") {
+        (CheckpointFile::Weights, r.strip_suffix(".safetensors")?)
+    } else if let Some(r) = name.strip_prefix("state_") {
+        match r.strip_suffix(".safetensors") {
+            Some(n) => (CheckpointFile::Moments, n),
+            None => (CheckpointFile::State, r.strip_suffix(".json")?),
+        }
+    } else {
+        return None;
+    };
+    if rest.is_empty() || !rest.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some((kind, rest.parse().ok()?))
+}
+
+/// Removes the checkpoint files a killed run left behind, which `latest.json` does not reference:
+/// the files of a checkpoint written but never committed (a step beyond the latest), optimiser
+/// moments of any other step than the latest (only the latest are needed to resume), a resume
+/// point's weights and state whose removal was cut short (`keep: false` in its state file, or a
+/// state file without its weights; weights without a state file are kept, no kill leaves those),
+/// and the temporary files of the writers of older versions (`.state_<N>.safetensors.tmp`).
+/// Without `latest.json` nothing was committed: every checkpoint file goes (training starts from
+/// iteration 0 and writes them again, identically). Call it only while owning the run directory.
+/// Returns the names removed.
+pub(crate) fn remove_orphans(ck: &Path) -> Result<Vec<String>, RunError> {
+    let entries = match std::fs::read_dir(ck) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(RunError::Io { path: ck.into(), source: e }),
+    };
+    let latest_path = ck.join("latest.json");
+    let latest: Option<Latest> = if latest_path.exists() {
+        // An unreadable latest.json is refused by name when the checkpoint is loaded; until then
+        // nothing can be told apart, so nothing is removed.
+        match read_json(&latest_path) {
+            Ok(l) => Some(l),
+            Err(_) => return Ok(Vec::new()),
+        }
+    } else {
+        None
+    };
+    let mut names = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(io_err(ck))?;
+        if entry.file_type().map_err(io_err(ck))?.is_file() {
+            names.push(entry.file_name().to_string_lossy().into_owned());
+        }
+    }
+    // Whether step n's state file marks it a resume point (`keep: false`); `false` when the file
+    // is missing, unreadable or older than the field (such weights are kept).
+    let resume_point = |n: u64| -> bool {
+        let state = ck.join(format!("state_{n}.json"));
+        pdt_base::fs::read_text_limited(&state, pdt_base::fs::MAX_TEXT_BYTES)
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|v| v.get("keep").and_then(serde_json::Value::as_bool))
+            .is_some_and(|keep| !keep)
+    };
+    // Decide for every file before removing any (a state file is read to decide on its weights).
+    let mut orphans = Vec::new();
+    for name in names {
+        let legacy_temp = name.starts_with(".step_") || name.starts_with(".state_");
+        let orphan = if legacy_temp && name.ends_with(".tmp") {
+            true
+        } else if let Some((kind, n)) = checkpoint_file(&name) {
+            match &latest {
+                None => true,
+                Some(l) if n == l.step => false,
+                Some(l) if n > l.step => true,
+                Some(_) => match kind {
+                    CheckpointFile::Moments => true,
+                    // `commit_checkpoint` removes a resume point's weights before its state
+                    // file: a kill between leaves the state file alone.
+                    CheckpointFile::Weights => resume_point(n),
+                    CheckpointFile::State => {
+                        resume_point(n) || !ck.join(format!("step_{n}.safetensors")).is_file()
+                    }
+                },
+            }
+        } else {
+            false
+        };
+        if orphan {
+            orphans.push(name);
+        }
+    }
+    orphans.sort();
+    for name in &orphans {
+        let path = ck.join(name);
+        std::fs::remove_file(&path).map_err(io_err(&path))?;
+    }
+    Ok(orphans)
+}
+
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.
 fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepStats) -> RunError {
     RunError::Invalid(format!(
@@ -767,10 +1122,10 @@ fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepS
          extreme values in the data (data.dir {}). Resuming would repeat the same steps: fix the \
          configuration and train again.",
         dir.display(),
-        st.loss,
-        st.grad_norm,
-        cfg.optim.learning_rate,
-        cfg.optim.eps,
+        compact(st.loss),
+        compact(st.grad_norm),
+        compact(cfg.optim.learning_rate),
+        compact(cfg.optim.eps),
         cfg.data.dir.display()
     ))
 }
@@ -795,6 +1150,44 @@ fn lock_run_dir(dir: &Path) -> Result<pdt_base::fs::DirLock, RunError> {
             RunError::Io { path: dir.join(".lock"), source: e }
         }
     })
+}
+
+/// The identity of a new run (`run.json`).
+fn run_info(setup: &Setup) -> RunInfo {
+    RunInfo {
+        name: format!(
+            "{}-{}-seed{}",
+            setup.cfg.run.method.name(),
+            setup.family.name(),
+            setup.cfg.run.seed
+        ),
+        method: setup.cfg.run.method.name().into(),
+        env: setup.family.name().into(),
+        seed: setup.cfg.run.seed,
+        split: setup.cfg.env.split.clone(),
+        created: now_utc(),
+        promptdt_version: env!("CARGO_PKG_VERSION").into(),
+    }
+}
+
+/// Reads a run's `task_stats.json`, saying what a missing one means, and checks its values (a
+/// hand-edited or corrupt file must not normalise states by NaN or 0).
+pub(crate) fn read_task_stats(dir: &Path) -> Result<TaskStats, RunError> {
+    let path = dir.join("task_stats.json");
+    if !path.exists() {
+        let why = if dir.join("checkpoints").join("latest.json").exists() {
+            "but the run has a checkpoint: it cannot be recreated from today's data without \
+             defeating the check that the data did not change. Restore it from a copy of the run, \
+             or delete the run"
+        } else {
+            "the run directory was interrupted while being created (killed before writing it); \
+             `promptdt train --resume` recreates it and starts the run, or delete the directory"
+        };
+        return Err(RunError::Invalid(format!("{} is missing, {why}", path.display())));
+    }
+    let stats: TaskStats = read_json(&path)?;
+    stats.check().map_err(|message| RunError::Corrupt { path, message })?;
+    Ok(stats)
 }
 
 fn now_utc() -> String {
@@ -826,6 +1219,25 @@ pub fn train(
         (true, _) => {
             let path = dir.join("config.toml");
             if !path.is_file() {
+                // `run.json` is written first: with it and no `config.toml`, a `train` was killed
+                // while creating the directory, before anything that could resume it was written.
+                if dir.join("checkpoints").join("latest.json").exists() {
+                    return Err(RunError::Invalid(format!(
+                        "{} is missing, but the run in {} has a checkpoint: restore config.toml \
+                         from a copy of the run (it cannot be guessed), or delete the run",
+                        path.display(),
+                        dir.display()
+                    )));
+                }
+                if dir.join("run.json").is_file() {
+                    return Err(RunError::Invalid(format!(
+                        "run directory {} was interrupted while being created: it has run.json \
+                         but no config.toml, so there is nothing to resume; delete it or rerun \
+                         `promptdt train --config <experiment> --out {}`",
+                        dir.display(),
+                        dir.display()
+                    )));
+                }
                 return Err(RunError::Invalid(format!(
                     "{}: no run to resume here (no config.toml)",
                     dir.display()
@@ -867,8 +1279,18 @@ pub fn train(
     for d in [dir.to_path_buf(), dir.join("checkpoints")] {
         pdt_base::fs::remove_stale_temps(&d).map_err(io_err(&d))?;
     }
-    if opts.resume {
-        let recorded: TaskStats = read_json(&dir.join("task_stats.json"))?;
+    let stats_path = dir.join("task_stats.json");
+    let has_checkpoint = dir.join("checkpoints").join("latest.json").exists();
+    if opts.resume && !stats_path.exists() && !has_checkpoint {
+        // Killed while the directory was being created (after `config.toml`): nothing was trained
+        // from it, so what is missing is recreated from the configuration and data, exactly as a
+        // new run writes it, and the run starts.
+        if !dir.join("run.json").is_file() {
+            write_json(&dir.join("run.json"), &run_info(&setup))?;
+        }
+        write_json(&stats_path, &setup.stats)?;
+    } else if opts.resume {
+        let recorded = read_task_stats(dir)?;
         setup.stats.check_same_as(&recorded).map_err(|m| {
             RunError::Invalid(format!(
                 "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \
@@ -884,24 +1306,12 @@ pub fn train(
                 dir.display()
             )));
         }
-        let info = RunInfo {
-            name: format!(
-                "{}-{}-seed{}",
-                setup.cfg.run.method.name(),
-                setup.family.name(),
-                setup.cfg.run.seed
-            ),
-            method: setup.cfg.run.method.name().into(),
-            env: setup.family.name().into(),
-            seed: setup.cfg.run.seed,
-            split: setup.cfg.env.split.clone(),
-            created: now_utc(),
-            promptdt_version: env!("CARGO_PKG_VERSION").into(),
-        };
-        write_json(&dir.join("run.json"), &info)?;
+        write_json(&dir.join("run.json"), &run_info(&setup))?;
         write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
         write_json(&dir.join("task_stats.json"), &setup.stats)?;
     }
+    // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
+    remove_orphans(&dir.join("checkpoints"))?;
     if setup.cfg.run.method == Method::Macaw {
         return crate::macaw::train(&setup, dir, opts);
     }
@@ -991,6 +1401,7 @@ pub fn train(
                 adam_steps: learner.opt.state.iter().map(|(n, s)| (n.clone(), s.step)).collect(),
                 metrics_lines: metrics.lines,
                 eval_lines: evals.lines,
+                keep,
             };
             save_checkpoint(dir, &learner, &state, keep)?;
         }
@@ -1128,7 +1539,7 @@ pub fn evaluate_run_with(
     });
     let setup = Setup::new(cfg)?;
     let stats_path = dir.join("task_stats.json");
-    let recorded: TaskStats = read_json(&stats_path)?;
+    let recorded = read_task_stats(dir)?;
     setup.stats.check_same_as(&recorded).map_err(|m| {
         RunError::Invalid(format!(
             "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
@@ -1215,7 +1626,7 @@ impl ServedRun {
                 dir.display()
             )));
         }
-        let stats: TaskStats = read_json(&dir.join("task_stats.json"))?;
+        let stats = read_task_stats(dir)?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
         let model_cfg = cfg.model.to_model_config(stats.obs_dim, stats.act_dim);
