@@ -416,7 +416,8 @@ impl Worker {
             if !z.is_finite() {
                 return Err(ApiError::bad(format!(
                     "observation[{j}] = {x:e} is out of range: normalised with the run's state \
-                     statistics ((x - {mean}) / {std}) it is beyond the largest f32 ({:e})",
+                     statistics ((x - mean) / std, mean {mean}, std {std}) it is beyond the \
+                     largest f32 ({:e})",
                     f32::MAX
                 )));
             }
@@ -510,7 +511,8 @@ impl Worker {
                 if !z.is_finite() {
                     return Err(ApiError::bad(format!(
                         "prompt.states[{t}][{j}] = {x:e} is out of range: normalised with the \
-                         run's state statistics ((x - {}) / {}) it is beyond the largest f32 ({:e})",
+                         run's state statistics ((x - mean) / std, mean {}, std {}) it is beyond \
+                         the largest f32 ({:e})",
                         self.norm.mean[j],
                         self.norm.std[j],
                         f32::MAX
