@@ -286,6 +286,14 @@ fn serve_keeps_answering_when_connections_reach_the_descriptor_limit() {
     // server refuses the connections beyond its limit at once and keeps answering.
     let s = Served::start("ulimit -n 256 &&", &[]);
     let a = s.addr;
+    // A body declared at 10^12 bytes is refused at once, not waited for.
+    let mut c = TcpStream::connect(a).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    c.write_all(b"POST /v1/episodes HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 1000000000000\r\n\r\n{")
+        .unwrap();
+    let mut out = String::new();
+    let read = c.read_to_string(&mut out);
+    assert!(out.starts_with("HTTP/1.1 413"), "{read:?} {out}");
     let silent: Vec<TcpStream> = (0..300).filter_map(|_| TcpStream::connect(a).ok()).collect();
     std::thread::sleep(Duration::from_millis(300));
     let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
