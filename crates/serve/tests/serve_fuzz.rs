@@ -228,6 +228,35 @@ fn good_step(addr: SocketAddr, id: u64, t: u64) -> Result<(), TestCaseError> {
     Ok(())
 }
 
+/// One case: a random open, then a sane episode taking random steps, each followed by a good
+/// step. The episodes it opens go to `opened`.
+fn case(
+    addr: SocketAddr,
+    open: &Value,
+    steps: &[Value],
+    opened: &mut Vec<u64>,
+) -> Result<(), TestCaseError> {
+    let (s, r) = send(addr, "/v1/episodes", &body_text(open));
+    opened.extend(r["episode"].as_u64().filter(|_| s == 201));
+    check("open", open, s, &r, 201)?;
+    let (s, r) =
+        http(addr, "POST", "/v1/episodes", Some(r#"{"task": 34, "observation": [0.0, 0.0]}"#));
+    prop_assert_eq!(s, 201, "{}", r);
+    let id = r["episode"].as_u64().unwrap();
+    opened.push(id);
+    let mut t = 0;
+    for step in steps {
+        let (s, r) = send(addr, &format!("/v1/episodes/{id}/step"), &body_text(step));
+        if check("step", step, s, &r, 200)? {
+            t += 1;
+            prop_assert_eq!(&r["t"], &json!(t));
+        }
+        t += 1;
+        good_step(addr, id, t)?;
+    }
+    Ok(())
+}
+
 #[test]
 fn random_requests_get_finite_actions_or_errors_naming_a_field() {
     let server = start(ServeOptions { max_episodes: 8, threads: 1, ..Default::default() });
@@ -242,32 +271,14 @@ fn random_requests_get_finite_actions_or_errors_naming_a_field() {
     let bodies = (open_body(), prop::collection::vec(step_body(), 1..4));
     runner
         .run(&bodies, |(open, steps)| {
-            let (s, r) = send(addr, "/v1/episodes", &body_text(&open));
-            if check("open", &open, s, &r, 201)? {
-                let id = r["episode"].as_u64().unwrap();
-                prop_assert_eq!(http(addr, "DELETE", &format!("/v1/episodes/{id}"), None).0, 204);
+            let mut opened = Vec::new();
+            let result = case(addr, &open, &steps, &mut opened);
+            // Closed whatever happened, so that a failing case (and its shrinking) leaves no
+            // episode behind to fail the next with 429.
+            for id in opened {
+                let _ = http(addr, "DELETE", &format!("/v1/episodes/{id}"), None);
             }
-            // Random steps of a sane episode, each followed by a good step.
-            let (s, r) = http(
-                addr,
-                "POST",
-                "/v1/episodes",
-                Some(r#"{"task": 34, "observation": [0.0, 0.0]}"#),
-            );
-            prop_assert_eq!(s, 201, "{}", r);
-            let id = r["episode"].as_u64().unwrap();
-            let mut t = 0;
-            for step in &steps {
-                let path = format!("/v1/episodes/{id}/step");
-                let (s, r) = send(addr, &path, &body_text(step));
-                if check("step", step, s, &r, 200)? {
-                    t += 1;
-                    prop_assert_eq!(&r["t"], &json!(t));
-                }
-                t += 1;
-                good_step(addr, id, t)?;
-            }
-            prop_assert_eq!(http(addr, "DELETE", &format!("/v1/episodes/{id}"), None).0, 204);
+            result?;
             let (s, r) = http(addr, "GET", "/v1/info", None);
             prop_assert!(s == 200 && r["open_episodes"] == 0, "{s} {r}");
             Ok(())
