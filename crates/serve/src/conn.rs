@@ -27,6 +27,9 @@ use crate::ApiError;
 /// below) when the connection limit is derived from the process's descriptor limit.
 pub const RESERVED_DESCRIPTORS: usize = 64;
 
+/// The largest connection limit (as `--max-connections` bounds it).
+pub const MAX_CONNECTIONS: usize = 1_000_000;
+
 /// The connection limit when none is given, where the descriptor limit allows it.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 512;
 

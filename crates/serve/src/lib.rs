@@ -834,7 +834,10 @@ fn check(opts: &ServeOptions) -> Result<usize, ServeError> {
     }
     let budget = conn::connection_budget();
     match (opts.max_connections, budget) {
-        (Some(0), _) => bad("max connections (--max-connections) must be at least 1".into()),
+        (Some(n), _) if n == 0 || n > conn::MAX_CONNECTIONS => bad(format!(
+            "max connections (--max-connections) must be between 1 and {}, got {n}",
+            conn::MAX_CONNECTIONS
+        )),
         (Some(n), Some(room)) if n > room => bad(format!(
             "{n} connections (--max-connections) need more descriptors than this process may \
              open: its limit (ulimit -n) is {}, of which {} are kept for the server, so at most \
