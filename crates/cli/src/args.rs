@@ -68,15 +68,26 @@ pub struct ServeArgs {
     /// Requests answered by one forward at most.
     #[arg(long, default_value_t = 256, value_parser = count(1, 65_536))]
     pub max_batch: usize,
-    /// How long to wait for more requests before a forward, in milliseconds.
-    #[arg(long, default_value_t = 2)]
-    pub batch_wait_ms: u64,
-    /// Close an episode after this many seconds without a request.
-    #[arg(long, default_value_t = 300)]
-    pub idle_timeout_s: u64,
+    /// How long to wait for more requests before a forward, in milliseconds (0: none).
+    #[arg(long, default_value_t = 2, value_parser = count(0, 10_000))]
+    pub batch_wait_ms: usize,
+    /// Close an episode after this many seconds without a request (up to a week).
+    #[arg(long, default_value_t = 300, value_parser = count(1, 604_800))]
+    pub idle_timeout_s: usize,
     /// Largest request body in bytes.
     #[arg(long, default_value_t = 1 << 20, value_parser = count(64, 1 << 30))]
     pub max_body_bytes: usize,
+    /// Close a connection that has not sent a request's headers within this many seconds (also
+    /// an idle kept-alive connection).
+    #[arg(long, default_value_t = 10, value_parser = count(1, 3600))]
+    pub header_timeout_s: usize,
+    /// Give up a request whose body has not arrived this many seconds after its headers (408).
+    #[arg(long, default_value_t = 10, value_parser = count(1, 3600))]
+    pub body_timeout_s: usize,
+    /// Connections open at once; one more is answered 503 and closed. Default: 512, or fewer
+    /// when the descriptor limit (ulimit -n) leaves less room (it minus 64).
+    #[arg(long, value_parser = count(1, 1_000_000))]
+    pub max_connections: Option<usize>,
     /// libtorch threads of the model thread. With 1 (the default) an episode's actions are
     /// bit-identical to `promptdt eval`'s and do not depend on the other episodes of its batch.
     #[arg(long, default_value_t = 1, value_parser = count(1, 1024))]

@@ -298,9 +298,12 @@ fn run(cli: Cli) -> Result<()> {
                 listen: a.listen,
                 max_episodes: a.max_episodes,
                 max_batch: a.max_batch,
-                batch_wait: std::time::Duration::from_millis(a.batch_wait_ms),
-                idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s.max(1)),
+                batch_wait: std::time::Duration::from_millis(a.batch_wait_ms as u64),
+                idle_timeout: std::time::Duration::from_secs(a.idle_timeout_s as u64),
                 max_body_bytes: a.max_body_bytes,
+                header_timeout: std::time::Duration::from_secs(a.header_timeout_s as u64),
+                body_timeout: std::time::Duration::from_secs(a.body_timeout_s as u64),
+                max_connections: a.max_connections,
                 threads: a.threads,
                 ..Default::default()
             };

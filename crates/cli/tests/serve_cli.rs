@@ -46,3 +46,300 @@ fn serve_refuses_a_directory_that_is_not_a_run() {
         cli::fails(&["serve", "--run", tmp.path().to_str().unwrap(), "--listen", "127.0.0.1:0"]);
     assert!(e.contains("not a run directory"), "{e}");
 }
+
+// ------------------------------------------------------------------------------------------------
+// Hostile input through the real binary (issue 32)
+// ------------------------------------------------------------------------------------------------
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::PathBuf;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// One tiny trained run shared by the tests below (training it is the slow part).
+fn trained_run() -> &'static PathBuf {
+    static RUN: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &RUN.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let cfg = tiny_setup(tmp.path());
+        let run = tmp.path().join("run");
+        ok(&[
+            "train",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+            "--quiet",
+        ]);
+        (tmp, run)
+    })
+    .1
+}
+
+/// `promptdt serve` on a free loopback port, killed when dropped.
+struct Served {
+    child: std::process::Child,
+    addr: SocketAddr,
+}
+
+impl Served {
+    /// Starts `sh -c "<prefix> exec promptdt serve --run RUN --listen 127.0.0.1:0 <extra>"`.
+    fn start(shell_prefix: &str, extra: &[&str]) -> Self {
+        let mut cmd = format!(
+            "{shell_prefix} exec '{}' serve --run '{}' --listen 127.0.0.1:0",
+            env!("CARGO_BIN_EXE_promptdt"),
+            trained_run().display()
+        );
+        for a in extra {
+            cmd.push_str(&format!(" '{a}'"));
+        }
+        let mut child = Command::new("sh")
+            .args(["-c", &cmd])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        let addr = line
+            .trim()
+            .strip_prefix("listening on http://")
+            .unwrap_or_else(|| panic!("no address in {line:?}"))
+            .parse()
+            .unwrap();
+        Self { child, addr }
+    }
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// One HTTP/1.1 request on a new connection; the status (0 when the server closed the connection
+/// without a reply) and the body. Gives up after `wait`.
+fn request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    body: &str,
+    wait: Duration,
+) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(wait)).unwrap();
+    let msg = format!(
+        "{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    if s.write_all(msg.as_bytes()).is_err() {
+        return (0, String::new());
+    }
+    let mut out = Vec::new();
+    if let Err(e) = s.read_to_end(&mut out) {
+        use std::io::ErrorKind::{TimedOut, WouldBlock};
+        // A reset is an answer (the server closed the connection at once); silence is not.
+        assert!(
+            !matches!(e.kind(), TimedOut | WouldBlock),
+            "{method} {path}: no reply within {wait:?}; got {:?}",
+            String::from_utf8_lossy(&out)
+        );
+    }
+    let out = String::from_utf8_lossy(&out).into_owned();
+    let status = out.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    (status, out.split("\r\n\r\n").nth(1).unwrap_or("").to_string())
+}
+
+fn post(addr: SocketAddr, path: &str, body: &str) -> (u16, String) {
+    request(addr, "POST", path, body, Duration::from_secs(30))
+}
+
+/// The action of a reply; `None` where a value is not a number (`null` is how JSON writes NaN).
+fn action_of(body: &str) -> Option<Vec<f32>> {
+    let rest = body.split("\"action\":[").nth(1)?;
+    let list = rest.split(']').next()?;
+    list.split(',').map(|x| x.trim().parse::<f32>().ok().filter(|v| v.is_finite())).collect()
+}
+
+#[test]
+fn serve_refuses_values_whose_normalisation_overflows_and_keeps_the_episode() {
+    let s = Served::start("", &[]);
+    let a = s.addr;
+    let prompt = |state: &str, rtg: &str| {
+        format!(
+            r#""prompt": {{"states": [[{state}, 0.0]], "actions": [[0.1, 0.1]], "returns_to_go": [{rtg}], "timesteps": [0]}}"#
+        )
+    };
+    // Finite f32 values whose normalisation or scaling overflows: refused by name, never a null action.
+    let opens = [
+        (r#"{"task": 34, "observation": [3e38, 0.0]}"#.to_string(), "observation[0]"),
+        (r#"{"task": 34, "observation": [-3e38, 3e38]}"#.to_string(), "observation[0]"),
+        (
+            format!(r#"{{{}, "observation": [0.0, 0.0]}}"#, prompt("3e38", "-1.0")),
+            "prompt.states[0][0]",
+        ),
+        (
+            format!(r#"{{{}, "observation": [0.0, 0.0]}}"#, prompt("0.1", "3e38")),
+            "prompt.returns_to_go[0]",
+        ),
+        (
+            r#"{"task": 34, "observation": [0.0, 0.0], "target_return": 1e30}"#.to_string(),
+            "target_return",
+        ),
+        (r#"{"task": 34, "observation": [1e30, 0.0]}"#.to_string(), "observation[0]"),
+    ];
+    for (body, field) in &opens {
+        let (status, reply) = post(a, "/v1/episodes", body);
+        assert_eq!(status, 400, "{body}: {reply}");
+        assert!(reply.contains(field), "{body}: the error should name {field}: {reply}");
+    }
+    // An episode survives a bad step: the step is refused and the next good one acts as usual.
+    let (status, reply) = post(a, "/v1/episodes", r#"{"task": 34, "observation": [0.0, 0.0]}"#);
+    assert_eq!(status, 201, "{reply}");
+    assert!(action_of(&reply).is_some(), "{reply}");
+    let id = reply.split("\"episode\":").nth(1).unwrap().split(',').next().unwrap().to_string();
+    let step = format!("/v1/episodes/{id}/step");
+    let bad_steps = [
+        (r#"{"reward": -0.5, "observation": [3e38, 0.0]}"#, "observation[0]"),
+        (r#"{"reward": -0.5, "observation": [0.0, 1e30]}"#, "observation[1]"),
+        (r#"{"reward": -3e38, "observation": [0.0, 0.0]}"#, "1e30"),
+        (r#"{"reward": 1e30, "observation": [0.0, 0.0]}"#, "reward"),
+    ];
+    for (i, (body, field)) in bad_steps.iter().enumerate() {
+        let (status, reply) = post(a, &step, body);
+        assert_eq!(status, 400, "{body}: {reply}");
+        assert!(reply.contains(field), "{body}: the error should name {field}: {reply}");
+        assert!(!reply.contains("not a finite reward"), "{body}: -3e38 is finite: {reply}");
+        let (status, reply) = post(a, &step, r#"{"reward": -0.5, "observation": [0.1, 0.0]}"#);
+        assert_eq!(status, 200, "{reply}");
+        assert!(action_of(&reply).is_some(), "after {body}: {reply}");
+        assert!(
+            reply.contains(&format!("\"t\":{}", i + 1)),
+            "refused steps are not counted: {reply}"
+        );
+    }
+}
+
+#[test]
+fn serve_times_out_silent_connections_and_bounds_them() {
+    let s = Served::start(
+        "",
+        &["--header-timeout-s", "2", "--body-timeout-s", "1", "--max-connections", "8"],
+    );
+    let a = s.addr;
+    // Eight connections that never finish their headers hold every slot ...
+    let mut silent: Vec<TcpStream> = (0..8)
+        .map(|_| {
+            let mut c = TcpStream::connect(a).unwrap();
+            c.write_all(b"GET /v1/info HTTP/1.1\r\nHost: t\r\n").unwrap();
+            c
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(500));
+    // ... so a ninth is answered 503 at once, not left waiting.
+    let t0 = Instant::now();
+    let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
+    assert!(status == 503 || status == 0, "{status} {reply}");
+    assert!(t0.elapsed() < Duration::from_secs(1), "{:?}", t0.elapsed());
+    // After the header timeout the server has closed them (EOF or a reset, not silence), and
+    // answers again.
+    std::thread::sleep(Duration::from_millis(2000));
+    for c in &mut silent {
+        c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let mut buf = Vec::new();
+        if let Err(e) = c.read_to_end(&mut buf) {
+            use std::io::ErrorKind::{TimedOut, WouldBlock};
+            assert!(
+                !matches!(e.kind(), TimedOut | WouldBlock),
+                "a silent connection is still open"
+            );
+        }
+    }
+    let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
+    assert_eq!(status, 200, "{reply}");
+    // A body declared larger than --max-body-bytes is refused before it is read ...
+    let mut c = TcpStream::connect(a).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    c.write_all(b"POST /v1/episodes HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 1000000000000\r\n\r\n{").unwrap();
+    let mut out = String::new();
+    let _ = c.read_to_string(&mut out);
+    assert!(out.starts_with("HTTP/1.1 413"), "{out}");
+    assert!(out.contains("max-body-bytes"), "{out}");
+    // ... and a body that stops coming is given up after the body timeout.
+    let mut c = TcpStream::connect(a).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    c.write_all(b"POST /v1/episodes HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"task\"").unwrap();
+    let mut out = String::new();
+    let _ = c.read_to_string(&mut out);
+    assert!(out.starts_with("HTTP/1.1 408"), "{out}");
+    assert!(out.contains("body-timeout-s"), "{out}");
+    let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
+    assert_eq!(status, 200, "{reply}");
+}
+
+#[test]
+fn serve_keeps_answering_when_connections_reach_the_descriptor_limit() {
+    // 256 descriptors and 300 connections that never send a byte: with the default flags the
+    // server refuses the connections beyond its limit at once and keeps answering.
+    let s = Served::start("ulimit -n 256 &&", &[]);
+    let a = s.addr;
+    // A body declared at 10^12 bytes is refused at once, not waited for.
+    let mut c = TcpStream::connect(a).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    c.write_all(b"POST /v1/episodes HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 1000000000000\r\n\r\n{")
+        .unwrap();
+    let mut out = String::new();
+    let read = c.read_to_string(&mut out);
+    assert!(out.starts_with("HTTP/1.1 413"), "{read:?} {out}");
+    let silent: Vec<TcpStream> = (0..300).filter_map(|_| TcpStream::connect(a).ok()).collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
+    assert!(status == 503 || status == 200, "{status} {reply}");
+    drop(silent);
+    std::thread::sleep(Duration::from_millis(300));
+    let (status, reply) = request(a, "GET", "/v1/info", "", Duration::from_secs(5));
+    assert_eq!(status, 200, "{reply}");
+}
+
+#[test]
+fn serve_refuses_zero_and_absurd_limits() {
+    let run = trained_run().to_str().unwrap().to_string();
+    for (flag, value) in [
+        ("--idle-timeout-s", "0"),
+        ("--batch-wait-ms", "18446744073709551615"),
+        ("--header-timeout-s", "0"),
+        ("--body-timeout-s", "0"),
+        ("--max-connections", "0"),
+    ] {
+        // Spawned with a deadline: a server that accepts the value would run forever.
+        let mut child = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+            .args(["serve", "--run", &run, "--listen", "127.0.0.1:0", flag, value])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = Instant::now();
+        let status = loop {
+            if let Some(st) = child.try_wait().unwrap() {
+                break st;
+            }
+            if t0.elapsed() > Duration::from_secs(30) {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("serve accepted {flag} {value} (still running after 30 s)");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let mut stderr = String::new();
+        child.stderr.take().unwrap().read_to_string(&mut stderr).unwrap();
+        assert!(!status.success(), "{flag} {value}");
+        assert!(
+            stderr.contains(flag) && stderr.contains("must be between"),
+            "{flag} {value}: {stderr}"
+        );
+        assert!(!stderr.contains("panicked"), "{stderr}");
+    }
+}

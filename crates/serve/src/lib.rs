@@ -15,7 +15,7 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use pdt_eval::{first_rtg, History};
+use pdt_eval::{first_rtg, EvalReturns, History};
 use pdt_model::PrefixCache;
 use pdt_prompt::{SegmentBatch, StateNorm};
 use pdt_train::run::ServedRun;
@@ -24,6 +24,13 @@ use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+pub mod conn;
+
+/// The longest `batch_wait` (a longer one would only hold every request back).
+pub const MAX_BATCH_WAIT: Duration = Duration::from_secs(10);
+/// The longest header and body timeouts.
+pub const MAX_IO_TIMEOUT: Duration = Duration::from_secs(3600);
 
 /// Limits and batching of a server.
 #[derive(Debug, Clone)]
@@ -38,8 +45,18 @@ pub struct ServeOptions {
     pub batch_wait: Duration,
     /// An episode without a request for this long is closed.
     pub idle_timeout: Duration,
-    /// Largest request body (413 beyond).
+    /// Largest request body (413 beyond; a larger declared `Content-Length` is refused before
+    /// the body is read).
     pub max_body_bytes: usize,
+    /// How long a connection may take to send a request's headers (and how long a kept-alive
+    /// connection may stay idle) before it is closed.
+    pub header_timeout: Duration,
+    /// How long a request's body may take to arrive after its headers (408 beyond).
+    pub body_timeout: Duration,
+    /// Connections open at once (each holds a descriptor); one more is answered 503 and closed.
+    /// `None`: [`conn::DEFAULT_MAX_CONNECTIONS`], or fewer where the process's descriptor limit
+    /// leaves less room ([`conn::connection_budget`]).
+    pub max_connections: Option<usize>,
     /// Requests waiting for the model thread at most (503 beyond).
     pub queue: usize,
     /// libtorch intra-op threads of the model thread (0: libtorch's default, all cores). With 1,
@@ -57,6 +74,9 @@ impl Default for ServeOptions {
             batch_wait: Duration::from_millis(2),
             idle_timeout: Duration::from_secs(300),
             max_body_bytes: 1 << 20,
+            header_timeout: Duration::from_secs(10),
+            body_timeout: Duration::from_secs(10),
+            max_connections: None,
             queue: 4096,
             threads: 0,
         }
@@ -190,7 +210,79 @@ struct Episode {
     /// The action returned last (recorded with the next reward and observation).
     last_action: Vec<f32>,
     seen: Instant,
+    /// How to take back the step whose action is being computed, should that action not be
+    /// finite: a refused step must leave the episode as it was, or one bad observation would stay
+    /// in every later step's context.
+    undo: Option<Undo>,
+    /// The largest inputs of the action being computed, named, for the error if it is not finite.
+    inputs: Inputs,
 }
+
+/// What [`History::record`] changed.
+struct Undo {
+    states: usize,
+    actions: usize,
+    rtg: usize,
+    ret: f64,
+    t: usize,
+    last_action: Vec<f32>,
+}
+
+impl Undo {
+    fn of(e: &Episode) -> Self {
+        Self {
+            states: e.h.states.len(),
+            actions: e.h.actions.len(),
+            rtg: e.h.rtg.len(),
+            ret: e.h.ret,
+            t: e.h.t,
+            last_action: e.last_action.clone(),
+        }
+    }
+
+    fn apply(self, e: &mut Episode) {
+        e.h.states.truncate(self.states);
+        e.h.actions.truncate(self.actions);
+        e.h.rtg.truncate(self.rtg);
+        e.h.ret = self.ret;
+        e.h.t = self.t;
+        e.last_action = self.last_action;
+    }
+}
+
+/// The model inputs of one request, kept by magnitude: when the policy's action comes out NaN or
+/// infinite, the error names the input most likely at fault (the largest one fed to the model).
+#[derive(Debug, Default)]
+struct Inputs {
+    /// (field and raw value, as the client sent it; the value the model sees)
+    largest: Option<(String, f32)>,
+}
+
+impl Inputs {
+    fn see(&mut self, field: impl FnOnce() -> String, model_value: f32) {
+        let bigger = match &self.largest {
+            Some((_, v)) => model_value.abs() > v.abs(),
+            None => true,
+        };
+        if bigger {
+            self.largest = Some((field(), model_value));
+        }
+    }
+
+    fn describe(&self) -> String {
+        match &self.largest {
+            Some((field, v)) => {
+                format!("its largest input is {field} ({v:e} as the model sees it)")
+            }
+            None => "no input stands out".into(),
+        }
+    }
+}
+
+/// The largest return and return-to-go accepted (raw, in reward units), as the data readers accept
+/// returns-to-go (`docs/failure-behaviour.md`): returns are f32 tokens, and beyond this they
+/// overflow in the model's arithmetic.
+pub const MAX_RETURN: f64 = 1e30;
 
 /// What the model thread owns: the policy and every open episode.
 struct Worker {
@@ -204,6 +296,8 @@ struct Worker {
 /// An action to compute in this batch, and where its answer goes.
 struct Pending {
     id: u64,
+    /// The episode's first action: if it is not finite, the episode is not opened.
+    opening: bool,
     reply: Reply<ActionReply>,
 }
 
@@ -246,7 +340,7 @@ impl Worker {
             for m in msgs {
                 match m {
                     Msg::Open(req, reply) => match self.open(*req) {
-                        Ok(id) => pending.push(Pending { id, reply }),
+                        Ok(id) => pending.push(Pending { id, opening: true, reply }),
                         Err(e) => {
                             let _ = reply.send(Err(e));
                         }
@@ -261,7 +355,7 @@ impl Worker {
                             continue;
                         }
                         match self.step(id, req) {
-                            Ok(()) => pending.push(Pending { id, reply }),
+                            Ok(()) => pending.push(Pending { id, opening: false, reply }),
                             Err(e) => {
                                 let _ = reply.send(Err(e));
                             }
@@ -310,8 +404,26 @@ impl Worker {
         self.episodes.retain(|_, e| e.seen.elapsed() < limit);
     }
 
-    fn observation(&self, obs: &[f64]) -> Result<Vec<f32>, ApiError> {
-        self.run.observation(obs).map_err(ApiError::bad)
+    /// A raw observation as the history will hold it: `obs_dim` finite f32 values whose
+    /// normalisation is finite too (a finite 3e38 normalises to infinity, and one infinite state
+    /// makes every action of its context NaN).
+    fn observation(&self, obs: &[f64], inputs: &mut Inputs) -> Result<Vec<f32>, ApiError> {
+        let o = self.run.observation(obs).map_err(ApiError::bad)?;
+        for (j, &x) in o.iter().enumerate() {
+            let (mean, std) = (self.norm.mean[j], self.norm.std[j]);
+            // In f32, exactly as `History` normalises it.
+            let z = (x - mean) / std;
+            if !z.is_finite() {
+                return Err(ApiError::bad(format!(
+                    "observation[{j}] = {x:e} is out of range: normalised with the run's state \
+                     statistics ((x - mean) / std, mean {mean}, std {std}) it is beyond the \
+                     largest f32 ({:e})",
+                    f32::MAX
+                )));
+            }
+            inputs.see(|| format!("observation[{j}] = {x:e}"), z);
+        }
+        Ok(o)
     }
 
     fn open(&mut self, req: OpenRequest) -> Result<u64, ApiError> {
@@ -324,7 +436,8 @@ impl Worker {
                 ),
             ));
         }
-        let obs = self.observation(&req.observation)?;
+        let mut inputs = Inputs::default();
+        let obs = self.observation(&req.observation, &mut inputs)?;
         let prompt = match (self.run.method.uses_prompt(), req.prompt, req.task) {
             (false, None, None) => None,
             (false, ..) => {
@@ -336,7 +449,7 @@ impl Worker {
             (true, Some(_), Some(_)) => {
                 return Err(ApiError::bad("give either `prompt` or `task`, not both"))
             }
-            (true, Some(p), None) => Some(self.prompt_from_arrays(&p)?),
+            (true, Some(p), None) => Some(self.prompt_from_arrays(&p, &mut inputs)?),
             (true, None, Some(task)) => Some(
                 self.run.task_prompt(task, req.prompt_seed.unwrap_or(0)).map_err(ApiError::bad)?,
             ),
@@ -347,8 +460,14 @@ impl Worker {
             }
         };
         let target = match req.target_return {
-            Some(g) if !g.is_finite() || g.abs() > 1e30 => {
-                return Err(ApiError::bad(format!("target_return {g} is not a finite return")))
+            Some(g) if !g.is_finite() => {
+                return Err(ApiError::bad(format!("target_return {g} is not a finite number")))
+            }
+            Some(g) if g.abs() > MAX_RETURN => {
+                return Err(ApiError::bad(format!(
+                    "target_return {g:e} is outside the accepted range [-{MAX_RETURN:e}, \
+                     {MAX_RETURN:e}] (returns are f32 tokens)"
+                )))
             }
             Some(g) => g as f32,
             None => self.run.stats.target_return,
@@ -358,6 +477,9 @@ impl Worker {
             None => None,
         };
         let rtg0 = first_rtg(self.run.returns, target, self.run.stats.rtg_scale);
+        if req.target_return.is_some() {
+            inputs.see(|| format!("target_return = {target:e}"), rtg0);
+        }
         let id = self.next_id;
         self.next_id += 1;
         self.episodes.insert(
@@ -367,19 +489,67 @@ impl Worker {
                 prefix,
                 last_action: Vec::new(),
                 seen: Instant::now(),
+                undo: None,
+                inputs,
             },
         );
         Ok(id)
     }
 
-    fn prompt_from_arrays(&self, p: &PromptArrays) -> Result<SegmentBatch, ApiError> {
-        self.run.prompt_from_arrays(p).map_err(ApiError::bad)
+    /// A prompt from arrays, checked as the run checks it, and then for what overflows: a state
+    /// that normalises beyond f32, a return-to-go beyond [`MAX_RETURN`] (the data readers' bound).
+    fn prompt_from_arrays(
+        &self,
+        p: &PromptArrays,
+        inputs: &mut Inputs,
+    ) -> Result<SegmentBatch, ApiError> {
+        let b = self.run.prompt_from_arrays(p).map_err(ApiError::bad)?;
+        let (ds, da) = (b.state_dim, b.act_dim);
+        for (t, s) in p.states.iter().enumerate() {
+            for (j, &x) in s.iter().enumerate() {
+                let z = b.states[t * ds + j];
+                if !z.is_finite() {
+                    return Err(ApiError::bad(format!(
+                        "prompt.states[{t}][{j}] = {x:e} is out of range: normalised with the \
+                         run's state statistics ((x - mean) / std, mean {}, std {}) it is beyond \
+                         the largest f32 ({:e})",
+                        self.norm.mean[j],
+                        self.norm.std[j],
+                        f32::MAX
+                    )));
+                }
+                inputs.see(|| format!("prompt.states[{t}][{j}] = {x:e}"), z);
+            }
+        }
+        for (t, a) in p.actions.iter().enumerate() {
+            for (j, &x) in a.iter().enumerate() {
+                inputs.see(|| format!("prompt.actions[{t}][{j}] = {x:e}"), b.actions[t * da + j]);
+            }
+        }
+        for (t, &r) in p.returns_to_go.iter().enumerate() {
+            if r.abs() > MAX_RETURN {
+                return Err(ApiError::bad(format!(
+                    "prompt.returns_to_go[{t}] = {r:e} is outside the accepted range \
+                     [-{MAX_RETURN:e}, {MAX_RETURN:e}] (returns are f32 tokens)"
+                )));
+            }
+            inputs.see(|| format!("prompt.returns_to_go[{t}] = {r:e}"), b.returns_to_go[t]);
+        }
+        Ok(b)
     }
 
     fn step(&mut self, id: u64, req: StepRequest) -> Result<(), ApiError> {
-        let obs = self.observation(&req.observation)?;
-        if !req.reward.is_finite() || req.reward.abs() > 1e30 {
-            return Err(ApiError::bad(format!("reward {} is not a finite reward", req.reward)));
+        let mut inputs = Inputs::default();
+        let obs = self.observation(&req.observation, &mut inputs)?;
+        let r = req.reward;
+        if !r.is_finite() {
+            return Err(ApiError::bad(format!("reward {r} is not a finite number")));
+        }
+        if r.abs() > MAX_RETURN {
+            return Err(ApiError::bad(format!(
+                "reward {r:e} is outside the accepted range [-{MAX_RETURN:e}, {MAX_RETURN:e}] \
+                 (returns are f32 tokens)"
+            )));
         }
         let max_t = self.run.model.cfg.max_ep_len;
         let (returns, scale) = (self.run.returns, self.run.stats.rtg_scale);
@@ -393,9 +563,27 @@ impl Worker {
                 ),
             ));
         }
+        // The return-to-go token this reward leads to, computed as `History::record` will: rewards
+        // within range can still add up beyond it, and the token stays in every later context.
+        let prev = e.h.rtg.last().copied().unwrap_or(0.0);
+        let next = match returns {
+            EvalReturns::Decreasing => prev - r as f32 / scale,
+            EvalReturns::Constant | EvalReturns::Zero => prev,
+        };
+        let rtg = f64::from(next) * f64::from(scale);
+        if !next.is_finite() || rtg.abs() > MAX_RETURN {
+            return Err(ApiError::bad(format!(
+                "reward {r:e} would take episode {id}'s return-to-go (the target return minus \
+                 the rewards so far) to {rtg:e}, outside the accepted range [-{MAX_RETURN:e}, \
+                 {MAX_RETURN:e}]; the step is refused and the episode is as it was"
+            )));
+        }
+        inputs.see(|| format!("the return-to-go {rtg:e} after reward = {r:e}"), next);
         e.seen = Instant::now();
+        e.undo = Some(Undo::of(e));
+        e.inputs = inputs;
         let last = std::mem::take(&mut e.last_action);
-        e.h.record(&last, req.reward as f32, &obs, norm, returns, scale);
+        e.h.record(&last, r as f32, &obs, norm, returns, scale);
         Ok(())
     }
 
@@ -433,14 +621,40 @@ impl Worker {
             let prefix = prefixes.and_then(|p| PrefixCache::cat(&p));
             let flat = self.run.act(&hs, prefix.as_ref()); // [A * da]
             for (p, a) in group.into_iter().zip(flat.chunks_exact(da)) {
-                if let Some(e) = self.episodes.get_mut(&p.id) {
+                let Some(e) = self.episodes.get_mut(&p.id) else { continue };
+                if a.iter().all(|x| x.is_finite()) {
+                    e.undo = None;
                     e.last_action = a.to_vec();
                     let _ = p.reply.send(Ok(ActionReply {
                         episode: p.id,
                         t: e.h.t,
                         action: a.to_vec(),
                     }));
+                    continue;
                 }
+                // Inputs each representable can still overflow inside the model (an embedding of
+                // 1e30 squared in a layer norm): the request is refused and nothing of it kept,
+                // so the client can go on with sane values.
+                let why = format!(
+                    "the policy's action is not finite ({a:?}): {}; values this far from the \
+                     run's data overflow the model's f32 arithmetic",
+                    e.inputs.describe()
+                );
+                let msg = if p.opening {
+                    self.episodes.remove(&p.id);
+                    format!("{why}. The episode is not opened")
+                } else {
+                    if let Some(u) = e.undo.take() {
+                        u.apply(e);
+                    }
+                    format!(
+                        "episode {} step {}: {why}. The step is refused and the episode is as it \
+                         was before it",
+                        p.id,
+                        e.h.t + 1
+                    )
+                };
+                let _ = p.reply.send(Err(ApiError::bad(msg)));
             }
         }
     }
@@ -536,17 +750,15 @@ impl Server {
                     .into(),
             ));
         }
-        if opts.max_batch == 0 || opts.max_episodes == 0 || opts.queue == 0 {
-            return Err(ServeError::Invalid(
-                "max_batch, max_episodes and the queue must be at least 1".into(),
-            ));
-        }
+        let max_connections = check(&opts)?;
         let listener = std::net::TcpListener::bind(opts.listen)
             .map_err(|source| ServeError::Bind { addr: opts.listen, source })?;
         listener.set_nonblocking(true)?;
         let addr = listener.local_addr()?;
         let (tx, rx) = mpsc::sync_channel::<Msg>(opts.queue);
-        let body_limit = opts.max_body_bytes;
+        let body = conn::BodyLimits { max_bytes: opts.max_body_bytes, timeout: opts.body_timeout };
+        let limits = conn::ConnLimits { max_connections, header_timeout: opts.header_timeout };
+        let grace = opts.body_timeout + Duration::from_secs(1);
         let worker = Worker::new(run, opts);
         std::thread::Builder::new().name("pdt-serve-model".into()).spawn(move || worker.run(rx))?;
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -556,7 +768,8 @@ impl Server {
             .route("/v1/episodes/{id}/step", post(step))
             .route("/v1/episodes/{id}", axum::routing::delete(close))
             .fallback(not_found)
-            .layer(DefaultBodyLimit::max(body_limit))
+            .layer(DefaultBodyLimit::max(body.max_bytes))
+            .layer(axum::middleware::from_fn_with_state(body, conn::read_body))
             .with_state(AppState { tx });
         let thread =
             std::thread::Builder::new().name("pdt-serve-http".into()).spawn(move || {
@@ -566,11 +779,7 @@ impl Server {
                     .build()?;
                 rt.block_on(async move {
                     let listener = tokio::net::TcpListener::from_std(listener)?;
-                    axum::serve(listener, app)
-                        .with_graceful_shutdown(async {
-                            let _ = stop_rx.await;
-                        })
-                        .await?;
+                    conn::accept_loop(listener, app, limits, grace, stop_rx).await;
                     Ok(())
                 })
             })?;
@@ -596,6 +805,55 @@ impl Server {
             Some(Err(_)) => Err(ServeError::Invalid("the server thread panicked".into())),
             None => Ok(()),
         }
+    }
+}
+
+/// Checks the limits of `opts` (each named as its `promptdt serve` flag); returns the connection
+/// limit to apply.
+fn check(opts: &ServeOptions) -> Result<usize, ServeError> {
+    let bad = |m: String| Err(ServeError::Invalid(m));
+    if opts.max_batch == 0 || opts.max_episodes == 0 || opts.queue == 0 {
+        return bad("max_batch, max_episodes and the queue must be at least 1".into());
+    }
+    if opts.batch_wait > MAX_BATCH_WAIT {
+        return bad(format!(
+            "batch wait (--batch-wait-ms) of {:?} is over {MAX_BATCH_WAIT:?}",
+            opts.batch_wait
+        ));
+    }
+    if opts.idle_timeout.is_zero() {
+        // 0 would close every episode at once.
+        return bad("idle timeout (--idle-timeout-s) must be more than 0".into());
+    }
+    for (name, t) in [("header", opts.header_timeout), ("body", opts.body_timeout)] {
+        if t.is_zero() || t > MAX_IO_TIMEOUT {
+            return bad(format!(
+                "{name} timeout (--{name}-timeout-s) of {t:?} is outside (0 s, {MAX_IO_TIMEOUT:?}]"
+            ));
+        }
+    }
+    let budget = conn::connection_budget();
+    match (opts.max_connections, budget) {
+        (Some(n), _) if n == 0 || n > conn::MAX_CONNECTIONS => bad(format!(
+            "max connections (--max-connections) must be between 1 and {}, got {n}",
+            conn::MAX_CONNECTIONS
+        )),
+        (Some(n), Some(room)) if n > room => bad(format!(
+            "{n} connections (--max-connections) need more descriptors than this process may \
+             open: its limit (ulimit -n) is {}, of which {} are kept for the server, so at most \
+             {room}; raise the limit or lower --max-connections",
+            room + conn::RESERVED_DESCRIPTORS,
+            conn::RESERVED_DESCRIPTORS
+        )),
+        (Some(n), _) => Ok(n),
+        (None, Some(0)) => bad(format!(
+            "this process may open only {} descriptors (ulimit -n), fewer than the {} the server \
+             keeps for itself; raise the limit",
+            conn::descriptor_limit().unwrap_or(0),
+            conn::RESERVED_DESCRIPTORS
+        )),
+        (None, Some(room)) => Ok(room.min(conn::DEFAULT_MAX_CONNECTIONS)),
+        (None, None) => Ok(conn::DEFAULT_MAX_CONNECTIONS),
     }
 }
 
