@@ -184,7 +184,8 @@ impl TaskDataset {
                 rtg += f64::from(*r);
                 if rtg.abs() > MAX_RETURN {
                     return Err(format!(
-                        "trajectory {i}: the return-to-go from step {step} is {rtg:e}, beyond                          {MAX_RETURN:e} (rewards this large overflow the f32 return tokens)"
+                        "trajectory {i}: the return-to-go from step {step} is {rtg:.3e}, beyond \
+                         {MAX_RETURN:e} (rewards this large overflow the f32 return tokens)"
                     ));
                 }
             }
@@ -273,5 +274,31 @@ impl MultiTaskDataset {
         let digest = h.finalize();
         let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
         format!("sha256:{hex}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rewards of 3e38 are finite, but their return-to-go is not representable: the message says
+    /// so in one plain sentence (it once carried a run of stray spaces from a line continuation).
+    #[test]
+    fn an_overflowing_return_to_go_is_named_plainly() -> Result<(), DataError> {
+        let rewards = vec![3e38f32, 3e38];
+        let t = Trajectory::new(
+            1,
+            1,
+            vec![0.0; 2],
+            vec![0.0; 2],
+            rewards,
+            vec![false; 2],
+            vec![false; 2],
+        )?;
+        let msg =
+            TaskDataset::new(vec![t])?.check_values().expect_err("3e38 rewards must be refused");
+        assert!(msg.contains("the return-to-go from step 1 is 3.000e38, beyond 1e30"), "{msg}");
+        assert!(!msg.contains("  "), "stray spaces in: {msg:?}");
+        Ok(())
     }
 }
