@@ -4,6 +4,8 @@
 //!   only when they are regular files (a FIFO or `/dev/zero` is refused, not read forever), the
 //!   temporary files a killed writer left behind, and the lock that gives a run directory one owner.
 //! - [`seed`]: independent seeds for every random choice, derived from one seed.
+//! - [`num`]: numbers as messages print them (1e300, not its 301 digits).
 
 pub mod fs;
+pub mod num;
 pub mod seed;

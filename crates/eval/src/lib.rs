@@ -118,18 +118,8 @@ pub enum EvalError {
     NonFiniteAction { task: String, detail: String },
 }
 
-/// A number as messages print it: plainly when it is of ordinary size, in exponent form when it
-/// is huge or tiny (`{}` prints 1e300 with all its 301 digits).
-pub fn compact<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(x: T) -> String {
-    let v: f64 = x.into();
-    if v == 0.0 || !v.is_finite() || (1e-4..1e6).contains(&v.abs()) {
-        format!("{x}")
-    } else {
-        // In the value's own type, so an f32 prints its shortest form (1e30, not
-        // 1.0000000150474662e30).
-        format!("{x:e}")
-    }
-}
+/// Messages print numbers through one helper (re-exported for the crates that use it from here).
+pub use pdt_base::num::compact;
 
 /// What a prompted policy remembers of one episode, as the reference's
 /// `prompt_evaluate_episode_rtg` keeps it: the normalised states, the actions taken, the

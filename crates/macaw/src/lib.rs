@@ -18,6 +18,7 @@ pub mod rollout;
 
 pub use buffer::{Batch, BufferSpec, TaskBuffer};
 
+use pdt_base::num::compact;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
@@ -199,7 +200,7 @@ impl MacawConfig {
             return bad("macaw.buffer_skip must be at least 1".into());
         }
         if !(self.discount > 0.0 && self.discount <= 1.0) {
-            return bad(format!("macaw.discount = {} must be in (0, 1]", self.discount));
+            return bad(format!("macaw.discount = {} must be in (0, 1]", compact(self.discount)));
         }
         // The AWR weights normalise by the batch's standard deviation: one row gives NaN (spec 4).
         for (name, v) in [
@@ -225,19 +226,19 @@ impl MacawConfig {
             ("adaptation_temp", self.adaptation_temp),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return bad(format!("macaw.{name} = {v} must be a positive number"));
+                return bad(format!("macaw.{name} = {} must be a positive number", compact(v)));
             }
         }
         if !(self.exp_advantage_clip.is_finite() && self.exp_advantage_clip > 1.0) {
             return bad(format!(
                 "macaw.exp_advantage_clip = {} must be above 1",
-                self.exp_advantage_clip
+                compact(self.exp_advantage_clip)
             ));
         }
         if !(0.0..=1.0).contains(&self.target_vf_alpha) {
             return bad(format!(
                 "macaw.target_vf_alpha = {} must be in [0, 1]",
-                self.target_vf_alpha
+                compact(self.target_vf_alpha)
             ));
         }
         if self.adapt_steps > 1000 {
