@@ -22,9 +22,11 @@ pub const REQUIRE_VAR: &str = "PROMPTDT_REQUIRE_REFERENCE_DATA";
 /// A file to which each skipped test appends one line (`make test` sets it and prints it).
 pub const SKIP_LOG_VAR: &str = "PROMPTDT_REFERENCE_SKIP_LOG";
 
-/// The workspace root (this crate is `crates/testkit`).
+/// The workspace root (this crate is `crates/testkit`), without `..` where it can be resolved, so
+/// the messages name a plain path.
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    std::fs::canonicalize(&root).unwrap_or(root)
 }
 
 /// Where the reference data should be: `$PROMPTDT_REFERENCE_DATA`, else `../shared/data` beside
@@ -32,7 +34,13 @@ fn workspace_root() -> PathBuf {
 pub fn data_dir() -> PathBuf {
     match std::env::var_os(DATA_VAR) {
         Some(d) if !d.is_empty() => PathBuf::from(d),
-        _ => workspace_root().join("../shared/data"),
+        _ => {
+            let root = workspace_root();
+            match root.parent() {
+                Some(beside) => beside.join("shared/data"),
+                None => root.join("../shared/data"),
+            }
+        }
     }
 }
 
@@ -130,7 +138,8 @@ mod tests {
         let manifest = std::fs::read_to_string(workspace_root().join("Cargo.toml")).expect("root");
         assert!(manifest.contains("[workspace]") && manifest.contains("crates/testkit"));
         if std::env::var_os(DATA_VAR).is_none() {
-            assert_eq!(data_dir(), workspace_root().join("../shared/data"));
+            let beside = workspace_root().parent().map(|p| p.join("shared/data"));
+            assert_eq!(Some(data_dir()), beside);
         }
     }
 }
