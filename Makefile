@@ -32,7 +32,8 @@ REFERENCE_SKIPS := target/reference-data-skipped.txt
 # threads then slow everything down many times over (results do not depend on it).
 test: setup live-golden
 	@rm -f $(REFERENCE_SKIPS)
-	status=0; OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) PROMPTDT_REFERENCE_SKIP_LOG=$(abspath $(REFERENCE_SKIPS)) $(CARGO) test --release --workspace --no-fail-fast || status=$$?; \
+	@echo "$(CARGO) test --release --workspace --no-fail-fast"
+	@status=0; OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) PROMPTDT_REFERENCE_SKIP_LOG=$(abspath $(REFERENCE_SKIPS)) $(CARGO) test --release --workspace --no-fail-fast || status=$$?; \
 	if [ -s $(REFERENCE_SKIPS) ]; then \
 		echo; \
 		echo "note: $$(sort -u $(REFERENCE_SKIPS) | wc -l) tests skipped what needs the reference release's data (they pass without checking it):"; \
