@@ -126,8 +126,9 @@ pub struct ReproduceArgs {
     /// Directory with the committed agents (`<env>/agent.json`) that collect the datasets.
     #[arg(long, default_value = "pretrained")]
     pub pretrained_root: PathBuf,
-    /// The reference release's prompt files, to normalise the paper's numbers with its experts'
-    /// returns (default: ../shared/data/official-prompts when present).
+    /// The reference release's prompt files (`official-prompts/`): its experts' returns, which
+    /// normalise the paper's numbers, are recomputed from them (default: the numbers committed in
+    /// the manifest, made from the same files).
     #[arg(long)]
     pub reference: Option<PathBuf>,
     /// `jobs`: write one command per run (jobs.txt) and a Slurm array script instead of running.

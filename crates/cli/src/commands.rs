@@ -575,11 +575,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             return Ok(());
         }
     }
-    let reference = a.reference.clone().or_else(|| {
-        let d = PathBuf::from("../shared/data/official-prompts");
-        d.is_dir().then_some(d)
-    });
-    let r = report::report(&m, &p, reference.as_deref())?;
+    // The reference's expert returns are committed in the manifests; `--reference DIR` recomputes
+    // them from the release's prompt files instead, so a DIR that is not there is an error, not a
+    // silent fallback to the committed numbers.
+    if let Some(d) = a.reference.as_deref().filter(|d| !d.is_dir()) {
+        bail!(
+            "--reference {}: not a directory (the reference release's official-prompts/)",
+            d.display()
+        );
+    }
+    let r = report::report(&m, &p, a.reference.as_deref())?;
     out!("{}", r.markdown);
     out!("report: {}", p.report_dir().display());
     Ok(())

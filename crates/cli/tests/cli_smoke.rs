@@ -7,18 +7,19 @@ mod golden;
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{fails, losses, ok, repo, tiny_setup};
+use cli::{check_fails, check_ok, fails, losses, ok, promptdt_in, repo, tiny_setup};
 use std::path::PathBuf;
 use std::process::Command;
 
+/// The reference release's prompt sets, or `None` (the test is skipped; CI requires them).
+#[track_caller]
 fn official() -> Option<PathBuf> {
-    let p = repo("../shared/data/official-prompts");
-    p.is_dir().then_some(p)
+    pdt_testkit::reference::official_prompts()
 }
 
 #[test]
 fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
-    let Some(dir) = official() else { return eprintln!("skipped: ../shared/data not present") };
+    let Some(dir) = official() else { return };
     let d = dir.to_str().unwrap();
     let table = ok(&["data", "inspect", d]);
     assert!(table.contains("42 files, 210 trajectories, 42000 steps"), "{table}");
@@ -42,7 +43,7 @@ fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
 
 #[test]
 fn data_convert_then_inspect_the_native_files() {
-    let Some(dir) = official() else { return eprintln!("skipped: ../shared/data not present") };
+    let Some(dir) = official() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let src = tmp.path().join("src");
     std::fs::create_dir(&src).unwrap();
@@ -366,7 +367,7 @@ fn env_replay_matches_the_python_mujoco_fixture() {
 
 #[test]
 fn cheetah_vel_train_and_eval_on_the_official_prompt_files() {
-    let Some(dir) = official() else { return eprintln!("skipped: ../shared/data not present") };
+    let Some(dir) = official() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let cfg = tmp.path().join("cv.toml");
     let text = format!(
@@ -675,4 +676,88 @@ fn dial_collect_report_replay_train_eval() {
     }
     let ev = ok(&["eval", "--run", run.to_str().unwrap(), "--episodes", "1"]);
     assert!(ev.contains("success") && ev.contains("dial-0"), "{ev}");
+}
+
+/// `reproduce`'s report normalises the paper's values with the reference experts' returns that the
+/// manifest commits, so it is complete in a directory with no `../shared` beside it (it used to
+/// read them from `../shared/data/official-prompts`, relative to the working directory, and leave
+/// the column blank without). `--reference DIR` recomputes them from the release's files, giving
+/// the same numbers, and a DIR that is not there is refused by name.
+#[test]
+fn reproduce_report_normalises_the_paper_without_the_reference_release() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cwd = tmp.path().join("clone"); // nothing beside it: no ../shared
+    std::fs::create_dir(&cwd).unwrap();
+    let out = tmp.path().join("repro");
+    let pretrained = repo("pretrained");
+    let base = [
+        "reproduce",
+        "table1",
+        "--budget",
+        "smoke",
+        "--out",
+        out.to_str().unwrap(),
+        "--pretrained-root",
+        pretrained.to_str().unwrap(),
+        "--jobs",
+        "1",
+        "--threads",
+        "1",
+    ];
+    let run = [&base[..], &["--only", "cheetah_dir/prompt-dt-k1x2/smoke/seed0"]].concat();
+    check_ok(&run, promptdt_in(&cwd, &run));
+    let report_only = [&base[..], &["--report-only"]].concat();
+    check_ok(&report_only, promptdt_in(&cwd, &report_only));
+    let json = out.join("reports/table1-smoke/report.json");
+    let cell = |json: &std::path::Path| -> serde_json::Value {
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+        let cells = r["cells"].as_array().unwrap();
+        cells.iter().find(|c| c["id"] == "cheetah_dir/prompt-dt-k1x2").unwrap().clone()
+    };
+    let c = cell(&json);
+    // 100 (paper - R_random) / (R_expert - R_random), test tasks 0 and 1 averaged: the experts
+    // from table1.toml's [reference_experts.cheetah_dir], the random returns from the data's card.
+    let manifest: toml::Value =
+        toml::from_str(&std::fs::read_to_string(repo("experiments/table1.toml")).unwrap()).unwrap();
+    let experts: Vec<f64> = manifest["reference_experts"]["cheetah_dir"]["returns"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_float().unwrap())
+        .collect();
+    let data = std::fs::read_dir(out.join("data"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.file_name().unwrap().to_string_lossy().starts_with("cheetah_dir"))
+        .unwrap();
+    let card: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(data.join("dataset.json")).unwrap()).unwrap();
+    let random: Vec<f64> = card["tasks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|t| t["files"].as_array().unwrap().iter())
+        .filter(|f| f["mode"] == "random")
+        .map(|f| f["returns"]["mean"].as_f64().unwrap())
+        .collect();
+    assert_eq!((experts.len(), random.len()), (2, 2), "{card}");
+    let (e, r) = ((experts[0] + experts[1]) / 2.0, (random[0] + random[1]) / 2.0);
+    let want = 100.0 * (926.46 - r) / (e - r);
+    let got = c["paper_normalised"].as_f64().unwrap_or_else(|| panic!("no paper_normalised: {c}"));
+    assert!((got - want).abs() < 1e-9, "{got} vs {want}");
+    assert!((got - 101.8).abs() < 5.0, "Table 1's 926.46 is about 102 normalised: {got}");
+    let md = std::fs::read_to_string(out.join("reports/table1-smoke/report.md")).unwrap();
+    assert!(md.contains(&format!("{got:.1}")), "{md}");
+
+    // --reference DIR: the release's files give the same numbers.
+    if let Some(dir) = official() {
+        let with = [&report_only[..], &["--reference", dir.to_str().unwrap()]].concat();
+        check_ok(&with, promptdt_in(&cwd, &with));
+        assert_eq!(cell(&json)["paper_normalised"], c["paper_normalised"]);
+    }
+    let missing = tmp.path().join("no-such-release");
+    let bad = [&report_only[..], &["--reference", missing.to_str().unwrap()]].concat();
+    let e = check_fails(&bad, promptdt_in(&cwd, &bad));
+    assert!(e.contains("--reference") && e.contains("no-such-release"), "{e}");
 }

@@ -15,18 +15,11 @@ use pdt_data::multitask::{
 use pdt_data::native::{read_file_meta, read_task_dataset, write_task_dataset, FileMeta};
 use pdt_data::{TaskDataset, TaskId};
 
-/// The reference release's prompt sets, beside the checkout (see shared/data/README.md).
-const OFFICIAL_PROMPTS: &str =
-    concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data/official-prompts");
-
+/// One of the reference release's prompt sets (`pdt_testkit::reference`), or `None`: the test
+/// then skips the part that needs it (and fails under `PROMPTDT_REQUIRE_REFERENCE_DATA=1`).
+#[track_caller]
 fn official(name: &str) -> Option<PathBuf> {
-    let p = Path::new(OFFICIAL_PROMPTS).join(name);
-    if p.is_file() {
-        Some(p)
-    } else {
-        eprintln!("note: skipping the pickle part: {} not found", p.display());
-        None
-    }
+    pdt_testkit::reference::official_prompt(name)
 }
 
 /// A dataset of task `i` (distinct per task and kind).

@@ -1,6 +1,8 @@
-//! The 42 prompt sets of the reference release (`../shared/data/official-prompts`, beside the
-//! checkout; see its README): read with the safe pickle reader and checked against the README's
-//! shapes and return figures.
+//! The 42 prompt sets of the reference release (`official-prompts/` of its data, found by
+//! `pdt_testkit::reference`: `../shared/data` beside the checkout or `PROMPTDT_REFERENCE_DATA`; see
+//! its README): read with the safe pickle reader and checked against the README's shapes and return
+//! figures. Without the data each test is skipped (and fails under
+//! `PROMPTDT_REQUIRE_REFERENCE_DATA=1`, as in CI).
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -9,12 +11,11 @@ use pdt_data::inspect::{inspect_path, render_table};
 use pdt_data::pickle::{self, PyValue};
 use pdt_data::reference::{load_pickle, ReferenceOptions, TerminalsAs};
 use pdt_data::{native, TaskDataset};
+use pdt_testkit::reference::{official_prompt, official_prompts};
 
-const DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data/official-prompts");
-
-fn official_files() -> Vec<PathBuf> {
-    let mut files: Vec<PathBuf> = fs::read_dir(DIR)
-        .unwrap_or_else(|e| panic!("{DIR}: {e} (the shared data must sit beside the checkout)"))
+fn official_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
         .filter_map(|e| Some(e.ok()?.path()))
         .filter(|p| p.extension().is_some_and(|x| x == "pkl"))
         .collect();
@@ -22,14 +23,15 @@ fn official_files() -> Vec<PathBuf> {
     files
 }
 
-fn load(task: &str) -> TaskDataset {
-    let path = Path::new(DIR).join(format!("{task}-prompt-expert.pkl"));
+fn load(dir: &Path, task: &str) -> TaskDataset {
+    let path = dir.join(format!("{task}-prompt-expert.pkl"));
     load_pickle(&path, &ReferenceOptions::default()).expect("load").dataset
 }
 
 #[test]
 fn all_42_files_load_with_the_documented_layout() {
-    let files = official_files();
+    let Some(dir) = official_prompts() else { return };
+    let files = official_files(&dir);
     assert_eq!(files.len(), 42);
     for path in &files {
         let name = path.display();
@@ -67,10 +69,11 @@ fn all_42_files_load_with_the_documented_layout() {
 
 #[test]
 fn returns_match_the_readme() {
+    let Some(dir) = official_prompts() else { return };
     // The README's figures, rounded to one decimal in the reference notes (cheetah_vel-2:
     // -16.2...-15.7), so each bound is widened by the rounding (0.05).
     let check = |task: &str, lo: f64, hi: f64| {
-        let returns = load(task).returns();
+        let returns = load(&dir, task).returns();
         assert_eq!(returns.len(), 5);
         for r in returns {
             assert!((lo..=hi).contains(&r), "{task}: return {r} outside {lo}..{hi}");
@@ -84,6 +87,7 @@ fn returns_match_the_readme() {
 
 #[test]
 fn returns_match_numpy_exactly() {
+    let Some(dir) = official_prompts() else { return };
     // `x['rewards'].astype(np.float64).sum()` for each trajectory, printed to 4 decimals by numpy
     // 2.4 from the same files.
     let numpy: [(&str, [f64; 5]); 4] = [
@@ -93,7 +97,7 @@ fn returns_match_numpy_exactly() {
         ("cheetah_vel-39", [-57.6704, -57.4809, -57.3046, -56.9641, -56.5647]),
     ];
     for (task, want) in numpy {
-        let got = load(task).returns();
+        let got = load(&dir, task).returns();
         for (g, w) in got.iter().zip(want) {
             assert!((g - w).abs() < 1e-3, "{task}: {got:?} vs numpy {want:?}");
         }
@@ -102,9 +106,10 @@ fn returns_match_numpy_exactly() {
 
 #[test]
 fn next_observations_are_the_observations_shifted_by_one() {
+    let Some(dir) = official_prompts() else { return };
     // An independent check that the array bytes are decoded in the right order: the file stores
     // each state twice, once as `observations[t + 1]` and once as `next_observations[t]`.
-    for path in official_files().iter().step_by(7) {
+    for path in official_files(&dir).iter().step_by(7) {
         let value = pickle::parse(&fs::read(path).expect("read")).expect("parse");
         let PyValue::List(trajs) = value else { panic!("not a list") };
         for traj in &trajs {
@@ -120,7 +125,7 @@ fn next_observations_are_the_observations_shifted_by_one() {
 
 #[test]
 fn terminal_options_change_only_the_flags() {
-    let path = Path::new(DIR).join("cheetah_vel-2-prompt-expert.pkl");
+    let Some(path) = official_prompt("cheetah_vel-2-prompt-expert.pkl") else { return };
     let with =
         |how| load_pickle(&path, &ReferenceOptions { terminals_as: how }).expect("load").dataset;
     let auto = with(TerminalsAs::default());
@@ -138,7 +143,8 @@ fn terminal_options_change_only_the_flags() {
 
 #[test]
 fn inspect_the_directory() {
-    let reports = inspect_path(Path::new(DIR)).expect("inspect");
+    let Some(dir) = official_prompts() else { return };
+    let reports = inspect_path(&dir).expect("inspect");
     assert_eq!(reports.len(), 42);
     let names: Vec<String> = reports
         .iter()
@@ -187,8 +193,8 @@ fn inspect_the_directory() {
 fn inspect_reads_native_files_beside_pickles() {
     // One official file and its native conversion in one directory: both are reported, in
     // natural order, with the same contents.
+    let Some(src) = official_prompt("cheetah_vel-10-prompt-expert.pkl") else { return };
     let dir = tempfile::tempdir().expect("tempdir");
-    let src = Path::new(DIR).join("cheetah_vel-10-prompt-expert.pkl");
     fs::copy(&src, dir.path().join("cheetah_vel-10-prompt-expert.pkl")).expect("copy");
     let ds = load_pickle(&src, &ReferenceOptions::default()).expect("load").dataset;
     let meta = native::FileMeta::new("cheetah_vel", 9, "prompt-expert");

@@ -1,6 +1,6 @@
 //! Checks the cheetah reward functions against data nobody on this project wrote: the reference
-//! release's 42 prompt files (`../shared/data/official-prompts`, recorded with the reference
-//! environments on MuJoCo 2.0). For every transition the reward is recomputed from the recorded
+//! release's 42 prompt files (`official-prompts/`, recorded with the reference environments on
+//! MuJoCo 2.0; found by `pdt_testkit::reference`, and skipped without them except in CI). For every transition the reward is recomputed from the recorded
 //! observations and action with the same functions the environments call
 //! (`cheetah::{dir_reward, vel_reward}`), and compared with the recorded reward.
 //!
@@ -16,7 +16,6 @@ use pdt_data::pickle::{self, PyValue};
 use pdt_data::reference::{load_pickle, ReferenceOptions};
 use pdt_envs::cheetah::{self, DIRECTIONS, VELOCITIES};
 
-const PROMPTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data/official-prompts");
 /// Bound on |recomputed - recorded| over all transitions (see the module docs for the measured max).
 const TOLERANCE: f64 = 1e-4;
 /// With plain `obs[17]` differences (ignoring the stale torso position) the error is far larger.
@@ -79,17 +78,18 @@ fn check_file(path: &Path, reward: &dyn Fn(f64, f64, &[f32]) -> f64, errors: &mu
     }
 }
 
-fn file(name: &str) -> PathBuf {
-    Path::new(PROMPTS).join(format!("{name}-prompt-expert.pkl"))
+fn file(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!("{name}-prompt-expert.pkl"))
 }
 
 #[test]
 fn cheetah_dir_rewards_match_the_reference_data() {
+    let Some(dir) = pdt_testkit::reference::official_prompts() else { return };
     let mut errors = Errors { max: 0.0, max_stale: 0.0, transitions: 0 };
     for (task, &direction) in DIRECTIONS.iter().enumerate() {
         let reward =
             move |x0: f64, x1: f64, a: &[f32]| cheetah::dir_reward(direction, x0, x1, DT, a);
-        check_file(&file(&format!("cheetah_dir-{task}")), &reward, &mut errors);
+        check_file(&file(&dir, &format!("cheetah_dir-{task}")), &reward, &mut errors);
     }
     eprintln!(
         "cheetah_dir: {} transitions, max |error| {:.3e} (plain obs[17]: {:.3e})",
@@ -102,11 +102,12 @@ fn cheetah_dir_rewards_match_the_reference_data() {
 
 #[test]
 fn cheetah_vel_rewards_match_the_reference_data() {
+    let Some(dir) = pdt_testkit::reference::official_prompts() else { return };
     let mut errors = Errors { max: 0.0, max_stale: 0.0, transitions: 0 };
     for (task, &velocity) in VELOCITIES.iter().enumerate() {
         let reward =
             move |x0: f64, x1: f64, a: &[f32]| cheetah::vel_reward(velocity, x0, x1, DT, a);
-        check_file(&file(&format!("cheetah_vel-{task}")), &reward, &mut errors);
+        check_file(&file(&dir, &format!("cheetah_vel-{task}")), &reward, &mut errors);
     }
     eprintln!(
         "cheetah_vel: {} transitions, max |error| {:.3e} (plain obs[17]: {:.3e})",
@@ -119,9 +120,8 @@ fn cheetah_vel_rewards_match_the_reference_data() {
 
 #[test]
 fn task_parameters_match_the_official_file() {
-    let path =
-        concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data/official-task-parameters.json");
-    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let Some(path) = pdt_testkit::reference::task_parameters() else { return };
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let json: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{e}"));
     let floats = |key: &str| -> Vec<f64> {
         json[key]

@@ -48,6 +48,26 @@ pub struct Manifest {
     pub claims: Vec<Claim>,
     pub budgets: BTreeMap<String, Budget>,
     pub cells: Vec<Cell>,
+    /// The reference release's expert return per task of an environment (see
+    /// [`ReferenceExperts`]), keyed by environment: what normalises the paper's values.
+    #[serde(default)]
+    pub reference_experts: BTreeMap<String, ReferenceExperts>,
+}
+
+/// The families the reference release has expert prompt files for (`official-prompts/`).
+pub const REFERENCE_ENVS: [&str; 2] = ["cheetah_dir", "cheetah_vel"];
+
+/// `[reference_experts.<env>]`: the reference release's expert returns, committed as numbers so a
+/// report is complete without the release's files. Generated from the files (`cargo run -p
+/// pdt-repro --example reference_experts`), never typed by hand; `tests/reference_experts.rs`
+/// recomputes them when the files are present.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceExperts {
+    /// The release's files the numbers come from and how they were computed.
+    pub source: String,
+    /// Entry i: task i's expert return (every task of the family, in order).
+    pub returns: Vec<f64>,
 }
 
 /// A statement of the paper the report checks on the measured numbers.
@@ -322,6 +342,25 @@ impl Manifest {
                 }
             }
         }
+        for (env, r) in &self.reference_experts {
+            let at = format!("reference_experts.{env}");
+            let Ok(family) = pdt_envs::family(env) else {
+                return bad(format!("{at}: unknown environment {env:?}"));
+            };
+            if r.returns.len() != family.num_tasks() {
+                return bad(format!(
+                    "{at}.returns: {} values, but {env} has {} tasks",
+                    r.returns.len(),
+                    family.num_tasks()
+                ));
+            }
+            if let Some(i) = r.returns.iter().position(|x| !x.is_finite() || x.abs() > 1e9) {
+                return bad(format!("{at}.returns[{i}] = {}: not a return", r.returns[i]));
+            }
+            if r.source.trim().is_empty() {
+                return bad(format!("{at}.source: empty (name the files the numbers come from)"));
+            }
+        }
         if !self.budgets.contains_key("smoke") {
             return bad("every experiment needs a smoke budget (CI runs it)".into());
         }
@@ -338,6 +377,12 @@ impl Manifest {
         Ok(s)
     }
 
+    /// The reference's expert return of each of `tasks` of `env`, from `[reference_experts]`.
+    pub fn reference_expert_returns(&self, env: &str, tasks: &[usize]) -> Option<Vec<f64>> {
+        let r = self.reference_experts.get(env)?;
+        tasks.iter().map(|t| r.returns.get(*t).copied()).collect()
+    }
+
     pub fn budget(&self, budget: &str) -> Result<&Budget, ReproError> {
         self.budgets.get(budget).ok_or_else(|| ReproError::UnknownBudget {
             experiment: self.name.clone(),
@@ -345,6 +390,61 @@ impl Manifest {
             known: self.budgets.keys().cloned().collect(),
         })
     }
+}
+
+/// Task `t`'s expert return as the reference release's prompt file gives it: the mean episode
+/// return of `{dir}/{env}-{t}-prompt-expert.pkl` (rewards summed in f64), the figure
+/// `[reference_experts]` commits and `--reference DIR` recomputes.
+pub fn reference_expert_return(dir: &Path, env: &str, t: usize) -> Result<f64, ReproError> {
+    inspect_prompt_file(dir, env, t).map(|r| r.return_mean)
+}
+
+fn inspect_prompt_file(
+    dir: &Path,
+    env: &str,
+    t: usize,
+) -> Result<pdt_data::inspect::FileReport, ReproError> {
+    let path = dir.join(format!("{env}-{t}-prompt-expert.pkl"));
+    pdt_data::inspect::inspect_file(&path)
+        .map_err(|e| ReproError::Invalid(format!("{}: {e}", path.display())))
+}
+
+/// The `[reference_experts.<env>]` tables of `envs`, from the release's `official-prompts/` in
+/// `dir`, as the manifests commit them (between the `# BEGIN reference_experts` and
+/// `# END reference_experts` lines).
+pub fn render_reference_experts(dir: &Path, envs: &[&str]) -> Result<String, ReproError> {
+    let mut out = String::from(
+        "# BEGIN reference_experts: generated from the reference release's official-prompts/ by\n\
+         # `cargo run --release -p pdt-repro --example reference_experts -- DIR`; do not edit by hand.\n\
+         # The report normalises the paper's values with them (docs/reproduce.md).\n",
+    );
+    for env in envs {
+        let n = pdt_envs::family(env).map_err(|e| ReproError::Invalid(e.to_string()))?.num_tasks();
+        let mut shapes = std::collections::BTreeSet::new();
+        let mut returns = Vec::with_capacity(n);
+        for t in 0..n {
+            let r = inspect_prompt_file(dir, env, t)?;
+            shapes.insert((r.trajectories, r.length_min, r.length_max));
+            returns.push(r.return_mean);
+        }
+        let episodes = match shapes.into_iter().collect::<Vec<_>>()[..] {
+            [(k, lo, hi)] if lo == hi => format!("{k} episodes of {lo} steps"),
+            _ => "episodes".to_string(),
+        };
+        out.push_str(&format!(
+            "[reference_experts.{env}]\nsource = \"official-prompts/{env}-{{0..{}}}-prompt-expert.pkl \
+             of the reference release (mxu34/prompt-dt): per task, the mean return of the file's \
+             {episodes} (rewards summed in f64)\"\nreturns = [\n",
+            n - 1
+        ));
+        for (t, r) in returns.iter().enumerate() {
+            // `{:?}` prints the shortest decimal that parses back to the same f64.
+            out.push_str(&format!("    {r:?}, # task {t}\n"));
+        }
+        out.push_str("]\n");
+    }
+    out.push_str("# END reference_experts\n");
+    Ok(out)
 }
 
 /// A method name `pdt-train` knows.
@@ -374,6 +474,48 @@ mod tests {
             for b in ["paper", "cpu", "smoke"] {
                 assert!(m.budgets.contains_key(b), "{name}: no {b} budget");
             }
+        }
+    }
+
+    #[test]
+    fn every_builtin_manifest_has_the_reference_experts_of_its_cheetah_cells() {
+        for (name, text) in BUILTIN {
+            let m = Manifest::parse(text, name).unwrap_or_else(|e| panic!("{name}: {e}"));
+            for c in m.cells.iter().filter(|c| c.pending.is_none()) {
+                if REFERENCE_ENVS.contains(&c.env.as_str()) {
+                    assert!(m.reference_experts.contains_key(&c.env), "{name}: {}", c.env);
+                    let test = pdt_envs::family(&c.env).and_then(|f| f.split("default"));
+                    let (_, test) = test.unwrap_or_else(|e| panic!("{name}: {e}"));
+                    assert!(m.reference_expert_returns(&c.env, &test).is_some(), "{name}");
+                }
+            }
+            for env in m.reference_experts.keys() {
+                assert!(REFERENCE_ENVS.contains(&env.as_str()), "{name}: {env}");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_reference_experts_are_refused_by_name() {
+        let base = "name = 't'\ntitle = 't'\ndescription = 't'\nlayout = 'table'\n\
+                    [budgets.smoke]\nnote = 'n'\n[[cells]]\nenv = 'cheetah_dir'\nmethod = 'mt-orl'\n";
+        let parse = |extra: &str| Manifest::parse(&format!("{base}{extra}"), "t");
+        assert!(
+            parse("[reference_experts.cheetah_dir]\nsource = 's'\nreturns = [1.0, 2.0]\n").is_ok()
+        );
+        for (extra, want) in [
+            ("[reference_experts.cheetah_dir]\nsource = 's'\nreturns = [1.0]\n", "1 values"),
+            ("[reference_experts.cheetah_dir]\nsource = 's'\nreturns = [1.0, nan]\n", "returns[1]"),
+            (
+                "[reference_experts.cheetah_dir]\nsource = 's'\nreturns = [1.0, 1e300]\n",
+                "returns[1]",
+            ),
+            ("[reference_experts.cheetah_dir]\nsource = ' '\nreturns = [1.0, 2.0]\n", "source"),
+            ("[reference_experts.cheetah]\nsource = 's'\nreturns = [1.0]\n", "unknown environment"),
+            ("[reference_experts.cheetah_dir]\nreturns = [1.0, 2.0]\n", "source"),
+        ] {
+            let err = parse(extra).expect_err(extra).to_string();
+            assert!(err.contains(want) && err.contains("reference_experts"), "{extra}: {err}");
         }
     }
 

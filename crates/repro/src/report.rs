@@ -172,16 +172,22 @@ pub fn baselines(data_dir: &Path) -> Result<Baselines, ReproError> {
     Ok(b)
 }
 
-/// The reference release's expert return per task (its prompt files), where they exist.
-fn reference_experts(dir: Option<&Path>, env: &str, tasks: &[usize]) -> Option<Vec<f64>> {
-    let dir = dir?;
-    tasks
-        .iter()
-        .map(|t| {
-            let p = dir.join(format!("{env}-{t}-prompt-expert.pkl"));
-            pdt_data::inspect::inspect_file(&p).ok().map(|r| r.return_mean)
-        })
-        .collect()
+/// The reference release's expert return per task, where it is known: recomputed from its prompt
+/// files in `dir` (`--reference DIR`) when they are there, else the numbers the manifest commits
+/// (`[reference_experts]`, made from the same files), so a report needs no file of the release.
+fn reference_experts(
+    m: &Manifest,
+    dir: Option<&Path>,
+    env: &str,
+    tasks: &[usize],
+) -> Option<Vec<f64>> {
+    let from_files = dir.and_then(|dir| {
+        tasks
+            .iter()
+            .map(|t| crate::manifest::reference_expert_return(dir, env, *t).ok())
+            .collect::<Option<Vec<f64>>>()
+    });
+    from_files.or_else(|| m.reference_expert_returns(env, tasks))
 }
 
 fn normalise(r: f64, expert: f64, random: f64) -> f64 {
@@ -316,7 +322,7 @@ pub fn report(
             let randoms: Option<Vec<f64>> =
                 test_tasks.iter().map(|t| b.random.get(t).copied()).collect();
             if let (Some(rand), Some(exp)) =
-                (randoms, reference_experts(reference_dir, &cell.env, &test_tasks))
+                (randoms, reference_experts(m, reference_dir, &cell.env, &test_tasks))
             {
                 let (r, e) = (mean(&rand), mean(&exp));
                 res.paper_normalised = Some(normalise(p, e, r));

@@ -1,0 +1,8 @@
+//! `pdt-testkit`: helpers for the workspace's tests, written once. Only ever a dev-dependency; it is
+//! not published and no library or binary links it.
+//!
+//! [`reference`]: where the reference release's data is (`../shared/data` beside the checkout, or
+//! `PROMPTDT_REFERENCE_DATA`), and what a test does without it: skip, say so, and record the skip
+//! for the `make test` notice; or fail, where `PROMPTDT_REQUIRE_REFERENCE_DATA=1` (CI).
+
+pub mod reference;
