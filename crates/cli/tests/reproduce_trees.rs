@@ -96,6 +96,7 @@ struct CellJson {
     status: String,
     ours: Option<StatJson>,
     ours_normalised: Option<StatJson>,
+    #[serde(default)]
     problems: Vec<String>,
 }
 
