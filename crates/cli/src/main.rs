@@ -94,7 +94,10 @@ fn die_with_parent() {
                 Err(_) => break,
             }
         }
-        eprintln!("promptdt: the parent process is gone; stopping");
+        // Not `eprintln!`: standard error is often a pipe to the parent that died, and
+        // `eprintln!` panics when the write fails, which would end this thread, not the process.
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), "promptdt: the parent process is gone; stopping");
         std::process::exit(1);
     });
 }
