@@ -531,3 +531,29 @@ pub fn emit_jobs(
     )?;
     Ok(vec![jobs, slurm])
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stale_data_temps_go_and_live_ones_stay() {
+        let d = tempfile::tempdir().expect("tempdir");
+        let names = [".cheetah_dir-e2.tmp-123", ".ant_dir.tmp-456", "cheetah_dir-e2", ".x.tmp-abc"];
+        for n in names {
+            std::fs::create_dir(d.path().join(n)).expect("mkdir");
+        }
+        // A collection in progress in another process: it holds its lock.
+        let live = std::fs::File::create(d.path().join(".ant_dir.tmp-456.lock")).expect("lock");
+        live.try_lock().expect("locked");
+        let removed = remove_stale_data_temps(d.path()).expect("cleanup");
+        assert_eq!(removed, vec![d.path().join(".cheetah_dir-e2.tmp-123")]);
+        assert!(!d.path().join(".cheetah_dir-e2.tmp-123.lock").exists());
+        for n in &names[1..] {
+            assert!(d.path().join(n).is_dir(), "{n} was removed");
+        }
+        assert!(remove_stale_data_temps(&d.path().join("missing")).expect("none").is_empty());
+        assert!(is_data_temp(".point_robot-e2.tmp-9") && !is_data_temp(".tmp-9"));
+        assert!(!is_data_temp("point_robot.tmp-9") && !is_data_temp(".a.tmp-"));
+    }
+}
