@@ -270,6 +270,20 @@ fn identity(c: &TrainConfig) -> toml::Value {
     toml::Value::try_from(&c).unwrap_or(toml::Value::Boolean(false))
 }
 
+/// A run's recorded configuration; the error names the file (once: the parser's errors may
+/// already).
+fn read_config(path: &Path) -> Result<TrainConfig, String> {
+    TrainConfig::from_file(path).map_err(|e| {
+        let m = e.to_string();
+        let p = path.display().to_string();
+        if m.contains(&p) {
+            m
+        } else {
+            format!("{p}: {m}")
+        }
+    })
+}
+
 /// `p` with symbolic links and `..` resolved where it exists (two spellings of one directory
 /// compare equal), as given otherwise.
 fn canonical(p: &Path) -> PathBuf {
@@ -285,8 +299,7 @@ pub fn moved_data(spec: &RunSpec) -> Result<Option<PathBuf>, ReproError> {
     if !path.is_file() {
         return Ok(None);
     }
-    let recorded = TrainConfig::from_file(&path)
-        .map_err(|e| ReproError::Invalid(format!("{}: {e}", path.display())))?;
+    let recorded = read_config(&path).map_err(ReproError::Invalid)?;
     Ok((canonical(&recorded.data.dir) != canonical(&spec.data.dir)).then_some(recorded.data.dir))
 }
 
@@ -314,8 +327,7 @@ impl DataCheck {
             .map_err(|e| format!("{}: {e}", stats_path.display()))?;
         let stats: pdt_train::run::TaskStats =
             serde_json::from_str(&text).map_err(|e| format!("{}: {e}", stats_path.display()))?;
-        let c = TrainConfig::from_file(&spec.dir.join("config.toml"))
-            .map_err(|e| format!("{}: {e}", spec.dir.join("config.toml").display()))?;
+        let c = read_config(&spec.dir.join("config.toml"))?;
         let family = pdt_envs::family(&c.env.name).map_err(|e| e.to_string())?;
         let (train, test) = family.split(&c.env.split).map_err(|e| e.to_string())?;
         let sets = [
@@ -411,8 +423,7 @@ pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
         return Ok(RunState::New);
     }
     let recorded_path = spec.dir.join("config.toml");
-    let recorded = TrainConfig::from_file(&recorded_path)
-        .map_err(|e| ReproError::Invalid(format!("{}: {e}", recorded_path.display())))?;
+    let recorded = read_config(&recorded_path).map_err(ReproError::Invalid)?;
     let mut diff = Vec::new();
     differing(&identity(&recorded), &identity(&spec.config), "", &mut diff);
     if !diff.is_empty() {
