@@ -457,6 +457,30 @@ fn counts_of_zero_are_refused() {
     }
 }
 
+/// The case the property below found: a finished run's `eval.jsonl` cut inside its last
+/// evaluation (some of its test tasks' lines lost) made a cell `ran` on the mean of the tasks
+/// left. It is left out and named; a running run's incomplete last evaluation is not shown.
+#[test]
+fn a_finished_run_with_its_last_evaluation_cut_is_named() {
+    let (_keep, m, tree) = finished_tree();
+    let tmp = tempfile::tempdir().unwrap();
+    let copy = tmp.path().join("copy");
+    copy_tree(tree, &copy);
+    let eval = copy.join("runs").join(KEYS[2]).join("eval.jsonl");
+    let text = std::fs::read_to_string(&eval).unwrap();
+    std::fs::write(&eval, &text[..text.len() - 10]).unwrap();
+    reproduce_ok(m, &copy, &["--report-only"]);
+    let r = report_json(&copy);
+    let cell = r.cells.iter().find(|c| c.id == "point_robot/mt-orl").unwrap();
+    assert_eq!(cell.status, "ran: 1 of 2 seeds read", "{cell:?}");
+    assert!(
+        cell.problems.iter().any(|p| p.starts_with(KEYS[2])
+            && p.contains("eval.jsonl")
+            && p.contains("test tasks of iteration 2")),
+        "{cell:?}"
+    );
+}
+
 /// The run files a report reads or that a copy can lose, and the data's card.
 const FILES: &[&str] = &[
     "config.toml",

@@ -173,9 +173,26 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
         Ok(e) => e,
         Err(e) => return Seen::Problem(e.to_string()),
     };
+    // An evaluation writes one line per test task: one with fewer was cut short (a kill, or a
+    // copy taken while the run wrote it), and its mean would be over some tasks only.
+    let tasks = pdt_envs::family(&r.config.env.name)
+        .and_then(|f| f.split(&r.config.env.split))
+        .map(|(_, test)| test.len())
+        .unwrap_or(0);
+    let complete = |e: &BTreeMap<usize, f64>| e.len() >= tasks;
     match state {
-        RunState::New if evals.is_empty() => Seen::NotStarted,
-        RunState::New | RunState::Partial { .. } => Seen::Running(evals),
+        RunState::New | RunState::Partial { .. } => {
+            // A running run may be writing its last evaluation now: show the one before.
+            let mut evals = evals;
+            while evals.last_key_value().is_some_and(|(_, e)| !complete(e)) {
+                evals.pop_last();
+            }
+            if evals.is_empty() {
+                Seen::NotStarted
+            } else {
+                Seen::Running(evals)
+            }
+        }
         RunState::Finished => {
             if let Err(why) = data.check(r) {
                 return Seen::Problem(why);
@@ -184,9 +201,15 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
             // (or left out of a copy). Its earlier evaluations would pass for the final result.
             let n = r.config.train.iterations;
             let path = r.dir.join("eval.jsonl");
-            match evals.keys().next_back() {
-                Some(&last) if last >= n => Seen::Finished(evals),
-                Some(&last) => Seen::Problem(format!(
+            match evals.last_key_value() {
+                Some((&last, e)) if last >= n && !complete(e) => Seen::Problem(format!(
+                    "finished, but {} has {} of the {tasks} test tasks of iteration {last}'s \
+                     evaluation (cut short?)",
+                    path.display(),
+                    e.len()
+                )),
+                Some((&last, _)) if last >= n => Seen::Finished(evals),
+                Some((&last, _)) => Seen::Problem(format!(
                     "finished, but {} ends at iteration {last}'s evaluation, not {n}'s (cut short?)",
                     path.display()
                 )),
