@@ -14,6 +14,10 @@ use std::path::PathBuf;
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
+    /// Stop when standard input reaches its end: `reproduce` gives its `collect` and `train`
+    /// children a pipe it holds, so they stop when it dies, however it dies.
+    #[arg(long, global = true, hide = true)]
+    pub die_with_parent: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -105,15 +109,15 @@ pub struct ReproduceArgs {
     /// paper, cpu or smoke (see the manifest).
     #[arg(long, default_value = "cpu")]
     pub budget: String,
-    /// Seeds per cell (default: the budget's).
-    #[arg(long)]
+    /// Seeds per cell (default: the budget's). 0 would plan nothing and report an empty table.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub seeds: Option<u32>,
     /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given. Default:
     /// one per core on the CPU, 2 on a GPU (both measured fastest: BENCHMARKS.md).
-    #[arg(long)]
+    #[arg(long, value_parser = count(1, 1024))]
     pub jobs: Option<usize>,
     /// libtorch threads per run.
-    #[arg(long)]
+    #[arg(long, value_parser = count(1, 1024))]
     pub threads: Option<usize>,
     #[arg(long, default_value = "auto")]
     pub device: pdt_model::device::DeviceSpec,

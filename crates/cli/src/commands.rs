@@ -457,13 +457,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     // Cheetah-Dir runs at once made 1.7x the iterations per hour of one alone, and four no more.
     let on_gpu = matches!(pdt_model::device::resolve(a.device), Ok(d) if d.is_cuda());
     let jobs = match a.jobs {
-        Some(0) => bail!("--jobs must be at least 1"),
         Some(j) => j,
         None if on_gpu => 2,
         None => cores,
     };
     let threads = match a.threads {
-        Some(0) => bail!("--threads must be at least 1"),
         Some(t) => t,
         None => (cores / jobs).max(1),
     };
@@ -541,18 +539,26 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 pb.set_length(pr.iterations_total);
                 pb.set_position(pr.iterations_done);
                 pb.set_message(format!(
-                    "runs {}/{} done{}",
+                    "runs {}/{} done{}{}",
                     pr.runs_finished,
                     pr.runs_total,
                     if pr.running.is_empty() {
                         String::new()
                     } else {
                         format!(", running {}", pr.running.join(" "))
+                    },
+                    if pr.waiting.is_empty() {
+                        String::new()
+                    } else {
+                        format!(", waiting for {} (another process has it)", pr.waiting.join(" "))
                     }
                 ));
             }
         })?;
         pb.finish_and_clear();
+        for t in &summary.removed_temps {
+            out!("removed {}, left by a killed collection", t.display());
+        }
         out!(
             "{}: {} runs already finished, {} started, {} resumed, {} failed",
             p.experiment,
@@ -561,6 +567,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             summary.resumed,
             summary.failed.len()
         );
+        if !summary.waited.is_empty() {
+            // Another process (a second `reproduce` on this --out, or a `train` on the run) had
+            // them: not failed, and not run twice.
+            out!(
+                "waited for {} runs another process had ({} finished there): {}",
+                summary.waited.len(),
+                summary.finished_elsewhere,
+                summary.waited.join(" ")
+            );
+        }
         for (k, msg) in &summary.failed {
             eprintln!("run {k} failed: {msg}");
         }

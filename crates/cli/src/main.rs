@@ -75,7 +75,37 @@ fn error_chain(e: &anyhow::Error) -> String {
     out
 }
 
+/// `--die-with-parent`: `reproduce` holds the write end of a pipe that is this process's standard
+/// input and never writes to it. When `reproduce` dies, however it dies (even SIGKILL), the kernel
+/// closes that end and the read here ends: stop, so no child outlives a killed sweep. Whatever this
+/// process was writing is safe: every file goes through the atomic writer, and its temporaries
+/// are removed on the next start (`docs/failure-behaviour.md`). (A pipe rather than
+/// `prctl(PR_SET_PDEATHSIG)`: that needs unsafe code.)
+fn die_with_parent() {
+    std::thread::spawn(|| {
+        use std::io::Read as _;
+        let mut stdin = std::io::stdin().lock();
+        let mut buf = [0_u8; 64];
+        loop {
+            match stdin.read(&mut buf) {
+                Ok(0) => break,
+                Ok(_) => {}
+                Err(e) if e.kind() == ErrorKind::Interrupted => {}
+                Err(_) => break,
+            }
+        }
+        // Not `eprintln!`: standard error is often a pipe to the parent that died, and
+        // `eprintln!` panics when the write fails, which would end this thread, not the process.
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), "promptdt: the parent process is gone; stopping");
+        std::process::exit(1);
+    });
+}
+
 fn run(cli: Cli) -> Result<()> {
+    if cli.die_with_parent {
+        die_with_parent();
+    }
     match cli.command {
         Command::Data(DataCommand::Inspect(a)) => {
             let reports = pdt_data::inspect::inspect_path(&a.path)?;

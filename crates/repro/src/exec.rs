@@ -37,6 +37,8 @@ pub struct Progress {
     pub iterations_total: u64,
     /// Keys of the runs in progress.
     pub running: Vec<String>,
+    /// Keys of the runs another process holds, waited for.
+    pub waiting: Vec<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -54,11 +56,21 @@ pub struct ExecSummary {
     pub resumed: usize,
     /// `(run key, message)` for every run whose process failed; the others still ran.
     pub failed: Vec<(String, String)>,
+    /// Runs another process held when this one came to them, waited for.
+    pub waited: Vec<String>,
+    /// Of the runs waited for, those the other process finished.
+    pub finished_elsewhere: usize,
+    /// Temporary data directories of a killed `reproduce`, removed.
+    pub removed_temps: Vec<PathBuf>,
 }
 
 /// Collects `d` unless its `dataset.json` is there: into a temporary directory beside it, renamed
 /// into place at the end, so a killed collection leaves nothing half-written and two processes
 /// collecting the same data (identical bytes) cannot collide.
+///
+/// While it collects, this process holds a lock on `.<name>.tmp-<pid>.lock` beside the temporary
+/// directory: a later `reproduce` removes a temporary directory whose lock is free (its collector
+/// is dead, [`remove_stale_data_temps`]) and leaves a live one alone.
 pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError> {
     if d.dir.join("dataset.json").is_file() {
         return Ok(false);
@@ -68,9 +80,27 @@ pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError>
         .map_err(|e| ReproError::Io { path: parent.into(), source: e })?;
     let name = d.dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+    let lock_path = lock_path_of(&tmp);
+    let lock = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&lock_path)
+        .map_err(|e| ReproError::Io { path: lock_path.clone(), source: e })?;
+    // Our own pid's name: no other live process uses it, so this cannot block.
+    lock.try_lock().map_err(|e| ReproError::Io { path: lock_path.clone(), source: e.into() })?;
+    let result = collect_into(d, &tmp, opts);
     let _ = std::fs::remove_dir_all(&tmp);
+    let _ = std::fs::remove_file(&lock_path);
+    drop(lock);
+    result
+}
+
+fn collect_into(d: &DataSpec, tmp: &Path, opts: &ExecOptions) -> Result<bool, ReproError> {
+    let _ = std::fs::remove_dir_all(tmp);
     let mut cmd = Command::new(&opts.exe);
-    cmd.args(["collect", "--env", &d.env, "--out"]).arg(&tmp);
+    cmd.arg(DIE_WITH_PARENT).args(["collect", "--env", &d.env, "--out"]).arg(tmp);
     // Families with scripted policies collect from those; the others from their committed agents.
     if pdt_envs::collect_scripted::ScriptedFamily::from_name(&d.env).is_none() {
         cmd.arg("--from-pretrained").arg("--pretrained-dir").arg(opts.pretrained_root.join(&d.env));
@@ -86,25 +116,98 @@ pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError>
         // runnable (measured: 19.7 s against 1.0 s for the smoke datasets of Cheetah-Dir).
         cmd.env("OMP_WAIT_POLICY", p);
     }
+    let (stdin, _parent_end) = parent_pipe(&opts.exe)?;
     let out = cmd
-        .stdin(Stdio::null())
+        .stdin(stdin)
         .output()
         .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
     if !out.status.success() {
-        let _ = std::fs::remove_dir_all(&tmp);
         return Err(ReproError::Child {
             what: format!("collecting {} into {}", d.env, d.dir.display()),
             message: String::from_utf8_lossy(&out.stderr).trim().to_string(),
         });
     }
-    if let Err(e) = std::fs::rename(&tmp, &d.dir) {
-        let _ = std::fs::remove_dir_all(&tmp);
+    if let Err(e) = std::fs::rename(tmp, &d.dir) {
         // Another process finished the same collection first: its files are the same.
         if !d.dir.join("dataset.json").is_file() {
             return Err(ReproError::Io { path: d.dir.clone(), source: e });
         }
     }
     Ok(true)
+}
+
+/// The global flag that makes a `promptdt` child stop when its standard input reaches its end,
+/// which happens when the parent holding the pipe's other end dies, however it dies (even
+/// SIGKILL): no `collect` or `train` child outlives a killed `reproduce`. (A pipe rather than
+/// `prctl(PR_SET_PDEATHSIG)`, which needs unsafe code.)
+pub const DIE_WITH_PARENT: &str = "--die-with-parent";
+
+/// A pipe whose read end is a child's standard input and whose write end this process keeps (and
+/// never writes to) for as long as the child should live. std opens both ends close-on-exec, so no
+/// other child inherits the write end and keeps a sibling alive.
+fn parent_pipe(exe: &Path) -> Result<(Stdio, std::io::PipeWriter), ReproError> {
+    let (reader, writer) =
+        std::io::pipe().map_err(|e| ReproError::Io { path: exe.to_path_buf(), source: e })?;
+    Ok((reader.into(), writer))
+}
+
+/// The lock file of a temporary data directory: `.<name>.tmp-<pid>.lock` beside it.
+fn lock_path_of(tmp: &Path) -> PathBuf {
+    let mut name = tmp.file_name().unwrap_or_default().to_os_string();
+    name.push(".lock");
+    tmp.with_file_name(name)
+}
+
+/// Whether `name` is a temporary data directory's name, `.<name>.tmp-<pid>`.
+fn is_data_temp(name: &str) -> bool {
+    let Some(rest) = name.strip_prefix('.') else { return false };
+    let Some((stem, pid)) = rest.rsplit_once(".tmp-") else { return false };
+    !stem.is_empty() && !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit())
+}
+
+/// Removes the temporary data directories in `root` that a killed `reproduce` left behind (their
+/// lock is free: the kernel released it when the collector died), with their lock files; a
+/// collection in progress in another process holds its lock and is left alone. Returns the
+/// directories removed.
+pub fn remove_stale_data_temps(root: &Path) -> Result<Vec<PathBuf>, ReproError> {
+    let entries = match std::fs::read_dir(root) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(ReproError::Io { path: root.into(), source: e }),
+    };
+    let mut removed = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| ReproError::Io { path: root.into(), source: e })?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let path = entry.path();
+        // Only directories of our own naming: `--data-root` may hold other things.
+        if !is_data_temp(name) || !path.is_dir() {
+            continue;
+        }
+        let lock_path = lock_path_of(&path);
+        let io = |e| ReproError::Io { path: lock_path.clone(), source: e };
+        let lock = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&lock_path)
+            .map_err(io)?;
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => continue,
+            Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
+        }
+        match std::fs::remove_dir_all(&path) {
+            Ok(()) => removed.push(path),
+            // Its collector renamed it into place between our listing and our lock.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(ReproError::Io { path, source: e }),
+        }
+        let _ = std::fs::remove_file(&lock_path);
+    }
+    Ok(removed)
 }
 
 fn write_atomic(path: &Path, text: &str) -> Result<(), ReproError> {
@@ -115,20 +218,29 @@ fn write_atomic(path: &Path, text: &str) -> Result<(), ReproError> {
     pdt_base::fs::write_atomic(path, text.as_bytes()).map_err(io)
 }
 
-/// The command line that runs (or resumes) one run.
-fn command(spec: &RunSpec, state: RunState, opts: &ExecOptions) -> Command {
+/// The command line that runs (or resumes) one run. A run resumed in a copied or moved tree (or
+/// with another `--data-root`) is pointed at the plan's data (`--data`): `train` checks that they
+/// are the data the run trained on (their fingerprints) and records the new place.
+fn command(spec: &RunSpec, state: RunState, opts: &ExecOptions) -> Result<Command, ReproError> {
     let mut cmd = Command::new(&opts.exe);
+    cmd.arg(DIE_WITH_PARENT);
     match state {
         RunState::New => {
             cmd.arg("train").arg("--config").arg(&spec.config_path).arg("--out").arg(&spec.dir)
         }
-        _ => cmd.arg("train").arg("--resume").arg(&spec.dir),
+        _ => {
+            cmd.arg("train").arg("--resume").arg(&spec.dir);
+            if plan::moved_data(spec)?.is_some() {
+                cmd.arg("--data").arg(&spec.data.dir);
+            }
+            &mut cmd
+        }
     };
     cmd.arg("--quiet");
     if let Some(p) = &opts.omp_wait_policy {
         cmd.env("OMP_WAIT_POLICY", p);
     }
-    cmd
+    Ok(cmd)
 }
 
 /// Iterations a run has finished, from the line count of its `metrics.jsonl` (cheap to poll).
@@ -139,7 +251,46 @@ fn iterations_done(spec: &RunSpec) -> u64 {
         .min(spec.config.train.iterations)
 }
 
+/// The name of the lock a `reproduce` process holds on a run directory while its child trains
+/// there (beside `train`'s own `.lock`, which the child takes: one process cannot hold that for
+/// another).
+pub const CLAIM_FILE: &str = ".reproduce.lock";
+
+/// Takes a run for this process: `None` when another process has it, either another `reproduce`
+/// (its claim, [`CLAIM_FILE`]) or a `train` of its own (the run directory's `.lock`). The claim is
+/// held until the returned file is dropped; the kernel releases it when this process dies.
+fn claim(spec: &RunSpec) -> Result<Option<std::fs::File>, ReproError> {
+    let dir = &spec.dir;
+    std::fs::create_dir_all(dir).map_err(|e| ReproError::Io { path: dir.clone(), source: e })?;
+    let path = dir.join(CLAIM_FILE);
+    let io = |e| ReproError::Io { path: path.clone(), source: e };
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .map_err(io)?;
+    match file.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => return Ok(None),
+        Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
+    }
+    // A `train` run by hand on this directory: probe its lock, and let go of it at once (the
+    // child takes it).
+    match pdt_base::fs::DirLock::try_acquire(dir) {
+        Ok(probe) => drop(probe),
+        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return Ok(None),
+        Err(e) => return Err(ReproError::Io { path: dir.join(".lock"), source: e }),
+    }
+    Ok(Some(file))
+}
+
 /// Runs the plan's datasets and unfinished runs; `only` restricts it to one run key.
+///
+/// A run another process holds (another `reproduce` on the same `--out`, or a `train` on its
+/// directory) is waited for, not run twice: once it is free, it is counted as finished if the
+/// other process finished it, and resumed if not (that process was stopped).
 pub fn execute(
     plan: &Plan,
     only: Option<&str>,
@@ -164,13 +315,18 @@ pub fn execute(
     // Iterations done per run: read once here, then only for the runs in progress (a paper sweep
     // has dozens of metrics files of thousands of lines; the finished ones do not change).
     let mut done: Vec<u64> = runs.iter().map(|r| iterations_done(r)).collect();
-    let report = |stage: Stage, finished: usize, running: Vec<String>, done: &[u64]| Progress {
+    let report = |stage: Stage,
+                  finished: usize,
+                  running: Vec<String>,
+                  waiting: Vec<String>,
+                  done: &[u64]| Progress {
         stage,
         runs_total: runs.len(),
         runs_finished: finished,
         iterations_done: done.iter().sum(),
         iterations_total: total,
         running,
+        waiting,
     };
 
     let mut data: Vec<DataSpec> = Vec::new();
@@ -179,37 +335,79 @@ pub fn execute(
             data.push(r.data.clone());
         }
     }
-    for d in &data {
-        progress(&report(Stage::Data(d.env.clone()), 0, Vec::new(), &done));
-        ensure_data(d, opts)?;
-    }
-
-    let mut queue: Vec<(usize, &RunSpec, RunState)> = Vec::new();
-    for (i, (r, s)) in runs.iter().zip(&states).enumerate() {
-        match s {
-            RunState::Finished => summary.already_finished += 1,
-            RunState::Partial { .. } => {
-                summary.resumed += 1;
-                queue.push((i, r, *s));
-            }
-            RunState::New => {
-                summary.started += 1;
-                let text = r
-                    .config
-                    .to_toml()
-                    .map_err(|e| ReproError::Invalid(format!("run {}: {e}", r.key)))?;
-                write_atomic(&r.config_path, &text)?;
-                queue.push((i, r, *s));
+    // What a killed `reproduce` left of its collections (its `collect` child died with it).
+    let mut roots: Vec<PathBuf> = Vec::new();
+    for d in plan.data() {
+        if let Some(root) = d.dir.parent() {
+            if !roots.iter().any(|r| r == root) {
+                roots.push(root.to_path_buf());
             }
         }
     }
-    queue.reverse(); // pop() takes them in plan order
-    let mut running: Vec<(usize, &RunSpec, Child)> = Vec::new();
+    for root in &roots {
+        summary.removed_temps.extend(remove_stale_data_temps(root)?);
+    }
+    for d in &data {
+        progress(&report(Stage::Data(d.env.clone()), 0, Vec::new(), Vec::new(), &done));
+        ensure_data(d, opts)?;
+    }
+
+    // Runs to do, in plan order; a run another process holds goes to `waiting` and is tried
+    // again every poll.
+    let mut queue: std::collections::VecDeque<(usize, &RunSpec)> =
+        std::collections::VecDeque::new();
+    for (i, (r, s)) in runs.iter().zip(&states).enumerate() {
+        match s {
+            RunState::Finished => summary.already_finished += 1,
+            RunState::Partial { .. } | RunState::New => queue.push_back((i, r)),
+        }
+    }
+    let mut waiting: Vec<(usize, &RunSpec)> = Vec::new();
+    let mut waited: Vec<String> = Vec::new();
+    let mut running: Vec<(usize, &RunSpec, Child, std::fs::File, std::io::PipeWriter)> = Vec::new();
     let mut finished = summary.already_finished;
     let mut last = Instant::now() - Duration::from_secs(10);
     loop {
+        // The runs that waited come first: they are the older ones in plan order.
+        let mut candidates: std::collections::VecDeque<(usize, &RunSpec)> =
+            waiting.drain(..).collect();
         while running.len() < opts.jobs.max(1) {
-            let Some((index, spec, state)) = queue.pop() else { break };
+            let Some((index, spec)) = candidates.pop_front().or_else(|| queue.pop_front()) else {
+                break;
+            };
+            let Some(claimed) = claim(spec)? else {
+                if !waited.contains(&spec.key) {
+                    waited.push(spec.key.clone());
+                }
+                waiting.push((index, spec));
+                continue;
+            };
+            // Read again now that it is ours: another process may have finished or advanced it.
+            let state = match plan::state(spec) {
+                Ok(s) => s,
+                Err(e) => {
+                    summary.failed.push((spec.key.clone(), e.to_string()));
+                    finished += 1;
+                    continue;
+                }
+            };
+            match state {
+                RunState::Finished => {
+                    summary.finished_elsewhere += 1;
+                    finished += 1;
+                    done[index] = iterations_done(spec);
+                    continue;
+                }
+                RunState::Partial { .. } => summary.resumed += 1,
+                RunState::New => {
+                    summary.started += 1;
+                    let text = spec
+                        .config
+                        .to_toml()
+                        .map_err(|e| ReproError::Invalid(format!("run {}: {e}", spec.key)))?;
+                    write_atomic(&spec.config_path, &text)?;
+                }
+            }
             if let Some(p) = spec.log_path.parent() {
                 std::fs::create_dir_all(p)
                     .map_err(|e| ReproError::Io { path: p.into(), source: e })?;
@@ -222,22 +420,25 @@ pub fn execute(
             let err = log
                 .try_clone()
                 .map_err(|e| ReproError::Io { path: spec.log_path.clone(), source: e })?;
-            let child = command(spec, state, opts)
-                .stdin(Stdio::null())
+            let (stdin, parent_end) = parent_pipe(&opts.exe)?;
+            let child = command(spec, state, opts)?
+                .stdin(stdin)
                 .stdout(log)
                 .stderr(err)
                 .spawn()
                 .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
-            running.push((index, spec, child));
+            running.push((index, spec, child, claimed, parent_end));
         }
-        if running.is_empty() {
+        // Runs not reached this time (every job slot busy) wait their turn again.
+        waiting.extend(candidates);
+        if running.is_empty() && waiting.is_empty() && queue.is_empty() {
             break;
         }
         let mut i = 0;
         while i < running.len() {
             match running[i].2.try_wait() {
                 Ok(Some(status)) => {
-                    let (index, spec, _) = running.swap_remove(i);
+                    let (index, spec, ..) = running.swap_remove(i);
                     done[index] = iterations_done(spec);
                     finished += 1;
                     if !status.success() {
@@ -258,20 +459,22 @@ pub fn execute(
             }
         }
         if last.elapsed() >= Duration::from_secs(2) {
-            for (index, spec, _) in &running {
+            for (index, spec, ..) in &running {
                 done[*index] = iterations_done(spec);
             }
             progress(&report(
                 Stage::Training,
                 finished,
-                running.iter().map(|(_, s, _)| s.key.clone()).collect(),
+                running.iter().map(|(_, s, ..)| s.key.clone()).collect(),
+                waiting.iter().map(|(_, s)| s.key.clone()).collect(),
                 &done,
             ));
             last = Instant::now();
         }
         std::thread::sleep(Duration::from_millis(200));
     }
-    progress(&report(Stage::Done, finished, Vec::new(), &done));
+    summary.waited = waited;
+    progress(&report(Stage::Done, finished, Vec::new(), Vec::new(), &done));
     Ok(summary)
 }
 
@@ -327,4 +530,30 @@ pub fn emit_jobs(
         ),
     )?;
     Ok(vec![jobs, slurm])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stale_data_temps_go_and_live_ones_stay() {
+        let d = tempfile::tempdir().expect("tempdir");
+        let names = [".cheetah_dir-e2.tmp-123", ".ant_dir.tmp-456", "cheetah_dir-e2", ".x.tmp-abc"];
+        for n in names {
+            std::fs::create_dir(d.path().join(n)).expect("mkdir");
+        }
+        // A collection in progress in another process: it holds its lock.
+        let live = std::fs::File::create(d.path().join(".ant_dir.tmp-456.lock")).expect("lock");
+        live.try_lock().expect("locked");
+        let removed = remove_stale_data_temps(d.path()).expect("cleanup");
+        assert_eq!(removed, vec![d.path().join(".cheetah_dir-e2.tmp-123")]);
+        assert!(!d.path().join(".cheetah_dir-e2.tmp-123.lock").exists());
+        for n in &names[1..] {
+            assert!(d.path().join(n).is_dir(), "{n} was removed");
+        }
+        assert!(remove_stale_data_temps(&d.path().join("missing")).expect("none").is_empty());
+        assert!(is_data_temp(".point_robot-e2.tmp-9") && !is_data_temp(".tmp-9"));
+        assert!(!is_data_temp("point_robot.tmp-9") && !is_data_temp(".a.tmp-"));
+    }
 }

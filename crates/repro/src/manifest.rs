@@ -333,6 +333,19 @@ impl Manifest {
                     return bad(format!("budget {name}: rule names unknown cell {c}"));
                 }
             }
+            // Counts where 0 means nothing: no seeds plans no run (an empty report that reads as
+            // a success), no episodes collects no data. The training settings are validated with
+            // each run's configuration.
+            for s in std::iter::once(&b.settings).chain(b.rules.iter().map(|r| &r.settings)) {
+                let zero = [
+                    ("seeds", s.seeds.map(u64::from)),
+                    ("data_episodes", s.data_episodes.map(|v| v as u64)),
+                    ("prompt_set_episodes", s.prompt_set_episodes.map(|v| v as u64)),
+                ];
+                if let Some((key, _)) = zero.iter().find(|(_, v)| *v == Some(0)) {
+                    return bad(format!("budget {name}: {key} must be at least 1, got 0"));
+                }
+            }
         }
         for claim in &self.claims {
             let named = claim.a.iter().chain(claim.b.iter()).chain(claim.cells.iter());

@@ -252,16 +252,139 @@ pub fn config_for(
     Ok(c)
 }
 
-/// A configuration without what does not change a run's meaning (its thread count) and with the
-/// data directory made absolute, as TOML.
+/// A configuration without what does not change a run's meaning (its thread count), as TOML.
+///
+/// Of the data directory only its name (`<env>[-e<episodes>]`, which says what was collected) is
+/// kept: where a tree's data lie is not part of a run's identity. A run records its data
+/// directory as an absolute path, so a copied or moved tree (or one read with another
+/// `--data-root`) names a place that is gone or belongs to another tree; what matters is the
+/// data's content, which is checked by its fingerprint ([`check_data`]; `train --resume --data`
+/// checks it too).
 fn identity(c: &TrainConfig) -> toml::Value {
     let mut c = c.clone();
     c.run.threads = 0;
     c.run.device = DeviceSpec::default();
     // How often a resume point is written changes no result (resuming is byte-identical).
     c.train.resume_interval = 0;
-    c.data.dir = std::fs::canonicalize(&c.data.dir).unwrap_or(c.data.dir);
+    c.data.dir = c.data.dir.file_name().map(PathBuf::from).unwrap_or_default();
     toml::Value::try_from(&c).unwrap_or(toml::Value::Boolean(false))
+}
+
+/// A run's recorded configuration; the error names the file (once: the parser's errors may
+/// already).
+fn read_config(path: &Path) -> Result<TrainConfig, String> {
+    TrainConfig::from_file(path).map_err(|e| {
+        let m = e.to_string();
+        let p = path.display().to_string();
+        if m.contains(&p) {
+            m
+        } else {
+            format!("{p}: {m}")
+        }
+    })
+}
+
+/// `p` with symbolic links and `..` resolved where it exists (two spellings of one directory
+/// compare equal), as given otherwise.
+fn canonical(p: &Path) -> PathBuf {
+    std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf())
+}
+
+/// The data directory a run's `config.toml` records, when it is not the one the plan gives it
+/// (the tree was copied or moved, or `--data-root` names another place): resuming the run must
+/// then point it at the plan's (`train --resume --data`), and a finished run's data are checked by
+/// fingerprint. `None` when they are the same place or the run has no `config.toml` yet.
+pub fn moved_data(spec: &RunSpec) -> Result<Option<PathBuf>, ReproError> {
+    let path = spec.dir.join("config.toml");
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let recorded = read_config(&path).map_err(ReproError::Invalid)?;
+    Ok((canonical(&recorded.data.dir) != canonical(&spec.data.dir)).then_some(recorded.data.dir))
+}
+
+/// Fingerprints of the data in the plan's data directories, computed once per directory, task
+/// list and kind of data (a paper sweep has dozens of runs on the same data).
+#[derive(Debug, Default)]
+pub struct DataCheck {
+    fingerprints: std::collections::BTreeMap<String, Result<String, String>>,
+}
+
+impl DataCheck {
+    /// Checks that the plan's data of `spec` are the data the run trained on: the content
+    /// fingerprints it recorded in `task_stats.json` (runs made before fingerprints were recorded
+    /// have none, and pass). Only runs whose data moved are checked ([`moved_data`]); for the
+    /// others the data are where the run found them. `Err` says what differs, naming the files.
+    pub fn check(&mut self, spec: &RunSpec) -> Result<(), String> {
+        let Some(was) = moved_data(spec).map_err(|e| e.to_string())? else { return Ok(()) };
+        // No data here at all (a tree copied without them): nothing to mistake for the run's
+        // data; the report names the missing card where it needs it.
+        if !spec.data.dir.is_dir() {
+            return Ok(());
+        }
+        let stats_path = spec.dir.join("task_stats.json");
+        let text = pdt_base::fs::read_text_limited(&stats_path, pdt_base::fs::MAX_TEXT_BYTES)
+            .map_err(|e| format!("{}: {e}", stats_path.display()))?;
+        let stats: pdt_train::run::TaskStats =
+            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", stats_path.display()))?;
+        let c = read_config(&spec.dir.join("config.toml"))?;
+        let family = pdt_envs::family(&c.env.name).map_err(|e| e.to_string())?;
+        let (train, test) = family.split(&c.env.split).map_err(|e| e.to_string())?;
+        let sets = [
+            (
+                "training",
+                train,
+                &c.data.dataset_mode,
+                &c.data.prompt_mode,
+                &stats.train_data_fingerprint,
+            ),
+            (
+                "test",
+                test,
+                &c.data.test_dataset_mode,
+                &c.data.test_prompt_mode,
+                &stats.test_data_fingerprint,
+            ),
+        ];
+        for (which, tasks, dataset_mode, prompt_mode, recorded) in sets {
+            if recorded.is_empty() {
+                continue;
+            }
+            let key = format!(
+                "{}|{}|{tasks:?}|{dataset_mode}|{prompt_mode}|{:?}",
+                spec.data.dir.display(),
+                family.name(),
+                c.data.format
+            );
+            let now = self
+                .fingerprints
+                .entry(key)
+                .or_insert_with(|| {
+                    let ds = pdt_data::multitask::DatasetSpec {
+                        dir: spec.data.dir.clone(),
+                        env: family.name().to_string(),
+                        tasks: tasks.clone(),
+                        dataset_mode: dataset_mode.clone(),
+                        prompt_mode: prompt_mode.clone(),
+                        format: c.data.format,
+                    };
+                    pdt_data::multitask::load_multitask(&ds)
+                        .map(|d| d.fingerprint())
+                        .map_err(|e| e.to_string())
+                })
+                .clone()?;
+            if &now != recorded {
+                return Err(format!(
+                    "the {which} data in {} differ from what the run trained on in {} ({}: \
+                     {recorded}, now {now}); --data-root names where the run's data are",
+                    spec.data.dir.display(),
+                    was.display(),
+                    stats_path.display()
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Keys whose values differ between two TOML documents (dotted paths).
@@ -286,12 +409,21 @@ fn differing(a: &toml::Value, b: &toml::Value, at: &str, out: &mut Vec<String>) 
 /// same configuration (apart from the thread count).
 pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
     let latest = spec.dir.join("checkpoints").join("latest.json");
-    if !latest.is_file() {
+    if !latest.exists() {
+        // A run that reached its end lost its commit record (a copy that left it out): it is
+        // neither new (starting it again would overwrite its logs) nor running.
+        if let Some(evidence) = reached_end(spec) {
+            return Err(ReproError::Invalid(format!(
+                "{}: the run reached its last iteration ({evidence}), but {} is missing; restore \
+                 it, or move the run away to start it again",
+                spec.dir.display(),
+                latest.display()
+            )));
+        }
         return Ok(RunState::New);
     }
     let recorded_path = spec.dir.join("config.toml");
-    let recorded = TrainConfig::from_file(&recorded_path)
-        .map_err(|e| ReproError::Invalid(format!("{}: {e}", recorded_path.display())))?;
+    let recorded = read_config(&recorded_path).map_err(ReproError::Invalid)?;
     let mut diff = Vec::new();
     differing(&identity(&recorded), &identity(&spec.config), "", &mut diff);
     if !diff.is_empty() {
@@ -310,4 +442,27 @@ pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
     } else {
         RunState::Partial { iteration: l.iteration }
     })
+}
+
+/// What shows that a run without `checkpoints/latest.json` reached its last iteration, if
+/// anything does: an evaluation of that iteration or its metrics line.
+fn reached_end(spec: &RunSpec) -> Option<String> {
+    let n = spec.config.train.iterations;
+    let read = |name: &str| {
+        pdt_base::fs::read_text_limited(&spec.dir.join(name), pdt_base::fs::MAX_TEXT_BYTES).ok()
+    };
+    #[derive(serde::Deserialize)]
+    struct Line {
+        iteration: u64,
+    }
+    let iterations = |text: &str| -> Option<u64> {
+        text.lines().filter_map(|l| serde_json::from_str::<Line>(l).ok()).map(|l| l.iteration).max()
+    };
+    if read("eval.jsonl").and_then(|t| iterations(&t)).is_some_and(|i| i >= n) {
+        return Some(format!("eval.jsonl has iteration {n}'s evaluation"));
+    }
+    if read("metrics.jsonl").and_then(|t| iterations(&t)).is_some_and(|i| i >= n) {
+        return Some(format!("metrics.jsonl has iteration {n}"));
+    }
+    None
 }

@@ -29,7 +29,9 @@ pub struct CellResult {
     pub row: Option<String>,
     pub column: Option<String>,
     /// `ran`, `partial` (no run finished yet: the running ones are shown), `partial: N of M seeds
-    /// finished` (only the finished ones are shown), `no results yet`, or why the cell was not run.
+    /// finished` (only the finished ones are shown), `ran: N of M seeds read` (every run finished
+    /// or unreadable, see `problems`), `not read: N of M seeds`, `no results yet`, or why the cell
+    /// was not run.
     pub status: String,
     /// Seeds in the result: the finished ones, or while none has finished, those with at least one
     /// test evaluation.
@@ -57,6 +59,9 @@ pub struct CellResult {
     pub within_paper_std: Option<bool>,
     /// `(iteration, mean over seeds, std)` of the average test return.
     pub curve: Vec<(u64, f64, f64)>,
+    /// What could not be read, by run key and file: a run left out of the result, or the dataset
+    /// card the normalised scores need.
+    pub problems: Vec<String>,
 }
 
 /// A checked claim.
@@ -112,9 +117,9 @@ fn last_success(dir: &Path) -> Option<f64> {
 }
 
 /// Per test iteration, task index -> return.
-fn read_evals(dir: &Path) -> Result<BTreeMap<u64, BTreeMap<usize, f64>>, ReproError> {
+fn read_evals(dir: &Path) -> Result<Evals, ReproError> {
     let path = dir.join("eval.jsonl");
-    let mut out: BTreeMap<u64, BTreeMap<usize, f64>> = BTreeMap::new();
+    let mut out: Evals = BTreeMap::new();
     let text = match pdt_base::fs::read_text_limited(&path, pdt_base::fs::MAX_TEXT_BYTES) {
         Ok(t) => t,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(out),
@@ -142,6 +147,80 @@ fn read_evals(dir: &Path) -> Result<BTreeMap<u64, BTreeMap<usize, f64>>, ReproEr
         }
     }
     Ok(out)
+}
+
+/// Per test iteration, task index -> return.
+type Evals = BTreeMap<u64, BTreeMap<usize, f64>>;
+
+/// What the report makes of one run.
+enum Seen {
+    /// Finished, with its evaluations (the last one is of its last iteration).
+    Finished(Evals),
+    /// Still to finish, with the evaluations so far.
+    Running(Evals),
+    /// Nothing yet.
+    NotStarted,
+    /// Cannot be read: what is missing or wrong, naming the file.
+    Problem(String),
+}
+
+fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
+    let state = match plan::state(r) {
+        Ok(s) => s,
+        Err(e) => return Seen::Problem(e.to_string()),
+    };
+    let evals = match read_evals(&r.dir) {
+        Ok(e) => e,
+        Err(e) => return Seen::Problem(e.to_string()),
+    };
+    // An evaluation writes one line per test task: one with fewer was cut short (a kill, or a
+    // copy taken while the run wrote it), and its mean would be over some tasks only.
+    let tasks = pdt_envs::family(&r.config.env.name)
+        .and_then(|f| f.split(&r.config.env.split))
+        .map(|(_, test)| test.len())
+        .unwrap_or(0);
+    let complete = |e: &BTreeMap<usize, f64>| e.len() >= tasks;
+    match state {
+        RunState::New | RunState::Partial { .. } => {
+            // A running run may be writing its last evaluation now: show the one before.
+            let mut evals = evals;
+            while evals.last_key_value().is_some_and(|(_, e)| !complete(e)) {
+                evals.pop_last();
+            }
+            if evals.is_empty() {
+                Seen::NotStarted
+            } else {
+                Seen::Running(evals)
+            }
+        }
+        RunState::Finished => {
+            if let Err(why) = data.check(r) {
+                return Seen::Problem(why);
+            }
+            // A finished run evaluates its last iteration; an `eval.jsonl` without it was cut
+            // (or left out of a copy). Its earlier evaluations would pass for the final result.
+            let n = r.config.train.iterations;
+            let path = r.dir.join("eval.jsonl");
+            match evals.last_key_value() {
+                Some((&last, e)) if last >= n && !complete(e) => Seen::Problem(format!(
+                    "finished, but {} has {} of the {tasks} test tasks of iteration {last}'s \
+                     evaluation (cut short?)",
+                    path.display(),
+                    e.len()
+                )),
+                Some((&last, _)) if last >= n => Seen::Finished(evals),
+                Some((&last, _)) => Seen::Problem(format!(
+                    "finished, but {} ends at iteration {last}'s evaluation, not {n}'s (cut short?)",
+                    path.display()
+                )),
+                None if path.exists() => Seen::Problem(format!(
+                    "finished, but {} has no test evaluation",
+                    path.display()
+                )),
+                None => Seen::Problem(format!("finished, but {} is missing", path.display())),
+            }
+        }
+    }
 }
 
 /// Expert and random mean return per task index, from a dataset card.
@@ -202,7 +281,8 @@ pub fn report(
 ) -> Result<Report, ReproError> {
     let budget = m.budget(&plan.budget)?;
     let mut cells = Vec::new();
-    let mut base_cache: BTreeMap<PathBuf, Baselines> = BTreeMap::new();
+    let mut base_cache: BTreeMap<PathBuf, Result<Baselines, String>> = BTreeMap::new();
+    let mut data_check = plan::DataCheck::default();
     for (i, cell) in m.cells.iter().enumerate() {
         let mut res = CellResult {
             id: cell.id(),
@@ -225,6 +305,7 @@ pub fn report(
             paper_normalised_std: None,
             within_paper_std: None,
             curve: Vec::new(),
+            problems: Vec::new(),
         };
         let test_tasks = pdt_envs::family(&cell.env)
             .and_then(|f| f.split(cell.split.as_deref().unwrap_or("default")))
@@ -239,27 +320,41 @@ pub fn report(
         let Some(first) = runs.first() else { continue };
         res.iterations_planned = Some(first.config.train.iterations);
         let base = match base_cache.get(&first.data.dir) {
-            Some(b) => Some(b.clone()),
-            None => match baselines(&first.data.dir) {
-                Ok(b) => {
-                    base_cache.insert(first.data.dir.clone(), b.clone());
-                    Some(b)
-                }
-                Err(_) => None,
-            },
+            Some(b) => b.clone(),
+            None => {
+                let b = baselines(&first.data.dir).map_err(|e| e.to_string());
+                base_cache.insert(first.data.dir.clone(), b.clone());
+                b
+            }
+        };
+        // Without the dataset card there is no normalised score: say which card is missing (a
+        // tree copied without its data, or a `--data-root` that names another place).
+        let (base, base_missing) = match base {
+            Ok(b) => (Some(b), None),
+            Err(why) => (None, Some(why)),
         };
         // While a sweep runs, its finished seeds are the cell's result and the seeds still running
         // are left out (their last evaluation is from an earlier iteration: mixing them in would
         // average a 2000-iteration model with a 1-iteration one). With no seed finished yet, the
-        // running ones are shown, marked partial.
-        let finished: Vec<bool> =
-            runs.iter().map(|r| matches!(plan::state(r), Ok(RunState::Finished))).collect();
-        let n_finished = finished.iter().filter(|f| **f).count();
-        let used: Vec<&plan::RunSpec> = runs
+        // running ones are shown, marked partial. A run that cannot be read (a half-written or
+        // half-copied tree) is neither: it is left out and named.
+        let seen: Vec<Seen> = runs.iter().map(|r| classify(r, &mut data_check)).collect();
+        let n_finished = seen.iter().filter(|s| matches!(s, Seen::Finished(_))).count();
+        let n_waiting =
+            seen.iter().filter(|s| matches!(s, Seen::Running(_) | Seen::NotStarted)).count();
+        for (r, s) in runs.iter().zip(&seen) {
+            if let Seen::Problem(why) = s {
+                res.problems.push(format!("{}: {why}", r.key));
+            }
+        }
+        let used: Vec<(&plan::RunSpec, &Evals)> = runs
             .iter()
-            .zip(&finished)
-            .filter(|(_, f)| n_finished == 0 || **f)
-            .map(|(r, _)| *r)
+            .zip(&seen)
+            .filter_map(|(r, s)| match s {
+                Seen::Finished(e) => Some((*r, e)),
+                Seen::Running(e) if n_finished == 0 => Some((*r, e)),
+                _ => None,
+            })
             .collect();
         // Per seed: the last evaluation, and every evaluation for the curve.
         let mut finals = Vec::new();
@@ -267,8 +362,7 @@ pub fn report(
         let mut successes = Vec::new();
         let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
         let mut last_iter: Option<u64> = None;
-        for r in &used {
-            let evals = read_evals(&r.dir)?;
+        for (r, evals) in &used {
             let Some((&it, last)) = evals.iter().next_back() else { continue };
             last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
             let avg = last.values().sum::<f64>() / last.len() as f64;
@@ -291,6 +385,10 @@ pub fn report(
             );
         }
         res.seeds = finals.len();
+        if let (Some(why), false) = (base_missing, finals.is_empty()) {
+            res.problems
+                .push(format!("no normalised score: {why} (--data-root names where the data are)"));
+        }
         res.seeds_finished = n_finished;
         res.iteration = last_iter;
         res.ours = Stat::of(&finals);
@@ -299,14 +397,21 @@ pub fn report(
         if successes.len() == finals.len() {
             res.success = Stat::of(&successes);
         }
-        res.status = if res.seeds == 0 {
-            "no results yet".into()
-        } else if n_finished == runs.len() {
+        // `partial` only while a seed is still to run: a finished run is never called partial,
+        // and one that cannot be read is counted apart (and named in `problems`).
+        let n_problems = runs.len() - n_finished - n_waiting;
+        res.status = if n_finished == runs.len() {
             "ran".into()
-        } else if n_finished == 0 {
-            "partial".into()
-        } else {
+        } else if n_finished > 0 && n_waiting == 0 {
+            format!("ran: {n_finished} of {} seeds read", runs.len())
+        } else if n_finished > 0 {
             format!("partial: {n_finished} of {} seeds finished", runs.len())
+        } else if res.seeds > 0 {
+            "partial".into()
+        } else if n_problems > 0 {
+            format!("not read: {n_problems} of {} seeds", runs.len())
+        } else {
+            "no results yet".into()
         };
         if let Some(first_curve) = curves.first() {
             for it in first_curve.keys() {
@@ -582,6 +687,14 @@ fn markdown(m: &Manifest, r: &Report) -> String {
             let _ = writeln!(s, "| {row} | {} |", line.join(" | "));
         }
     }
+    if r.cells.iter().any(|c| !c.problems.is_empty()) {
+        let _ = writeln!(s, "\n## What could not be read\n");
+        for c in &r.cells {
+            for p in &c.problems {
+                let _ = writeln!(s, "- `{}`: {p}", c.id);
+            }
+        }
+    }
     if !r.claims.is_empty() {
         let _ = writeln!(s, "\n## The paper's claims, on these numbers\n");
         for c in &r.claims {
@@ -667,6 +780,7 @@ mod tests {
             paper_normalised_std: None,
             within_paper_std: None,
             curve: vec![],
+            problems: vec![],
         }
     }
 
