@@ -36,7 +36,7 @@ test: setup live-golden
 	@status=0; OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) PROMPTDT_REFERENCE_SKIP_LOG=$(abspath $(REFERENCE_SKIPS)) $(CARGO) test --release --workspace --no-fail-fast || status=$$?; \
 	if [ -s $(REFERENCE_SKIPS) ]; then \
 		echo; \
-		echo "note: $$(sort -u $(REFERENCE_SKIPS) | wc -l) tests skipped what needs the reference release's data (they pass without checking it):"; \
+		echo "note: $$(sort -u $(REFERENCE_SKIPS) | wc -l) tests skipped what needs the reference release's data (the whole test, or the part that reads it):"; \
 		echo "  it is not at $${PROMPTDT_REFERENCE_DATA:-../shared/data}."; \
 		echo "  Put it there or set PROMPTDT_REFERENCE_DATA=DIR to run them (docs/reproduce.md, 'Reference data')."; \
 		sort -u $(REFERENCE_SKIPS) | sed 's/^/  - /'; \
