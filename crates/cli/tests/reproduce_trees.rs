@@ -75,8 +75,6 @@ fn manifest(dir: &Path, name: &str, text: &str) -> PathBuf {
 fn reproduce(m: &Path, out: &Path, more: &[&str]) -> std::process::Output {
     let mut args = vec!["reproduce", s(m), "--budget", "smoke", "--out", s(out), "--jobs", "2"];
     args.extend(more);
-    args.push("--reference");
-    args.push("/nonexistent");
     promptdt(&args)
 }
 
@@ -262,7 +260,6 @@ fn hold_lock(run: &Path) -> std::fs::File {
 fn spawn_reproduce(m: &Path, out: &Path) -> Child {
     Command::new(env!("CARGO_BIN_EXE_promptdt"))
         .args(["reproduce", s(m), "--budget", "smoke", "--out", s(out), "--jobs", "2"])
-        .args(["--reference", "/nonexistent"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
