@@ -171,23 +171,29 @@ pub struct DirLock {
     path: PathBuf,
 }
 
+/// An advisory lock (`flock`) on the file at `path` (created if missing, never truncated), taken
+/// without waiting: `Ok(None)` when another process holds it. Held until the file is dropped;
+/// the kernel releases it when the process dies.
+pub fn try_lock_file(path: &Path) -> io::Result<Option<File>> {
+    let file = OpenOptions::new().read(true).write(true).create(true).truncate(false).open(path)?;
+    match file.try_lock() {
+        Ok(()) => Ok(Some(file)),
+        Err(std::fs::TryLockError::WouldBlock) => Ok(None),
+        Err(std::fs::TryLockError::Error(e)) => Err(e),
+    }
+}
+
 impl DirLock {
     /// Takes the lock without waiting; `Err` with kind `WouldBlock` when another process holds it.
     pub fn try_acquire(dir: &Path) -> io::Result<Self> {
         let path = dir.join(".lock");
-        let file =
-            OpenOptions::new().read(true).write(true).create(true).truncate(false).open(&path)?;
-        match file.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => {
-                return Err(io::Error::new(
-                    io::ErrorKind::WouldBlock,
-                    "is in use by another promptdt process",
-                ))
-            }
-            Err(std::fs::TryLockError::Error(e)) => return Err(e),
+        match try_lock_file(&path)? {
+            Some(file) => Ok(Self { _file: file, path }),
+            None => Err(io::Error::new(
+                io::ErrorKind::WouldBlock,
+                "is in use by another promptdt process",
+            )),
         }
-        Ok(Self { _file: file, path })
     }
 
     pub fn path(&self) -> &Path {

@@ -5,7 +5,9 @@
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{check_fails, check_ok, fails, losses, ok, promptdt_in, repo, tiny_data, tiny_setup};
+use cli::{
+    check_fails, check_ok, edit_task0, fails, losses, ok, promptdt_in, repo, tiny_data, tiny_setup,
+};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -207,19 +209,6 @@ fn case_05_and_06_settings_are_validated_by_name() {
         "2147483648",
     ]);
     assert!(e.contains("between 1 and 1024"), "{e}");
-}
-
-/// Rewrites every file of task 0 in `data` through `f`.
-fn edit_task0(data: &Path, f: impl Fn(&mut pdt_data::Trajectory)) {
-    for mode in ["expert", "prompt-expert"] {
-        let path = data.join(format!("point_robot-0-{mode}.safetensors"));
-        let meta = pdt_data::native::read_file_meta(&path).unwrap();
-        let mut ds = pdt_data::native::read_task_dataset(&path).unwrap();
-        for t in &mut ds.trajectories {
-            f(t);
-        }
-        pdt_data::native::write_task_dataset(&path, &ds, &meta).unwrap();
-    }
 }
 
 /// 5. Data that would train on NaN: refused when read, or stopped at the first non-finite loss.

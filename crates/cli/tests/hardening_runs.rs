@@ -5,7 +5,7 @@
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{fails, losses, ok, tiny_setup};
+use cli::{edit_task0, fails, losses, ok, tiny_setup};
 use std::path::{Path, PathBuf};
 
 fn s(p: &Path) -> &str {
@@ -105,19 +105,6 @@ fn run_01_target_return_beyond_the_return_tokens_range_is_refused() {
             && e.contains("weights"),
         "{e}"
     );
-}
-
-/// Rewrites every file of task 0 in `data` through `f`.
-fn edit_task0(data: &Path, f: impl Fn(&mut pdt_data::Trajectory)) {
-    for mode in ["expert", "prompt-expert"] {
-        let path = data.join(format!("point_robot-0-{mode}.safetensors"));
-        let meta = pdt_data::native::read_file_meta(&path).unwrap();
-        let mut ds = pdt_data::native::read_task_dataset(&path).unwrap();
-        for t in &mut ds.trajectories {
-            f(t);
-        }
-        pdt_data::native::write_task_dataset(&path, &ds, &meta).unwrap();
-    }
 }
 
 /// Item 2: State statistics that overflow or are absurd are refused, naming the task's file, the

@@ -81,15 +81,12 @@ pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError>
     let name = d.dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
     let lock_path = lock_path_of(&tmp);
-    let lock = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&lock_path)
+    // Our own pid's name: no other live process uses it, so this cannot be held elsewhere.
+    let lock = pdt_base::fs::try_lock_file(&lock_path)
+        .and_then(|l| {
+            l.ok_or_else(|| std::io::Error::new(std::io::ErrorKind::WouldBlock, "held elsewhere"))
+        })
         .map_err(|e| ReproError::Io { path: lock_path.clone(), source: e })?;
-    // Our own pid's name: no other live process uses it, so this cannot block.
-    lock.try_lock().map_err(|e| ReproError::Io { path: lock_path.clone(), source: e.into() })?;
     let result = collect_into(d, &tmp, opts);
     let _ = std::fs::remove_dir_all(&tmp);
     let _ = std::fs::remove_file(&lock_path);
@@ -186,19 +183,12 @@ pub fn remove_stale_data_temps(root: &Path) -> Result<Vec<PathBuf>, ReproError> 
             continue;
         }
         let lock_path = lock_path_of(&path);
-        let io = |e| ReproError::Io { path: lock_path.clone(), source: e };
-        let lock = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&lock_path)
-            .map_err(io)?;
-        match lock.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => continue,
-            Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
-        }
+        // Held (by its live collector): leave it. Ours is kept until the tree is gone.
+        let Some(_lock) = pdt_base::fs::try_lock_file(&lock_path)
+            .map_err(|e| ReproError::Io { path: lock_path.clone(), source: e })?
+        else {
+            continue;
+        };
         match std::fs::remove_dir_all(&path) {
             Ok(()) => removed.push(path),
             // Its collector renamed it into place between our listing and our lock.
@@ -263,19 +253,11 @@ fn claim(spec: &RunSpec) -> Result<Option<std::fs::File>, ReproError> {
     let dir = &spec.dir;
     std::fs::create_dir_all(dir).map_err(|e| ReproError::Io { path: dir.clone(), source: e })?;
     let path = dir.join(CLAIM_FILE);
-    let io = |e| ReproError::Io { path: path.clone(), source: e };
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .open(&path)
-        .map_err(io)?;
-    match file.try_lock() {
-        Ok(()) => {}
-        Err(std::fs::TryLockError::WouldBlock) => return Ok(None),
-        Err(std::fs::TryLockError::Error(e)) => return Err(io(e)),
-    }
+    let Some(file) = pdt_base::fs::try_lock_file(&path)
+        .map_err(|e| ReproError::Io { path: path.clone(), source: e })?
+    else {
+        return Ok(None);
+    };
     // A `train` run by hand on this directory: probe its lock, and let go of it at once (the
     // child takes it).
     match pdt_base::fs::DirLock::try_acquire(dir) {

@@ -201,9 +201,9 @@ fn load(
     crate::run::check_log_counts(
         &state_path,
         state.iteration,
-        (state.metrics_lines, state.eval_lines),
-        &setup.cfg,
-        (setup.test_data.tasks.len(), setup.train_data.tasks.len()),
+        state.metrics_lines,
+        state.eval_lines,
+        setup,
     )?;
     load_weights(&ck.join(&latest.model), mdl)?;
     let path = ck.join(&latest.state);

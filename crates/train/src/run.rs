@@ -929,13 +929,7 @@ fn load_checkpoint(
             ),
         ));
     }
-    check_log_counts(
-        &state_path,
-        state.iteration,
-        (state.metrics_lines, state.eval_lines),
-        &setup.cfg,
-        (setup.test_data.tasks.len(), setup.train_data.tasks.len()),
-    )?;
+    check_log_counts(&state_path, state.iteration, state.metrics_lines, state.eval_lines, setup)?;
     if let Some((name, n)) = state.adam_steps.iter().find(|(_, &n)| n != state.step) {
         return Err(corrupt(
             &state_path,
@@ -973,10 +967,11 @@ fn load_checkpoint(
 pub(crate) fn check_log_counts(
     state_path: &Path,
     iteration: u64,
-    (metrics_lines, eval_lines): (usize, usize),
-    cfg: &TrainConfig,
-    (test_tasks, train_tasks): (usize, usize),
+    metrics_lines: usize,
+    eval_lines: usize,
+    setup: &Setup,
 ) -> Result<(), RunError> {
+    let (test_tasks, train_tasks) = (setup.test_data.tasks.len(), setup.train_data.tasks.len());
     let corrupt = |message: String| RunError::Corrupt { path: state_path.into(), message };
     if metrics_lines as u64 != iteration {
         return Err(corrupt(format!(
@@ -987,7 +982,7 @@ pub(crate) fn check_log_counts(
     }
     // Evaluations after iterations 1, 1 + n, ... up to `iteration`.
     let scheduled = |n: u64| if iteration == 0 || n == 0 { 0 } else { (iteration - 1) / n + 1 };
-    let t = &cfg.train;
+    let t = &setup.cfg.train;
     let least = scheduled(t.test_eval_interval)
         .saturating_mul(test_tasks as u64)
         .saturating_add(scheduled(t.train_eval_interval).saturating_mul(train_tasks as u64));

@@ -102,6 +102,19 @@ pub fn tiny_setup(dir: &Path) -> PathBuf {
     cfg
 }
 
+/// Rewrites every file of task 0 in `data` (from [`tiny_data`]) through `f`.
+pub fn edit_task0(data: &Path, f: impl Fn(&mut pdt_data::Trajectory)) {
+    for mode in ["expert", "prompt-expert"] {
+        let path = data.join(format!("point_robot-0-{mode}.safetensors"));
+        let meta = pdt_data::native::read_file_meta(&path).unwrap();
+        let mut ds = pdt_data::native::read_task_dataset(&path).unwrap();
+        for t in &mut ds.trajectories {
+            f(t);
+        }
+        pdt_data::native::write_task_dataset(&path, &ds, &meta).unwrap();
+    }
+}
+
 /// The training losses of a run (its metrics lines without the wall-clock field).
 pub fn losses(run: &Path) -> Vec<String> {
     std::fs::read_to_string(run.join("metrics.jsonl"))
