@@ -5,7 +5,9 @@
 //!   temporary files a killed writer left behind, and the lock that gives a run directory one owner.
 //! - [`seed`]: independent seeds for every random choice, derived from one seed.
 //! - [`num`]: numbers as messages print them (1e300, not its 301 digits).
+//! - [`device`]: the device a configuration asks for (`cpu`, `cuda`, `auto`), without libtorch.
 
+pub mod device;
 pub mod fs;
 pub mod num;
 pub mod seed;

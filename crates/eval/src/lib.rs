@@ -43,18 +43,31 @@ pub struct EvalTask {
 }
 
 /// Settings shared by all tasks.
-/// How the policy computes an action at each step.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Inference {
-    /// `PromptDt::act`: the prompt's keys and values computed once per task and evaluation, the
-    /// last layer for the last 8 positions only. Equal to `Full` within 1e-6 (a few f32 ulps:
-    /// other kernel paths), not bit for bit. Not in the reference.
-    #[default]
-    Cached,
-    /// The reference's `get_action`: the full forward of prompt and history at every step.
-    Full,
+/// The model a `[model]` section describes, for an environment's dimensions. (A trait here, not a
+/// method of the section: the configuration is `pdt_rundir`'s, read without libtorch.)
+pub trait ToModelConfig {
+    fn to_model_config(&self, state_dim: usize, act_dim: usize) -> pdt_model::PromptDtConfig;
 }
+
+impl ToModelConfig for pdt_rundir::config::ModelSection {
+    fn to_model_config(&self, state_dim: usize, act_dim: usize) -> pdt_model::PromptDtConfig {
+        pdt_model::PromptDtConfig {
+            hidden_size: self.hidden_size,
+            n_layer: self.n_layer,
+            n_head: self.n_head,
+            n_inner: self.n_inner,
+            max_ep_len: self.max_ep_len,
+            n_positions: self.n_positions,
+            resid_pdrop: self.dropout,
+            attn_pdrop: self.dropout,
+            embd_pdrop: self.embd_dropout,
+            ..pdt_model::PromptDtConfig::reference(state_dim, act_dim)
+        }
+    }
+}
+
+// An option of a run's configuration, which is read without libtorch.
+pub use pdt_rundir::config::Inference;
 
 #[derive(Debug, Clone)]
 pub struct EvalSettings {

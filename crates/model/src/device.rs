@@ -5,40 +5,9 @@
 //! time registers the CUDA backend with the already-loaded `libtorch_cpu`, so the same binary runs
 //! on either.
 
-use serde::{Deserialize, Serialize};
+// The request type is tch-free, so a run's configuration can name it without libtorch.
+pub use pdt_base::device::DeviceSpec;
 use tch::Device;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum DeviceSpec {
-    #[default]
-    Auto,
-    Cpu,
-    Cuda,
-}
-
-impl std::str::FromStr for DeviceSpec {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "auto" => Ok(Self::Auto),
-            "cpu" => Ok(Self::Cpu),
-            "cuda" => Ok(Self::Cuda),
-            other => Err(format!("unknown device `{other}` (expected cpu, cuda or auto)")),
-        }
-    }
-}
-
-impl DeviceSpec {
-    /// The name `from_str` takes back (`auto`, `cpu` or `cuda`).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Auto => "auto",
-            Self::Cpu => "cpu",
-            Self::Cuda => "cuda",
-        }
-    }
-}
 
 #[derive(Debug, thiserror::Error)]
 #[error("CUDA was asked for but is not available: {0}")]

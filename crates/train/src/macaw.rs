@@ -67,7 +67,7 @@ fn buffers(
     data: &pdt_data::MultiTaskDataset,
     m: &MacawConfig,
 ) -> Result<Vec<TaskBuffer>, RunError> {
-    let spec = m.buffer_spec();
+    let spec = pdt_macaw::buffer_spec(m);
     Ok(data
         .tasks
         .iter()

@@ -6,50 +6,11 @@
 //! be saved, which resumable runs need, and (b) libtorch's C++ AdamW orders its float ops
 //! differently from the Python one the reference runs.
 
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use tch::{nn::VarStore, Tensor};
 
-/// AdamW settings. Defaults are the reference's (`torch.optim.AdamW(lr=1e-4, weight_decay=1e-4)`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AdamWConfig {
-    /// Peak learning rate, reached at the end of warm-up.
-    pub learning_rate: f64,
-    pub beta1: f64,
-    pub beta2: f64,
-    pub eps: f64,
-    /// Decoupled weight decay, applied (as in the reference) to every parameter that has a
-    /// gradient, LayerNorm weights, biases and embeddings included.
-    pub weight_decay: f64,
-    /// Linear warm-up length in steps: lr(n) = learning_rate * min((n + 1) / warmup_steps, 1).
-    pub warmup_steps: u64,
-    /// Global L2 gradient-norm clipping threshold.
-    pub grad_clip_norm: f64,
-}
-
-impl Default for AdamWConfig {
-    fn default() -> Self {
-        Self {
-            learning_rate: 1e-4,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            weight_decay: 1e-4,
-            warmup_steps: 10_000,
-            grad_clip_norm: 0.25,
-        }
-    }
-}
-
-impl AdamWConfig {
-    /// The learning rate of gradient step `n` (0-based): PyTorch's `LambdaLR` with
-    /// `lambda s: min((s + 1) / warmup_steps, 1)`, stepped once per gradient step.
-    pub fn lr_at(&self, n: u64) -> f64 {
-        let warm = self.warmup_steps.max(1) as f64;
-        self.learning_rate * f64::min((n + 1) as f64 / warm, 1.0)
-    }
-}
+// The settings are part of a run's configuration, which is read without libtorch.
+pub use pdt_rundir::config::AdamWConfig;
 
 /// Per-parameter AdamW state, created the first time the parameter has a gradient (as PyTorch does).
 #[derive(Debug)]

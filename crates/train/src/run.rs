@@ -14,7 +14,9 @@ use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::{DataError, MultiTaskDataset, TaskData};
 use pdt_envs::{EnvError, EnvFamily, EnvPreset};
-use pdt_eval::{evaluate, summarise, EvalError, EvalReturns, EvalSettings, EvalTask, TaskResult};
+use pdt_eval::{
+    evaluate, summarise, EvalError, EvalReturns, EvalSettings, EvalTask, TaskResult, ToModelConfig,
+};
 use pdt_model::checkpoint::{self, write_atomic, CheckpointError};
 use pdt_model::{PrefixCache, PromptDt, PromptDtConfig};
 use pdt_prompt::{

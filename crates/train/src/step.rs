@@ -33,16 +33,7 @@ pub struct StepStats {
     pub lr: f64,
 }
 
-/// Which predicted actions the loss supervises.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum LossOn {
-    /// Reference code (pitfall 3): only the K history steps.
-    #[default]
-    History,
-    /// The paper (section 4.4): the prompt's steps too.
-    PromptAndHistory,
-}
+pub use pdt_rundir::config::LossOn;
 
 /// Tensors of a batch on the device, ready for [`train_step`].
 #[derive(Debug)]

@@ -1,0 +1,70 @@
+//! Option types of the configuration that the crates acting on them re-export: the optimiser's
+//! settings (`pdt_train::optim`), the loss's target (`pdt_train::step`) and the evaluator's inference
+//! path (`pdt_eval`). They live here so that `config.toml` is read without libtorch.
+
+use serde::{Deserialize, Serialize};
+
+/// AdamW settings. Defaults are the reference's (`torch.optim.AdamW(lr=1e-4, weight_decay=1e-4)`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AdamWConfig {
+    /// Peak learning rate, reached at the end of warm-up.
+    pub learning_rate: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+    /// Decoupled weight decay, applied (as in the reference) to every parameter that has a
+    /// gradient, LayerNorm weights, biases and embeddings included.
+    pub weight_decay: f64,
+    /// Linear warm-up length in steps: lr(n) = learning_rate * min((n + 1) / warmup_steps, 1).
+    pub warmup_steps: u64,
+    /// Global L2 gradient-norm clipping threshold.
+    pub grad_clip_norm: f64,
+}
+
+impl Default for AdamWConfig {
+    fn default() -> Self {
+        Self {
+            learning_rate: 1e-4,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            weight_decay: 1e-4,
+            warmup_steps: 10_000,
+            grad_clip_norm: 0.25,
+        }
+    }
+}
+
+impl AdamWConfig {
+    /// The learning rate of gradient step `n` (0-based): PyTorch's `LambdaLR` with
+    /// `lambda s: min((s + 1) / warmup_steps, 1)`, stepped once per gradient step.
+    pub fn lr_at(&self, n: u64) -> f64 {
+        let warm = self.warmup_steps.max(1) as f64;
+        self.learning_rate * f64::min((n + 1) as f64 / warm, 1.0)
+    }
+}
+
+/// Which predicted actions the loss supervises.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LossOn {
+    /// Reference code (pitfall 3): only the K history steps.
+    #[default]
+    History,
+    /// The paper (section 4.4): the prompt's steps too.
+    PromptAndHistory,
+}
+
+/// How the policy computes an action at each step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Inference {
+    /// `PromptDt::act`: the prompt's keys and values computed once per task and evaluation, the
+    /// last layer for the last 8 positions only. Equal to `Full` within 1e-6 (a few f32 ulps:
+    /// other kernel paths), not bit for bit. Not in the reference.
+    #[default]
+    Cached,
+    /// The reference's `get_action`: the full forward of prompt and history at every step.
+    Full,
+}
