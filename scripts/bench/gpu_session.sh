@@ -35,6 +35,7 @@ export OMP_WAIT_POLICY=PASSIVE
 log "torch lib: $TL"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee -a "$OUT/session.log"
 nproc | sed 's/^/cores: /' | tee -a "$OUT/session.log"
+(grep -m1 "model name" /proc/cpuinfo; sha256sum "$BIN"; cat "$BIN.commit" 2>/dev/null) | tee -a "$OUT/session.log"
 ldd "$BIN" | grep -E 'torch|c10|cud|cupti|mujoco|gomp' | tee -a "$OUT/session.log"
 
 log "1. link check"
@@ -59,11 +60,11 @@ mkdir -p "$WORK/repro/logs"
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader -l 15 >"$WORK/smi.csv" 2>/dev/null &
 smi=$!
 # Each run stops 45 s before the deadline (a run started late gets what is left); it resumes later.
-export END=$((start + DEADLINE - 45)) BIN BUDGET DEVICE WORK DATA OUT
+export END=$((start + DEADLINE - 45)) BIN BUDGET DEVICE WORK DATA OUT EXP SEEDS
 cat >"$WORK/job.sh" <<'JOB'
 r=$1; t=$((END - $(date +%s)))
 [ "$t" -gt 20 ] || { echo "$r not started (no time left)" >>"$OUT/session.log"; exit 0; }
-timeout "$t" "$BIN" reproduce fig2 --budget "$BUDGET" --device "$DEVICE" --threads 2 --out "$WORK/repro" \
+timeout "$t" "$BIN" reproduce "${EXP:-fig2}" ${SEEDS:+--seeds "$SEEDS"} --budget "$BUDGET" --device "$DEVICE" --threads 2 --out "$WORK/repro" \
   --data-root "$DATA" --pretrained-root pretrained --only "$r" >"$WORK/repro/logs/$(echo "$r" | tr / _).gpu.log" 2>&1
 echo "$r rc=$? after $(( $(date +%s) - END + t )) s" >>"$OUT/session.log"
 JOB
@@ -81,12 +82,14 @@ log "4. report and packing"
 timeout 30 "$BIN" reproduce fig2 --budget $BUDGET --out "$WORK/repro" --data-root "$DATA" --report-only >>"$OUT/session.log" 2>&1
 # Small files of every run (curves, metrics, configs, logs), the report, and the datasets' summaries.
 (cd "$WORK" && find repro data bench_model bench_eval smi.csv -type f ! -name '*.safetensors' | tar czf "$OUT/small.tar.gz" -T -)
-# The latest resume point of the first runs (model + optimizer state), one file each (16 MiB limit).
+# The latest resume point of the first CKPTS unfinished runs (default 4; model + optimizer state), one file each (16 MiB limit).
 n=0
 for r in $RUNS; do
   d=repro/runs/$r
   f=$WORK/$d/checkpoints/latest.json
-  [ -f "$f" ] && [ $n -lt 4 ] || continue
+  [ -f "$f" ] && [ $n -lt "${CKPTS:-4}" ] || continue
+  # A finished run needs no resume point (its small files are in small.tar.gz).
+  grep -q "^$r rc=0 " "$OUT/session.log" && continue
   m=$(grep -o '"model": *"[^"]*"' "$f" | sed 's/.*"\([^"]*\)"$/\1/')
   s=$(grep -o '"state": *"[^"]*"' "$f" | sed 's/.*"\([^"]*\)"$/\1/')
   (cd "$WORK" && tar cf "$OUT/ckpt-$(echo "$r" | tr / _).tar" "$d/checkpoints/$m" "$d/checkpoints/$s" 2>/dev/null)
