@@ -1,0 +1,390 @@
+//! The house's structure, checked from the sources (issue 29's acceptance, kept true):
+//!
+//! - no source file over [`MAX_LINES`] lines, except the few named in [`LONG_FILES`] with why;
+//! - no import circle between the files of a crate (a file's references to its own ancestors,
+//!   `super::` and the crate root, are not counted: a module's parent declares it);
+//! - no dispatch on an environment family's name outside `crates/envs` (a family carries its own
+//!   knowledge): no family name as a `match` pattern or in a comparison in the front ends and the
+//!   crates above `pdt-envs` (help text, messages and unit tests may name families);
+//! - `pdt-serve` does not depend on `pdt-train`, and serve and the Python package act through the
+//!   same policy runtime (`pdt-policy`).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+const MAX_LINES: usize = 800;
+
+/// Files allowed over [`MAX_LINES`], each with the reason (flat tables, generated code, or one
+/// flat algorithm module as the style guide asks, like CleanRL's files).
+const LONG_FILES: &[(&str, &str)] = &[
+    ("crates/macaw/src/lib.rs", "MACAW as one flat module, top to bottom, like a CleanRL file"),
+    ("crates/data/src/pickle/machine.rs", "the pickle virtual machine: one flat table of opcodes"),
+];
+
+/// Crates whose sources must not dispatch on a family's name.
+const NO_FAMILY_DISPATCH: &[&str] =
+    &["cli", "python", "repro", "report", "rl", "bench", "train", "eval"];
+
+fn repo_root() -> PathBuf {
+    // crates/testkit -> the workspace root.
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    let mut entries: Vec<_> = entries.flatten().map(|e| e.path()).collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            rust_files(&p, out);
+        } else if p.extension().is_some_and(|e| e == "rs") {
+            out.push(p);
+        }
+    }
+}
+
+fn crate_dirs(root: &Path) -> Vec<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(root.join("crates"))
+        .expect("crates/ is readable")
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join("Cargo.toml").is_file())
+        .collect();
+    dirs.sort();
+    dirs
+}
+
+fn rel(root: &Path, p: &Path) -> String {
+    p.strip_prefix(root).unwrap_or(p).display().to_string()
+}
+
+#[test]
+fn no_source_file_is_over_the_line_limit() {
+    let root = repo_root();
+    let mut long = Vec::new();
+    for dir in crate_dirs(&root) {
+        let mut files = Vec::new();
+        rust_files(&dir.join("src"), &mut files);
+        for f in files {
+            let n = std::fs::read_to_string(&f).expect("source readable").lines().count();
+            let name = rel(&root, &f);
+            if n > MAX_LINES && !LONG_FILES.iter().any(|(p, _)| *p == name) {
+                long.push(format!("{name}: {n} lines"));
+            }
+        }
+    }
+    assert!(long.is_empty(), "source files over {MAX_LINES} lines (split them, or name them in LONG_FILES with why):\n{}", long.join("\n"));
+}
+
+/// The module path of a source file of a crate (`src/lib.rs` -> [], `src/a/mod.rs` -> [a],
+/// `src/a/b.rs` -> [a, b]); `None` for files that are not modules of the library (binaries).
+fn module_path(src: &Path, file: &Path) -> Option<Vec<String>> {
+    let r = file.strip_prefix(src).ok()?;
+    let parts: Vec<String> = r.iter().map(|s| s.to_string_lossy().into_owned()).collect();
+    let (last, dirs) = parts.split_last()?;
+    let mut m: Vec<String> = dirs.to_vec();
+    if dirs.first().is_some_and(|d| d == "bin") {
+        return None;
+    }
+    match last.as_str() {
+        "lib.rs" | "main.rs" if dirs.is_empty() => {}
+        "mod.rs" => {}
+        other => m.push(other.trim_end_matches(".rs").to_string()),
+    }
+    Some(m)
+}
+
+/// Expands `crate::{a::{b, c}, d}`-style trees that start at `text` (just after `crate::` or a
+/// `super::` chain) into paths of identifiers.
+fn expand(text: &str) -> Vec<Vec<String>> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    tree(text, &mut i, &mut Vec::new(), &mut out);
+    out
+}
+
+fn skip_ws(s: &str, i: &mut usize) {
+    while s.as_bytes().get(*i).is_some_and(u8::is_ascii_whitespace) {
+        *i += 1;
+    }
+}
+
+fn ident(s: &str, i: &mut usize) -> String {
+    let start = *i;
+    while s.as_bytes().get(*i).is_some_and(|c| c.is_ascii_alphanumeric() || *c == b'_') {
+        *i += 1;
+    }
+    s[start..*i].to_string()
+}
+
+fn tree(s: &str, i: &mut usize, prefix: &mut Vec<String>, out: &mut Vec<Vec<String>>) {
+    skip_ws(s, i);
+    if s[*i..].starts_with('{') {
+        *i += 1;
+        loop {
+            skip_ws(s, i);
+            if *i >= s.len() {
+                return;
+            }
+            if s[*i..].starts_with('}') {
+                *i += 1;
+                return;
+            }
+            tree(s, i, prefix, out);
+            skip_ws(s, i);
+            if s[*i..].starts_with(',') {
+                *i += 1;
+            } else if s[*i..].starts_with('}') {
+                *i += 1;
+                return;
+            } else {
+                return; // not a use tree after all
+            }
+        }
+    }
+    let id = ident(s, i);
+    if id.is_empty() {
+        out.push(prefix.clone()); // `*`
+        return;
+    }
+    prefix.push(id);
+    if s[*i..].starts_with("::") {
+        *i += 2;
+        tree(s, i, prefix, out);
+    } else {
+        out.push(prefix.clone());
+        let mut j = *i;
+        skip_ws(s, &mut j);
+        if s[j..].starts_with("as ") {
+            j += 3;
+            skip_ws(s, &mut j);
+            ident(s, &mut j);
+            *i = j;
+        }
+    }
+    prefix.pop();
+}
+
+/// The module files a file refers to through `crate::` and `super::` paths.
+fn references(text: &str, me: &[String], modules: &BTreeSet<Vec<String>>) -> BTreeSet<Vec<String>> {
+    let mut found = BTreeSet::new();
+    let code: String = text
+        .lines()
+        .map(|l| match l.find("//") {
+            Some(i) => &l[..i],
+            None => l,
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let mut resolve = |base: Vec<String>, rest: &str| {
+        for tail in expand(rest) {
+            let mut full = base.clone();
+            full.extend(tail);
+            // The longest prefix that is a module file.
+            while !full.is_empty() && !modules.contains(&full) {
+                full.pop();
+            }
+            found.insert(full);
+        }
+    };
+    for (i, _) in code.match_indices("crate::") {
+        let before = code[..i].chars().next_back();
+        if before.is_some_and(|c| c.is_alphanumeric() || c == '_' || c == '$') {
+            continue; // `pdt_crate::` or `$crate::`
+        }
+        resolve(Vec::new(), &code[i + "crate::".len()..]);
+    }
+    for (i, _) in code.match_indices("super::") {
+        let before = code[..i].chars().next_back();
+        if before.is_some_and(|c| c.is_alphanumeric() || c == '_' || c == ':') {
+            continue; // counted as part of the chain that starts earlier
+        }
+        let mut rest = &code[i..];
+        let mut base = me.to_vec();
+        while let Some(r) = rest.strip_prefix("super::") {
+            base.pop();
+            rest = r;
+        }
+        resolve(base, rest);
+    }
+    found
+}
+
+#[test]
+fn no_import_circle_between_files() {
+    let root = repo_root();
+    let mut circles = Vec::new();
+    for dir in crate_dirs(&root) {
+        let src = dir.join("src");
+        let mut files = Vec::new();
+        rust_files(&src, &mut files);
+        let mut by_module: BTreeMap<Vec<String>, PathBuf> = BTreeMap::new();
+        for f in &files {
+            if let Some(m) = module_path(&src, f) {
+                by_module.insert(m, f.clone());
+            }
+        }
+        let modules: BTreeSet<Vec<String>> = by_module.keys().cloned().collect();
+        let mut edges: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = BTreeMap::new();
+        for (m, f) in &by_module {
+            let text = std::fs::read_to_string(f).expect("source readable");
+            // Unit tests at the end of a file use `super::*`: not the module's imports.
+            let text = match text.find("#[cfg(test)]") {
+                Some(i) => &text[..i],
+                None => &text[..],
+            };
+            let targets = references(text, m, &modules)
+                .into_iter()
+                // An ancestor (or the file itself) is not an import edge: it declares this module.
+                .filter(|t| !m.starts_with(t))
+                .collect();
+            edges.insert(m.clone(), targets);
+        }
+        // Every cycle shows up as a pair a -> ... -> b -> ... -> a; report each strongly connected
+        // pair of files once.
+        let reach = |from: &Vec<String>| {
+            let mut seen = BTreeSet::new();
+            let mut stack = vec![from.clone()];
+            while let Some(n) = stack.pop() {
+                for t in edges.get(&n).into_iter().flatten() {
+                    if seen.insert(t.clone()) {
+                        stack.push(t.clone());
+                    }
+                }
+            }
+            seen
+        };
+        for (a, targets) in &edges {
+            for b in targets {
+                if a < b && reach(b).contains(a) {
+                    circles.push(format!(
+                        "{} <-> {}",
+                        rel(&root, &by_module[a]),
+                        rel(&root, &by_module[b])
+                    ));
+                }
+            }
+        }
+    }
+    assert!(circles.is_empty(), "import circles between files:\n{}", circles.join("\n"));
+}
+
+#[test]
+fn the_module_path_parser_sees_grouped_imports() {
+    let modules: BTreeSet<Vec<String>> = [
+        vec![],
+        vec!["a".to_string()],
+        vec!["a".to_string(), "b".to_string()],
+        vec!["c".to_string()],
+    ]
+    .into_iter()
+    .collect();
+    let found = references(
+        "use crate::{a::b::{X, Y}, c::Z};\nfn f() { super::super::c::g() }",
+        &["a".into(), "b".into()],
+        &modules,
+    );
+    let want: BTreeSet<Vec<String>> =
+        [vec!["a".to_string(), "b".to_string()], vec!["c".to_string()]].into_iter().collect();
+    assert_eq!(found, want);
+}
+
+/// The family names `pdt_envs` registers (`FAMILY_NAMES` in crates/envs/src/lib.rs).
+fn family_names(root: &Path) -> Vec<String> {
+    let text = std::fs::read_to_string(root.join("crates/envs/src/lib.rs")).expect("envs lib.rs");
+    let i = text.find("FAMILY_NAMES").expect("crates/envs/src/lib.rs defines FAMILY_NAMES");
+    let list = &text[i..];
+    let list = &list[list.find('=').expect("FAMILY_NAMES has a value")..];
+    let list = &list[list.find('[').expect("FAMILY_NAMES is an array")..];
+    let list = &list[..list.find(']').expect("FAMILY_NAMES ends")];
+    let names: Vec<String> = list.split('"').skip(1).step_by(2).map(str::to_string).collect();
+    assert!(names.len() >= 5, "FAMILY_NAMES parsed as {names:?}");
+    names
+}
+
+#[test]
+fn no_family_dispatch_outside_envs() {
+    let root = repo_root();
+    let families = family_names(&root);
+    let mut found = Vec::new();
+    for krate in NO_FAMILY_DISPATCH {
+        let mut files = Vec::new();
+        rust_files(&root.join("crates").join(krate).join("src"), &mut files);
+        for f in files {
+            let text = std::fs::read_to_string(&f).expect("source readable");
+            let text = match text.find("#[cfg(test)]") {
+                Some(i) => &text[..i],
+                None => &text[..],
+            };
+            for (n, line) in text.lines().enumerate() {
+                let code = line.split("//").next().unwrap_or("");
+                for fam in &families {
+                    let lit = format!("\"{fam}\"");
+                    let Some(at) = code.find(&lit) else { continue };
+                    let after = code[at + lit.len()..].trim_start();
+                    let before = code[..at].trim_end();
+                    let dispatch = after.starts_with("=>")
+                        || after.starts_with('|')
+                        || after.starts_with("==")
+                        || after.starts_with("!=")
+                        || before.ends_with('|')
+                        || before.ends_with("==")
+                        || before.ends_with("!=")
+                        || before.ends_with("strip_prefix(")
+                        || before.ends_with("starts_with(")
+                        // A tuple pattern: `("dial", None) =>`.
+                        || (before.ends_with('(') && after.starts_with(','));
+                    if dispatch {
+                        found.push(format!("{}:{}: {}", rel(&root, &f), n + 1, line.trim()));
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "dispatch on a family's name outside crates/envs (a family carries its own knowledge):\n{}",
+        found.join("\n")
+    );
+}
+
+/// Workspace packages a package depends on (normal dependencies, transitively).
+fn transitive_deps(root: &Path, package: &str) -> BTreeSet<String> {
+    let mut manifests: BTreeMap<String, toml::Table> = BTreeMap::new();
+    for dir in crate_dirs(root) {
+        let text = std::fs::read_to_string(dir.join("Cargo.toml")).expect("Cargo.toml");
+        let t: toml::Table = text.parse().expect("Cargo.toml parses");
+        let name = t["package"]["name"].as_str().expect("package.name").to_string();
+        manifests.insert(name, t);
+    }
+    let deps_of = |p: &str| -> Vec<String> {
+        manifests
+            .get(p)
+            .and_then(|t| t.get("dependencies"))
+            .and_then(|d| d.as_table())
+            .map(|d| d.keys().filter(|k| manifests.contains_key(*k)).cloned().collect())
+            .unwrap_or_default()
+    };
+    let mut seen = BTreeSet::new();
+    let mut stack = deps_of(package);
+    while let Some(d) = stack.pop() {
+        if seen.insert(d.clone()) {
+            stack.extend(deps_of(&d));
+        }
+    }
+    seen
+}
+
+#[test]
+fn serve_and_python_act_through_one_policy_runtime_without_the_trainer() {
+    let root = repo_root();
+    let serve = transitive_deps(&root, "pdt-serve");
+    assert!(!serve.contains("pdt-train"), "pdt-serve depends on pdt-train: {serve:?}");
+    assert!(serve.contains("pdt-policy"), "pdt-serve does not use pdt-policy: {serve:?}");
+    let python = transitive_deps(&root, "promptdt-python");
+    assert!(
+        python.contains("pdt-policy"),
+        "the Python package does not use pdt-policy: {python:?}"
+    );
+}
