@@ -9,7 +9,7 @@
 //! CPU are compared within bounds (see `bound`).
 
 use pdt_macaw::{adapt, meta_task, Batch, Dims, MacawConfig, Optimisers, Params};
-use pdt_model::cpu::CpuFingerprint;
+use pdt_testkit::cpu::CpuFingerprint;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};

@@ -9,7 +9,7 @@
 //!   bit for bit. `.ci/run` sets `PROMPTDT_REQUIRE_LIVE_GOLDEN=1`, so CI cannot skip it.
 #![allow(dead_code)] // each including test uses its part
 
-use pdt_model::cpu::CpuFingerprint;
+use pdt_testkit::cpu::CpuFingerprint;
 use std::path::{Path, PathBuf};
 
 /// Cross-CPU bounds, each 5-20x the largest difference measured between the committed fixtures
