@@ -3,18 +3,18 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
 use pdt_testkit::reference::official_prompt;
 use std::path::Path;
 
-use native_support::{sample_dataset, traj};
 use pdt_data::multitask::{
     convert_reference_dir, load_multitask, load_task_file, resolve_task_file, DataFormat,
     DatasetSpec,
 };
 use pdt_data::native::{read_file_meta, read_task_dataset, write_task_dataset, FileMeta};
 use pdt_data::{TaskDataset, TaskId};
+use support::{sample_dataset, traj};
 
 /// A dataset of task `i` (distinct per task and kind).
 fn task_ds(i: usize, prompt: bool, obs_dim: usize) -> TaskDataset {

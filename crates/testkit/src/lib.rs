@@ -7,10 +7,14 @@
 //!
 //! [`fs`]: a directory tree copied, and a file of the checkout found (`repo("testdata/..")`).
 //!
+//! [`golden`]: which golden fixture sets a parity test compares against, bit for bit or within
+//! bounds (by the CPU the fixtures were made on).
+//!
 //! [`cpu`]: the CPU fingerprint that decides whether two float results can be compared bit for bit
 //! (the parity fixtures record it), and whether batching changes a row's bits. Test-only: it lived
 //! in `pdt_model`'s public API before, though no library code asks it.
 
 pub mod cpu;
 pub mod fs;
+pub mod golden;
 pub mod reference;
