@@ -615,20 +615,11 @@ fn markdown(m: &Manifest, r: &Report) -> String {
          returns (its prompt files) and our random returns; `-` where the reference's experts are \
          unknown. Within: |ours - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
     );
-    let header = [
-        "cell",
-        "seeds",
-        "iteration",
-        "ours",
-        "ours normalised",
-        "paper",
-        "paper normalised",
-        "within paper std",
-        "status",
-    ];
+    let header =
+        "cell|seeds|iteration|ours|ours normalised|paper|paper normalised|within paper std|status";
     let (text, num) = (Align::Left, Align::Right);
     let align = vec![text, num, num, num, num, num, num, text, text];
-    let mut table = Table::with_align(header.map(String::from).to_vec(), align);
+    let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
     for c in &r.cells {
         let paper = match (c.paper, c.paper_std) {
             (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
