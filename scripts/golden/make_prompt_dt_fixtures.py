@@ -87,7 +87,7 @@ def batch_and_prompt(inp):
 
 
 # The /proc/cpuinfo flags that change which kernels libtorch, MKL or oneDNN run, in this order.
-# crates/model/src/cpu.rs (KERNEL_FLAGS) reads the same list the same way: change both together.
+# crates/testkit/src/cpu.rs (KERNEL_FLAGS) reads the same list the same way: change both together.
 KERNEL_FLAGS = ["sse4_2", "avx", "avx2", "fma", "f16c", "avx512f", "avx512dq", "avx512cd", "avx512bw",
                 "avx512vl", "avx512_vnni", "avx512_bf16", "avx512_fp16", "avx512vbmi", "avx_vnni",
                 "amx_tile", "amx_bf16", "amx_int8"]

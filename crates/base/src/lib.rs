@@ -6,8 +6,17 @@
 //! - [`seed`]: independent seeds for every random choice, derived from one seed.
 //! - [`num`]: numbers as messages print them (1e300, not its 301 digits).
 //! - [`device`]: the device a configuration asks for (`cpu`, `cuda`, `auto`), without libtorch.
+//! - [`random`]: standard normal samples (Box-Muller) from any uniform source.
+//! - [`threads`]: thread-count settings where 0 means all cores.
+//! - [`table`]: Markdown and aligned plain-text tables.
 
 pub mod device;
 pub mod fs;
 pub mod num;
+pub mod random;
 pub mod seed;
+pub mod table;
+pub mod threads;
+
+pub use random::standard_normal;
+pub use threads::threads;

@@ -6,6 +6,7 @@
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
+use pdt_base::table::{Rule, Table};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 pub mod serve;
 
@@ -536,7 +537,13 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
 
 /// A Markdown table of the report.
 pub fn render_markdown(r: &BenchReport) -> String {
-    let mut s = String::from("| case | promptdt median (p10-p90) ms | PyTorch median (p10-p90) ms | PyTorch / promptdt |\n|---|---:|---:|---:|\n");
+    let header = [
+        "case",
+        "promptdt median (p10-p90) ms",
+        "PyTorch median (p10-p90) ms",
+        "PyTorch / promptdt",
+    ];
+    let mut cases = Table::new(header.map(String::from).to_vec());
     for c in &r.promptdt.results {
         let theirs = r.pytorch.as_ref().and_then(|p| p.results.iter().find(|q| q.name == c.name));
         let fmt = |t: &CaseTiming| format!("{:.2} ({:.2}-{:.2})", t.median_ms, t.p10_ms, t.p90_ms);
@@ -545,22 +552,31 @@ pub fn render_markdown(r: &BenchReport) -> String {
             .iter()
             .find(|(n, _)| n == &c.name)
             .map_or("-".into(), |(_, x)| format!("{x:.2}x"));
-        s += &format!(
-            "| {} | {} | {} | {} |\n",
-            c.name,
-            fmt(c),
-            theirs.map_or("not run".into(), fmt),
-            ratio
-        );
+        cases.push(vec![c.name.clone(), fmt(c), theirs.map_or("not run".into(), fmt), ratio]);
     }
+    let mut s = cases.markdown(Rule::Tight);
     if !r.serve.is_empty() {
-        s += "\n| serve case | concurrent episodes | p50 ms per step | p99 ms per step | actions/s | requests |\n|---|---:|---:|---:|---:|---:|\n";
+        let header = [
+            "serve case",
+            "concurrent episodes",
+            "p50 ms per step",
+            "p99 ms per step",
+            "actions/s",
+            "requests",
+        ];
+        let mut serve = Table::new(header.map(String::from).to_vec());
         for c in &r.serve {
-            s += &format!(
-                "| {} | {} | {:.3} | {:.3} | {:.0} | {} |\n",
-                c.name, c.clients, c.p50_ms, c.p99_ms, c.actions_per_s, c.requests
-            );
+            serve.push(vec![
+                c.name.clone(),
+                c.clients.to_string(),
+                format!("{:.3}", c.p50_ms),
+                format!("{:.3}", c.p99_ms),
+                format!("{:.0}", c.actions_per_s),
+                c.requests.to_string(),
+            ]);
         }
+        s.push('\n');
+        s += &serve.markdown(Rule::Tight);
     }
     s
 }

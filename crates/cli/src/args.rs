@@ -305,9 +305,7 @@ pub struct BenchArgs {
 
 impl BenchArgs {
     pub fn to_config(&self) -> Result<pdt_bench::BenchConfig> {
-        let threads = self
-            .threads
-            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+        let threads = self.threads.unwrap_or_else(pdt_base::threads::available_cores);
         if threads == 0 || self.iters == 0 {
             bail!("--threads and --iters must be at least 1");
         }

@@ -451,7 +451,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     }
     let Some(name) = a.experiment.as_deref() else { bail!("name an experiment, or --list") };
     let m = Manifest::load(name)?;
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = pdt_base::threads::available_cores();
     // Measured on 2 cores (BENCHMARKS.md, "Sharing the cores"): 2 runs of 1 thread each finish a set
     // of runs 1.36x sooner than 1 run of 2 threads. On an H200 (BENCHMARKS.md, "GPU"), two
     // Cheetah-Dir runs at once made 1.7x the iterations per hour of one alone, and four no more.

@@ -8,18 +8,12 @@ mod golden;
 mod cli;
 
 use cli::{check_fails, check_ok, fails, losses, ok, promptdt_in, repo, tiny_setup};
-use std::path::PathBuf;
+use pdt_testkit::reference::official_prompts;
 use std::process::Command;
-
-/// The reference release's prompt sets, or `None` (the test is skipped; CI requires them).
-#[track_caller]
-fn official() -> Option<PathBuf> {
-    pdt_testkit::reference::official_prompts()
-}
 
 #[test]
 fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
-    let Some(dir) = official() else { return };
+    let Some(dir) = official_prompts() else { return };
     let d = dir.to_str().unwrap();
     let table = ok(&["data", "inspect", d]);
     assert!(table.contains("42 files, 210 trajectories, 42000 steps"), "{table}");
@@ -43,7 +37,7 @@ fn data_inspect_reads_all_official_prompt_files_as_table_and_json() {
 
 #[test]
 fn data_convert_then_inspect_the_native_files() {
-    let Some(dir) = official() else { return };
+    let Some(dir) = official_prompts() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let src = tmp.path().join("src");
     std::fs::create_dir(&src).unwrap();
@@ -367,7 +361,7 @@ fn env_replay_matches_the_python_mujoco_fixture() {
 
 #[test]
 fn cheetah_vel_train_and_eval_on_the_official_prompt_files() {
-    let Some(dir) = official() else { return };
+    let Some(dir) = official_prompts() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let cfg = tmp.path().join("cv.toml");
     let text = format!(
@@ -751,7 +745,7 @@ fn reproduce_report_normalises_the_paper_without_the_reference_release() {
     assert!(md.contains(&format!("{got:.1}")), "{md}");
 
     // --reference DIR: the release's files give the same numbers.
-    if let Some(dir) = official() {
+    if let Some(dir) = official_prompts() {
         let with = [&report_only[..], &["--reference", dir.to_str().unwrap()]].concat();
         check_ok(&with, promptdt_in(&cwd, &with));
         assert_eq!(cell(&json)["paper_normalised"], c["paper_normalised"]);

@@ -2,24 +2,11 @@
 //! `--resume`, the datasets, and `--from-pretrained` on the committed experts.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+#[path = "support/cli.rs"]
+mod cli;
 
-fn promptdt(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_promptdt")).args(args).output().expect("binary runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = promptdt(args);
-    let (stdout, stderr) =
-        (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "promptdt {args:?} failed:\n{stdout}\n{stderr}");
-    stdout.into_owned()
-}
-
-fn repo(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
-}
+use cli::{ok, promptdt, repo};
+use std::path::Path;
 
 const TINY: [&str; 14] = [
     "--steps",

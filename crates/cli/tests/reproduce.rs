@@ -2,15 +2,15 @@
 //! second call, and `--emit jobs` run by plain `xargs -P 2` giving the same report as `reproduce`.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
+#[path = "support/cli.rs"]
+mod cli;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+/// The binary run in the checkout's root: (success, stdout, stderr).
 fn promptdt(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_promptdt"))
-        .args(args)
-        .current_dir(repo())
-        .output()
-        .expect("binary runs");
+    let out = cli::promptdt_in(&repo(), args);
     (
         out.status.success(),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -19,13 +19,12 @@ fn promptdt(args: &[&str]) -> (bool, String, String) {
 }
 
 fn ok(args: &[&str]) -> String {
-    let (success, stdout, stderr) = promptdt(args);
-    assert!(success, "promptdt {args:?} failed:\n{stdout}\n{stderr}");
-    stdout
+    cli::check_ok(args, cli::promptdt_in(&repo(), args))
 }
 
+/// The checkout's root.
 fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+    cli::repo("")
 }
 
 const EXPERIMENTS: [&str; 7] = [

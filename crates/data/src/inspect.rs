@@ -5,6 +5,7 @@ use std::cmp::Ordering;
 use std::fs;
 use std::path::{Path, PathBuf};
 
+use pdt_base::table::{Align, Table};
 use serde::Serialize;
 
 use crate::reference::{load_pickle, ArrayInfo, ReferenceOptions};
@@ -169,53 +170,29 @@ pub fn render_table(reports: &[FileReport]) -> String {
     let headers =
         ["file", "format", "trajs", "steps", "obs", "act", "length", "return min", "mean", "max"];
     // Text columns are left-aligned, numbers right-aligned.
-    let left = [true, true, false, false, false, false, false, false, false, false];
-    let rows: Vec<[String; 10]> = reports
-        .iter()
-        .map(|r| {
-            let length = if r.length_min == r.length_max {
-                r.length_min.to_string()
-            } else {
-                format!("{}-{}", r.length_min, r.length_max)
-            };
-            [
-                file_label(&r.path),
-                r.format.to_string(),
-                r.trajectories.to_string(),
-                r.steps.to_string(),
-                r.obs_dim.to_string(),
-                r.act_dim.to_string(),
-                length,
-                format!("{:.2}", r.return_min),
-                format!("{:.2}", r.return_mean),
-                format!("{:.2}", r.return_max),
-            ]
-        })
-        .collect();
-    let mut widths = headers.map(str::len);
-    for row in &rows {
-        for (w, cell) in widths.iter_mut().zip(row) {
-            *w = (*w).max(cell.chars().count());
-        }
+    let (text, num) = (Align::Left, Align::Right);
+    let align = vec![text, text, num, num, num, num, num, num, num, num];
+    let mut table = Table::with_align(headers.map(String::from).to_vec(), align);
+    for r in reports {
+        let length = if r.length_min == r.length_max {
+            r.length_min.to_string()
+        } else {
+            format!("{}-{}", r.length_min, r.length_max)
+        };
+        table.push(vec![
+            file_label(&r.path),
+            r.format.to_string(),
+            r.trajectories.to_string(),
+            r.steps.to_string(),
+            r.obs_dim.to_string(),
+            r.act_dim.to_string(),
+            length,
+            format!("{:.2}", r.return_min),
+            format!("{:.2}", r.return_mean),
+            format!("{:.2}", r.return_max),
+        ]);
     }
-    let line = |cells: &[String]| -> String {
-        let parts: Vec<String> = cells
-            .iter()
-            .zip(widths.iter().zip(left))
-            .map(|(cell, (&w, l))| if l { format!("{cell:<w$}") } else { format!("{cell:>w$}") })
-            .collect();
-        parts.join("  ").trim_end().to_string()
-    };
-    let mut out = String::new();
-    out.push_str(&line(&headers.map(String::from)));
-    out.push('\n');
-    let rule: Vec<String> = widths.iter().map(|&w| "-".repeat(w)).collect();
-    out.push_str(&rule.join("  "));
-    out.push('\n');
-    for row in &rows {
-        out.push_str(&line(row));
-        out.push('\n');
-    }
+    let mut out = table.aligned_text();
     let trajectories: usize = reports.iter().map(|r| r.trajectories).sum();
     let steps: usize = reports.iter().map(|r| r.steps).sum();
     let files = reports.len();

@@ -3,13 +3,13 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
 use std::path::Path;
 
-use native_support::{sample_dataset, traj};
 use pdt_data::native::{read_task_dataset, write_task_dataset, FileMeta};
 use pdt_data::TaskDataset;
+use support::{sample_dataset, traj};
 
 fn names(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)

@@ -3,24 +3,18 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
-use std::path::{Path, PathBuf};
+use pdt_testkit::reference::official_prompt;
+use std::path::Path;
 
-use native_support::{sample_dataset, traj};
 use pdt_data::multitask::{
     convert_reference_dir, load_multitask, load_task_file, resolve_task_file, DataFormat,
     DatasetSpec,
 };
 use pdt_data::native::{read_file_meta, read_task_dataset, write_task_dataset, FileMeta};
 use pdt_data::{TaskDataset, TaskId};
-
-/// One of the reference release's prompt sets (`pdt_testkit::reference`), or `None`: the test
-/// then skips the part that needs it (and fails under `PROMPTDT_REQUIRE_REFERENCE_DATA=1`).
-#[track_caller]
-fn official(name: &str) -> Option<PathBuf> {
-    pdt_testkit::reference::official_prompt(name)
-}
+use support::{sample_dataset, traj};
 
 /// A dataset of task `i` (distinct per task and kind).
 fn task_ds(i: usize, prompt: bool, obs_dim: usize) -> TaskDataset {
@@ -139,7 +133,7 @@ fn data_format_names() {
 /// both exist.
 #[test]
 fn mixes_native_files_and_reference_pickles() {
-    let Some(pkl) = official("cheetah_vel-2-prompt-expert.pkl") else { return };
+    let Some(pkl) = official_prompt("cheetah_vel-2-prompt-expert.pkl") else { return };
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(&pkl, dir.path().join("cheetah_vel-2-prompt-expert.pkl")).unwrap();
     write_native(dir.path(), "cheetah_vel", 2, "expert", &task_ds(2, false, 20));
@@ -171,9 +165,10 @@ fn mixes_native_files_and_reference_pickles() {
 
 #[test]
 fn converts_reference_pickles() {
-    let (Some(a), Some(b)) =
-        (official("cheetah_vel-2-prompt-expert.pkl"), official("cheetah_dir-1-prompt-expert.pkl"))
-    else {
+    let (Some(a), Some(b)) = (
+        official_prompt("cheetah_vel-2-prompt-expert.pkl"),
+        official_prompt("cheetah_dir-1-prompt-expert.pkl"),
+    ) else {
         return;
     };
     let src = tempfile::tempdir().unwrap();

@@ -5,13 +5,13 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
 use std::path::Path;
 use std::process::Command;
 
-use native_support::sample_dataset;
 use pdt_data::native::{write_task_dataset, FileMeta};
+use support::sample_dataset;
 
 #[test]
 fn python_reader_prints_the_same_returns() {

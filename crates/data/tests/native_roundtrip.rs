@@ -2,9 +2,8 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
-use native_support::{sample_dataset, traj};
 use pdt_data::native::{
     parse_task_file_stem, read_card, read_file_meta, read_task_dataset, task_file_stem, write_card,
     write_task_dataset, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats,
@@ -12,6 +11,7 @@ use pdt_data::native::{
 use pdt_data::{DataError, TaskDataset, Trajectory};
 use proptest::prelude::*;
 use safetensors::tensor::Dtype;
+use support::{sample_dataset, traj};
 
 #[test]
 fn roundtrip_preserves_every_field() {
@@ -119,14 +119,14 @@ fn reads_files_from_other_writers() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("from-python.safetensors");
     let ds = sample_dataset(4, 2);
-    let mut tensors = native_support::tensors_of(&ds);
+    let mut tensors = support::tensors_of(&ds);
     for t in &mut tensors {
         if t.name == "terminated" || t.name == "truncated" {
             t.dtype = Dtype::BOOL;
         }
     }
-    tensors.push(native_support::RawTensor::f32("next_observations", vec![1, 1], &[0.0]));
-    std::fs::write(&path, native_support::safetensors_bytes(&tensors, None)).unwrap();
+    tensors.push(support::RawTensor::f32("next_observations", vec![1, 1], &[0.0]));
+    std::fs::write(&path, support::safetensors_bytes(&tensors, None)).unwrap();
     assert_eq!(read_task_dataset(&path).unwrap(), ds);
     assert_eq!(read_file_meta(&path).unwrap(), FileMeta::default());
 }

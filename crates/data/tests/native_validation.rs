@@ -3,17 +3,15 @@
 
 #![allow(clippy::unwrap_used)] // in tests a panic is the failure report
 
-mod native_support;
+mod support;
 
 use std::path::{Path, PathBuf};
 
-use native_support::{
-    replace, safetensors_bytes, sample_dataset, standard_meta, tensors_of, RawTensor,
-};
 use pdt_data::native::{read_file_meta, read_task_dataset, write_task_dataset, FileMeta};
 use pdt_data::DataError;
 use proptest::prelude::*;
 use safetensors::tensor::Dtype;
+use support::{replace, safetensors_bytes, sample_dataset, standard_meta, tensors_of, RawTensor};
 
 /// Writes `bytes` to a fresh file and reads it; returns the error message (which must name the
 /// file) and the error.

@@ -145,10 +145,8 @@ pub fn run(cfg: &EnvBenchConfig) -> Result<Vec<EnvBenchResult>, EnvError> {
     Ok(results)
 }
 
-/// Number of cores this process may use (`std::thread::available_parallelism`; 1 if unknown).
-pub fn available_cores() -> usize {
-    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
-}
+/// Number of cores this process may use (one definition for the workspace, in `pdt-base`).
+pub use pdt_base::threads::available_cores;
 
 /// The 1-minute load average from `/proc/loadavg` (Linux), to record how busy the machine was.
 pub fn load_avg_1m() -> Option<f64> {

@@ -30,6 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::dial::{self, Dial, DialExpert, DialFamily};
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
+use crate::mujoco_env::standard_normal;
 use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
 use crate::{Env, EnvError, EnvFamily, StepResult};
 
@@ -432,16 +433,6 @@ pub fn episode_rng(seed: u64, task: usize, mode: Mode, set: Set, episode: usize)
     key[20..24].copy_from_slice(&set.rng_id().to_le_bytes());
     key[24..32].copy_from_slice(&(episode as u64).to_le_bytes());
     ChaCha8Rng::from_seed(key)
-}
-
-/// A standard normal sample (Box-Muller). Written out rather than taken from `rand_distr` to keep
-/// the dependency set small and the algorithm visible here: the data then depends only on rand's
-/// uniform sampling, which is fixed within a rand major version.
-fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
-    // `random::<f64>()` is in [0, 1); 1 - u is in (0, 1], so the log is finite.
-    let u1 = 1.0 - rng.random::<f64>();
-    let u2 = rng.random::<f64>();
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 fn normal(rng: &mut ChaCha8Rng, std: f64) -> f32 {

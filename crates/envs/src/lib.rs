@@ -11,6 +11,7 @@ pub mod metaworld_reach;
 pub mod mujoco_env;
 pub mod point_robot;
 pub mod replay;
+pub mod rollout;
 pub mod vec_env;
 
 pub use replay::{replay, ReplayResult};

@@ -410,12 +410,10 @@ impl Env for MujocoEnv {
     }
 }
 
-/// A standard normal sample (Box-Muller), from two uniforms of `rng`.
+/// A standard normal sample (Box-Muller, [`pdt_base::standard_normal`]) from two uniforms of
+/// `rng`; the crate's environments and scripted collectors all draw their noise through it.
 pub(crate) fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
-    // `random::<f64>()` is in [0, 1); 1 - u is in (0, 1], so the logarithm is finite.
-    let u1 = 1.0 - rng.random::<f64>();
-    let u2 = rng.random::<f64>();
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    pdt_base::standard_normal(|| rng.random::<f64>())
 }
 
 /// Sum of squares of the action, accumulated in f64 in coordinate order (the control cost's

@@ -10,8 +10,8 @@ use pdt_envs::dial::{Dial, DialExpert, ACT_DIM, C_HIGH, C_LOW, HORIZON, NUM_TASK
 use pdt_envs::Env;
 use rand::{Rng, SeedableRng};
 
-mod common;
-use common::dir_bytes;
+mod support;
+use support::dir_bytes;
 
 fn config(seed: u64, episodes: usize, modes: Vec<Mode>, tasks: Vec<usize>) -> CollectConfig {
     CollectConfig {

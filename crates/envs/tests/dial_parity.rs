@@ -17,8 +17,8 @@ use serde::Deserialize;
 use pdt_envs::dial::{Dial, DialExpert, DialStep, ACT_DIM, HORIZON};
 use pdt_envs::{Env, EnvError};
 
-mod common;
-use common::{base64_decode, fnv1a64};
+mod support;
+use support::{base64_decode, fnv1a64};
 
 #[derive(Deserialize)]
 struct Fixture {

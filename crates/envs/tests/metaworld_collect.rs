@@ -8,8 +8,8 @@ use pdt_envs::collect_scripted::{collect, CollectConfig, CollectError, Mode, Scr
 use pdt_envs::metaworld_reach::{ENV_NAME, HORIZON, OBS_DIM, SUCCESS_REWARD};
 use pdt_envs::EnvError;
 
-mod common;
-use common::dir_bytes;
+mod support;
+use support::dir_bytes;
 
 fn config(seed: u64) -> CollectConfig {
     CollectConfig {

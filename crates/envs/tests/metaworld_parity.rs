@@ -19,8 +19,8 @@ use pdt_envs::metaworld_reach::{
 };
 use pdt_envs::{Env, EnvError, EnvFamily};
 
-mod common;
-use common::{base64_decode, fnv1a64};
+mod support;
+use support::{base64_decode, fnv1a64};
 
 #[derive(Deserialize)]
 struct Fixture {

@@ -13,8 +13,8 @@ use pdt_envs::collect_scripted::{
 use pdt_envs::point_robot::{self, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS};
 use pdt_envs::{family, EnvError, EnvFamily};
 
-mod common;
-use common::dir_bytes;
+mod support;
+use support::dir_bytes;
 
 fn small_config(seed: u64) -> CollectConfig {
     CollectConfig {

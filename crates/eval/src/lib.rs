@@ -10,9 +10,10 @@
 //! one), returns-to-go starting at G*/scale and decreasing by r/scale, timesteps from 0; the model
 //! sees the last K steps, left-padded with zeros (mask 0), and the task's prompt.
 
+use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
-use pdt_envs::{Env, EnvError};
-use pdt_model::{PromptDt, Segments};
+use pdt_envs::{Env, EnvError, StepResult};
+use pdt_model::{PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -250,6 +251,130 @@ pub fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
     )
 }
 
+/// The episodes of one [`evaluate`] call as the [`run_batch`] loop drives them, a batch of up to
+/// `max_batch` at a time; slot `id` is episode `id` in (task, episode) order.
+struct Batch<'a> {
+    model: &'a PromptDt,
+    cfg: &'a EvalSettings,
+    /// The prompts' keys and values, one row per task, when inference is cached.
+    prefix: Option<&'a PrefixCache>,
+    prompts: &'a [Option<SegmentBatch>],
+    names: &'a [String],
+    /// `Some` while the episode in that slot runs.
+    eps: Vec<Option<Running>>,
+    /// Finished episodes, by slot.
+    done: Vec<(usize, EpisodeRecord)>,
+}
+
+impl Batch<'_> {
+    fn running(&self, slot: usize) -> Result<&Running, EvalError> {
+        self.eps.get(slot).and_then(Option::as_ref).ok_or_else(|| EvalError::Setup {
+            task: String::new(),
+            why: format!("episode {slot} is not running (internal error)"),
+        })
+    }
+}
+
+impl BatchPolicy for Batch<'_> {
+    type Error = EvalError;
+
+    fn act(&mut self, slots: &[usize]) -> Result<Vec<f32>, EvalError> {
+        let (cfg, model) = (self.cfg, self.model);
+        let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
+        let eps: Vec<&Running> =
+            slots.iter().map(|&s| self.running(s)).collect::<Result<_, _>>()?;
+        let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
+        let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
+        let last = match (cfg.inference, self.prefix) {
+            (Inference::Cached, Some(c)) => {
+                let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
+                let rows = Tensor::from_slice(&rows).to_device(cfg.device);
+                tch::no_grad(|| model.act(&history, Some(&c.select(&rows))))
+                // [A, da]
+            }
+            (Inference::Cached, None) if self.prompts.iter().all(Option::is_none) => {
+                tch::no_grad(|| model.act(&history, None)) // [A, da]
+            }
+            _ => {
+                let task_prompts: Option<Vec<&SegmentBatch>> =
+                    eps.iter().map(|e| self.prompts[e.task].as_ref()).collect();
+                let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
+                let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
+                preds.select(1, cfg.k as i64 - 1) // [A, da]
+            }
+        }
+        .to_kind(Kind::Float)
+        .to_device(Device::Cpu);
+        let mut acts = vec![0f32; eps.len() * da];
+        last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
+        // A non-finite action is the model's failure, not the environment's: say what it was fed.
+        if let Some(i) = acts.iter().position(|a| !a.is_finite()) {
+            let ep = eps[i / da];
+            let detail = format!(
+                "episode {} (reset seed {}), step {}: the policy's action[{}] is {}, not \
+                 finite. The return token was {} (eval.target_return = {} over rtg_scale = {} \
+                 at the first step): a token far outside the training data's range makes the \
+                 model overflow f32. Other causes: absurd (huge but finite) weights in the \
+                 checkpoint, or absurd state statistics",
+                ep.episode,
+                ep.seed,
+                ep.h.t,
+                i % da,
+                acts[i],
+                compact(ep.h.rtg.last().copied().unwrap_or(0.0)),
+                compact(cfg.target_return),
+                compact(cfg.rtg_scale)
+            );
+            return Err(EvalError::NonFiniteAction { task: self.names[ep.task].clone(), detail });
+        }
+        Ok(acts)
+    }
+
+    fn record(
+        &mut self,
+        slot: usize,
+        action: &[f32],
+        step: Result<StepResult, EnvError>,
+    ) -> Result<bool, EvalError> {
+        let cfg = self.cfg;
+        let Some(mut ep) = self.eps.get_mut(slot).and_then(Option::take) else {
+            let why = format!("episode {slot} is not running (internal error)");
+            return Err(EvalError::Setup { task: String::new(), why });
+        };
+        let step =
+            step.map_err(|source| EvalError::Env { task: self.names[ep.task].clone(), source })?;
+        ep.h.record(action, step.reward, &step.obs, &cfg.norm, cfg.returns, cfg.rtg_scale);
+        if let Some(ok) = step.success {
+            ep.success = Some(ep.success.unwrap_or(false) || ok);
+        }
+        if step.terminated || step.truncated || ep.h.t >= cfg.horizon {
+            let record = EpisodeRecord {
+                task_index: ep.task,
+                seed: ep.seed,
+                episode_return: ep.h.ret,
+                length: ep.h.t,
+                success: ep.success,
+                actions: ep.h.actions,
+            };
+            self.done.push((ep.id, record));
+            return Ok(true);
+        }
+        self.eps[slot] = Some(ep);
+        Ok(false)
+    }
+
+    /// A failure of the pool itself (not of one environment) is charged to the batch's tasks.
+    fn batch_error(&self, slots: &[usize], source: EnvError) -> EvalError {
+        let mut tasks: Vec<&str> = slots
+            .iter()
+            .filter_map(|&s| self.eps.get(s).and_then(Option::as_ref))
+            .map(|e| self.names[e.task].as_str())
+            .collect();
+        tasks.dedup();
+        EvalError::Env { task: tasks.join(", "), source }
+    }
+}
+
 /// Runs every episode of every task to its end; returns the episodes in (task, episode) order.
 ///
 /// All episodes' environments go into one [`VecEnv`] on `cfg.env_threads` threads, started once
@@ -303,114 +428,36 @@ pub fn evaluate(
         }
         _ => None,
     };
-    // Every environment takes `da` values (checked above), so episode `id`'s action sits at
-    // `id * da` of the flat action buffer.
     let mut venv = VecEnv::new(envs, cfg.env_threads);
-    let (mut flat, mut mask) = (vec![0f32; n * da], vec![false; n]);
-    // A failure of the pool itself (not of one environment) is charged to the batch's tasks.
-    let batch_error = |active: &[Running], source: EnvError| {
-        let mut tasks: Vec<&str> = active.iter().map(|e| names[e.task].as_str()).collect();
-        tasks.dedup();
-        EvalError::Env { task: tasks.join(", "), source }
+    let mut batch = Batch {
+        model,
+        cfg,
+        prefix: prefix.as_ref(),
+        prompts: &prompts,
+        names: &names,
+        eps: (0..n).map(|_| None).collect(),
+        done: Vec::with_capacity(n),
     };
-
-    let mut done: Vec<(usize, EpisodeRecord)> = Vec::with_capacity(n);
     let mut queue = queue.into_iter().peekable();
     while queue.peek().is_some() {
         // Start up to `max_batch` episodes, in episode order; they run to their ends together.
-        let mut active: Vec<Running> = queue.by_ref().take(cfg.max_batch.max(1)).collect();
-        let resets: Vec<(usize, u64)> = active.iter().map(|e| (e.id, e.seed)).collect();
-        let first = venv.reset_some(&resets).map_err(|source| batch_error(&active, source))?;
-        for (ep, obs) in active.iter_mut().zip(first) {
-            ep.h = History::start(&cfg.norm, &obs, first_rtg);
+        let mut slots = Vec::with_capacity(cfg.max_batch.max(1));
+        let mut resets = Vec::with_capacity(cfg.max_batch.max(1));
+        for ep in queue.by_ref().take(cfg.max_batch.max(1)) {
+            slots.push(ep.id);
+            resets.push((ep.id, ep.seed));
+            let id = ep.id;
+            batch.eps[id] = Some(ep);
         }
-        while !active.is_empty() {
-            let eps: Vec<&Running> = active.iter().collect();
-            let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
-            let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
-            let last = match (cfg.inference, &prefix) {
-                (Inference::Cached, Some(c)) => {
-                    let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
-                    let rows = Tensor::from_slice(&rows).to_device(cfg.device);
-                    tch::no_grad(|| model.act(&history, Some(&c.select(&rows))))
-                    // [A, da]
-                }
-                (Inference::Cached, None) if prompts.iter().all(Option::is_none) => {
-                    tch::no_grad(|| model.act(&history, None)) // [A, da]
-                }
-                _ => {
-                    let task_prompts: Option<Vec<&SegmentBatch>> =
-                        eps.iter().map(|e| prompts[e.task].as_ref()).collect();
-                    let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
-                    let preds = tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)); // [A, K, da]
-                    preds.select(1, cfg.k as i64 - 1) // [A, da]
-                }
+        let first = venv.reset_some(&resets).map_err(|source| batch.batch_error(&slots, source))?;
+        for (&id, obs) in slots.iter().zip(first) {
+            if let Some(ep) = batch.eps[id].as_mut() {
+                ep.h = History::start(&cfg.norm, &obs, first_rtg);
             }
-            .to_kind(Kind::Float)
-            .to_device(Device::Cpu);
-            let mut acts = vec![0f32; eps.len() * da];
-            last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
-            // A non-finite action is the model's failure, not the environment's: say what it was
-            // fed.
-            if let Some(i) = acts.iter().position(|a| !a.is_finite()) {
-                let ep = eps[i / da];
-                let detail = format!(
-                    "episode {} (reset seed {}), step {}: the policy's action[{}] is {}, not \
-                     finite. The return token was {} (eval.target_return = {} over rtg_scale = {} \
-                     at the first step): a token far outside the training data's range makes the \
-                     model overflow f32. Other causes: absurd (huge but finite) weights in the \
-                     checkpoint, or absurd state statistics",
-                    ep.episode,
-                    ep.seed,
-                    ep.h.t,
-                    i % da,
-                    acts[i],
-                    compact(ep.h.rtg.last().copied().unwrap_or(0.0)),
-                    compact(cfg.target_return),
-                    compact(cfg.rtg_scale)
-                );
-                return Err(EvalError::NonFiniteAction { task: names[ep.task].clone(), detail });
-            }
-            for (ep, a) in active.iter().zip(acts.chunks_exact(da)) {
-                flat[ep.id * da..(ep.id + 1) * da].copy_from_slice(a);
-                mask[ep.id] = true;
-            }
-            let stepped = venv.step_flat(&flat, Some(&mask));
-            for ep in &active {
-                mask[ep.id] = false;
-            }
-            let mut steps = stepped.map_err(|source| batch_error(&active, source))?;
-            let mut still = Vec::with_capacity(active.len());
-            for (mut ep, a) in active.into_iter().zip(acts.chunks_exact(da)) {
-                let name = || names[ep.task].clone();
-                let step = match steps.get_mut(ep.id).and_then(Option::take) {
-                    Some(step) => step.map_err(|source| EvalError::Env { task: name(), source })?,
-                    None => {
-                        let why = format!("episode {} was not stepped (internal error)", ep.id);
-                        return Err(EvalError::Setup { task: name(), why });
-                    }
-                };
-                ep.h.record(a, step.reward, &step.obs, &cfg.norm, cfg.returns, cfg.rtg_scale);
-                if let Some(ok) = step.success {
-                    ep.success = Some(ep.success.unwrap_or(false) || ok);
-                }
-                if step.terminated || step.truncated || ep.h.t >= cfg.horizon {
-                    let record = EpisodeRecord {
-                        task_index: ep.task,
-                        seed: ep.seed,
-                        episode_return: ep.h.ret,
-                        length: ep.h.t,
-                        success: ep.success,
-                        actions: ep.h.actions,
-                    };
-                    done.push((ep.id, record));
-                } else {
-                    still.push(ep);
-                }
-            }
-            active = still;
         }
+        run_batch(&mut venv, slots, &mut batch)?;
     }
+    let mut done = batch.done;
     // Episodes of a batch end in any order; report them in (task, episode) order.
     done.sort_by_key(|(id, _)| *id);
     Ok(done.into_iter().map(|(_, r)| r).collect())

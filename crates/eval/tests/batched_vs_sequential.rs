@@ -79,8 +79,8 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
             let diff =
                 b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
             // Bit for bit where the CPU's kernels are batch-invariant (AVX2), within
-            // BATCH_TOLERANCE elsewhere (AVX-512; pdt_model::cpu::batch_invariant).
-            if pdt_model::cpu::batch_invariant() {
+            // BATCH_TOLERANCE elsewhere (AVX-512; pdt_testkit::cpu::batch_invariant).
+            if pdt_testkit::cpu::batch_invariant() {
                 assert!(
                     same,
                     "task {} seed {}: batched actions differ by up to {diff:e}",
@@ -89,7 +89,7 @@ fn batched_evaluation_takes_exactly_the_sequential_actions() {
                 assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
             } else {
                 assert!(
-                    diff <= pdt_model::cpu::BATCH_TOLERANCE,
+                    diff <= pdt_testkit::cpu::BATCH_TOLERANCE,
                     "task {} seed {}: batched actions differ by up to {diff:e}",
                     b.task_index,
                     b.seed

@@ -109,11 +109,11 @@ fn episodes_leaving_batches_take_the_sequential_actions_on_any_thread_count() {
                 b.actions.iter().zip(&s.actions).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
             let what = format!("max_batch {max_batch}, {env_threads} threads, seed {}", b.seed);
             // Bit for bit on batch-invariant kernels (AVX2), within BATCH_TOLERANCE on AVX-512.
-            if pdt_model::cpu::batch_invariant() {
+            if pdt_testkit::cpu::batch_invariant() {
                 assert!(same, "{what}: actions differ by up to {diff:e}");
                 assert_eq!(b.episode_return.to_bits(), s.episode_return.to_bits());
             } else {
-                assert!(diff <= pdt_model::cpu::BATCH_TOLERANCE, "{what}: {diff:e}");
+                assert!(diff <= pdt_testkit::cpu::BATCH_TOLERANCE, "{what}: {diff:e}");
                 assert!((b.episode_return - s.episode_return).abs() <= 1e-4, "{what}");
             }
         }

@@ -3,8 +3,9 @@
 //! per environment step.
 
 use crate::{act, Dims, MacawConfig, MacawError};
+use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
-use pdt_envs::EnvFamily;
+use pdt_envs::{EnvError, EnvFamily, StepResult};
 use tch::{Device, Kind, Tensor};
 
 /// One finished episode.
@@ -17,6 +18,65 @@ pub struct Episode {
     pub failed: bool,
     /// Whether some step solved the task (families with a success criterion), else `None`.
     pub success: Option<bool>,
+}
+
+/// The episodes of [`run_episodes`] as the [`run_batch`] loop drives them (slot `i`: seed `i`).
+struct Running<'p> {
+    policy: &'p [Tensor],
+    dims: &'p Dims,
+    cfg: &'p MacawConfig,
+    kind: Kind,
+    device: Device,
+    obs: Vec<Vec<f32>>,
+    returns: Vec<f64>,
+    lengths: Vec<usize>,
+    failed: Vec<bool>,
+    success: Vec<Option<bool>>,
+}
+
+impl BatchPolicy for Running<'_> {
+    type Error = MacawError;
+
+    fn act(&mut self, slots: &[usize]) -> Result<Vec<f32>, MacawError> {
+        let o = self.dims.obs;
+        let x: Vec<f32> = slots.iter().flat_map(|&i| self.obs[i].iter().copied()).collect();
+        let x = Tensor::from_slice(&x).view([slots.len() as i64, o]);
+        let y = act(self.policy, self.dims, &x.to_kind(self.kind).to_device(self.device), self.cfg)
+            .to_kind(Kind::Float)
+            .to_device(Device::Cpu)
+            .contiguous()
+            .view([-1]);
+        Ok(Vec::<f32>::try_from(&y)?)
+    }
+
+    /// A non-finite action ends the episode there, unstepped (see [`run_episodes`]).
+    fn ends_before_step(&mut self, slot: usize, action: &[f32]) -> bool {
+        let failed = !action.iter().all(|v| v.is_finite());
+        if failed {
+            self.failed[slot] = true;
+        }
+        failed
+    }
+
+    fn batch_error(&self, _slots: &[usize], error: EnvError) -> MacawError {
+        error.into()
+    }
+
+    fn record(
+        &mut self,
+        slot: usize,
+        _action: &[f32],
+        step: Result<StepResult, EnvError>,
+    ) -> Result<bool, MacawError> {
+        let r = step?;
+        self.returns[slot] += f64::from(r.reward);
+        self.lengths[slot] += 1;
+        if let Some(ok) = r.success {
+            self.success[slot] = Some(self.success[slot].unwrap_or(false) || ok);
+        }
+        self.obs[slot] = r.obs;
+        Ok(r.terminated || r.truncated)
+    }
 }
 
 /// Runs one episode per seed on task `task` of `family` with the policy parameters `policy`,
@@ -50,49 +110,21 @@ pub fn run_episodes(
     let kind = policy.first().map_or(Kind::Float, Tensor::kind);
     let mut venv = VecEnv::new(envs, threads);
     let n = seeds.len();
-    let mut obs = venv.reset(seeds)?;
-    let mut done = vec![false; n];
-    let mut returns = vec![0f64; n];
-    let mut lengths = vec![0usize; n];
-    let mut failed = vec![false; n];
-    let mut success: Vec<Option<bool>> = vec![None; n];
-    let mut flat = vec![0f32; n * a];
-    while done.iter().any(|d| !d) {
-        let active: Vec<usize> = (0..n).filter(|&i| !done[i]).collect();
-        let x: Vec<f32> = active.iter().flat_map(|&i| obs[i].iter().copied()).collect();
-        let x = Tensor::from_slice(&x).view([active.len() as i64, o as i64]);
-        let y = act(policy, dims, &x.to_kind(kind).to_device(device), cfg)
-            .to_kind(Kind::Float)
-            .to_device(Device::Cpu)
-            .contiguous()
-            .view([-1]);
-        let y: Vec<f32> = Vec::<f32>::try_from(&y)?;
-        for (k, &i) in active.iter().enumerate() {
-            let ai = &y[k * a..(k + 1) * a];
-            if ai.iter().all(|v| v.is_finite()) {
-                flat[i * a..(i + 1) * a].copy_from_slice(ai);
-            } else {
-                failed[i] = true;
-                done[i] = true;
-            }
-        }
-        let mask: Vec<bool> = done.iter().map(|d| !d).collect();
-        if !mask.iter().any(|&m| m) {
-            break;
-        }
-        for (i, slot) in venv.step_flat(&flat, Some(&mask))?.into_iter().enumerate() {
-            if let Some(r) = slot {
-                let r = r?;
-                returns[i] += f64::from(r.reward);
-                lengths[i] += 1;
-                if let Some(ok) = r.success {
-                    success[i] = Some(success[i].unwrap_or(false) || ok);
-                }
-                done[i] = r.terminated || r.truncated;
-                obs[i] = r.obs;
-            }
-        }
-    }
+    let obs = venv.reset(seeds)?;
+    let mut run = Running {
+        policy,
+        dims,
+        cfg,
+        kind,
+        device,
+        obs,
+        returns: vec![0f64; n],
+        lengths: vec![0usize; n],
+        failed: vec![false; n],
+        success: vec![None; n],
+    };
+    run_batch(&mut venv, (0..n).collect(), &mut run)?;
+    let Running { returns, lengths, failed, success, .. } = run;
     Ok(seeds
         .iter()
         .enumerate()

@@ -9,9 +9,8 @@
 //! CPU are compared within bounds (see `bound`).
 
 use pdt_macaw::{adapt, meta_task, Batch, Dims, MacawConfig, Optimisers, Params};
-use pdt_model::cpu::CpuFingerprint;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use tch::{Kind, Tensor};
 
 type Fixture = BTreeMap<String, Tensor>;
@@ -166,37 +165,11 @@ fn run(path: &Path, bitwise: bool) -> (f64, String, usize) {
     (cmp.worst, cmp.worst_name, cmp.checked)
 }
 
-fn made_here(dir: &Path) -> bool {
-    let path = dir.join("macaw_cpu.json");
-    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let v: serde_json::Value = serde_json::from_str(&text).expect("macaw_cpu.json");
-    let theirs: Option<CpuFingerprint> = serde_json::from_value(v["cpu"].clone()).ok();
-    theirs.is_some() && theirs == CpuFingerprint::detect()
-}
-
-fn sets() -> Vec<(PathBuf, &'static str, bool)> {
-    let committed = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/golden");
-    let here = made_here(&committed);
-    let mut out = vec![(committed, "committed", here)];
-    match std::env::var_os("PROMPTDT_LIVE_GOLDEN").map(PathBuf::from) {
-        Some(dir) if dir.join("macaw_cpu.json").is_file() => {
-            assert!(made_here(&dir), "{}: live MACAW fixtures made on another CPU", dir.display());
-            out.push((dir, "live", true));
-        }
-        _ if std::env::var("PROMPTDT_REQUIRE_LIVE_GOLDEN").as_deref() == Ok("1") => {
-            panic!(
-                "PROMPTDT_REQUIRE_LIVE_GOLDEN=1 but no live MACAW fixtures (make test writes them)"
-            )
-        }
-        _ => eprintln!("live MACAW parity skipped: no PyTorch fixtures made on this machine"),
-    }
-    out
-}
-
 #[test]
 fn meta_training_and_adaptation_equal_pytorch() {
     tch::set_num_threads(1);
-    for (dir, label, bitwise) in sets() {
+    for set in pdt_testkit::golden::sets("macaw_cpu.json") {
+        let (dir, label, bitwise) = (set.dir, set.label, set.bitwise);
         for dtype in ["f64", "f32"] {
             let path = dir.join(format!("macaw_{dtype}.safetensors"));
             let (worst, name, n) = run(&path, bitwise);
@@ -216,7 +189,7 @@ fn meta_training_and_adaptation_equal_pytorch() {
 /// is rounding, 3.9e-7 relative when measured), so neither fixture set is off on its own.
 #[test]
 fn float32_within_rounding_of_float64() {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../testdata/golden");
+    let dir = pdt_testkit::golden::committed_dir();
     let (a, b) =
         (load(&dir.join("macaw_f32.safetensors")), load(&dir.join("macaw_f64.safetensors")));
     let mut worst: f64 = 0.0;

@@ -5,7 +5,6 @@
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
-//! - [`cpu`]: the CPU fingerprint that decides whether float results can be compared bit for bit.
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
 //! so a checkpoint moves between promptdt and PyTorch without renaming.
@@ -16,7 +15,6 @@
 
 pub mod checkpoint;
 pub mod config;
-pub mod cpu;
 pub mod device;
 pub mod forward_file;
 pub mod gpt2;

@@ -134,17 +134,17 @@ fn act_is_the_same_alone_or_batched() {
         same_full += i64::from(full_alone.equal(&full_batched.get(i).unsqueeze(0)));
     }
     eprintln!("act: {same} of {b} bit-identical alone and batched; forward: {same_full} of {b}");
-    if pdt_model::cpu::batch_invariant() {
+    if pdt_testkit::cpu::batch_invariant() {
         assert_eq!(same, b);
     } else {
-        // AVX-512 kernels depend on the batch size (pdt_model::cpu::batch_invariant).
+        // AVX-512 kernels depend on the batch size (pdt_testkit::cpu::batch_invariant).
         for i in 0..b {
             let one = Tensor::from_slice(&[i]);
             let h = rows(&history, &one);
             let p = rows(&prompts, &one);
             let alone = tch::no_grad(|| model.act(&h, Some(&model.prefix(&p))));
             let d = (alone - batched.get(i).unsqueeze(0)).abs().max().double_value(&[]);
-            assert!(d <= f64::from(pdt_model::cpu::BATCH_TOLERANCE), "row {i}: {d:e}");
+            assert!(d <= f64::from(pdt_testkit::cpu::BATCH_TOLERANCE), "row {i}: {d:e}");
         }
     }
 }

@@ -249,10 +249,7 @@ impl VecEnv {
         let envs =
             tasks.iter().map(|&t| f.make(t)).collect::<Result<Vec<_>, _>>().map_err(value_error)?;
         let (obs_dim, act_dim, horizon) = (envs[0].obs_dim(), envs[0].act_dim(), envs[0].horizon());
-        let threads = match threads {
-            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
-            n => n,
-        };
+        let threads = pdt_base::threads(threads);
         let venv = pdt_envs::vec_env::VecEnv::new(envs, threads);
         Ok(Self {
             state: Mutex::new(VecState { venv, obs_dim, success: None }),

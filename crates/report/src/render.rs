@@ -2,6 +2,8 @@
 
 use std::fmt::Write as _;
 
+use pdt_base::table::{Rule, Table};
+
 use crate::aggregate::{Aggregated, Stat};
 
 /// Formats a float for CSV: shortest round-trip form, so no precision is lost.
@@ -184,10 +186,8 @@ pub(crate) fn table_markdown(agg: &Aggregated, title: Option<&str>, warnings: &[
         let mut header = vec!["method".to_string(), "seeds".to_string(), "iteration".to_string()];
         header.extend(env.tasks.iter().map(|t| md(t)));
         header.push("average".to_string());
-        let _ = writeln!(out, "| {} |", header.join(" | "));
-        let align: Vec<&str> =
-            header.iter().enumerate().map(|(i, _)| if i == 0 { "---" } else { "---:" }).collect();
-        let _ = writeln!(out, "| {} |", align.join(" | "));
+        // The method column left-aligned, the numbers right-aligned.
+        let mut table = Table::new(header);
 
         let best_task: Vec<Option<usize>> = (0..env.tasks.len())
             .map(|j| best(&env.rows.iter().map(|r| r.tasks[j]).collect::<Vec<_>>()))
@@ -210,8 +210,9 @@ pub(crate) fn table_markdown(agg: &Aggregated, title: Option<&str>, warnings: &[
                 Some(s) => cell(s, row.n_seeds, best_avg == Some(i)),
                 None => "—".to_string(),
             });
-            let _ = writeln!(out, "| {} |", cells.join(" | "));
+            table.push(cells);
         }
+        out.push_str(&table.markdown(Rule::Spaced));
         out.push('\n');
     }
     warnings_markdown(&mut out, warnings);

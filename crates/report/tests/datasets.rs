@@ -3,6 +3,7 @@
 //! (`official-prompts/`, found by `pdt_testkit::reference`) and against hand-made native reference
 //! files otherwise.
 
+use pdt_testkit::reference::official_prompts;
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -17,12 +18,6 @@ type TestResult = Result<(), Box<dyn std::error::Error>>;
 
 const PNG_SIGNATURE: [u8; 8] = [0x89, b'P', b'N', b'G', b'\r', b'\n', 0x1a, b'\n'];
 const STEPS: usize = 200;
-
-/// The reference release's prompt sets, or `None` (the test is skipped; CI requires them).
-#[track_caller]
-fn official() -> Option<PathBuf> {
-    pdt_testkit::reference::official_prompts()
-}
 
 /// 200-step episodes with a constant reward, so episode `k`'s return is `returns[k]` (up to f32
 /// rounding, far below the margins the tests use).
@@ -85,7 +80,7 @@ fn assert_outputs(out: &Path, stem: &str) -> TestResult {
 
 #[test]
 fn cheetah_vel_bar_against_the_official_prompts() -> TestResult {
-    let Some(reference) = official() else { return Ok(()) };
+    let Some(reference) = official_prompts() else { return Ok(()) };
     let tmp = tempfile::tempdir()?;
     let ours = tmp.path().join("cheetah_vel");
     fs::create_dir_all(&ours)?;
@@ -188,7 +183,7 @@ fn cheetah_vel_bar_against_the_official_prompts() -> TestResult {
 
 #[test]
 fn cheetah_dir_bar_against_the_official_prompts() -> TestResult {
-    let Some(reference) = official() else { return Ok(()) };
+    let Some(reference) = official_prompts() else { return Ok(()) };
     let tmp = tempfile::tempdir()?;
     let ours = tmp.path().join("cheetah_dir");
     fs::create_dir_all(&ours)?;

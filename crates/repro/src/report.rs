@@ -11,6 +11,7 @@
 use crate::manifest::{ClaimKind, Layout, Manifest};
 use crate::plan::{self, Plan, RunState};
 use crate::ReproError;
+use pdt_base::table::{Align, Rule, Table};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -614,11 +615,11 @@ fn markdown(m: &Manifest, r: &Report) -> String {
          returns (its prompt files) and our random returns; `-` where the reference's experts are \
          unknown. Within: |ours - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
     );
-    let _ = writeln!(
-        s,
-        "| cell | seeds | iteration | ours | ours normalised | paper | paper normalised | within paper std | status |"
-    );
-    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---|---|");
+    let header =
+        "cell|seeds|iteration|ours|ours normalised|paper|paper normalised|within paper std|status";
+    let (text, num) = (Align::Left, Align::Right);
+    let align = vec![text, num, num, num, num, num, num, text, text];
+    let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
     for c in &r.cells {
         let paper = match (c.paper, c.paper_std) {
             (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
@@ -635,11 +636,9 @@ fn markdown(m: &Manifest, r: &Report) -> String {
             (None, Some(n)) => format!("- / {n}"),
             _ => "-".into(),
         };
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {} | {} | {} | {} | {} | {} | {} |",
-            c.id,
-            c.seeds,
+        table.push(vec![
+            format!("`{}`", c.id),
+            c.seeds.to_string(),
             it,
             match c.success {
                 Some(sr) => format!("{} (success {:.0} %)", stat(c.ours, 2), 100.0 * sr.mean),
@@ -648,10 +647,11 @@ fn markdown(m: &Manifest, r: &Report) -> String {
             stat(c.ours_normalised, 1),
             paper,
             pn,
-            c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }),
-            c.status
-        );
+            c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }).to_string(),
+            c.status.to_string(),
+        ]);
     }
+    s.push_str(&table.markdown(Rule::Tight));
     if m.layout == Layout::Table {
         let mut rows: Vec<String> = Vec::new();
         let mut cols: Vec<String> = Vec::new();
@@ -666,8 +666,10 @@ fn markdown(m: &Manifest, r: &Report) -> String {
             }
         }
         let _ = writeln!(s, "\n## As the paper lays it out (ours normalised / paper normalised; raw in the table above)\n");
-        let _ = writeln!(s, "| | {} |", cols.join(" | "));
-        let _ = writeln!(s, "|---|{}|", cols.iter().map(|_| "---:").collect::<Vec<_>>().join("|"));
+        // The corner cell is empty: the rows are labelled, the columns are.
+        let mut header = vec![String::new()];
+        header.extend(cols.iter().cloned());
+        let mut layout = Table::new(header);
         for row in &rows {
             let line: Vec<String> = cols
                 .iter()
@@ -684,8 +686,11 @@ fn markdown(m: &Manifest, r: &Report) -> String {
                         })
                 })
                 .collect();
-            let _ = writeln!(s, "| {row} | {} |", line.join(" | "));
+            let mut cells = vec![row.clone()];
+            cells.extend(line);
+            layout.push(cells);
         }
+        s.push_str(&layout.markdown(Rule::Tight));
     }
     if r.cells.iter().any(|c| !c.problems.is_empty()) {
         let _ = writeln!(s, "\n## What could not be read\n");

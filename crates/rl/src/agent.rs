@@ -198,20 +198,10 @@ pub enum Agent {
     Td3(Td3),
 }
 
-/// A batch of standard normals from `rng` (Box-Muller, both outputs used).
+/// A batch of standard normals from `rng` (Box-Muller, both outputs of each pair used:
+/// [`pdt_base::random::standard_normals_f32`]).
 pub fn normals(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity(n + 1);
-    while out.len() < n {
-        // 1 - u is in (0, 1], so the log is finite.
-        let u1 = 1.0 - rng.random::<f64>();
-        let u2 = rng.random::<f64>();
-        let r = (-2.0 * u1.ln()).sqrt();
-        let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
-        out.push((r * c) as f32);
-        out.push((r * s) as f32);
-    }
-    out.truncate(n);
-    out
+    pdt_base::random::standard_normals_f32(|| rng.random::<f64>(), n)
 }
 
 fn normal_tensor(rng: &mut ChaCha8Rng, rows: i64, cols: i64, device: Device) -> Tensor {

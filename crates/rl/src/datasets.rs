@@ -61,7 +61,7 @@ impl Default for DatasetConfig {
             tasks: vec![],
             noise: None,
             chunk: 256,
-            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            threads: pdt_base::threads::available_cores(),
         }
     }
 }

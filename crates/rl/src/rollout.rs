@@ -6,8 +6,9 @@ use crate::agent::{actor_raw, Noise, PolicyHead, TaskEncoder};
 use crate::nets::Mlp;
 use crate::RlError;
 use pdt_data::Trajectory;
+use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
-use pdt_envs::EnvFamily;
+use pdt_envs::{EnvError, EnvFamily, StepResult};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use tch::Device;
@@ -43,7 +44,84 @@ struct Running {
     rewards: Vec<f32>,
     terminated: Vec<bool>,
     truncated: Vec<bool>,
-    done: bool,
+}
+
+/// One chunk of episodes as the [`run_batch`] loop drives it (slot `i` is `running[i]`).
+struct Chunk<'b> {
+    behaviour: Behaviour<'b>,
+    act_dim: usize,
+    running: Vec<Running>,
+    /// The actor's input rows, reused across steps.
+    inputs: Vec<f32>,
+}
+
+impl BatchPolicy for Chunk<'_> {
+    type Error = RlError;
+
+    fn act(&mut self, slots: &[usize]) -> Result<Vec<f32>, RlError> {
+        let act_dim = self.act_dim;
+        let raw = match self.behaviour {
+            Behaviour::Actor { actor, encoder, device, .. } => {
+                self.inputs.clear();
+                for &i in slots {
+                    encoder.encode(
+                        &self.running[i].obs,
+                        self.running[i].spec.task,
+                        &mut self.inputs,
+                    );
+                }
+                actor_raw(actor, &self.inputs, slots.len(), device)
+            }
+            Behaviour::Uniform => Vec::new(),
+        };
+        let mut out = Vec::with_capacity(slots.len() * act_dim);
+        let mut action = Vec::with_capacity(act_dim);
+        for (k, &i) in slots.iter().enumerate() {
+            let ep = &mut self.running[i];
+            action.clear();
+            match self.behaviour {
+                Behaviour::Actor { head, noise, encoder, .. } => {
+                    let w = head.raw_dim(act_dim);
+                    head.action(
+                        &raw[k * w..(k + 1) * w],
+                        act_dim,
+                        noise,
+                        &mut ep.spec.rng,
+                        &mut action,
+                    );
+                    encoder.decode_action(&mut action);
+                }
+                Behaviour::Uniform => {
+                    for _ in 0..act_dim {
+                        action.push(ep.spec.rng.random_range(-1.0f32..=1.0));
+                    }
+                }
+            }
+            ep.actions.extend_from_slice(&action);
+            out.extend_from_slice(&action);
+        }
+        Ok(out)
+    }
+
+    fn batch_error(&self, _slots: &[usize], error: EnvError) -> RlError {
+        error.into()
+    }
+
+    fn record(
+        &mut self,
+        slot: usize,
+        _action: &[f32],
+        step: Result<StepResult, EnvError>,
+    ) -> Result<bool, RlError> {
+        let step = step?;
+        let ep = &mut self.running[slot];
+        ep.observations.extend_from_slice(&ep.obs);
+        ep.rewards.push(step.reward);
+        ep.terminated.push(step.terminated);
+        ep.truncated.push(step.truncated);
+        ep.obs = step.obs;
+        Ok(step.terminated || step.truncated)
+    }
 }
 
 /// Runs `specs` in chunks of `chunk` episodes, stepping each chunk's environments on `threads`
@@ -80,7 +158,6 @@ pub fn run_episodes(
                 rewards: Vec::with_capacity(h),
                 terminated: Vec::with_capacity(h),
                 truncated: Vec::with_capacity(h),
-                done: false,
             });
         }
         let mut venv = VecEnv::new(envs, threads);
@@ -88,61 +165,10 @@ pub fn run_episodes(
         for (r, obs) in running.iter_mut().zip(venv.reset(&seeds)?) {
             r.obs = obs;
         }
-        let mut inputs = Vec::new();
-        let mut action = Vec::with_capacity(act_dim);
-        let mut flat = vec![0f32; venv.flat_action_len()];
-        loop {
-            let active: Vec<usize> = (0..running.len()).filter(|&i| !running[i].done).collect();
-            if active.is_empty() {
-                break;
-            }
-            let raw = match behaviour {
-                Behaviour::Actor { actor, encoder, device, .. } => {
-                    inputs.clear();
-                    for &i in &active {
-                        encoder.encode(&running[i].obs, running[i].spec.task, &mut inputs);
-                    }
-                    actor_raw(actor, &inputs, active.len(), device)
-                }
-                Behaviour::Uniform => Vec::new(),
-            };
-            for (k, &i) in active.iter().enumerate() {
-                let ep = &mut running[i];
-                action.clear();
-                match behaviour {
-                    Behaviour::Actor { head, noise, encoder, .. } => {
-                        let w = head.raw_dim(act_dim);
-                        head.action(
-                            &raw[k * w..(k + 1) * w],
-                            act_dim,
-                            noise,
-                            &mut ep.spec.rng,
-                            &mut action,
-                        );
-                        encoder.decode_action(&mut action);
-                    }
-                    Behaviour::Uniform => {
-                        for _ in 0..act_dim {
-                            action.push(ep.spec.rng.random_range(-1.0f32..=1.0));
-                        }
-                    }
-                }
-                flat[i * act_dim..(i + 1) * act_dim].copy_from_slice(&action);
-                ep.actions.extend_from_slice(&action);
-            }
-            let mask: Vec<bool> = running.iter().map(|r| !r.done).collect();
-            let steps = venv.step_flat(&flat, Some(&mask))?;
-            for (ep, slot) in running.iter_mut().zip(steps) {
-                let Some(step) = slot else { continue };
-                let step = step?;
-                ep.observations.extend_from_slice(&ep.obs);
-                ep.rewards.push(step.reward);
-                ep.terminated.push(step.terminated);
-                ep.truncated.push(step.truncated);
-                ep.obs = step.obs;
-                ep.done = step.terminated || step.truncated;
-            }
-        }
+        let slots = (0..running.len()).collect();
+        let mut chunk = Chunk { behaviour, act_dim, running, inputs: Vec::new() };
+        run_batch(&mut venv, slots, &mut chunk)?;
+        let running = chunk.running;
         for ep in running {
             let traj = Trajectory::new(
                 obs_dim,

@@ -587,18 +587,14 @@ pub(crate) fn evaluate_tasks(
         behaviour,
         eval_specs(seed, tasks, episodes),
         512,
-        threads(),
+        // Threads for stepping evaluation episodes: the machine's cores.
+        pdt_base::threads::available_cores(),
         &mut |_| {},
     )?;
     Ok(trajs
         .chunks(episodes)
         .map(|c| c.iter().map(|t| t.episode_return()).sum::<f64>() / c.len() as f64)
         .collect())
-}
-
-/// Threads for stepping evaluation episodes: the machine's cores.
-fn threads() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
 fn mean(v: &[f64]) -> f64 {

@@ -8,6 +8,7 @@ use pdt_rl::combine::{combine, evaluate_policy, CombineConfig};
 use pdt_rl::datasets::{generate, DatasetConfig};
 use pdt_rl::policy;
 use pdt_rl::train::{agent_dir, read_agent_card, train, RlConfig, Start};
+use pdt_testkit::fs::copy_dir;
 use std::path::{Path, PathBuf};
 use tch::Device;
 
@@ -23,19 +24,6 @@ fn tiny(steps: u64) -> RlConfig {
     cfg
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dst = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dst);
-        } else {
-            std::fs::copy(e.path(), dst).unwrap();
-        }
-    }
-}
-
 fn policy_files(dir: &Path) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
     v.sort();
@@ -49,7 +37,7 @@ fn fine_tuning_on_some_tasks_then_per_task_experts() {
     train(Start::New(&tiny(600)), &a, None, Device::Cpu, &mut |_| {}).unwrap().unwrap();
 
     // Fine-tune a copy on task 1 only, with a larger budget.
-    copy_dir(&a, &c);
+    copy_dir(&a, &c).unwrap();
     std::fs::remove_dir_all(c.join("agent")).unwrap();
     let card = train(
         Start::Resume { total_steps: Some(900), tasks: Some(&[1]), sample_recent: Some(200) },

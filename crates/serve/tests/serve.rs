@@ -135,10 +135,10 @@ fn concurrent_episodes_batched_take_their_sequential_actions() {
     // One libtorch thread on an AVX2 CPU: batching changes no bit (PromptDt::act's last layer,
     // LAST_ROWS). AVX-512 libtorch kernels depend on the batch size: measured 0 of 64 bit-identical,
     // largest difference 2.98e-7 (Intel Xeon, 2026-11-24), so there the bound is 1e-6.
-    if pdt_model::cpu::batch_invariant() {
+    if pdt_testkit::cpu::batch_invariant() {
         assert_eq!(bitwise, 64, "largest difference {worst:e}");
     } else {
-        assert!(worst <= pdt_model::cpu::BATCH_TOLERANCE, "largest difference {worst:e}");
+        assert!(worst <= pdt_testkit::cpu::BATCH_TOLERANCE, "largest difference {worst:e}");
     }
 }
 

@@ -2,8 +2,12 @@
 //! and clear errors for data that cannot serve and for checkpoints of another method.
 #![allow(clippy::unwrap_used, clippy::result_large_err)] // test helpers: a failed unwrap is a failed test
 
+#[path = "support/runs.rs"]
+mod runs;
+
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::run::{evaluate_run, evaluate_run_with, train, MacawAdaptation, TrainOptions};
+use pdt_train::run::{evaluate_run, evaluate_run_with, MacawAdaptation};
+use runs::{lines, run, tiny_data};
 use std::path::Path;
 
 fn config(data: &Path) -> TrainConfig {
@@ -36,49 +40,6 @@ fn config(data: &Path) -> TrainConfig {
     .unwrap();
     c.data.dir = data.to_path_buf();
     c
-}
-
-fn lines(path: &Path) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| {
-            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
-            v.as_object_mut().unwrap().remove("time/elapsed_s");
-            v
-        })
-        .collect()
-}
-
-fn run(
-    cfg: Option<TrainConfig>,
-    dir: &Path,
-    resume: bool,
-    stop: Option<u64>,
-) -> Result<pdt_train::run::TrainSummary, pdt_train::run::RunError> {
-    let mut progress = |_: &pdt_train::run::Progress| {};
-    train(
-        cfg,
-        dir,
-        TrainOptions {
-            resume,
-            resume_with: Default::default(),
-            stop_after_iterations: stop,
-            progress: &mut progress,
-        },
-    )
-}
-
-fn tiny_data() -> (tempfile::TempDir, std::path::PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    let collect = pdt_envs::collect_scripted::CollectConfig {
-        episodes_per_task: 4,
-        prompt_episodes: 2,
-        ..Default::default()
-    };
-    pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
-    (tmp, data)
 }
 
 #[test]

@@ -1,9 +1,18 @@
 //! A run killed and resumed produces exactly the losses and evaluations of an uninterrupted run.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
+#[path = "support/runs.rs"]
+mod runs;
+
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::run::{train, TrainOptions};
+use pdt_train::run::{train, TrainOptions, TrainSummary};
+use runs::{lines, tiny_data};
 use std::path::Path;
+
+/// A run that must succeed.
+fn run(cfg: Option<TrainConfig>, dir: &Path, resume: bool, stop: Option<u64>) -> TrainSummary {
+    runs::run(cfg, dir, resume, stop).unwrap()
+}
 
 fn config(data: &Path, method: Method) -> TrainConfig {
     let mut c: TrainConfig = toml::from_str(
@@ -39,52 +48,6 @@ fn config(data: &Path, method: Method) -> TrainConfig {
     c.data.dir = data.to_path_buf();
     c.run.method = method;
     c
-}
-
-/// The lines of a log with wall-clock fields removed.
-fn lines(path: &Path) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| {
-            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
-            v.as_object_mut().unwrap().remove("time/elapsed_s");
-            v
-        })
-        .collect()
-}
-
-fn run(
-    cfg: Option<TrainConfig>,
-    dir: &Path,
-    resume: bool,
-    stop: Option<u64>,
-) -> pdt_train::run::TrainSummary {
-    let mut progress = |_: &pdt_train::run::Progress| {};
-    train(
-        cfg,
-        dir,
-        TrainOptions {
-            resume,
-            resume_with: Default::default(),
-            stop_after_iterations: stop,
-            progress: &mut progress,
-        },
-    )
-    .unwrap()
-}
-
-/// A temp dir with a small point-robot dataset in `data/`.
-fn tiny_data() -> (tempfile::TempDir, std::path::PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    let collect = pdt_envs::collect_scripted::CollectConfig {
-        episodes_per_task: 4,
-        prompt_episodes: 2,
-        ..Default::default()
-    };
-    pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
-    (tmp, data)
 }
 
 #[test]

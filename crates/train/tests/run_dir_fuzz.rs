@@ -5,6 +5,7 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 #![allow(clippy::result_large_err)] // the library's error type, returned as is
 
+use pdt_testkit::fs::copy_dir;
 use pdt_train::config::TrainConfig;
 use pdt_train::run::{evaluate_run, train, ResumeWith, TrainOptions};
 use proptest::prelude::*;
@@ -60,19 +61,6 @@ fn run_train(
         dir,
         TrainOptions { resume, resume_with, stop_after_iterations: None, progress: &mut progress },
     )
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        let dest = to.join(e.file_name());
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &dest);
-        } else {
-            std::fs::copy(e.path(), dest).unwrap();
-        }
-    }
 }
 
 /// Replaces the `n`-th number in `text` (if any) by `to`.
@@ -137,7 +125,7 @@ proptest! {
         let (_tmp, run) = finished_run();
         let work = tempfile::tempdir().unwrap();
         let dir = work.path().join("run");
-        copy_dir(run, &dir);
+        copy_dir(run, &dir).unwrap();
         let path = dir.join(FILES[file]);
         for e in &edits {
             let mut bytes = std::fs::read(&path).unwrap_or_default();

@@ -46,9 +46,9 @@ pub fn fails<S: AsRef<str> + std::fmt::Debug>(args: &[S]) -> String {
     check_fails(args, promptdt(args))
 }
 
-pub fn repo(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
-}
+/// `rel` inside the checkout.
+#[allow(unused_imports)] // each test file uses a part
+pub use pdt_testkit::fs::repo;
 
 pub const TINY: &str = r#"
 [env]

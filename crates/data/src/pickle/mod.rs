@@ -19,6 +19,7 @@
 //! - the returned tree is at most [`MAX_DEPTH`] containers deep (this also rejects cycles, e.g. a
 //!   list that contains itself).
 
+mod arena;
 mod error;
 mod machine;
 mod tree;

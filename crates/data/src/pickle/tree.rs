@@ -2,7 +2,7 @@
 
 use std::collections::HashMap;
 
-use super::machine::{over_budget_message, Obj, Res, Val};
+use super::arena::{over_budget_message, Obj, Res, Val};
 use super::{PickleError, PyValue, MAX_DEPTH};
 
 /// Turns the arena of objects into an owned tree, within the depth and memory budget.

@@ -4,6 +4,8 @@ use std::collections::BTreeSet;
 use std::fmt::Write as _;
 use std::path::Path;
 
+use pdt_base::table::{Align, Rule, Table};
+
 use super::bars::{percent, reference_bar};
 use super::family::level_mode;
 use super::{FamilyReport, ReturnStat, TaskMean};
@@ -58,8 +60,8 @@ pub(super) fn family_markdown(
     if has_bar {
         header.push("bar".to_string());
     }
-    let _ = writeln!(out, "| {} |", header.join(" | "));
-    let _ = writeln!(out, "|{}", " ---: |".repeat(header.len()));
+    let align = vec![Align::Right; header.len()];
+    let mut table = Table::with_align(header, align);
     for t in &f.tasks {
         let mut cells = vec![t.index.to_string()];
         cells.extend(t.modes.iter().map(|s| cell(*s)));
@@ -73,7 +75,7 @@ pub(super) fn family_markdown(
                 None => "—".to_string(),
             });
         }
-        let _ = writeln!(out, "| {} |", cells.join(" | "));
+        table.push(cells);
     }
     let mean_cell = |m: Option<TaskMean>| m.map_or("—".to_string(), |m| format!("{:.2}", m.mean));
     let mut cells = vec!["**mean**".to_string()];
@@ -83,7 +85,9 @@ pub(super) fn family_markdown(
     if has_bar {
         cells.push(String::new());
     }
-    let _ = writeln!(out, "| {} |\n", cells.join(" | "));
+    table.push(cells);
+    out.push_str(&table.markdown(Rule::Spaced));
+    out.push('\n');
 
     let mut means: Vec<String> = f
         .modes
