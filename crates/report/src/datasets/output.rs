@@ -5,7 +5,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use super::bars::{percent, reference_bar};
-use super::family::level_mode;
+use super::level_mode;
 use super::{FamilyReport, ReturnStat, TaskMean};
 use crate::error::ReportError;
 use crate::plot::{self, Curve, Labels, XAxis, PALETTE};
