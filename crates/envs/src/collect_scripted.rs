@@ -15,9 +15,7 @@
 //! are generated, on thread count, or on which other tasks and modes are collected in the same run.
 //! `docs/point-robot.md` and `docs/metaworld-reach.md` describe the policies and the file layout.
 
-use std::fmt;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
 
@@ -139,87 +137,8 @@ impl ScriptedFamily {
     }
 }
 
-/// A scripted policy, and the dataset kind it produces (the `mode` in file names).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Mode {
-    Expert,
-    Medium,
-    Random,
-}
-
-impl Mode {
-    /// All modes, best first.
-    pub const ALL: [Mode; 3] = [Mode::Expert, Mode::Medium, Mode::Random];
-
-    /// The name used in file names and cards.
-    pub fn name(self) -> &'static str {
-        match self {
-            Mode::Expert => "expert",
-            Mode::Medium => "medium",
-            Mode::Random => "random",
-        }
-    }
-
-    /// One-line description of the policy, recorded in the dataset card.
-    pub fn description(self) -> &'static str {
-        match self {
-            Mode::Expert => {
-                "a = clip(goal - pos + N(0, 0.01^2) per coordinate, -0.1, 0.1): straight to the \
-                 goal at full speed"
-            }
-            Mode::Medium => {
-                "g' = goal + N(0, 0.5^2) per coordinate, drawn once per episode; a = clip(g' - pos \
-                 + N(0, 0.05^2) per coordinate, -0.1, 0.1)"
-            }
-            Mode::Random => "a ~ Uniform[-0.1, 0.1] per coordinate",
-        }
-    }
-
-    /// Stable number of the mode in RNG keys: adding a mode must not change the others' data.
-    fn rng_id(self) -> u32 {
-        match self {
-            Mode::Expert => 0,
-            Mode::Medium => 1,
-            Mode::Random => 2,
-        }
-    }
-}
-
-impl fmt::Display for Mode {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl FromStr for Mode {
-    type Err = CollectError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Mode::ALL.into_iter().find(|m| m.name() == s).ok_or_else(|| {
-            CollectError::Config(format!("unknown mode {s:?} (known: expert, medium, random)"))
-        })
-    }
-}
-
-/// Which of a task's two sets an episode belongs to. Part of the RNG key, so P_i's episodes are
-/// distinct from D_i's and do not change when `episodes_per_task` does.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Set {
-    /// The main dataset D_i.
-    Dataset,
-    /// The prompt set P_i.
-    Prompt,
-}
-
-impl Set {
-    fn rng_id(self) -> u32 {
-        match self {
-            Set::Dataset => 0,
-            Set::Prompt => 1,
-        }
-    }
-}
+// The datasets' vocabulary lives in pdt-data; re-exported here, where it was first defined.
+pub use pdt_data::mode::{Mode, Set, UnknownMode};
 
 /// What to collect.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -25,7 +25,8 @@ use pdt_data::native::{
     FORMAT_VERSION,
 };
 use pdt_data::TaskDataset;
-use pdt_envs::collect_scripted::{episode_rng, Mode, Set};
+use pdt_data::mode::{Mode, Set};
+use pdt_envs::collect_scripted::episode_rng;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -1,4 +1,4 @@
-//! The point robot's scripted policies ([`Mode::description`] gives their formulas).
+//! The point robot's scripted policies (their formulas: `policy_description`, recorded in the card).
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -82,7 +82,17 @@ impl ScriptedPolicies for PointRobotPolicies {
     }
 
     fn policy_description(&self, mode: Mode) -> &'static str {
-        mode.description()
+        match mode {
+            Mode::Expert => {
+                "a = clip(goal - pos + N(0, 0.01^2) per coordinate, -0.1, 0.1): straight to the \
+                 goal at full speed"
+            }
+            Mode::Medium => {
+                "g' = goal + N(0, 0.5^2) per coordinate, drawn once per episode; a = clip(g' - pos \
+                 + N(0, 0.05^2) per coordinate, -0.1, 0.1)"
+            }
+            Mode::Random => "a ~ Uniform[-0.1, 0.1] per coordinate",
+        }
     }
 
     fn episodes(
