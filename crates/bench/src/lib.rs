@@ -293,7 +293,8 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
 
 /// Times the whole evaluation protocol of `case`: the family's default test tasks x
 /// `eval_episodes` episodes (point robot: 5 tasks of 20 steps, goals 2, 10, 18, 26, 34;
-/// Cheetah-Vel: 5 tasks of 200 steps), K = 20, a 5-step prompt per task, the reference architecture with the family's dims.
+/// Cheetah-Vel: 5 tasks of 200 steps), K = 20, a 5-step prompt per task, the reference
+/// architecture with the family's dims.
 fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
     use pdt_prompt::{SegmentBatch, StateNorm};

@@ -543,9 +543,9 @@ pub struct ReplayArgs {
     #[arg(long)]
     pub task: usize,
     /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values). Not for
-    /// metaworld_reach and point_robot, whose episodes start from the task's reset state. dial: optional
-    /// `{"qpos": [9 joint angles]}`, a start pose settled back as collection episodes start
-    /// (default: the deterministic reset).
+    /// metaworld_reach and point_robot, whose episodes start from the task's reset state. dial:
+    /// optional `{"qpos": [9 joint angles]}`, a start pose settled back as collection episodes
+    /// start (default: the deterministic reset).
     #[arg(long)]
     pub init: Option<PathBuf>,
     /// JSON array of actions, one array per step.

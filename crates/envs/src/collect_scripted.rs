@@ -38,7 +38,6 @@ pub use dial::{run_dial_episode, DIAL_DART_AMOUNTS, DIAL_MEDIUM_TARGET_NOISE};
 pub use metaworld_reach::{run_reach_episode, REACH_ACTION_NOISE, REACH_MEDIUM_GOAL_NOISE};
 pub use point_robot::{run_episode, EXPERT_ACTION_NOISE, MEDIUM_ACTION_NOISE, MEDIUM_GOAL_NOISE};
 
-
 /// A family's scripted policies: one implementation per family, in `collect_scripted/<family>.rs`
 /// beside the shared collection machinery here.
 pub trait ScriptedPolicies: Sync {

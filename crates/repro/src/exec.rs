@@ -100,7 +100,7 @@ fn collect_into(d: &DataSpec, tmp: &Path, opts: &ExecOptions) -> Result<bool, Re
     cmd.arg(DIE_WITH_PARENT).args(["collect", "--env", &d.env, "--out"]).arg(tmp);
     // Families with scripted policies collect from those; the others from their committed agents.
     // An unknown family collects nothing either way: `collect` names it.
-    let scripted = pdt_envs::family(&d.env).map_or(false, |f| f.scripted().is_some());
+    let scripted = pdt_envs::family(&d.env).is_ok_and(|f| f.scripted().is_some());
     if !scripted {
         cmd.arg("--from-pretrained").arg("--pretrained-dir").arg(opts.pretrained_root.join(&d.env));
     }

@@ -1,11 +1,13 @@
-//! The point robot's scripted policies (their formulas: `policy_description`, recorded in the card).
+//! The point robot's scripted policies (their formulas: `policy_description`, in the card).
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use pdt_data::Trajectory;
 
-use super::{episode_rng, normal, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set};
+use super::{
+    episode_rng, normal, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
+};
 use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
 use crate::{Env, EnvFamily};
 
