@@ -93,7 +93,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<point_robot|cheetah_vel>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B> or macaw_w<W>_t<T>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B> or macaw_w<W>_t<T>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -128,7 +128,8 @@ fn parse_case(name: &str) -> Result<(Mode, i64), BenchError> {
     b.parse::<i64>().ok().filter(|&b| b > 0).map(|b| (mode, b)).ok_or_else(bad)
 }
 
-/// An evaluation-protocol case: `eval_<point_robot|cheetah_vel>[_full][_b<N>]`. `_full` uses the
+/// An evaluation-protocol case: `eval_<family>[_full][_b<N>]` (e.g. `eval_point_robot`,
+/// `eval_cheetah_vel`). `_full` uses the
 /// reference's full forward at every step (default: the cached path); `_b<N>` steps at most N
 /// episodes together (default: all of them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -140,11 +141,12 @@ struct EvalCase {
 
 fn parse_eval_case(name: &str) -> Option<EvalCase> {
     let rest = name.strip_prefix("eval_")?;
-    let (env, rest) = if let Some(r) = rest.strip_prefix("point_robot") {
-        ("point_robot", r)
-    } else {
-        ("cheetah_vel", rest.strip_prefix("cheetah_vel")?)
-    };
+    // Any family: the longest name that prefixes the rest (no family name prefixes another's
+    // today, but `_full` must not be read as part of one).
+    let (env, rest) = pdt_envs::FAMILY_NAMES
+        .iter()
+        .filter_map(|&f| rest.strip_prefix(f).map(|r| (f, r)))
+        .max_by_key(|(f, _)| f.len())?;
     let (inference, rest) = match rest.strip_prefix("_full") {
         Some(r) => (pdt_eval::Inference::Full, r),
         None => (pdt_eval::Inference::Cached, rest),
@@ -290,9 +292,10 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
     })
 }
 
-/// Times the whole evaluation protocol of `case`: 5 held-out tasks x `eval_episodes` episodes
-/// (point robot: 20 steps, goals 2, 10, 18, 26, 34; Cheetah-Vel: 200 steps, its default test
-/// tasks), K = 20, a 5-step prompt per task, the reference architecture with the family's dims.
+/// Times the whole evaluation protocol of `case`: the family's default test tasks x
+/// `eval_episodes` episodes (point robot: 5 tasks of 20 steps, goals 2, 10, 18, 26, 34;
+/// Cheetah-Vel: 5 tasks of 200 steps), K = 20, a 5-step prompt per task, the reference
+/// architecture with the family's dims.
 fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming, BenchError> {
     use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
     use pdt_prompt::{SegmentBatch, StateNorm};
@@ -304,8 +307,8 @@ fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming
     let vs = VarStore::new(cfg.device);
     let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(ds, da));
     let (_, test) = family.split("default").map_err(|e| err(e.to_string()))?;
-    let task_ids: Vec<usize> =
-        if case.env == "point_robot" { vec![2, 10, 18, 26, 34] } else { test };
+    // The family's default test tasks (the point robot's are goals 2, 10, 18, 26, 34).
+    let task_ids = test;
     let tasks = || -> Result<Vec<EvalTask>, BenchError> {
         task_ids
             .iter()

@@ -534,16 +534,16 @@ pub enum EnvCommand {
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
-    /// Family: cheetah_dir, cheetah_vel, ant_dir, metaworld_reach or dial.
+    /// Family: cheetah_dir, cheetah_vel, ant_dir, metaworld_reach, dial or point_robot.
     #[arg(long)]
     pub env: String,
     /// Task index within the family.
     #[arg(long)]
     pub task: usize,
     /// JSON `{"qpos": [...], "qvel": [...]}` (cheetah 9 + 9, ant 15 + 14 values). Not for
-    /// metaworld_reach, whose episodes start from the task's reset state. dial: optional
-    /// `{"qpos": [9 joint angles]}`, a start pose settled back as collection episodes start
-    /// (default: the deterministic reset).
+    /// metaworld_reach and point_robot, whose episodes start from the task's reset state. dial:
+    /// optional `{"qpos": [9 joint angles]}`, a start pose settled back as collection episodes
+    /// start (default: the deterministic reset).
     #[arg(long)]
     pub init: Option<PathBuf>,
     /// JSON array of actions, one array per step.

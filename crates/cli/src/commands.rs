@@ -15,13 +15,18 @@ pub fn bar(len: u64, template: &str) -> ProgressBar {
 
 pub fn collect(a: &CollectArgs) -> Result<()> {
     use pdt_envs::collect_scripted::{CollectConfig, Mode, ScriptedFamily};
+    // The families named in messages come from pdt-envs, so a new family needs no edit here.
+    let families_where = |keep: fn(ScriptedFamily) -> bool| {
+        ScriptedFamily::ALL.into_iter().filter(|f| keep(*f)).map(|f| f.name()).collect::<Vec<_>>()
+    };
+    let noise_families = || families_where(ScriptedFamily::takes_action_noise).join(", ");
     let family = pdt_envs::family(&a.env)?;
-    let Some(scripted) = ScriptedFamily::from_name(family.name()) else {
+    let Some(scripted) = family.scripted() else {
         if a.modes.is_some() {
-            bail!("--modes is for the scripted families (point_robot, metaworld_reach, dial)");
+            bail!("--modes is for the scripted families ({})", families_where(|_| true).join(", "));
         }
         if a.action_noise.is_some() {
-            bail!("--action-noise is for metaworld_reach");
+            bail!("--action-noise is for {}", noise_families());
         }
         return collect_rl(a, family.name());
     };
@@ -39,8 +44,8 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
         cfg.modes = m.iter().map(|m| m.parse::<Mode>()).collect::<Result<_, _>>()?;
     }
     if let Some(s) = a.action_noise {
-        if scripted != ScriptedFamily::MetaWorldReach {
-            bail!("--action-noise is for metaworld_reach");
+        if !scripted.takes_action_noise() {
+            bail!("--action-noise is for {}", noise_families());
         }
         cfg.reach_action_noise = s;
     }
@@ -53,8 +58,9 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     let success = summary.entries.iter().any(|e| e.success_rate.is_some());
     out_inline!("{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return");
     out!("{}", if success { format!(" {:>10}", "success") } else { String::new() });
-    // The point robot has 40 tasks: a sample of them; other families: every task.
-    let shown = |t: usize| scripted != ScriptedFamily::PointRobot || t % 8 == 2;
+    // Many tasks (the point robot's 40): a sample of them; otherwise every task.
+    let many = cfg.tasks.len() > 20;
+    let shown = |t: usize| !many || t % 8 == 2;
     for e in summary.entries.iter().filter(|e| shown(e.task)) {
         out_inline!(
             "{:<6} {:<8} {:>14.2} {:>14.2}",

@@ -261,11 +261,6 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Env(EnvCommand::Replay(a)) => {
-            #[derive(serde::Deserialize)]
-            struct Init {
-                qpos: Vec<f64>,
-                qvel: Vec<f64>,
-            }
             let read = |p: &std::path::Path| {
                 pdt_base::fs::read_text_limited(p, pdt_base::fs::MAX_TEXT_BYTES)
                     .with_context(|| format!("reading {}", p.display()))
@@ -277,36 +272,14 @@ fn run(cli: Cli) -> Result<()> {
                         a.actions.display()
                     )
                 })?;
-            // An unknown family is named as such, before asking for its initial state.
-            pdt_envs::family(&a.env)?;
-            let r = match (a.env.as_str(), &a.init) {
-                ("metaworld_reach" | "metaworld-reach", None) => {
-                    pdt_envs::replay::replay_reach(a.task, &actions)?
-                }
-                ("metaworld_reach" | "metaworld-reach", Some(p)) => bail!(
-                    "--init {}: metaworld_reach episodes start from the task's reset state \
-                     (no initial state is taken)",
-                    p.display()
-                ),
-                ("dial", None) => pdt_envs::replay::replay_dial(a.task, None, &actions)?,
-                ("dial", Some(p)) => {
-                    #[derive(serde::Deserialize)]
-                    #[serde(deny_unknown_fields)]
-                    struct Start {
-                        qpos: Vec<f64>,
-                    }
-                    let s: Start = serde_json::from_str(&read(p)?).with_context(|| {
-                        format!("{}: expected {{\"qpos\": [9 joint angles]}}", p.display())
-                    })?;
-                    pdt_envs::replay::replay_dial(a.task, Some(&s.qpos), &actions)?
-                }
-                (_, None) => bail!("--init is required for {} (its initial qpos and qvel)", a.env),
-                (_, Some(p)) => {
-                    let init: Init = serde_json::from_str(&read(p)?).with_context(|| {
-                        format!("{}: expected {{\"qpos\": [...], \"qvel\": [...]}}", p.display())
-                    })?;
-                    pdt_envs::replay(&a.env, a.task, &init.qpos, &init.qvel, &actions)?
-                }
+            // An unknown family is named as such, before its initial state is read; the family
+            // itself knows what initial state it takes (`EnvFamily::replay`).
+            let family = pdt_envs::family(&a.env)?;
+            let init = a.init.as_deref().map(read).transpose()?;
+            let r = family.replay(a.task, init.as_deref(), &actions);
+            let r = match &a.init {
+                Some(p) => r.with_context(|| format!("--init {}", p.display()))?,
+                None => r?,
             };
             let text = serde_json::to_string(&r)?;
             pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes())

@@ -181,7 +181,11 @@ fn fine_tune_combine_and_collect_from_the_combined_agent() {
 #[test]
 fn from_pretrained_uses_the_committed_agents() {
     let tmp = tempfile::tempdir().unwrap();
-    for family in ["cheetah_dir", "cheetah_vel", "ant_dir"] {
+    // Every family whose datasets come from an RL agent (not its scripted policies).
+    let rl_families = pdt_envs::FAMILY_NAMES
+        .into_iter()
+        .filter(|f| pdt_envs::family(f).is_ok_and(|f| f.scripted().is_none()));
+    for family in rl_families {
         let agent = repo(&format!("pretrained/{family}"));
         if !agent.join("agent.json").exists() {
             eprintln!("skipped {family}: no committed agent in {}", agent.display());

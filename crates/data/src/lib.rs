@@ -4,6 +4,7 @@
 //!   limit) kept apart. The reference release conflates them in one `terminals` array.
 //! - [`TaskDataset`]: the trajectories of one task (a main dataset D_i or a prompt set P_i).
 //! - [`MultiTaskDataset`]: D_i and P_i for every task, with task ids.
+//! - [`mode`]: the datasets' vocabulary ([`mode::Mode`]: expert, medium, random; [`mode::Set`]).
 //! - [`native`]: the on-disk format (safetensors arrays + a JSON manifest), readable from Python.
 //! - [`pickle`]: a reader for the reference release's `{env}-{task}-{mode}.pkl` files that never
 //!   executes code.
@@ -12,6 +13,7 @@
 
 pub mod error;
 pub mod inspect;
+pub mod mode;
 pub mod multitask;
 pub mod native;
 pub mod pickle;

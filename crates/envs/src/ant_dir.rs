@@ -11,7 +11,10 @@
 //!   [0.2, 1.0].
 
 use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, StepState, HORIZON};
-use crate::{Env, EnvError, EnvFamily, EnvPreset};
+use crate::replay::{replay_mujoco_init, ReplayResult};
+use crate::{
+    numeric_param, ActionBounds, BodySymmetry, DatasetBar, Env, EnvError, EnvFamily, EnvPreset,
+};
 
 /// Family name, as used in file names (`ant_dir-3-prompt-expert.pkl`).
 pub const ENV_NAME: &str = "ant_dir";
@@ -242,6 +245,50 @@ impl EnvFamily for AntDirFamily {
 
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.make_env(task)?))
+    }
+
+    /// MuJoCo clamps the controls to [-1, 1].
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds::symmetric(1.0, Body::Ant.act_dim())
+    }
+
+    fn rl_preset(&self) -> Option<&'static str> {
+        Some(include_str!("../../../configs/collect/ant_dir.toml"))
+    }
+
+    /// `[cos goal, sin goal]` (in f32).
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        let g = numeric_param(ENV_NAME, task, &self.task_params(task)?, "goal")?;
+        Ok(vec![g.cos(), g.sin()])
+    }
+
+    /// The reflections across the x and y axes and the half turn ([`Symmetry`]).
+    fn symmetries(&self) -> Vec<BodySymmetry> {
+        Symmetry::ALL
+            .iter()
+            .map(|s| BodySymmetry {
+                name: s.name(),
+                observation: s.observation(),
+                action: s.action(),
+                task_feature_sign: s.direction_signs().to_vec(),
+            })
+            .collect()
+    }
+
+    fn dataset_bar(&self) -> Option<DatasetBar> {
+        Some(DatasetBar::Mean {
+            min: 450.0,
+            name: "mean expert return over the tasks ≥ 450 (the paper's target return is 500)",
+        })
+    }
+
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_mujoco_init(&mut self.make_env(task)?, self.name(), task, init, actions)
     }
 }
 

@@ -10,7 +10,8 @@
 //!   Dir: `direction * v - 0.05 ||a||^2`; Vel: `-|v - v_goal| - 0.05 ||a||^2`.
 
 use crate::mujoco_env::{action_sq_norm, Body, MujocoEnv, MujocoTask, StepState, HORIZON};
-use crate::{Env, EnvError, EnvFamily, EnvPreset};
+use crate::replay::{replay_mujoco_init, ReplayResult};
+use crate::{numeric_param, ActionBounds, DatasetBar, Env, EnvError, EnvFamily, EnvPreset};
 
 /// Family names, as used in file names (`cheetah_vel-3-prompt-expert.pkl`).
 pub const DIR_ENV_NAME: &str = "cheetah_dir";
@@ -214,6 +215,36 @@ impl EnvFamily for CheetahDirFamily {
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.make_env(task)?))
     }
+
+    /// MuJoCo clamps the controls to [-1, 1].
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds::symmetric(1.0, self.preset().act_dim)
+    }
+
+    fn rl_preset(&self) -> Option<&'static str> {
+        Some(include_str!("../../../configs/collect/cheetah_dir.toml"))
+    }
+
+    /// `[direction]`.
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        Ok(vec![numeric_param(DIR_ENV_NAME, task, &self.task_params(task)?, "direction")?])
+    }
+
+    fn dataset_bar(&self) -> Option<DatasetBar> {
+        Some(DatasetBar::Reference {
+            tolerance: 0.10,
+            name: "expert ≥ 90 % of the reference's return on every task",
+        })
+    }
+
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_mujoco_init(&mut self.make_env(task)?, self.name(), task, init, actions)
+    }
 }
 
 /// HalfCheetah-Vel: 40 target velocities. Build it with `default()`.
@@ -274,6 +305,36 @@ impl EnvFamily for CheetahVelFamily {
 
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.make_env(task)?))
+    }
+
+    /// MuJoCo clamps the controls to [-1, 1].
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds::symmetric(1.0, self.preset().act_dim)
+    }
+
+    fn rl_preset(&self) -> Option<&'static str> {
+        Some(include_str!("../../../configs/collect/cheetah_vel.toml"))
+    }
+
+    /// `[velocity]`.
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        Ok(vec![numeric_param(VEL_ENV_NAME, task, &self.task_params(task)?, "velocity")?])
+    }
+
+    fn dataset_bar(&self) -> Option<DatasetBar> {
+        Some(DatasetBar::Reference {
+            tolerance: 0.15,
+            name: "expert within 15 % of the reference's return (or better) on every task",
+        })
+    }
+
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_mujoco_init(&mut self.make_env(task)?, self.name(), task, init, actions)
     }
 }
 

@@ -3,7 +3,9 @@
 //!
 //! Three policies of decreasing quality ([`Mode`]): `expert` heads straight for the goal,
 //! `medium` heads for a goal misremembered once per episode, `random` moves uniformly at random
-//! ([`ScriptedFamily::policy_description`] gives each family's exact formulas).
+//! ([`ScriptedFamily::policy_description`] gives each family's exact formulas). Each family's
+//! policies live in `collect_scripted/<family>.rs` ([`ScriptedPolicies`]); the machinery here
+//! (RNG keys, files, card, threads) is shared.
 //! [`collect`] writes, for every task `i` and mode `m`, the main dataset D_i
 //! (`{env}-{i}-{m}.safetensors`) and the prompt set P_i (`{env}-{i}-prompt-{m}.safetensors`) in
 //! the native format, plus a `dataset.json` card.
@@ -13,9 +15,7 @@
 //! are generated, on thread count, or on which other tasks and modes are collected in the same run.
 //! `docs/point-robot.md` and `docs/metaworld-reach.md` describe the policies and the file layout.
 
-use std::fmt;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
 
@@ -28,39 +28,48 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::dial::{self, Dial, DialExpert, DialFamily};
-use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
-use crate::mujoco_env::standard_normal;
-use crate::point_robot::{self, PointRobot, ACT_DIM, ENV_NAME, MAX_SPEED, NUM_TASKS, OBS_DIM};
-use crate::{Env, EnvError, EnvFamily, StepResult};
+use crate::{EnvError, EnvFamily, StepResult};
 
-/// Standard deviation of the expert's per-coordinate action noise.
-pub const EXPERT_ACTION_NOISE: f64 = 0.01;
-/// Standard deviation of the medium policy's per-episode, per-coordinate goal error.
-pub const MEDIUM_GOAL_NOISE: f64 = 0.5;
-/// Standard deviation of the medium policy's per-coordinate action noise.
-pub const MEDIUM_ACTION_NOISE: f64 = 0.05;
+mod dial;
+mod metaworld_reach;
+mod point_robot;
 
-/// Meta-World reach: standard deviation of the expert's (and medium policy's) action noise on
-/// every dimension, Meta-World's test-harness model `a ~ N(a, (pct * 2)^2)` at pct 0.1, under which
-/// Meta-World's own tests require reach's expert to succeed (spec §3: measured 100 % ever-success).
-pub const REACH_ACTION_NOISE: f64 = 0.2;
-/// Meta-World reach: standard deviation (m) of the medium policy's per-coordinate goal error,
-/// drawn once per episode: it settles about 0.17 m from the goal (outside the 0.05 m success
-/// radius), which earns about half the expert's return (measured over the paper's 20 tasks, 200
-/// episodes each: medium 2,629, expert 4,826, random 777; medium succeeds in 11 % of episodes).
-pub const REACH_MEDIUM_GOAL_NOISE: f64 = 0.1;
+pub use dial::{run_dial_episode, DIAL_DART_AMOUNTS, DIAL_MEDIUM_TARGET_NOISE};
+pub use metaworld_reach::{run_reach_episode, REACH_ACTION_NOISE, REACH_MEDIUM_GOAL_NOISE};
+pub use point_robot::{run_episode, EXPERT_ACTION_NOISE, MEDIUM_ACTION_NOISE, MEDIUM_GOAL_NOISE};
 
-/// Dial: the expert's per-episode DART noise amounts (the original collector's, spec §3.2), drawn
-/// uniformly; the noise on joint j is N(0, (|c_low[j]| amount)^2), plus U(0, 0.1) on joint 1's
-/// standard deviation, redrawn every 1 or 2 steps (drawn per episode).
-pub const DIAL_DART_AMOUNTS: [f64; 3] = [0.0, 0.2, 0.3];
-/// Dial: standard deviation (rad) of the medium policy's per-episode error on each arm joint of
-/// its target pose (it then settles near, not at, the key: see `docs/dial.md` for its measured
-/// success rate).
-pub const DIAL_MEDIUM_TARGET_NOISE: f64 = 0.15;
+/// A family's scripted policies: one implementation per family, in `collect_scripted/<family>.rs`
+/// beside the shared collection machinery here.
+pub trait ScriptedPolicies: Sync {
+    /// The family's name (as [`crate::family`] spells it).
+    fn name(&self) -> &'static str;
+    /// The family the policies act in.
+    fn family(&self) -> Box<dyn EnvFamily>;
+    /// The tasks collected by default.
+    fn default_tasks(&self) -> Vec<usize>;
+    /// Episodes per task in D_i by default.
+    fn default_episodes(&self) -> usize;
+    /// One-line description of `mode`'s policy, recorded in the dataset card.
+    fn policy_description(&self, mode: Mode) -> &'static str;
+    /// Whether the expert's and medium policy's action noise is set by
+    /// [`CollectConfig::reach_action_noise`] (`--action-noise`).
+    fn takes_action_noise(&self) -> bool {
+        false
+    }
+    /// `episodes` episodes of `(task, mode)` for one set, with `cfg`'s seed (and noise); also the
+    /// fraction that succeeded (`None` for a family without a success criterion).
+    fn episodes(
+        &self,
+        cfg: &CollectConfig,
+        task: usize,
+        mode: Mode,
+        set: Set,
+        episodes: usize,
+    ) -> Result<(Vec<Trajectory>, Option<f64>), CollectError>;
+}
 
-/// A family with scripted policies.
+/// A family with scripted policies: the name under which configs and the families themselves
+/// ([`EnvFamily::scripted`]) refer to its [`ScriptedPolicies`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ScriptedFamily {
@@ -71,188 +80,64 @@ pub enum ScriptedFamily {
 }
 
 impl ScriptedFamily {
+    /// Every family with scripted policies.
+    pub const ALL: [ScriptedFamily; 3] =
+        [ScriptedFamily::PointRobot, ScriptedFamily::MetaWorldReach, ScriptedFamily::Dial];
+
+    /// The family's policies.
+    pub fn policies(self) -> &'static dyn ScriptedPolicies {
+        match self {
+            Self::PointRobot => &point_robot::PointRobotPolicies,
+            Self::MetaWorldReach => &metaworld_reach::ReachPolicies,
+            Self::Dial => &dial::DialPolicies,
+        }
+    }
+
     /// The family of `name` (as [`crate::family`] spells it), if it has scripted policies.
     pub fn from_name(name: &str) -> Option<Self> {
-        match name {
-            point_robot::ENV_NAME => Some(Self::PointRobot),
-            reach::ENV_NAME => Some(Self::MetaWorldReach),
-            dial::ENV_NAME => Some(Self::Dial),
-            _ => None,
-        }
+        crate::family(name).ok()?.scripted()
     }
 
     pub fn name(self) -> &'static str {
-        match self {
-            Self::PointRobot => ENV_NAME,
-            Self::MetaWorldReach => reach::ENV_NAME,
-            Self::Dial => dial::ENV_NAME,
-        }
+        self.policies().name()
     }
 
     fn num_tasks(self) -> usize {
-        match self {
-            Self::PointRobot => NUM_TASKS,
-            Self::MetaWorldReach => reach::NUM_TASKS,
-            Self::Dial => dial::NUM_TASKS,
-        }
+        self.policies().family().num_tasks()
     }
 
     fn dims(self) -> (usize, usize) {
-        match self {
-            Self::PointRobot => (OBS_DIM, ACT_DIM),
-            Self::MetaWorldReach => (reach::OBS_DIM, reach::ACT_DIM),
-            Self::Dial => (dial::OBS_DIM, dial::ACT_DIM),
-        }
+        let p = self.policies().family().preset();
+        (p.obs_dim, p.act_dim)
     }
 
-    /// The tasks collected by default: every point-robot goal; the 20 reach tasks of the paper's
-    /// split (1..=20; the family's other 30 tasks are in no split); the 10 digits of Dial.
+    /// The tasks collected by default ([`ScriptedPolicies::default_tasks`]).
     pub fn default_tasks(self) -> Vec<usize> {
-        match self {
-            Self::PointRobot => (0..NUM_TASKS).collect(),
-            Self::MetaWorldReach => {
-                let mut t: Vec<usize> =
-                    reach::TRAIN_TASKS.iter().chain(&reach::TEST_TASKS).copied().collect();
-                t.sort_unstable();
-                t
-            }
-            Self::Dial => (0..dial::NUM_TASKS).collect(),
-        }
+        self.policies().default_tasks()
     }
 
-    /// Episodes per task in D_i by default: the point robot's 100; reach's and Dial's 200 (the
-    /// paper's "200 episodes for each task").
+    /// Episodes per task in D_i by default ([`ScriptedPolicies::default_episodes`]).
     pub fn default_episodes(self) -> usize {
-        match self {
-            Self::PointRobot => 100,
-            Self::MetaWorldReach | Self::Dial => 200,
-        }
+        self.policies().default_episodes()
     }
 
     fn params(self, task: usize) -> Result<serde_json::Value, EnvError> {
-        match self {
-            Self::PointRobot => point_robot::PointRobotFamily::default().task_params(task),
-            Self::MetaWorldReach => MetaWorldReachFamily::default().task_params(task),
-            Self::Dial => DialFamily.task_params(task),
-        }
+        self.policies().family().task_params(task)
     }
 
     /// One-line description of `mode`'s policy in this family, recorded in the dataset card.
     pub fn policy_description(self, mode: Mode) -> &'static str {
-        match self {
-            Self::PointRobot => mode.description(),
-            Self::MetaWorldReach => match mode {
-                Mode::Expert => {
-                    "a = f32(5 (goal - hand), 0) + N(0, s^2) per dimension, s = action_noise_std \
-                     (Meta-World's SawyerReachV3Policy; s = 0.2 is its test harness's noise at \
-                     pct 0.1; the true goal is read from the env, the recorded observation hides \
-                     it)"
-                }
-                Mode::Medium => {
-                    "g' = goal + N(0, 0.1^2) per coordinate, drawn once per episode; a = \
-                     f32(5 (g' - hand), 0) + N(0, s^2) per dimension, s = action_noise_std"
-                }
-                Mode::Random => "a ~ Uniform[-1, 1] per dimension (the action space)",
-            },
-            Self::Dial => match mode {
-                Mode::Expert => {
-                    "start: init pose + U(-0.1, 0.1) per joint, joint 1 + U(0, 0.2), joint 2 + \
-                     U(-0.2, 0), settled back by the PI controller; a = the original's PI \
-                     controller toward the digit's hover pose (recorded); executed: a + DART noise \
-                     N(0, (|c_low| m)^2), m drawn per episode from {0, 0.2, 0.3} (joint 1's std + \
-                     U(0, 0.1)), redrawn every 1 or 2 steps (drawn per episode)"
-                }
-                Mode::Medium => {
-                    "as the expert, toward the hover pose with N(0, 0.15^2) rad added to each arm \
-                     joint once per episode (it settles near, not always within reach of, the key)"
-                }
-                Mode::Random => "a ~ Uniform[c_low, c_high] per dimension (the action box)",
-            },
-        }
+        self.policies().policy_description(mode)
+    }
+
+    /// Whether `--action-noise` ([`CollectConfig::reach_action_noise`]) applies to this family.
+    pub fn takes_action_noise(self) -> bool {
+        self.policies().takes_action_noise()
     }
 }
 
-/// A scripted policy, and the dataset kind it produces (the `mode` in file names).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Mode {
-    Expert,
-    Medium,
-    Random,
-}
-
-impl Mode {
-    /// All modes, best first.
-    pub const ALL: [Mode; 3] = [Mode::Expert, Mode::Medium, Mode::Random];
-
-    /// The name used in file names and cards.
-    pub fn name(self) -> &'static str {
-        match self {
-            Mode::Expert => "expert",
-            Mode::Medium => "medium",
-            Mode::Random => "random",
-        }
-    }
-
-    /// One-line description of the policy, recorded in the dataset card.
-    pub fn description(self) -> &'static str {
-        match self {
-            Mode::Expert => {
-                "a = clip(goal - pos + N(0, 0.01^2) per coordinate, -0.1, 0.1): straight to the \
-                 goal at full speed"
-            }
-            Mode::Medium => {
-                "g' = goal + N(0, 0.5^2) per coordinate, drawn once per episode; a = clip(g' - pos \
-                 + N(0, 0.05^2) per coordinate, -0.1, 0.1)"
-            }
-            Mode::Random => "a ~ Uniform[-0.1, 0.1] per coordinate",
-        }
-    }
-
-    /// Stable number of the mode in RNG keys: adding a mode must not change the others' data.
-    fn rng_id(self) -> u32 {
-        match self {
-            Mode::Expert => 0,
-            Mode::Medium => 1,
-            Mode::Random => 2,
-        }
-    }
-}
-
-impl fmt::Display for Mode {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl FromStr for Mode {
-    type Err = CollectError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Mode::ALL.into_iter().find(|m| m.name() == s).ok_or_else(|| {
-            CollectError::Config(format!("unknown mode {s:?} (known: expert, medium, random)"))
-        })
-    }
-}
-
-/// Which of a task's two sets an episode belongs to. Part of the RNG key, so P_i's episodes are
-/// distinct from D_i's and do not change when `episodes_per_task` does.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Set {
-    /// The main dataset D_i.
-    Dataset,
-    /// The prompt set P_i.
-    Prompt,
-}
-
-impl Set {
-    fn rng_id(self) -> u32 {
-        match self {
-            Set::Dataset => 0,
-            Set::Prompt => 1,
-        }
-    }
-}
+// The datasets' vocabulary lives in pdt-data; re-exported here, where it was first defined.
+pub use pdt_data::mode::{Mode, Set, UnknownMode};
 
 /// What to collect.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -287,7 +172,7 @@ impl Default for CollectConfig {
             episodes_per_task: 100,
             prompt_episodes: 5,
             modes: Mode::ALL.to_vec(),
-            tasks: (0..NUM_TASKS).collect(),
+            tasks: (0..crate::point_robot::NUM_TASKS).collect(),
             reach_action_noise: REACH_ACTION_NOISE,
         }
     }
@@ -435,6 +320,9 @@ pub fn episode_rng(seed: u64, task: usize, mode: Mode, set: Set, episode: usize)
     ChaCha8Rng::from_seed(key)
 }
 
+// One Box-Muller for the whole workspace (`pdt_base::standard_normal`), through the environments' helper.
+use crate::mujoco_env::standard_normal;
+
 fn normal(rng: &mut ChaCha8Rng, std: f64) -> f32 {
     (std * standard_normal(rng)) as f32
 }
@@ -480,169 +368,6 @@ impl EpisodeLog {
     }
 }
 
-/// Runs one episode of `mode` on `task`; all randomness comes from `rng`.
-pub fn run_episode(
-    task: usize,
-    mode: Mode,
-    rng: &mut ChaCha8Rng,
-) -> Result<Trajectory, CollectError> {
-    let goal = point_robot::goal(task)?;
-    let mut env = PointRobot::new(goal);
-    // The medium policy's misremembered goal is fixed for the whole episode, so it goes
-    // consistently to the wrong place instead of jittering around the right one.
-    let aim = match mode {
-        Mode::Medium => {
-            [goal[0] + normal(rng, MEDIUM_GOAL_NOISE), goal[1] + normal(rng, MEDIUM_GOAL_NOISE)]
-        }
-        Mode::Expert | Mode::Random => goal,
-    };
-    let mut log = EpisodeLog::new(OBS_DIM, ACT_DIM, env.horizon());
-    let mut obs = env.reset(0);
-    loop {
-        let pos = env.position();
-        let action: [f32; 2] = match mode {
-            Mode::Expert | Mode::Medium => {
-                let noise =
-                    if mode == Mode::Expert { EXPERT_ACTION_NOISE } else { MEDIUM_ACTION_NOISE };
-                let mut a = [0.0f32; 2];
-                for (j, v) in a.iter_mut().enumerate() {
-                    *v = point_robot::clip_speed(aim[j] - pos[j] + normal(rng, noise));
-                }
-                a
-            }
-            Mode::Random => {
-                [rng.random_range(-MAX_SPEED..=MAX_SPEED), rng.random_range(-MAX_SPEED..=MAX_SPEED)]
-            }
-        };
-        let step = env.step(&action)?;
-        let ended = log.record(&obs, &action, &step);
-        obs = step.obs;
-        if ended {
-            break;
-        }
-    }
-    log.finish().map_err(|source| CollectError::Data { env: ENV_NAME, task, mode, source })
-}
-
-/// One episode of `mode` on a Meta-World reach task (`env`, reset here); all randomness comes from
-/// `rng`. Returns the episode and whether it ever succeeded.
-///
-/// The recorded observations are the ML1 ones (goal slot zeroed); the expert and medium policies
-/// read the true goal from the environment, as Meta-World's scripted policies need it (spec §4.2).
-pub fn run_reach_episode(
-    env: &mut MetaWorldReach,
-    task: usize,
-    mode: Mode,
-    noise: f64,
-    rng: &mut ChaCha8Rng,
-) -> Result<(Trajectory, bool), CollectError> {
-    let goal = env.goal();
-    let aim = match mode {
-        Mode::Medium => goal.map(|g| g + REACH_MEDIUM_GOAL_NOISE * standard_normal(rng)),
-        Mode::Expert | Mode::Random => goal,
-    };
-    let mut log = EpisodeLog::new(reach::OBS_DIM, reach::ACT_DIM, reach::HORIZON);
-    let mut succeeded = false;
-    let mut obs = Env::reset(env, 0);
-    loop {
-        let action: [f32; 4] = match mode {
-            Mode::Expert | Mode::Medium => {
-                let full = env.obs_f64();
-                let a = reach::expert_action([full[0], full[1], full[2]], aim);
-                // The noise is added to the f32 action in f64 and rounded back, as numpy's
-                // `normal(a_f32, std)` returns f64 that the f32 dataset then stores.
-                // With no noise the expert's action is kept as it is (no draw, no rounding).
-                if noise > 0.0 {
-                    a.map(|v| (f64::from(v) + noise * standard_normal(rng)) as f32)
-                } else {
-                    a
-                }
-            }
-            Mode::Random => std::array::from_fn(|_| rng.random_range(-1.0f32..=1.0)),
-        };
-        let step = Env::step(env, &action)?;
-        succeeded |= step.success == Some(true);
-        let ended = log.record(&obs, &action, &step);
-        obs = step.obs;
-        if ended {
-            break;
-        }
-    }
-    let traj = log.finish().map_err(|source| CollectError::Data {
-        env: reach::ENV_NAME,
-        task,
-        mode,
-        source,
-    })?;
-    Ok((traj, succeeded))
-}
-
-/// One Dial episode of `mode` on `env` (reset here from a perturbed start); all randomness comes
-/// from `rng`. Returns the episode and whether it reached the digit.
-///
-/// As in the original collector (DART), the expert's and medium policy's recorded action is the
-/// controller's clean action and the executed one carries the noise, so the data teaches recovery
-/// from the states the noise leads to; replaying a noisy episode's recorded actions does not
-/// reproduce it.
-pub fn run_dial_episode(
-    env: &mut Dial,
-    mode: Mode,
-    rng: &mut ChaCha8Rng,
-) -> Result<(Trajectory, bool), CollectError> {
-    let task = env.digit();
-    let start = dial::noisy_start(rng)?;
-    let mut obs: Vec<f32> = env.reset_from(&start)?.iter().map(|&v| v as f32).collect();
-    // The medium policy aims at the hover pose misremembered once per episode (arm joints only).
-    let mut aim = dial::targets()?.hover[task];
-    if mode == Mode::Medium {
-        for v in aim.iter_mut().take(6) {
-            *v += DIAL_MEDIUM_TARGET_NOISE * standard_normal(rng);
-        }
-    }
-    let mut expert = DialExpert::with_target(aim);
-    let amount = DIAL_DART_AMOUNTS[rng.random_range(0..DIAL_DART_AMOUNTS.len())];
-    let hold = rng.random_range(1..=2usize);
-    let mut noise = [0.0f64; dial::ACT_DIM];
-    let mut log = EpisodeLog::new(dial::OBS_DIM, dial::ACT_DIM, dial::HORIZON);
-    let mut succeeded = false;
-    for t in 0.. {
-        let (recorded, executed): ([f32; dial::ACT_DIM], [f32; dial::ACT_DIM]) = match mode {
-            Mode::Expert | Mode::Medium => {
-                let a = expert.act(&obs);
-                if amount > 0.0 && t % hold == 0 {
-                    let extra = rng.random_range(0.0..0.1);
-                    for (j, n) in noise.iter_mut().enumerate() {
-                        let std = dial::C_LOW[j].abs() * amount + if j == 0 { extra } else { 0.0 };
-                        *n = std * standard_normal(rng);
-                    }
-                }
-                let executed = std::array::from_fn(|j| (f64::from(a[j]) + noise[j]) as f32);
-                (a, executed)
-            }
-            Mode::Random => {
-                let a = std::array::from_fn(|j| {
-                    rng.random_range(dial::C_LOW[j] as f32..=dial::C_HIGH[j] as f32)
-                });
-                (a, a)
-            }
-        };
-        let step = Env::step(env, &executed)?;
-        succeeded |= step.success == Some(true);
-        let ended = log.record(&obs, &recorded, &step);
-        obs = step.obs;
-        if ended {
-            break;
-        }
-    }
-    let traj = log.finish().map_err(|source| CollectError::Data {
-        env: dial::ENV_NAME,
-        task,
-        mode,
-        source,
-    })?;
-    Ok((traj, succeeded))
-}
-
 /// Generates `episodes` point-robot episodes of `(task, mode)` for one set.
 pub fn generate(
     seed: u64,
@@ -665,44 +390,9 @@ pub fn generate_for(
     set: Set,
     episodes: usize,
 ) -> Result<(TaskDataset, Option<f64>), CollectError> {
-    let (family, seed) = (cfg.family, cfg.seed);
+    let family = cfg.family;
     let env = family.name();
-    let (trajectories, success) = match family {
-        ScriptedFamily::PointRobot => {
-            let t = (0..episodes)
-                .map(|e| run_episode(task, mode, &mut episode_rng(seed, task, mode, set, e)))
-                .collect::<Result<Vec<_>, _>>()?;
-            (t, None)
-        }
-        ScriptedFamily::MetaWorldReach => {
-            // One simulator for the whole set: every reset restores the same start state, so the
-            // episodes do not depend on what ran before them (tests/metaworld_parity.rs).
-            let mut sim = MetaWorldReachFamily::default().make_env(task)?;
-            let mut t = Vec::with_capacity(episodes);
-            let mut wins = 0usize;
-            for e in 0..episodes {
-                let mut rng = episode_rng(seed, task, mode, set, e);
-                let noise = cfg.reach_action_noise;
-                let (traj, ok) = run_reach_episode(&mut sim, task, mode, noise, &mut rng)?;
-                wins += usize::from(ok);
-                t.push(traj);
-            }
-            (t, Some(wins as f64 / episodes.max(1) as f64))
-        }
-        ScriptedFamily::Dial => {
-            // One simulator for the whole set: every episode starts with a full reset.
-            let mut sim = DialFamily.make_env(task)?;
-            let mut t = Vec::with_capacity(episodes);
-            let mut wins = 0usize;
-            for e in 0..episodes {
-                let mut rng = episode_rng(seed, task, mode, set, e);
-                let (traj, ok) = run_dial_episode(&mut sim, mode, &mut rng)?;
-                wins += usize::from(ok);
-                t.push(traj);
-            }
-            (t, Some(wins as f64 / episodes.max(1) as f64))
-        }
-    };
+    let (trajectories, success) = family.policies().episodes(cfg, task, mode, set, episodes)?;
     let ds = TaskDataset::new(trajectories).map_err(|source| CollectError::Data {
         env,
         task,
@@ -906,7 +596,7 @@ fn generator_info(cfg: &CollectConfig) -> serde_json::Value {
         "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode); \
                 normal noise by Box-Muller",
     });
-    if cfg.family == ScriptedFamily::MetaWorldReach {
+    if cfg.family.takes_action_noise() {
         info["action_noise_std"] = cfg.reach_action_noise.into();
     }
     info

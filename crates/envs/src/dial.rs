@@ -33,7 +33,9 @@ use mujoco_rs::wrappers::MjVfs;
 use rand::Rng;
 use serde::Deserialize;
 
-use crate::{Env, EnvError, EnvFamily, EnvPreset, StepResult};
+use crate::collect_scripted::ScriptedFamily;
+use crate::replay::{replay_dial_init, ReplayResult};
+use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
 
 /// Family name, as used in file names.
 pub const ENV_NAME: &str = "dial";
@@ -516,6 +518,34 @@ impl EnvFamily for DialFamily {
 
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.make_env(task)?))
+    }
+
+    /// The controller's box `[C_LOW, C_HIGH]`.
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds {
+            low: C_LOW.iter().map(|&v| v as f32).collect(),
+            high: C_HIGH.iter().map(|&v| v as f32).collect(),
+        }
+    }
+
+    /// [`SUCCESS_REWARD`].
+    fn success_reward(&self) -> Option<f32> {
+        Some(SUCCESS_REWARD)
+    }
+
+    fn scripted(&self) -> Option<ScriptedFamily> {
+        Some(ScriptedFamily::Dial)
+    }
+
+    /// From the digit's deterministic reset, or from `init` = `{"qpos": [9 joint angles]}`
+    /// ([`crate::replay::replay_dial`]).
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_dial_init(task, init, actions)
     }
 }
 

@@ -1,6 +1,12 @@
 //! Environments behind one small [`Env`] trait, grouped into task families ([`EnvFamily`]) with
 //! their task parameters, train/test splits and the reference's per-environment constants
 //! ([`EnvPreset`]). No tensor framework here.
+//!
+//! A family also answers what the front ends (CLI, Python, `reproduce`, report, RL, bench) would
+//! otherwise decide by its name: its action bounds, success rule, how its datasets are collected
+//! (scripted policies, or an RL agent with the preset of `configs/collect/<family>.toml`), the RL
+//! agent's task features and body symmetries, its dataset quality bar, and replay.
+//! `docs/adding-a-family.md` lists what a new family adds, all of it in this crate and `configs/`.
 
 pub mod ant_dir;
 pub mod bench;
@@ -59,6 +65,12 @@ pub enum EnvError {
     /// A simulator state given from outside (e.g. a replay's initial `qpos`/`qvel`) is unusable.
     #[error("{env}: invalid state: {message}")]
     BadState { env: String, message: String },
+    /// The family lacks a capability a caller asked for (e.g. replay, or RL task features).
+    #[error("{env} has no {what}")]
+    Unsupported { env: String, what: &'static str },
+    /// A replay's initial state (`promptdt env replay --init`) is missing, unwanted or unreadable.
+    #[error("{message}")]
+    ReplayInit { message: String },
 }
 
 /// One task instance of an environment family.
@@ -91,7 +103,47 @@ pub struct EnvPreset {
     pub prompt_length: usize,
 }
 
-/// A task family: its tasks, splits and constants, and a factory for its environments.
+/// The closed box an action lies in, per dimension (`low[i] <= a[i] <= high[i]`): what the
+/// Python package's gymnasium spaces and Minari exports declare. Values outside are clamped (the
+/// MuJoCo families' motors, Dial's controller) or clipped (the point robot's speed) by the env.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActionBounds {
+    pub low: Vec<f32>,
+    pub high: Vec<f32>,
+}
+
+impl ActionBounds {
+    /// `[-bound, bound]` on each of `act_dim` dimensions.
+    pub fn symmetric(bound: f32, act_dim: usize) -> Self {
+        Self { low: vec![-bound; act_dim], high: vec![bound; act_dim] }
+    }
+}
+
+/// The dataset quality bar of a family (`promptdt report --datasets`), besides the bars every
+/// family has (medium between random and expert; expert success where there is a success rule).
+#[derive(Debug, Clone, PartialEq)]
+pub enum DatasetBar {
+    /// Per task against the reference's expert return: ours >= ref - tolerance * |ref| on every
+    /// one of the family's tasks.
+    Reference { tolerance: f64, name: &'static str },
+    /// On the mean expert return over the family's tasks.
+    Mean { min: f64, name: &'static str },
+}
+
+/// A symmetry of the body (a reflection or a half turn) under which the family's dynamics are
+/// the same: an RL agent can act in the mirrored world (`pdt_rl::agent::Mirror`). Each map is a
+/// signed permutation `out[i] = sign[i] * x[index[i]]` and its own inverse.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BodySymmetry {
+    pub name: &'static str,
+    pub observation: ant_dir::SignedPerm,
+    pub action: ant_dir::SignedPerm,
+    /// Signs of the task feature ([`EnvFamily::task_features`]) under the symmetry.
+    pub task_feature_sign: Vec<f64>,
+}
+
+/// A task family: its tasks, splits and constants, a factory for its environments, and the
+/// knowledge the front ends need about it (module docs).
 pub trait EnvFamily: Send + Sync {
     /// Reference name, used in file names (`cheetah_vel`, `point_robot`).
     fn name(&self) -> &str;
@@ -104,22 +156,78 @@ pub trait EnvFamily: Send + Sync {
     /// The task's parameters, as recorded in dataset cards (e.g. `{"goal": [x, y]}`).
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError>;
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError>;
+
+    /// The box actions lie in.
+    fn action_bounds(&self) -> ActionBounds;
+
+    /// The reward at or above which a step solved its task, for families whose success can be
+    /// read off their recorded rewards; `None` for families without a success criterion.
+    fn success_reward(&self) -> Option<f32> {
+        None
+    }
+
+    /// The family's scripted policies, if its datasets are collected by them
+    /// ([`collect_scripted`]); `None`: they are collected from an RL agent ([`Self::rl_preset`]).
+    fn scripted(&self) -> Option<collect_scripted::ScriptedFamily> {
+        None
+    }
+
+    /// The RL agent preset (`configs/collect/<family>.toml`, TOML text read by `pdt-rl`), for
+    /// families an agent can be trained on.
+    fn rl_preset(&self) -> Option<&'static str> {
+        None
+    }
+
+    /// The task's features the RL agent is conditioned on (e.g. `[velocity]`), all tasks' of the
+    /// same length.
+    fn task_features(&self, _task: usize) -> Result<Vec<f32>, EnvError> {
+        Err(EnvError::Unsupported { env: self.name().to_owned(), what: "RL task features" })
+    }
+
+    /// Body symmetries an RL agent may act under (none by default).
+    fn symmetries(&self) -> Vec<BodySymmetry> {
+        Vec::new()
+    }
+
+    /// The family's own dataset quality bar, if it has one.
+    fn dataset_bar(&self) -> Option<DatasetBar> {
+        None
+    }
+
+    /// Replays `actions` on `task` from the start `init` (JSON text, the family's own format:
+    /// `promptdt env replay --init`; `None`: none given) until they run out or the episode ends.
+    fn replay(
+        &self,
+        _task: usize,
+        _init: Option<&str>,
+        _actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        Err(EnvError::Unsupported { env: self.name().to_owned(), what: "replay" })
+    }
+}
+
+/// The numeric task parameter `key` of `params` (a family's [`EnvFamily::task_params`]), as f32.
+fn numeric_param(
+    env: &str,
+    task: usize,
+    params: &serde_json::Value,
+    key: &str,
+) -> Result<f32, EnvError> {
+    params.get(key).and_then(serde_json::Value::as_f64).map(|v| v as f32).ok_or_else(|| {
+        EnvError::Simulation {
+            env: env.to_owned(),
+            message: format!("task {task}: no numeric parameter `{key}`"),
+        }
+    })
 }
 
 /// Names of the families [`family`] knows.
 pub const FAMILY_NAMES: [&str; 6] =
     ["point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"];
 
-/// The reward at or above which a step of `family` solved its task, for families whose success
-/// can be read off their recorded rewards: Meta-World reach ([`metaworld_reach::SUCCESS_REWARD`])
-/// and Dial ([`dial::SUCCESS_REWARD`]).
-/// `None` for families without a success criterion.
+/// [`EnvFamily::success_reward`] of the family named `family`; `None` also for an unknown name.
 pub fn success_reward(family: &str) -> Option<f32> {
-    match family {
-        metaworld_reach::ENV_NAME => Some(metaworld_reach::SUCCESS_REWARD),
-        dial::ENV_NAME => Some(dial::SUCCESS_REWARD),
-        _ => None,
-    }
+    self::family(family).ok()?.success_reward()
 }
 
 /// Looks up a family by name.

@@ -30,7 +30,9 @@ use mujoco_rs::wrappers::MjVfs;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::{Env, EnvError, EnvFamily, EnvPreset, StepResult};
+use crate::collect_scripted::ScriptedFamily;
+use crate::replay::{replay_from_reset, ReplayResult};
+use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
 
 /// Family name, as used in file names.
 pub const ENV_NAME: &str = "metaworld_reach";
@@ -723,6 +725,30 @@ impl EnvFamily for MetaWorldReachFamily {
 
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.make_env(task)?))
+    }
+
+    /// Meta-World's action space (the hand's motion is clipped to it).
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds::symmetric(1.0, ACT_DIM)
+    }
+
+    /// [`SUCCESS_REWARD`].
+    fn success_reward(&self) -> Option<f32> {
+        Some(SUCCESS_REWARD)
+    }
+
+    fn scripted(&self) -> Option<ScriptedFamily> {
+        Some(ScriptedFamily::MetaWorldReach)
+    }
+
+    /// From the task's reset state (a reach task has no start-state noise: no `init`).
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_from_reset(&mut self.make_env(task)?, ENV_NAME, task, init, actions)
     }
 }
 

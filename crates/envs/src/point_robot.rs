@@ -13,7 +13,9 @@
 //! its seed and an episode is a pure function of the task and the actions. `docs/point-robot.md`
 //! describes the family, its splits, and how it differs from PEARL's.
 
-use crate::{Env, EnvError, EnvFamily, EnvPreset, StepResult};
+use crate::collect_scripted::ScriptedFamily;
+use crate::replay::{replay_from_reset, ReplayResult};
+use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
 
 /// Family name, as used in file names (`point_robot-3-expert.safetensors`).
 pub const ENV_NAME: &str = "point_robot";
@@ -242,6 +244,34 @@ impl EnvFamily for PointRobotFamily {
 
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(PointRobot::for_task(task)?))
+    }
+
+    /// The speed is clipped to [-MAX_SPEED, MAX_SPEED] per coordinate.
+    fn action_bounds(&self) -> ActionBounds {
+        ActionBounds::symmetric(MAX_SPEED, ACT_DIM)
+    }
+
+    fn scripted(&self) -> Option<ScriptedFamily> {
+        Some(ScriptedFamily::PointRobot)
+    }
+
+    fn rl_preset(&self) -> Option<&'static str> {
+        Some(include_str!("../../../configs/collect/point_robot.toml"))
+    }
+
+    /// The goal `[x, y]` (f64 rounded to f32).
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        Ok(goal_f64(task)?.iter().map(|&v| v as f32).collect())
+    }
+
+    /// From the reset state at the origin (no `init`).
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<ReplayResult, EnvError> {
+        replay_from_reset(&mut PointRobot::for_task(task)?, ENV_NAME, task, init, actions)
     }
 }
 

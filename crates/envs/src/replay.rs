@@ -147,12 +147,7 @@ pub fn replay_env(
 /// give. The observations are the f32 ones the datasets and the evaluation see.
 pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
     let mut env = MetaWorldReachFamily::default().make_env(task)?;
-    let first = Env::reset(&mut env, 0);
-    play(
-        &mut env,
-        ReplayResult::start(metaworld_reach::ENV_NAME, task, first, actions.len()),
-        actions,
-    )
+    replay_from_reset(&mut env, metaworld_reach::ENV_NAME, task, None, actions)
 }
 
 /// Applies `actions` to `env` (already at `result`'s first observation) until they run out or the
@@ -188,6 +183,74 @@ pub fn replay_dial(
     };
     let first = first.iter().map(|&v| v as f32).collect();
     play(&mut env, ReplayResult::start(dial::ENV_NAME, task, first, actions.len()), actions)
+}
+
+/// [`crate::EnvFamily::replay`] of a MuJoCo family: `init` is required, `{"qpos": [...],
+/// "qvel": [...]}`.
+pub fn replay_mujoco_init(
+    env: &mut MujocoEnv,
+    family: &str,
+    task: usize,
+    init: Option<&str>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    #[derive(Deserialize)]
+    struct Init {
+        qpos: Vec<f64>,
+        qvel: Vec<f64>,
+    }
+    let Some(text) = init else {
+        return Err(EnvError::ReplayInit {
+            message: format!("--init is required for {family} (its initial qpos and qvel)"),
+        });
+    };
+    let init: Init = serde_json::from_str(text).map_err(|e| EnvError::ReplayInit {
+        message: format!("expected {{\"qpos\": [...], \"qvel\": [...]}}: {e}"),
+    })?;
+    replay_env(env, family, task, &init.qpos, &init.qvel, actions)
+}
+
+/// [`crate::EnvFamily::replay`] of a family whose episodes start from the task's deterministic
+/// reset state (point robot, Meta-World reach): no `init` is taken.
+pub fn replay_from_reset(
+    env: &mut dyn Env,
+    family: &str,
+    task: usize,
+    init: Option<&str>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    if init.is_some() {
+        return Err(EnvError::ReplayInit {
+            message: format!(
+                "{family} episodes start from the task's reset state (no initial state is taken)"
+            ),
+        });
+    }
+    let first = env.reset(0);
+    play(env, ReplayResult::start(family, task, first, actions.len()), actions)
+}
+
+/// [`crate::EnvFamily::replay`] of Dial: `init` is optional, `{"qpos": [9 joint angles]}`
+/// ([`replay_dial`]).
+pub fn replay_dial_init(
+    task: usize,
+    init: Option<&str>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    #[derive(Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Start {
+        qpos: Vec<f64>,
+    }
+    match init {
+        None => replay_dial(task, None, actions),
+        Some(text) => {
+            let s: Start = serde_json::from_str(text).map_err(|e| EnvError::ReplayInit {
+                message: format!("expected {{\"qpos\": [9 joint angles]}}: {e}"),
+            })?;
+            replay_dial(task, Some(&s.qpos), actions)
+        }
+    }
 }
 
 /// Adds the step index to an action error, so that a bad action in a long file can be found.

@@ -125,3 +125,26 @@ def test_dial_from_python(tmp_path):
         assert t.rewards[-1] == 1.0 and t.rewards[:-1].sum() == 0.0
     with pytest.raises(ValueError, match="action_noise is for metaworld_reach"):
         promptdt.collect("dial", tmp_path / "d2", episodes=1, action_noise=0.1)
+
+
+def test_family_knowledge_comes_from_rust(tmp_path):
+    """Every family's action box, success rule and collection route are pdt-envs' answers: the
+    package names no family (crates/cli/tests/families.rs checks its sources)."""
+    fams = promptdt.families()
+    assert set(fams) == {"point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"}
+    for name, f in fams.items():
+        env = make_vec(name, 0, num_envs=1)
+        space = env.single_action_space
+        np.testing.assert_array_equal(space.low, np.asarray(f["action_low"], np.float32), err_msg=name)
+        np.testing.assert_array_equal(space.high, np.asarray(f["action_high"], np.float32), err_msg=name)
+        assert len(f["action_low"]) == f["act_dim"] and _native.is_scripted(name) == f["scripted"]
+        if not f["scripted"]:
+            # Collected from an RL agent: the agent directory is read (here an empty one).
+            with pytest.raises(Exception, match="agent.json"):
+                promptdt.collect(name, tmp_path / name, pretrained_dir=tmp_path, episodes=1)
+    assert fams["point_robot"]["action_high"] == [pytest.approx(0.1)] * 2
+    assert fams["dial"]["action_high"][1] == pytest.approx(0.6) and fams["dial"]["action_low"][1] == -1.0
+    assert fams["metaworld_reach"]["success_reward"] == 10.0 and fams["cheetah_vel"]["success_reward"] is None
+    assert _native.is_scripted("point-robot")
+    with pytest.raises(ValueError, match="unknown environment"):
+        _native.is_scripted("walker")

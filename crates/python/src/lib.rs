@@ -179,7 +179,10 @@ fn write_dataset(
 // ------------------------------------------------------------------------------------------------
 
 /// The environment families: `{name: {"num_tasks", "obs_dim", "act_dim", "horizon", "rtg_scale",
-/// "target_return", "prompt_length", "splits": {split: (train tasks, test tasks)}}}`.
+/// "target_return", "prompt_length", "splits": {split: (train tasks, test tasks)}, "action_low",
+/// "action_high" (per dimension), "success_reward" (or None), "scripted" (datasets from
+/// scripted policies, else from an RL agent)}}`: all of it from pdt-envs, so a new family needs no
+/// edit in the Python package.
 #[pyfunction]
 fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     let out = PyDict::new(py);
@@ -199,6 +202,11 @@ fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
             splits.set_item(&s, f.split(&s).map_err(value_error)?)?;
         }
         d.set_item("splits", splits)?;
+        let bounds = f.action_bounds();
+        d.set_item("action_low", bounds.low)?;
+        d.set_item("action_high", bounds.high)?;
+        d.set_item("success_reward", f.success_reward())?;
+        d.set_item("scripted", f.scripted().is_some())?;
         out.set_item(name, d)?;
     }
     Ok(out)
@@ -933,9 +941,17 @@ fn experiments() -> PyResult<String> {
     serde_json::to_string(&v).map_err(value_error)
 }
 
-/// `promptdt collect --env point_robot|metaworld_reach`: the scripted expert/medium/random
-/// datasets and prompt sets of the family's default tasks, into `out`. `action_noise`: reach's
-/// expert noise (standard deviation; default 0.2, 0 = deterministic).
+/// Whether `family` (any spelling [`pdt_envs::family`] takes) collects its datasets with scripted
+/// policies ([`collect_scripted`]) rather than from an RL agent ([`collect_from_agent`]).
+#[pyfunction]
+fn is_scripted(family: &str) -> PyResult<bool> {
+    Ok(pdt_envs::family(family).map_err(value_error)?.scripted().is_some())
+}
+
+/// `promptdt collect --env FAMILY` for a family with scripted policies: the scripted
+/// expert/medium/random datasets and prompt sets of the family's default tasks, into `out`.
+/// `action_noise`: the expert's noise where the family takes one (Meta-World reach: standard
+/// deviation; default 0.2, 0 = deterministic).
 #[pyfunction]
 #[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None))]
 fn collect_scripted(
@@ -949,10 +965,11 @@ fn collect_scripted(
 ) -> PyResult<usize> {
     use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
     let fam = pdt_envs::family(family).map_err(value_error)?;
-    let scripted = ScriptedFamily::from_name(fam.name()).ok_or_else(|| {
+    let scripted = fam.scripted().ok_or_else(|| {
+        let names: Vec<&str> = ScriptedFamily::ALL.iter().map(|f| f.name()).collect();
         value_error(format!(
-            "{family} has no scripted policies (point_robot, metaworld_reach and dial do); use \
-             collect_from_agent"
+            "{family} has no scripted policies ({} do); use collect_from_agent",
+            names.join(", ")
         ))
     })?;
     let mut cfg = CollectConfig::for_family(scripted);
@@ -964,8 +981,13 @@ fn collect_scripted(
         cfg.prompt_episodes = e;
     }
     if let Some(n) = action_noise {
-        if scripted != ScriptedFamily::MetaWorldReach {
-            return Err(value_error("action_noise is for metaworld_reach"));
+        if !scripted.takes_action_noise() {
+            let names: Vec<&str> = ScriptedFamily::ALL
+                .iter()
+                .filter(|f| f.takes_action_noise())
+                .map(|f| f.name())
+                .collect();
+            return Err(value_error(format!("action_noise is for {}", names.join(", "))));
         }
         cfg.reach_action_noise = n;
     }
@@ -1042,6 +1064,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(train, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate, m)?)?;
     m.add_function(wrap_pyfunction!(collect_scripted, m)?)?;
+    m.add_function(wrap_pyfunction!(is_scripted, m)?)?;
     m.add_function(wrap_pyfunction!(experiments, m)?)?;
     m.add_function(wrap_pyfunction!(collect_from_agent, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;

@@ -99,7 +99,9 @@ fn collect_into(d: &DataSpec, tmp: &Path, opts: &ExecOptions) -> Result<bool, Re
     let mut cmd = Command::new(&opts.exe);
     cmd.arg(DIE_WITH_PARENT).args(["collect", "--env", &d.env, "--out"]).arg(tmp);
     // Families with scripted policies collect from those; the others from their committed agents.
-    if pdt_envs::collect_scripted::ScriptedFamily::from_name(&d.env).is_none() {
+    // An unknown family collects nothing either way: `collect` names it.
+    let scripted = pdt_envs::family(&d.env).is_ok_and(|f| f.scripted().is_some());
+    if !scripted {
         cmd.arg("--from-pretrained").arg("--pretrained-dir").arg(opts.pretrained_root.join(&d.env));
     }
     if let Some(e) = d.episodes {

@@ -45,6 +45,31 @@ impl std::str::FromStr for Algorithm {
     }
 }
 
+/// A family's RL preset: `configs/collect/<family>.toml`, which the family hands over as text
+/// ([`EnvFamily::rl_preset`]), so that a new family needs no edit in this crate.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CollectPreset {
+    pub algorithm: Algorithm,
+    /// Environment steps in all.
+    pub total_steps: u64,
+    /// Observation indices the agent does not see.
+    #[serde(default)]
+    pub drop_obs: Vec<usize>,
+}
+
+impl CollectPreset {
+    /// The preset of `family`; an error names a family without one, or a malformed file.
+    pub fn of(family: &dyn EnvFamily) -> Result<Self, RlError> {
+        let name = family.name();
+        let text = family
+            .rl_preset()
+            .ok_or_else(|| RlError::Config(format!("no RL preset for family `{name}`")))?;
+        toml::from_str(text)
+            .map_err(|e| RlError::Config(format!("configs/collect/{name}.toml: {e}")))
+    }
+}
+
 /// The agent's input for a family: which observation entries it drops and the per-task features
 /// it appends.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -76,26 +101,24 @@ pub struct Mirror {
 }
 
 impl Mirror {
-    /// The family's mirror symmetries (none for the HalfCheetah families: a mirror image of
-    /// running forward is not running in another direction they have).
+    /// The family's mirror symmetries ([`EnvFamily::symmetries`]; none for the HalfCheetah
+    /// families: a mirror image of running forward is not running in another direction they
+    /// have), none for an unknown family.
     pub fn for_family(family: &str) -> Vec<Mirror> {
-        use pdt_envs::ant_dir::Symmetry;
-        if family != pdt_envs::ant_dir::ENV_NAME {
+        let Ok(family) = pdt_envs::family(family) else {
             return vec![];
-        }
+        };
         let f32s = |v: Vec<f64>| v.into_iter().map(|x| x as f32).collect::<Vec<f32>>();
-        Symmetry::ALL
-            .iter()
-            .map(|r| {
-                let (o, a) = (r.observation(), r.action());
-                Mirror {
-                    name: r.name().to_string(),
-                    obs_index: o.index,
-                    obs_sign: f32s(o.sign),
-                    action_index: a.index,
-                    action_sign: f32s(a.sign),
-                    task_feature_sign: f32s(r.direction_signs().to_vec()),
-                }
+        family
+            .symmetries()
+            .into_iter()
+            .map(|r| Mirror {
+                name: r.name.to_string(),
+                obs_index: r.observation.index,
+                obs_sign: f32s(r.observation.sign),
+                action_index: r.action.index,
+                action_sign: f32s(r.action.sign),
+                task_feature_sign: f32s(r.task_feature_sign),
             })
             .collect()
     }
@@ -115,36 +138,10 @@ impl TaskEncoder {
     pub fn for_family(family: &dyn EnvFamily) -> Result<Self, RlError> {
         let name = family.name().to_string();
         let preset = family.preset();
-        let mut task_features = Vec::with_capacity(family.num_tasks());
-        for task in 0..family.num_tasks() {
-            let p = family.task_params(task)?;
-            let num = |key: &str| -> Result<f32, RlError> {
-                p.get(key).and_then(|v| v.as_f64()).map(|v| v as f32).ok_or_else(|| {
-                    RlError::Config(format!("{name} task {task}: no numeric parameter `{key}`"))
-                })
-            };
-            let f = match name.as_str() {
-                "cheetah_dir" => vec![num("direction")?],
-                "cheetah_vel" => vec![num("velocity")?],
-                "ant_dir" => {
-                    let g = num("goal")?;
-                    vec![g.cos(), g.sin()]
-                }
-                "point_robot" => {
-                    let goal =
-                        p.get("goal").and_then(|g| g.as_array()).cloned().unwrap_or_default();
-                    goal.iter().filter_map(|v| v.as_f64()).map(|v| v as f32).collect()
-                }
-                other => {
-                    return Err(RlError::Config(format!("no task encoding for family `{other}`")))
-                }
-            };
-            task_features.push(f);
-        }
-        let drop = match name.as_str() {
-            "cheetah_dir" | "cheetah_vel" => vec![17],
-            _ => vec![],
-        };
+        let task_features = (0..family.num_tasks())
+            .map(|task| family.task_features(task))
+            .collect::<Result<Vec<_>, _>>()?;
+        let drop = CollectPreset::of(family)?.drop_obs;
         Ok(Self { family: name, obs_dim: preset.obs_dim, drop, task_features, mirror: None })
     }
 

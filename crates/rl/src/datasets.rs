@@ -20,12 +20,13 @@ use crate::policy::{self, Policy};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
 use crate::train::read_agent_card;
 use crate::RlError;
+use pdt_data::mode::{Mode, Set};
 use pdt_data::native::{
     self, CardFile, CardTask, DatasetCard, FileMeta, ReturnStats, CARD_FILE_NAME, CARD_FORMAT_NAME,
     FORMAT_VERSION,
 };
 use pdt_data::TaskDataset;
-use pdt_envs::collect_scripted::{episode_rng, Mode, Set};
+use pdt_envs::collect_scripted::episode_rng;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -14,7 +14,9 @@
 //! - `agent/`: at the end, `expert.safetensors`, `medium.safetensors` and `agent.json` — what
 //!   `pretrained/<family>/` holds.
 
-use crate::agent::{actor_raw, Agent, AgentConfig, Algorithm, Noise, TaskEncoder, UpdateStats};
+use crate::agent::{
+    actor_raw, Agent, AgentConfig, Algorithm, CollectPreset, Noise, TaskEncoder, UpdateStats,
+};
 use crate::buffer::{BufferArrays, ReplayBuffer, Transition};
 use crate::policy::{self, PolicyMeta, POLICY_FORMAT};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
@@ -76,15 +78,8 @@ impl RlConfig {
     /// these locomotion tasks do not need more.
     pub fn preset(family: &str) -> Result<Self, RlError> {
         let fam = pdt_envs::family(family)?;
-        let (algorithm, total_steps) = match fam.name() {
-            // The paper: SAC for Cheetah-Dir and Ant-Dir, TD3 for Cheetah-Vel (reference f.2).
-            // The budgets the committed experts were trained with (see their agent.json).
-            "cheetah_dir" => (Algorithm::Sac, 250_000),
-            "cheetah_vel" => (Algorithm::Td3, 1_000_000),
-            "ant_dir" => (Algorithm::Sac, 1_000_000),
-            "point_robot" => (Algorithm::Sac, 20_000),
-            other => return Err(RlError::Config(format!("no preset for family `{other}`"))),
-        };
+        // The algorithm and budget are the family's (configs/collect/<family>.toml).
+        let CollectPreset { algorithm, total_steps, .. } = CollectPreset::of(fam.as_ref())?;
         let mut agent = AgentConfig::default();
         agent.sac.hidden = vec![128, 128];
         agent.td3.hidden = vec![128, 128];

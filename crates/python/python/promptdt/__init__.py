@@ -152,13 +152,14 @@ def collect(
     action_noise: Optional[float] = None,
 ) -> int:
     """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
-    ``point_robot``, ``metaworld_reach`` and ``dial`` use their scripted policies (reach: the
-    paper's 20 tasks, 200 episodes each by default; ``action_noise`` is its expert's noise, 0.2 by
-    default, 0 for the deterministic expert; dial: the 10 digits, 200 episodes each); the MuJoCo
-    families use a trained agent directory
+    Families with scripted policies (``families()[env]["scripted"]``: ``point_robot``,
+    ``metaworld_reach``, ``dial``) use them (reach: the paper's 20 tasks, 200 episodes each by
+    default; ``action_noise`` is its expert's noise, 0.2 by default, 0 for the deterministic
+    expert; dial: the 10 digits, 200 episodes each); the others (the MuJoCo families) use a trained
+    agent directory
     (``pretrained_dir``, default ``pretrained/<env>`` of the checkout, as ``--from-pretrained``).
     Returns the number of files written."""
-    if env in ("point_robot", "point-robot", "metaworld_reach", "metaworld-reach", "dial"):
+    if _native.is_scripted(env):
         return _native.collect_scripted(
             env,
             _os.fspath(out),

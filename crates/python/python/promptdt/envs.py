@@ -28,11 +28,6 @@ except ImportError as e:  # pragma: no cover - exercised only without gymnasium
         "promptdt._native.VecEnv works without it"
     ) from e
 
-#: Action bounds per family (MuJoCo clamps controls to [-1, 1]; the point robot clips its
-#: velocity to [-0.1, 0.1]).
-_ACTION_BOUND = {"point_robot": 0.1}
-
-
 def families() -> dict:
     """Every family's tasks, dims, horizon and splits."""
     return _native.families()
@@ -49,11 +44,17 @@ class PromptDTVectorEnv(VectorEnv):
         self.tasks = list(self._env.tasks)
         self.num_envs = self._env.num_envs
         self.horizon = self._env.horizon
-        bound = _ACTION_BOUND.get(self.family, 1.0)
+        # The family's action box, per dimension, from Rust (`EnvFamily::action_bounds`).
+        fam = _native.families()[self.family]
         self.single_observation_space = gym.spaces.Box(
             -np.inf, np.inf, (self._env.obs_dim,), np.float32
         )
-        self.single_action_space = gym.spaces.Box(-bound, bound, (self._env.act_dim,), np.float32)
+        self.single_action_space = gym.spaces.Box(
+            np.asarray(fam["action_low"], np.float32),
+            np.asarray(fam["action_high"], np.float32),
+            (self._env.act_dim,),
+            np.float32,
+        )
         self.observation_space = gym.vector.utils.batch_space(
             self.single_observation_space, self.num_envs
         )

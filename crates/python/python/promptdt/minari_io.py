@@ -117,12 +117,14 @@ def export_minari(
                     options=dict(options),
                 )
             )
-    bound = 0.1 if env == "point_robot" else 1.0
+    # The family's action box, per dimension, from Rust (`EnvFamily::action_bounds`).
+    low = np.asarray(fam["action_low"], np.float32)
+    high = np.asarray(fam["action_high"], np.float32)
     dataset = minari.create_dataset_from_buffers(
         dataset_id=dataset_id,
         buffer=buffers,
         observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
-        action_space=gym.spaces.Box(-bound, bound, (act_dim,), np.float32),
+        action_space=gym.spaces.Box(low, high, (act_dim,), np.float32),
         algorithm_name="promptdt collect",
         author=author or "promptdt",
         code_permalink="https://github.com/promptdt/promptdt",

@@ -2,8 +2,9 @@
 
 use std::fmt::Write as _;
 
-use super::family::{level_mode, RefData};
-use super::{BarStatus, QualityBar, TaskMean, TaskRow};
+use pdt_envs::DatasetBar;
+
+use super::{level_mode, BarStatus, QualityBar, RefData, TaskMean, TaskRow};
 
 /// A per-task bar against the reference: ours expert ≥ ref − tolerance·|ref| on every one of the
 /// family's tasks (= ≥ (1 − tolerance) × ref for a positive reference). Better than the
@@ -21,31 +22,27 @@ pub(super) struct MeanBar {
     name: &'static str,
 }
 
-/// The quality bars of the project's issue; task counts are the paper's (Cheetah-Dir 2,
-/// Cheetah-Vel 40, Ant-Dir 50), hard-coded because pdt-report must not depend on pdt-envs.
+/// The family's per-task bar against the reference, if it has one
+/// ([`pdt_envs::EnvFamily::dataset_bar`]); over all of the family's tasks.
 pub(super) fn reference_bar(env: &str) -> Option<ReferenceBar> {
-    match env {
-        "cheetah_dir" => Some(ReferenceBar {
-            tolerance: 0.10,
-            tasks: 2,
-            name: "expert ≥ 90 % of the reference's return on every task",
-        }),
-        "cheetah_vel" => Some(ReferenceBar {
-            tolerance: 0.15,
-            tasks: 40,
-            name: "expert within 15 % of the reference's return (or better) on every task",
-        }),
-        _ => None,
+    let family = pdt_envs::family(env).ok()?;
+    match family.dataset_bar()? {
+        DatasetBar::Reference { tolerance, name } => {
+            Some(ReferenceBar { tolerance, tasks: family.num_tasks(), name })
+        }
+        DatasetBar::Mean { .. } => None,
     }
 }
 
+/// The family's bar on the mean expert return, if it has one; over all of the family's tasks.
 pub(super) fn mean_bar(env: &str) -> Option<MeanBar> {
-    (env == "ant_dir").then_some(MeanBar {
-        min: 450.0,
-        tasks: 50,
-        name: "mean expert return over the tasks ≥ 450 (the paper's target return is 500)",
-    })
+    let family = pdt_envs::family(env).ok()?;
+    match family.dataset_bar()? {
+        DatasetBar::Mean { min, name } => Some(MeanBar { min, tasks: family.num_tasks(), name }),
+        DatasetBar::Reference { .. } => None,
+    }
 }
+
 pub(super) fn evaluate_reference_bar(
     env: &str,
     bar: &ReferenceBar,

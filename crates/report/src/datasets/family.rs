@@ -6,31 +6,15 @@ use super::bars::{
     evaluate_mean_bar, evaluate_medium_bar, evaluate_reference_bar, evaluate_success_bar, mean_bar,
     reference_bar,
 };
-use super::{FamilyReport, ReferenceReturn, ReturnStat, TaskMean, TaskRow};
+use super::{level_mode, FamilyReport, RefData, ReturnStat, TaskMean, TaskRow};
 
 /// The standard modes in display order; D_i before P_i, best data first.
 const MODE_ORDER: [&str; 6] =
     ["expert", "medium", "random", "prompt-expert", "prompt-medium", "prompt-random"];
-/// The reference as seen by one family.
-pub(super) enum RefData {
-    /// No reference directory was given.
-    NotGiven,
-    /// The reference directory has no expert file of this family.
-    NoFiles,
-    Tasks(BTreeMap<usize, ReferenceReturn>),
-}
 
 fn mode_rank(mode: &str) -> (usize, String) {
     let rank = MODE_ORDER.iter().position(|m| *m == mode).unwrap_or(MODE_ORDER.len());
     (rank, mode.to_string())
-}
-
-/// The mode standing for a quality level (`expert`, `medium`, `random`): the main dataset if the
-/// family has one, else the prompt set.
-pub(super) fn level_mode(modes: &[String], level: &str) -> Option<String> {
-    let prompt = format!("prompt-{level}");
-    let found = [level, prompt.as_str()].into_iter().find(|m| modes.iter().any(|x| x == m));
-    found.map(String::from)
 }
 
 pub(super) fn build_family(

@@ -23,9 +23,26 @@ use crate::error::ReportError;
 use crate::write_outputs;
 
 use card::check_card;
-use family::{build_family, RefData};
+use family::build_family;
 use output::{family_csv, family_figure, family_markdown};
 use read::{load_reference, read_returns, scan_dir};
+
+/// The reference as seen by one family.
+enum RefData {
+    /// No reference directory was given.
+    NotGiven,
+    /// The reference directory has no expert file of this family.
+    NoFiles,
+    Tasks(BTreeMap<usize, ReferenceReturn>),
+}
+
+/// The mode standing for a quality level (`expert`, `medium`, `random`): the main dataset if the
+/// family has one, else the prompt set.
+fn level_mode(modes: &[String], level: &str) -> Option<String> {
+    let prompt = format!("prompt-{level}");
+    let found = [level, prompt.as_str()].into_iter().find(|m| modes.iter().any(|x| x == m));
+    found.map(String::from)
+}
 
 /// What to report on and where to write it.
 #[derive(Debug, Clone, Default)]

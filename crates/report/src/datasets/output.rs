@@ -7,7 +7,7 @@ use std::path::Path;
 use pdt_base::table::{Align, Rule, Table};
 
 use super::bars::{percent, reference_bar};
-use super::family::level_mode;
+use super::level_mode;
 use super::{FamilyReport, ReturnStat, TaskMean};
 use crate::error::ReportError;
 use crate::plot::{self, Curve, Labels, XAxis, PALETTE};
