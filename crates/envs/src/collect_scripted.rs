@@ -24,7 +24,7 @@ use pdt_data::native::{
     FORMAT_VERSION,
 };
 use pdt_data::{DataError, TaskDataset, Trajectory};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
