@@ -7,10 +7,12 @@
 //! Randomness: model init, task and batch draws (the run's batch stream), and each evaluation
 //! (adaptation rows and episode seeds) come from independent streams of the run seed.
 
-use super::{CheckpointFiles, IterationAt, IterationMetrics, Learner, Row, SavedSteps, TaskEval};
+use super::{
+    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
+    Learner, Row, SavedSteps, TaskEval,
+};
 use crate::config::compact;
 use crate::error::{io_err, RunError};
-use crate::run_dir::temp_name;
 use crate::setup::{Setup, Split};
 use crate::streams::STREAM_INIT;
 use pdt_base::seed::derive_seed;
@@ -83,9 +85,7 @@ impl Learner for MacawLearner<'_> {
         rng: &mut Rng,
     ) -> Result<IterationMetrics, RunError> {
         let (m, device, n_train) = (&self.m, self.setup.device, self.train_bufs.len());
-        let mut stats: Vec<StepStats> = Vec::with_capacity(at.steps as usize);
-        let mut step = at.first_step;
-        for _ in 0..at.steps {
+        let stats = at.each_step(|step| {
             let tasks = draw(&self.train_bufs, m, rng, device)?;
             let st = pdt_macaw::meta_step(
                 &mut self.params,
@@ -95,12 +95,12 @@ impl Learner for MacawLearner<'_> {
                 n_train,
                 m,
             );
-            if !st.is_finite() {
-                return Err(diverged(at.dir, at.iteration, step, &st, m));
+            if st.is_finite() {
+                Ok(st)
+            } else {
+                Err(diverged(at.dir, at.iteration, step, &st, m))
             }
-            stats.push(st);
-            step += 1;
-        }
+        })?;
         let n = stats.len().max(1) as f64;
         let mean = |f: &dyn Fn(&StepStats) -> f64| stats.iter().map(f).sum::<f64>() / n;
         let last = stats.last().cloned().unwrap_or_default();
@@ -141,27 +141,16 @@ impl Learner for MacawLearner<'_> {
                 adam.push((format!("{g}.{i}.exp_avg_sq"), cpu(v)));
             }
         }
-        for (path, tensors) in [(&files.weights, &weights), (&files.moments, &adam)] {
-            let ck = path.parent().unwrap_or(Path::new("."));
-            let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
-            let tmp = ck.join(temp_name(&name.unwrap_or_default()));
-            Tensor::write_safetensors(tensors, &tmp)
-                .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
-            std::fs::rename(&tmp, path).map_err(io_err(&tmp))?;
-        }
+        write_tensors(&files.weights, &weights)?;
+        write_tensors(&files.moments, &adam)?;
         // Steps taken by each outer Adam, per tensor, in `Optimisers::GROUPS` order.
         let steps: Vec<Vec<u64>> = self.opt.adams.iter().map(|a| a.steps.clone()).collect();
-        serde_json::to_value(steps)
-            .map_err(|e| RunError::Corrupt { path: files.state.clone(), message: e.to_string() })
+        adam_steps_value(&steps, files)
     }
 
     fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError> {
         let state_path = &files.state;
-        let adam_steps: Vec<Vec<u64>> =
-            serde_json::from_value(saved.adam_steps.clone()).map_err(|e| RunError::Corrupt {
-                path: state_path.clone(),
-                message: format!("adam_steps: {e}"),
-            })?;
+        let adam_steps: Vec<Vec<u64>> = adam_steps_of(saved, files)?;
         load_weights(&files.weights, &mut self.params, &self.dims)?;
         let path = &files.moments;
         let moments = read_tensors(path)?;

@@ -10,11 +10,13 @@ pub(crate) mod macaw;
 pub(crate) mod prompt_dt;
 
 use crate::config::Method;
-use crate::error::RunError;
+use crate::error::{io_err, RunError};
+use crate::run_dir::temp_name;
 use crate::setup::{Setup, Split};
 use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
 use std::path::Path;
+use tch::Tensor;
 
 /// One row of a log (`metrics.jsonl`, `eval.jsonl`): column name to value.
 pub(crate) type Row = serde_json::Map<String, serde_json::Value>;
@@ -30,6 +32,17 @@ pub(crate) struct IterationAt<'a> {
     pub(crate) first_step: u64,
     /// Gradient steps it takes (`train.steps_per_iteration`).
     pub(crate) steps: u64,
+}
+
+impl IterationAt<'_> {
+    /// Takes the iteration's `steps` gradient steps, `one(step)` each (`step` counted from
+    /// `first_step`), and returns their statistics; the first error (a divergence) ends it.
+    pub(crate) fn each_step<S>(
+        &self,
+        mut one: impl FnMut(u64) -> Result<S, RunError>,
+    ) -> Result<Vec<S>, RunError> {
+        (self.first_step..self.first_step + self.steps).map(&mut one).collect()
+    }
 }
 
 /// What one training iteration logs.
@@ -68,6 +81,37 @@ pub(crate) struct CheckpointFiles {
 pub(crate) struct SavedSteps<'a> {
     pub(crate) step: u64,
     pub(crate) adam_steps: &'a serde_json::Value,
+}
+
+/// Writes `tensors` to `path` as safetensors under a temporary name first (one that
+/// `pdt_base::fs::remove_stale_temps` recognises), then renamed: a kill mid-write leaves the
+/// previous file or none.
+pub(crate) fn write_tensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<(), RunError> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(temp_name(&name));
+    Tensor::write_safetensors(tensors, &tmp)
+        .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
+    std::fs::rename(&tmp, path).map_err(io_err(&tmp))
+}
+
+/// A learner's record of its optimiser steps, as the state file's `adam_steps`.
+pub(crate) fn adam_steps_value<T: serde::Serialize>(
+    steps: &T,
+    files: &CheckpointFiles,
+) -> Result<serde_json::Value, RunError> {
+    serde_json::to_value(steps)
+        .map_err(|e| RunError::Corrupt { path: files.state.clone(), message: e.to_string() })
+}
+
+/// The state file's `adam_steps` in a learner's own layout.
+pub(crate) fn adam_steps_of<T: serde::de::DeserializeOwned>(
+    saved: SavedSteps<'_>,
+    files: &CheckpointFiles,
+) -> Result<T, RunError> {
+    serde_json::from_value(saved.adam_steps.clone()).map_err(|e| RunError::Corrupt {
+        path: files.state.clone(),
+        message: format!("adam_steps: {e}"),
+    })
 }
 
 /// A trainable method: a model with its optimiser, trained in iterations of gradient steps on

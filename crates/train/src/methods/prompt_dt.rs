@@ -2,11 +2,13 @@
 //! [`Variant`] says which inputs the model sees (the prompt; the history's returns-to-go) and
 //! whether it fine-tunes on each test task's demonstrations before evaluating it.
 
-use super::{CheckpointFiles, IterationAt, IterationMetrics, Learner, Row, SavedSteps, TaskEval};
+use super::{
+    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
+    Learner, Row, SavedSteps, TaskEval,
+};
 use crate::config::{compact, Method, TrainConfig};
-use crate::error::{io_err, RunError};
+use crate::error::RunError;
 use crate::optim::{AdamW, AdamWConfig, ParamState};
-use crate::run_dir::temp_name;
 use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
@@ -87,17 +89,15 @@ impl Learner for PromptDtLearner<'_> {
         // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
         // run continues the same stream.
         tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, at.iteration - 1) as i64);
-        let mut stats: Vec<StepStats> = Vec::with_capacity(at.steps as usize);
-        let mut step = at.first_step;
-        for _ in 0..at.steps {
+        let stats = at.each_step(|step| {
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
             let st = train_step(&self.model, &mut self.opt, &batch, cfg.train.loss_on, step);
-            if !(st.loss.is_finite() && st.grad_norm.is_finite()) {
-                return Err(diverged(at.dir, cfg, at.iteration, step, &st));
+            if st.loss.is_finite() && st.grad_norm.is_finite() {
+                Ok(st)
+            } else {
+                Err(diverged(at.dir, cfg, at.iteration, step, &st))
             }
-            stats.push(st);
-            step += 1;
-        }
+        })?;
         let n = stats.len() as f64;
         let mut columns = Row::new();
         columns.insert(
@@ -122,23 +122,16 @@ impl Learner for PromptDtLearner<'_> {
             named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
             named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
         }
-        let ck = files.moments.parent().unwrap_or(Path::new("."));
-        let file_name = files.moments.file_name().map(|n| n.to_string_lossy().into_owned());
-        let tmp = ck.join(temp_name(&file_name.unwrap_or_default()));
-        Tensor::write_safetensors(&named, &tmp)
-            .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
-        std::fs::rename(&tmp, &files.moments).map_err(io_err(&tmp))?;
+        write_tensors(&files.moments, &named)?;
         let steps: BTreeMap<String, u64> =
             self.opt.state.iter().map(|(n, s)| (n.clone(), s.step)).collect();
-        serde_json::to_value(steps)
-            .map_err(|e| RunError::Corrupt { path: files.state.clone(), message: e.to_string() })
+        adam_steps_value(&steps, files)
     }
 
     fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError> {
         let corrupt =
             |path: &Path, message: String| RunError::Corrupt { path: path.into(), message };
-        let adam_steps: BTreeMap<String, u64> = serde_json::from_value(saved.adam_steps.clone())
-            .map_err(|e| corrupt(&files.state, format!("adam_steps: {e}")))?;
+        let adam_steps: BTreeMap<String, u64> = adam_steps_of(saved, files)?;
         if let Some((name, n)) = adam_steps.iter().find(|(_, &n)| n != saved.step) {
             return Err(corrupt(
                 &files.state,
