@@ -3,7 +3,7 @@
 //! written to `eval_final.json`.
 
 use crate::error::RunError;
-use crate::methods::{self, macaw::MacawAdaptation};
+use crate::methods::{self, MacawAdaptation};
 use crate::run_dir::{latest_checkpoint, read_task_stats, write_json, FinalEval};
 use crate::run_loop::eval_rng;
 use crate::setup::{run_config, Setup, Split};

@@ -94,8 +94,36 @@ pub fn train(
     dir: &Path,
     opts: TrainOptions<'_>,
 ) -> Result<TrainSummary, RunError> {
+    let cfg = run_config_for(cfg, dir, &opts)?;
+    // Refuse before anything is written, each bad setting by name.
+    cfg.validate()?;
+    let toml = cfg.to_toml()?;
+    let setup = Setup::new(cfg)?;
+    let _rng = torch_rng_lock();
+    let threads = if setup.cfg.run.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        setup.cfg.run.threads
+    };
+    tch::set_num_threads(threads as i32);
+    // The learner (its model initialised from the seed) and its checks, before anything is written.
+    let mut learner = methods::learner(&setup)?;
+    learner.check_can_train()?;
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let _owner = lock_run_dir(dir)?;
+    prepare_run_dir(&setup, dir, opts.resume, &toml, learner.loss_metric())?;
+    run_loop(&setup, dir, learner.as_mut(), opts)
+}
+
+/// The configuration a call to [`train`] runs: `cfg` for a new run (its data directory made
+/// absolute), the run's `config.toml` with `opts.resume_with`'s changes to resume.
+fn run_config_for(
+    cfg: Option<TrainConfig>,
+    dir: &Path,
+    opts: &TrainOptions<'_>,
+) -> Result<TrainConfig, RunError> {
     let with = &opts.resume_with;
-    let cfg = match (opts.resume, cfg) {
+    Ok(match (opts.resume, cfg) {
         (true, _) => {
             let path = dir.join("config.toml");
             if !path.is_file() {
@@ -141,38 +169,34 @@ pub fn train(
             c
         }
         (false, None) => return Err(RunError::Invalid("no configuration given".into())),
-    };
-    // Refuse before anything is written, each bad setting by name.
-    cfg.validate()?;
-    let toml = cfg.to_toml()?;
-    let setup = Setup::new(cfg)?;
-    let _rng = torch_rng_lock();
-    let threads = if setup.cfg.run.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        setup.cfg.run.threads
-    };
-    tch::set_num_threads(threads as i32);
-    // The learner (its model initialised from the seed) and its checks, before anything is written.
-    let mut learner = methods::learner(&setup)?;
-    learner.check_can_train()?;
-    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-    let _owner = lock_run_dir(dir)?;
+    })
+}
+
+/// Makes the owned directory `dir` ready to train in: what a killed writer left removed, a new
+/// run's records written (`run.json`, `config.toml` as `toml`, `task_stats.json`), or a resumed
+/// run's checked against the data now.
+fn prepare_run_dir(
+    setup: &Setup,
+    dir: &Path,
+    resume: bool,
+    toml: &str,
+    loss_metric: &str,
+) -> Result<(), RunError> {
     // Temporary files of a killed writer (we own the directory, so none is live).
     for d in [dir.to_path_buf(), dir.join("checkpoints")] {
         pdt_base::fs::remove_stale_temps(&d).map_err(io_err(&d))?;
     }
     let stats_path = dir.join("task_stats.json");
     let has_checkpoint = dir.join("checkpoints").join("latest.json").exists();
-    if opts.resume && !stats_path.exists() && !has_checkpoint {
+    if resume && !stats_path.exists() && !has_checkpoint {
         // Killed while the directory was being created (after `config.toml`): nothing was trained
         // from it, so what is missing is recreated from the configuration and data, exactly as a
         // new run writes it, and the run starts.
         if !dir.join("run.json").is_file() {
-            write_json(&dir.join("run.json"), &run_info(&setup, learner.loss_metric()))?;
+            write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
         }
         write_json(&stats_path, &setup.stats)?;
-    } else if opts.resume {
+    } else if resume {
         let recorded = read_task_stats(dir)?;
         setup.stats.check_same_as(&recorded).map_err(|m| {
             RunError::Invalid(format!(
@@ -189,13 +213,13 @@ pub fn train(
                 dir.display()
             )));
         }
-        write_json(&dir.join("run.json"), &run_info(&setup, learner.loss_metric()))?;
+        write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
         write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
         write_json(&dir.join("task_stats.json"), &setup.stats)?;
     }
     // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
     remove_orphans(&dir.join("checkpoints"))?;
-    run_loop(&setup, dir, learner.as_mut(), opts)
+    Ok(())
 }
 
 /// The evaluation stream of `split` at `counter` (the iteration; a final evaluation counts down

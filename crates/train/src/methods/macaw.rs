@@ -7,9 +7,9 @@
 //! Randomness: model init, task and batch draws (the run's batch stream), and each evaluation
 //! (adaptation rows and episode seeds) come from independent streams of the run seed.
 
-use super::{
+use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, Row, SavedSteps, TaskEval,
+    Learner, MacawAdaptation, Row, SavedSteps, TaskEval,
 };
 use crate::config::compact;
 use crate::error::{io_err, RunError};
@@ -28,15 +28,6 @@ impl From<pdt_macaw::MacawError> for RunError {
     fn from(e: pdt_macaw::MacawError) -> Self {
         RunError::Invalid(e.to_string())
     }
-}
-
-/// A MACAW run's test-time adaptation, changed for one evaluation (`promptdt eval --adapt-steps
-/// --adapt-batch`): e.g. the official protocol (1 step on 256 transitions) for a run trained with
-/// the Prompt-DT one. `None` keeps the run's.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct MacawAdaptation {
-    pub steps: Option<usize>,
-    pub batch: Option<usize>,
 }
 
 /// The model of a MACAW run with its outer optimisers, and the training and test tasks' buffers.

@@ -2,7 +2,7 @@
 //! [`Variant`] says which inputs the model sees (the prompt; the history's returns-to-go) and
 //! whether it fine-tunes on each test task's demonstrations before evaluating it.
 
-use super::{
+use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
     Learner, Row, SavedSteps, TaskEval,
 };
@@ -53,18 +53,19 @@ pub(crate) struct PromptDtLearner<'s> {
     vs: VarStore,
     model: PromptDt,
     opt: AdamW,
-    /// The training tasks' batch sampler, made on the first iteration (an evaluation needs none).
-    sampler: Option<BatchSampler<'s>>,
+    /// The training tasks' batch sampler.
+    sampler: BatchSampler<'s>,
 }
 
 impl<'s> PromptDtLearner<'s> {
     /// The model initialised from the run seed (libtorch's generator: hold `torch_rng_lock`).
-    pub(crate) fn new(setup: &'s Setup, variant: Variant) -> Self {
+    pub(crate) fn new(setup: &'s Setup, variant: Variant) -> Result<Self, RunError> {
+        let sampler = setup.sampler(&setup.train_data)?;
         tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
         let vs = VarStore::new(setup.device);
         let model = PromptDt::new(&vs.root(), &setup.model_cfg);
         let opt = AdamW::new(&vs, &setup.model_cfg.parameter_names(), setup.cfg.optim.clone());
-        Self { setup, variant, vs, model, opt, sampler: None }
+        Ok(Self { setup, variant, vs, model, opt, sampler })
     }
 }
 
@@ -80,12 +81,7 @@ impl Learner for PromptDtLearner<'_> {
     ) -> Result<IterationMetrics, RunError> {
         let setup = self.setup;
         let cfg = &setup.cfg;
-        if self.sampler.is_none() {
-            self.sampler = Some(setup.sampler(&setup.train_data)?);
-        }
-        let Some(sampler) = &self.sampler else {
-            return Err(RunError::Invalid("no training sampler".into()));
-        };
+        let sampler = &self.sampler;
         // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
         // run continues the same stream.
         tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, at.iteration - 1) as i64);
