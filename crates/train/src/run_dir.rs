@@ -139,7 +139,7 @@ fn keep_default() -> bool {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub(crate) struct TrainState {
     /// The method whose state this is, for the methods that record it (MACAW: `"macaw"`; absent
-    /// for the Prompt-DT variants, whose files never had it): [`crate::methods::Learner::state_tag`].
+    /// for the Prompt-DT variants, whose files never had it): the learner's `state_tag`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub(crate) method: Option<String>,
     pub(crate) iteration: u64,
@@ -147,7 +147,7 @@ pub(crate) struct TrainState {
     /// Position of the batch-sampling RNG (a u128, as a decimal string).
     pub(crate) batch_rng_word_pos: String,
     /// The optimiser steps taken, in the learner's own layout (opaque to the loop; each learner
-    /// writes and checks its own: [`crate::methods::Learner::save`]).
+    /// writes and checks its own: `Learner::save`).
     pub(crate) adam_steps: serde_json::Value,
     pub(crate) metrics_lines: usize,
     pub(crate) eval_lines: usize,
