@@ -1,5 +1,13 @@
-//! Training Prompt-DT.
+//! Training Prompt-DT and the baselines of its comparison.
 //!
+//! - [`run`]: the public face of a run (train, evaluate, serve a trained run).
+//! - `run_loop`: the one loop every method runs in (cadence, logs, checkpoints, resumption).
+//! - `methods`: the [`Learner`](methods::Learner) trait, its implementations (the Prompt-DT
+//!   family, MACAW) and the registry mapping `run.method` to one.
+//! - `setup`: the configuration checked against its environment and data, the data loaded.
+//! - `run_dir`: the run directory's records, readers and writers.
+//! - `evaluate`: the final evaluation of a run (`eval_final.json`).
+//! - `streams`: the run seed's independent random streams.
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
 //!   PyTorch's `torch.optim.AdamW` (single-tensor CPU path), `LambdaLR` and `clip_grad_norm_`
 //!   bit for bit, with a state that can be saved and restored for resumable runs.
@@ -10,8 +18,14 @@
 #![allow(clippy::result_large_err)]
 
 pub mod config;
-mod macaw;
+mod error;
+mod evaluate;
+mod methods;
 pub mod optim;
 pub mod run;
+mod run_dir;
+mod run_loop;
+mod setup;
 pub mod smoke;
 pub mod step;
+mod streams;

@@ -1,0 +1,38 @@
+//! The error of a run: its set-up, training, checkpoints and evaluation.
+
+use crate::config::ConfigError;
+use pdt_data::DataError;
+use pdt_envs::EnvError;
+use pdt_eval::EvalError;
+use pdt_model::checkpoint::CheckpointError;
+use pdt_prompt::SamplerError;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Sampler(#[from] SamplerError),
+    #[error(transparent)]
+    Eval(#[from] EvalError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error(transparent)]
+    Device(#[from] pdt_model::device::DeviceError),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {message}")]
+    Corrupt { path: PathBuf, message: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// Maps an I/O error on `path` to [`RunError::Io`], naming the path.
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
+    move |source| RunError::Io { path: path.into(), source }
+}

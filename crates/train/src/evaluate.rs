@@ -1,0 +1,82 @@
+//! The final evaluation of a run (`promptdt eval`): its latest checkpoint, loaded into the run's
+//! learner, evaluated on its test (or training) tasks from a stream apart from training's, and
+//! written to `eval_final.json`.
+
+use crate::error::RunError;
+use crate::methods::{self, MacawAdaptation};
+use crate::run_dir::{latest_checkpoint, read_task_stats, write_json, FinalEval};
+use crate::run_loop::eval_rng;
+use crate::setup::{run_config, Setup, Split};
+use crate::streams::torch_rng_lock;
+use std::path::Path;
+
+/// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
+pub fn evaluate_run(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+) -> Result<FinalEval, RunError> {
+    evaluate_run_with(dir, episodes, split, device, data, &MacawAdaptation::default())
+}
+
+/// [`evaluate_run`] with a MACAW run's adaptation changed (refused for the methods without one).
+pub fn evaluate_run_with(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+    adaptation: &MacawAdaptation,
+) -> Result<FinalEval, RunError> {
+    let mut cfg = run_config(dir, device, data)?;
+    if let Some(e) = episodes {
+        cfg.eval.episodes = e;
+    }
+    let setup = Setup::new(cfg)?;
+    let stats_path = dir.join("task_stats.json");
+    let recorded = read_task_stats(dir)?;
+    setup.stats.check_same_as(&recorded).map_err(|m| {
+        RunError::Invalid(format!(
+            "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
+             where it moved)",
+            stats_path.display(),
+            setup.cfg.data.dir.display()
+        ))
+    })?;
+    let which = match split {
+        "test" => Split::Test,
+        "train" => Split::Train,
+        other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
+    };
+    let _rng = torch_rng_lock();
+    let mut learner = methods::learner(&setup)?;
+    if *adaptation != MacawAdaptation::default() {
+        if learner.adaptation().is_none() {
+            return Err(RunError::Invalid(format!(
+                "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",
+                dir.display(),
+                setup.cfg.run.method.name()
+            )));
+        }
+        learner.set_adaptation(adaptation)?;
+    }
+    let latest = latest_checkpoint(dir)?;
+    learner.load_weights(&dir.join("checkpoints").join(&latest.model))?;
+    // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
+    let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
+    let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
+    let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
+    let result = FinalEval {
+        adaptation: learner.adaptation(),
+        iteration: latest.iteration,
+        step: latest.step,
+        checkpoint: format!("checkpoints/{}", latest.model),
+        split: split.into(),
+        tasks,
+        mean_return,
+    };
+    write_json(&dir.join("eval_final.json"), &result)?;
+    Ok(result)
+}

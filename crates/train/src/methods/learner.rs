@@ -1,0 +1,167 @@
+//! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in.
+
+use crate::error::{io_err, RunError};
+use crate::run_dir::temp_name;
+use crate::setup::Split;
+use pdt_eval::TaskResult;
+use pdt_prompt::Rng;
+use std::path::Path;
+use tch::Tensor;
+
+/// A change of a run's test-time adaptation for one evaluation (`promptdt eval --adapt-steps
+/// --adapt-batch`; MACAW's): e.g. the official protocol (1 step on 256 transitions) for a run
+/// trained with the Prompt-DT one. `None` keeps the run's.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MacawAdaptation {
+    pub steps: Option<usize>,
+    pub batch: Option<usize>,
+}
+
+/// One row of a log (`metrics.jsonl`, `eval.jsonl`): column name to value.
+pub(crate) type Row = serde_json::Map<String, serde_json::Value>;
+
+/// Where one training iteration stands, for [`Learner::train_iteration`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct IterationAt<'a> {
+    /// The run directory (named in errors).
+    pub(crate) dir: &'a Path,
+    /// The iteration being trained, from 1.
+    pub(crate) iteration: u64,
+    /// Gradient steps taken before it.
+    pub(crate) first_step: u64,
+    /// Gradient steps it takes (`train.steps_per_iteration`).
+    pub(crate) steps: u64,
+}
+
+impl IterationAt<'_> {
+    /// Takes the iteration's `steps` gradient steps, `one(step)` each (`step` counted from
+    /// `first_step`), and returns their statistics; the first error (a divergence) ends it.
+    pub(crate) fn each_step<S>(
+        &self,
+        mut one: impl FnMut(u64) -> Result<S, RunError>,
+    ) -> Result<Vec<S>, RunError> {
+        (self.first_step..self.first_step + self.steps).map(&mut one).collect()
+    }
+}
+
+/// What one training iteration logs.
+#[derive(Debug, Clone)]
+pub(crate) struct IterationMetrics {
+    /// The mean training loss over its steps, logged under [`Learner::loss_metric`] and reported
+    /// as progress.
+    pub(crate) loss: f64,
+    /// The learner's other `metrics.jsonl` columns (the loop adds `iteration`, `step`,
+    /// `time/elapsed_s` and the loss).
+    pub(crate) columns: Row,
+}
+
+/// One task's evaluation.
+#[derive(Debug, Clone)]
+pub(crate) struct TaskEval {
+    pub(crate) result: TaskResult,
+    /// Columns of the task's `eval.jsonl` row besides the common ones (MACAW: the adaptation
+    /// steps taken and the episodes a non-finite action ended).
+    pub(crate) columns: Row,
+}
+
+/// The files of one checkpoint, named by its step (`checkpoints/step_<N>.safetensors` for weights,
+/// `state_<N>.safetensors` for optimiser moments).
+#[derive(Debug, Clone)]
+pub(crate) struct CheckpointFiles {
+    pub(crate) weights: std::path::PathBuf,
+    pub(crate) moments: std::path::PathBuf,
+    /// The state file (`state_<N>.json`), named in errors about what it records.
+    pub(crate) state: std::path::PathBuf,
+}
+
+/// The state file's answer to "how far did the optimiser go": the step of the checkpoint, and the
+/// learner's own record ([`Learner::save`]'s return) of its optimiser steps.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SavedSteps<'a> {
+    pub(crate) step: u64,
+    pub(crate) adam_steps: &'a serde_json::Value,
+}
+
+/// Writes `tensors` to `path` as safetensors under a temporary name first (one that
+/// `pdt_base::fs::remove_stale_temps` recognises), then renamed: a kill mid-write leaves the
+/// previous file or none.
+pub(crate) fn write_tensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<(), RunError> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(temp_name(&name));
+    Tensor::write_safetensors(tensors, &tmp)
+        .map_err(|e| RunError::Corrupt { path: tmp.clone(), message: e.to_string() })?;
+    std::fs::rename(&tmp, path).map_err(io_err(&tmp))
+}
+
+/// A learner's record of its optimiser steps, as the state file's `adam_steps`.
+pub(crate) fn adam_steps_value<T: serde::Serialize>(
+    steps: &T,
+    files: &CheckpointFiles,
+) -> Result<serde_json::Value, RunError> {
+    serde_json::to_value(steps)
+        .map_err(|e| RunError::Corrupt { path: files.state.clone(), message: e.to_string() })
+}
+
+/// The state file's `adam_steps` in a learner's own layout.
+pub(crate) fn adam_steps_of<T: serde::de::DeserializeOwned>(
+    saved: SavedSteps<'_>,
+    files: &CheckpointFiles,
+) -> Result<T, RunError> {
+    serde_json::from_value(saved.adam_steps.clone()).map_err(|e| RunError::Corrupt {
+        path: files.state.clone(),
+        message: format!("adam_steps: {e}"),
+    })
+}
+
+/// A trainable method: a model with its optimiser, trained in iterations of gradient steps on
+/// batches it samples itself, evaluated on the test or training tasks, saved and loaded.
+pub(crate) trait Learner {
+    /// The `metrics.jsonl` column of the training loss (`train/action_loss`).
+    fn loss_metric(&self) -> &'static str;
+
+    /// What the state file records as `method` (MACAW: `"macaw"`); `None`: nothing, as the
+    /// Prompt-DT variants' files have always been. A state file of another tag is refused.
+    fn state_tag(&self) -> Option<&'static str> {
+        None
+    }
+
+    /// Refuses, before training starts, a configuration its data cannot serve (batches larger than
+    /// a task's data), naming the task.
+    fn check_can_train(&self) -> Result<(), RunError> {
+        Ok(())
+    }
+
+    /// One iteration of `at.steps` gradient steps, batches drawn from `rng` (the run's batch
+    /// stream, whose position the loop saves and restores).
+    fn train_iteration(
+        &mut self,
+        at: IterationAt<'_>,
+        rng: &mut Rng,
+    ) -> Result<IterationMetrics, RunError>;
+
+    /// Evaluates every task of `split` with the current weights, drawing from `rng` (a stream of
+    /// the run seed apart from training's), and leaves the weights as they were.
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError>;
+
+    /// Writes the weights and optimiser moments to `files`; returns what the state file records
+    /// as `adam_steps`.
+    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError>;
+
+    /// Restores weights and optimiser from `files`, checking the state file's record `saved`.
+    fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError>;
+
+    /// Loads weights alone (a final evaluation), each tensor by name and shape.
+    fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
+
+    /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
+    /// transitions`); `None` for the methods without one.
+    fn adaptation(&self) -> Option<String> {
+        None
+    }
+
+    /// Changes the test-time adaptation for one evaluation (`promptdt eval --adapt-steps
+    /// --adapt-batch`). Only called when [`Learner::adaptation`] is `Some`.
+    fn set_adaptation(&mut self, _change: &MacawAdaptation) -> Result<(), RunError> {
+        Err(RunError::Invalid("this method has no test-time adaptation".into()))
+    }
+}

@@ -1,0 +1,317 @@
+//! The Prompt-DT family: Prompt-DT, Prompt-MT-BC, MT-ORL and MT-BC-Finetune, one learner whose
+//! [`Variant`] says which inputs the model sees (the prompt; the history's returns-to-go) and
+//! whether it fine-tunes on each test task's demonstrations before evaluating it.
+
+use super::learner::{
+    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
+    Learner, Row, SavedSteps, TaskEval,
+};
+use crate::config::{compact, Method, TrainConfig};
+use crate::error::RunError;
+use crate::optim::{AdamW, AdamWConfig, ParamState};
+use crate::setup::{Setup, Split};
+use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
+use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_base::seed::derive_seed;
+use pdt_data::MultiTaskDataset;
+use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
+use pdt_model::checkpoint;
+use pdt_model::PromptDt;
+use pdt_prompt::{BatchSampler, Rng, SegmentBatch};
+use rand::RngCore;
+use std::collections::BTreeMap;
+use std::path::Path;
+use tch::{nn::VarStore, Device, Tensor};
+
+/// Which of the four methods: what the model is given and whether it adapts at test time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Variant {
+    /// The task's prompt is prepended (Prompt-DT, Prompt-MT-BC).
+    pub(crate) prompt: bool,
+    /// The history's returns-to-go are zeroed in training (Prompt-MT-BC, MT-BC-Finetune); the
+    /// evaluation's are then `eval.mt_bc_returns`.
+    pub(crate) zero_returns: bool,
+    /// Each test task's evaluation is preceded by fine-tuning a copy of the weights on its
+    /// demonstrations (MT-BC-Finetune).
+    pub(crate) finetune: bool,
+}
+
+impl Variant {
+    pub(crate) fn of(method: Method) -> Self {
+        Self {
+            prompt: method.uses_prompt(),
+            zero_returns: method.zeroes_history_returns(),
+            finetune: method == Method::MtBcFinetune,
+        }
+    }
+}
+
+/// Model and optimiser of a Prompt-DT-family run.
+pub(crate) struct PromptDtLearner<'s> {
+    setup: &'s Setup,
+    variant: Variant,
+    vs: VarStore,
+    model: PromptDt,
+    opt: AdamW,
+    /// The training tasks' batch sampler.
+    sampler: BatchSampler<'s>,
+}
+
+impl<'s> PromptDtLearner<'s> {
+    /// The model initialised from the run seed (libtorch's generator: hold `torch_rng_lock`).
+    pub(crate) fn new(setup: &'s Setup, variant: Variant) -> Result<Self, RunError> {
+        let sampler = setup.sampler(&setup.train_data)?;
+        tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
+        let vs = VarStore::new(setup.device);
+        let model = PromptDt::new(&vs.root(), &setup.model_cfg);
+        let opt = AdamW::new(&vs, &setup.model_cfg.parameter_names(), setup.cfg.optim.clone());
+        Ok(Self { setup, variant, vs, model, opt, sampler })
+    }
+}
+
+impl Learner for PromptDtLearner<'_> {
+    fn loss_metric(&self) -> &'static str {
+        "train/action_loss"
+    }
+
+    fn train_iteration(
+        &mut self,
+        at: IterationAt<'_>,
+        rng: &mut Rng,
+    ) -> Result<IterationMetrics, RunError> {
+        let setup = self.setup;
+        let cfg = &setup.cfg;
+        let sampler = &self.sampler;
+        // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
+        // run continues the same stream.
+        tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, at.iteration - 1) as i64);
+        let stats = at.each_step(|step| {
+            let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
+            let st = train_step(&self.model, &mut self.opt, &batch, cfg.train.loss_on, step);
+            if st.loss.is_finite() && st.grad_norm.is_finite() {
+                Ok(st)
+            } else {
+                Err(diverged(at.dir, cfg, at.iteration, step, &st))
+            }
+        })?;
+        let n = stats.len() as f64;
+        let mut columns = Row::new();
+        columns.insert(
+            "train/grad_norm".into(),
+            (stats.iter().map(|s| s.grad_norm).sum::<f64>() / n).into(),
+        );
+        columns.insert("train/lr".into(), stats.last().map_or(0.0, |s| s.lr).into());
+        Ok(IterationMetrics { loss: stats.iter().map(|s| s.loss).sum::<f64>() / n, columns })
+    }
+
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+        let results = eval_tasks(self, split, rng)?;
+        Ok(results.into_iter().map(|result| TaskEval { result, columns: Row::new() }).collect())
+    }
+
+    /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
+    /// parameter name; each written under a temporary name and renamed.
+    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
+        checkpoint::save(&self.vs, &files.weights, &self.model.cfg)?;
+        let mut named: Vec<(String, Tensor)> = Vec::new();
+        for (name, st) in &self.opt.state {
+            named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
+            named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
+        }
+        write_tensors(&files.moments, &named)?;
+        let steps: BTreeMap<String, u64> =
+            self.opt.state.iter().map(|(n, s)| (n.clone(), s.step)).collect();
+        adam_steps_value(&steps, files)
+    }
+
+    fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError> {
+        let corrupt =
+            |path: &Path, message: String| RunError::Corrupt { path: path.into(), message };
+        let adam_steps: BTreeMap<String, u64> = adam_steps_of(saved, files)?;
+        if let Some((name, n)) = adam_steps.iter().find(|(_, &n)| n != saved.step) {
+            return Err(corrupt(
+                &files.state,
+                format!("optimiser step {n} for `{name}` at step {}", saved.step),
+            ));
+        }
+        checkpoint::load(&mut self.vs, &files.weights, self.model.cfg.n_layer)?;
+        let opt_path = &files.moments;
+        let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(opt_path)
+            .map_err(|e| corrupt(opt_path, e.to_string()))?
+            .into_iter()
+            .collect();
+        let device = self.vs.device();
+        for (name, &step) in &adam_steps {
+            let get = |k: String| {
+                tensors
+                    .get(&k)
+                    .map(|t| t.to_device(device))
+                    .ok_or_else(|| corrupt(opt_path, format!("missing `{k}`")))
+            };
+            let st = ParamState {
+                step,
+                exp_avg: get(format!("exp_avg.{name}"))?,
+                exp_avg_sq: get(format!("exp_avg_sq.{name}"))?,
+            };
+            self.opt.state.insert(name.clone(), st);
+        }
+        Ok(())
+    }
+
+    fn load_weights(&mut self, path: &Path) -> Result<(), RunError> {
+        checkpoint::load(&mut self.vs, path, self.setup.model_cfg.n_layer)?;
+        Ok(())
+    }
+}
+
+/// What an evaluation draws for one task: the prompt its episodes share and their reset seeds.
+#[derive(Debug, Clone)]
+pub struct TaskPlan {
+    /// `cheetah_vel-2`
+    pub name: String,
+    /// Task index in its family.
+    pub index: usize,
+    /// `None` for the methods without a prompt.
+    pub prompt: Option<SegmentBatch>,
+    /// Reset seed of each episode.
+    pub seeds: Vec<u64>,
+}
+
+/// Draws task `i`'s prompt (once per task and evaluation call, shared by its episodes, as the
+/// reference does), then its episodes' seeds, from `rng`.
+pub(crate) fn plan_task(
+    setup: &Setup,
+    sampler: &BatchSampler,
+    data: &MultiTaskDataset,
+    i: usize,
+    episodes: usize,
+    rng: &mut Rng,
+) -> TaskPlan {
+    let t = &data.tasks[i];
+    let prompt = sampler.eval_prompt(i, rng);
+    let seeds = (0..episodes).map(|_| rng.next_u64()).collect();
+    TaskPlan {
+        name: t.id.to_string(),
+        index: t.id.index,
+        prompt: setup.cfg.run.method.uses_prompt().then_some(prompt),
+        seeds,
+    }
+}
+
+/// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
+/// `variant.finetune`, each test task after fine-tuning a copy of the weights on its data.
+fn eval_tasks(
+    learner: &mut PromptDtLearner<'_>,
+    split: Split,
+    rng: &mut Rng,
+) -> Result<Vec<TaskResult>, RunError> {
+    let setup = learner.setup;
+    let data = setup.data(split);
+    let sampler = setup.sampler(data)?;
+    let make = |i: usize, rng: &mut Rng| -> Result<EvalTask, RunError> {
+        let plan = plan_task(setup, &sampler, data, i, setup.cfg.eval.episodes, rng);
+        let envs = (0..plan.seeds.len())
+            .map(|_| setup.family.make(plan.index))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(EvalTask {
+            name: plan.name,
+            index: plan.index,
+            envs,
+            seeds: plan.seeds,
+            prompt: plan.prompt,
+        })
+    };
+    let settings = EvalSettings {
+        k: setup.sampler_cfg.k,
+        horizon: setup.preset.horizon,
+        rtg_scale: setup.sampler_cfg.rtg_scale,
+        target_return: setup.stats.target_return,
+        returns: setup.eval_returns(),
+        norm: setup.norm.clone(),
+        max_batch: setup.cfg.eval.max_batch,
+        device: setup.device,
+        env_threads: match setup.cfg.eval.env_threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        },
+        inference: setup.cfg.eval.inference,
+    };
+    // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
+    // whose episodes carry `task_index == k`.
+    let summarise_all = |positions: &[usize], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
+        positions
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let id = &data.tasks[i].id;
+                let mine: Vec<_> = eps.iter().filter(|e| e.task_index == k).collect();
+                summarise(&id.to_string(), id.index, &mine)
+            })
+            .collect()
+    };
+    // The reference fine-tunes before test-task evaluations only; training tasks are evaluated as is.
+    if !learner.variant.finetune || split == Split::Train {
+        let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
+        let eps = evaluate(&learner.model, tasks, &settings)?;
+        let positions: Vec<usize> = (0..data.tasks.len()).collect();
+        return Ok(summarise_all(&positions, &eps));
+    }
+    // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
+    // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
+    // of an evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
+    let snapshot: Vec<(String, Tensor)> =
+        learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
+    let mut results = Vec::new();
+    for i in 0..data.tasks.len() {
+        let task = make(i, rng)?;
+        let ocfg = AdamWConfig {
+            learning_rate: setup.cfg.eval.finetune_lr,
+            warmup_steps: 1,
+            ..setup.cfg.optim.clone()
+        };
+        let mut opt = AdamW::new(&learner.vs, &setup.model_cfg.parameter_names(), ocfg);
+        for s in 0..setup.cfg.eval.finetune_steps {
+            let seg = sampler.tail_segments(
+                i,
+                setup.cfg.eval.finetune_batch,
+                setup.sampler_cfg.prompt_length,
+                rng,
+            );
+            let history = crate::step::to_segments(&seg, setup.device);
+            train_step(
+                &learner.model,
+                &mut opt,
+                &DeviceBatch { history, prompt: None },
+                LossOn::History,
+                s,
+            );
+        }
+        let eps = evaluate(&learner.model, vec![task], &settings)?;
+        results.extend(summarise_all(&[i], &eps));
+        tch::no_grad(|| {
+            let vars = learner.vs.variables();
+            for (n, saved) in &snapshot {
+                if let Some(v) = vars.get(n) {
+                    v.shallow_clone().copy_(saved);
+                }
+            }
+        });
+    }
+    Ok(results)
+}
+
+/// The error of a non-finite loss or gradient: the step, the values and the likely causes.
+fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepStats) -> RunError {
+    RunError::Invalid(format!(
+        "{}: training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
+         norm {}. Likely causes: optim.learning_rate = {} too high, optim.eps = {} too small, or \
+         extreme values in the data (data.dir {}). Resuming would repeat the same steps: fix the \
+         configuration and train again.",
+        dir.display(),
+        compact(st.loss),
+        compact(st.grad_norm),
+        compact(cfg.optim.learning_rate),
+        compact(cfg.optim.eps),
+        cfg.data.dir.display()
+    ))
+}

@@ -1,0 +1,446 @@
+//! The run loop, one for every method: a run directory created (or taken over to resume), then
+//! iterations of the method's training steps with the reference's cadence of evaluations,
+//! metrics and evaluation logs, checkpoints and resume points committed atomically, the batch
+//! stream's position saved and restored, progress reported, and a stop after a given number of
+//! iterations (an interruption, in tests). The method is a [`Learner`]; the directory's layout is
+//! `docs/run-directory.md`.
+
+use crate::config::TrainConfig;
+use crate::error::{io_err, RunError};
+use crate::methods::{
+    self, CheckpointFiles, IterationAt, IterationMetrics, Learner, Row, SavedSteps, TaskEval,
+};
+use crate::run_dir::{
+    check_log_counts, commit_checkpoint, eval_rows, lock_run_dir, now_utc, read_json,
+    read_task_stats, remove_orphans, write_json, Latest, Log, RunInfo, TrainState,
+};
+use crate::setup::{absolute, Setup, Split};
+use crate::streams::{torch_rng_lock, STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_base::seed::derive_seed;
+use pdt_eval::TaskResult;
+use pdt_model::checkpoint::write_atomic;
+use pdt_prompt::Rng;
+use rand::SeedableRng;
+use std::path::{Path, PathBuf};
+
+/// Progress reported after every iteration.
+#[derive(Debug, Clone)]
+pub struct Progress {
+    pub iteration: u64,
+    pub iterations: u64,
+    pub loss: f64,
+    /// Average test return of the evaluation just made, if one was.
+    pub test_return: Option<f64>,
+}
+
+/// How a call to [`train`] runs.
+pub struct TrainOptions<'a> {
+    /// Continue the run in the directory from its last checkpoint.
+    pub resume: bool,
+    /// With `resume`: what may change when a run goes on (nothing else may).
+    pub resume_with: ResumeWith,
+    /// Stop after this many iterations of this call (simulates an interruption in tests).
+    pub stop_after_iterations: Option<u64>,
+    pub progress: &'a mut dyn FnMut(&Progress),
+}
+
+/// What may change when a run is resumed. Anything else (seed, method, data settings) would make
+/// it another run; the CLI refuses those flags with `--resume`.
+#[derive(Debug, Clone, Default)]
+pub struct ResumeWith {
+    /// Extend `train.iterations` (at least the iterations already done); written to `config.toml`.
+    pub iterations: Option<u64>,
+    /// Run on this device this time (the results of a CPU and a GPU run differ in rounding only).
+    pub device: Option<pdt_model::device::DeviceSpec>,
+    /// The data moved: read it from here; it must have the fingerprint the run recorded. Written
+    /// to `config.toml`.
+    pub data: Option<PathBuf>,
+}
+
+/// What a finished (or stopped) call did.
+#[derive(Debug, Clone)]
+pub struct TrainSummary {
+    pub dir: PathBuf,
+    pub iterations_done: u64,
+    pub finished: bool,
+    pub last_test: Option<Vec<TaskResult>>,
+}
+
+/// The identity of a new run (`run.json`).
+fn run_info(setup: &Setup, loss_metric: &str) -> RunInfo {
+    RunInfo {
+        name: format!(
+            "{}-{}-seed{}",
+            setup.cfg.run.method.name(),
+            setup.family.name(),
+            setup.cfg.run.seed
+        ),
+        method: setup.cfg.run.method.name().into(),
+        env: setup.family.name().into(),
+        seed: setup.cfg.run.seed,
+        split: setup.cfg.env.split.clone(),
+        created: now_utc(),
+        promptdt_version: env!("CARGO_PKG_VERSION").into(),
+        loss_metric: Some(loss_metric.into()),
+    }
+}
+
+/// Trains from `cfg` into `dir` (created), or with `opts.resume`, continues the run in `dir` (its
+/// `config.toml` is authoritative and `cfg` is ignored; `opts.resume_with` says what may change).
+///
+/// The directory has one owner: a second process on it gets an error, not interleaved files.
+pub fn train(
+    cfg: Option<TrainConfig>,
+    dir: &Path,
+    opts: TrainOptions<'_>,
+) -> Result<TrainSummary, RunError> {
+    let cfg = run_config_for(cfg, dir, &opts)?;
+    // Refuse before anything is written, each bad setting by name.
+    cfg.validate()?;
+    let toml = cfg.to_toml()?;
+    let setup = Setup::new(cfg)?;
+    let _rng = torch_rng_lock();
+    let threads = if setup.cfg.run.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        setup.cfg.run.threads
+    };
+    tch::set_num_threads(threads as i32);
+    // The learner (its model initialised from the seed) and its checks, before anything is written.
+    let mut learner = methods::learner(&setup)?;
+    learner.check_can_train()?;
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let _owner = lock_run_dir(dir)?;
+    prepare_run_dir(&setup, dir, opts.resume, &toml, learner.loss_metric())?;
+    run_loop(&setup, dir, learner.as_mut(), opts)
+}
+
+/// The configuration a call to [`train`] runs: `cfg` for a new run (its data directory made
+/// absolute), the run's `config.toml` with `opts.resume_with`'s changes to resume.
+fn run_config_for(
+    cfg: Option<TrainConfig>,
+    dir: &Path,
+    opts: &TrainOptions<'_>,
+) -> Result<TrainConfig, RunError> {
+    let with = &opts.resume_with;
+    Ok(match (opts.resume, cfg) {
+        (true, _) => {
+            let path = dir.join("config.toml");
+            if !path.is_file() {
+                // `run.json` is written first: with it and no `config.toml`, a `train` was killed
+                // while creating the directory, before anything that could resume it was written.
+                if dir.join("checkpoints").join("latest.json").exists() {
+                    return Err(RunError::Invalid(format!(
+                        "{} is missing, but the run in {} has a checkpoint: restore config.toml \
+                         from a copy of the run (it cannot be guessed), or delete the run",
+                        path.display(),
+                        dir.display()
+                    )));
+                }
+                if dir.join("run.json").is_file() {
+                    return Err(RunError::Invalid(format!(
+                        "run directory {} was interrupted while being created: it has run.json \
+                         but no config.toml, so there is nothing to resume; delete it or rerun \
+                         `promptdt train --config <experiment> --out {}`",
+                        dir.display(),
+                        dir.display()
+                    )));
+                }
+                return Err(RunError::Invalid(format!(
+                    "{}: no run to resume here (no config.toml)",
+                    dir.display()
+                )));
+            }
+            let mut c = TrainConfig::from_file(&path)?;
+            if let Some(n) = with.iterations {
+                c.train.iterations = n;
+            }
+            if let Some(d) = with.device {
+                c.run.device = d;
+            }
+            if let Some(d) = &with.data {
+                c.data.dir = absolute(d);
+            }
+            c
+        }
+        (false, Some(mut c)) => {
+            // Recorded absolute, so the run evaluates and resumes the same way from any directory.
+            c.data.dir = absolute(&c.data.dir);
+            c
+        }
+        (false, None) => return Err(RunError::Invalid("no configuration given".into())),
+    })
+}
+
+/// Makes the owned directory `dir` ready to train in: what a killed writer left removed, a new
+/// run's records written (`run.json`, `config.toml` as `toml`, `task_stats.json`), or a resumed
+/// run's checked against the data now.
+fn prepare_run_dir(
+    setup: &Setup,
+    dir: &Path,
+    resume: bool,
+    toml: &str,
+    loss_metric: &str,
+) -> Result<(), RunError> {
+    // Temporary files of a killed writer (we own the directory, so none is live).
+    for d in [dir.to_path_buf(), dir.join("checkpoints")] {
+        pdt_base::fs::remove_stale_temps(&d).map_err(io_err(&d))?;
+    }
+    let stats_path = dir.join("task_stats.json");
+    let has_checkpoint = dir.join("checkpoints").join("latest.json").exists();
+    if resume && !stats_path.exists() && !has_checkpoint {
+        // Killed while the directory was being created (after `config.toml`): nothing was trained
+        // from it, so what is missing is recreated from the configuration and data, exactly as a
+        // new run writes it, and the run starts.
+        if !dir.join("run.json").is_file() {
+            write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
+        }
+        write_json(&stats_path, &setup.stats)?;
+    } else if resume {
+        let recorded = read_task_stats(dir)?;
+        setup.stats.check_same_as(&recorded).map_err(|m| {
+            RunError::Invalid(format!(
+                "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \
+                 where it moved)",
+                dir.join("task_stats.json").display(),
+                setup.cfg.data.dir.display()
+            ))
+        })?;
+    } else {
+        if dir.join("checkpoints").join("latest.json").exists() {
+            return Err(RunError::Invalid(format!(
+                "{} already holds a run; use --resume to continue it or pick another --out",
+                dir.display()
+            )));
+        }
+        write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
+        write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
+        write_json(&dir.join("task_stats.json"), &setup.stats)?;
+    }
+    // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
+    remove_orphans(&dir.join("checkpoints"))?;
+    Ok(())
+}
+
+/// The evaluation stream of `split` at `counter` (the iteration; a final evaluation counts down
+/// from `u64::MAX`, apart from training's).
+pub(crate) fn eval_rng(setup: &Setup, split: Split, counter: u64) -> Rng {
+    let stream = match split {
+        Split::Test => STREAM_EVAL_TEST,
+        Split::Train => STREAM_EVAL_TRAIN,
+    };
+    Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, stream, counter))
+}
+
+/// The `eval.jsonl` rows of an evaluation: the common columns and the learner's own.
+fn eval_log_rows(
+    res: &[TaskEval],
+    iteration: u64,
+    step: u64,
+    split: &str,
+    target: f32,
+) -> Vec<Row> {
+    let plain: Vec<TaskResult> = res.iter().map(|r| r.result.clone()).collect();
+    let mut rows = eval_rows(&plain, iteration, step, split, target);
+    for (row, r) in rows.iter_mut().zip(res) {
+        row.extend(r.columns.clone());
+    }
+    rows
+}
+
+/// Trains `learner` in the run directory `dir` (owned, its records written or checked by
+/// [`train`]) from its last checkpoint with `opts.resume`, else from the start.
+fn run_loop(
+    setup: &Setup,
+    dir: &Path,
+    learner: &mut dyn Learner,
+    opts: TrainOptions<'_>,
+) -> Result<TrainSummary, RunError> {
+    let cfg = &setup.cfg;
+    let with = &opts.resume_with;
+    let state = if opts.resume { load_checkpoint(dir, setup, learner)? } else { None };
+    let (mut iteration, mut step) = state.as_ref().map_or((0, 0), |s| (s.iteration, s.step));
+    if opts.resume && with.iterations.is_some() && iteration > cfg.train.iterations {
+        return Err(RunError::Invalid(format!(
+            "--iterations {}: the run in {} has already done {iteration} iterations; give at \
+             least that many to extend it",
+            cfg.train.iterations,
+            dir.display()
+        )));
+    }
+    let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
+    let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
+    record_resume_changes(dir, cfg, with, opts.resume)?;
+    let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
+    if let Some(s) = &state {
+        let pos = s.batch_rng_word_pos.parse::<u128>().map_err(|e| RunError::Corrupt {
+            path: dir.join("checkpoints"),
+            message: format!("batch_rng_word_pos: {e}"),
+        })?;
+        batch_rng.set_word_pos(pos);
+    }
+    let (t, started) = (&cfg.train, std::time::Instant::now());
+    let target = setup.stats.target_return;
+    let mut last_test = None;
+    let mut done_here = 0;
+    while iteration < t.iterations {
+        if opts.stop_after_iterations.is_some_and(|n| done_here >= n) {
+            return Ok(TrainSummary {
+                dir: dir.into(),
+                iterations_done: iteration,
+                finished: false,
+                last_test,
+            });
+        }
+        let at = IterationAt {
+            dir,
+            iteration: iteration + 1,
+            first_step: step,
+            steps: t.steps_per_iteration,
+        };
+        let IterationMetrics { loss, mut columns } = learner.train_iteration(at, &mut batch_rng)?;
+        step += t.steps_per_iteration;
+        iteration += 1;
+        done_here += 1;
+        columns.insert("iteration".into(), iteration.into());
+        columns.insert("step".into(), step.into());
+        columns.insert(learner.loss_metric().into(), loss.into());
+        let elapsed = metrics.elapsed_before + started.elapsed().as_secs_f64();
+        columns.insert("time/elapsed_s".into(), elapsed.into());
+        metrics.append(&[columns])?;
+        let last = iteration == t.iterations;
+        let mut test_return = None;
+        // Reference: evaluation after the first iteration and every `interval` after it.
+        if (iteration - 1) % t.test_eval_interval == 0 || last {
+            let res =
+                learner.evaluate(Split::Test, &mut eval_rng(setup, Split::Test, iteration))?;
+            evals.append(&eval_log_rows(&res, iteration, step, "test", target))?;
+            let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
+            test_return =
+                Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
+            last_test = Some(res);
+        }
+        if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
+            let mut rng = eval_rng(setup, Split::Train, iteration);
+            let res = learner.evaluate(Split::Train, &mut rng)?;
+            evals.append(&eval_log_rows(&res, iteration, step, "train", target))?;
+        }
+        let keep = iteration % t.save_interval == 0 || last;
+        if keep || (t.resume_interval > 0 && iteration % t.resume_interval == 0) {
+            let state = TrainState {
+                method: learner.state_tag().map(str::to_string),
+                iteration,
+                step,
+                batch_rng_word_pos: batch_rng.get_word_pos().to_string(),
+                adam_steps: serde_json::Value::Null,
+                metrics_lines: metrics.lines,
+                eval_lines: evals.lines,
+                keep,
+            };
+            save_checkpoint(dir, learner, state)?;
+        }
+        (opts.progress)(&Progress { iteration, iterations: t.iterations, loss, test_return });
+    }
+    Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: true, last_test })
+}
+
+/// On resume with a longer run or moved data, what changed goes on record in `config.toml` (the
+/// device is this invocation's only).
+pub(crate) fn record_resume_changes(
+    dir: &Path,
+    cfg: &TrainConfig,
+    with: &ResumeWith,
+    resume: bool,
+) -> Result<(), RunError> {
+    if resume && (with.iterations.is_some() || with.data.is_some()) {
+        let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
+        recorded.train.iterations = cfg.train.iterations;
+        recorded.data.dir.clone_from(&cfg.data.dir);
+        let text = recorded.to_toml()?;
+        write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
+    }
+    Ok(())
+}
+
+/// The files of the checkpoint at `step` in `ck`.
+pub(crate) fn checkpoint_files(ck: &Path, step: u64) -> CheckpointFiles {
+    CheckpointFiles {
+        weights: ck.join(format!("step_{step}.safetensors")),
+        moments: ck.join(format!("state_{step}.safetensors")),
+        state: ck.join(format!("state_{step}.json")),
+    }
+}
+
+/// Saves weights, optimiser state and the training state; `latest.json` is written last, so a
+/// crash before it leaves the previous checkpoint in force.
+fn save_checkpoint(
+    dir: &Path,
+    learner: &dyn Learner,
+    mut state: TrainState,
+) -> Result<(), RunError> {
+    let ck = dir.join("checkpoints");
+    std::fs::create_dir_all(&ck).map_err(io_err(&ck))?;
+    let files = checkpoint_files(&ck, state.step);
+    state.adam_steps = learner.save(&files)?;
+    write_json(&files.state, &state)?;
+    let (model, moments) =
+        (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
+    let latest = Latest {
+        step: state.step,
+        iteration: state.iteration,
+        model,
+        state: moments,
+        keep: state.keep,
+    };
+    commit_checkpoint(&ck, latest)
+}
+
+/// The checkpoint in force, checked against its state file and the logs, restored into
+/// `learner`; `None` when the run has none yet.
+fn load_checkpoint(
+    dir: &Path,
+    setup: &Setup,
+    learner: &mut dyn Learner,
+) -> Result<Option<TrainState>, RunError> {
+    let ck = dir.join("checkpoints");
+    let latest_path = ck.join("latest.json");
+    if !latest_path.exists() {
+        return Ok(None);
+    }
+    let latest: Latest = read_json(&latest_path)?;
+    let corrupt = |path: &Path, message: String| RunError::Corrupt { path: path.into(), message };
+    // The files of a checkpoint are named by its step; anything else (another step's weights, a
+    // path outside the directory) is refused rather than resumed from.
+    let (model, opt) =
+        (format!("step_{}.safetensors", latest.step), format!("state_{}.safetensors", latest.step));
+    if latest.model != model || latest.state != opt {
+        return Err(corrupt(
+            &latest_path,
+            format!(
+                "names `{}` and `{}` for step {}; expected `{model}` and `{opt}`",
+                latest.model, latest.state, latest.step
+            ),
+        ));
+    }
+    let files = checkpoint_files(&ck, latest.step);
+    let state: TrainState = read_json(&files.state)?;
+    let per = setup.cfg.train.steps_per_iteration;
+    if state.method.as_deref() != learner.state_tag()
+        || state.step != latest.step
+        || state.iteration != latest.iteration
+        || state.step != state.iteration.saturating_mul(per)
+    {
+        let method = state.method.as_deref().map_or_else(String::new, |m| format!("method {m} "));
+        return Err(corrupt(
+            &files.state,
+            format!(
+                "{method}iteration {} step {}, but latest.json says iteration {} step {} (and \
+                 train.steps_per_iteration = {per})",
+                state.iteration, state.step, latest.iteration, latest.step
+            ),
+        ));
+    }
+    check_log_counts(&files.state, &state, &setup.eval_schedule())?;
+    learner.load(&files, SavedSteps { step: state.step, adam_steps: &state.adam_steps })?;
+    Ok(Some(state))
+}
