@@ -6,7 +6,6 @@
 //! The trainer builds its setup from the same loader, so that a served policy's prompts are the
 //! evaluation's.
 
-use crate::files::TaskStats;
 use crate::PolicyError;
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::{MultiTaskDataset, TaskData};
@@ -15,6 +14,7 @@ use pdt_eval::ToModelConfig;
 use pdt_model::PromptDtConfig;
 use pdt_prompt::{BatchSampler, NormalizationScope, SamplerConfig, StateNorm};
 use pdt_rundir::config::{compact, Method, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
+use pdt_rundir::RunStats;
 
 /// Everything built from a configuration's data section and its data.
 pub struct RunData {
@@ -24,7 +24,7 @@ pub struct RunData {
     pub sampler_cfg: SamplerConfig,
     pub model_cfg: PromptDtConfig,
     /// What a run records of them (`task_stats.json`).
-    pub stats: TaskStats,
+    pub stats: RunStats,
 }
 
 impl RunData {
@@ -110,7 +110,7 @@ impl RunData {
         let model_cfg = cfg.model.to_model_config(ds, da);
         model_cfg.validate().map_err(PolicyError::Invalid)?;
         sampler_cfg.validate(model_cfg.n_positions)?;
-        let stats = TaskStats {
+        let stats = RunStats {
             obs_dim: ds,
             act_dim: da,
             state_mean: norm.mean.clone(),
@@ -166,7 +166,7 @@ fn task_file(cfg: &TrainConfig, env: &str, t: &TaskData, mode: &str) -> String {
 }
 
 /// `|x| <= bound`, false for NaN.
-pub(crate) fn within(x: f64, bound: f64) -> bool {
+fn within(x: f64, bound: f64) -> bool {
     x.abs() <= bound
 }
 

@@ -15,8 +15,8 @@ pub enum PolicyError {
     Checkpoint(#[from] pdt_model::checkpoint::CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error(transparent)]
+    RunDir(#[from] pdt_rundir::RunDirError),
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
     #[error("{}: not a run directory (no config.toml)", .0.display())]

@@ -22,5 +22,5 @@ pub mod policy;
 pub use data::RunData;
 pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};
 pub use error::PolicyError;
-pub use files::TaskStats;
+pub use pdt_rundir::RunStats;
 pub use policy::{eval_returns, plan_task, Policy, PromptArrays, TaskPlan};

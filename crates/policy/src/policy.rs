@@ -2,7 +2,7 @@
 
 use crate::data::RunData;
 use crate::episode::{finite_f32, Inputs, MAX_RETURN};
-use crate::files::{self, TaskStats};
+use crate::files;
 use crate::PolicyError;
 use pdt_base::seed::derive_seed;
 use pdt_data::MultiTaskDataset;
@@ -12,6 +12,7 @@ use pdt_model::device::DeviceSpec;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
 use pdt_rundir::config::{Method, MtBcEval, TrainConfig};
+use pdt_rundir::{RunDir, RunStats};
 use rand::{RngCore, SeedableRng};
 use serde::Deserialize;
 use std::path::Path;
@@ -29,7 +30,7 @@ pub struct Policy {
     pub model: PromptDt,
     _vs: VarStore,
     pub device: Device,
-    pub stats: TaskStats,
+    pub stats: RunStats,
     pub method: Method,
     pub k: usize,
     /// Prompt steps of a prompt drawn from the data (J x H).
@@ -112,11 +113,12 @@ impl Policy {
         device: Option<DeviceSpec>,
         data: Option<&Path>,
     ) -> Result<Self, PolicyError> {
-        let cfg = files::run_config(dir, device, data)?;
+        let run = RunDir::at(dir);
+        let cfg = files::run_config(&run, device, data)?;
         if cfg.run.method == Method::Macaw {
             return Err(PolicyError::Macaw(dir.into()));
         }
-        let stats = files::read_task_stats(dir)?;
+        let stats = files::read_stats(&run)?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
         let model_cfg = cfg.model.to_model_config(stats.obs_dim, stats.act_dim);
@@ -124,8 +126,8 @@ impl Policy {
         let device = pdt_model::device::resolve(cfg.run.device)?;
         let mut vs = VarStore::new(device);
         let model = PromptDt::new(&vs.root(), &model_cfg);
-        let latest = files::latest_checkpoint(dir)?;
-        checkpoint::load(&mut vs, &files::weights(dir, &latest), model_cfg.n_layer)?;
+        let latest = files::latest_checkpoint(&run)?;
+        checkpoint::load(&mut vs, &run.checkpoint_file(&latest.model), model_cfg.n_layer)?;
         let method = cfg.run.method;
         let returns = eval_returns(&cfg);
         let prompt_steps =

@@ -1,17 +1,23 @@
-//! What the serve tests share: a tiny trained run, a server on loopback, one raw HTTP request.
+//! What the serve tests share: a tiny point-robot run directory, a server on loopback, one raw
+//! HTTP request.
 #![allow(dead_code)] // each test file uses a part
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
+use pdt_policy::{Policy, RunData};
+use pdt_rundir::config::TrainConfig;
+use pdt_rundir::{Latest, RunDir};
 use pdt_serve::{ServeOptions, Server};
-use pdt_train::config::TrainConfig;
-use pdt_train::run::{train, ServedRun, TrainOptions};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::PathBuf;
 use std::sync::OnceLock;
 use std::time::Duration;
 
-/// A tiny trained point-robot Prompt-DT run, made once.
+/// A tiny point-robot Prompt-DT run directory, made once: real data (the scripted collection),
+/// the configuration, statistics and checkpoint files a trained run has, with seeded initial
+/// weights. The serve tests check serving (the evaluator's actions, batching, refusals), which
+/// holds for any weights; pdt-serve does not link the trainer, so the run is written here as the
+/// trainer writes one (`pdt-rundir`'s writers, `pdt_model::checkpoint::save`).
 pub fn tiny_run() -> &'static (tempfile::TempDir, PathBuf) {
     static RUN: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
     RUN.get_or_init(|| {
@@ -31,21 +37,34 @@ pub fn tiny_run() -> &'static (tempfile::TempDir, PathBuf) {
         )
         .unwrap();
         c.data.dir = data;
+        c.validate().unwrap();
+        let family = pdt_envs::family(&c.env.name).unwrap();
+        let run_data = RunData::load(&c, family.as_ref()).unwrap();
         let run = tmp.path().join("run");
-        let mut progress = |_: &pdt_train::run::Progress| {};
-        let opts = TrainOptions {
-            resume: false,
-            resume_with: Default::default(),
-            stop_after_iterations: None,
-            progress: &mut progress,
+        let dir = RunDir::at(&run);
+        std::fs::create_dir_all(dir.checkpoints_dir()).unwrap();
+        dir.write_config(&c).unwrap();
+        dir.write_stats(&run_data.stats).unwrap();
+        tch::manual_seed(7);
+        let vs = tch::nn::VarStore::new(tch::Device::Cpu);
+        let _model = pdt_model::PromptDt::new(&vs.root(), &run_data.model_cfg);
+        let step = 12;
+        let weights = dir.checkpoint_file(&Latest::model_name(step));
+        pdt_model::checkpoint::save(&vs, &weights, &run_data.model_cfg).unwrap();
+        let latest = Latest {
+            step,
+            iteration: 4,
+            model: Latest::model_name(step),
+            state: Latest::state_name(step),
+            keep: true,
         };
-        train(Some(c), &run, opts).unwrap();
+        dir.write_latest(&latest).unwrap();
         (tmp, run)
     })
 }
 
 pub fn start(opts: ServeOptions) -> Server {
-    let run = ServedRun::load(&tiny_run().1, None, None).unwrap();
+    let run = Policy::load(&tiny_run().1, None, None).unwrap();
     Server::start(run, ServeOptions { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..opts })
         .unwrap()
 }
