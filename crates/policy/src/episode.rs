@@ -147,9 +147,7 @@ impl Policy {
     pub fn target(&self, target_return: Option<f64>) -> Result<Target, PolicyError> {
         let given = match target_return {
             Some(g) if !g.is_finite() => {
-                return Err(PolicyError::Input(format!(
-                    "target_return {g} is not a finite number"
-                )))
+                return Err(PolicyError::Input(format!("target_return {g} is not a finite number")))
             }
             Some(g) if g.abs() > MAX_RETURN => {
                 return Err(PolicyError::Input(format!(

@@ -53,9 +53,7 @@ pub(crate) fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
 pub(crate) fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
     match dir.latest() {
         Ok(Some(latest)) => Ok(latest),
-        Ok(None) | Err(RunDirError::Io { .. }) => {
-            Err(PolicyError::NoCheckpoint(dir.path().into()))
-        }
+        Ok(None) | Err(RunDirError::Io { .. }) => Err(PolicyError::NoCheckpoint(dir.path().into())),
         Err(e) => Err(e.into()),
     }
 }

@@ -551,7 +551,10 @@ impl Policy {
             tch::set_num_threads(t as i32);
         }
         let run = py
-            .detach(|| pdt_policy::Policy::load(&run_dir, Some(device), data.as_deref()))
+            .detach(|| {
+                pdt_policy::Policy::load(&run_dir, Some(device), data.as_deref())
+                    .map_err(|e| e.to_string())
+            })
             .map_err(value_error)?;
         let target = run.target(None).map_err(value_error)?;
         Ok(Self {
@@ -669,7 +672,9 @@ impl Policy {
         }
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
-        let cache = py.detach(move || run.prefix(&batches)).map_err(value_error)?;
+        let cache = py
+            .detach(move || run.prefix(&batches).map_err(|e| e.to_string()))
+            .map_err(value_error)?;
         st.prefix = Some((cache, rows));
         Ok(())
     }

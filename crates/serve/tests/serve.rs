@@ -4,9 +4,9 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_eval::{evaluate, EvalSettings, EvalTask, Inference};
+use pdt_policy::Policy;
 use pdt_prompt::StateNorm;
 use pdt_serve::ServeOptions;
-use pdt_policy::Policy;
 use std::io::Write;
 use std::net::{SocketAddr, TcpStream};
 use std::time::Duration;
