@@ -72,8 +72,7 @@ pub fn time_serve(
     episodes_per_client: usize,
 ) -> Result<ServeTiming, BenchError> {
     let err = |why: String| BenchError::Baseline { cmd: format!("serve_c{clients}"), why };
-    let served =
-        pdt_train::run::ServedRun::load(run, None, None).map_err(|e| err(e.to_string()))?;
+    let served = pdt_policy::Policy::load(run, None, None).map_err(|e| err(e.to_string()))?;
     let (ds, uses_prompt) = (served.stats.obs_dim, served.method.uses_prompt());
     let task = served.prompt_tasks().ok().and_then(|t| t.first().copied());
     let opts = pdt_serve::ServeOptions {

@@ -296,7 +296,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Reproduce(a) => commands::reproduce(&a)?,
         Command::Serve(a) => {
-            let run = pdt_train::run::ServedRun::load(&a.run, a.device, a.data.as_deref())?;
+            let run = pdt_policy::Policy::load(&a.run, a.device, a.data.as_deref())?;
             let opts = pdt_serve::ServeOptions {
                 listen: a.listen,
                 max_episodes: a.max_episodes,

@@ -105,20 +105,8 @@ pub struct EpisodeRecord {
     pub actions: Vec<f32>,
 }
 
-/// Per-task summary.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TaskResult {
-    pub task: String,
-    pub task_index: usize,
-    pub return_mean: f64,
-    pub return_std: f64,
-    pub length_mean: f64,
-    pub episodes: usize,
-    pub returns: Vec<f64>,
-    /// Fraction of the episodes that succeeded; `None` for families without a success criterion.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub success_rate: Option<f64>,
-}
+/// Per-task summary: a row of `eval_final.json`, defined with the run directory's files.
+pub use pdt_rundir::files::TaskResult;
 
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {

@@ -109,3 +109,40 @@ def test_bad_input_raises_clear_errors(point_run, tmp_path):
         promptdt.Policy.load(tmp_path)
     with pytest.raises(ValueError, match="device"):
         promptdt.Policy.load(point_run, device="tpu")
+
+
+def test_policy_refuses_what_serve_refuses(point_run):
+    """The checks `promptdt serve` makes (one runtime, pdt-policy): target return, rewards,
+    returns-to-go beyond range, prompt returns-to-go, actions that come out not finite; a refused
+    call changes nothing."""
+    policy = promptdt.Policy.load(point_run, threads=1)
+    policy.set_prompt(policy.task_prompt(policy.prompt_tasks()[0]))
+    with pytest.raises(ValueError, match="target_return 1e31 is outside the accepted range"):
+        policy.reset(1, target_return=1e31)
+    with pytest.raises(ValueError, match="target_return NaN is not a finite number"):
+        policy.reset(1, target_return=float("nan"))
+    obs = np.zeros((1, policy.obs_dim))
+    # Within range, but far enough from the data to overflow inside the model: refused by name,
+    # and the episode is not started.
+    policy.reset(1, target_return=1e30)
+    with pytest.raises(ValueError, match=r"episode 0: the policy's action is not finite .* "
+                       r"target_return = 1e30 .* The call is refused"):
+        policy.act(obs)
+    assert policy.episode_returns() == [None]
+    policy.reset(1)
+    first = policy.act(obs)
+    assert first.shape == (1, policy.act_dim) and np.isfinite(first).all()
+    with pytest.raises(ValueError, match="episode 0: reward -1e31 is outside the accepted range"):
+        policy.act(obs, np.array([-1e31]))
+    with pytest.raises(ValueError, match="episode 0: reward inf is not a finite number"):
+        policy.act(obs, np.array([np.inf]))
+    # A reward in range whose return-to-go (target minus rewards so far) is not, or overflows the
+    # model: refused either way (pdt-policy's tests check each check on its own).
+    with pytest.raises(ValueError, match="would take the episode's return-to-go|is not finite"):
+        policy.act(obs, np.array([-1e30]))
+    assert policy.episode_returns() == [0.0]
+    # The episode goes on as it was: its second step.
+    policy.act(obs, np.array([0.5]))
+    assert policy.episode_returns() == [0.5]
+    with pytest.raises(ValueError, match=r"prompt.returns_to_go\[0\] = 1e31 is outside"):
+        policy.prompt(np.zeros((1, 2)), np.zeros((1, 2)), np.array([1e31]), np.array([0]))

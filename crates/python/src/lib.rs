@@ -1,7 +1,8 @@
 //! `promptdt._native`: the Rust side of the Python package (PyO3).
 //!
 //! Thin bindings over the library crates, the same calls the CLI makes: a trained run's policy
-//! (`pdt_train::run::ServedRun`, each episode's `pdt_eval::History`, so that Python rollouts take
+//! (`pdt_policy::Policy`, each episode a `pdt_policy::Episode`, the runtime `promptdt serve` acts
+//! through too, so that Python rollouts take
 //! `promptdt eval`'s actions), the environment families behind a vector of environments stepped on
 //! worker threads (`pdt_envs::vec_env::VecEnv`), the dataset readers (native files and the
 //! reference pickles, through the safe reader), and training, evaluation and collection. The
@@ -14,10 +15,9 @@
 
 use numpy::prelude::*;
 use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike1, PyArrayLike2};
-use pdt_eval::{first_rtg, History};
 use pdt_model::PrefixCache;
-use pdt_prompt::{SegmentBatch, StateNorm};
-use pdt_train::run::{PromptArrays, ServedRun};
+use pdt_policy::{Episode, Inputs, PolicyError, PromptArrays, Target};
+use pdt_prompt::SegmentBatch;
 use pyo3::exceptions::{PyFileNotFoundError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -461,16 +461,15 @@ impl TaskPlan {
 }
 
 struct PolicyState {
-    run: ServedRun,
-    norm: StateNorm,
+    run: pdt_policy::Policy,
     /// The keys and values of the distinct prompts set (`None`: no prompt set), and the row of
     /// each episode (one row: every episode).
     prefix: Option<(PrefixCache, Vec<i64>)>,
-    /// One per episode; `None` until its first observation.
-    episodes: Vec<Option<History>>,
-    /// The action each episode was given last (recorded with the next reward and observation).
-    last: Vec<Vec<f32>>,
-    first_rtg: f32,
+    /// One per episode (its history, last action and checks); `None` until its first
+    /// observation.
+    episodes: Vec<Option<Episode>>,
+    /// The first return token of the episodes (`reset`'s target return).
+    target: Target,
 }
 
 /// A trained run's prompted policy, acting in a batch of episodes as `promptdt eval` does.
@@ -503,6 +502,12 @@ struct Policy {
     /// Steps of a prompt drawn from the run's data.
     #[pyo3(get)]
     prompt_steps: usize,
+}
+
+/// What `act` does with an episode: start it at its first observation, or record its step.
+enum Next {
+    Start(pdt_policy::Observation),
+    Step(pdt_policy::Step),
 }
 
 impl Policy {
@@ -552,11 +557,11 @@ impl Policy {
         }
         let run = py
             .detach(|| {
-                ServedRun::load(&run_dir, Some(device), data.as_deref()).map_err(|e| e.to_string())
+                pdt_policy::Policy::load(&run_dir, Some(device), data.as_deref())
+                    .map_err(|e| e.to_string())
             })
             .map_err(value_error)?;
-        let norm = run.norm();
-        let first = first_rtg(run.returns, run.stats.target_return, run.stats.rtg_scale);
+        let target = run.target(None).map_err(value_error)?;
         Ok(Self {
             obs_dim: run.stats.obs_dim,
             act_dim: run.stats.act_dim,
@@ -566,17 +571,10 @@ impl Policy {
             uses_prompt: run.method.uses_prompt(),
             target_return: run.stats.target_return,
             rtg_scale: run.stats.rtg_scale,
-            max_ep_len: run.model.cfg.max_ep_len,
+            max_ep_len: run.max_ep_len(),
             iteration: run.iteration,
             prompt_steps: run.prompt_steps,
-            state: Mutex::new(PolicyState {
-                run,
-                norm,
-                prefix: None,
-                episodes: Vec::new(),
-                last: Vec::new(),
-                first_rtg: first,
-            }),
+            state: Mutex::new(PolicyState { run, prefix: None, episodes: Vec::new(), target }),
         })
     }
 
@@ -611,7 +609,10 @@ impl Policy {
             timesteps: timesteps.as_array().to_vec(),
         };
         let st = lock(&self.state)?;
-        Ok(Prompt { inner: st.run.prompt_from_arrays(&arrays).map_err(value_error)? })
+        // The prompt's largest inputs are not kept: an episode names its own when its action is
+        // refused.
+        let mut inputs = Inputs::default();
+        Ok(Prompt { inner: st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)? })
     }
 
     /// What `promptdt eval --split SPLIT --episodes N` draws for each task, in its order. Acting
@@ -676,7 +677,9 @@ impl Policy {
         }
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
-        let cache = py.detach(move || run.prefix(&batches)).map_err(value_error)?;
+        let cache = py
+            .detach(move || run.prefix(&batches).map_err(|e| e.to_string()))
+            .map_err(value_error)?;
         st.prefix = Some((cache, rows));
         Ok(())
     }
@@ -689,16 +692,8 @@ impl Policy {
             return Err(value_error("n_episodes must be at least 1"));
         }
         let mut st = lock(&self.state)?;
-        let target = match target_return {
-            Some(g) if !g.is_finite() || g.abs() > 1e30 => {
-                return Err(value_error(format!("target_return {g} is not a finite return")))
-            }
-            Some(g) => g as f32,
-            None => st.run.stats.target_return,
-        };
-        st.first_rtg = first_rtg(st.run.returns, target, st.run.stats.rtg_scale);
+        st.target = st.run.target(target_return).map_err(value_error)?;
         st.episodes = vec![None; n_episodes];
-        st.last = vec![Vec::new(); n_episodes];
         Ok(())
     }
 
@@ -745,64 +740,86 @@ impl Policy {
                 return Err(value_error(format!("reward: {} values for {n} episodes", r.len())));
             }
         }
-        let max_t = st.run.model.cfg.max_ep_len;
         // Check everything before changing any episode, so an error leaves the state as it was.
-        let mut rows = Vec::with_capacity(n);
+        let at = |i: usize| move |e: PolicyError| value_error(format!("episode {i}: {e}"));
+        let mut steps = Vec::with_capacity(n);
         for (i, row) in obs.rows().into_iter().enumerate() {
-            let o = st
-                .run
-                .observation(&row.to_vec())
-                .map_err(|e| value_error(format!("episode {i}: {e}")))?;
-            if let Some(h) = &st.episodes[i] {
-                let r = match &reward {
-                    None => {
-                        return Err(value_error(format!(
-                            "episode {i} is under way: pass the rewards of the last actions"
-                        )))
-                    }
-                    Some(r) => r[i],
-                };
-                if !r.is_finite() || r.abs() > 1e30 {
-                    return Err(value_error(format!("reward[{i}] = {r} is not a finite reward")));
-                }
-                if h.t + 1 >= max_t {
+            let o = st.run.observation(&row.to_vec()).map_err(at(i))?;
+            let Some(e) = &st.episodes[i] else {
+                steps.push(Next::Start(o));
+                continue;
+            };
+            let r = match &reward {
+                None => {
                     return Err(value_error(format!(
-                        "episode {i} has reached the model's max_ep_len ({max_t} steps): reset or restart it"
-                    )));
+                        "episode {i} is under way: pass the rewards of the last actions"
+                    )))
                 }
+                Some(r) => r[i],
+            };
+            let step = st.run.step(r, o).map_err(at(i))?;
+            match st.run.check(e, &step) {
+                Err(PolicyError::EpisodeFull { max_ep_len }) => {
+                    return Err(value_error(format!(
+                        "episode {i} has reached the model's max_ep_len ({max_ep_len} steps): reset or restart it"
+                    )))
+                }
+                Err(e) => return Err(at(i)(e)),
+                Ok(()) => steps.push(Next::Step(step)),
             }
-            rows.push(o);
         }
         let prefix = Self::batch_prefix(st, n)?;
-        let (norm, returns, scale, rtg0) =
-            (&st.norm, st.run.returns, st.run.stats.rtg_scale, st.first_rtg);
-        for (i, o) in rows.iter().enumerate() {
-            match &mut st.episodes[i] {
-                Some(h) => {
-                    let r = reward.as_ref().map_or(0.0, |r| r[i]) as f32;
-                    h.record(&st.last[i], r, o, norm, returns, scale);
-                }
-                slot @ None => *slot = Some(History::start(norm, o, rtg0)),
+        let starts: Vec<bool> = steps.iter().map(|s| matches!(s, Next::Start(_))).collect();
+        let target = st.target;
+        for (slot, next) in st.episodes.iter_mut().zip(steps) {
+            match (slot, next) {
+                (Some(e), Next::Step(step)) => st.run.record(e, step).map_err(value_error)?,
+                (slot, Next::Start(o)) => *slot = Some(st.run.start(o, target)),
+                (None, Next::Step(_)) => return Err(value_error("internal: a step of no episode")),
             }
         }
         let flat = {
             // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
             let st: &mut PolicyState = st;
             py.detach(move || {
-                let hs: Vec<&History> = st.episodes.iter().flatten().collect();
-                st.run.act(&hs, prefix.as_ref()) // [n * da]
+                let eps: Vec<&Episode> = st.episodes.iter().flatten().collect();
+                st.run.act(&eps, prefix.as_ref()) // [n * da]
             })
         };
         let da = self.act_dim;
-        for (i, a) in flat.chunks_exact(da).enumerate() {
-            st.last[i] = a.to_vec();
+        // An action that is not finite (inputs each representable can still overflow inside the
+        // model) refuses the whole call: every episode goes back to where it was before it.
+        let bad = flat.chunks_exact(da).position(|a| a.iter().any(|x| !x.is_finite()));
+        if let Some(b) = bad {
+            let mut why = None;
+            for (i, (slot, a)) in st.episodes.iter_mut().zip(flat.chunks_exact(da)).enumerate() {
+                let Some(e) = slot else { continue };
+                if i == b {
+                    why = e.accept(a).err();
+                } else {
+                    e.take_back();
+                }
+                // An episode started by this call is not started.
+                if starts[i] {
+                    *slot = None;
+                }
+            }
+            let why = why.map_or_else(String::new, |e| e.to_string());
+            return Err(value_error(format!(
+                "episode {b}: {why}. The call is refused and every episode is as it was before it"
+            )));
+        }
+        for (slot, a) in st.episodes.iter_mut().zip(flat.chunks_exact(da)) {
+            if let Some(e) = slot {
+                e.accept(a).map_err(value_error)?;
+            }
         }
         array2(py, flat, n, da)
     }
 
     /// Returns so far of each episode (None before its first observation).
     fn episode_returns(&self) -> PyResult<Vec<Option<f64>>> {
-        Ok(lock(&self.state)?.episodes.iter().map(|e| e.as_ref().map(|h| h.ret)).collect())
+        Ok(lock(&self.state)?.episodes.iter().map(|e| e.as_ref().map(Episode::ret)).collect())
     }
 
     fn __repr__(&self) -> String {

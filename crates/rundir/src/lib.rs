@@ -5,5 +5,19 @@
 //! - [`config`]: `config.toml`, the whole experiment ([`config::TrainConfig`]) with every option type
 //!   it names (the optimiser's, the loss's, the evaluator's, MACAW's), so that a crate can read a
 //!   run's configuration without linking the crates that act on it.
+//! - [`files`]: the other files (`run.json`, `task_stats.json`, `checkpoints/latest.json`,
+//!   `eval_final.json`) and the lines of the logs (`eval.jsonl`, `metrics.jsonl`) as structs.
+//! - [`RunDir`]: where each file lies, with typed readers and writers; errors name the file.
 
 pub mod config;
+mod dir;
+pub mod files;
+
+pub use dir::{
+    append_jsonl, read_json, read_json_opt, read_jsonl, write_json, JsonLines, RunDir, RunDirError,
+    SkippedLine, CHECKPOINTS, CONFIG_TOML, EVAL_CSV, EVAL_FINAL_JSON, EVAL_JSONL, LATEST_JSON,
+    METRICS_CSV, METRICS_JSONL, RUN_JSON, TASK_STATS_JSON,
+};
+pub use files::{
+    EvalLine, FinalEval, Latest, MetricsLine, RunInfo, RunStats, TaskResult, TaskStats,
+};

@@ -6,8 +6,9 @@
 //! the server does after an idle timeout). Many episodes run at once: the HTTP side (tokio + axum)
 //! only parses and validates; one model thread owns the policy and every episode's history, takes
 //! the requests that arrived within a bounded wait (at most `max_batch`), and answers them with one
-//! batched forward. Each episode acts exactly as `promptdt eval` would (`pdt_eval::History`,
-//! `PromptDt::act`, the prompt's keys and values computed once when the episode opens).
+//! batched forward. Each episode acts exactly as `promptdt eval` would: the policy and episodes are
+//! `pdt-policy`'s (`Policy`, `Episode`: the history, its checks and the undo of a refused step),
+//! the prompt's keys and values computed once when the episode opens.
 
 use axum::extract::rejection::{JsonRejection, PathRejection};
 use axum::extract::{DefaultBodyLimit, Path, State};
@@ -15,10 +16,8 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use pdt_eval::{first_rtg, EvalReturns, History};
 use pdt_model::PrefixCache;
-use pdt_prompt::{SegmentBatch, StateNorm};
-use pdt_train::run::ServedRun;
+use pdt_policy::{Policy, PolicyError};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -98,7 +97,10 @@ pub enum ServeError {
 // ------------------------------------------------------------------------------------------------
 
 /// A prompt sent by the client (the same arrays a Python `Policy` takes).
-pub use pdt_train::run::PromptArrays;
+pub use pdt_policy::PromptArrays;
+
+/// The largest return and return-to-go accepted (raw, in reward units).
+pub use pdt_policy::MAX_RETURN;
 
 /// `POST /v1/episodes`.
 #[derive(Debug, Clone, Deserialize)]
@@ -184,6 +186,13 @@ impl From<JsonRejection> for ApiError {
     }
 }
 
+impl From<PolicyError> for ApiError {
+    /// A refused input or a policy that cannot do what was asked: the request's fault (400).
+    fn from(e: PolicyError) -> Self {
+        Self::bad(e.to_string())
+    }
+}
+
 impl From<PathRejection> for ApiError {
     fn from(r: PathRejection) -> Self {
         Self::new(r.status(), format!("episode id: {}", r.body_text()))
@@ -204,91 +213,17 @@ enum Msg {
 }
 
 struct Episode {
-    h: History,
+    /// The history, last action and undo of the episode.
+    e: pdt_policy::Episode,
     /// The prompt's keys and values (one row), `None` for methods without a prompt.
     prefix: Option<PrefixCache>,
-    /// The action returned last (recorded with the next reward and observation).
-    last_action: Vec<f32>,
     seen: Instant,
-    /// How to take back the step whose action is being computed, should that action not be
-    /// finite: a refused step must leave the episode as it was, or one bad observation would stay
-    /// in every later step's context.
-    undo: Option<Undo>,
-    /// The largest inputs of the action being computed, named, for the error if it is not finite.
-    inputs: Inputs,
 }
-
-/// What [`History::record`] changed.
-struct Undo {
-    states: usize,
-    actions: usize,
-    rtg: usize,
-    ret: f64,
-    t: usize,
-    last_action: Vec<f32>,
-}
-
-impl Undo {
-    fn of(e: &Episode) -> Self {
-        Self {
-            states: e.h.states.len(),
-            actions: e.h.actions.len(),
-            rtg: e.h.rtg.len(),
-            ret: e.h.ret,
-            t: e.h.t,
-            last_action: e.last_action.clone(),
-        }
-    }
-
-    fn apply(self, e: &mut Episode) {
-        e.h.states.truncate(self.states);
-        e.h.actions.truncate(self.actions);
-        e.h.rtg.truncate(self.rtg);
-        e.h.ret = self.ret;
-        e.h.t = self.t;
-        e.last_action = self.last_action;
-    }
-}
-
-/// The model inputs of one request, kept by magnitude: when the policy's action comes out NaN or
-/// infinite, the error names the input most likely at fault (the largest one fed to the model).
-#[derive(Debug, Default)]
-struct Inputs {
-    /// (field and raw value, as the client sent it; the value the model sees)
-    largest: Option<(String, f32)>,
-}
-
-impl Inputs {
-    fn see(&mut self, field: impl FnOnce() -> String, model_value: f32) {
-        let bigger = match &self.largest {
-            Some((_, v)) => model_value.abs() > v.abs(),
-            None => true,
-        };
-        if bigger {
-            self.largest = Some((field(), model_value));
-        }
-    }
-
-    fn describe(&self) -> String {
-        match &self.largest {
-            Some((field, v)) => {
-                format!("its largest input is {field} ({v:e} as the model sees it)")
-            }
-            None => "no input stands out".into(),
-        }
-    }
-}
-
-/// The largest return and return-to-go accepted (raw, in reward units), as the data readers accept
-/// returns-to-go (`docs/failure-behaviour.md`): returns are f32 tokens, and beyond this they
-/// overflow in the model's arithmetic.
-pub const MAX_RETURN: f64 = 1e30;
 
 /// What the model thread owns: the policy and every open episode.
 struct Worker {
-    run: ServedRun,
+    run: Policy,
     opts: ServeOptions,
-    norm: StateNorm,
     episodes: HashMap<u64, Episode>,
     next_id: u64,
 }
@@ -302,9 +237,8 @@ struct Pending {
 }
 
 impl Worker {
-    fn new(run: ServedRun, opts: ServeOptions) -> Self {
-        let norm = run.norm();
-        Self { run, opts, norm, episodes: HashMap::new(), next_id: 1 }
+    fn new(run: Policy, opts: ServeOptions) -> Self {
+        Self { run, opts, episodes: HashMap::new(), next_id: 1 }
     }
 
     fn run(mut self, rx: mpsc::Receiver<Msg>) {
@@ -389,7 +323,7 @@ impl Worker {
             uses_prompt: r.method.uses_prompt(),
             target_return: r.stats.target_return,
             rtg_scale: r.stats.rtg_scale,
-            max_ep_len: r.model.cfg.max_ep_len,
+            max_ep_len: r.max_ep_len(),
             iteration: r.iteration,
             prompt_tasks: r.prompt_tasks().unwrap_or_default(),
             max_episodes: self.opts.max_episodes,
@@ -404,28 +338,6 @@ impl Worker {
         self.episodes.retain(|_, e| e.seen.elapsed() < limit);
     }
 
-    /// A raw observation as the history will hold it: `obs_dim` finite f32 values whose
-    /// normalisation is finite too (a finite 3e38 normalises to infinity, and one infinite state
-    /// makes every action of its context NaN).
-    fn observation(&self, obs: &[f64], inputs: &mut Inputs) -> Result<Vec<f32>, ApiError> {
-        let o = self.run.observation(obs).map_err(ApiError::bad)?;
-        for (j, &x) in o.iter().enumerate() {
-            let (mean, std) = (self.norm.mean[j], self.norm.std[j]);
-            // In f32, exactly as `History` normalises it.
-            let z = (x - mean) / std;
-            if !z.is_finite() {
-                return Err(ApiError::bad(format!(
-                    "observation[{j}] = {x:e} is out of range: normalised with the run's state \
-                     statistics ((x - mean) / std, mean {mean}, std {std}) it is beyond the \
-                     largest f32 ({:e})",
-                    f32::MAX
-                )));
-            }
-            inputs.see(|| format!("observation[{j}] = {x:e}"), z);
-        }
-        Ok(o)
-    }
-
     fn open(&mut self, req: OpenRequest) -> Result<u64, ApiError> {
         if self.episodes.len() >= self.opts.max_episodes {
             return Err(ApiError::new(
@@ -436,8 +348,7 @@ impl Worker {
                 ),
             ));
         }
-        let mut inputs = Inputs::default();
-        let obs = self.observation(&req.observation, &mut inputs)?;
+        let mut obs = self.run.observation(&req.observation)?;
         let prompt = match (self.run.method.uses_prompt(), req.prompt, req.task) {
             (false, None, None) => None,
             (false, ..) => {
@@ -449,142 +360,45 @@ impl Worker {
             (true, Some(_), Some(_)) => {
                 return Err(ApiError::bad("give either `prompt` or `task`, not both"))
             }
-            (true, Some(p), None) => Some(self.prompt_from_arrays(&p, &mut inputs)?),
-            (true, None, Some(task)) => Some(
-                self.run.task_prompt(task, req.prompt_seed.unwrap_or(0)).map_err(ApiError::bad)?,
-            ),
+            (true, Some(p), None) => Some(self.run.prompt_from_arrays(&p, obs.inputs_mut())?),
+            (true, None, Some(task)) => {
+                Some(self.run.task_prompt(task, req.prompt_seed.unwrap_or(0))?)
+            }
             (true, None, None) => {
                 return Err(ApiError::bad(
                     "this run's method takes a prompt: send `prompt` (arrays) or `task`",
                 ))
             }
         };
-        let target = match req.target_return {
-            Some(g) if !g.is_finite() => {
-                return Err(ApiError::bad(format!("target_return {g} is not a finite number")))
-            }
-            Some(g) if g.abs() > MAX_RETURN => {
-                return Err(ApiError::bad(format!(
-                    "target_return {g:e} is outside the accepted range [-{MAX_RETURN:e}, \
-                     {MAX_RETURN:e}] (returns are f32 tokens)"
-                )))
-            }
-            Some(g) => g as f32,
-            None => self.run.stats.target_return,
-        };
+        let target = self.run.target(req.target_return)?;
         let prefix = match &prompt {
-            Some(p) => Some(self.run.prefix(&[p]).map_err(ApiError::bad)?),
+            Some(p) => Some(self.run.prefix(&[p])?),
             None => None,
         };
-        let rtg0 = first_rtg(self.run.returns, target, self.run.stats.rtg_scale);
-        if req.target_return.is_some() {
-            inputs.see(|| format!("target_return = {target:e}"), rtg0);
-        }
         let id = self.next_id;
         self.next_id += 1;
-        self.episodes.insert(
-            id,
-            Episode {
-                h: History::start(&self.norm, &obs, rtg0),
-                prefix,
-                last_action: Vec::new(),
-                seen: Instant::now(),
-                undo: None,
-                inputs,
-            },
-        );
+        let e = self.run.start(obs, target);
+        self.episodes.insert(id, Episode { e, prefix, seen: Instant::now() });
         Ok(id)
     }
 
-    /// A prompt from arrays, checked as the run checks it, and then for what overflows: a state
-    /// that normalises beyond f32, a return-to-go beyond [`MAX_RETURN`] (the data readers' bound).
-    fn prompt_from_arrays(
-        &self,
-        p: &PromptArrays,
-        inputs: &mut Inputs,
-    ) -> Result<SegmentBatch, ApiError> {
-        let b = self.run.prompt_from_arrays(p).map_err(ApiError::bad)?;
-        let (ds, da) = (b.state_dim, b.act_dim);
-        for (t, s) in p.states.iter().enumerate() {
-            for (j, &x) in s.iter().enumerate() {
-                let z = b.states[t * ds + j];
-                if !z.is_finite() {
-                    return Err(ApiError::bad(format!(
-                        "prompt.states[{t}][{j}] = {x:e} is out of range: normalised with the \
-                         run's state statistics ((x - mean) / std, mean {}, std {}) it is beyond \
-                         the largest f32 ({:e})",
-                        self.norm.mean[j],
-                        self.norm.std[j],
-                        f32::MAX
-                    )));
-                }
-                inputs.see(|| format!("prompt.states[{t}][{j}] = {x:e}"), z);
-            }
-        }
-        for (t, a) in p.actions.iter().enumerate() {
-            for (j, &x) in a.iter().enumerate() {
-                inputs.see(|| format!("prompt.actions[{t}][{j}] = {x:e}"), b.actions[t * da + j]);
-            }
-        }
-        for (t, &r) in p.returns_to_go.iter().enumerate() {
-            if r.abs() > MAX_RETURN {
-                return Err(ApiError::bad(format!(
-                    "prompt.returns_to_go[{t}] = {r:e} is outside the accepted range \
-                     [-{MAX_RETURN:e}, {MAX_RETURN:e}] (returns are f32 tokens)"
-                )));
-            }
-            inputs.see(|| format!("prompt.returns_to_go[{t}] = {r:e}"), b.returns_to_go[t]);
-        }
-        Ok(b)
-    }
-
     fn step(&mut self, id: u64, req: StepRequest) -> Result<(), ApiError> {
-        let mut inputs = Inputs::default();
-        let obs = self.observation(&req.observation, &mut inputs)?;
-        let r = req.reward;
-        if !r.is_finite() {
-            return Err(ApiError::bad(format!("reward {r} is not a finite number")));
-        }
-        if r.abs() > MAX_RETURN {
-            return Err(ApiError::bad(format!(
-                "reward {r:e} is outside the accepted range [-{MAX_RETURN:e}, {MAX_RETURN:e}] \
-                 (returns are f32 tokens)"
-            )));
-        }
-        let max_t = self.run.model.cfg.max_ep_len;
-        let (returns, scale) = (self.run.returns, self.run.stats.rtg_scale);
-        let norm = &self.norm;
-        let e = self.episodes.get_mut(&id).ok_or_else(|| unknown(id))?;
-        if e.h.t + 1 >= max_t {
-            return Err(ApiError::new(
+        let obs = self.run.observation(&req.observation)?;
+        let step = self.run.step(req.reward, obs)?;
+        let ep = self.episodes.get_mut(&id).ok_or_else(|| unknown(id))?;
+        match self.run.record(&mut ep.e, step) {
+            Ok(()) => {
+                ep.seen = Instant::now();
+                Ok(())
+            }
+            Err(PolicyError::EpisodeFull { max_ep_len }) => Err(ApiError::new(
                 StatusCode::CONFLICT,
                 format!(
-                    "episode {id} has reached the model's max_ep_len ({max_t} steps); close it"
+                    "episode {id} has reached the model's max_ep_len ({max_ep_len} steps); close it"
                 ),
-            ));
+            )),
+            Err(e) => Err(ApiError::bad(format!("episode {id}: {e}"))),
         }
-        // The return-to-go token this reward leads to, computed as `History::record` will: rewards
-        // within range can still add up beyond it, and the token stays in every later context.
-        let prev = e.h.rtg.last().copied().unwrap_or(0.0);
-        let next = match returns {
-            EvalReturns::Decreasing => prev - r as f32 / scale,
-            EvalReturns::Constant | EvalReturns::Zero => prev,
-        };
-        let rtg = f64::from(next) * f64::from(scale);
-        if !next.is_finite() || rtg.abs() > MAX_RETURN {
-            return Err(ApiError::bad(format!(
-                "reward {r:e} would take episode {id}'s return-to-go (the target return minus \
-                 the rewards so far) to {rtg:e}, outside the accepted range [-{MAX_RETURN:e}, \
-                 {MAX_RETURN:e}]; the step is refused and the episode is as it was"
-            )));
-        }
-        inputs.see(|| format!("the return-to-go {rtg:e} after reward = {r:e}"), next);
-        e.seen = Instant::now();
-        e.undo = Some(Undo::of(e));
-        e.inputs = inputs;
-        let last = std::mem::take(&mut e.last_action);
-        e.h.record(&last, r as f32, &obs, norm, returns, scale);
-        Ok(())
     }
 
     /// Answers every pending action: one forward per group of episodes with prompts of the same
@@ -615,43 +429,32 @@ impl Worker {
                 }
                 continue;
             }
-            let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
+            let states: Vec<&pdt_policy::Episode> = eps.iter().map(|e| &e.e).collect();
             let prefixes: Option<Vec<&PrefixCache>> =
                 eps.iter().map(|e| e.prefix.as_ref()).collect();
             let prefix = prefixes.and_then(|p| PrefixCache::cat(&p));
-            let flat = self.run.act(&hs, prefix.as_ref()); // [A * da]
+            let flat = self.run.act(&states, prefix.as_ref()); // [A * da]
             for (p, a) in group.into_iter().zip(flat.chunks_exact(da)) {
-                let Some(e) = self.episodes.get_mut(&p.id) else { continue };
-                if a.iter().all(|x| x.is_finite()) {
-                    e.undo = None;
-                    e.last_action = a.to_vec();
-                    let _ = p.reply.send(Ok(ActionReply {
-                        episode: p.id,
-                        t: e.h.t,
-                        action: a.to_vec(),
-                    }));
-                    continue;
-                }
-                // Inputs each representable can still overflow inside the model (an embedding of
-                // 1e30 squared in a layer norm): the request is refused and nothing of it kept,
-                // so the client can go on with sane values.
-                let why = format!(
-                    "the policy's action is not finite ({a:?}): {}; values this far from the \
-                     run's data overflow the model's f32 arithmetic",
-                    e.inputs.describe()
-                );
+                let Some(ep) = self.episodes.get_mut(&p.id) else { continue };
+                let why = match ep.e.accept(a) {
+                    Ok(()) => {
+                        let reply = ActionReply { episode: p.id, t: ep.e.t(), action: a.to_vec() };
+                        let _ = p.reply.send(Ok(reply));
+                        continue;
+                    }
+                    Err(why) => why,
+                };
+                // Nothing of a refused request is kept (`accept` took the step back), so the
+                // client can go on with sane values.
                 let msg = if p.opening {
                     self.episodes.remove(&p.id);
                     format!("{why}. The episode is not opened")
                 } else {
-                    if let Some(u) = e.undo.take() {
-                        u.apply(e);
-                    }
                     format!(
                         "episode {} step {}: {why}. The step is refused and the episode is as it \
                          was before it",
                         p.id,
-                        e.h.t + 1
+                        ep.e.t() + 1
                     )
                 };
                 let _ = p.reply.send(Err(ApiError::bad(msg)));
@@ -740,8 +543,8 @@ pub struct Server {
 
 impl Server {
     /// Starts serving `run` on a thread of its own; returns once the socket is bound.
-    pub fn start(run: ServedRun, opts: ServeOptions) -> Result<Self, ServeError> {
-        if run.method == pdt_train::config::Method::MtBcFinetune {
+    pub fn start(run: Policy, opts: ServeOptions) -> Result<Self, ServeError> {
+        if run.method == pdt_rundir::config::Method::MtBcFinetune {
             // Its evaluation fine-tunes on each task's demonstrations before acting; served as is
             // it would be another policy than the one evaluated.
             return Err(ServeError::Invalid(

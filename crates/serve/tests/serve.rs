@@ -4,9 +4,9 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_eval::{evaluate, EvalSettings, EvalTask, Inference};
+use pdt_policy::Policy;
 use pdt_prompt::StateNorm;
 use pdt_serve::ServeOptions;
-use pdt_train::run::ServedRun;
 use std::io::Write;
 use std::net::{SocketAddr, TcpStream};
 use std::time::Duration;
@@ -48,7 +48,7 @@ fn served_episode(addr: SocketAddr, open: serde_json::Value, task: usize, seed: 
 
 /// What `promptdt eval` takes for one episode of `task` with the prompt of `open`.
 fn evaluated_episode(task: usize, seed: u64, prompt_seed: u64) -> Vec<f32> {
-    let run = ServedRun::load(&tiny_run().1, None, None).unwrap();
+    let run = Policy::load(&tiny_run().1, None, None).unwrap();
     let family = pdt_envs::family("point_robot").unwrap();
     let settings = EvalSettings {
         k: run.k,

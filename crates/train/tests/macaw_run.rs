@@ -72,7 +72,7 @@ fn killed_and_resumed_macaw_run_equals_uninterrupted_run() {
     let r = evaluate_run_with(&full, Some(1), "test", None, None, &official).unwrap();
     assert_eq!(r.adaptation.as_deref(), Some("1 steps on 8 transitions"));
     // serving a MACAW run is refused with the reason
-    let e = pdt_train::run::ServedRun::load(&full, None, None).err().unwrap().to_string();
+    let e = pdt_policy::Policy::load(&full, None, None).err().unwrap().to_string();
     assert!(e.contains("MACAW") && e.contains("promptdt eval"), "{e}");
 }
 

@@ -1,0 +1,51 @@
+use std::path::PathBuf;
+
+/// Why a run cannot be loaded as a policy, or why an input to it is refused.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    #[error(transparent)]
+    Config(#[from] pdt_rundir::config::ConfigError),
+    #[error(transparent)]
+    Data(#[from] pdt_data::DataError),
+    #[error(transparent)]
+    Env(#[from] pdt_envs::EnvError),
+    #[error(transparent)]
+    Sampler(#[from] pdt_prompt::SamplerError),
+    #[error(transparent)]
+    Checkpoint(#[from] pdt_model::checkpoint::CheckpointError),
+    #[error(transparent)]
+    Device(#[from] pdt_model::device::DeviceError),
+    #[error(transparent)]
+    RunDir(#[from] pdt_rundir::RunDirError),
+    #[error("{path}: {message}")]
+    Corrupt { path: PathBuf, message: String },
+    #[error("{}: not a run directory (no config.toml)", .0.display())]
+    NotARunDir(PathBuf),
+    #[error("{}: no checkpoint yet (train first)", .0.display())]
+    NoCheckpoint(PathBuf),
+    #[error(
+        "{}: a MACAW run adapts to a task's data before it acts; serving it is not supported \
+         (evaluate it with `promptdt eval`)",
+        .0.display()
+    )]
+    Macaw(PathBuf),
+    /// The run's configuration and data do not fit together (the trainer's checks).
+    #[error("{0}")]
+    Invalid(String),
+    /// An input refused: an observation, reward, target return or prompt, named in the message.
+    #[error("{0}")]
+    Input(String),
+    #[error("task {task} is not one of the run's tasks ({known})")]
+    UnknownTask { task: usize, known: String },
+    /// Task prompts or plans asked for, but the run's data could not be read (or changed).
+    #[error("{what}{why}")]
+    Unavailable { what: &'static str, why: String },
+    /// The episode has as many steps as the model has timesteps.
+    #[error("the episode has reached the model's max_ep_len ({max_ep_len} steps)")]
+    EpisodeFull { max_ep_len: usize },
+    #[error(
+        "the policy's action is not finite ({action:?}): {inputs}; values this far from the \
+         run's data overflow the model's f32 arithmetic"
+    )]
+    ActionNotFinite { action: Vec<f32>, inputs: String },
+}

@@ -1,0 +1,59 @@
+//! The run-directory files a policy reads, through `pdt-rundir`'s typed readers: `config.toml`
+//! (with this invocation's device and data place), `task_stats.json` and
+//! `checkpoints/latest.json`, each with what a missing or bad one means for acting.
+
+use crate::PolicyError;
+use pdt_rundir::config::{DeviceSpec, TrainConfig};
+use pdt_rundir::{Latest, RunDir, RunDirError, RunStats};
+use std::path::Path;
+
+/// A run's configuration, for acting with it: its `config.toml` with this invocation's device and
+/// the place its data moved to.
+pub(crate) fn run_config(
+    dir: &RunDir,
+    device: Option<DeviceSpec>,
+    data: Option<&Path>,
+) -> Result<TrainConfig, PolicyError> {
+    if !dir.config_path().is_file() {
+        return Err(PolicyError::NotARunDir(dir.path().into()));
+    }
+    let mut cfg = dir.config()?;
+    if let Some(d) = device {
+        cfg.run.device = d;
+    }
+    if let Some(d) = data {
+        // Absolute against the current directory (not resolving symlinks).
+        cfg.data.dir = std::path::absolute(d).unwrap_or_else(|_| d.to_path_buf());
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+/// Reads a run's `task_stats.json`, saying what a missing one means, and checks its values (a
+/// hand-edited or corrupt file must not normalise states by NaN or 0).
+pub(crate) fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
+    let path = dir.stats_path();
+    if !path.exists() {
+        let why = if dir.latest_path().exists() {
+            "but the run has a checkpoint: it cannot be recreated from today's data without \
+             defeating the check that the data did not change. Restore it from a copy of the run, \
+             or delete the run"
+        } else {
+            "the run directory was interrupted while being created (killed before writing it); \
+             `promptdt train --resume` recreates it and starts the run, or delete the directory"
+        };
+        return Err(PolicyError::Invalid(format!("{} is missing, {why}", path.display())));
+    }
+    let stats = dir.stats()?;
+    stats.check().map_err(|message| PolicyError::Corrupt { path, message })?;
+    Ok(stats)
+}
+
+/// The latest checkpoint of the run (its weights must be the ones of its step).
+pub(crate) fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
+    match dir.latest() {
+        Ok(Some(latest)) => Ok(latest),
+        Ok(None) | Err(RunDirError::Io { .. }) => Err(PolicyError::NoCheckpoint(dir.path().into())),
+        Err(e) => Err(e.into()),
+    }
+}

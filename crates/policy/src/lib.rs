@@ -1,0 +1,26 @@
+//! A trained run as a policy: what `promptdt serve` (HTTP) and the Python package (numpy) act
+//! through, so both load, prompt, step and check the same way.
+//!
+//! - [`Policy`] ([`policy`]): a run's latest weights loaded to act, with its normalisation, return
+//!   tokens and K; prompts from arrays ([`PromptArrays`]) or drawn from the run's data as its
+//!   evaluation draws them; evaluation plans ([`TaskPlan`]).
+//! - [`Episode`] ([`episode`]): one episode's history and checks (observation, reward, target
+//!   return, `max_ep_len`, return-to-go overflow), and the undo of a step whose action is not
+//!   finite.
+//! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
+//!   normalisation and the statistics a run records.
+
+// Errors carry the offending path or value; they are returned on the cold path only.
+#![allow(clippy::result_large_err)]
+
+pub mod data;
+pub mod episode;
+mod error;
+mod files;
+pub mod policy;
+
+pub use data::RunData;
+pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};
+pub use error::PolicyError;
+pub use pdt_rundir::RunStats;
+pub use policy::{eval_returns, plan_task, Policy, PromptArrays, TaskPlan};

@@ -1,0 +1,310 @@
+//! The typed files of a run directory (`docs/run-directory.md`): one struct per file or per line of
+//! a JSON-lines log, read and written by every crate through these definitions only.
+//!
+//! Two meanings of "split" are kept apart: a run's *task split* (`run.json`'s `task_split`: which
+//! tasks are train and test tasks, "default", "ood", ...) and the tasks an evaluation is *on*
+//! (`eval_on`: "test" or "train"). Run directories written before the rename call both `split`;
+//! they are read through serde aliases.
+
+use serde::{Deserialize, Deserializer, Serialize};
+use std::collections::BTreeMap;
+
+use crate::config::{compact, MAX_STATE_STAT};
+
+/// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
+/// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
+/// The name MACAW runs have in `run.json`'s `method`.
+const MACAW: &str = "macaw";
+
+/// The run's identity (`run.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunInfo {
+    /// The descriptive fields (`name`, `created`, `promptdt_version`) are empty when a hand-made
+    /// or trimmed `run.json` lacks them: nothing reads a meaning into them.
+    #[serde(default)]
+    pub name: String,
+    pub method: String,
+    pub env: String,
+    pub seed: u64,
+    /// Which of the family's task splits the run trains and tests on ("default", "ood", ...).
+    /// Runs on different splits are never averaged together: their test tasks differ.
+    #[serde(alias = "split")]
+    pub task_split: String,
+    #[serde(default)]
+    pub created: String,
+    #[serde(default)]
+    pub promptdt_version: String,
+    /// The `metrics.jsonl` column that holds the method's training loss (what a report plots as
+    /// "the loss"). Absent in runs written before it was recorded: see [`RunInfo::loss_metric`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_metric: Option<String>,
+}
+
+impl RunInfo {
+    /// The `metrics.jsonl` column holding the run's training loss: the recorded one, or for runs
+    /// written before it was recorded, the column their method wrote then (the one place that
+    /// knows those names).
+    pub fn loss_metric(&self) -> &str {
+        match &self.loss_metric {
+            Some(m) => m,
+            None if self.method == MACAW => LEGACY_MACAW_LOSS_METRIC,
+            None => LEGACY_LOSS_METRIC,
+        }
+    }
+}
+
+/// What evaluation needs besides weights (`task_stats.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunStats {
+    pub obs_dim: usize,
+    pub act_dim: usize,
+    pub state_mean: Vec<f32>,
+    pub state_std: Vec<f32>,
+    pub rtg_scale: f32,
+    pub target_return: f32,
+    pub horizon: usize,
+    pub train_tasks: Vec<usize>,
+    pub test_tasks: Vec<usize>,
+    /// Content hashes of the training and test data (`MultiTaskDataset::fingerprint`): a resumed
+    /// or evaluated run refuses data that differs. Empty in runs made before they were recorded.
+    #[serde(default)]
+    pub train_data_fingerprint: String,
+    #[serde(default)]
+    pub test_data_fingerprint: String,
+}
+
+/// The name `task_stats.json`'s struct had before it moved here.
+pub type TaskStats = RunStats;
+
+/// `|x| <= bound`, false for NaN.
+fn within(x: f64, bound: f64) -> bool {
+    x.abs() <= bound
+}
+
+impl RunStats {
+    /// The values a policy can act with: one mean and std per state dimension, finite, each std
+    /// positive, all within [`MAX_STATE_STAT`]; a positive finite rtg scale; a finite target.
+    pub fn check(&self) -> Result<(), String> {
+        let n = self.obs_dim;
+        if self.state_mean.len() != n || self.state_std.len() != n {
+            return Err(format!(
+                "state_mean has {} values and state_std {}, but obs_dim is {n}",
+                self.state_mean.len(),
+                self.state_std.len()
+            ));
+        }
+        for (j, (&m, &s)) in self.state_mean.iter().zip(&self.state_std).enumerate() {
+            let ok = within(f64::from(m), MAX_STATE_STAT)
+                && s > 0.0
+                && within(f64::from(s), MAX_STATE_STAT);
+            if !ok {
+                return Err(format!(
+                    "state_mean[{j}] = {}, state_std[{j}] = {}: each must be finite and within {} \
+                     in magnitude, the std positive",
+                    compact(m),
+                    compact(s),
+                    compact(MAX_STATE_STAT)
+                ));
+            }
+        }
+        let ok =
+            self.rtg_scale > 0.0 && self.rtg_scale.is_finite() && self.target_return.is_finite();
+        if !ok {
+            return Err(format!(
+                "rtg_scale = {} must be positive and finite, target_return = {} finite",
+                compact(self.rtg_scale),
+                compact(self.target_return)
+            ));
+        }
+        Ok(())
+    }
+
+    /// Compares the statistics recomputed from the data now with those recorded in a run;
+    /// `Err` says what differs. Fingerprints are compared when the run recorded them.
+    pub fn check_same_as(&self, recorded: &RunStats) -> Result<(), String> {
+        let fp = |now: &str, then: &str, which: &str| {
+            if !then.is_empty() && now != then {
+                Err(format!(
+                    "the {which} data differ from what the run trained on ({then}, now {now})"
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        fp(&self.train_data_fingerprint, &recorded.train_data_fingerprint, "training")?;
+        fp(&self.test_data_fingerprint, &recorded.test_data_fingerprint, "test")?;
+        let mut mine = self.clone();
+        mine.train_data_fingerprint.clone_from(&recorded.train_data_fingerprint);
+        mine.test_data_fingerprint.clone_from(&recorded.test_data_fingerprint);
+        if &mine != recorded {
+            return Err("the state statistics, tasks or return settings recomputed from the \
+                        configuration and data differ from those the run recorded"
+                .into());
+        }
+        Ok(())
+    }
+}
+
+/// The commit point of a checkpoint (`checkpoints/latest.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Latest {
+    pub step: u64,
+    pub iteration: u64,
+    /// The weights file, `step_<step>.safetensors`, in `checkpoints/`.
+    pub model: String,
+    /// The optimiser state file, `state_<step>.safetensors`, in `checkpoints/`.
+    pub state: String,
+    /// `false` for a resume point between checkpoints (`train.resume_interval`): its weights are
+    /// removed once a later checkpoint is in force. Absent in runs written before the option.
+    #[serde(default = "keep_default")]
+    pub keep: bool,
+}
+
+fn keep_default() -> bool {
+    true
+}
+
+impl Latest {
+    /// The weights file name a checkpoint of `step` has.
+    pub fn model_name(step: u64) -> String {
+        format!("step_{step}.safetensors")
+    }
+
+    /// The optimiser state file name a checkpoint of `step` has.
+    pub fn state_name(step: u64) -> String {
+        format!("state_{step}.safetensors")
+    }
+
+    /// `Err` says why the record does not name its own step's weights (an edited or corrupt file).
+    pub fn check(&self) -> Result<(), String> {
+        if self.model != Self::model_name(self.step) {
+            return Err(format!("names weights `{}` for step {}", self.model, self.step));
+        }
+        Ok(())
+    }
+}
+
+/// One task's evaluation: the rows of `eval_final.json`'s `tasks`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskResult {
+    pub task: String,
+    pub task_index: usize,
+    /// serde_json writes a NaN (a diverged policy) as `null`; it reads back as NaN.
+    #[serde(deserialize_with = "f64_or_null")]
+    pub return_mean: f64,
+    #[serde(deserialize_with = "f64_or_null")]
+    pub return_std: f64,
+    #[serde(deserialize_with = "f64_or_null")]
+    pub length_mean: f64,
+    pub episodes: usize,
+    #[serde(deserialize_with = "f64s_or_null")]
+    pub returns: Vec<f64>,
+    /// Fraction of the episodes that succeeded; `None` for families without a success criterion.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success_rate: Option<f64>,
+}
+
+/// The final evaluation of a run's latest checkpoint (`eval_final.json`, by `promptdt eval`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FinalEval {
+    pub iteration: u64,
+    pub step: u64,
+    pub checkpoint: String,
+    /// The tasks evaluated on: "test" or "train".
+    #[serde(alias = "split")]
+    pub eval_on: String,
+    pub tasks: Vec<TaskResult>,
+    #[serde(deserialize_with = "f64_or_null")]
+    pub mean_return: f64,
+    /// MACAW runs: the test-time adaptation used.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptation: Option<String>,
+}
+
+/// One line of `eval.jsonl`: one task's evaluation at one iteration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalLine {
+    pub iteration: u64,
+    pub step: u64,
+    /// The tasks evaluated on: "test" or "train".
+    #[serde(alias = "split")]
+    pub eval_on: String,
+    pub task: String,
+    pub task_index: usize,
+    /// serde_json writes a NaN (a diverged policy) as `null`; it reads back as NaN.
+    #[serde(deserialize_with = "f64_or_null")]
+    pub return_mean: f64,
+    #[serde(deserialize_with = "f64_or_null")]
+    pub return_std: f64,
+    #[serde(deserialize_with = "f64_or_null")]
+    pub length_mean: f64,
+    pub episodes: usize,
+    pub target_return: f32,
+    /// Only families with a success criterion (Meta-World) have the column.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success_rate: Option<f64>,
+}
+
+impl EvalLine {
+    /// The line of `result`, evaluated at `iteration` (`step`) on `eval_on` ("test" or "train")
+    /// with the run's target return.
+    pub fn new(r: &TaskResult, iteration: u64, step: u64, eval_on: &str, target: f32) -> Self {
+        Self {
+            iteration,
+            step,
+            eval_on: eval_on.into(),
+            task: r.task.clone(),
+            task_index: r.task_index,
+            return_mean: r.return_mean,
+            return_std: r.return_std,
+            length_mean: r.length_mean,
+            episodes: r.episodes,
+            target_return: target,
+            success_rate: r.success_rate,
+        }
+    }
+
+    /// Whether the line is an evaluation of the run's test tasks.
+    pub fn is_test(&self) -> bool {
+        self.eval_on == "test"
+    }
+}
+
+/// One line of `metrics.jsonl`: one iteration's training statistics. The fixed keys are fields;
+/// the method's own statistics (`train/action_loss`, `train/policy_outer_loss`, ...) are data,
+/// named by the method ([`RunInfo::loss_metric`] says which one is the loss).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MetricsLine {
+    pub iteration: u64,
+    pub step: u64,
+    /// Training time of the kept iterations so far (a resumed run adds its own time).
+    #[serde(rename = "time/elapsed_s", deserialize_with = "f64_or_null")]
+    pub elapsed_s: f64,
+    /// The method's statistics by column name; a NaN is written as `null` and read back as NaN.
+    #[serde(flatten, deserialize_with = "nan_map_de")]
+    pub values: BTreeMap<String, f64>,
+}
+
+impl MetricsLine {
+    /// The value of the column `name`, if the line has it.
+    pub fn get(&self, name: &str) -> Option<f64> {
+        self.values.get(name).copied()
+    }
+}
+
+fn f64_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+fn f64s_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+    Ok(Vec::<Option<f64>>::deserialize(d)?.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect())
+}
+
+fn nan_map_de<'de, D: Deserializer<'de>>(d: D) -> Result<BTreeMap<String, f64>, D::Error> {
+    Ok(BTreeMap::<String, Option<f64>>::deserialize(d)?
+        .into_iter()
+        .map(|(k, v)| (k, v.unwrap_or(f64::NAN)))
+        .collect())
+}

@@ -1,0 +1,233 @@
+//! The typed files of a run directory: old names read, round trips, and errors that name the file.
+
+use pdt_rundir::{
+    EvalLine, FinalEval, Latest, MetricsLine, RunDir, RunDirError, RunInfo, RunStats, TaskResult,
+};
+use std::collections::BTreeMap;
+use std::fs;
+
+type TestResult = Result<(), Box<dyn std::error::Error>>;
+
+fn info(method: &str) -> RunInfo {
+    RunInfo {
+        name: format!("{method}-point_robot-seed0"),
+        method: method.into(),
+        env: "point_robot".into(),
+        seed: 0,
+        task_split: "default".into(),
+        created: "2026-11-26T15:00:00Z".into(),
+        promptdt_version: "0.1.0".into(),
+        loss_metric: None,
+    }
+}
+
+fn task(index: usize, ret: f64) -> TaskResult {
+    TaskResult {
+        task: format!("point_robot-{index}"),
+        task_index: index,
+        return_mean: ret,
+        return_std: 0.5,
+        length_mean: 20.0,
+        episodes: 2,
+        returns: vec![ret - 0.5, ret + 0.5],
+        success_rate: None,
+    }
+}
+
+#[test]
+fn run_json_reads_the_old_split_name_and_writes_the_new_one() -> TestResult {
+    let old = r#"{"name": "a", "method": "prompt-dt", "env": "point_robot", "seed": 3,
+        "split": "ood", "created": "2026-11-21T14:00:00Z", "promptdt_version": "0.1.0"}"#;
+    let i: RunInfo = serde_json::from_str(old)?;
+    assert_eq!((i.task_split.as_str(), i.seed, i.loss_metric.as_deref()), ("ood", 3, None));
+    let text = serde_json::to_string(&i)?;
+    assert!(text.contains("\"task_split\":\"ood\"") && !text.contains("\"split\""), "{text}");
+    // An old run records no loss column: absent, not null.
+    assert!(!text.contains("loss_metric"), "{text}");
+    assert_eq!(serde_json::from_str::<RunInfo>(&text)?, i);
+    Ok(())
+}
+
+#[test]
+fn the_loss_column_comes_from_the_run_or_its_method() {
+    assert_eq!(info("prompt-dt").loss_metric(), "train/action_loss");
+    assert_eq!(info("mt-orl").loss_metric(), "train/action_loss");
+    assert_eq!(info("macaw").loss_metric(), "train/policy_outer_loss");
+    let mut i = info("macaw");
+    i.loss_metric = Some("train/some_loss".into());
+    assert_eq!(i.loss_metric(), "train/some_loss");
+}
+
+#[test]
+fn eval_lines_read_the_old_split_name_and_null_returns() -> TestResult {
+    let old = r#"{"iteration": 1, "step": 10, "split": "test", "task": "point_robot-3",
+        "task_index": 3, "return_mean": null, "return_std": 0.5, "length_mean": 20.0,
+        "episodes": 2, "target_return": 0.0}"#;
+    let l: EvalLine = serde_json::from_str(old)?;
+    assert!(l.is_test() && l.return_mean.is_nan() && l.success_rate.is_none());
+    let text = serde_json::to_string(&l)?;
+    assert!(text.contains("\"eval_on\":\"test\"") && !text.contains("success_rate"), "{text}");
+    let back: EvalLine = serde_json::from_str(&text)?;
+    assert!(back.return_mean.is_nan() && back.eval_on == "test");
+    Ok(())
+}
+
+#[test]
+fn final_eval_reads_the_old_split_name() -> TestResult {
+    let old = r#"{"iteration": 3, "step": 30, "checkpoint": "checkpoints/step_30.safetensors",
+        "split": "train", "tasks": [{"task": "point_robot-3", "task_index": 3, "return_mean": -2.5,
+        "return_std": 0.1, "length_mean": 20.0, "episodes": 1, "returns": [null]}],
+        "mean_return": -2.5}"#;
+    let f: FinalEval = serde_json::from_str(old)?;
+    assert_eq!(f.eval_on, "train");
+    assert!(f.tasks[0].returns[0].is_nan() && f.adaptation.is_none());
+    let text = serde_json::to_string(&f)?;
+    assert!(text.contains("\"eval_on\":\"train\"") && !text.contains("\"split\""), "{text}");
+    Ok(())
+}
+
+#[test]
+fn metrics_lines_keep_the_methods_columns() -> TestResult {
+    let line = r#"{"iteration": 2, "step": 20, "time/elapsed_s": 1.5,
+        "train/policy_outer_loss": 0.25, "train/adv_coef": null}"#;
+    let m: MetricsLine = serde_json::from_str(line)?;
+    assert_eq!((m.iteration, m.step, m.elapsed_s), (2, 20, 1.5));
+    assert_eq!(m.get(info("macaw").loss_metric()), Some(0.25));
+    assert!(m.get("train/adv_coef").is_some_and(f64::is_nan));
+    assert_eq!(m.get("train/action_loss"), None);
+    assert_eq!(m.values.len(), 2);
+    let text = serde_json::to_string(&m)?;
+    let back: serde_json::Value = serde_json::from_str(&text)?;
+    assert_eq!(back["train/policy_outer_loss"], 0.25);
+    assert_eq!(back["time/elapsed_s"], 1.5);
+    Ok(())
+}
+
+#[test]
+fn a_run_directory_round_trips_through_its_writers_and_readers() -> TestResult {
+    let tmp = tempfile::tempdir()?;
+    let dir = RunDir::at(tmp.path().join("run"));
+    assert!(matches!(RunDir::open(dir.path()), Err(RunDirError::NotARunDir { .. })));
+    dir.create_dir()?;
+    let mut i = info("macaw");
+    i.loss_metric = Some("train/policy_outer_loss".into());
+    dir.write_info(&i)?;
+    let dir = RunDir::open(dir.path())?;
+    assert_eq!(dir.info()?, i);
+
+    let config = pdt_rundir::config::TrainConfig::default();
+    dir.write_config(&config)?;
+    assert_eq!(dir.config()?, config);
+
+    let stats = RunStats {
+        obs_dim: 2,
+        act_dim: 2,
+        state_mean: vec![0.0, 1.0],
+        state_std: vec![1.0, 2.0],
+        rtg_scale: 1.0,
+        target_return: 0.0,
+        horizon: 20,
+        train_tasks: vec![1, 2],
+        test_tasks: vec![3],
+        train_data_fingerprint: "a".into(),
+        test_data_fingerprint: "b".into(),
+    };
+    dir.write_stats(&stats)?;
+    assert_eq!(dir.stats()?, stats);
+    stats.check()?;
+    stats.check_same_as(&dir.stats()?)?;
+
+    assert_eq!(dir.latest()?, None);
+    fs::create_dir_all(dir.checkpoints_dir())?;
+    let latest = Latest {
+        step: 30,
+        iteration: 3,
+        model: Latest::model_name(30),
+        state: Latest::state_name(30),
+        keep: true,
+    };
+    dir.write_latest(&latest)?;
+    assert_eq!(dir.latest()?, Some(latest));
+
+    assert!(dir.eval_lines()?.is_none() && dir.metrics()?.is_none());
+    let lines: Vec<EvalLine> = [task(3, -2.0), task(7, -4.0)]
+        .iter()
+        .map(|t| EvalLine::new(t, 3, 30, "test", 0.0))
+        .collect();
+    dir.append_eval_lines(&lines[..1])?;
+    dir.append_eval_lines(&lines[1..])?;
+    let read = dir.eval_lines()?.ok_or("no eval.jsonl")?;
+    assert_eq!((read.rows, read.skipped), (lines, None));
+
+    let metrics = MetricsLine {
+        iteration: 3,
+        step: 30,
+        elapsed_s: 2.0,
+        values: BTreeMap::from([("train/policy_outer_loss".to_string(), 0.5)]),
+    };
+    dir.append_metrics(std::slice::from_ref(&metrics))?;
+    assert_eq!(dir.metrics()?.ok_or("no metrics.jsonl")?.rows, vec![metrics]);
+
+    assert_eq!(dir.final_eval()?, None);
+    let f = FinalEval {
+        iteration: 3,
+        step: 30,
+        checkpoint: "checkpoints/step_30.safetensors".into(),
+        eval_on: "test".into(),
+        tasks: vec![task(3, -2.0)],
+        mean_return: -2.0,
+        adaptation: Some("1 steps on 256 transitions".into()),
+    };
+    dir.write_final_eval(&f)?;
+    assert_eq!(dir.final_eval()?, Some(f));
+    Ok(())
+}
+
+#[test]
+fn truncated_and_malformed_files_give_errors_naming_the_file() -> TestResult {
+    let tmp = tempfile::tempdir()?;
+    let dir = RunDir::at(tmp.path());
+    fs::write(dir.info_path(), r#"{"name": "a", "method": "#)?;
+    let e = RunDir::open(tmp.path())?.info().err().ok_or("no error")?;
+    assert!(matches!(e, RunDirError::Json { .. }), "{e}");
+    assert!(e.to_string().contains(&dir.info_path().display().to_string()), "{e}");
+
+    // Well-formed but lacking a field: the message names the field.
+    fs::write(dir.info_path(), r#"{"env": "point_robot", "seed": 0}"#)?;
+    let e = dir.info().err().ok_or("no error")?.to_string();
+    assert!(e.contains("run.json") && e.contains("method"), "{e}");
+
+    fs::write(dir.stats_path(), "{\"obs_dim\": 2")?;
+    let e = dir.stats().err().ok_or("no error")?.to_string();
+    assert!(e.contains("task_stats.json"), "{e}");
+
+    fs::write(dir.config_path(), "[train]\niterations = \"x\"\n")?;
+    let e = dir.config().err().ok_or("no error")?.to_string();
+    assert!(e.contains("config.toml"), "{e}");
+
+    fs::create_dir_all(dir.checkpoints_dir())?;
+    fs::write(
+        dir.latest_path(),
+        r#"{"step": 30, "iteration": 3, "model": "step_20.safetensors", "state": "s"}"#,
+    )?;
+    let e = dir.latest().err().ok_or("no error")?.to_string();
+    assert!(e.contains("latest.json") && e.contains("step_20"), "{e}");
+
+    // A truncated last line (no newline) is what a kill leaves: skipped and reported.
+    let good = serde_json::to_string(&EvalLine::new(&task(3, -1.0), 1, 10, "test", 0.0))?;
+    fs::write(dir.eval_path(), format!("{good}\n{{\"iteration\": 2,"))?;
+    let read = dir.eval_lines()?.ok_or("no eval.jsonl")?;
+    assert_eq!(read.rows.len(), 1);
+    let skipped = read.skipped.ok_or("nothing skipped")?;
+    assert_eq!(skipped.line, 2);
+    assert!(skipped.to_string().contains("eval.jsonl:2: skipped a truncated last line"));
+    // The same line with its newline, or in the middle, is an error naming the file and line.
+    fs::write(dir.eval_path(), format!("{{\"iteration\": 2,\n{good}\n"))?;
+    let e = dir.eval_lines().err().ok_or("no error")?;
+    assert!(matches!(e, RunDirError::JsonLine { line: 1, .. }), "{e}");
+    assert!(e.to_string().contains("eval.jsonl:1:"), "{e}");
+    fs::write(dir.metrics_path(), "{\"iteration\": 1}\n")?;
+    let e = dir.metrics().err().ok_or("no error")?.to_string();
+    assert!(e.contains("metrics.jsonl:1:") && e.contains("step"), "{e}");
+    Ok(())
+}
