@@ -150,7 +150,9 @@ impl From<RunDirError> for ReportError {
             RunDirError::NotARunDir { path } => ReportError::NotARunDir { path },
             RunDirError::Invalid { path, message } => ReportError::Invalid { path, message },
             // The report reads no config.toml; a message names the file all the same.
-            RunDirError::Config(c) => ReportError::Invalid { path: PathBuf::new(), message: c.to_string() },
+            RunDirError::Config(c) => {
+                ReportError::Invalid { path: PathBuf::new(), message: c.to_string() }
+            }
         }
     }
 }
