@@ -81,50 +81,31 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
-    use pdt_train::config::{Method, TrainConfig};
+    use pdt_train::config::{Overrides, TrainConfig};
     let (cfg, dir) = match (&a.resume, &a.config) {
         (Some(dir), _) => (None, dir.clone()),
         (None, Some(path)) => {
             let mut cfg = TrainConfig::from_file(path)?;
-            if let Some(s) = a.seed {
-                cfg.run.seed = s;
-            }
-            if let Some(n) = a.iterations {
-                cfg.train.iterations = n;
-            }
-            if let Some(m) = &a.method {
-                cfg.run.method =
-                    serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
-                        .with_context(|| {
-                            format!(
-                        "--method {m}: expected prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune or macaw"
-                    )
-                        })?;
-            }
-            if let Some(p) = a.macaw_preset {
-                let preset = match p {
-                    crate::args::MacawPresetArg::Official => pdt_macaw::Preset::Official,
-                    crate::args::MacawPresetArg::Promptdt => pdt_macaw::Preset::Promptdt,
-                };
-                let env = pdt_envs::family(&cfg.env.name)?;
-                let k = cfg.sampler.prompt_episodes
-                    * cfg.sampler.prompt_length.unwrap_or(env.preset().prompt_length);
-                cfg.macaw = pdt_macaw::MacawConfig::preset(preset, k);
-            }
-            if let Some(d) = a.device {
-                cfg.run.device = d;
-            }
-            if let Some(d) = &a.data {
-                cfg.data.dir = d.clone();
-            }
-            let dir = a.out.clone().unwrap_or_else(|| {
-                PathBuf::from("runs").join(format!(
-                    "{}-{}-seed{}",
-                    cfg.run.method.name(),
-                    cfg.env.name,
-                    cfg.run.seed
-                ))
+            let method = a
+                .method
+                .as_deref()
+                .map(str::parse)
+                .transpose()
+                .map_err(|e| anyhow::anyhow!("--method {e}"))?;
+            let macaw_preset = a.macaw_preset.map(|p| match p {
+                crate::args::MacawPresetArg::Official => pdt_macaw::Preset::Official,
+                crate::args::MacawPresetArg::Promptdt => pdt_macaw::Preset::Promptdt,
             });
+            let overrides = Overrides {
+                seed: a.seed,
+                iterations: a.iterations,
+                method,
+                macaw_preset,
+                device: a.device,
+                data: a.data.clone(),
+            };
+            cfg.apply(&overrides, |env| pdt_envs::family(env).map(|f| f.preset().prompt_length))?;
+            let dir = a.out.clone().unwrap_or_else(|| cfg.default_run_dir());
             (Some(cfg), dir)
         }
         (None, None) => bail!("give --config or --resume"),

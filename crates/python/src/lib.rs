@@ -850,7 +850,7 @@ fn train<'py>(
     device: Option<&str>,
     data: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use pdt_train::config::{Method, TrainConfig};
+    use pdt_train::config::{Method, Overrides, TrainConfig};
     let device: Option<pdt_model::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
     let cfg = match (resume, &config) {
@@ -860,26 +860,22 @@ fn train<'py>(
         (false, Some(path)) => {
             existing(path, "config")?;
             let mut cfg = TrainConfig::from_file(path).map_err(value_error)?;
-            if let Some(s) = seed {
-                cfg.run.seed = s;
-            }
-            if let Some(n) = iterations {
-                cfg.train.iterations = n;
-            }
-            if let Some(m) = &method {
-                cfg.run.method = serde_json::from_value::<Method>(serde_json::Value::String(m.clone()))
-                    .map_err(|_| {
-                        value_error(format!(
-                            "method {m}: expected prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune or macaw"
-                        ))
-                    })?;
-            }
-            if let Some(d) = device {
-                cfg.run.device = d;
-            }
-            if let Some(d) = &data {
-                cfg.data.dir = d.clone();
-            }
+            let method = method
+                .as_deref()
+                .map(str::parse::<Method>)
+                .transpose()
+                .map_err(|e| value_error(format!("method {e}")))?;
+            let overrides = Overrides {
+                seed,
+                iterations,
+                method,
+                device,
+                data: data.clone(),
+                ..Overrides::default()
+            };
+            // No MACAW preset here: the environment is never asked.
+            cfg.apply(&overrides, |_| Ok::<usize, std::convert::Infallible>(0))
+                .map_err(value_error)?;
             Some(cfg)
         }
     };

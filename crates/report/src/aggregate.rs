@@ -128,7 +128,10 @@ pub struct RunSummary {
     pub n_test_tasks: usize,
     pub n_curve_points: usize,
     pub last_train_iteration: Option<u64>,
-    pub last_action_loss: Option<f64>,
+    /// The `metrics.jsonl` column holding the run's loss (its method's: `RunInfo::loss_metric`).
+    pub loss_metric: String,
+    /// That column in the last metrics line.
+    pub last_loss: Option<f64>,
     pub elapsed_s: Option<f64>,
 }
 
@@ -189,14 +192,10 @@ pub(crate) fn aggregate(
 }
 
 fn collect_task_indices(run: &Run, out: &mut HashMap<String, i64>) {
-    let from_evals = run.evals.iter().flatten().filter_map(|e| e.task_index.map(|i| (&e.task, i)));
-    let from_final = run
-        .final_eval
-        .iter()
-        .flat_map(|f| &f.tasks)
-        .filter_map(|t| t.task_index.map(|i| (&t.task, i)));
+    let from_evals = run.evals.iter().flatten().map(|e| (&e.task, e.task_index));
+    let from_final = run.final_eval.iter().flat_map(|f| &f.tasks).map(|t| (&t.task, t.task_index));
     for (task, idx) in from_evals.chain(from_final) {
-        out.entry(task.clone()).or_insert(idx);
+        out.entry(task.clone()).or_insert(idx as i64);
     }
 }
 
@@ -215,7 +214,7 @@ fn seed_data(i: usize, run: &Run, warnings: &mut Vec<String>) -> Result<SeedData
     // iteration -> task -> return; a later line for the same (iteration, task) wins, as the
     // latest write is the one a resumed run stands by.
     let mut by_iter: BTreeMap<u64, BTreeMap<String, f64>> = BTreeMap::new();
-    for e in run.evals.iter().flatten().filter(|e| e.split == "test") {
+    for e in run.evals.iter().flatten().filter(|e| e.is_test()) {
         by_iter.entry(e.iteration).or_default().insert(e.task.clone(), e.return_mean);
     }
     let all_tasks: BTreeSet<&String> = by_iter.values().flat_map(|m| m.keys()).collect();
@@ -251,12 +250,11 @@ fn seed_data(i: usize, run: &Run, warnings: &mut Vec<String>) -> Result<SeedData
 
     let mut final_note = "missing";
     if let Some(fe) = &run.final_eval {
-        let split_ok = fe.split.as_deref().is_none_or(|s| s == "test");
-        if !split_ok {
+        if fe.eval_on != "test" {
             final_note = "not on the test split";
             warnings.push(format!(
-                "{dir}/eval_final.json: split is {:?}, not \"test\"; using eval.jsonl instead",
-                fe.split.as_deref().unwrap_or_default()
+                "{dir}/eval_final.json: evaluated on {:?}, not \"test\"; using eval.jsonl instead",
+                fe.eval_on
             ));
         } else if fe.tasks.is_empty() {
             final_note = "has no tasks";
@@ -280,7 +278,7 @@ fn seed_data(i: usize, run: &Run, warnings: &mut Vec<String>) -> Result<SeedData
                 run: i,
                 final_average: mean(final_tasks.values().copied()),
                 final_tasks,
-                final_iteration: fe.iteration,
+                final_iteration: Some(fe.iteration),
                 source: FinalSource::EvalFinal,
                 curve,
             });
@@ -438,9 +436,8 @@ fn check_seeds(
 ) {
     let mut by_seed: BTreeMap<u64, Vec<String>> = BTreeMap::new();
     for s in seeds {
-        if let Some(seed) = runs[s.run].info.seed {
-            by_seed.entry(seed).or_default().push(runs[s.run].dir.display().to_string());
-        }
+        let seed = runs[s.run].info.seed;
+        by_seed.entry(seed).or_default().push(runs[s.run].dir.display().to_string());
     }
     for (seed, dirs) in by_seed.iter().filter(|(_, d)| d.len() > 1) {
         warnings.push(format!(
@@ -463,21 +460,24 @@ fn run_summary(run: &Run, s: Option<&SeedData>) -> RunSummary {
     let last_metrics = run.metrics.as_ref().and_then(|m| m.last());
     RunSummary {
         dir: run.dir.clone(),
-        name: run.info.name.clone().unwrap_or_else(|| {
+        name: if run.info.name.is_empty() {
             run.dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
-        }),
+        } else {
+            run.info.name.clone()
+        },
         env: run.info.env.clone(),
-        split: run.info.split.clone().unwrap_or_default(),
+        split: run.info.task_split.clone(),
         method: run.info.method.clone(),
-        seed: run.info.seed,
+        seed: Some(run.info.seed),
         final_source: s.map(|s| s.source.as_str()),
         final_iteration: s.and_then(|s| s.final_iteration),
         final_average: s.map(|s| s.final_average),
         n_test_tasks: s.map_or(0, |s| s.final_tasks.len()),
         n_curve_points: s.map_or(0, |s| s.curve.len()),
         last_train_iteration: last_metrics.map(|m| m.iteration),
-        last_action_loss: last_metrics.and_then(|m| m.action_loss),
-        elapsed_s: last_metrics.and_then(|m| m.elapsed_s),
+        loss_metric: run.info.loss_metric().to_string(),
+        last_loss: last_metrics.and_then(|m| m.get(run.info.loss_metric())),
+        elapsed_s: last_metrics.map(|m| m.elapsed_s),
     }
 }
 

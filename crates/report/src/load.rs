@@ -1,78 +1,13 @@
-//! Finding run directories and parsing the files described in `docs/run-directory.md`.
-//!
-//! Only the fields the report needs are parsed; unknown fields are ignored so that the training
-//! side can add keys without breaking reports.
+//! Finding run directories and reading them through `pdt_rundir` (the run directory's typed
+//! files, `docs/run-directory.md`).
 
 use std::collections::HashSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use serde::de::DeserializeOwned;
-use serde::{Deserialize, Deserializer};
+use pdt_rundir::{EvalLine, FinalEval, JsonLines, MetricsLine, RunDir, RunDirError, RunInfo};
 
 use crate::error::ReportError;
-
-/// `run.json`: the identity of a run.
-#[derive(Debug, Clone, Deserialize)]
-pub(crate) struct RunInfo {
-    #[serde(default)]
-    pub name: Option<String>,
-    pub method: String,
-    pub env: String,
-    #[serde(default)]
-    pub seed: Option<u64>,
-    /// Task split name ("default", "ood", ...). Runs on different splits are never averaged
-    /// together, because their test tasks differ.
-    #[serde(default)]
-    pub split: Option<String>,
-}
-
-/// One line of `eval.jsonl`.
-#[derive(Debug, Clone, Deserialize)]
-pub(crate) struct EvalLine {
-    pub iteration: u64,
-    pub split: String,
-    pub task: String,
-    #[serde(default)]
-    pub task_index: Option<i64>,
-    /// serde_json writes a NaN return (a diverged policy) as `null`; keep it as NaN so the
-    /// table shows it instead of the run silently disappearing.
-    #[serde(deserialize_with = "f64_or_null")]
-    pub return_mean: f64,
-}
-
-/// One line of `metrics.jsonl`; only what the per-run summary shows.
-#[derive(Debug, Clone, Deserialize)]
-pub(crate) struct MetricsLine {
-    pub iteration: u64,
-    #[serde(default, rename = "train/action_loss")]
-    pub action_loss: Option<f64>,
-    #[serde(default, rename = "time/elapsed_s")]
-    pub elapsed_s: Option<f64>,
-}
-
-/// `eval_final.json`, written by `promptdt eval`.
-#[derive(Debug, Clone, Deserialize)]
-pub(crate) struct EvalFinal {
-    #[serde(default)]
-    pub iteration: Option<u64>,
-    #[serde(default)]
-    pub split: Option<String>,
-    pub tasks: Vec<FinalTask>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-pub(crate) struct FinalTask {
-    pub task: String,
-    #[serde(default)]
-    pub task_index: Option<i64>,
-    #[serde(deserialize_with = "f64_or_null")]
-    pub return_mean: f64,
-}
-
-fn f64_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
-}
 
 /// Everything read from one run directory.
 #[derive(Debug, Clone)]
@@ -81,7 +16,7 @@ pub(crate) struct Run {
     pub info: RunInfo,
     /// `None` when `eval.jsonl` does not exist (as opposed to existing but empty).
     pub evals: Option<Vec<EvalLine>>,
-    pub final_eval: Option<EvalFinal>,
+    pub final_eval: Option<FinalEval>,
     pub metrics: Option<Vec<MetricsLine>>,
 }
 
@@ -89,9 +24,9 @@ impl Run {
     /// The label used in tables and plot titles; runs on a non-default split get it appended
     /// so they form their own group.
     pub fn env_label(&self) -> String {
-        match self.info.split.as_deref() {
-            None | Some("") | Some("default") => self.info.env.clone(),
-            Some(split) => format!("{} ({split})", self.info.env),
+        match self.info.task_split.as_str() {
+            "" | "default" => self.info.env.clone(),
+            split => format!("{} ({split})", self.info.env),
         }
     }
 }
@@ -125,7 +60,7 @@ pub(crate) fn discover(paths: &[PathBuf]) -> Result<Vec<PathBuf>, ReportError> {
 }
 
 fn is_run_dir(dir: &Path) -> bool {
-    dir.join("run.json").is_file()
+    RunDir::is_run_dir(dir)
 }
 
 fn push_unique(
@@ -178,91 +113,46 @@ fn walk(
 /// Loads one run directory. Missing optional files are `None`; malformed files are errors,
 /// except for a truncated last `.jsonl` line, which is reported in `warnings` and skipped.
 pub(crate) fn load_run(dir: &Path, warnings: &mut Vec<String>) -> Result<Run, ReportError> {
-    let run_json = dir.join("run.json");
-    let info: RunInfo =
-        read_json(&run_json)?.ok_or_else(|| ReportError::NotARunDir { path: dir.to_path_buf() })?;
+    let run = RunDir::open(dir).map_err(|_| ReportError::NotARunDir { path: dir.to_path_buf() })?;
+    let info = run.info()?;
     for (field, value) in [("method", &info.method), ("env", &info.env)] {
         if value.trim().is_empty() {
             return Err(ReportError::Invalid {
-                path: run_json,
+                path: run.info_path(),
                 message: format!("field `{field}` is empty"),
             });
         }
     }
-    let evals = read_jsonl::<EvalLine>(&dir.join("eval.jsonl"), warnings)?;
-    let metrics = read_jsonl::<MetricsLine>(&dir.join("metrics.jsonl"), warnings)?;
-    let final_eval = read_json::<EvalFinal>(&dir.join("eval_final.json"))?;
+    let evals = rows(run.eval_lines()?, warnings);
+    let metrics = rows(run.metrics()?, warnings);
+    let final_eval = run.final_eval()?;
     Ok(Run { dir: dir.to_path_buf(), info, evals, final_eval, metrics })
 }
 
-fn read_to_string_opt(path: &Path) -> Result<Option<String>, ReportError> {
-    match pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES) {
-        Ok(s) => Ok(Some(s)),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(ReportError::io(path, e)),
-    }
-}
-
-fn read_json<T: DeserializeOwned>(path: &Path) -> Result<Option<T>, ReportError> {
-    let Some(text) = read_to_string_opt(path)? else {
-        return Ok(None);
-    };
-    serde_json::from_str(&text)
-        .map(Some)
-        .map_err(|source| ReportError::Json { path: path.to_path_buf(), source })
-}
-
-/// Parses a JSON-lines file. Blank lines are ignored. A last line that fails to parse and has
-/// no terminating newline is what a run killed in the middle of an append leaves behind: it is
-/// skipped with a warning. Any other malformed line is an error naming the file and line.
-pub(crate) fn read_jsonl<T: DeserializeOwned>(
-    path: &Path,
-    warnings: &mut Vec<String>,
-) -> Result<Option<Vec<T>>, ReportError> {
-    let Some(text) = read_to_string_opt(path)? else {
-        return Ok(None);
-    };
-    let unterminated = !text.is_empty() && !text.ends_with('\n');
-    let lines: Vec<&str> = text.split('\n').collect();
-    // Index of the last non-blank line: the only one allowed to be a truncated write.
-    let last_content = lines.iter().rposition(|l| !l.trim().is_empty());
-    let mut out = Vec::with_capacity(lines.len());
-    for (i, line) in lines.iter().enumerate() {
-        if line.trim().is_empty() {
-            continue;
+/// The rows of a log, its skipped truncated last line (a kill's) reported in `warnings`.
+fn rows<T>(lines: Option<JsonLines<T>>, warnings: &mut Vec<String>) -> Option<Vec<T>> {
+    lines.map(|l| {
+        if let Some(skipped) = l.skipped {
+            warnings.push(skipped.to_string());
         }
-        match serde_json::from_str::<T>(line) {
-            Ok(v) => out.push(v),
-            Err(source) => {
-                let is_last = Some(i) == last_content && i + 1 == lines.len();
-                if is_last && unterminated {
-                    warnings.push(format!(
-                        "{}:{}: skipped a truncated last line (the run was probably stopped while writing it): {}",
-                        path.display(),
-                        i + 1,
-                        strip_position(&source)
-                    ));
-                    continue;
-                }
-                return Err(ReportError::JsonLine {
-                    path: path.to_path_buf(),
-                    line: i + 1,
-                    column: source.column(),
-                    message: strip_position(&source),
-                    source,
-                });
+        l.rows
+    })
+}
+
+impl From<RunDirError> for ReportError {
+    fn from(e: RunDirError) -> Self {
+        match e {
+            RunDirError::Io { path, source } => ReportError::Io { path, source },
+            RunDirError::Json { path, source } => ReportError::Json { path, source },
+            RunDirError::JsonLine { path, line, column, message, source } => {
+                ReportError::JsonLine { path, line, column, message, source }
+            }
+            RunDirError::NotARunDir { path } => ReportError::NotARunDir { path },
+            RunDirError::Invalid { path, message } => ReportError::Invalid { path, message },
+            // The report reads no config.toml; a message names the file all the same.
+            RunDirError::Config(c) => {
+                ReportError::Invalid { path: PathBuf::new(), message: c.to_string() }
             }
         }
-    }
-    Ok(Some(out))
-}
-
-/// serde_json appends " at line L column C" to its messages; within a JSONL file that line is
-/// always 1 and would contradict the file line number we report, so drop it.
-fn strip_position(e: &serde_json::Error) -> String {
-    let s = e.to_string();
-    match s.rfind(" at line ") {
-        Some(idx) => s[..idx].to_string(),
-        None => s,
     }
 }

@@ -99,7 +99,8 @@ pub(crate) fn runs_csv(agg: &Aggregated) -> String {
             "n_test_tasks",
             "n_curve_points",
             "last_train_iteration",
-            "last_action_loss",
+            "loss_metric",
+            "last_loss",
             "elapsed_s",
         ]
         .map(String::from),
@@ -119,7 +120,8 @@ pub(crate) fn runs_csv(agg: &Aggregated) -> String {
             r.n_test_tasks.to_string(),
             r.n_curve_points.to_string(),
             opt_int(r.last_train_iteration),
-            opt_num(r.last_action_loss),
+            r.loss_metric.clone(),
+            opt_num(r.last_loss),
             opt_num(r.elapsed_s),
         ]));
     }

@@ -418,8 +418,9 @@ fn partial_evaluation_is_left_out_of_curve_and_table() -> TestResult {
     let file = root.join("prompt-dt").join("seed2").join("eval.jsonl");
     let mut text = fs::read_to_string(&file)?;
     text.push_str(
-        &json!({"iteration": 4, "split": "test", "task": "point_robot-3", "task_index": 3,
-                "return_mean": 100.0})
+        &json!({"iteration": 4, "step": 40, "split": "test", "task": "point_robot-3",
+                "task_index": 3, "return_mean": 100.0, "return_std": 0.1, "length_mean": 20.0,
+                "episodes": 5, "target_return": 0.0})
         .to_string(),
     );
     text.push('\n');
@@ -530,5 +531,33 @@ fn null_returns_are_left_out_and_counted() -> TestResult {
     let curve = read_csv(&out.join("curves.csv"))?;
     let p = curve.iter().find(|r| r[1] == "prompt-dt" && r[2] == "3").ok_or("no point")?;
     assert_eq!(p[5], "2");
+    Ok(())
+}
+
+/// The run directories of testdata/rundir-v1, written before the schema crate (`split` for the
+/// task split, no `loss_metric` in `run.json`): reported, each with its method's loss column
+/// (a MACAW run's is `train/policy_outer_loss`, which it has always written).
+#[test]
+fn old_run_directories_are_reported_with_their_methods_loss() -> TestResult {
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/rundir-v1/runs");
+    let tmp = tempfile::tempdir()?;
+    let out = tmp.path().join("report");
+    let summary = run(&config(vec![fixture.clone()], &out))?;
+    assert_eq!((summary.runs_used, summary.runs_skipped), (2, 0), "{:?}", summary.warnings);
+    let rows = read_csv(&out.join("runs.csv"))?;
+    let col = |name: &str| rows[0].iter().position(|c| c == name).ok_or(format!("no {name}"));
+    let (method, metric, loss) = (col("method")?, col("loss_metric")?, col("last_loss")?);
+    for (m, column) in [("macaw", "train/policy_outer_loss"), ("prompt-dt", "train/action_loss")] {
+        let row = rows.iter().find(|r| r[method] == m).ok_or(format!("no {m} row"))?;
+        assert_eq!(row[metric], column);
+        let last = fs::read_to_string(fixture.join(m).join("metrics.jsonl"))?;
+        let last: serde_json::Value =
+            serde_json::from_str(last.lines().last().ok_or("no metrics")?)?;
+        let want = last[column].as_f64().ok_or("no loss in metrics.jsonl")?;
+        assert!(close(row[loss].parse()?, want), "{m}: {} vs {want}", row[loss]);
+    }
+    // The final values are those of eval_final.json (evaluated on "test", written as `split`).
+    let runs = fs::read_to_string(out.join("runs.csv"))?;
+    assert_eq!(runs.matches("eval_final.json").count(), 2, "{runs}");
     Ok(())
 }

@@ -237,7 +237,7 @@ fn command(spec: &RunSpec, state: RunState, opts: &ExecOptions) -> Result<Comman
 
 /// Iterations a run has finished, from the line count of its `metrics.jsonl` (cheap to poll).
 fn iterations_done(spec: &RunSpec) -> u64 {
-    std::fs::read(spec.dir.join("metrics.jsonl"))
+    std::fs::read(pdt_rundir::RunDir::at(&spec.dir).metrics_path())
         .map(|b| b.iter().filter(|&&c| c == b'\n').count() as u64)
         .unwrap_or(0)
         .min(spec.config.train.iterations)

@@ -41,6 +41,9 @@ pub enum ReproError {
     Child { what: String, message: String },
     #[error("{0}")]
     Invalid(String),
+    /// A run directory's file cannot be read (the error names it).
+    #[error(transparent)]
+    RunDir(#[from] pdt_rundir::RunDirError),
 }
 
 /// One line of `promptdt reproduce --list`.

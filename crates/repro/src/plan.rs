@@ -18,7 +18,8 @@
 use crate::manifest::{Cell, Manifest, MethodName};
 use crate::ReproError;
 use pdt_model::device::DeviceSpec;
-use pdt_train::config::TrainConfig;
+use pdt_rundir::config::TrainConfig;
+use pdt_rundir::RunDir;
 use std::path::{Path, PathBuf};
 
 /// Where the datasets of one environment come from and go.
@@ -225,11 +226,9 @@ pub fn config_for(
         // budget's fine-tuning data and steps are MACAW's adaptation data and steps.
         let family = pdt_envs::family(&c.env.name)
             .map_err(|e| ReproError::Invalid(format!("cell {}: {e}", cell.id())))?;
-        let k = c.sampler.prompt_episodes
-            * c.sampler.prompt_length.unwrap_or(family.preset().prompt_length);
         c.macaw = pdt_macaw::MacawConfig::preset(
             s.macaw_preset.unwrap_or(pdt_macaw::Preset::Promptdt),
-            k,
+            c.prompt_steps(family.preset().prompt_length),
         );
         for b in [cell.finetune_batch, s.finetune_batch].into_iter().flatten() {
             c.macaw.adapt_batch = b;
@@ -267,21 +266,13 @@ fn identity(c: &TrainConfig) -> toml::Value {
     // How often a resume point is written changes no result (resuming is byte-identical).
     c.train.resume_interval = 0;
     c.data.dir = c.data.dir.file_name().map(PathBuf::from).unwrap_or_default();
-    toml::Value::try_from(&c).unwrap_or(toml::Value::Boolean(false))
+    // As written to config.toml: a method's configuration carries only its own sections.
+    c.to_toml_value().unwrap_or(toml::Value::Boolean(false))
 }
 
-/// A run's recorded configuration; the error names the file (once: the parser's errors may
-/// already).
-fn read_config(path: &Path) -> Result<TrainConfig, String> {
-    TrainConfig::from_file(path).map_err(|e| {
-        let m = e.to_string();
-        let p = path.display().to_string();
-        if m.contains(&p) {
-            m
-        } else {
-            format!("{p}: {m}")
-        }
-    })
+/// A run's recorded configuration (`config.toml`); the error names the file.
+fn read_config(dir: &Path) -> Result<TrainConfig, String> {
+    RunDir::at(dir).config().map_err(|e| e.to_string())
 }
 
 /// `p` with symbolic links and `..` resolved where it exists (two spellings of one directory
@@ -295,11 +286,10 @@ fn canonical(p: &Path) -> PathBuf {
 /// then point it at the plan's (`train --resume --data`), and a finished run's data are checked by
 /// fingerprint. `None` when they are the same place or the run has no `config.toml` yet.
 pub fn moved_data(spec: &RunSpec) -> Result<Option<PathBuf>, ReproError> {
-    let path = spec.dir.join("config.toml");
-    if !path.is_file() {
+    if !RunDir::at(&spec.dir).config_path().is_file() {
         return Ok(None);
     }
-    let recorded = read_config(&path).map_err(ReproError::Invalid)?;
+    let recorded = read_config(&spec.dir).map_err(ReproError::Invalid)?;
     Ok((canonical(&recorded.data.dir) != canonical(&spec.data.dir)).then_some(recorded.data.dir))
 }
 
@@ -322,12 +312,10 @@ impl DataCheck {
         if !spec.data.dir.is_dir() {
             return Ok(());
         }
-        let stats_path = spec.dir.join("task_stats.json");
-        let text = pdt_base::fs::read_text_limited(&stats_path, pdt_base::fs::MAX_TEXT_BYTES)
-            .map_err(|e| format!("{}: {e}", stats_path.display()))?;
-        let stats: pdt_train::run::TaskStats =
-            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", stats_path.display()))?;
-        let c = read_config(&spec.dir.join("config.toml"))?;
+        let run = RunDir::at(&spec.dir);
+        let stats_path = run.stats_path();
+        let stats = run.stats().map_err(|e| e.to_string())?;
+        let c = read_config(&spec.dir)?;
         let family = pdt_envs::family(&c.env.name).map_err(|e| e.to_string())?;
         let (train, test) = family.split(&c.env.split).map_err(|e| e.to_string())?;
         let sets = [
@@ -408,7 +396,8 @@ fn differing(a: &toml::Value, b: &toml::Value, at: &str, out: &mut Vec<String>) 
 /// The state of a run directory, after checking that a run already there was started from the
 /// same configuration (apart from the thread count).
 pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
-    let latest = spec.dir.join("checkpoints").join("latest.json");
+    let run = RunDir::at(&spec.dir);
+    let latest = run.latest_path();
     if !latest.exists() {
         // A run that reached its end lost its commit record (a copy that left it out): it is
         // neither new (starting it again would overwrite its logs) nor running.
@@ -422,21 +411,14 @@ pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
         }
         return Ok(RunState::New);
     }
-    let recorded_path = spec.dir.join("config.toml");
-    let recorded = read_config(&recorded_path).map_err(ReproError::Invalid)?;
+    let recorded = read_config(&spec.dir).map_err(ReproError::Invalid)?;
     let mut diff = Vec::new();
     differing(&identity(&recorded), &identity(&spec.config), "", &mut diff);
     if !diff.is_empty() {
         return Err(ReproError::ConfigMismatch { dir: spec.dir.clone(), keys: diff.join(", ") });
     }
-    #[derive(serde::Deserialize)]
-    struct Latest {
-        iteration: u64,
-    }
-    let text = pdt_base::fs::read_text_limited(&latest, pdt_base::fs::MAX_TEXT_BYTES)
-        .map_err(|e| ReproError::Io { path: latest.clone(), source: e })?;
-    let l: Latest = serde_json::from_str(&text)
-        .map_err(|e| ReproError::Invalid(format!("{}: {e}", latest.display())))?;
+    // Removed between the two looks: as if it had never been there.
+    let Some(l) = run.latest()? else { return Ok(RunState::New) };
     Ok(if l.iteration >= spec.config.train.iterations {
         RunState::Finished
     } else {
@@ -448,20 +430,14 @@ pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
 /// anything does: an evaluation of that iteration or its metrics line.
 fn reached_end(spec: &RunSpec) -> Option<String> {
     let n = spec.config.train.iterations;
-    let read = |name: &str| {
-        pdt_base::fs::read_text_limited(&spec.dir.join(name), pdt_base::fs::MAX_TEXT_BYTES).ok()
-    };
-    #[derive(serde::Deserialize)]
-    struct Line {
-        iteration: u64,
-    }
-    let iterations = |text: &str| -> Option<u64> {
-        text.lines().filter_map(|l| serde_json::from_str::<Line>(l).ok()).map(|l| l.iteration).max()
-    };
-    if read("eval.jsonl").and_then(|t| iterations(&t)).is_some_and(|i| i >= n) {
+    let run = RunDir::at(&spec.dir);
+    // Unreadable logs show nothing; the report names them where it reads them.
+    let evals = run.eval_lines().ok().flatten();
+    if evals.and_then(|l| l.rows.iter().map(|l| l.iteration).max()).is_some_and(|i| i >= n) {
         return Some(format!("eval.jsonl has iteration {n}'s evaluation"));
     }
-    if read("metrics.jsonl").and_then(|t| iterations(&t)).is_some_and(|i| i >= n) {
+    let metrics = run.metrics().ok().flatten();
+    if metrics.and_then(|l| l.rows.iter().map(|l| l.iteration).max()).is_some_and(|i| i >= n) {
         return Some(format!("metrics.jsonl has iteration {n}"));
     }
     None

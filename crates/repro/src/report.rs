@@ -12,6 +12,7 @@ use crate::manifest::{ClaimKind, Layout, Manifest};
 use crate::plan::{self, Plan, RunState};
 use crate::ReproError;
 use pdt_base::table::{Align, Rule, Table};
+use pdt_rundir::{EvalLine, RunDir, RunDirError};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -60,6 +61,12 @@ pub struct CellResult {
     pub within_paper_std: Option<bool>,
     /// `(iteration, mean over seeds, std)` of the average test return.
     pub curve: Vec<(u64, f64, f64)>,
+    /// The `metrics.jsonl` column of the runs' training loss (their method's,
+    /// `RunInfo::loss_metric`), where the seeds agree on one.
+    pub loss_metric: Option<String>,
+    /// `(iteration, mean over seeds, std)` of that loss at the iterations of [`Self::curve`]
+    /// where every seed has it.
+    pub loss_curve: Vec<(u64, f64, f64)>,
     /// What could not be read, by run key and file: a run left out of the result, or the dataset
     /// card the normalised scores need.
     pub problems: Vec<String>,
@@ -89,65 +96,46 @@ pub struct Report {
     pub files: Vec<PathBuf>,
 }
 
-#[derive(serde::Deserialize)]
-struct EvalLine {
-    iteration: u64,
-    split: String,
-    task_index: usize,
-    return_mean: Option<f64>,
-    #[serde(default)]
-    success_rate: Option<f64>,
+/// What the report reads of one run, each of its files read once.
+struct RunRecord {
+    evals: Evals,
+    /// The mean success rate over the test tasks of the run's last test evaluation, where its
+    /// lines have one (Meta-World reach).
+    last_success: Option<f64>,
+    /// The run's training loss, or why it cannot be read (it is shown beside the returns only).
+    loss: Result<Loss, String>,
 }
 
-/// The mean success rate over the test tasks of a run's last test evaluation, where its rows have
-/// one (Meta-World reach).
-fn last_success(dir: &Path) -> Option<f64> {
-    let text =
-        pdt_base::fs::read_text_limited(&dir.join("eval.jsonl"), pdt_base::fs::MAX_TEXT_BYTES)
-            .ok()?;
-    let rows: Vec<EvalLine> = text
-        .lines()
-        .filter_map(|l| serde_json::from_str::<EvalLine>(l).ok())
-        .filter(|l| l.split == "test")
-        .collect();
-    let last = rows.iter().map(|l| l.iteration).max()?;
-    let rates: Option<Vec<f64>> =
-        rows.iter().filter(|l| l.iteration == last).map(|l| l.success_rate).collect();
-    let rates = rates.filter(|r| !r.is_empty())?;
-    Some(rates.iter().sum::<f64>() / rates.len() as f64)
+/// A run's training loss: its column in `metrics.jsonl` and its value per iteration.
+struct Loss {
+    metric: String,
+    by_iteration: BTreeMap<u64, f64>,
 }
 
-/// Per test iteration, task index -> return.
-fn read_evals(dir: &Path) -> Result<Evals, ReproError> {
-    let path = dir.join("eval.jsonl");
-    let mut out: Evals = BTreeMap::new();
-    let text = match pdt_base::fs::read_text_limited(&path, pdt_base::fs::MAX_TEXT_BYTES) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(out),
-        Err(e) => return Err(ReproError::Io { path, source: e }),
-    };
-    for (n, line) in text.lines().enumerate() {
-        if line.trim().is_empty() {
-            continue;
-        }
-        // A line cut by a kill is the last one: stop there.
-        let Ok(l) = serde_json::from_str::<EvalLine>(line) else {
-            if n + 1 == text.lines().count() {
-                break;
-            }
-            return Err(ReproError::Invalid(format!(
-                "{}: line {} is not an evaluation",
-                path.display(),
-                n + 1
-            )));
-        };
-        if l.split == "test" {
-            out.entry(l.iteration)
-                .or_default()
-                .insert(l.task_index, l.return_mean.unwrap_or(f64::NAN));
-        }
+/// Reads the run in `dir`: its test evaluations (none while `eval.jsonl` does not exist; a line cut
+/// by a kill is skipped) and its loss.
+fn read_run(dir: &Path) -> Result<RunRecord, ReproError> {
+    let run = RunDir::at(dir);
+    let lines = run.eval_lines()?.map(|l| l.rows).unwrap_or_default();
+    let test: Vec<&EvalLine> = lines.iter().filter(|l| l.is_test()).collect();
+    let mut evals: Evals = BTreeMap::new();
+    for l in &test {
+        evals.entry(l.iteration).or_default().insert(l.task_index, l.return_mean);
     }
-    Ok(out)
+    let last_success = test.iter().map(|l| l.iteration).max().and_then(|last| {
+        let rates: Option<Vec<f64>> =
+            test.iter().filter(|l| l.iteration == last).map(|l| l.success_rate).collect();
+        let rates = rates.filter(|r| !r.is_empty())?;
+        Some(rates.iter().sum::<f64>() / rates.len() as f64)
+    });
+    Ok(RunRecord { evals, last_success, loss: read_loss(&run).map_err(|e| e.to_string()) })
+}
+
+fn read_loss(run: &RunDir) -> Result<Loss, RunDirError> {
+    let metric = run.info()?.loss_metric().to_string();
+    let rows = run.metrics()?.map(|l| l.rows).unwrap_or_default();
+    let by_iteration = rows.iter().filter_map(|r| Some((r.iteration, r.get(&metric)?))).collect();
+    Ok(Loss { metric, by_iteration })
 }
 
 /// Per test iteration, task index -> return.
@@ -156,9 +144,9 @@ type Evals = BTreeMap<u64, BTreeMap<usize, f64>>;
 /// What the report makes of one run.
 enum Seen {
     /// Finished, with its evaluations (the last one is of its last iteration).
-    Finished(Evals),
+    Finished(RunRecord),
     /// Still to finish, with the evaluations so far.
-    Running(Evals),
+    Running(RunRecord),
     /// Nothing yet.
     NotStarted,
     /// Cannot be read: what is missing or wrong, naming the file.
@@ -170,7 +158,7 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
         Ok(s) => s,
         Err(e) => return Seen::Problem(e.to_string()),
     };
-    let evals = match read_evals(&r.dir) {
+    let mut record = match read_run(&r.dir) {
         Ok(e) => e,
         Err(e) => return Seen::Problem(e.to_string()),
     };
@@ -184,14 +172,13 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
     match state {
         RunState::New | RunState::Partial { .. } => {
             // A running run may be writing its last evaluation now: show the one before.
-            let mut evals = evals;
-            while evals.last_key_value().is_some_and(|(_, e)| !complete(e)) {
-                evals.pop_last();
+            while record.evals.last_key_value().is_some_and(|(_, e)| !complete(e)) {
+                record.evals.pop_last();
             }
-            if evals.is_empty() {
+            if record.evals.is_empty() {
                 Seen::NotStarted
             } else {
-                Seen::Running(evals)
+                Seen::Running(record)
             }
         }
         RunState::Finished => {
@@ -201,15 +188,15 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
             // A finished run evaluates its last iteration; an `eval.jsonl` without it was cut
             // (or left out of a copy). Its earlier evaluations would pass for the final result.
             let n = r.config.train.iterations;
-            let path = r.dir.join("eval.jsonl");
-            match evals.last_key_value() {
+            let path = RunDir::at(&r.dir).eval_path();
+            match record.evals.last_key_value() {
                 Some((&last, e)) if last >= n && !complete(e) => Seen::Problem(format!(
                     "finished, but {} has {} of the {tasks} test tasks of iteration {last}'s \
                      evaluation (cut short?)",
                     path.display(),
                     e.len()
                 )),
-                Some((&last, _)) if last >= n => Seen::Finished(evals),
+                Some((&last, _)) if last >= n => Seen::Finished(record),
                 Some((&last, _)) => Seen::Problem(format!(
                     "finished, but {} ends at iteration {last}'s evaluation, not {n}'s (cut short?)",
                     path.display()
@@ -306,6 +293,8 @@ pub fn report(
             paper_normalised_std: None,
             within_paper_std: None,
             curve: Vec::new(),
+            loss_metric: None,
+            loss_curve: Vec::new(),
             problems: Vec::new(),
         };
         let test_tasks = pdt_envs::family(&cell.env)
@@ -348,7 +337,7 @@ pub fn report(
                 res.problems.push(format!("{}: {why}", r.key));
             }
         }
-        let used: Vec<(&plan::RunSpec, &Evals)> = runs
+        let used: Vec<(&plan::RunSpec, &RunRecord)> = runs
             .iter()
             .zip(&seen)
             .filter_map(|(r, s)| match s {
@@ -362,13 +351,20 @@ pub fn report(
         let mut norms = Vec::new();
         let mut successes = Vec::new();
         let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
+        let mut losses: Vec<&Loss> = Vec::new();
         let mut last_iter: Option<u64> = None;
-        for (r, evals) in &used {
+        for (r, record) in &used {
+            let evals = &record.evals;
             let Some((&it, last)) = evals.iter().next_back() else { continue };
             last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
             let avg = last.values().sum::<f64>() / last.len() as f64;
             finals.push(avg);
-            successes.extend(last_success(&r.dir));
+            successes.extend(record.last_success);
+            // Not prefixed by the run's key: the run is not left out, only its loss is not shown.
+            match &record.loss {
+                Ok(l) => losses.push(l),
+                Err(why) => res.problems.push(format!("no loss curve for {}: {why}", r.key)),
+            }
             if let Some(b) = &base {
                 let n: Option<Vec<f64>> = last
                     .iter()
@@ -423,6 +419,21 @@ pub fn report(
                     }
                 }
             }
+        }
+        // The loss beside the returns, where every seed read has it under one column name.
+        let metric = losses.first().map(|l| l.metric.clone());
+        if losses.len() == curves.len() && losses.iter().all(|l| Some(&l.metric) == metric.as_ref())
+        {
+            for &(it, _, _) in &res.curve {
+                let v: Vec<f64> =
+                    losses.iter().filter_map(|l| l.by_iteration.get(&it).copied()).collect();
+                if v.len() == losses.len() {
+                    if let Some(s) = Stat::of(&v) {
+                        res.loss_curve.push((it, s.mean, s.std));
+                    }
+                }
+            }
+            res.loss_metric = metric;
         }
         if let (Some(p), Some(b)) = (cell.paper, &base) {
             let randoms: Option<Vec<f64>> =
@@ -748,11 +759,21 @@ fn cells_csv(r: &Report) -> String {
     s
 }
 
+/// One row per cell and evaluated iteration: the average test return and, where the cell's runs
+/// logged it at that iteration, their training loss (`loss_metric` names its column).
 fn curves_csv(r: &Report) -> String {
-    let mut s = String::from("cell,iteration,return_mean,return_std\n");
+    let mut s =
+        String::from("cell,iteration,return_mean,return_std,loss_metric,loss_mean,loss_std\n");
     for c in &r.cells {
         for (i, m, sd) in &c.curve {
-            let _ = writeln!(s, "\"{}\",{i},{m},{sd}", c.id);
+            let loss = c.loss_curve.iter().find(|(it, _, _)| it == i);
+            let (metric, lm, ls) = match (loss, &c.loss_metric) {
+                (Some((_, lm, ls)), Some(metric)) => {
+                    (metric.as_str(), lm.to_string(), ls.to_string())
+                }
+                _ => ("", String::new(), String::new()),
+            };
+            let _ = writeln!(s, "\"{}\",{i},{m},{sd},{metric},{lm},{ls}", c.id);
         }
     }
     s
@@ -785,6 +806,8 @@ mod tests {
             paper_normalised_std: None,
             within_paper_std: None,
             curve: vec![],
+            loss_metric: None,
+            loss_curve: vec![],
             problems: vec![],
         }
     }

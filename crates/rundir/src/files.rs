@@ -245,6 +245,19 @@ pub struct EvalLine {
     /// Only families with a success criterion (Meta-World) have the column.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub success_rate: Option<f64>,
+    /// MACAW runs: how the test-time adaptation went.
+    #[serde(flatten)]
+    pub adaptation: Option<AdaptationStats>,
+}
+
+/// A MACAW evaluation's adaptation, per task (columns of its `eval.jsonl` lines).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AdaptationStats {
+    /// Adaptation steps taken: fewer than `macaw.adapt_steps` where the adaptation diverged.
+    pub adapt_value_steps: usize,
+    pub adapt_policy_steps: usize,
+    /// Episodes ended by a non-finite action.
+    pub failed_episodes: usize,
 }
 
 impl EvalLine {
@@ -263,6 +276,7 @@ impl EvalLine {
             episodes: r.episodes,
             target_return: target,
             success_rate: r.success_rate,
+            adaptation: None,
         }
     }
 

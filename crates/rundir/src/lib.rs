@@ -19,5 +19,6 @@ pub use dir::{
     METRICS_CSV, METRICS_JSONL, RUN_JSON, TASK_STATS_JSON,
 };
 pub use files::{
-    EvalLine, FinalEval, Latest, MetricsLine, RunInfo, RunStats, TaskResult, TaskStats,
+    AdaptationStats, EvalLine, FinalEval, Latest, MetricsLine, RunInfo, RunStats, TaskResult,
+    TaskStats,
 };

@@ -231,3 +231,62 @@ fn truncated_and_malformed_files_give_errors_naming_the_file() -> TestResult {
     assert!(e.contains("metrics.jsonl:1:") && e.contains("step"), "{e}");
     Ok(())
 }
+
+#[test]
+fn macaw_eval_lines_keep_their_adaptation_columns() -> TestResult {
+    let line = r#"{"adapt_policy_steps":2,"adapt_value_steps":1,"episodes":1,"failed_episodes":0,
+        "iteration":1,"length_mean":20.0,"return_mean":-36,"return_std":0.0,"split":"test",
+        "step":2,"target_return":0.0,"task":"point_robot-2","task_index":2}"#;
+    let l: EvalLine = serde_json::from_str(line)?;
+    let a = l.adaptation.ok_or("no adaptation")?;
+    assert_eq!((a.adapt_value_steps, a.adapt_policy_steps, a.failed_episodes), (1, 2, 0));
+    assert_eq!(l.return_mean, -36.0);
+    let text = serde_json::to_string(&l)?;
+    assert!(text.contains("\"adapt_value_steps\":1"), "{text}");
+    assert_eq!(serde_json::from_str::<EvalLine>(&text)?, l);
+    let plain = EvalLine { adaptation: None, ..l };
+    assert!(!serde_json::to_string(&plain)?.contains("adapt"));
+    Ok(())
+}
+
+/// Run directories written by the code before this crate (testdata/rundir-v1, README there) read
+/// through the typed files, with the old names.
+#[test]
+fn run_directories_written_before_the_schema_crate_are_read() -> TestResult {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/rundir-v1");
+    let dirs = [
+        ("prompt-dt", root.join("runs/prompt-dt"), true),
+        ("macaw", root.join("runs/macaw"), true),
+        ("prompt-dt", root.join("tree/runs/point_robot/prompt-dt/smoke/seed0"), false),
+        ("macaw", root.join("tree/runs/point_robot/macaw/smoke/seed0"), false),
+    ];
+    for (method, path, evaluated) in dirs {
+        let dir = RunDir::open(&path)?;
+        let info = dir.info()?;
+        assert_eq!((info.method.as_str(), info.task_split.as_str()), (method, "default"));
+        assert_eq!(info.loss_metric, None);
+        let config = dir.config()?;
+        assert_eq!(config.run.method.name(), method);
+        let stats = dir.stats()?;
+        stats.check()?;
+        assert!(!stats.train_data_fingerprint.is_empty());
+        let latest = dir.latest()?.ok_or("no latest.json")?;
+        assert_eq!((latest.iteration, latest.step, latest.keep), (2, 4, true));
+        let metrics = dir.metrics()?.ok_or("no metrics.jsonl")?;
+        assert_eq!(metrics.skipped, None);
+        assert_eq!(metrics.rows.iter().map(|m| m.iteration).collect::<Vec<_>>(), vec![1, 2]);
+        // The loss column named by the method is in every line.
+        assert!(metrics.rows.iter().all(|m| m.get(info.loss_metric()).is_some_and(f64::is_finite)));
+        let evals = dir.eval_lines()?.ok_or("no eval.jsonl")?;
+        let test: Vec<&EvalLine> = evals.rows.iter().filter(|l| l.is_test()).collect();
+        assert_eq!(test.len(), 2 * stats.test_tasks.len(), "{}", path.display());
+        assert_eq!(test.iter().all(|l| l.adaptation.is_some()), method == "macaw");
+        let fin = dir.final_eval()?;
+        assert_eq!(fin.is_some(), evaluated, "{}", path.display());
+        if let Some(f) = fin {
+            assert_eq!((f.eval_on.as_str(), f.tasks.len()), ("test", stats.test_tasks.len()));
+            assert_eq!(f.adaptation.is_some(), method == "macaw");
+        }
+    }
+    Ok(())
+}

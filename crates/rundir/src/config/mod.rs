@@ -4,8 +4,10 @@
 
 pub mod macaw;
 mod options;
+mod overrides;
 
 pub use options::{AdamWConfig, Inference, LossOn};
+pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::DeviceSpec;
 pub use pdt_base::num::compact;
 use pdt_data::multitask::DataFormat;
@@ -267,7 +269,8 @@ pub struct TrainConfig {
     pub train: TrainSection,
     pub eval: EvalSection,
     /// MACAW's hyper-parameters (used when `run.method = "macaw"`; default: the official
-    /// `standard.json`).
+    /// `standard.json`). Written to `config.toml` for MACAW runs only ([`TrainConfig::to_toml`]);
+    /// the files of other runs written before that have it, and still load.
     pub macaw: macaw::MacawConfig,
 }
 
@@ -292,9 +295,25 @@ impl TrainConfig {
 
     /// The configuration as TOML. Fails rather than writing something that would not read back
     /// (TOML integers are signed 64-bit: a seed of 2^63 or more has no TOML form).
+    ///
+    /// Each method's configuration carries only its own sections: `[macaw]` is left out unless
+    /// `run.method` is `macaw`.
     pub fn to_toml(&self) -> Result<String, ConfigError> {
-        toml::to_string_pretty(self)
+        toml::to_string_pretty(&self.to_toml_value()?)
             .map_err(|e| ConfigError::Invalid(format!("cannot be written as TOML: {e}")))
+    }
+
+    /// The configuration as [`TrainConfig::to_toml`] writes it, as a TOML table (to compare two
+    /// configurations as their files would).
+    pub fn to_toml_value(&self) -> Result<toml::Value, ConfigError> {
+        let mut v = toml::Value::try_from(self)
+            .map_err(|e| ConfigError::Invalid(format!("cannot be written as TOML: {e}")))?;
+        if self.run.method != Method::Macaw {
+            if let toml::Value::Table(t) = &mut v {
+                t.remove("macaw");
+            }
+        }
+        Ok(v)
     }
 
     /// Checks every setting that can be checked without data; the message names the setting and
@@ -302,7 +321,6 @@ impl TrainConfig {
     /// train: a wrong sign, NaN, a size that could not be allocated.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let mut v = Checks::default();
-        const TOML_INT: u64 = i64::MAX as u64;
         v.at_most("run.seed", self.run.seed, TOML_INT, "TOML integers are signed 64-bit");
         v.at_most("run.threads", self.run.threads as u64, 1024, "0 = all cores");
         let t = &self.train;
@@ -312,6 +330,53 @@ impl TrainConfig {
         v.at_most("train.train_eval_interval", t.train_eval_interval, TOML_INT, "0 = never");
         v.range("train.save_interval", t.save_interval, 1, TOML_INT);
         v.at_most("train.resume_interval", t.resume_interval, TOML_INT, "0 = only checkpoints");
+        // The transformer's settings (model, optimiser, prompt sampling) are Prompt-DT's and its
+        // variants'; MACAW reads its own section instead, so neither checks the other's.
+        let macaw = self.run.method == Method::Macaw;
+        if !macaw {
+            self.validate_transformer(&mut v);
+        }
+        let s = &self.sampler;
+        if let Some(x) = s.rtg_scale {
+            v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
+        }
+        // The modes become part of file names (`{env}-{task}-{mode}.{ext}`): a path there would
+        // read files from elsewhere, an empty one a file no writer makes.
+        let d = &self.data;
+        for (name, mode) in [
+            ("data.dataset_mode", &d.dataset_mode),
+            ("data.prompt_mode", &d.prompt_mode),
+            ("data.test_dataset_mode", &d.test_dataset_mode),
+            ("data.test_prompt_mode", &d.test_prompt_mode),
+        ] {
+            if !is_plain_mode(mode) {
+                v.fail(format!(
+                    "{name} = {mode:?} must be a plain name (letters, digits, '-', '_' or '.', not \
+                     starting with '.'): it becomes part of the data file names"
+                ));
+            }
+        }
+        let e = &self.eval;
+        v.range("eval.episodes", e.episodes as u64, 1, 10_000);
+        v.range("eval.max_batch", e.max_batch as u64, 1, 1_000_000);
+        v.at_most("eval.env_threads", e.env_threads as u64, 1024, "0 = all cores");
+        if let Some(x) = e.target_return {
+            v.real("eval.target_return", f64::from(x), f64::is_finite, "finite");
+        }
+        v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
+        v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
+        v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        if macaw {
+            if let Err(e) = self.macaw.validate() {
+                v.fail(e.to_string());
+            }
+        }
+        v.finish()
+    }
+
+    /// The checks of the settings only Prompt-DT and its variants read: `[model]`, `[optim]` and
+    /// `[sampler]`'s batch and prompt settings.
+    fn validate_transformer(&self, v: &mut Checks) {
         let o = &self.optim;
         v.real("optim.learning_rate", o.learning_rate, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
         v.real("optim.beta1", o.beta1, |x| (0.0..1.0).contains(&x), "in [0, 1)");
@@ -353,39 +418,6 @@ impl TrainConfig {
         if let Some(h) = s.prompt_length {
             v.range("sampler.prompt_length", h as u64, 1, 100_000);
         }
-        if let Some(x) = s.rtg_scale {
-            v.real("sampler.rtg_scale", f64::from(x), |x| x > 0.0 && x.is_finite(), "> 0");
-        }
-        // The modes become part of file names (`{env}-{task}-{mode}.{ext}`): a path there would
-        // read files from elsewhere, an empty one a file no writer makes.
-        let d = &self.data;
-        for (name, mode) in [
-            ("data.dataset_mode", &d.dataset_mode),
-            ("data.prompt_mode", &d.prompt_mode),
-            ("data.test_dataset_mode", &d.test_dataset_mode),
-            ("data.test_prompt_mode", &d.test_prompt_mode),
-        ] {
-            if !is_plain_mode(mode) {
-                v.fail(format!(
-                    "{name} = {mode:?} must be a plain name (letters, digits, '-', '_' or '.', not \
-                     starting with '.'): it becomes part of the data file names"
-                ));
-            }
-        }
-        let e = &self.eval;
-        v.range("eval.episodes", e.episodes as u64, 1, 10_000);
-        v.range("eval.max_batch", e.max_batch as u64, 1, 1_000_000);
-        v.at_most("eval.env_threads", e.env_threads as u64, 1024, "0 = all cores");
-        if let Some(x) = e.target_return {
-            v.real("eval.target_return", f64::from(x), f64::is_finite, "finite");
-        }
-        v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
-        v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
-        v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
-        if let Err(e) = self.macaw.validate() {
-            v.fail(e.to_string());
-        }
-        v.finish()
     }
 }
 
@@ -407,6 +439,9 @@ pub const MAX_RETURN_TOKEN: f64 = 1e6;
 /// statistics. The families' observations are of order 1 to 100; a dimension whose std exceeds
 /// 1e6 comes from corrupt data, and normalising by it maps every ordinary state to about 0.
 pub const MAX_STATE_STAT: f64 = 1e6;
+
+/// The largest TOML integer (TOML integers are signed 64-bit).
+const TOML_INT: u64 = i64::MAX as u64;
 
 /// Collects every failed check, so one run of `validate` names all bad settings at once.
 #[derive(Default)]
@@ -467,5 +502,37 @@ mod tests {
                 .unwrap();
         assert_eq!(c.run.method, Method::MtOrl);
         assert!(!c.run.method.uses_prompt());
+    }
+
+    #[test]
+    fn each_method_writes_and_checks_only_its_sections() {
+        let mut c = TrainConfig::default();
+        c.macaw.width = 0;
+        // Prompt-DT: no [macaw] written, and its (invalid) MACAW settings are not checked.
+        let text = c.to_toml().unwrap();
+        assert!(!text.contains("[macaw]") && text.contains("[model]"), "{text}");
+        c.validate().unwrap();
+        // A Prompt-DT config.toml written before, with a [macaw] section, still loads.
+        let old: TrainConfig =
+            toml::from_str("[run]\nmethod = \"prompt-dt\"\n[macaw]\nwidth = 8\n").unwrap();
+        assert_eq!((old.run.method, old.macaw.width), (Method::PromptDt, 8));
+        old.validate().unwrap();
+
+        // MACAW: [macaw] written and checked; the transformer's settings are not checked.
+        c.run.method = Method::Macaw;
+        assert!(c.to_toml().unwrap().contains("[macaw]"));
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("macaw.width"), "{e}");
+        c.macaw.width = 8;
+        c.model.hidden_size = 0;
+        c.optim.learning_rate = f64::NAN;
+        c.sampler.k = 0;
+        c.validate().unwrap();
+        let back: TrainConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
+        assert_eq!(back.macaw, c.macaw);
+        c.run.method = Method::MtOrl;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("model.hidden_size") && e.contains("optim.learning_rate"), "{e}");
+        assert!(e.contains("sampler.k"), "{e}");
     }
 }
