@@ -583,3 +583,20 @@ pub fn render_markdown(r: &BenchReport) -> String {
     }
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eval_cases_name_any_family() {
+        let case = |n: &str| parse_eval_case(n).map(|c| (c.env, c.inference, c.max_batch));
+        use pdt_eval::Inference::{Cached, Full};
+        assert_eq!(case("eval_point_robot"), Some(("point_robot", Cached, 1 << 20)));
+        assert_eq!(case("eval_cheetah_vel_full_b1"), Some(("cheetah_vel", Full, 1)));
+        assert_eq!(case("eval_dial_b4"), Some(("dial", Cached, 4)));
+        for bad in ["eval_walker", "eval_point_robot_b0", "eval_dial_x", "eval_"] {
+            assert_eq!(case(bad), None, "{bad}");
+        }
+    }
+}
