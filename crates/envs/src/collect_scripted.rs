@@ -172,7 +172,7 @@ impl Default for CollectConfig {
             episodes_per_task: 100,
             prompt_episodes: 5,
             modes: Mode::ALL.to_vec(),
-            tasks: (0..crate::point_robot::NUM_TASKS).collect(),
+            tasks: ScriptedFamily::PointRobot.policies().default_tasks(),
             reach_action_noise: REACH_ACTION_NOISE,
         }
     }

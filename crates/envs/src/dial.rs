@@ -34,7 +34,7 @@ use rand::Rng;
 use serde::Deserialize;
 
 use crate::collect_scripted::ScriptedFamily;
-use crate::replay::{replay_dial_init, ReplayResult};
+use crate::replay::ReplayResult;
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
 
 /// Family name, as used in file names.
@@ -538,7 +538,7 @@ impl EnvFamily for DialFamily {
     }
 
     /// From the digit's deterministic reset, or from `init` = `{"qpos": [9 joint angles]}`
-    /// ([`crate::replay::replay_dial`]).
+    /// ([`replay_dial`]).
     fn replay(
         &self,
         task: usize,
@@ -546,6 +546,52 @@ impl EnvFamily for DialFamily {
         actions: &[Vec<f32>],
     ) -> Result<ReplayResult, EnvError> {
         replay_dial_init(task, init, actions)
+    }
+}
+
+/// Replays `actions` on Dial's digit `task` from its deterministic reset, or, with `start_qpos`
+/// (9 joint angles), from that pose at rest settled back toward the init pose as a collection
+/// episode starts ([`Dial::reset_from`]). The observations are the f32 ones the datasets see.
+/// Note: a collected episode with DART noise recorded its clean actions, not the executed ones, so
+/// replaying its recorded actions does not reproduce it (`docs/dial.md`).
+pub fn replay_dial(
+    task: usize,
+    start_qpos: Option<&[f64]>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    let mut env = DialFamily.make_env(task)?;
+    let first = match start_qpos {
+        Some(q) => env.reset_from(q)?,
+        None => env.reset_f64(),
+    };
+    let first = first.iter().map(|&v| v as f32).collect();
+    crate::replay::play(
+        &mut env,
+        ReplayResult::start(ENV_NAME, task, first, actions.len()),
+        actions,
+    )
+}
+
+/// [`crate::EnvFamily::replay`] of Dial: `init` is optional, `{"qpos": [9 joint angles]}`
+/// ([`replay_dial`]).
+pub fn replay_dial_init(
+    task: usize,
+    init: Option<&str>,
+    actions: &[Vec<f32>],
+) -> Result<ReplayResult, EnvError> {
+    #[derive(Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Start {
+        qpos: Vec<f64>,
+    }
+    match init {
+        None => replay_dial(task, None, actions),
+        Some(text) => {
+            let s: Start = serde_json::from_str(text).map_err(|e| EnvError::ReplayInit {
+                message: format!("expected {{\"qpos\": [9 joint angles]}}: {e}"),
+            })?;
+            replay_dial(task, Some(&s.qpos), actions)
+        }
     }
 }
 

@@ -247,3 +247,13 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
     }
 }
+
+/// The concrete environment of a MuJoCo family's task (Ant-Dir with the reference's contact cost).
+pub fn make_mujoco_env(family: &str, task: usize) -> Result<mujoco_env::MujocoEnv, EnvError> {
+    match family {
+        "cheetah_dir" => cheetah::CheetahDirFamily::default().make_env(task),
+        "cheetah_vel" => cheetah::CheetahVelFamily::default().make_env(task),
+        "ant_dir" => ant_dir::AntDirFamily::default().make_env(task),
+        other => Err(EnvError::UnknownEnv(other.to_string(), replay::REPLAY_FAMILIES.join(", "))),
+    }
+}

@@ -752,6 +752,14 @@ impl EnvFamily for MetaWorldReachFamily {
     }
 }
 
+/// Replays `actions` on task `task` of Meta-World reach (goal hidden, as the family's tasks are)
+/// from its reset state: a reach task has no start-state noise, so there is no initial state to
+/// give. The observations are the f32 ones the datasets and the evaluation see.
+pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
+    let mut env = MetaWorldReachFamily::default().make_env(task)?;
+    replay_from_reset(&mut env, ENV_NAME, task, None, actions)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -4,12 +4,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::ant_dir::AntDirFamily;
-use crate::cheetah::{CheetahDirFamily, CheetahVelFamily};
-use crate::dial::{self, DialFamily};
-use crate::metaworld_reach::{self, MetaWorldReachFamily};
+// The machinery only: a family's own replay (`EnvFamily::replay`) lives with the family and calls
+// these, and the family registry (`crate::make_mujoco_env`) is the crate root's, so no family
+// module and this one import each other.
 use crate::mujoco_env::MujocoEnv;
-use crate::{Env, EnvError, StepResult};
+use crate::{make_mujoco_env, Env, EnvError, StepResult};
 
 /// Families that [`replay`] accepts (the MuJoCo ones).
 pub const REPLAY_FAMILIES: [&str; 3] = ["cheetah_dir", "cheetah_vel", "ant_dir"];
@@ -49,7 +48,7 @@ pub struct ReplayResult {
 
 impl ReplayResult {
     /// A replay of `family`'s task `task` that starts at the observation `first`.
-    fn start(family: &str, task: usize, first: Vec<f32>, steps: usize) -> Self {
+    pub(crate) fn start(family: &str, task: usize, first: Vec<f32>, steps: usize) -> Self {
         Self {
             family: family.to_string(),
             task,
@@ -77,16 +76,6 @@ impl ReplayResult {
             self.unused_actions = n - t - 1;
         }
         ended
-    }
-}
-
-/// The concrete environment of a MuJoCo family's task (Ant-Dir with the reference's contact cost).
-pub fn make_mujoco_env(family: &str, task: usize) -> Result<MujocoEnv, EnvError> {
-    match family {
-        "cheetah_dir" => CheetahDirFamily::default().make_env(task),
-        "cheetah_vel" => CheetahVelFamily::default().make_env(task),
-        "ant_dir" => AntDirFamily::default().make_env(task),
-        other => Err(EnvError::UnknownEnv(other.to_string(), REPLAY_FAMILIES.join(", "))),
     }
 }
 
@@ -142,17 +131,9 @@ pub fn replay_env(
     Ok(result)
 }
 
-/// Replays `actions` on task `task` of Meta-World reach (goal hidden, as the family's tasks are)
-/// from its reset state: a reach task has no start-state noise, so there is no initial state to
-/// give. The observations are the f32 ones the datasets and the evaluation see.
-pub fn replay_reach(task: usize, actions: &[Vec<f32>]) -> Result<ReplayResult, EnvError> {
-    let mut env = MetaWorldReachFamily::default().make_env(task)?;
-    replay_from_reset(&mut env, metaworld_reach::ENV_NAME, task, None, actions)
-}
-
 /// Applies `actions` to `env` (already at `result`'s first observation) until they run out or the
 /// episode ends, recording each step.
-fn play(
+pub(crate) fn play(
     env: &mut dyn Env,
     mut result: ReplayResult,
     actions: &[Vec<f32>],
@@ -164,25 +145,6 @@ fn play(
         }
     }
     Ok(result)
-}
-
-/// Replays `actions` on Dial's digit `task` from its deterministic reset, or, with `start_qpos`
-/// (9 joint angles), from that pose at rest settled back toward the init pose as a collection
-/// episode starts ([`dial::Dial::reset_from`]). The observations are the f32 ones the datasets see.
-/// Note: a collected episode with DART noise recorded its clean actions, not the executed ones, so
-/// replaying its recorded actions does not reproduce it (`docs/dial.md`).
-pub fn replay_dial(
-    task: usize,
-    start_qpos: Option<&[f64]>,
-    actions: &[Vec<f32>],
-) -> Result<ReplayResult, EnvError> {
-    let mut env = DialFamily.make_env(task)?;
-    let first = match start_qpos {
-        Some(q) => env.reset_from(q)?,
-        None => env.reset_f64(),
-    };
-    let first = first.iter().map(|&v| v as f32).collect();
-    play(&mut env, ReplayResult::start(dial::ENV_NAME, task, first, actions.len()), actions)
 }
 
 /// [`crate::EnvFamily::replay`] of a MuJoCo family: `init` is required, `{"qpos": [...],
@@ -228,29 +190,6 @@ pub fn replay_from_reset(
     }
     let first = env.reset(0);
     play(env, ReplayResult::start(family, task, first, actions.len()), actions)
-}
-
-/// [`crate::EnvFamily::replay`] of Dial: `init` is optional, `{"qpos": [9 joint angles]}`
-/// ([`replay_dial`]).
-pub fn replay_dial_init(
-    task: usize,
-    init: Option<&str>,
-    actions: &[Vec<f32>],
-) -> Result<ReplayResult, EnvError> {
-    #[derive(Deserialize)]
-    #[serde(deny_unknown_fields)]
-    struct Start {
-        qpos: Vec<f64>,
-    }
-    match init {
-        None => replay_dial(task, None, actions),
-        Some(text) => {
-            let s: Start = serde_json::from_str(text).map_err(|e| EnvError::ReplayInit {
-                message: format!("expected {{\"qpos\": [9 joint angles]}}: {e}"),
-            })?;
-            replay_dial(task, Some(&s.qpos), actions)
-        }
-    }
 }
 
 /// Adds the step index to an action error, so that a bad action in a long file can be found.
