@@ -89,6 +89,24 @@ fn old_run_directories_are_reported_evaluated_and_reproduced() {
         assert_eq!(after, before, "{method}");
     }
 
+    // serve: the old run's policy loads (weights, statistics, its moved data's prompts).
+    let run = f.join("runs/prompt-dt");
+    let mut server = std::process::Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(["serve", "--run", run.to_str().unwrap(), "--listen", "127.0.0.1:0", "--data"])
+        .arg(&data)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    let read = std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(server.stdout.take().unwrap()),
+        &mut line,
+    );
+    let _ = server.kill();
+    let _ = server.wait();
+    read.unwrap();
+    assert!(line.starts_with("listening on "), "{line}");
+
     // reproduce --report-only: the old version's cells, and the loss beside each curve point.
     let tree = f.join("tree");
     let manifest = f.join("tiny-repro.toml");
