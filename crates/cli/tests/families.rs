@@ -163,7 +163,10 @@ fn files_under(dir: &Path, ext: &str, out: &mut Vec<PathBuf>) {
 #[test]
 fn front_ends_name_no_family() {
     let mut files = Vec::new();
-    for krate in ["cli", "python", "repro", "report", "rl", "bench"] {
+    for krate in [
+        "cli", "python", "repro", "report", "rl", "bench", "train", "eval", "policy", "serve",
+        "rundir",
+    ] {
         files_under(&repo(&format!("crates/{krate}/src")), "rs", &mut files);
     }
     files_under(&repo("crates/python/python/promptdt"), "py", &mut files);

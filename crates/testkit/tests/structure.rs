@@ -3,9 +3,8 @@
 //! - no source file over [`MAX_LINES`] lines, except the few named in [`LONG_FILES`] with why;
 //! - no import circle between the files of a crate (a file's references to its own ancestors,
 //!   `super::` and the crate root, are not counted: a module's parent declares it);
-//! - no dispatch on an environment family's name outside `crates/envs` (a family carries its own
-//!   knowledge): no family name as a `match` pattern or in a comparison in the front ends and the
-//!   crates above `pdt-envs` (help text, messages and unit tests may name families);
+//! - (that no crate above `pdt-envs` dispatches on a family's name is checked by
+//!   `crates/cli/tests/families.rs`, with every family through the front ends);
 //! - `pdt-serve` does not depend on `pdt-train`, and serve and the Python package act through the
 //!   same policy runtime (`pdt-policy`).
 
@@ -20,10 +19,6 @@ const LONG_FILES: &[(&str, &str)] = &[
     ("crates/macaw/src/lib.rs", "MACAW as one flat module, top to bottom, like a CleanRL file"),
     ("crates/data/src/pickle/machine.rs", "the pickle virtual machine: one flat table of opcodes"),
 ];
-
-/// Crates whose sources must not dispatch on a family's name.
-const NO_FAMILY_DISPATCH: &[&str] =
-    &["cli", "python", "repro", "report", "rl", "bench", "train", "eval"];
 
 fn repo_root() -> PathBuf {
     // crates/testkit -> the workspace root.
@@ -287,66 +282,6 @@ fn the_module_path_parser_sees_grouped_imports() {
     let want: BTreeSet<Vec<String>> =
         [vec!["a".to_string(), "b".to_string()], vec!["c".to_string()]].into_iter().collect();
     assert_eq!(found, want);
-}
-
-/// The family names `pdt_envs` registers (`FAMILY_NAMES` in crates/envs/src/lib.rs).
-fn family_names(root: &Path) -> Vec<String> {
-    let text = std::fs::read_to_string(root.join("crates/envs/src/lib.rs")).expect("envs lib.rs");
-    let i = text.find("FAMILY_NAMES").expect("crates/envs/src/lib.rs defines FAMILY_NAMES");
-    let list = &text[i..];
-    let list = &list[list.find('=').expect("FAMILY_NAMES has a value")..];
-    let list = &list[list.find('[').expect("FAMILY_NAMES is an array")..];
-    let list = &list[..list.find(']').expect("FAMILY_NAMES ends")];
-    let names: Vec<String> = list.split('"').skip(1).step_by(2).map(str::to_string).collect();
-    assert!(names.len() >= 5, "FAMILY_NAMES parsed as {names:?}");
-    names
-}
-
-#[test]
-fn no_family_dispatch_outside_envs() {
-    let root = repo_root();
-    let families = family_names(&root);
-    let mut found = Vec::new();
-    for krate in NO_FAMILY_DISPATCH {
-        let mut files = Vec::new();
-        rust_files(&root.join("crates").join(krate).join("src"), &mut files);
-        for f in files {
-            let text = std::fs::read_to_string(&f).expect("source readable");
-            let text = match text.find("#[cfg(test)]") {
-                Some(i) => &text[..i],
-                None => &text[..],
-            };
-            for (n, line) in text.lines().enumerate() {
-                let code = line.split("//").next().unwrap_or("");
-                for fam in &families {
-                    let lit = format!("\"{fam}\"");
-                    let Some(at) = code.find(&lit) else { continue };
-                    let after = code[at + lit.len()..].trim_start();
-                    let before = code[..at].trim_end();
-                    let dispatch = after.starts_with("=>")
-                        || after.starts_with('|')
-                        || after.starts_with("==")
-                        || after.starts_with("!=")
-                        || before.ends_with('|')
-                        || before.ends_with("==")
-                        || before.ends_with("!=")
-                        || before.ends_with("strip_prefix(")
-                        || before.ends_with("starts_with(")
-                        // A tuple pattern: `("dial", None) =>`.
-                        || (before.ends_with('(') && after.starts_with(','));
-                    if dispatch {
-                        found.push(format!("{}:{}: {}", rel(&root, &f), n + 1, line.trim()));
-                        break;
-                    }
-                }
-            }
-        }
-    }
-    assert!(
-        found.is_empty(),
-        "dispatch on a family's name outside crates/envs (a family carries its own knowledge):\n{}",
-        found.join("\n")
-    );
 }
 
 /// Workspace packages a package depends on (normal dependencies, transitively).
