@@ -186,6 +186,33 @@ impl Latest {
     }
 }
 
+/// Training state besides weights and moments (`checkpoints/state_<N>.json`): what a resumed run
+/// restores, and what the clean-up of a killed run reads (`keep`). The fields are in the order the
+/// files of earlier versions have them, so that a run's files stay byte-identical.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// The method whose state this is, for the methods that record it (MACAW: `"macaw"`; absent
+    /// for the Prompt-DT variants, whose files never had it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
+    pub iteration: u64,
+    pub step: u64,
+    /// Position of the batch-sampling RNG (a u128, as a decimal string).
+    pub batch_rng_word_pos: String,
+    /// The optimiser steps taken, in the method's own layout (opaque here: each method writes
+    /// and checks its own).
+    pub adam_steps: serde_json::Value,
+    /// Lines of `metrics.jsonl` and `eval.jsonl` at the checkpoint: a resumed run cuts the logs
+    /// back to them.
+    pub metrics_lines: usize,
+    pub eval_lines: usize,
+    /// As `latest.json`'s `keep`: `false` for a resume point, whose files go once a later one is
+    /// in force. Recorded here too, so a removal cut short by a kill is finished on the next
+    /// start. Absent in runs written before it was recorded (then kept).
+    #[serde(default = "keep_default")]
+    pub keep: bool,
+}
+
 /// One task's evaluation: the rows of `eval_final.json`'s `tasks`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TaskResult {

@@ -8,7 +8,7 @@
 
 pub use crate::error::RunError;
 pub use crate::evaluate::{evaluate_run, evaluate_run_with};
-pub use crate::methods::prompt_dt::TaskPlan;
 pub use crate::methods::MacawAdaptation;
-pub use crate::run_dir::{FinalEval, RunInfo, TaskStats};
 pub use crate::run_loop::{train, Progress, ResumeWith, TrainOptions, TrainSummary};
+pub use pdt_policy::TaskPlan;
+pub use pdt_rundir::{FinalEval, RunInfo, TaskStats};
