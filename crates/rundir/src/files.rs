@@ -9,7 +9,7 @@
 use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
-use crate::config::{compact, MAX_STATE_STAT};
+use crate::config::{compact, within, MAX_STATE_STAT};
 
 /// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
@@ -77,11 +77,6 @@ pub struct RunStats {
 
 /// The name `task_stats.json`'s struct had before it moved here.
 pub type TaskStats = RunStats;
-
-/// `|x| <= bound`, false for NaN.
-fn within(x: f64, bound: f64) -> bool {
-    x.abs() <= bound
-}
 
 impl RunStats {
     /// The values a policy can act with: one mean and std per state dimension, finite, each std

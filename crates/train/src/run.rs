@@ -1,5 +1,6 @@
 //! The public face of a run: [`train`] (the loop in `run_loop`, the methods in `methods`),
-//! [`evaluate_run`] (the final evaluation, `evaluate`) and the run directory's records (`run_dir`).
+//! [`evaluate_run`] (the final evaluation, `evaluate`) and the run directory's records (owned by
+//! `pdt_rundir`, re-exported here).
 //! A trained run loaded to act is `pdt_policy::Policy`.
 //!
 //! Randomness: one seed, split into independent streams (model init, batch sampling, dropout per
