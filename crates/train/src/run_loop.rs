@@ -216,7 +216,8 @@ fn prepare_run_dir(
             )));
         }
         run.write_info(&run_info(setup, loss_metric))?;
-        write_atomic(&run.config_path(), toml.as_bytes()).map_err(io_err(dir))?;
+        let config = run.config_path();
+        write_atomic(&config, toml.as_bytes()).map_err(io_err(&config))?;
         run.write_stats(&setup.run_data.stats)?;
     }
     // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
