@@ -229,7 +229,7 @@ fn run(cli: Cli) -> Result<()> {
             let mean_rate = rates.as_ref().map(|v| v.iter().sum::<f64>() / v.len() as f64);
             out!(
                 "{:<24} {:>12.2} {:>10} {:>9}{}",
-                format!("average ({})", r.split),
+                format!("average ({})", r.eval_on),
                 r.mean_return,
                 "",
                 "",

@@ -13,7 +13,7 @@ use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::ToModelConfig;
 use pdt_model::PromptDtConfig;
 use pdt_prompt::{BatchSampler, NormalizationScope, SamplerConfig, StateNorm};
-use pdt_rundir::config::{compact, Method, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
+use pdt_rundir::config::{compact, within, Method, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
 use pdt_rundir::RunStats;
 
 /// Everything built from a configuration's data section and its data.
@@ -163,11 +163,6 @@ fn shown(x: f64) -> String {
 fn task_file(cfg: &TrainConfig, env: &str, t: &TaskData, mode: &str) -> String {
     pdt_data::multitask::resolve_task_file(&cfg.data.dir, env, t.id.index, mode, cfg.data.format)
         .map_or_else(|_| format!("task {}'s {mode} data", t.id), |p| p.display().to_string())
-}
-
-/// `|x| <= bound`, false for NaN.
-fn within(x: f64, bound: f64) -> bool {
-    x.abs() <= bound
 }
 
 /// Refuses return-to-go tokens the model cannot represent: the target return's (the first token of

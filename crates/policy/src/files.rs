@@ -9,7 +9,7 @@ use std::path::Path;
 
 /// A run's configuration, for acting with it: its `config.toml` with this invocation's device and
 /// the place its data moved to.
-pub(crate) fn run_config(
+pub fn run_config(
     dir: &RunDir,
     device: Option<DeviceSpec>,
     data: Option<&Path>,
@@ -31,7 +31,7 @@ pub(crate) fn run_config(
 
 /// Reads a run's `task_stats.json`, saying what a missing one means, and checks its values (a
 /// hand-edited or corrupt file must not normalise states by NaN or 0).
-pub(crate) fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
+pub fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
     let path = dir.stats_path();
     if !path.exists() {
         let why = if dir.latest_path().exists() {
@@ -50,7 +50,7 @@ pub(crate) fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
 }
 
 /// The latest checkpoint of the run (its weights must be the ones of its step).
-pub(crate) fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
+pub fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
     match dir.latest() {
         Ok(Some(latest)) => Ok(latest),
         Ok(None) | Err(RunDirError::Io { .. }) => Err(PolicyError::NoCheckpoint(dir.path().into())),

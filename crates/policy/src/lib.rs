@@ -9,6 +9,9 @@
 //!   finite.
 //! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
 //!   normalisation and the statistics a run records.
+//! - [`files`]: the run-directory files acting on a run reads (its configuration with this
+//!   invocation's device and data place, `task_stats.json` checked, the latest checkpoint), with
+//!   what a missing or bad one means; the trainer's final evaluation and resume read them here too.
 
 // Errors carry the offending path or value; they are returned on the cold path only.
 #![allow(clippy::result_large_err)]
@@ -16,7 +19,7 @@
 pub mod data;
 pub mod episode;
 mod error;
-mod files;
+pub mod files;
 pub mod policy;
 
 pub use data::RunData;

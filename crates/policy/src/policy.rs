@@ -18,8 +18,9 @@ use serde::Deserialize;
 use std::path::Path;
 use tch::{nn::VarStore, Device};
 
-/// The evaluation's random streams (`pdt_train::run`'s, derived from the run seed): a plan draws
-/// what a final evaluation of the split draws.
+/// The evaluation's random streams, derived from the run seed (`pdt_base::seed::derive_seed`):
+/// the trainer's evaluations of the test and training tasks draw from them, and so does a plan,
+/// which draws what a final evaluation of the split draws. The trainer's other streams are 1-3.
 pub const STREAM_EVAL_TEST: u64 = 4;
 pub const STREAM_EVAL_TRAIN: u64 = 5;
 

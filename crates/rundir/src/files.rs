@@ -9,7 +9,7 @@
 use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
-use crate::config::{compact, MAX_STATE_STAT};
+use crate::config::{compact, within, MAX_STATE_STAT};
 
 /// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
@@ -77,11 +77,6 @@ pub struct RunStats {
 
 /// The name `task_stats.json`'s struct had before it moved here.
 pub type TaskStats = RunStats;
-
-/// `|x| <= bound`, false for NaN.
-fn within(x: f64, bound: f64) -> bool {
-    x.abs() <= bound
-}
 
 impl RunStats {
     /// The values a policy can act with: one mean and std per state dimension, finite, each std
@@ -184,6 +179,33 @@ impl Latest {
         }
         Ok(())
     }
+}
+
+/// Training state besides weights and moments (`checkpoints/state_<N>.json`): what a resumed run
+/// restores, and what the clean-up of a killed run reads (`keep`). The fields are in the order the
+/// files of earlier versions have them, so that a run's files stay byte-identical.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// The method whose state this is, for the methods that record it (MACAW: `"macaw"`; absent
+    /// for the Prompt-DT variants, whose files never had it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
+    pub iteration: u64,
+    pub step: u64,
+    /// Position of the batch-sampling RNG (a u128, as a decimal string).
+    pub batch_rng_word_pos: String,
+    /// The optimiser steps taken, in the method's own layout (opaque here: each method writes
+    /// and checks its own).
+    pub adam_steps: serde_json::Value,
+    /// Lines of `metrics.jsonl` and `eval.jsonl` at the checkpoint: a resumed run cuts the logs
+    /// back to them.
+    pub metrics_lines: usize,
+    pub eval_lines: usize,
+    /// As `latest.json`'s `keep`: `false` for a resume point, whose files go once a later one is
+    /// in force. Recorded here too, so a removal cut short by a kill is finished on the next
+    /// start. Absent in runs written before it was recorded (then kept).
+    #[serde(default = "keep_default")]
+    pub keep: bool,
 }
 
 /// One task's evaluation: the rows of `eval_final.json`'s `tasks`.

@@ -20,5 +20,5 @@ pub use dir::{
 };
 pub use files::{
     AdaptationStats, EvalLine, FinalEval, Latest, MetricsLine, RunInfo, RunStats, TaskResult,
-    TaskStats,
+    TaskStats, TrainState,
 };

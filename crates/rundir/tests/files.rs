@@ -2,6 +2,7 @@
 
 use pdt_rundir::{
     EvalLine, FinalEval, Latest, MetricsLine, RunDir, RunDirError, RunInfo, RunStats, TaskResult,
+    TrainState,
 };
 use std::collections::BTreeMap;
 use std::fs;
@@ -288,5 +289,25 @@ fn run_directories_written_before_the_schema_crate_are_read() -> TestResult {
             assert_eq!(f.adaptation.is_some(), method == "macaw");
         }
     }
+    Ok(())
+}
+
+/// `checkpoints/state_<N>.json` of the runs written before `TrainState` moved here (a Prompt-DT
+/// run's, without `method`; a MACAW run's, with it) read and write back byte for byte, and one
+/// without `keep` (older still) reads as kept.
+#[test]
+fn train_state_files_round_trip_byte_for_byte() -> TestResult {
+    let runs =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../testdata/rundir-v1/runs");
+    for (run, method) in [("prompt-dt", None), ("macaw", Some("macaw"))] {
+        let path = runs.join(run).join("checkpoints/state_4.json");
+        let state: TrainState = pdt_rundir::read_json(&path)?;
+        assert_eq!(state.method.as_deref(), method, "{run}");
+        assert_eq!((state.iteration, state.step, state.metrics_lines), (2, 4, 2), "{run}");
+        assert_eq!(serde_json::to_string_pretty(&state)?, fs::read_to_string(&path)?, "{run}");
+    }
+    let old = r#"{"iteration": 1, "step": 2, "batch_rng_word_pos": "7", "adam_steps": {},
+        "metrics_lines": 1, "eval_lines": 40}"#;
+    assert!(serde_json::from_str::<TrainState>(old)?.keep);
     Ok(())
 }

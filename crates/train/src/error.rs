@@ -24,6 +24,13 @@ pub enum RunError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),
+    /// A run-directory file unreadable, malformed or unwritable (the error names it).
+    #[error(transparent)]
+    RunDir(#[from] pdt_rundir::RunDirError),
+    /// The run's data, configuration or files as a policy reads them (`pdt_policy::RunData`,
+    /// `pdt_policy::files`).
+    #[error(transparent)]
+    Policy(#[from] pdt_policy::PolicyError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: {message}")]

@@ -4,10 +4,11 @@
 
 use crate::error::RunError;
 use crate::methods::{self, MacawAdaptation};
-use crate::run_dir::{latest_checkpoint, read_task_stats, write_json, FinalEval};
 use crate::run_loop::eval_rng;
-use crate::setup::{run_config, Setup, Split};
+use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
+use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
+use pdt_rundir::{FinalEval, RunDir};
 use std::path::Path;
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
@@ -30,14 +31,15 @@ pub fn evaluate_run_with(
     data: Option<&Path>,
     adaptation: &MacawAdaptation,
 ) -> Result<FinalEval, RunError> {
-    let mut cfg = run_config(dir, device, data)?;
+    let run = RunDir::at(dir);
+    let mut cfg = run_config(&run, device, data)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
     }
     let setup = Setup::new(cfg)?;
-    let stats_path = dir.join("task_stats.json");
-    let recorded = read_task_stats(dir)?;
-    setup.stats.check_same_as(&recorded).map_err(|m| {
+    let stats_path = run.stats_path();
+    let recorded = read_stats(&run)?;
+    setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
         RunError::Invalid(format!(
             "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
              where it moved)",
@@ -62,8 +64,8 @@ pub fn evaluate_run_with(
         }
         learner.set_adaptation(adaptation)?;
     }
-    let latest = latest_checkpoint(dir)?;
-    learner.load_weights(&dir.join("checkpoints").join(&latest.model))?;
+    let latest = latest_checkpoint(&run)?;
+    learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
     let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
@@ -73,10 +75,10 @@ pub fn evaluate_run_with(
         iteration: latest.iteration,
         step: latest.step,
         checkpoint: format!("checkpoints/{}", latest.model),
-        split: split.into(),
+        eval_on: split.into(),
         tasks,
         mean_return,
     };
-    write_json(&dir.join("eval_final.json"), &result)?;
+    run.write_final_eval(&result)?;
     Ok(result)
 }

@@ -4,8 +4,10 @@
 //! - `run_loop`: the one loop every method runs in (cadence, logs, checkpoints, resumption).
 //! - `methods`: the [`Learner`](methods::Learner) trait, its implementations (the Prompt-DT
 //!   family, MACAW) and the registry mapping `run.method` to one.
-//! - `setup`: the configuration checked against its environment and data, the data loaded.
-//! - `run_dir`: the run directory's records, readers and writers.
+//! - `setup`: the configuration checked against its environment and data, the data loaded
+//!   (`pdt_policy::RunData`).
+//! - `run_dir`: the trainer's bookkeeping of the run directory (logs cut back on resume, checkpoint
+//!   commits, clean-up after a kill) over `pdt_rundir`'s typed files.
 //! - `evaluate`: the final evaluation of a run (`eval_final.json`).
 //! - `streams`: the run seed's independent random streams.
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce

@@ -1,5 +1,6 @@
 //! The public face of a run: [`train`] (the loop in `run_loop`, the methods in `methods`),
-//! [`evaluate_run`] (the final evaluation, `evaluate`) and the run directory's records (`run_dir`).
+//! [`evaluate_run`] (the final evaluation, `evaluate`) and the run directory's records (owned by
+//! `pdt_rundir`, re-exported here).
 //! A trained run loaded to act is `pdt_policy::Policy`.
 //!
 //! Randomness: one seed, split into independent streams (model init, batch sampling, dropout per
@@ -8,7 +9,7 @@
 
 pub use crate::error::RunError;
 pub use crate::evaluate::{evaluate_run, evaluate_run_with};
-pub use crate::methods::prompt_dt::TaskPlan;
 pub use crate::methods::MacawAdaptation;
-pub use crate::run_dir::{FinalEval, RunInfo, TaskStats};
 pub use crate::run_loop::{train, Progress, ResumeWith, TrainOptions, TrainSummary};
+pub use pdt_policy::TaskPlan;
+pub use pdt_rundir::{FinalEval, RunInfo, TaskStats};

@@ -1,162 +1,18 @@
-//! The run directory's records and their readers and writers (`docs/run-directory.md`): `run.json`,
-//! `task_stats.json`, the checkpoints' `latest.json` and state files, the logs, `eval_final.json`,
-//! the directory's lock, and the clean-up of what a killed run left behind. Gathered here so that
-//! they can be swapped for `pdt-rundir`'s typed records in one place.
+//! The trainer's bookkeeping of a run directory (`docs/run-directory.md`) over `pdt-rundir`'s typed
+//! files: the logs with their CSV mirrors cut back to a checkpoint's line counts, the commit of a
+//! checkpoint, the checks of a state file's counts, the directory's lock, and the clean-up of what
+//! a killed run left behind.
 
-use crate::config::{compact, MAX_STATE_STAT};
 use crate::error::{io_err, RunError};
-use pdt_eval::TaskResult;
-use pdt_model::checkpoint::write_atomic;
-use serde::{Deserialize, Serialize};
+use pdt_base::fs::write_atomic;
+use pdt_rundir::{read_json, write_json, Latest, TrainState};
+use serde::Serialize;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// The run's identity (`run.json`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RunInfo {
-    pub name: String,
-    pub method: String,
-    pub env: String,
-    pub seed: u64,
-    pub split: String,
-    pub created: String,
-    pub promptdt_version: String,
-    /// The `metrics.jsonl` column of the training loss (`train/action_loss` for the Prompt-DT
-    /// variants, `train/policy_outer_loss` for MACAW). Absent in runs written before it was
-    /// recorded.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub loss_metric: Option<String>,
-}
-
-/// What evaluation needs besides weights (`task_stats.json`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TaskStats {
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    pub state_mean: Vec<f32>,
-    pub state_std: Vec<f32>,
-    pub rtg_scale: f32,
-    pub target_return: f32,
-    pub horizon: usize,
-    pub train_tasks: Vec<usize>,
-    pub test_tasks: Vec<usize>,
-    /// Content hashes of the training and test data (`MultiTaskDataset::fingerprint`): a resumed
-    /// or evaluated run refuses data that differs. Empty in runs made before they were recorded.
-    #[serde(default)]
-    pub train_data_fingerprint: String,
-    #[serde(default)]
-    pub test_data_fingerprint: String,
-}
-
-impl TaskStats {
-    /// The values a policy can act with: one mean and std per state dimension, finite, each std
-    /// positive, all within [`MAX_STATE_STAT`]; a positive finite rtg scale; a finite target.
-    pub fn check(&self) -> Result<(), String> {
-        let n = self.obs_dim;
-        if self.state_mean.len() != n || self.state_std.len() != n {
-            return Err(format!(
-                "state_mean has {} values and state_std {}, but obs_dim is {n}",
-                self.state_mean.len(),
-                self.state_std.len()
-            ));
-        }
-        for (j, (&m, &s)) in self.state_mean.iter().zip(&self.state_std).enumerate() {
-            let ok = within(f64::from(m), MAX_STATE_STAT)
-                && s > 0.0
-                && within(f64::from(s), MAX_STATE_STAT);
-            if !ok {
-                return Err(format!(
-                    "state_mean[{j}] = {}, state_std[{j}] = {}: each must be finite and within {} \
-                     in magnitude, the std positive",
-                    compact(m),
-                    compact(s),
-                    compact(MAX_STATE_STAT)
-                ));
-            }
-        }
-        let ok =
-            self.rtg_scale > 0.0 && self.rtg_scale.is_finite() && self.target_return.is_finite();
-        if !ok {
-            return Err(format!(
-                "rtg_scale = {} must be positive and finite, target_return = {} finite",
-                compact(self.rtg_scale),
-                compact(self.target_return)
-            ));
-        }
-        Ok(())
-    }
-
-    /// Compares the statistics recomputed from the data now with those recorded in a run;
-    /// `Err` says what differs. Fingerprints are compared when the run recorded them.
-    pub(crate) fn check_same_as(&self, recorded: &TaskStats) -> Result<(), String> {
-        let fp = |now: &str, then: &str, which: &str| {
-            if !then.is_empty() && now != then {
-                Err(format!(
-                    "the {which} data differ from what the run trained on ({then}, now {now})"
-                ))
-            } else {
-                Ok(())
-            }
-        };
-        fp(&self.train_data_fingerprint, &recorded.train_data_fingerprint, "training")?;
-        fp(&self.test_data_fingerprint, &recorded.test_data_fingerprint, "test")?;
-        let mut mine = self.clone();
-        mine.train_data_fingerprint.clone_from(&recorded.train_data_fingerprint);
-        mine.test_data_fingerprint.clone_from(&recorded.test_data_fingerprint);
-        if &mine != recorded {
-            return Err("the state statistics, tasks or return settings recomputed from the \
-                        configuration and data differ from those the run recorded"
-                .into());
-        }
-        Ok(())
-    }
-}
-
-/// The commit point of a checkpoint (`checkpoints/latest.json`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub(crate) struct Latest {
-    pub(crate) step: u64,
-    pub(crate) iteration: u64,
-    pub(crate) model: String,
-    pub(crate) state: String,
-    /// `false` for a resume point between checkpoints (`train.resume_interval`): its weights are
-    /// removed once a later checkpoint is in force. Absent in runs written before the option.
-    #[serde(default = "keep_default")]
-    pub(crate) keep: bool,
-}
-
-/// `|x| <= bound`, false for NaN.
-pub(crate) fn within(x: f64, bound: f64) -> bool {
-    x.abs() <= bound
-}
-
-fn keep_default() -> bool {
-    true
-}
-
-/// Training state besides weights and moments (`checkpoints/state_<N>.json`). The fields are in
-/// the order the files of earlier versions have them, so that a run's files stay byte-identical.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub(crate) struct TrainState {
-    /// The method whose state this is, for the methods that record it (MACAW: `"macaw"`; absent
-    /// for the Prompt-DT variants, whose files never had it): the learner's `state_tag`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub(crate) method: Option<String>,
-    pub(crate) iteration: u64,
-    pub(crate) step: u64,
-    /// Position of the batch-sampling RNG (a u128, as a decimal string).
-    pub(crate) batch_rng_word_pos: String,
-    /// The optimiser steps taken, in the learner's own layout (opaque to the loop; each learner
-    /// writes and checks its own: `Learner::save`).
-    pub(crate) adam_steps: serde_json::Value,
-    pub(crate) metrics_lines: usize,
-    pub(crate) eval_lines: usize,
-    /// As `latest.json`'s `keep`: `false` for a resume point, whose files go once a later one is
-    /// in force. Recorded here too, so a removal cut short by a kill is finished on the next start
-    /// (`remove_orphans`). Absent in runs written before it was recorded (then kept).
-    #[serde(default = "keep_default")]
-    pub(crate) keep: bool,
-}
+/// One row of a log as written: column name to value, in the order of the name (serde_json's map),
+/// which every run directory's logs have had.
+type Row = serde_json::Map<String, serde_json::Value>;
 
 /// Appends JSON lines (and matching CSV rows) to a log.
 pub(crate) struct Log {
@@ -170,8 +26,9 @@ pub(crate) struct Log {
 }
 
 impl Log {
-    pub(crate) fn open(dir: &Path, stem: &str, keep_lines: usize) -> Result<Self, RunError> {
-        let (jsonl, csv) = (dir.join(format!("{stem}.jsonl")), dir.join(format!("{stem}.csv")));
+    /// The log `jsonl` (`RunDir::metrics_path`, `eval_path`) with its CSV mirror `csv`, cut back
+    /// to its first `keep_lines` lines.
+    pub(crate) fn open(jsonl: PathBuf, csv: PathBuf, keep_lines: usize) -> Result<Self, RunError> {
         // Keep exactly the lines the checkpoint knew about: a killed run may have written more.
         // The JSON lines are the record; the CSV is rebuilt from them (a deleted or edited CSV
         // is repaired, with its header).
@@ -218,7 +75,7 @@ impl Log {
     }
 
     /// The JSON lines and CSV rows (with the header when the log is empty) of `rows`.
-    fn render(&self, rows: &[serde_json::Map<String, serde_json::Value>]) -> (String, String) {
+    fn render(&self, rows: &[Row]) -> (String, String) {
         let (mut j, mut c) = (String::new(), String::new());
         for (i, row) in rows.iter().enumerate() {
             if self.lines + i == 0 {
@@ -238,10 +95,20 @@ impl Log {
         (j, c)
     }
 
-    pub(crate) fn append(
-        &mut self,
-        rows: &[serde_json::Map<String, serde_json::Value>],
-    ) -> Result<(), RunError> {
+    /// Appends typed lines (`pdt_rundir::MetricsLine`, `EvalLine`). Each is written through
+    /// serde_json's map, so its columns come in name order as in every earlier run directory
+    /// (and the CSV's header matches the JSON lines).
+    pub(crate) fn append<T: Serialize>(&mut self, lines: &[T]) -> Result<(), RunError> {
+        let corrupt = |message: String| RunError::Corrupt { path: self.jsonl.clone(), message };
+        let mut rows = Vec::with_capacity(lines.len());
+        for line in lines {
+            match serde_json::to_value(line) {
+                Ok(serde_json::Value::Object(row)) => rows.push(row),
+                Ok(other) => return Err(corrupt(format!("a log line is not an object: {other}"))),
+                Err(e) => return Err(corrupt(e.to_string())),
+            }
+        }
+        let rows = &rows;
         let mut j = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -258,44 +125,6 @@ impl Log {
         self.lines += rows.len();
         Ok(())
     }
-}
-
-pub(crate) fn eval_rows(
-    results: &[TaskResult],
-    iteration: u64,
-    step: u64,
-    split: &str,
-    target: f32,
-) -> Vec<serde_json::Map<String, serde_json::Value>> {
-    results
-        .iter()
-        .map(|r| {
-            let v = serde_json::json!({
-                "iteration": iteration, "step": step, "split": split, "task": r.task, "task_index": r.task_index,
-                "return_mean": r.return_mean, "return_std": r.return_std, "length_mean": r.length_mean,
-                "episodes": r.episodes, "target_return": target,
-            });
-            let mut row = v.as_object().cloned().unwrap_or_default();
-            // Only families with a success criterion (Meta-World) have the column.
-            if let Some(rate) = r.success_rate {
-                row.insert("success_rate".into(), rate.into());
-            }
-            row
-        })
-        .collect()
-}
-
-pub(crate) fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), RunError> {
-    let text = serde_json::to_string_pretty(value)
-        .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?;
-    write_atomic(path, text.as_bytes()).map_err(io_err(path))
-}
-
-pub(crate) fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, RunError> {
-    let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
-        .map_err(io_err(path))?;
-    serde_json::from_str(&text)
-        .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })
 }
 
 /// Makes a checkpoint whose files are written the one in force: `latest.json` last, so a crash
@@ -432,12 +261,7 @@ pub(crate) fn remove_orphans(ck: &Path) -> Result<Vec<String>, RunError> {
     // Whether step n's state file marks it a resume point (`keep: false`); `false` when the file
     // is missing, unreadable or older than the field (such weights are kept).
     let resume_point = |n: u64| -> bool {
-        let state = ck.join(format!("state_{n}.json"));
-        pdt_base::fs::read_text_limited(&state, pdt_base::fs::MAX_TEXT_BYTES)
-            .ok()
-            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
-            .and_then(|v| v.get("keep").and_then(serde_json::Value::as_bool))
-            .is_some_and(|keep| !keep)
+        read_json::<TrainState>(&ck.join(format!("state_{n}.json"))).is_ok_and(|s| !s.keep)
     };
     // Decide for every file before removing any (a state file is read to decide on its weights).
     let mut orphans = Vec::new();
@@ -491,61 +315,9 @@ pub(crate) fn lock_run_dir(dir: &Path) -> Result<pdt_base::fs::DirLock, RunError
     })
 }
 
-/// Reads a run's `task_stats.json`, saying what a missing one means, and checks its values (a
-/// hand-edited or corrupt file must not normalise states by NaN or 0).
-pub(crate) fn read_task_stats(dir: &Path) -> Result<TaskStats, RunError> {
-    let path = dir.join("task_stats.json");
-    if !path.exists() {
-        let why = if dir.join("checkpoints").join("latest.json").exists() {
-            "but the run has a checkpoint: it cannot be recreated from today's data without \
-             defeating the check that the data did not change. Restore it from a copy of the run, \
-             or delete the run"
-        } else {
-            "the run directory was interrupted while being created (killed before writing it); \
-             `promptdt train --resume` recreates it and starts the run, or delete the directory"
-        };
-        return Err(RunError::Invalid(format!("{} is missing, {why}", path.display())));
-    }
-    let stats: TaskStats = read_json(&path)?;
-    stats.check().map_err(|message| RunError::Corrupt { path, message })?;
-    Ok(stats)
-}
-
 pub(crate) fn now_utc() -> String {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
     format!("unix:{secs}")
-}
-
-/// The latest checkpoint of the run in `dir` (its weights must be the ones of its step).
-pub(crate) fn latest_checkpoint(dir: &Path) -> Result<Latest, RunError> {
-    let ck = dir.join("checkpoints");
-    let latest: Latest = read_json(&ck.join("latest.json")).map_err(|e| match e {
-        RunError::Io { .. } => {
-            RunError::Invalid(format!("{}: no checkpoint yet (train first)", dir.display()))
-        }
-        other => other,
-    })?;
-    if latest.model != format!("step_{}.safetensors", latest.step) {
-        return Err(RunError::Corrupt {
-            path: ck.join("latest.json"),
-            message: format!("names weights `{}` for step {}", latest.model, latest.step),
-        });
-    }
-    Ok(latest)
-}
-
-/// The final evaluation of a run's latest checkpoint (`promptdt eval`), written to `eval_final.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FinalEval {
-    pub iteration: u64,
-    pub step: u64,
-    pub checkpoint: String,
-    pub split: String,
-    pub tasks: Vec<TaskResult>,
-    pub mean_return: f64,
-    /// MACAW runs: the test-time adaptation used.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub adaptation: Option<String>,
 }

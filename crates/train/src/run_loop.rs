@@ -8,18 +8,20 @@
 use crate::config::TrainConfig;
 use crate::error::{io_err, RunError};
 use crate::methods::{
-    self, CheckpointFiles, IterationAt, IterationMetrics, Learner, Row, SavedSteps, TaskEval,
+    self, CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 use crate::run_dir::{
-    check_log_counts, commit_checkpoint, eval_rows, lock_run_dir, now_utc, read_json,
-    read_task_stats, remove_orphans, write_json, Latest, Log, RunInfo, TrainState,
+    check_log_counts, commit_checkpoint, lock_run_dir, now_utc, remove_orphans, Log,
 };
 use crate::setup::{absolute, Setup, Split};
 use crate::streams::{torch_rng_lock, STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_base::fs::write_atomic;
 use pdt_base::seed::derive_seed;
 use pdt_eval::TaskResult;
-use pdt_model::checkpoint::write_atomic;
 use pdt_prompt::Rng;
+use pdt_rundir::{
+    read_json, write_json, EvalLine, Latest, MetricsLine, RunDir, RunInfo, TrainState,
+};
 use rand::SeedableRng;
 use std::path::{Path, PathBuf};
 
@@ -78,7 +80,7 @@ fn run_info(setup: &Setup, loss_metric: &str) -> RunInfo {
         method: setup.cfg.run.method.name().into(),
         env: setup.family.name().into(),
         seed: setup.cfg.run.seed,
-        split: setup.cfg.env.split.clone(),
+        task_split: setup.cfg.env.split.clone(),
         created: now_utc(),
         promptdt_version: env!("CARGO_PKG_VERSION").into(),
         loss_metric: Some(loss_metric.into()),
@@ -186,39 +188,40 @@ fn prepare_run_dir(
     for d in [dir.to_path_buf(), dir.join("checkpoints")] {
         pdt_base::fs::remove_stale_temps(&d).map_err(io_err(&d))?;
     }
-    let stats_path = dir.join("task_stats.json");
-    let has_checkpoint = dir.join("checkpoints").join("latest.json").exists();
-    if resume && !stats_path.exists() && !has_checkpoint {
+    let run = RunDir::at(dir);
+    let has_checkpoint = run.latest_path().exists();
+    if resume && !run.stats_path().exists() && !has_checkpoint {
         // Killed while the directory was being created (after `config.toml`): nothing was trained
         // from it, so what is missing is recreated from the configuration and data, exactly as a
         // new run writes it, and the run starts.
-        if !dir.join("run.json").is_file() {
-            write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
+        if !run.info_path().is_file() {
+            run.write_info(&run_info(setup, loss_metric))?;
         }
-        write_json(&stats_path, &setup.stats)?;
+        run.write_stats(&setup.run_data.stats)?;
     } else if resume {
-        let recorded = read_task_stats(dir)?;
-        setup.stats.check_same_as(&recorded).map_err(|m| {
+        let recorded = pdt_policy::files::read_stats(&run)?;
+        setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
             RunError::Invalid(format!(
                 "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \
                  where it moved)",
-                dir.join("task_stats.json").display(),
+                run.stats_path().display(),
                 setup.cfg.data.dir.display()
             ))
         })?;
     } else {
-        if dir.join("checkpoints").join("latest.json").exists() {
+        if has_checkpoint {
             return Err(RunError::Invalid(format!(
                 "{} already holds a run; use --resume to continue it or pick another --out",
                 dir.display()
             )));
         }
-        write_json(&dir.join("run.json"), &run_info(setup, loss_metric))?;
-        write_atomic(&dir.join("config.toml"), toml.as_bytes()).map_err(io_err(dir))?;
-        write_json(&dir.join("task_stats.json"), &setup.stats)?;
+        run.write_info(&run_info(setup, loss_metric))?;
+        let config = run.config_path();
+        write_atomic(&config, toml.as_bytes()).map_err(io_err(&config))?;
+        run.write_stats(&setup.run_data.stats)?;
     }
     // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
-    remove_orphans(&dir.join("checkpoints"))?;
+    remove_orphans(&run.checkpoints_dir())?;
     Ok(())
 }
 
@@ -232,20 +235,21 @@ pub(crate) fn eval_rng(setup: &Setup, split: Split, counter: u64) -> Rng {
     Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, stream, counter))
 }
 
-/// The `eval.jsonl` rows of an evaluation: the common columns and the learner's own.
-fn eval_log_rows(
+/// The `eval.jsonl` lines of an evaluation on `eval_on` ("test" or "train"), with the learner's
+/// adaptation columns.
+fn eval_lines(
     res: &[TaskEval],
     iteration: u64,
     step: u64,
-    split: &str,
+    eval_on: &str,
     target: f32,
-) -> Vec<Row> {
-    let plain: Vec<TaskResult> = res.iter().map(|r| r.result.clone()).collect();
-    let mut rows = eval_rows(&plain, iteration, step, split, target);
-    for (row, r) in rows.iter_mut().zip(res) {
-        row.extend(r.columns.clone());
-    }
-    rows
+) -> Vec<EvalLine> {
+    res.iter()
+        .map(|r| EvalLine {
+            adaptation: r.adaptation,
+            ..EvalLine::new(&r.result, iteration, step, eval_on, target)
+        })
+        .collect()
 }
 
 /// Trains `learner` in the run directory `dir` (owned, its records written or checked by
@@ -268,8 +272,17 @@ fn run_loop(
             dir.display()
         )));
     }
-    let mut metrics = Log::open(dir, "metrics", state.as_ref().map_or(0, |s| s.metrics_lines))?;
-    let mut evals = Log::open(dir, "eval", state.as_ref().map_or(0, |s| s.eval_lines))?;
+    let run = RunDir::at(dir);
+    let mut metrics = Log::open(
+        run.metrics_path(),
+        run.metrics_csv_path(),
+        state.as_ref().map_or(0, |s| s.metrics_lines),
+    )?;
+    let mut evals = Log::open(
+        run.eval_path(),
+        run.eval_csv_path(),
+        state.as_ref().map_or(0, |s| s.eval_lines),
+    )?;
     record_resume_changes(dir, cfg, with, opts.resume)?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
     if let Some(s) = &state {
@@ -280,7 +293,7 @@ fn run_loop(
         batch_rng.set_word_pos(pos);
     }
     let (t, started) = (&cfg.train, std::time::Instant::now());
-    let target = setup.stats.target_return;
+    let target = setup.run_data.stats.target_return;
     let mut last_test = None;
     let mut done_here = 0;
     while iteration < t.iterations {
@@ -302,19 +315,16 @@ fn run_loop(
         step += t.steps_per_iteration;
         iteration += 1;
         done_here += 1;
-        columns.insert("iteration".into(), iteration.into());
-        columns.insert("step".into(), step.into());
-        columns.insert(learner.loss_metric().into(), loss.into());
-        let elapsed = metrics.elapsed_before + started.elapsed().as_secs_f64();
-        columns.insert("time/elapsed_s".into(), elapsed.into());
-        metrics.append(&[columns])?;
+        columns.insert(learner.loss_metric().into(), loss);
+        let elapsed_s = metrics.elapsed_before + started.elapsed().as_secs_f64();
+        metrics.append(&[MetricsLine { iteration, step, elapsed_s, values: columns }])?;
         let last = iteration == t.iterations;
         let mut test_return = None;
         // Reference: evaluation after the first iteration and every `interval` after it.
         if (iteration - 1) % t.test_eval_interval == 0 || last {
             let res =
                 learner.evaluate(Split::Test, &mut eval_rng(setup, Split::Test, iteration))?;
-            evals.append(&eval_log_rows(&res, iteration, step, "test", target))?;
+            evals.append(&eval_lines(&res, iteration, step, "test", target))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
             test_return =
                 Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
@@ -323,7 +333,7 @@ fn run_loop(
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Train, iteration);
             let res = learner.evaluate(Split::Train, &mut rng)?;
-            evals.append(&eval_log_rows(&res, iteration, step, "train", target))?;
+            evals.append(&eval_lines(&res, iteration, step, "train", target))?;
         }
         let keep = iteration % t.save_interval == 0 || last;
         if keep || (t.resume_interval > 0 && iteration % t.resume_interval == 0) {
@@ -353,11 +363,11 @@ pub(crate) fn record_resume_changes(
     resume: bool,
 ) -> Result<(), RunError> {
     if resume && (with.iterations.is_some() || with.data.is_some()) {
-        let mut recorded = TrainConfig::from_file(&dir.join("config.toml"))?;
+        let run = RunDir::at(dir);
+        let mut recorded = run.config()?;
         recorded.train.iterations = cfg.train.iterations;
         recorded.data.dir.clone_from(&cfg.data.dir);
-        let text = recorded.to_toml()?;
-        write_atomic(&dir.join("config.toml"), text.as_bytes()).map_err(io_err(dir))?;
+        run.write_config(&recorded)?;
     }
     Ok(())
 }
@@ -365,8 +375,8 @@ pub(crate) fn record_resume_changes(
 /// The files of the checkpoint at `step` in `ck`.
 pub(crate) fn checkpoint_files(ck: &Path, step: u64) -> CheckpointFiles {
     CheckpointFiles {
-        weights: ck.join(format!("step_{step}.safetensors")),
-        moments: ck.join(format!("state_{step}.safetensors")),
+        weights: ck.join(Latest::model_name(step)),
+        moments: ck.join(Latest::state_name(step)),
         state: ck.join(format!("state_{step}.json")),
     }
 }
@@ -383,13 +393,11 @@ fn save_checkpoint(
     let files = checkpoint_files(&ck, state.step);
     state.adam_steps = learner.save(&files)?;
     write_json(&files.state, &state)?;
-    let (model, moments) =
-        (format!("step_{}.safetensors", state.step), format!("state_{}.safetensors", state.step));
     let latest = Latest {
         step: state.step,
         iteration: state.iteration,
-        model,
-        state: moments,
+        model: Latest::model_name(state.step),
+        state: Latest::state_name(state.step),
         keep: state.keep,
     };
     commit_checkpoint(&ck, latest)
@@ -411,8 +419,7 @@ fn load_checkpoint(
     let corrupt = |path: &Path, message: String| RunError::Corrupt { path: path.into(), message };
     // The files of a checkpoint are named by its step; anything else (another step's weights, a
     // path outside the directory) is refused rather than resumed from.
-    let (model, opt) =
-        (format!("step_{}.safetensors", latest.step), format!("state_{}.safetensors", latest.step));
+    let (model, opt) = (Latest::model_name(latest.step), Latest::state_name(latest.step));
     if latest.model != model || latest.state != opt {
         return Err(corrupt(
             &latest_path,

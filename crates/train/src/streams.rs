@@ -7,10 +7,9 @@ pub(crate) const STREAM_INIT: u64 = 1;
 pub(crate) const STREAM_BATCHES: u64 = 2;
 /// Dropout (libtorch's generator, re-seeded per iteration).
 pub(crate) const STREAM_DROPOUT: u64 = 3;
-/// Evaluations of the test tasks, per iteration.
-pub(crate) const STREAM_EVAL_TEST: u64 = 4;
-/// Evaluations of the training tasks, per iteration.
-pub(crate) const STREAM_EVAL_TRAIN: u64 = 5;
+/// Evaluations of the test and of the training tasks, per iteration: owned by `pdt_policy`, whose
+/// evaluation plans draw what the run's evaluations draw.
+pub(crate) use pdt_policy::policy::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
 
 /// libtorch's random generator (weight init, dropout) is global to the process: runs in one process
 /// take turns, so that each run's draws depend on its seed alone.

@@ -440,6 +440,11 @@ pub const MAX_RETURN_TOKEN: f64 = 1e6;
 /// 1e6 comes from corrupt data, and normalising by it maps every ordinary state to about 0.
 pub const MAX_STATE_STAT: f64 = 1e6;
 
+/// `|x| <= bound`, false for NaN: the test of [`MAX_RETURN_TOKEN`] and [`MAX_STATE_STAT`].
+pub fn within(x: f64, bound: f64) -> bool {
+    x.abs() <= bound
+}
+
 /// The largest TOML integer (TOML integers are signed 64-bit).
 const TOML_INT: u64 = i64::MAX as u64;
 

@@ -5,6 +5,8 @@ use crate::run_dir::temp_name;
 use crate::setup::Split;
 use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
+use pdt_rundir::AdaptationStats;
+use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
 
@@ -16,9 +18,6 @@ pub struct MacawAdaptation {
     pub steps: Option<usize>,
     pub batch: Option<usize>,
 }
-
-/// One row of a log (`metrics.jsonl`, `eval.jsonl`): column name to value.
-pub(crate) type Row = serde_json::Map<String, serde_json::Value>;
 
 /// Where one training iteration stands, for [`Learner::train_iteration`].
 #[derive(Debug, Clone, Copy)]
@@ -50,18 +49,18 @@ pub(crate) struct IterationMetrics {
     /// The mean training loss over its steps, logged under [`Learner::loss_metric`] and reported
     /// as progress.
     pub(crate) loss: f64,
-    /// The learner's other `metrics.jsonl` columns (the loop adds `iteration`, `step`,
-    /// `time/elapsed_s` and the loss).
-    pub(crate) columns: Row,
+    /// The learner's other `metrics.jsonl` columns by name (the loop adds `iteration`, `step`,
+    /// `time/elapsed_s` and the loss): `pdt_rundir::MetricsLine::values`.
+    pub(crate) columns: BTreeMap<String, f64>,
 }
 
 /// One task's evaluation.
 #[derive(Debug, Clone)]
 pub(crate) struct TaskEval {
     pub(crate) result: TaskResult,
-    /// Columns of the task's `eval.jsonl` row besides the common ones (MACAW: the adaptation
-    /// steps taken and the episodes a non-finite action ended).
-    pub(crate) columns: Row,
+    /// MACAW: the adaptation steps taken and the episodes a non-finite action ended (columns of
+    /// the task's `eval.jsonl` line); `None` for the methods without an adaptation.
+    pub(crate) adaptation: Option<AdaptationStats>,
 }
 
 /// The files of one checkpoint, named by its step (`checkpoints/step_<N>.safetensors` for weights,

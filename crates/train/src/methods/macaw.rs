@@ -9,7 +9,7 @@
 
 use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, MacawAdaptation, Row, SavedSteps, TaskEval,
+    Learner, MacawAdaptation, SavedSteps, TaskEval,
 };
 use crate::config::compact;
 use crate::error::{io_err, RunError};
@@ -19,6 +19,7 @@ use pdt_base::seed::derive_seed;
 use pdt_eval::{summarise, EpisodeRecord};
 use pdt_macaw::{Batch, Dims, MacawConfig, Optimisers, Params, StepStats, TaskBuffer};
 use pdt_prompt::Rng;
+use pdt_rundir::AdaptationStats;
 use rand::{RngCore, SeedableRng};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -47,9 +48,10 @@ impl<'s> MacawLearner<'s> {
     /// The model initialised from the run seed (libtorch's generator: hold `torch_rng_lock`).
     pub(crate) fn new(setup: &'s Setup) -> Result<Self, RunError> {
         let m = setup.cfg.macaw.clone();
-        let train_bufs = buffers(&setup.train_data, &m)?;
-        let test_bufs = buffers(&setup.test_data, &m)?;
-        let dims = Dims::new(setup.stats.obs_dim, setup.stats.act_dim, m.width, m.depth);
+        let train_bufs = buffers(&setup.run_data.train_data, &m)?;
+        let test_bufs = buffers(&setup.run_data.test_data, &m)?;
+        let dims =
+            Dims::new(setup.run_data.stats.obs_dim, setup.run_data.stats.act_dim, m.width, m.depth);
         tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
         let params = Params::init(&dims, &m, Kind::Float, setup.device);
         let opt = Optimisers::new(&params, &m);
@@ -95,7 +97,7 @@ impl Learner for MacawLearner<'_> {
         let n = stats.len().max(1) as f64;
         let mean = |f: &dyn Fn(&StepStats) -> f64| stats.iter().map(f).sum::<f64>() / n;
         let last = stats.last().cloned().unwrap_or_default();
-        let mut columns = Row::new();
+        let mut columns = BTreeMap::new();
         for (name, value) in [
             ("train/value_inner_loss", mean(&|s| s.losses.value_inner)),
             ("train/value_outer_loss", mean(&|s| s.losses.value_outer)),
@@ -106,7 +108,7 @@ impl Learner for MacawLearner<'_> {
             ("train/inner_policy_lr", last.policy_lr),
             ("train/adv_coef", last.adv_coef),
         ] {
-            columns.insert(name.into(), value.into());
+            columns.insert(name.to_string(), value);
         }
         Ok(IterationMetrics { loss: mean(&|s| s.losses.policy_outer), columns })
     }
@@ -327,11 +329,15 @@ fn eval_tasks(
         let refs: Vec<&EpisodeRecord> = recs.iter().collect();
         // The adaptation steps taken (fewer than `macaw.adapt_steps` where the adaptation
         // diverged: `pdt_macaw::adapt`) and the episodes a non-finite action ended.
-        let mut columns = Row::new();
-        columns.insert("adapt_value_steps".into(), adapted.value_steps.into());
-        columns.insert("adapt_policy_steps".into(), adapted.policy_steps.into());
-        columns.insert("failed_episodes".into(), eps.iter().filter(|e| e.failed).count().into());
-        out.push(TaskEval { result: summarise(&t.id.to_string(), t.id.index, &refs), columns });
+        let adaptation = AdaptationStats {
+            adapt_value_steps: adapted.value_steps,
+            adapt_policy_steps: adapted.policy_steps,
+            failed_episodes: eps.iter().filter(|e| e.failed).count(),
+        };
+        out.push(TaskEval {
+            result: summarise(&t.id.to_string(), t.id.index, &refs),
+            adaptation: Some(adaptation),
+        });
     }
     Ok(out)
 }

@@ -12,7 +12,7 @@ pub(crate) mod prompt_dt;
 
 pub use learner::MacawAdaptation;
 pub(crate) use learner::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, Row, SavedSteps, TaskEval,
+    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 
 use crate::config::Method;

@@ -4,7 +4,7 @@
 
 use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, Row, SavedSteps, TaskEval,
+    Learner, SavedSteps, TaskEval,
 };
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
@@ -13,12 +13,11 @@ use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
-use pdt_data::MultiTaskDataset;
 use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
-use pdt_prompt::{BatchSampler, Rng, SegmentBatch};
-use rand::RngCore;
+use pdt_policy::plan_task;
+use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -60,11 +59,12 @@ pub(crate) struct PromptDtLearner<'s> {
 impl<'s> PromptDtLearner<'s> {
     /// The model initialised from the run seed (libtorch's generator: hold `torch_rng_lock`).
     pub(crate) fn new(setup: &'s Setup, variant: Variant) -> Result<Self, RunError> {
-        let sampler = setup.sampler(&setup.train_data)?;
+        let sampler = setup.sampler(&setup.run_data.train_data)?;
         tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
         let vs = VarStore::new(setup.device);
-        let model = PromptDt::new(&vs.root(), &setup.model_cfg);
-        let opt = AdamW::new(&vs, &setup.model_cfg.parameter_names(), setup.cfg.optim.clone());
+        let model = PromptDt::new(&vs.root(), &setup.run_data.model_cfg);
+        let opt =
+            AdamW::new(&vs, &setup.run_data.model_cfg.parameter_names(), setup.cfg.optim.clone());
         Ok(Self { setup, variant, vs, model, opt, sampler })
     }
 }
@@ -95,18 +95,18 @@ impl Learner for PromptDtLearner<'_> {
             }
         })?;
         let n = stats.len() as f64;
-        let mut columns = Row::new();
+        let mut columns = BTreeMap::new();
         columns.insert(
-            "train/grad_norm".into(),
-            (stats.iter().map(|s| s.grad_norm).sum::<f64>() / n).into(),
+            "train/grad_norm".to_string(),
+            stats.iter().map(|s| s.grad_norm).sum::<f64>() / n,
         );
-        columns.insert("train/lr".into(), stats.last().map_or(0.0, |s| s.lr).into());
+        columns.insert("train/lr".to_string(), stats.last().map_or(0.0, |s| s.lr));
         Ok(IterationMetrics { loss: stats.iter().map(|s| s.loss).sum::<f64>() / n, columns })
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
         let results = eval_tasks(self, split, rng)?;
-        Ok(results.into_iter().map(|result| TaskEval { result, columns: Row::new() }).collect())
+        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
 
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
@@ -159,42 +159,8 @@ impl Learner for PromptDtLearner<'_> {
     }
 
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError> {
-        checkpoint::load(&mut self.vs, path, self.setup.model_cfg.n_layer)?;
+        checkpoint::load(&mut self.vs, path, self.setup.run_data.model_cfg.n_layer)?;
         Ok(())
-    }
-}
-
-/// What an evaluation draws for one task: the prompt its episodes share and their reset seeds.
-#[derive(Debug, Clone)]
-pub struct TaskPlan {
-    /// `cheetah_vel-2`
-    pub name: String,
-    /// Task index in its family.
-    pub index: usize,
-    /// `None` for the methods without a prompt.
-    pub prompt: Option<SegmentBatch>,
-    /// Reset seed of each episode.
-    pub seeds: Vec<u64>,
-}
-
-/// Draws task `i`'s prompt (once per task and evaluation call, shared by its episodes, as the
-/// reference does), then its episodes' seeds, from `rng`.
-pub(crate) fn plan_task(
-    setup: &Setup,
-    sampler: &BatchSampler,
-    data: &MultiTaskDataset,
-    i: usize,
-    episodes: usize,
-    rng: &mut Rng,
-) -> TaskPlan {
-    let t = &data.tasks[i];
-    let prompt = sampler.eval_prompt(i, rng);
-    let seeds = (0..episodes).map(|_| rng.next_u64()).collect();
-    TaskPlan {
-        name: t.id.to_string(),
-        index: t.id.index,
-        prompt: setup.cfg.run.method.uses_prompt().then_some(prompt),
-        seeds,
     }
 }
 
@@ -209,7 +175,7 @@ fn eval_tasks(
     let data = setup.data(split);
     let sampler = setup.sampler(data)?;
     let make = |i: usize, rng: &mut Rng| -> Result<EvalTask, RunError> {
-        let plan = plan_task(setup, &sampler, data, i, setup.cfg.eval.episodes, rng);
+        let plan = plan_task(setup.cfg.run.method, &sampler, data, i, setup.cfg.eval.episodes, rng);
         let envs = (0..plan.seeds.len())
             .map(|_| setup.family.make(plan.index))
             .collect::<Result<Vec<_>, _>>()?;
@@ -222,12 +188,12 @@ fn eval_tasks(
         })
     };
     let settings = EvalSettings {
-        k: setup.sampler_cfg.k,
+        k: setup.run_data.sampler_cfg.k,
         horizon: setup.preset.horizon,
-        rtg_scale: setup.sampler_cfg.rtg_scale,
-        target_return: setup.stats.target_return,
+        rtg_scale: setup.run_data.sampler_cfg.rtg_scale,
+        target_return: setup.run_data.stats.target_return,
         returns: setup.eval_returns(),
-        norm: setup.norm.clone(),
+        norm: setup.run_data.norm.clone(),
         max_batch: setup.cfg.eval.max_batch,
         device: setup.device,
         env_threads: match setup.cfg.eval.env_threads {
@@ -269,12 +235,12 @@ fn eval_tasks(
             warmup_steps: 1,
             ..setup.cfg.optim.clone()
         };
-        let mut opt = AdamW::new(&learner.vs, &setup.model_cfg.parameter_names(), ocfg);
+        let mut opt = AdamW::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
         for s in 0..setup.cfg.eval.finetune_steps {
             let seg = sampler.tail_segments(
                 i,
                 setup.cfg.eval.finetune_batch,
-                setup.sampler_cfg.prompt_length,
+                setup.run_data.sampler_cfg.prompt_length,
                 rng,
             );
             let history = crate::step::to_segments(&seg, setup.device);
