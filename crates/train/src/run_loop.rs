@@ -102,11 +102,7 @@ pub fn train(
     let toml = cfg.to_toml()?;
     let setup = Setup::new(cfg)?;
     let _rng = torch_rng_lock();
-    let threads = if setup.cfg.run.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        setup.cfg.run.threads
-    };
+    let threads = pdt_base::threads(setup.cfg.run.threads);
     tch::set_num_threads(threads as i32);
     // The learner (its model initialised from the seed) and its checks, before anything is written.
     let mut learner = methods::learner(&setup)?;

@@ -295,10 +295,7 @@ fn eval_tasks(
     let setup = l.setup;
     let data = setup.data(split);
     let m = &l.m;
-    let threads = match setup.cfg.eval.env_threads {
-        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
-        n => n,
-    };
+    let threads = pdt_base::threads(setup.cfg.eval.env_threads);
     let mut out = Vec::with_capacity(data.tasks.len());
     for (t, buf) in data.tasks.iter().zip(bufs) {
         let batch = buf.sample(m.adapt_batch, false, rng, setup.device)?;

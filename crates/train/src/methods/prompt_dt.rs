@@ -196,10 +196,7 @@ fn eval_tasks(
         norm: setup.run_data.norm.clone(),
         max_batch: setup.cfg.eval.max_batch,
         device: setup.device,
-        env_threads: match setup.cfg.eval.env_threads {
-            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
-            n => n,
-        },
+        env_threads: pdt_base::threads(setup.cfg.eval.env_threads),
         inference: setup.cfg.eval.inference,
     };
     // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
