@@ -461,7 +461,14 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         device: a.device,
         seeds: a.seeds,
     };
-    let p = plan::plan(&m, &opts)?;
+    let mut p = plan::plan(&m, &opts)?;
+    if a.report_only {
+        // A fresh clone has no run directories: the registry's archived runs stand in for them.
+        let used = pdt_repro::registry::use_archived(&mut p, &a.registry);
+        if !used.is_empty() {
+            out!("{} runs read from the registry {}", used.len(), a.registry.display());
+        }
+    }
     let exe = std::env::current_exe().context("the promptdt binary's path")?;
     match a.emit.as_deref() {
         Some("jobs") => {
