@@ -382,7 +382,7 @@ mod tests {
     #[test]
     fn civil_dates() {
         assert_eq!(civil_date(0), "1970-01-01");
-        assert_eq!(civil_date(11_016), "2000-03-01");
+        assert_eq!(civil_date(11_017), "2000-03-01");
         // unix:1795707986, the GPU runs' run.json
         assert_eq!(civil_date(1_795_707_986 / 86_400), "2026-11-26");
     }

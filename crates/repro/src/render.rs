@@ -175,6 +175,28 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
                 let _ = writeln!(s, "  - {verdict}: {} ({})", c.text, c.detail);
             }
         }
+        // Ours against the paper's value, normalised alike, where the paper's can be normalised.
+        for c in r.cells.iter().filter(|c| sec.seeds.contains_key(&c.id) && c.seeds > 0) {
+            let (Some(o), Some(p)) = (c.ours_normalised, c.paper_normalised) else { continue };
+            let gap = o.mean - p;
+            let how = if gap.abs() <= 10.0 {
+                "within 10 normalised points of the paper"
+            } else if gap < 0.0 {
+                "below the paper"
+            } else {
+                "above the paper"
+            };
+            let at = c.iteration.map_or(String::new(), |i| format!(" at iteration {i}"));
+            let _ = writeln!(
+                s,
+                "  - {how}: {} `{}`, {:.1} vs the paper's {p:.1}{at} ({} seed{})",
+                c.label,
+                c.id,
+                o.mean,
+                o.n,
+                if o.n == 1 { "" } else { "s" }
+            );
+        }
         if unmeasured > 0 {
             let _ = writeln!(
                 s,
