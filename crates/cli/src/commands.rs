@@ -461,14 +461,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         device: a.device,
         seeds: a.seeds,
     };
-    let mut p = plan::plan(&m, &opts)?;
-    if a.report_only {
+    let p = if a.report_only {
         // A fresh clone has no run directories: the registry's archived runs stand in for them.
-        let used = pdt_repro::registry::use_archived(&mut p, &a.registry);
+        let (p, used) = pdt_repro::registry::plan_with_archive(&m, &opts, &a.registry)?;
         if !used.is_empty() {
             out!("{} runs read from the registry {}", used.len(), a.registry.display());
         }
-    }
+        p
+    } else {
+        plan::plan(&m, &opts)?
+    };
     let exe = std::env::current_exe().context("the promptdt binary's path")?;
     match a.emit.as_deref() {
         Some("jobs") => {

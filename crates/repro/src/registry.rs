@@ -351,6 +351,33 @@ pub fn use_archived(plan: &mut Plan, registry: &Path) -> Vec<String> {
     used
 }
 
+/// `m`'s plan for `--report-only`: a run whose directory is absent is read from its archive in
+/// `registry`, and archived seeds beyond the budget's seed count join the plan (unless `--seeds`
+/// says how many), so the report shows what `RESULTS.md` shows. Returns the plan and the keys of
+/// the runs read from the registry.
+pub fn plan_with_archive(
+    m: &Manifest,
+    opts: &PlanOptions,
+    registry: &Path,
+) -> Result<(Plan, Vec<String>), ReproError> {
+    let mut p = plan::plan(m, opts)?;
+    let max_archived = keys(registry)
+        .iter()
+        .filter(|k| k.contains(&format!("/{}/seed", opts.budget)))
+        .filter_map(|k| k.rsplit_once("/seed").and_then(|(_, s)| s.parse::<u32>().ok()))
+        .max();
+    if let (None, Some(max)) = (opts.seeds, max_archived) {
+        let planned: std::collections::BTreeSet<String> =
+            p.runs.iter().map(|r| r.key.clone()).collect();
+        p = plan::plan(m, &PlanOptions { seeds: Some(max + 1), ..opts.clone() })?;
+        p.runs.retain(|r| {
+            planned.contains(&r.key) || registry.join(&r.key).join(PROVENANCE_JSON).is_file()
+        });
+    }
+    let used = use_archived(&mut p, registry);
+    Ok((p, used))
+}
+
 /// Every archived run's key (`<cell id>/<budget>/seed<N>`) under `registry`, sorted.
 pub fn keys(registry: &Path) -> Vec<String> {
     fn walk(dir: &Path, at: &Path, out: &mut Vec<String>) {
