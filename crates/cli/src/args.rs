@@ -59,7 +59,7 @@ pub enum Command {
 #[derive(Debug, Subcommand)]
 pub enum ResultsCommand {
     /// Archive finished runs of an experiment (their small files and provenance) into the registry.
-    Add(ResultsAddArgs),
+    Add(Box<ResultsAddArgs>),
     /// Write RESULTS.md and the README's headline block from the registry.
     Render(ResultsRenderArgs),
 }

@@ -486,8 +486,8 @@ pub fn build(
 fn write_outputs(m: &Manifest, plan: &Plan, rep: &mut Report) -> Result<(), ReproError> {
     let mut outputs: Vec<(String, Vec<u8>)> = vec![
         ("report.md".into(), rep.markdown.clone().into_bytes()),
-        ("cells.csv".into(), cells_csv(&rep).into_bytes()),
-        ("curves.csv".into(), curves_csv(&rep).into_bytes()),
+        ("cells.csv".into(), cells_csv(rep).into_bytes()),
+        ("curves.csv".into(), curves_csv(rep).into_bytes()),
         ("report.json".into(), serde_json::to_string_pretty(&rep).unwrap_or_default().into_bytes()),
     ];
     if m.layout == Layout::Curves || rep.cells.iter().any(|c| c.curve.len() > 1) {
