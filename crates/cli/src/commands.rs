@@ -467,7 +467,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         device: a.device,
         seeds: a.seeds,
     };
-    let p = plan::plan(&m, &opts)?;
+    let p = if a.report_only {
+        // A fresh clone has no run directories: the registry's archived runs stand in for them.
+        let (p, used) = pdt_repro::registry::plan_with_archive(&m, &opts, &a.registry)?;
+        if !used.is_empty() {
+            out!("{} runs read from the registry {}", used.len(), a.registry.display());
+        }
+        p
+    } else {
+        plan::plan(&m, &opts)?
+    };
     let exe = std::env::current_exe().context("the promptdt binary's path")?;
     match a.emit.as_deref() {
         Some("jobs") => {

@@ -22,7 +22,7 @@ mod args;
 mod commands;
 
 use anyhow::{bail, Context, Result};
-use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand};
+use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
 use clap::Parser;
 use commands::{collect, train};
 use std::io::ErrorKind;
@@ -295,6 +295,16 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Reproduce(a) => commands::reproduce(&a)?,
+        Command::Results(ResultsCommand::Add(a)) => {
+            for r in pdt_repro::registry::add(&a.to_options())? {
+                out!("archived {} into {} ({} bytes)", r.key, r.dir.display(), r.bytes);
+            }
+        }
+        Command::Results(ResultsCommand::Render(a)) => {
+            for f in pdt_repro::render::write(&a.to_options())? {
+                out!("wrote {}", f.display());
+            }
+        }
         Command::Serve(a) => {
             let run = pdt_policy::Policy::load(&a.run, a.device, a.data.as_deref())?;
             let opts = pdt_serve::ServeOptions {

@@ -5,12 +5,17 @@
 //! - [`exec`]: datasets, then every unfinished run as a `promptdt train` child process, `jobs` at a
 //!   time, resuming killed runs; or one command per run for a scheduler (`--emit jobs`).
 //! - [`report`]: ours next to the paper, raw and normalised, with the paper's claims checked.
+//! - [`registry`]: finished runs' small files committed in `results/` (`promptdt results add`),
+//!   read by the report where a run directory is absent.
+//! - [`render`]: `RESULTS.md` and the README's headline block from the registry.
 //!
 //! The library prints nothing; progress goes through a callback.
 
 pub mod exec;
 pub mod manifest;
 pub mod plan;
+pub mod registry;
+pub mod render;
 pub mod report;
 
 pub use exec::{ExecOptions, ExecSummary, Progress, Stage};

@@ -393,6 +393,15 @@ fn differing(a: &toml::Value, b: &toml::Value, at: &str, out: &mut Vec<String>) 
     }
 }
 
+/// The keys (dotted paths, with both values) in which a run's recorded configuration differs from
+/// the one a plan gives it, apart from what is not part of a run's identity (paths, device,
+/// threads, how often resume points are written; see `identity`).
+pub fn config_differences(recorded: &TrainConfig, planned: &TrainConfig) -> Vec<String> {
+    let mut diff = Vec::new();
+    differing(&identity(recorded), &identity(planned), "", &mut diff);
+    diff
+}
+
 /// The state of a run directory, after checking that a run already there was started from the
 /// same configuration (apart from the thread count).
 pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {

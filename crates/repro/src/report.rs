@@ -267,6 +267,17 @@ pub fn report(
     plan: &Plan,
     reference_dir: Option<&Path>,
 ) -> Result<Report, ReproError> {
+    let mut rep = build(m, plan, reference_dir)?;
+    write_outputs(m, plan, &mut rep)?;
+    Ok(rep)
+}
+
+/// The report of `plan`'s run directories, written nowhere (`results render` reads it).
+pub fn build(
+    m: &Manifest,
+    plan: &Plan,
+    reference_dir: Option<&Path>,
+) -> Result<Report, ReproError> {
     let budget = m.budget(&plan.budget)?;
     let mut cells = Vec::new();
     let mut base_cache: BTreeMap<PathBuf, Result<Baselines, String>> = BTreeMap::new();
@@ -319,6 +330,10 @@ pub fn report(
         };
         // Without the dataset card there is no normalised score: say which card is missing (a
         // tree copied without its data, or a `--data-root` that names another place).
+        // An archived run (the results registry) carries the card's returns it was scored with.
+        let base = base.or_else(|why| {
+            runs.iter().find_map(|r| crate::registry::archived_baselines(&r.dir)).ok_or(why)
+        });
         let (base, base_missing) = match base {
             Ok(b) => (Some(b), None),
             Err(why) => (None, Some(why)),
@@ -465,10 +480,15 @@ pub fn report(
         files: Vec::new(),
     };
     rep.markdown = markdown(m, &rep);
+    Ok(rep)
+}
+
+/// Writes `rep`'s files (Markdown, CSV, JSON, curves) into `plan`'s report directory.
+fn write_outputs(m: &Manifest, plan: &Plan, rep: &mut Report) -> Result<(), ReproError> {
     let mut outputs: Vec<(String, Vec<u8>)> = vec![
         ("report.md".into(), rep.markdown.clone().into_bytes()),
-        ("cells.csv".into(), cells_csv(&rep).into_bytes()),
-        ("curves.csv".into(), curves_csv(&rep).into_bytes()),
+        ("cells.csv".into(), cells_csv(rep).into_bytes()),
+        ("curves.csv".into(), curves_csv(rep).into_bytes()),
         ("report.json".into(), serde_json::to_string_pretty(&rep).unwrap_or_default().into_bytes()),
     ];
     if m.layout == Layout::Curves || rep.cells.iter().any(|c| c.curve.len() > 1) {
@@ -525,7 +545,7 @@ pub fn report(
     }
     rep.files = pdt_report::write_files(&plan.report_dir(), &outputs)
         .map_err(|e| ReproError::Invalid(e.to_string()))?;
-    Ok(rep)
+    Ok(())
 }
 
 fn mean(v: &[f64]) -> f64 {

@@ -1,0 +1,436 @@
+//! The results registry: finished runs' small files, committed in the repository
+//! (`results/<cell id>/<budget>/seed<N>/`), so that a report can be written on a fresh clone with no
+//! data and no checkpoints (`reproduce EXP --budget B --report-only` reads an archived run wherever
+//! its run directory is absent).
+//!
+//! An archived run is an ordinary (if partial) run directory: `config.toml`, `run.json`,
+//! `task_stats.json`, `eval.jsonl`, `eval_final.json` where the run has one,
+//! `checkpoints/latest.json` (the commit record that says how far it got, without the weights it
+//! names), `metrics.jsonl` thinned to at most [`MAX_METRICS_ROWS`] rows (every evaluated iteration's
+//! and the last kept), plus two files of its own:
+//!
+//! - `normalisation.json`: the per-task expert and random returns of the dataset card the run
+//!   was scored with ([`crate::report::baselines`]), so its normalised score needs no data;
+//! - `provenance.json`: where and how it ran ([`Provenance`]).
+//!
+//! `promptdt results add` ([`add`]) is the only writer: it refuses an unfinished run and one whose
+//! configuration is not its cell's at that budget.
+
+use crate::manifest::Manifest;
+use crate::plan::{self, Plan, PlanOptions};
+use crate::report::Baselines;
+use crate::ReproError;
+use pdt_rundir::{MetricsLine, RunDir, RunInfo};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The archived run's provenance file.
+pub const PROVENANCE_JSON: &str = "provenance.json";
+/// The archived run's normalisation returns.
+pub const NORMALISATION_JSON: &str = "normalisation.json";
+/// Rows of `metrics.jsonl` kept at most (plus the evaluated iterations'), so a run stays small.
+pub const MAX_METRICS_ROWS: usize = 200;
+
+/// Where and how an archived run ran. What the run directory records is read from it; the rest
+/// (the machine, the build) comes from `results add`'s flags.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// `<cell id>/<budget>/seed<N>`.
+    pub key: String,
+    pub experiment: String,
+    pub budget: String,
+    /// The commit of the binary that trained it.
+    pub commit: String,
+    /// The device the run asked for (`config.toml`'s `run.device`).
+    pub device: String,
+    /// The GPU (or CPU) model that ran it.
+    pub device_name: String,
+    pub cpu: String,
+    /// The libtorch build it was linked or run with.
+    pub libtorch: String,
+    pub threads: usize,
+    pub iterations: u64,
+    /// Training time of the run (`time/elapsed_s` of its last `metrics.jsonl` line).
+    pub wall_time_s: f64,
+    /// `solo` (one run per process) or `packed`.
+    pub packing: String,
+    /// How many runs shared the device at once (this one included).
+    pub shared_with: u32,
+    /// When it ran (`YYYY-MM-DD`).
+    pub date: String,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub note: String,
+}
+
+/// One task's returns in `normalisation.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskBaseline {
+    pub task_index: usize,
+    pub expert_return: f64,
+    pub random_return: f64,
+}
+
+/// `normalisation.json`: the dataset card's mean returns the report normalises with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Normalisation {
+    /// The data directory's name (`<env>[-e<episodes>]`) whose `dataset.json` they come from.
+    pub dataset: String,
+    pub tasks: Vec<TaskBaseline>,
+}
+
+impl Normalisation {
+    fn from_baselines(dataset: String, b: &Baselines) -> Self {
+        let tasks = b
+            .expert
+            .iter()
+            .filter_map(|(t, e)| {
+                Some(TaskBaseline {
+                    task_index: *t,
+                    expert_return: *e,
+                    random_return: *b.random.get(t)?,
+                })
+            })
+            .collect();
+        Self { dataset, tasks }
+    }
+
+    pub fn baselines(&self) -> Baselines {
+        let mut b = Baselines::default();
+        for t in &self.tasks {
+            b.expert.insert(t.task_index, t.expert_return);
+            b.random.insert(t.task_index, t.random_return);
+        }
+        b
+    }
+}
+
+/// What `results add` is told about the runs beyond their directories.
+#[derive(Debug, Clone, Default)]
+pub struct ProvenanceFlags {
+    pub commit: String,
+    pub device_name: String,
+    pub cpu: String,
+    pub libtorch: String,
+    pub packing: String,
+    pub shared_with: u32,
+    /// `YYYY-MM-DD`; `None`: the day `run.json` says the run was created.
+    pub date: Option<String>,
+    pub note: String,
+}
+
+/// `promptdt results add`.
+#[derive(Debug, Clone)]
+pub struct AddOptions {
+    /// Run directories laid out as `reproduce` makes them (`.../<cell id>/<budget>/seed<N>`).
+    pub runs: Vec<PathBuf>,
+    pub experiment: String,
+    pub budget: String,
+    /// Where the runs' datasets (their cards) lie; `None`: where each run's `config.toml` says.
+    pub data_root: Option<PathBuf>,
+    pub registry: PathBuf,
+    pub provenance: ProvenanceFlags,
+}
+
+/// One run added.
+#[derive(Debug, Clone)]
+pub struct Added {
+    pub key: String,
+    pub dir: PathBuf,
+    pub bytes: u64,
+}
+
+fn refuse(dir: &Path, why: impl std::fmt::Display) -> ReproError {
+    ReproError::Invalid(format!("{}: not archived: {why}", dir.display()))
+}
+
+/// Adds every run of `o` to the registry (each written into a temporary directory renamed into
+/// place, replacing an earlier archive of the same run). Stops at the first run refused.
+pub fn add(o: &AddOptions) -> Result<Vec<Added>, ReproError> {
+    let m = Manifest::load(&o.experiment)?;
+    let mut added = Vec::new();
+    for dir in &o.runs {
+        added.push(add_one(&m, o, dir)?);
+    }
+    Ok(added)
+}
+
+fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError> {
+    let seed = dir
+        .file_name()
+        .and_then(|n| n.to_str())
+        .and_then(|n| n.strip_prefix("seed"))
+        .and_then(|n| n.parse::<u32>().ok())
+        .ok_or_else(|| refuse(dir, "expected a directory `<cell id>/<budget>/seed<N>`"))?;
+    // Every cell planned with this seed, so that a seed beyond the budget's count is found too.
+    let opts = PlanOptions {
+        budget: o.budget.clone(),
+        out: PathBuf::new(),
+        data_root: o.data_root.clone().unwrap_or_default(),
+        threads: 1,
+        device: Default::default(),
+        seeds: Some(seed + 1),
+    };
+    let p = plan::plan(m, &opts)?;
+    let spec = p
+        .runs
+        .iter()
+        .find(|r| r.seed == u64::from(seed) && dir.ends_with(Path::new(&r.key)))
+        .ok_or_else(|| {
+            refuse(dir, format!("no run of {} at the {} budget ends this path", m.name, o.budget))
+        })?;
+    let run = RunDir::at(dir);
+    let config = run.config()?;
+    let diff = plan::config_differences(&config, &spec.config);
+    if !diff.is_empty() {
+        return Err(refuse(
+            dir,
+            format!("its config.toml is not {}'s planned one: {}", spec.key, diff.join(", ")),
+        ));
+    }
+    let n = config.train.iterations;
+    let done = run.latest()?.map_or(0, |l| l.iteration);
+    if done < n {
+        return Err(refuse(dir, format!("unfinished: {done} of {n} iterations")));
+    }
+    let evals = run.eval_lines()?.map(|l| l.rows).unwrap_or_default();
+    let eval_iters: std::collections::BTreeSet<u64> =
+        evals.iter().filter(|l| l.is_test()).map(|l| l.iteration).collect();
+    if eval_iters.last().is_none_or(|&last| last < n) {
+        return Err(refuse(dir, format!("eval.jsonl has no test evaluation of iteration {n}")));
+    }
+    let metrics = run.metrics()?.map(|l| l.rows).unwrap_or_default();
+    let wall_time_s = metrics.last().map_or(f64::NAN, |l| l.elapsed_s);
+    let data_dir = match &o.data_root {
+        Some(_) => spec.data.dir.clone(),
+        None => config.data.dir.clone(),
+    };
+    let dataset =
+        data_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let norm = Normalisation::from_baselines(dataset, &crate::report::baselines(&data_dir)?);
+    let info = run.info()?;
+    let date = match &o.provenance.date {
+        Some(d) => d.clone(),
+        None => created_date(&info).ok_or_else(|| {
+            refuse(
+                dir,
+                format!("run.json's created {:?} is not unix:<seconds>; give --date", info.created),
+            )
+        })?,
+    };
+    let f = &o.provenance;
+    let prov = Provenance {
+        key: spec.key.clone(),
+        experiment: m.name.clone(),
+        budget: o.budget.clone(),
+        commit: f.commit.clone(),
+        device: config.run.device.as_str().to_string(),
+        device_name: f.device_name.clone(),
+        cpu: f.cpu.clone(),
+        libtorch: f.libtorch.clone(),
+        threads: config.run.threads,
+        iterations: done,
+        wall_time_s,
+        packing: f.packing.clone(),
+        shared_with: f.shared_with,
+        date,
+        note: f.note.clone(),
+    };
+
+    let target = o.registry.join(&spec.key);
+    let parent = target.parent().unwrap_or(&o.registry);
+    std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
+    let tmp = parent.join(format!(".tmp-seed{seed}-{}", std::process::id()));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| io(&tmp, e))?;
+    }
+    let out = RunDir::at(&tmp);
+    out.create_dir()?;
+    std::fs::create_dir_all(out.checkpoints_dir()).map_err(|e| io(&tmp, e))?;
+    // Copied byte for byte: an old run's files keep their old names, which RunDir reads.
+    let copies = [
+        (run.config_path(), out.config_path()),
+        (run.info_path(), out.info_path()),
+        (run.stats_path(), out.stats_path()),
+        (run.eval_path(), out.eval_path()),
+        (run.latest_path(), out.latest_path()),
+        (run.final_eval_path(), out.final_eval_path()),
+    ];
+    for (from, to) in copies {
+        if from == run.final_eval_path() && !from.exists() {
+            continue;
+        }
+        std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
+    }
+    out.append_metrics(&thin(&metrics, &eval_iters))?;
+    pdt_rundir::write_json(&tmp.join(NORMALISATION_JSON), &norm)?;
+    pdt_rundir::write_json(&tmp.join(PROVENANCE_JSON), &prov)?;
+    let bytes = dir_bytes(&tmp);
+    if target.exists() {
+        let old = parent.join(format!(".old-seed{seed}-{}", std::process::id()));
+        std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
+        std::fs::rename(&tmp, &target).map_err(|e| io(&target, e))?;
+        std::fs::remove_dir_all(&old).map_err(|e| io(&old, e))?;
+    } else {
+        std::fs::rename(&tmp, &target).map_err(|e| io(&target, e))?;
+    }
+    Ok(Added { key: spec.key.clone(), dir: target, bytes })
+}
+
+fn io(path: &Path, source: std::io::Error) -> ReproError {
+    ReproError::Io { path: path.to_path_buf(), source }
+}
+
+/// At most [`MAX_METRICS_ROWS`] evenly spaced rows, plus every evaluated iteration's (the report
+/// shows the loss there) and the last.
+fn thin(rows: &[MetricsLine], eval_iters: &std::collections::BTreeSet<u64>) -> Vec<MetricsLine> {
+    let every = rows.len().div_ceil(MAX_METRICS_ROWS).max(1);
+    rows.iter()
+        .enumerate()
+        .filter(|(i, r)| {
+            i % every == 0 || *i + 1 == rows.len() || eval_iters.contains(&r.iteration)
+        })
+        .map(|(_, r)| r.clone())
+        .collect()
+}
+
+fn dir_bytes(dir: &Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    entries
+        .flatten()
+        .map(|e| match e.metadata() {
+            Ok(md) if md.is_dir() => dir_bytes(&e.path()),
+            Ok(md) => md.len(),
+            Err(_) => 0,
+        })
+        .sum()
+}
+
+/// `run.json`'s `created` (`unix:<seconds>`) as a UTC date.
+fn created_date(info: &RunInfo) -> Option<String> {
+    let secs: i64 = info.created.strip_prefix("unix:")?.parse().ok()?;
+    Some(civil_date(secs.div_euclid(86_400)))
+}
+
+/// Days since 1970-01-01 as `YYYY-MM-DD` (Howard Hinnant's civil-from-days).
+fn civil_date(days: i64) -> String {
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
+/// The baselines an archived run was scored with (its `normalisation.json`), if it has them.
+pub fn archived_baselines(run_dir: &Path) -> Option<Baselines> {
+    pdt_rundir::read_json::<Normalisation>(&run_dir.join(NORMALISATION_JSON))
+        .ok()
+        .map(|n| n.baselines())
+}
+
+/// An archived run's provenance, if `run_dir` is one.
+pub fn provenance(run_dir: &Path) -> Option<Provenance> {
+    pdt_rundir::read_json::<Provenance>(&run_dir.join(PROVENANCE_JSON)).ok()
+}
+
+/// Points every run of `plan` whose run directory is absent at its archive in `registry`, where
+/// there is one. Returns the keys so substituted.
+pub fn use_archived(plan: &mut Plan, registry: &Path) -> Vec<String> {
+    let mut used = Vec::new();
+    for r in &mut plan.runs {
+        let archived = registry.join(&r.key);
+        if !r.dir.exists() && archived.join(PROVENANCE_JSON).is_file() {
+            r.dir = archived;
+            used.push(r.key.clone());
+        }
+    }
+    used
+}
+
+/// `m`'s plan for `--report-only`: a run whose directory is absent is read from its archive in
+/// `registry`, and archived seeds beyond the budget's seed count join the plan (unless `--seeds`
+/// says how many), so the report shows what `RESULTS.md` shows. Returns the plan and the keys of
+/// the runs read from the registry.
+pub fn plan_with_archive(
+    m: &Manifest,
+    opts: &PlanOptions,
+    registry: &Path,
+) -> Result<(Plan, Vec<String>), ReproError> {
+    let mut p = plan::plan(m, opts)?;
+    let max_archived = keys(registry)
+        .iter()
+        .filter(|k| k.contains(&format!("/{}/seed", opts.budget)))
+        .filter_map(|k| k.rsplit_once("/seed").and_then(|(_, s)| s.parse::<u32>().ok()))
+        .max();
+    if let (None, Some(max)) = (opts.seeds, max_archived) {
+        let planned: std::collections::BTreeSet<String> =
+            p.runs.iter().map(|r| r.key.clone()).collect();
+        p = plan::plan(m, &PlanOptions { seeds: Some(max + 1), ..opts.clone() })?;
+        p.runs.retain(|r| {
+            planned.contains(&r.key) || registry.join(&r.key).join(PROVENANCE_JSON).is_file()
+        });
+    }
+    let used = use_archived(&mut p, registry);
+    Ok((p, used))
+}
+
+/// Every archived run's key (`<cell id>/<budget>/seed<N>`) under `registry`, sorted.
+pub fn keys(registry: &Path) -> Vec<String> {
+    fn walk(dir: &Path, at: &Path, out: &mut Vec<String>) {
+        let Ok(entries) = std::fs::read_dir(dir) else { return };
+        for e in entries.flatten() {
+            let p = e.path();
+            let name = e.file_name();
+            if !p.is_dir() || name.to_string_lossy().starts_with('.') {
+                continue;
+            }
+            let rel = at.join(&name);
+            if p.join(PROVENANCE_JSON).is_file() {
+                out.push(rel.to_string_lossy().into_owned());
+            } else {
+                walk(&p, &rel, out);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(registry, Path::new(""), &mut out);
+    out.sort();
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn civil_dates() {
+        assert_eq!(civil_date(0), "1970-01-01");
+        assert_eq!(civil_date(11_017), "2000-03-01");
+        // unix:1795707986, the GPU runs' run.json
+        assert_eq!(civil_date(1_795_707_986 / 86_400), "2026-11-26");
+    }
+
+    #[test]
+    fn thinning_keeps_evaluations_and_the_last_row() {
+        let rows: Vec<MetricsLine> = (1..=500)
+            .map(|i| MetricsLine {
+                iteration: i,
+                step: i * 10,
+                elapsed_s: i as f64,
+                values: Default::default(),
+            })
+            .collect();
+        let evals: std::collections::BTreeSet<u64> = [1, 101, 201, 301, 401, 500].into();
+        let kept = thin(&rows, &evals);
+        assert!(kept.len() <= MAX_METRICS_ROWS + evals.len(), "{}", kept.len());
+        let iters: Vec<u64> = kept.iter().map(|r| r.iteration).collect();
+        for e in &evals {
+            assert!(iters.contains(e), "{e}");
+        }
+        assert_eq!(iters.last(), Some(&500));
+    }
+}
