@@ -15,8 +15,6 @@ use crate::config::{compact, MAX_STATE_STAT};
 pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
 /// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
-/// The name MACAW runs have in `run.json`'s `method`.
-const MACAW: &str = "macaw";
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -49,8 +47,10 @@ impl RunInfo {
     pub fn loss_metric(&self) -> &str {
         match &self.loss_metric {
             Some(m) => m,
-            None if self.method == MACAW => LEGACY_MACAW_LOSS_METRIC,
-            None => LEGACY_LOSS_METRIC,
+            None => self
+                .method
+                .parse::<crate::config::Method>()
+                .map_or(LEGACY_LOSS_METRIC, crate::config::Method::legacy_loss_metric),
         }
     }
 }
