@@ -10,11 +10,7 @@ use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
 use crate::config::{compact, MAX_STATE_STAT};
-
-/// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
-pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
-/// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
-pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
+pub use crate::config::{LEGACY_LOSS_METRIC, LEGACY_MACAW_LOSS_METRIC};
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

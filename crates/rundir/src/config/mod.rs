@@ -15,6 +15,11 @@ use pdt_prompt::{NormalizationScope, PromptPosition, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
+/// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
+/// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
+
 /// The methods of the paper's comparison.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -75,8 +80,8 @@ impl Method {
     /// recorded it.
     pub fn legacy_loss_metric(self) -> &'static str {
         match self {
-            Method::Macaw => crate::files::LEGACY_MACAW_LOSS_METRIC,
-            _ => crate::files::LEGACY_LOSS_METRIC,
+            Method::Macaw => LEGACY_MACAW_LOSS_METRIC,
+            _ => LEGACY_LOSS_METRIC,
         }
     }
 
