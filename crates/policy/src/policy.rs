@@ -118,7 +118,7 @@ impl Policy {
         if !cfg.run.method.is_transformer() {
             return Err(PolicyError::NotTransformer {
                 dir: dir.into(),
-                method: cfg.run.method.name(),
+                method: cfg.run.method.title(),
             });
         }
         let stats = files::read_stats(&run)?;
@@ -321,7 +321,7 @@ impl Policy {
             return Err(PolicyError::Input(format!(
                 "{} adapts to each test task before it acts; its test evaluation has no plan to \
                  act on",
-                self.method.name()
+                self.method.title()
             )));
         }
         let episodes = episodes.unwrap_or(p.cfg.eval.episodes);

@@ -85,6 +85,17 @@ impl Method {
         }
     }
 
+    /// The method's name in the paper and in messages ("MACAW").
+    pub fn title(self) -> &'static str {
+        match self {
+            Method::PromptDt => "Prompt-DT",
+            Method::PromptMtBc => "Prompt-MT-BC",
+            Method::MtOrl => "MT-ORL",
+            Method::MtBcFinetune => "MT-BC-Finetune",
+            Method::Macaw => "MACAW",
+        }
+    }
+
     /// The method's name in `config.toml`, `run.json` and on the command line.
     pub fn name(self) -> &'static str {
         match self {
