@@ -13,7 +13,7 @@ use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::ToModelConfig;
 use pdt_model::PromptDtConfig;
 use pdt_prompt::{BatchSampler, NormalizationScope, SamplerConfig, StateNorm};
-use pdt_rundir::config::{compact, within, Method, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
+use pdt_rundir::config::{compact, within, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
 use pdt_rundir::RunStats;
 
 /// Everything built from a configuration's data section and its data.
@@ -84,7 +84,7 @@ impl RunData {
             ranking: s.ranking,
             zero_history_returns: cfg.run.method.zeroes_history_returns(),
         };
-        if cfg.run.method != Method::Macaw {
+        if cfg.run.method.is_transformer() {
             check_return_tokens(cfg, &preset, &env_name, &train_data, &test_data)?;
         }
         if cfg.data.normalization != NormalizationScope::None {

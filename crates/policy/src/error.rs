@@ -23,12 +23,13 @@ pub enum PolicyError {
     NotARunDir(PathBuf),
     #[error("{}: no checkpoint yet (train first)", .0.display())]
     NoCheckpoint(PathBuf),
+    /// A run of a method without the Decision Transformer (MACAW): it has no policy here.
     #[error(
-        "{}: a MACAW run adapts to a task's data before it acts; serving it is not supported \
+        "{}: a {method} run adapts to a task's data before it acts; serving it is not supported \
          (evaluate it with `promptdt eval`)",
-        .0.display()
+        dir.display()
     )]
-    Macaw(PathBuf),
+    NotTransformer { dir: PathBuf, method: &'static str },
     /// The run's configuration and data do not fit together (the trainer's checks).
     #[error("{0}")]
     Invalid(String),

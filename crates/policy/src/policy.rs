@@ -116,8 +116,11 @@ impl Policy {
     ) -> Result<Self, PolicyError> {
         let run = RunDir::at(dir);
         let cfg = files::run_config(&run, device, data)?;
-        if cfg.run.method == Method::Macaw {
-            return Err(PolicyError::Macaw(dir.into()));
+        if !cfg.run.method.is_transformer() {
+            return Err(PolicyError::NotTransformer {
+                dir: dir.into(),
+                method: cfg.run.method.title(),
+            });
         }
         let stats = files::read_stats(&run)?;
         let family = pdt_envs::family(&cfg.env.name)?;
@@ -315,12 +318,12 @@ impl Policy {
                 return Err(PolicyError::Input(format!("unknown split `{other}` (test or train)")))
             }
         };
-        if self.method == Method::MtBcFinetune && split == "test" {
-            return Err(PolicyError::Input(
-                "MT-BC-Finetune fine-tunes on each test task before it acts; its test \
-                 evaluation has no plan to act on"
-                    .into(),
-            ));
+        if self.method.adapts_before_acting() && split == "test" {
+            return Err(PolicyError::Input(format!(
+                "{} adapts to each test task before it acts; its test evaluation has no plan to \
+                 act on",
+                self.method.title()
+            )));
         }
         let episodes = episodes.unwrap_or(p.cfg.eval.episodes);
         if episodes == 0 {

@@ -6,15 +6,15 @@ use std::path::PathBuf;
 
 use crate::error::ReportError;
 use crate::load::Run;
+use pdt_rundir::config::Method;
 
-/// Methods in the order the paper lists them; they also fix each method's plot colour, so a
-/// method has the same colour in every environment's figure.
-pub(crate) const METHOD_ORDER: [&str; 5] =
-    ["prompt-dt", "prompt-mt-bc", "mt-orl", "mt-bc-finetune", "macaw"];
+/// Methods in the order the paper lists them ([`Method::ALL`]); they also fix each method's plot
+/// colour, so a method has the same colour in every environment's figure.
+pub(crate) const METHOD_ORDER: [Method; Method::ALL.len()] = Method::ALL;
 
 /// Sort key for methods: known methods in paper order, then the rest alphabetically.
 pub(crate) fn method_rank(method: &str) -> (usize, String) {
-    let idx = METHOD_ORDER.iter().position(|m| *m == method).unwrap_or(METHOD_ORDER.len());
+    let idx = METHOD_ORDER.iter().position(|m| m.name() == method).unwrap_or(METHOD_ORDER.len());
     (idx, method.to_string())
 }
 

@@ -322,7 +322,7 @@ impl Manifest {
                 if pdt_envs::family(&c.env).is_err() {
                     return bad(format!("cell {}: unknown environment {:?}", c.id(), c.env));
                 }
-                if c.method.parse::<MethodName>().is_err() {
+                if c.method.parse::<pdt_train::config::Method>().is_err() {
                     return bad(format!("cell {}: unknown method {:?}", c.id(), c.method));
                 }
             }
@@ -458,21 +458,6 @@ pub fn render_reference_experts(dir: &Path, envs: &[&str]) -> Result<String, Rep
     }
     out.push_str("# END reference_experts\n");
     Ok(out)
-}
-
-/// A method name `pdt-train` knows.
-pub(crate) struct MethodName(pub pdt_train::config::Method);
-
-impl std::str::FromStr for MethodName {
-    type Err = ();
-    fn from_str(s: &str) -> Result<Self, ()> {
-        use pdt_train::config::Method::*;
-        [PromptDt, PromptMtBc, MtOrl, MtBcFinetune, Macaw]
-            .into_iter()
-            .find(|m| m.name() == s)
-            .map(MethodName)
-            .ok_or(())
-    }
 }
 
 #[cfg(test)]

@@ -15,7 +15,7 @@
 //! share a cell (Figure 2's Prompt-DT and Table 1's 1 x 5 prompt) share its runs; before a run is
 //! reused its recorded configuration must equal the one this manifest asks for.
 
-use crate::manifest::{Cell, Manifest, MethodName};
+use crate::manifest::{Cell, Manifest};
 use crate::ReproError;
 use pdt_model::device::DeviceSpec;
 use pdt_rundir::config::TrainConfig;
@@ -165,9 +165,8 @@ pub fn config_for(
 ) -> Result<TrainConfig, ReproError> {
     let method = cell
         .method
-        .parse::<MethodName>()
-        .map_err(|()| ReproError::Invalid(format!("unknown method {:?}", cell.method)))?
-        .0;
+        .parse::<pdt_train::config::Method>()
+        .map_err(|_| ReproError::Invalid(format!("unknown method {:?}", cell.method)))?;
     let mut c = TrainConfig::default();
     c.run.method = method;
     c.run.seed = seed;

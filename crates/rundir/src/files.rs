@@ -10,13 +10,7 @@ use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
 use crate::config::{compact, within, MAX_STATE_STAT};
-
-/// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
-pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
-/// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
-pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
-/// The name MACAW runs have in `run.json`'s `method`.
-const MACAW: &str = "macaw";
+pub use crate::config::{LEGACY_LOSS_METRIC, LEGACY_MACAW_LOSS_METRIC};
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -49,8 +43,10 @@ impl RunInfo {
     pub fn loss_metric(&self) -> &str {
         match &self.loss_metric {
             Some(m) => m,
-            None if self.method == MACAW => LEGACY_MACAW_LOSS_METRIC,
-            None => LEGACY_LOSS_METRIC,
+            None => self
+                .method
+                .parse::<crate::config::Method>()
+                .map_or(LEGACY_LOSS_METRIC, crate::config::Method::legacy_loss_metric),
         }
     }
 }

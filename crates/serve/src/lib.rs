@@ -544,14 +544,20 @@ pub struct Server {
 impl Server {
     /// Starts serving `run` on a thread of its own; returns once the socket is bound.
     pub fn start(run: Policy, opts: ServeOptions) -> Result<Self, ServeError> {
-        if run.method == pdt_rundir::config::Method::MtBcFinetune {
-            // Its evaluation fine-tunes on each task's demonstrations before acting; served as is
-            // it would be another policy than the one evaluated.
-            return Err(ServeError::Invalid(
-                "an mt-bc-finetune run adapts to each task by fine-tuning before it acts; serving \
-                 it is not supported (serve prompt-dt, prompt-mt-bc or mt-orl runs)"
-                    .into(),
-            ));
+        if run.method.adapts_before_acting() {
+            // Its evaluation adapts to each task's demonstrations before acting (MT-BC-Finetune
+            // fine-tunes); served as is it would be another policy than the one evaluated.
+            let servable: Vec<&str> = pdt_rundir::config::Method::ALL
+                .into_iter()
+                .filter(|m| m.is_transformer() && !m.adapts_before_acting())
+                .map(|m| m.name())
+                .collect();
+            return Err(ServeError::Invalid(format!(
+                "an {} run adapts to each task before it acts; serving it is not supported \
+                 (serve {} runs)",
+                run.method.name(),
+                servable.join(", ")
+            )));
         }
         let max_connections = check(&opts)?;
         let listener = std::net::TcpListener::bind(opts.listen)

@@ -13,12 +13,13 @@ use std::path::{Path, PathBuf};
 
 const MAX_LINES: usize = 800;
 
-/// Files allowed over [`MAX_LINES`], each with the reason (flat tables, generated code, or one
-/// flat algorithm module as the style guide asks, like CleanRL's files).
-const LONG_FILES: &[(&str, &str)] = &[
-    ("crates/macaw/src/lib.rs", "MACAW as one flat module, top to bottom, like a CleanRL file"),
-    ("crates/data/src/pickle/machine.rs", "the pickle virtual machine: one flat table of opcodes"),
-];
+/// Files allowed over [`MAX_LINES`], each with the reason (flat tables or generated code). Only
+/// what is over the limit today is named (`crates/macaw/src/lib.rs`, one flat algorithm module,
+/// is under it).
+const LONG_FILES: &[(&str, &str)] = &[(
+    "crates/data/src/pickle/machine.rs",
+    "the pickle virtual machine: one flat table of opcodes",
+)];
 
 fn repo_root() -> PathBuf {
     // crates/testkit -> the workspace root.
@@ -66,6 +67,15 @@ fn no_source_file_is_over_the_line_limit() {
             if n > MAX_LINES && !LONG_FILES.iter().any(|(p, _)| *p == name) {
                 long.push(format!("{name}: {n} lines"));
             }
+        }
+    }
+    // The list stays honest: an entry that has come under the limit (or gone) is removed.
+    for (name, _) in LONG_FILES {
+        let n = std::fs::read_to_string(root.join(name)).map_or(0, |t| t.lines().count());
+        if n <= MAX_LINES {
+            long.push(format!(
+                "{name}: {n} lines, no longer over the limit: remove it from LONG_FILES"
+            ));
         }
     }
     assert!(long.is_empty(), "source files over {MAX_LINES} lines (split them, or name them in LONG_FILES with why):\n{}", long.join("\n"));

@@ -15,6 +15,11 @@ use pdt_prompt::{NormalizationScope, PromptPosition, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
+/// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
+/// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
+pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
+
 /// The methods of the paper's comparison.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -34,7 +39,14 @@ pub enum Method {
     Macaw,
 }
 
+/// The one list of methods and what each is: the front ends, the report and the reproduction
+/// manifests ask these instead of naming methods, so a new method is its module, one line in
+/// [`Method::ALL`] (and [`Method::name`]) and its config section.
 impl Method {
+    /// Every method, in the order the paper lists them (the report's order and plot colours).
+    pub const ALL: [Method; 5] =
+        [Method::PromptDt, Method::PromptMtBc, Method::MtOrl, Method::MtBcFinetune, Method::Macaw];
+
     pub fn uses_prompt(self) -> bool {
         matches!(self, Method::PromptDt | Method::PromptMtBc)
     }
@@ -43,6 +55,48 @@ impl Method {
         matches!(self, Method::PromptMtBc | Method::MtBcFinetune)
     }
 
+    /// Prompt-DT and its variants: the Decision Transformer, configured by the `[model]`,
+    /// `[optimizer]` and `[sampler]` sections and served by `pdt-policy`. MACAW has networks of
+    /// its own (its `[macaw]` section).
+    pub fn is_transformer(self) -> bool {
+        !matches!(self, Method::Macaw)
+    }
+
+    /// Whether the method adapts to each test task (fine-tuning, MACAW's gradient steps) before
+    /// it acts there: its test-time policy is not the checkpoint as saved, so it is not served.
+    pub fn adapts_before_acting(self) -> bool {
+        matches!(self, Method::MtBcFinetune | Method::Macaw)
+    }
+
+    /// The method's own section of `config.toml`, written only for runs of the method.
+    pub fn section(self) -> Option<&'static str> {
+        match self {
+            Method::Macaw => Some("macaw"),
+            Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune => None,
+        }
+    }
+
+    /// The `metrics.jsonl` column of the training loss in runs written before `run.json`
+    /// recorded it.
+    pub fn legacy_loss_metric(self) -> &'static str {
+        match self {
+            Method::Macaw => LEGACY_MACAW_LOSS_METRIC,
+            _ => LEGACY_LOSS_METRIC,
+        }
+    }
+
+    /// The method's name in the paper and in messages ("MACAW").
+    pub fn title(self) -> &'static str {
+        match self {
+            Method::PromptDt => "Prompt-DT",
+            Method::PromptMtBc => "Prompt-MT-BC",
+            Method::MtOrl => "MT-ORL",
+            Method::MtBcFinetune => "MT-BC-Finetune",
+            Method::Macaw => "MACAW",
+        }
+    }
+
+    /// The method's name in `config.toml`, `run.json` and on the command line.
     pub fn name(self) -> &'static str {
         match self {
             Method::PromptDt => "prompt-dt",
@@ -308,9 +362,11 @@ impl TrainConfig {
     pub fn to_toml_value(&self) -> Result<toml::Value, ConfigError> {
         let mut v = toml::Value::try_from(self)
             .map_err(|e| ConfigError::Invalid(format!("cannot be written as TOML: {e}")))?;
-        if self.run.method != Method::Macaw {
-            if let toml::Value::Table(t) = &mut v {
-                t.remove("macaw");
+        // Only the run's own method section is written.
+        if let toml::Value::Table(t) = &mut v {
+            let others = Method::ALL.into_iter().filter(|m| *m != self.run.method);
+            for section in others.filter_map(Method::section) {
+                t.remove(section);
             }
         }
         Ok(v)
@@ -332,7 +388,7 @@ impl TrainConfig {
         v.at_most("train.resume_interval", t.resume_interval, TOML_INT, "0 = only checkpoints");
         // The transformer's settings (model, optimiser, prompt sampling) are Prompt-DT's and its
         // variants'; MACAW reads its own section instead, so neither checks the other's.
-        let macaw = self.run.method == Method::Macaw;
+        let macaw = !self.run.method.is_transformer();
         if !macaw {
             self.validate_transformer(&mut v);
         }

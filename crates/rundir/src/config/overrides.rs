@@ -21,16 +21,24 @@ pub struct Overrides {
 
 /// A method name that is none of [`Method`]'s.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}: expected prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune or macaw")]
+#[error("{name}: expected {expected}", name = .0, expected = expected_methods())]
 pub struct UnknownMethod(pub String);
+
+/// "prompt-dt, ..., mt-bc-finetune or macaw", from [`Method::ALL`].
+fn expected_methods() -> String {
+    let names: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
+    match names.split_last() {
+        Some((last, rest)) if !rest.is_empty() => format!("{} or {last}", rest.join(", ")),
+        _ => names.join(""),
+    }
+}
 
 impl std::str::FromStr for Method {
     type Err = UnknownMethod;
 
     /// A method by its name in `config.toml` (`prompt-dt`, ..., `macaw`).
     fn from_str(s: &str) -> Result<Self, UnknownMethod> {
-        serde_json::from_value(serde_json::Value::String(s.to_string()))
-            .map_err(|_| UnknownMethod(s.to_string()))
+        Method::ALL.into_iter().find(|m| m.name() == s).ok_or_else(|| UnknownMethod(s.to_string()))
     }
 }
 
@@ -87,6 +95,20 @@ impl TrainConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_method_parses_from_the_name_its_files_carry() {
+        for m in Method::ALL {
+            assert_eq!(m.name().parse::<Method>(), Ok(m));
+            // `config.toml` and `run.json` spell it through serde: the same name.
+            assert_eq!(serde_json::to_value(m).unwrap(), serde_json::json!(m.name()));
+        }
+        let e = "dt".parse::<Method>().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "dt: expected prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune or macaw"
+        );
+    }
 
     #[test]
     fn overrides_apply_and_the_preset_takes_the_runs_k_star() {

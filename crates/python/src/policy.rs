@@ -1,0 +1,456 @@
+//! A trained run's prompted policy (`pdt_policy`) and the prompts it acts from.
+
+use crate::{array2, existing, lock, value_error};
+use numpy::prelude::*;
+use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike1, PyArrayLike2};
+use pdt_model::PrefixCache;
+use pdt_policy::{Episode, Inputs, PolicyError, PromptArrays, Target};
+use pdt_prompt::SegmentBatch;
+use pyo3::prelude::*;
+use std::path::PathBuf;
+use std::sync::Mutex;
+use tch::Tensor;
+
+/// A prompt, as the policy feeds it: states normalised with the run's statistics, returns-to-go
+/// divided by its scale. Made by `Policy.task_prompt`, `Policy.prompt` or `Policy.eval_plan`.
+#[pyclass(module = "promptdt._native", frozen)]
+pub(crate) struct Prompt {
+    inner: SegmentBatch,
+}
+
+#[pymethods]
+impl Prompt {
+    /// Steps in the prompt (J x H).
+    #[getter]
+    fn steps(&self) -> usize {
+        self.inner.steps
+    }
+    /// `[steps, obs_dim]` float32, normalised.
+    #[getter]
+    fn states<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let b = &self.inner;
+        array2(py, b.states.clone(), b.steps, b.state_dim)
+    }
+    /// `[steps, act_dim]` float32.
+    #[getter]
+    fn actions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let b = &self.inner;
+        array2(py, b.actions.clone(), b.steps, b.act_dim)
+    }
+    /// `[steps]` float32, divided by the run's return scale.
+    #[getter]
+    fn returns_to_go<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
+        self.inner.returns_to_go.clone().into_pyarray(py)
+    }
+    /// `[steps]` int64.
+    #[getter]
+    fn timesteps<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        self.inner.timesteps.clone().into_pyarray(py)
+    }
+    /// `[steps]` float32: 1 for real steps, 0 for padding.
+    #[getter]
+    fn mask<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
+        self.inner.mask.clone().into_pyarray(py)
+    }
+    fn __repr__(&self) -> String {
+        format!(
+            "Prompt(steps={}, obs_dim={}, act_dim={})",
+            self.inner.steps, self.inner.state_dim, self.inner.act_dim
+        )
+    }
+}
+
+/// What `promptdt eval` draws for one task: the prompt its episodes share and their reset seeds.
+#[pyclass(module = "promptdt._native", frozen, get_all)]
+pub(crate) struct TaskPlan {
+    /// `cheetah_vel-2`
+    name: String,
+    /// The task's index in its family.
+    index: usize,
+    /// Reset seed of each episode.
+    seeds: Vec<u64>,
+    /// None for the methods without a prompt.
+    prompt: Option<Py<Prompt>>,
+}
+
+#[pymethods]
+impl TaskPlan {
+    fn __repr__(&self) -> String {
+        format!(
+            "TaskPlan(name={:?}, index={}, episodes={})",
+            self.name,
+            self.index,
+            self.seeds.len()
+        )
+    }
+}
+
+struct PolicyState {
+    run: pdt_policy::Policy,
+    /// The keys and values of the distinct prompts set (`None`: no prompt set), and the row of
+    /// each episode (one row: every episode).
+    prefix: Option<(PrefixCache, Vec<i64>)>,
+    /// One per episode (its history, last action and checks); `None` until its first
+    /// observation.
+    episodes: Vec<Option<Episode>>,
+    /// The first return token of the episodes (`reset`'s target return).
+    target: Target,
+}
+
+/// A trained run's prompted policy, acting in a batch of episodes as `promptdt eval` does.
+#[pyclass(module = "promptdt._native", frozen)]
+pub(crate) struct Policy {
+    state: Mutex<PolicyState>,
+    #[pyo3(get)]
+    obs_dim: usize,
+    #[pyo3(get)]
+    act_dim: usize,
+    /// History length K.
+    #[pyo3(get)]
+    k: usize,
+    #[pyo3(get)]
+    method: String,
+    /// The run's environment family.
+    #[pyo3(get)]
+    env: String,
+    #[pyo3(get)]
+    uses_prompt: bool,
+    #[pyo3(get)]
+    target_return: f32,
+    #[pyo3(get)]
+    rtg_scale: f32,
+    #[pyo3(get)]
+    max_ep_len: usize,
+    /// Iteration of the checkpoint loaded.
+    #[pyo3(get)]
+    iteration: u64,
+    /// Steps of a prompt drawn from the run's data.
+    #[pyo3(get)]
+    prompt_steps: usize,
+}
+
+/// What `act` does with an episode: start it at its first observation, or record its step.
+enum Next {
+    Start(pdt_policy::Observation),
+    Step(pdt_policy::Step),
+}
+
+impl Policy {
+    fn batch_prefix(st: &PolicyState, n: usize) -> PyResult<Option<PrefixCache>> {
+        if !st.run.method.uses_prompt() {
+            return Ok(None);
+        }
+        let Some((cache, rows)) = &st.prefix else {
+            return Err(value_error("this run's method takes a prompt: call set_prompt first"));
+        };
+        let rows: Vec<i64> = match rows.len() {
+            1 => vec![rows[0]; n],
+            m if m == n => rows.clone(),
+            m => {
+                return Err(value_error(format!(
+                    "{m} prompts were set for {n} episodes: give one prompt, or one per episode"
+                )))
+            }
+        };
+        let index = Tensor::from_slice(&rows).to_device(st.run.device);
+        Ok(Some(cache.select(&index)))
+    }
+}
+
+#[pymethods]
+impl Policy {
+    /// Loads the latest checkpoint of the run in `run_dir` (a directory `promptdt train` wrote).
+    /// `device`: "cpu", "cuda", "cuda:N" or "auto"; `data`: where the run's data are now, if they
+    /// moved (needed only for `task_prompt` and `eval_plan`); `threads`: libtorch threads (None:
+    /// libtorch's default).
+    #[staticmethod]
+    #[pyo3(signature = (run_dir, device = "cpu", data = None, threads = None))]
+    fn load(
+        py: Python<'_>,
+        run_dir: PathBuf,
+        device: &str,
+        data: Option<PathBuf>,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        existing(&run_dir, "run directory")?;
+        let device: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
+        if let Some(t) = threads {
+            if t == 0 {
+                return Err(value_error("threads must be at least 1"));
+            }
+            tch::set_num_threads(t as i32);
+        }
+        let run = py
+            .detach(|| {
+                pdt_policy::Policy::load(&run_dir, Some(device), data.as_deref())
+                    .map_err(|e| e.to_string())
+            })
+            .map_err(value_error)?;
+        let target = run.target(None).map_err(value_error)?;
+        Ok(Self {
+            obs_dim: run.stats.obs_dim,
+            act_dim: run.stats.act_dim,
+            k: run.k,
+            method: run.method.name().to_string(),
+            env: run.env.clone(),
+            uses_prompt: run.method.uses_prompt(),
+            target_return: run.stats.target_return,
+            rtg_scale: run.stats.rtg_scale,
+            max_ep_len: run.max_ep_len(),
+            iteration: run.iteration,
+            prompt_steps: run.prompt_steps,
+            state: Mutex::new(PolicyState { run, prefix: None, episodes: Vec::new(), target }),
+        })
+    }
+
+    /// The tasks whose prompts `task_prompt` can draw (test tasks first).
+    fn prompt_tasks(&self) -> PyResult<Vec<usize>> {
+        lock(&self.state)?.run.prompt_tasks().map_err(value_error)
+    }
+
+    /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one.
+    #[pyo3(signature = (task, seed = 0))]
+    fn task_prompt(&self, task: usize, seed: u64) -> PyResult<Prompt> {
+        let st = lock(&self.state)?;
+        Ok(Prompt { inner: st.run.task_prompt(task, seed).map_err(value_error)? })
+    }
+
+    /// A prompt from a demonstration's arrays: raw states `[n, obs_dim]`, actions `[n, act_dim]`,
+    /// raw returns-to-go `[n]` (not divided by the scale) and timesteps `[n]`.
+    fn prompt(
+        &self,
+        states: PyArrayLike2<'_, f64, AllowTypeChange>,
+        actions: PyArrayLike2<'_, f64, AllowTypeChange>,
+        returns_to_go: PyArrayLike1<'_, f64, AllowTypeChange>,
+        timesteps: PyArrayLike1<'_, i64, AllowTypeChange>,
+    ) -> PyResult<Prompt> {
+        let rows = |a: &PyArrayLike2<'_, f64, AllowTypeChange>| -> Vec<Vec<f64>> {
+            a.as_array().rows().into_iter().map(|r| r.to_vec()).collect()
+        };
+        let arrays = PromptArrays {
+            states: rows(&states),
+            actions: rows(&actions),
+            returns_to_go: returns_to_go.as_array().to_vec(),
+            timesteps: timesteps.as_array().to_vec(),
+        };
+        let st = lock(&self.state)?;
+        // The prompt's largest inputs are not kept: an episode names its own when its action is
+        // refused.
+        let mut inputs = Inputs::default();
+        Ok(Prompt { inner: st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)? })
+    }
+
+    /// What `promptdt eval --split SPLIT --episodes N` draws for each task, in its order. Acting
+    /// on all of them together (one environment per seed, task by task, each episode with its
+    /// task's prompt) takes the evaluation's actions and returns.
+    #[pyo3(signature = (split = "test", episodes = None))]
+    fn eval_plan(
+        &self,
+        py: Python<'_>,
+        split: &str,
+        episodes: Option<usize>,
+    ) -> PyResult<Vec<TaskPlan>> {
+        let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
+        plan.into_iter()
+            .map(|t| {
+                let prompt = t.prompt.map(|p| Py::new(py, Prompt { inner: p })).transpose()?;
+                Ok(TaskPlan { name: t.name, index: t.index, seeds: t.seeds, prompt })
+            })
+            .collect()
+    }
+
+    /// Sets the prompt: one `Prompt` for every episode, or a list with one per episode. The
+    /// distinct prompts' keys and values are computed once, together, as the evaluator does.
+    fn set_prompt(&self, py: Python<'_>, prompt: &Bound<'_, PyAny>) -> PyResult<()> {
+        let items: Vec<Bound<'_, Prompt>> = match prompt.cast::<Prompt>() {
+            Ok(p) => vec![p.clone()],
+            Err(_) => prompt.extract().map_err(|_| {
+                value_error("set_prompt takes a Prompt or a list of Prompts (one per episode)")
+            })?,
+        };
+        if items.is_empty() {
+            return Err(value_error("set_prompt: the list of prompts is empty"));
+        }
+        // Distinct prompt objects, in order of first appearance, and each episode's row.
+        let mut distinct: Vec<&Bound<'_, Prompt>> = Vec::new();
+        let mut rows = Vec::with_capacity(items.len());
+        for p in &items {
+            let row = match distinct.iter().position(|d| d.is(p)) {
+                Some(r) => r,
+                None => {
+                    distinct.push(p);
+                    distinct.len() - 1
+                }
+            };
+            rows.push(row as i64);
+        }
+        let batches: Vec<&SegmentBatch> = distinct.iter().map(|p| &p.get().inner).collect();
+        let mut st = lock(&self.state)?;
+        if !st.run.method.uses_prompt() {
+            return Err(value_error(format!(
+                "this run's method ({}) takes no prompt",
+                self.method
+            )));
+        }
+        if let Some(b) =
+            batches.iter().find(|b| b.state_dim != self.obs_dim || b.act_dim != self.act_dim)
+        {
+            return Err(value_error(format!(
+                "prompt dims {}/{} differ from the policy's {}/{}",
+                b.state_dim, b.act_dim, self.obs_dim, self.act_dim
+            )));
+        }
+        // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
+        let run = &mut st.run;
+        let cache = py
+            .detach(move || run.prefix(&batches).map_err(|e| e.to_string()))
+            .map_err(value_error)?;
+        st.prefix = Some((cache, rows));
+        Ok(())
+    }
+
+    /// Starts `n_episodes` new episodes (the next `act` takes their first observations), aiming
+    /// at `target_return` (None: the run's G*).
+    #[pyo3(signature = (n_episodes, target_return = None))]
+    fn reset(&self, n_episodes: usize, target_return: Option<f64>) -> PyResult<()> {
+        if n_episodes == 0 {
+            return Err(value_error("n_episodes must be at least 1"));
+        }
+        let mut st = lock(&self.state)?;
+        st.target = st.run.target(target_return).map_err(value_error)?;
+        st.episodes = vec![None; n_episodes];
+        Ok(())
+    }
+
+    /// Restarts the given episodes (e.g. those an environment reset): their next observation is
+    /// a first one.
+    fn restart(&self, episodes: Vec<usize>) -> PyResult<()> {
+        let mut st = lock(&self.state)?;
+        let n = st.episodes.len();
+        for &i in &episodes {
+            let slot =
+                st.episodes.get_mut(i).ok_or_else(|| value_error(format!("episode {i} of {n}")))?;
+            *slot = None;
+        }
+        Ok(())
+    }
+
+    /// The next action of every episode, `[n, act_dim]` float32. `obs`: `[n, obs_dim]` raw
+    /// observations; `reward`: `[n]`, the rewards the last actions earned (ignored for episodes at
+    /// their first observation, required for the others).
+    #[pyo3(signature = (obs, reward = None))]
+    fn act<'py>(
+        &self,
+        py: Python<'py>,
+        obs: PyArrayLike2<'py, f64, AllowTypeChange>,
+        reward: Option<PyArrayLike1<'py, f64, AllowTypeChange>>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let obs = obs.as_array();
+        let reward: Option<Vec<f64>> = reward.map(|r| r.as_array().to_vec());
+        let mut guard = lock(&self.state)?;
+        let st = &mut *guard;
+        let n = st.episodes.len();
+        if n == 0 {
+            return Err(value_error("call reset(n_episodes) before act"));
+        }
+        if obs.shape() != [n, self.obs_dim] {
+            return Err(value_error(format!(
+                "obs: shape {:?}, expected [{n}, {}] (episodes, obs_dim)",
+                obs.shape(),
+                self.obs_dim
+            )));
+        }
+        if let Some(r) = &reward {
+            if r.len() != n {
+                return Err(value_error(format!("reward: {} values for {n} episodes", r.len())));
+            }
+        }
+        // Check everything before changing any episode, so an error leaves the state as it was.
+        let at = |i: usize| move |e: PolicyError| value_error(format!("episode {i}: {e}"));
+        let mut steps = Vec::with_capacity(n);
+        for (i, row) in obs.rows().into_iter().enumerate() {
+            let o = st.run.observation(&row.to_vec()).map_err(at(i))?;
+            let Some(e) = &st.episodes[i] else {
+                steps.push(Next::Start(o));
+                continue;
+            };
+            let r = match &reward {
+                None => {
+                    return Err(value_error(format!(
+                        "episode {i} is under way: pass the rewards of the last actions"
+                    )))
+                }
+                Some(r) => r[i],
+            };
+            let step = st.run.step(r, o).map_err(at(i))?;
+            match st.run.check(e, &step) {
+                Err(PolicyError::EpisodeFull { max_ep_len }) => {
+                    return Err(value_error(format!(
+                        "episode {i} has reached the model's max_ep_len ({max_ep_len} steps): reset or restart it"
+                    )))
+                }
+                Err(e) => return Err(at(i)(e)),
+                Ok(()) => steps.push(Next::Step(step)),
+            }
+        }
+        let prefix = Self::batch_prefix(st, n)?;
+        let starts: Vec<bool> = steps.iter().map(|s| matches!(s, Next::Start(_))).collect();
+        let target = st.target;
+        for (slot, next) in st.episodes.iter_mut().zip(steps) {
+            match (slot, next) {
+                (Some(e), Next::Step(step)) => st.run.record(e, step).map_err(value_error)?,
+                (slot, Next::Start(o)) => *slot = Some(st.run.start(o, target)),
+                (None, Next::Step(_)) => return Err(value_error("internal: a step of no episode")),
+            }
+        }
+        let flat = {
+            // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
+            let st: &mut PolicyState = st;
+            py.detach(move || {
+                let eps: Vec<&Episode> = st.episodes.iter().flatten().collect();
+                st.run.act(&eps, prefix.as_ref()) // [n * da]
+            })
+        };
+        let da = self.act_dim;
+        // An action that is not finite (inputs each representable can still overflow inside the
+        // model) refuses the whole call: every episode goes back to where it was before it.
+        let bad = flat.chunks_exact(da).position(|a| a.iter().any(|x| !x.is_finite()));
+        if let Some(b) = bad {
+            let mut why = None;
+            for (i, (slot, a)) in st.episodes.iter_mut().zip(flat.chunks_exact(da)).enumerate() {
+                let Some(e) = slot else { continue };
+                if i == b {
+                    why = e.accept(a).err();
+                } else {
+                    e.take_back();
+                }
+                // An episode started by this call is not started.
+                if starts[i] {
+                    *slot = None;
+                }
+            }
+            let why = why.map_or_else(String::new, |e| e.to_string());
+            return Err(value_error(format!(
+                "episode {b}: {why}. The call is refused and every episode is as it was before it"
+            )));
+        }
+        for (slot, a) in st.episodes.iter_mut().zip(flat.chunks_exact(da)) {
+            if let Some(e) = slot {
+                e.accept(a).map_err(value_error)?;
+            }
+        }
+        array2(py, flat, n, da)
+    }
+
+    /// Returns so far of each episode (None before its first observation).
+    fn episode_returns(&self) -> PyResult<Vec<Option<f64>>> {
+        Ok(lock(&self.state)?.episodes.iter().map(|e| e.as_ref().map(Episode::ret)).collect())
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Policy(method={:?}, env={:?}, obs_dim={}, act_dim={}, k={}, iteration={})",
+            self.method, self.env, self.obs_dim, self.act_dim, self.k, self.iteration
+        )
+    }
+}

@@ -1,0 +1,228 @@
+//! Runs: the CLI's library calls (train, evaluate, collect, list experiments, benchmark).
+
+use crate::{existing, value_error};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use std::path::PathBuf;
+
+/// `promptdt train`: trains from `config` (a TOML file) into `out`, or resumes the run in `out`
+/// (`resume=True`). Returns `{"dir", "iterations_done", "finished", "last_test_mean"}`.
+#[pyfunction]
+#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, data = None))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn train<'py>(
+    py: Python<'py>,
+    out: PathBuf,
+    config: Option<PathBuf>,
+    resume: bool,
+    seed: Option<u64>,
+    iterations: Option<u64>,
+    method: Option<String>,
+    device: Option<&str>,
+    data: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use pdt_train::config::{Method, Overrides, TrainConfig};
+    let device: Option<pdt_model::device::DeviceSpec> =
+        device.map(str::parse).transpose().map_err(value_error)?;
+    let cfg = match (resume, &config) {
+        (true, Some(_)) => return Err(value_error("give config or resume=True, not both")),
+        (true, None) => None,
+        (false, None) => return Err(value_error("give config (a TOML file) or resume=True")),
+        (false, Some(path)) => {
+            existing(path, "config")?;
+            let mut cfg = TrainConfig::from_file(path).map_err(value_error)?;
+            let method = method
+                .as_deref()
+                .map(str::parse::<Method>)
+                .transpose()
+                .map_err(|e| value_error(format!("method {e}")))?;
+            let overrides = Overrides {
+                seed,
+                iterations,
+                method,
+                device,
+                data: data.clone(),
+                ..Overrides::default()
+            };
+            // No MACAW preset here: the environment is never asked.
+            cfg.apply(&overrides, |_| Ok::<usize, std::convert::Infallible>(0))
+                .map_err(value_error)?;
+            Some(cfg)
+        }
+    };
+    let summary = py
+        .detach(|| {
+            let mut progress = |_: &pdt_train::run::Progress| {};
+            let opts = pdt_train::run::TrainOptions {
+                resume,
+                resume_with: pdt_train::run::ResumeWith { iterations, device, data: data.clone() },
+                stop_after_iterations: None,
+                progress: &mut progress,
+            };
+            pdt_train::run::train(cfg, &out, opts).map_err(|e| e.to_string())
+        })
+        .map_err(value_error)?;
+    let d = PyDict::new(py);
+    d.set_item("dir", summary.dir)?;
+    d.set_item("iterations_done", summary.iterations_done)?;
+    d.set_item("finished", summary.finished)?;
+    let mean = summary
+        .last_test
+        .map(|t| t.iter().map(|r| r.return_mean).sum::<f64>() / t.len().max(1) as f64);
+    d.set_item("last_test_mean", mean)?;
+    Ok(d)
+}
+
+/// `promptdt eval`: the final evaluation of a run's latest checkpoint (written to the run's
+/// `eval_final.json`); returns that file's content as JSON text.
+#[pyfunction]
+#[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None))]
+pub(crate) fn evaluate(
+    py: Python<'_>,
+    run_dir: PathBuf,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<&str>,
+    data: Option<PathBuf>,
+) -> PyResult<String> {
+    existing(&run_dir, "run directory")?;
+    let device: Option<pdt_model::device::DeviceSpec> =
+        device.map(str::parse).transpose().map_err(value_error)?;
+    let r = py
+        .detach(|| {
+            pdt_train::run::evaluate_run(&run_dir, episodes, split, device, data.as_deref())
+                .map_err(|e| e.to_string())
+        })
+        .map_err(value_error)?;
+    serde_json::to_string(&r).map_err(value_error)
+}
+
+/// `promptdt reproduce --list`: every committed experiment with its cells and its cost per budget,
+/// as JSON text (a list of `{name, title, cells, pending, budgets: [{budget, runs, iterations,
+/// hours, note}]}`).
+#[pyfunction]
+pub(crate) fn experiments() -> PyResult<String> {
+    let list = pdt_repro::list().map_err(value_error)?;
+    let v: Vec<serde_json::Value> = list
+        .iter()
+        .map(|e| {
+            let budgets: Vec<serde_json::Value> = e
+                .budgets
+                .iter()
+                .map(|b| {
+                    serde_json::json!({
+                        "budget": b.budget, "runs": b.runs, "iterations": b.iterations,
+                        "hours": b.hours, "note": b.note,
+                    })
+                })
+                .collect();
+            serde_json::json!({
+                "name": e.name, "title": e.title, "cells": e.cells, "pending": e.pending,
+                "budgets": budgets,
+            })
+        })
+        .collect();
+    serde_json::to_string(&v).map_err(value_error)
+}
+
+/// Whether `family` (any spelling [`pdt_envs::family`] takes) collects its datasets with scripted
+/// policies ([`collect_scripted`]) rather than from an RL agent ([`collect_from_agent`]).
+#[pyfunction]
+pub(crate) fn is_scripted(family: &str) -> PyResult<bool> {
+    Ok(pdt_envs::family(family).map_err(value_error)?.scripted().is_some())
+}
+
+/// `promptdt collect --env FAMILY` for a family with scripted policies: the scripted
+/// expert/medium/random datasets and prompt sets of the family's default tasks, into `out`.
+/// `action_noise`: the expert's noise where the family takes one (Meta-World reach: standard
+/// deviation; default 0.2, 0 = deterministic).
+#[pyfunction]
+#[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None))]
+pub(crate) fn collect_scripted(
+    py: Python<'_>,
+    family: &str,
+    out: PathBuf,
+    seed: u64,
+    episodes: Option<usize>,
+    prompt_episodes: Option<usize>,
+    action_noise: Option<f64>,
+) -> PyResult<usize> {
+    use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
+    let fam = pdt_envs::family(family).map_err(value_error)?;
+    let scripted = fam.scripted().ok_or_else(|| {
+        let names: Vec<&str> = ScriptedFamily::ALL.iter().map(|f| f.name()).collect();
+        value_error(format!(
+            "{family} has no scripted policies ({} do); use collect_from_agent",
+            names.join(", ")
+        ))
+    })?;
+    let mut cfg = CollectConfig::for_family(scripted);
+    cfg.seed = seed;
+    if let Some(e) = episodes {
+        cfg.episodes_per_task = e;
+    }
+    if let Some(e) = prompt_episodes {
+        cfg.prompt_episodes = e;
+    }
+    if let Some(n) = action_noise {
+        if !scripted.takes_action_noise() {
+            let names: Vec<&str> = ScriptedFamily::ALL
+                .iter()
+                .filter(|f| f.takes_action_noise())
+                .map(|f| f.name())
+                .collect();
+            return Err(value_error(format!("action_noise is for {}", names.join(", "))));
+        }
+        cfg.reach_action_noise = n;
+    }
+    let summary = py
+        .detach(|| pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}))
+        .map_err(value_error)?;
+    Ok(summary.entries.len() * 2)
+}
+
+/// `promptdt collect --env FAMILY --from-pretrained`: datasets and prompt sets of a MuJoCo family
+/// from a committed agent directory (`pretrained/<family>`), into `out`.
+#[pyfunction]
+#[pyo3(signature = (agent_dir, out, seed = 0, episodes = None, prompt_episodes = None, device = "cpu"))]
+pub(crate) fn collect_from_agent(
+    py: Python<'_>,
+    agent_dir: PathBuf,
+    out: PathBuf,
+    seed: u64,
+    episodes: Option<usize>,
+    prompt_episodes: Option<usize>,
+    device: &str,
+) -> PyResult<usize> {
+    existing(&agent_dir, "agent directory")?;
+    let spec: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
+    let device = pdt_model::device::resolve(spec).map_err(value_error)?;
+    let mut cfg = pdt_rl::datasets::DatasetConfig { seed, ..Default::default() };
+    if let Some(e) = episodes {
+        cfg.episodes = e;
+    }
+    if let Some(e) = prompt_episodes {
+        cfg.prompt_episodes = e;
+    }
+    let summary = py
+        .detach(|| pdt_rl::datasets::generate(&agent_dir, &out, &cfg, device, &mut |_, _| {}))
+        .map_err(value_error)?;
+    Ok(summary.entries.len())
+}
+
+/// The Rust environment benchmark (`pdt_envs::bench`, no Python in the loop), for comparison with
+/// the same stepping from Python: JSON text of its results.
+#[pyfunction]
+#[pyo3(signature = (families, steps_per_env, vec_envs, threads, seed = 0))]
+pub(crate) fn bench_envs(
+    py: Python<'_>,
+    families: Vec<String>,
+    steps_per_env: usize,
+    vec_envs: usize,
+    threads: Vec<usize>,
+    seed: u64,
+) -> PyResult<String> {
+    let cfg = pdt_envs::bench::EnvBenchConfig { families, steps_per_env, vec_envs, threads, seed };
+    let r = py.detach(|| pdt_envs::bench::run(&cfg)).map_err(value_error)?;
+    serde_json::to_string(&r).map_err(value_error)
+}

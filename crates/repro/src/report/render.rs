@@ -1,0 +1,184 @@
+//! The report's files: `REPORT.md` (the cells next to the paper, the claims, the layout tables),
+//! `cells.csv` and `curves.csv`.
+
+use super::*;
+
+fn opt(v: Option<f64>, d: usize) -> String {
+    v.map_or("-".into(), |v| format!("{v:.d$}"))
+}
+
+fn stat(s: Option<Stat>, d: usize) -> String {
+    s.map_or("-".into(), |s| {
+        if s.n > 1 {
+            format!("{:.d$} ± {:.d$}", s.mean, s.std)
+        } else {
+            format!("{:.d$}", s.mean)
+        }
+    })
+}
+
+pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# {} — `{}` budget\n", r.title, r.budget);
+    let _ = writeln!(s, "{}\n", m.description.trim());
+    let _ = writeln!(s, "Budget: {}\n", r.budget_note.trim());
+    let _ = writeln!(
+        s,
+        "Ours: mean ± std over seeds of the average return on the test tasks at the last evaluation; \
+         normalised = 100 (R - R_random) / (R_expert - R_random) per test task with our datasets' \
+         returns, averaged. Paper normalised: the paper's value with the reference release's expert \
+         returns (its prompt files) and our random returns; `-` where the reference's experts are \
+         unknown. Within: |ours - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
+    );
+    let header =
+        "cell|seeds|iteration|ours|ours normalised|paper|paper normalised|within paper std|status";
+    let (text, num) = (Align::Left, Align::Right);
+    let align = vec![text, num, num, num, num, num, num, text, text];
+    let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
+    for c in &r.cells {
+        let paper = match (c.paper, c.paper_std) {
+            (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        let pn = match (c.paper_normalised, c.paper_normalised_std) {
+            (Some(p), Some(sd)) => format!("{p:.1} ± {sd:.1}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        let it = match (c.iteration, c.iterations_planned) {
+            (Some(i), Some(n)) => format!("{i} / {n}"),
+            (None, Some(n)) => format!("- / {n}"),
+            _ => "-".into(),
+        };
+        table.push(vec![
+            format!("`{}`", c.id),
+            c.seeds.to_string(),
+            it,
+            match c.success {
+                Some(sr) => format!("{} (success {:.0} %)", stat(c.ours, 2), 100.0 * sr.mean),
+                None => stat(c.ours, 2),
+            },
+            stat(c.ours_normalised, 1),
+            paper,
+            pn,
+            c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }).to_string(),
+            c.status.to_string(),
+        ]);
+    }
+    s.push_str(&table.markdown(Rule::Tight));
+    if m.layout == Layout::Table {
+        let mut rows: Vec<String> = Vec::new();
+        let mut cols: Vec<String> = Vec::new();
+        for c in &r.cells {
+            if let (Some(row), Some(col)) = (&c.row, &c.column) {
+                if !rows.contains(row) {
+                    rows.push(row.clone());
+                }
+                if !cols.contains(col) {
+                    cols.push(col.clone());
+                }
+            }
+        }
+        let _ = writeln!(s, "\n## As the paper lays it out (ours normalised / paper normalised; raw in the table above)\n");
+        // The corner cell is empty: the rows are labelled, the columns are.
+        let mut header = vec![String::new()];
+        header.extend(cols.iter().cloned());
+        let mut layout = Table::new(header);
+        for row in &rows {
+            let line: Vec<String> = cols
+                .iter()
+                .map(|col| {
+                    r.cells
+                        .iter()
+                        .find(|c| c.row.as_ref() == Some(row) && c.column.as_ref() == Some(col))
+                        .map_or("".into(), |c| {
+                            format!(
+                                "{} / {}",
+                                stat(c.ours_normalised, 1),
+                                opt(c.paper_normalised, 1)
+                            )
+                        })
+                })
+                .collect();
+            let mut cells = vec![row.clone()];
+            cells.extend(line);
+            layout.push(cells);
+        }
+        s.push_str(&layout.markdown(Rule::Tight));
+    }
+    if r.cells.iter().any(|c| !c.problems.is_empty()) {
+        let _ = writeln!(s, "\n## What could not be read\n");
+        for c in &r.cells {
+            for p in &c.problems {
+                let _ = writeln!(s, "- `{}`: {p}", c.id);
+            }
+        }
+    }
+    if !r.claims.is_empty() {
+        let _ = writeln!(s, "\n## The paper's claims, on these numbers\n");
+        for c in &r.claims {
+            let _ = writeln!(s, "- **{}**: {} ({})", c.text, c.verdict, c.detail);
+        }
+    }
+    let _ =
+        writeln!(s, "\nFiles: `cells.csv`, `curves.csv`, `report.json`, `curves_<env>.png/.svg`.");
+    s
+}
+
+pub(super) fn cells_csv(r: &Report) -> String {
+    let mut s = String::from(
+        "cell,env,label,row,column,status,seeds,iteration,iterations_planned,ours_mean,ours_std,\
+         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source,success_mean,success_std\n",
+    );
+    let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
+    let q = |v: &str| format!("\"{}\"", v.replace('"', "\"\""));
+    for c in &r.cells {
+        let _ = writeln!(
+            s,
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            q(&c.id),
+            c.env,
+            q(&c.label),
+            q(c.row.as_deref().unwrap_or("")),
+            q(c.column.as_deref().unwrap_or("")),
+            q(&c.status),
+            c.seeds,
+            c.iteration.map_or(String::new(), |i| i.to_string()),
+            c.iterations_planned.map_or(String::new(), |i| i.to_string()),
+            f(c.ours.map(|s| s.mean)),
+            f(c.ours.map(|s| s.std)),
+            f(c.ours_normalised.map(|s| s.mean)),
+            f(c.ours_normalised.map(|s| s.std)),
+            f(c.paper),
+            f(c.paper_std),
+            f(c.paper_normalised),
+            f(c.paper_normalised_std),
+            c.within_paper_std.map_or(String::new(), |w| w.to_string()),
+            q(c.paper_source.as_deref().unwrap_or("")),
+            f(c.success.map(|s| s.mean)),
+            f(c.success.map(|s| s.std)),
+        );
+    }
+    s
+}
+
+/// One row per cell and evaluated iteration: the average test return and, where the cell's runs
+/// logged it at that iteration, their training loss (`loss_metric` names its column).
+pub(super) fn curves_csv(r: &Report) -> String {
+    let mut s =
+        String::from("cell,iteration,return_mean,return_std,loss_metric,loss_mean,loss_std\n");
+    for c in &r.cells {
+        for (i, m, sd) in &c.curve {
+            let loss = c.loss_curve.iter().find(|(it, _, _)| it == i);
+            let (metric, lm, ls) = match (loss, &c.loss_metric) {
+                (Some((_, lm, ls)), Some(metric)) => {
+                    (metric.as_str(), lm.to_string(), ls.to_string())
+                }
+                _ => ("", String::new(), String::new()),
+            };
+            let _ = writeln!(s, "\"{}\",{i},{m},{sd},{metric},{lm},{ls}", c.id);
+        }
+    }
+    s
+}
