@@ -11,6 +11,7 @@
 //!
 //! The library prints nothing; progress goes through a callback.
 
+pub mod baselines;
 pub mod exec;
 pub mod manifest;
 pub mod plan;

@@ -10,15 +10,15 @@
 //! and the last kept), plus two files of its own:
 //!
 //! - `normalisation.json`: the per-task expert and random returns of the dataset card the run
-//!   was scored with ([`crate::report::baselines`]), so its normalised score needs no data;
+//!   was scored with ([`crate::baselines::baselines`]), so its normalised score needs no data;
 //! - `provenance.json`: where and how it ran ([`Provenance`]).
 //!
 //! `promptdt results add` ([`add`]) is the only writer: it refuses an unfinished run and one whose
 //! configuration is not its cell's at that budget.
 
+use crate::baselines::{baselines, Normalisation, NORMALISATION_JSON};
 use crate::manifest::Manifest;
 use crate::plan::{self, Plan, PlanOptions};
-use crate::report::Baselines;
 use crate::ReproError;
 use pdt_rundir::{MetricsLine, RunDir, RunInfo};
 use serde::{Deserialize, Serialize};
@@ -27,7 +27,6 @@ use std::path::{Path, PathBuf};
 /// The archived run's provenance file.
 pub const PROVENANCE_JSON: &str = "provenance.json";
 /// The archived run's normalisation returns.
-pub const NORMALISATION_JSON: &str = "normalisation.json";
 /// Rows of `metrics.jsonl` kept at most (plus the evaluated iterations'), so a run stays small.
 pub const MAX_METRICS_ROWS: usize = 200;
 
@@ -60,48 +59,6 @@ pub struct Provenance {
     pub date: String,
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub note: String,
-}
-
-/// One task's returns in `normalisation.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TaskBaseline {
-    pub task_index: usize,
-    pub expert_return: f64,
-    pub random_return: f64,
-}
-
-/// `normalisation.json`: the dataset card's mean returns the report normalises with.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Normalisation {
-    /// The data directory's name (`<env>[-e<episodes>]`) whose `dataset.json` they come from.
-    pub dataset: String,
-    pub tasks: Vec<TaskBaseline>,
-}
-
-impl Normalisation {
-    fn from_baselines(dataset: String, b: &Baselines) -> Self {
-        let tasks = b
-            .expert
-            .iter()
-            .filter_map(|(t, e)| {
-                Some(TaskBaseline {
-                    task_index: *t,
-                    expert_return: *e,
-                    random_return: *b.random.get(t)?,
-                })
-            })
-            .collect();
-        Self { dataset, tasks }
-    }
-
-    pub fn baselines(&self) -> Baselines {
-        let mut b = Baselines::default();
-        for t in &self.tasks {
-            b.expert.insert(t.task_index, t.expert_return);
-            b.random.insert(t.task_index, t.random_return);
-        }
-        b
-    }
 }
 
 /// What `results add` is told about the runs beyond their directories.
@@ -206,7 +163,7 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     };
     let dataset =
         data_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let norm = Normalisation::from_baselines(dataset, &crate::report::baselines(&data_dir)?);
+    let norm = Normalisation::from_baselines(dataset, &baselines(&data_dir)?);
     let info = run.info()?;
     let date = match &o.provenance.date {
         Some(d) => d.clone(),
@@ -323,13 +280,6 @@ fn civil_date(days: i64) -> String {
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
     let y = yoe + era * 400 + i64::from(m <= 2);
     format!("{y:04}-{m:02}-{d:02}")
-}
-
-/// The baselines an archived run was scored with (its `normalisation.json`), if it has them.
-pub fn archived_baselines(run_dir: &Path) -> Option<Baselines> {
-    pdt_rundir::read_json::<Normalisation>(&run_dir.join(NORMALISATION_JSON))
-        .ok()
-        .map(|n| n.baselines())
 }
 
 /// An archived run's provenance, if `run_dir` is one.

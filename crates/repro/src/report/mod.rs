@@ -8,6 +8,7 @@
 //! numbers are normalised the same way with the reference's expert returns (its prompt files) where
 //! they are known, and with our random returns (a uniform random policy in the same environment).
 
+use crate::baselines::{archived_baselines, baselines, Baselines};
 use crate::manifest::{ClaimKind, Layout, Manifest};
 use crate::plan::{self, Plan, RunState};
 use crate::ReproError;
@@ -214,34 +215,6 @@ fn classify(r: &plan::RunSpec, data: &mut plan::DataCheck) -> Seen {
     }
 }
 
-/// Expert and random mean return per task index, from a dataset card.
-#[derive(Debug, Clone, Default)]
-pub struct Baselines {
-    pub expert: BTreeMap<usize, f64>,
-    pub random: BTreeMap<usize, f64>,
-}
-
-pub fn baselines(data_dir: &Path) -> Result<Baselines, ReproError> {
-    let card = pdt_data::native::read_card(data_dir)
-        .map_err(|e| ReproError::Invalid(e.to_string()))?
-        .ok_or_else(|| ReproError::Invalid(format!("{}: no dataset card", data_dir.display())))?;
-    let mut b = Baselines::default();
-    for t in &card.tasks {
-        for f in &t.files {
-            match f.mode.as_str() {
-                "expert" => {
-                    b.expert.insert(t.index, f.returns.mean);
-                }
-                "random" => {
-                    b.random.insert(t.index, f.returns.mean);
-                }
-                _ => {}
-            }
-        }
-    }
-    Ok(b)
-}
-
 /// The reference release's expert return per task, where it is known: recomputed from its prompt
 /// files in `dir` (`--reference DIR`) when they are there, else the numbers the manifest commits
 /// (`[reference_experts]`, made from the same files), so a report needs no file of the release.
@@ -334,9 +307,8 @@ pub fn build(
         // Without the dataset card there is no normalised score: say which card is missing (a
         // tree copied without its data, or a `--data-root` that names another place).
         // An archived run (the results registry) carries the card's returns it was scored with.
-        let base = base.or_else(|why| {
-            runs.iter().find_map(|r| crate::registry::archived_baselines(&r.dir)).ok_or(why)
-        });
+        let base =
+            base.or_else(|why| runs.iter().find_map(|r| archived_baselines(&r.dir)).ok_or(why));
         let (base, base_missing) = match base {
             Ok(b) => (Some(b), None),
             Err(why) => (None, Some(why)),
