@@ -6,31 +6,11 @@
 mod cli;
 
 use cli::{
-    check_fails, check_ok, edit_task0, fails, losses, ok, promptdt_in, repo, tiny_data, tiny_setup,
+    check_fails, check_ok, edit_task0, fails, losses, ok, promptdt_in, repo, s, tiny_data,
+    tiny_setup, train, variant,
 };
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn train(cfg: &Path, out: &Path, extra: &[&str]) -> String {
-    let mut args = vec!["train", "--config", s(cfg), "--out", s(out), "--quiet"];
-    args.extend_from_slice(extra);
-    ok(&args)
-}
-
-/// The tiny experiment with `key = value` set in `section` (TOML value syntax).
-fn variant(cfg: &Path, section: &str, key: &str, value: &str) -> PathBuf {
-    let mut doc: toml::Table = std::fs::read_to_string(cfg).unwrap().parse().unwrap();
-    let v: toml::Table = format!("v = {value}").parse().unwrap();
-    let table = doc.entry(section).or_insert(toml::Value::Table(toml::Table::new()));
-    table.as_table_mut().unwrap().insert(key.into(), v["v"].clone());
-    let path = cfg.with_file_name(format!("{section}-{key}.toml"));
-    std::fs::write(&path, toml::to_string(&doc).unwrap()).unwrap();
-    path
-}
 
 fn mkfifo(path: &Path) -> bool {
     Command::new("mkfifo").arg(path).status().is_ok_and(|s| s.success())

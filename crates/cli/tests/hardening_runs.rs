@@ -5,34 +5,13 @@
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{edit_task0, fails, losses, ok, tiny_setup};
-use std::path::{Path, PathBuf};
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use cli::{edit_task0, fails, losses, ok, s, tiny_setup, train, variant};
+use std::path::Path;
 
 /// A message of ours: one line, single spaces (no line-continuation indentation leaked into it).
 fn clean(e: String) -> String {
     assert!(!e.trim_end().contains('\n') && !e.contains("  "), "stray spaces or lines: {e:?}");
     e
-}
-
-fn train(cfg: &Path, out: &Path, extra: &[&str]) -> String {
-    let mut args = vec!["train", "--config", s(cfg), "--out", s(out), "--quiet"];
-    args.extend_from_slice(extra);
-    ok(&args)
-}
-
-/// The tiny experiment with `key = value` set in `section` (TOML value syntax).
-fn variant(cfg: &Path, section: &str, key: &str, value: &str) -> PathBuf {
-    let mut doc: toml::Table = std::fs::read_to_string(cfg).unwrap().parse().unwrap();
-    let v: toml::Table = format!("v = {value}").parse().unwrap();
-    let table = doc.entry(section).or_insert(toml::Value::Table(toml::Table::new()));
-    table.as_table_mut().unwrap().insert(key.into(), v["v"].clone());
-    let path = cfg.with_file_name(format!("{section}-{key}.toml"));
-    std::fs::write(&path, toml::to_string(&doc).unwrap()).unwrap();
-    path
 }
 
 /// Sets `key = value` (TOML value syntax) in `section` of a run's `config.toml`.

@@ -17,41 +17,9 @@ use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 /// Two point-robot cells of two seeds each, at a budget of seconds, with one claim.
-const MANIFEST: &str = r#"
-name = "trees"
-title = "Trees: a tiny point-robot experiment"
-description = "Two point-robot cells, for the tests of reproduce trees."
-layout = "curves"
-
-[[claims]]
-text = "Prompt-DT beats MT-ORL"
-kind = "better"
-a = "point_robot/prompt-dt"
-b = "point_robot/mt-orl"
-
-[budgets.smoke]
-note = "seconds"
-iterations = 2
-steps_per_iteration = 2
-batch_size_per_task = 1
-eval_episodes = 1
-test_eval_interval = 1
-train_eval_interval = 0
-save_interval = 1
-seeds = 2
-data_episodes = 2
-prompt_set_episodes = 2
-
-[[cells]]
-env = "point_robot"
-method = "prompt-dt"
-paper = 1.0
-
-[[cells]]
-env = "point_robot"
-method = "mt-orl"
-paper = 1.0
-"#;
+fn trees() -> String {
+    cli::tiny_manifest("trees", "Trees", "reproduce trees", 2)
+}
 
 const KEYS: [&str; 4] = [
     "point_robot/prompt-dt/smoke/seed0",
@@ -125,7 +93,7 @@ fn finished_tree() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
     static TREE: OnceLock<(tempfile::TempDir, PathBuf, PathBuf)> = OnceLock::new();
     TREE.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
-        let m = manifest(tmp.path(), "trees.toml", MANIFEST);
+        let m = manifest(tmp.path(), "trees.toml", &trees());
         let out = tmp.path().join("tree");
         let msg = reproduce_ok(&m, &out, &[]);
         assert!(msg.contains("0 runs already finished, 4 started, 0 resumed, 0 failed"), "{msg}");
@@ -144,7 +112,7 @@ fn finished_tree() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
 #[test]
 fn a_copied_or_moved_tree_reports_and_resumes_like_the_original() {
     let tmp = tempfile::tempdir().unwrap();
-    let m = manifest(tmp.path(), "trees.toml", MANIFEST);
+    let m = manifest(tmp.path(), "trees.toml", &trees());
     let a = tmp.path().join("a");
     let msg = reproduce_ok(&m, &a, &[]);
     assert!(msg.contains("4 started"), "{msg}");
@@ -174,11 +142,8 @@ fn a_copied_or_moved_tree_reports_and_resumes_like_the_original() {
     // Moved with runs stopped halfway (a sweep of 6 iterations killed once a run has a
     // checkpoint): the next `reproduce` resumes them on the moved tree's data, and each records
     // where its data are now.
-    let long = manifest(
-        tmp.path(),
-        "long.toml",
-        &MANIFEST.replace("iterations = 2\n", "iterations = 6\n"),
-    );
+    let long =
+        manifest(tmp.path(), "long.toml", &trees().replace("iterations = 2\n", "iterations = 6\n"));
     let d = tmp.path().join("d");
     let mut sweep = spawn_reproduce(&long, &d);
     let t0 = Instant::now();
@@ -274,7 +239,7 @@ fn spawn_reproduce(m: &Path, out: &Path) -> Child {
 #[test]
 fn two_processes_on_one_out_wait_for_each_other() {
     let tmp = tempfile::tempdir().unwrap();
-    let m = manifest(tmp.path(), "trees.toml", MANIFEST);
+    let m = manifest(tmp.path(), "trees.toml", &trees());
     let out = tmp.path().join("held");
     let held = out.join("runs").join(KEYS[1]);
     let lock = hold_lock(&held);
@@ -365,7 +330,7 @@ fn a_killed_reproduce_takes_its_children_and_its_temporaries_go() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("killed");
     // Enough data that the collection takes a while: kill the sweep in the middle of it.
-    let slow = MANIFEST.replace("data_episodes = 2\n", "data_episodes = 20000\n");
+    let slow = trees().replace("data_episodes = 2\n", "data_episodes = 20000\n");
     let m = manifest(tmp.path(), "slow.toml", &slow);
     let mut sweep = spawn_reproduce(&m, &out);
     let data = out.join("data");
@@ -395,7 +360,7 @@ fn a_killed_reproduce_takes_its_children_and_its_temporaries_go() {
     let m = manifest(
         tmp.path(),
         "trees.toml",
-        &MANIFEST.replace("iterations = 2\n", "iterations = 400\n"),
+        &trees().replace("iterations = 2\n", "iterations = 400\n"),
     );
     let mut sweep = spawn_reproduce(&m, &out);
     let t0 = Instant::now();
@@ -427,7 +392,7 @@ fn a_killed_reproduce_takes_its_children_and_its_temporaries_go() {
 #[test]
 fn counts_of_zero_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
-    let m = manifest(tmp.path(), "trees.toml", MANIFEST);
+    let m = manifest(tmp.path(), "trees.toml", &trees());
     let out = tmp.path().join("zero");
     for (flag, value, expect) in [
         ("--seeds", "0", "--seeds"),
@@ -441,11 +406,11 @@ fn counts_of_zero_are_refused() {
         assert!(!out.join("reports").exists(), "{flag} {value} wrote a report");
     }
     for (key, text) in [
-        ("seeds", MANIFEST.replace("seeds = 2\n", "seeds = 0\n")),
-        ("data_episodes", MANIFEST.replace("data_episodes = 2\n", "data_episodes = 0\n")),
+        ("seeds", trees().replace("seeds = 2\n", "seeds = 0\n")),
+        ("data_episodes", trees().replace("data_episodes = 2\n", "data_episodes = 0\n")),
         (
             "prompt_set_episodes",
-            MANIFEST.replace("prompt_set_episodes = 2\n", "prompt_set_episodes = 0\n"),
+            trees().replace("prompt_set_episodes = 2\n", "prompt_set_episodes = 0\n"),
         ),
     ] {
         let bad = manifest(tmp.path(), &format!("bad-{key}.toml"), &text);

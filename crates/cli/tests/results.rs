@@ -10,42 +10,6 @@ mod cli;
 use cli::{check_fails, check_ok, promptdt_in};
 use std::path::Path;
 
-const MANIFEST: &str = r#"
-name = "reg"
-title = "Registry: a tiny point-robot experiment"
-description = "Two point-robot cells, for the tests of the results registry."
-layout = "curves"
-
-[[claims]]
-text = "Prompt-DT beats MT-ORL"
-kind = "better"
-a = "point_robot/prompt-dt"
-b = "point_robot/mt-orl"
-
-[budgets.smoke]
-note = "seconds"
-iterations = 2
-steps_per_iteration = 2
-batch_size_per_task = 1
-eval_episodes = 1
-test_eval_interval = 1
-train_eval_interval = 0
-save_interval = 1
-seeds = 1
-data_episodes = 2
-prompt_set_episodes = 2
-
-[[cells]]
-env = "point_robot"
-method = "prompt-dt"
-paper = 1.0
-
-[[cells]]
-env = "point_robot"
-method = "mt-orl"
-paper = 1.0
-"#;
-
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
@@ -80,7 +44,7 @@ fn archived_runs_report_from_an_empty_directory_and_bad_runs_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
     let m = root.join("reg.toml");
-    std::fs::write(&m, MANIFEST).unwrap();
+    std::fs::write(&m, cli::tiny_manifest("reg", "Registry", "the results registry", 1)).unwrap();
     let tree = root.join("tree");
     let run = ["reproduce", s(&m), "--budget", "smoke", "--out", s(&tree), "--jobs", "2"];
     check_ok(&run, promptdt_in(root, &run));

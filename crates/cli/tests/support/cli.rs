@@ -123,3 +123,67 @@ pub fn losses(run: &Path) -> Vec<String> {
         .map(|l| l.split("\"time/elapsed_s\"").next().unwrap().to_string())
         .collect()
 }
+
+/// A tiny experiment manifest: two point-robot cells (Prompt-DT, MT-ORL) at a `smoke` budget of
+/// seconds, `seeds` seeds each, with one claim.
+pub fn tiny_manifest(name: &str, title: &str, purpose: &str, seeds: u32) -> String {
+    format!(
+        r#"name = "{name}"
+title = "{title}: a tiny point-robot experiment"
+description = "Two point-robot cells, for the tests of {purpose}."
+layout = "curves"
+
+[[claims]]
+text = "Prompt-DT beats MT-ORL"
+kind = "better"
+a = "point_robot/prompt-dt"
+b = "point_robot/mt-orl"
+
+[budgets.smoke]
+note = "seconds"
+iterations = 2
+steps_per_iteration = 2
+batch_size_per_task = 1
+eval_episodes = 1
+test_eval_interval = 1
+train_eval_interval = 0
+save_interval = 1
+seeds = {seeds}
+data_episodes = 2
+prompt_set_episodes = 2
+
+[[cells]]
+env = "point_robot"
+method = "prompt-dt"
+paper = 1.0
+
+[[cells]]
+env = "point_robot"
+method = "mt-orl"
+paper = 1.0
+"#
+    )
+}
+
+/// A path as the `&str` an argument list takes.
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// `promptdt train --config CFG --out OUT --quiet EXTRA...`, which must succeed.
+pub fn train(cfg: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec!["train", "--config", s(cfg), "--out", s(out), "--quiet"];
+    args.extend_from_slice(extra);
+    ok(&args)
+}
+
+/// The tiny experiment with `key = value` set in `section` (TOML value syntax).
+pub fn variant(cfg: &Path, section: &str, key: &str, value: &str) -> PathBuf {
+    let mut doc: toml::Table = std::fs::read_to_string(cfg).unwrap().parse().unwrap();
+    let v: toml::Table = format!("v = {value}").parse().unwrap();
+    let table = doc.entry(section).or_insert(toml::Value::Table(toml::Table::new()));
+    table.as_table_mut().unwrap().insert(key.into(), v["v"].clone());
+    let path = cfg.with_file_name(format!("{section}-{key}.toml"));
+    std::fs::write(&path, toml::to_string(&doc).unwrap()).unwrap();
+    path
+}
