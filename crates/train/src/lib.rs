@@ -24,6 +24,7 @@ mod error;
 mod evaluate;
 mod methods;
 pub mod optim;
+pub mod pack;
 pub mod run;
 mod run_dir;
 mod run_loop;

@@ -4,7 +4,7 @@
 //! A trained run loaded to act is `pdt_policy::Policy`.
 //!
 //! Randomness: one seed, split into independent streams (model init, batch sampling, dropout per
-//! iteration, evaluation per iteration), so a resumed run draws exactly what an uninterrupted one
+//! gradient step, evaluation per iteration), so a resumed run draws exactly what an uninterrupted one
 //! would, and evaluation never disturbs training.
 
 pub use crate::error::RunError;

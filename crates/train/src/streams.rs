@@ -5,7 +5,7 @@
 pub(crate) const STREAM_INIT: u64 = 1;
 /// Batch (and, for MACAW, task) sampling: one generator, its position saved in checkpoints.
 pub(crate) const STREAM_BATCHES: u64 = 2;
-/// Dropout (libtorch's generator, re-seeded per iteration).
+/// Dropout (libtorch's generator, re-seeded per gradient step: `derive_seed(seed, 3, step)`).
 pub(crate) const STREAM_DROPOUT: u64 = 3;
 /// Evaluations of the test and of the training tasks, per iteration: owned by `pdt_policy`, whose
 /// evaluation plans draw what the run's evaluations draw.

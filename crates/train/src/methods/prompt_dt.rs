@@ -82,10 +82,11 @@ impl Learner for PromptDtLearner<'_> {
         let setup = self.setup;
         let cfg = &setup.cfg;
         let sampler = &self.sampler;
-        // Dropout draws come from libtorch's generator, re-seeded per iteration so that a resumed
-        // run continues the same stream.
-        tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, at.iteration - 1) as i64);
         let stats = at.each_step(|step| {
+            // Dropout draws come from libtorch's generator, re-seeded per gradient step so that a
+            // resumed run continues the same stream and a packed run (`crate::pack`), whose steps
+            // interleave with other runs', draws the same masks as solo.
+            tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, step) as i64);
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
             let st = train_step(&self.model, &mut self.opt, &batch, cfg.train.loss_on, step);
             if st.loss.is_finite() && st.grad_norm.is_finite() {
