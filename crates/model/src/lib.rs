@@ -3,6 +3,7 @@
 //! - [`config`]: [`PromptDtConfig`] with the reference's hyper-parameters.
 //! - [`gpt2`]: the GPT-2 trunk without position embedding (the reference's `trajectory_gpt2.py`).
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
+//! - [`packed`]: N models of one shape as one (stacked weights, batched products): a pack of runs.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
 //!
@@ -18,6 +19,7 @@ pub mod config;
 pub mod device;
 pub mod forward_file;
 pub mod gpt2;
+pub mod packed;
 pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;

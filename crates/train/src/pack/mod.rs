@@ -3,6 +3,8 @@
 //! clipping, schedule, evaluation and run directory; only the gradient steps are shared, by a
 //! [`PackEngine`] that steps every run of the pack at once.
 
+pub mod batched;
 pub mod engine;
 
+pub use batched::{BatchedEngine, PackLayout};
 pub use engine::{PackEngine, SlotSpec, SlotState, SlotStep};

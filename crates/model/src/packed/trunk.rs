@@ -1,0 +1,355 @@
+//! The pack's weights and its forward pass: the solo model's ops (`prompt_dt.rs`, `gpt2.rs`) in the
+//! same order, with a run dimension in front of every weight.
+
+use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
+use crate::config::PromptDtConfig;
+use crate::prompt_dt::Segments;
+use tch::{Device, Kind, Tensor};
+
+/// Per run, the seed libtorch's generator is set to before that run's dropout masks are drawn;
+/// `None` for a run that gets no dropout this step (a run without inputs).
+#[derive(Debug, Clone)]
+pub struct DropoutSeeds(pub Vec<Option<i64>>);
+
+/// N Prompt-DT models of one shape with stacked weights (see the module documentation of
+/// [`crate::packed`]).
+#[derive(Debug)]
+pub struct PackedPromptDt {
+    pub cfg: PromptDtConfig,
+    slots: usize,
+    /// Solo parameter names, reference `state_dict` order.
+    names: Vec<String>,
+    /// `[N, solo shape]` per name, leaf tensors that require gradients.
+    weights: Vec<Tensor>,
+    idx: Idx,
+    /// tril(ones(n_positions, n_positions)) as bool (the reference's `attn.bias` buffer).
+    causal: Tensor,
+    masked_bias: Tensor,
+    device: Device,
+}
+
+/// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site).
+struct Masks {
+    embd: Option<Tensor>,
+    /// Per layer: attention weights `[N*B, nh, L, L]`, attention output and MLP output `[N*B, L, H]`.
+    layers: Vec<[Option<Tensor>; 3]>,
+}
+
+fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
+    match mask {
+        // `at::dropout` returns `input * noise`.
+        Some(m) => x * m,
+        None => x,
+    }
+}
+
+impl PackedPromptDt {
+    /// A pack of `slots` models with zero weights (set each run's with [`Self::set_slot`]).
+    pub fn new(cfg: &PromptDtConfig, slots: usize, device: Device) -> Result<Self, PackedError> {
+        let shapes = parameter_shapes(cfg);
+        let names: Vec<String> = shapes.iter().map(|(n, _)| n.clone()).collect();
+        let n = slots as i64;
+        let weights = shapes
+            .iter()
+            .map(|(_, s)| {
+                let full: Vec<i64> = std::iter::once(n).chain(s.iter().copied()).collect();
+                Tensor::zeros(full.as_slice(), (Kind::Float, device)).set_requires_grad(true)
+            })
+            .collect();
+        let np = cfg.n_positions as i64;
+        Ok(Self {
+            cfg: cfg.clone(),
+            slots,
+            idx: Idx::new(&names)?,
+            names,
+            weights,
+            causal: Tensor::ones([np, np], (Kind::Bool, device)).tril(0),
+            masked_bias: Tensor::from(-1e4f32).to_device(device),
+            device,
+        })
+    }
+
+    pub fn slots(&self) -> usize {
+        self.slots
+    }
+
+    pub fn device(&self) -> Device {
+        self.device
+    }
+
+    /// Solo parameter names, in the order of [`Self::weights`].
+    pub fn names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// The stacked weights `[N, solo shape]`, in the order of [`Self::names`].
+    pub fn weights(&self) -> &[Tensor] {
+        &self.weights
+    }
+
+    fn check_slot(&self, slot: usize) -> Result<(), PackedError> {
+        if slot >= self.slots {
+            return Err(PackedError::Slot { slot, slots: self.slots });
+        }
+        Ok(())
+    }
+
+    /// Sets run `slot`'s weights from solo-named tensors; every parameter must be given once, with
+    /// its solo shape.
+    pub fn set_slot(
+        &mut self,
+        slot: usize,
+        weights: &[(String, Tensor)],
+    ) -> Result<(), PackedError> {
+        self.check_slot(slot)?;
+        let mut found = vec![false; self.names.len()];
+        for (name, t) in weights {
+            let at =
+                self.names.iter().position(|n| n == name).ok_or_else(|| PackedError::Weight {
+                    name: name.clone(),
+                    what: "not a parameter of the model".into(),
+                })?;
+            let want = &self.weights[at].size()[1..];
+            if t.size() != want || t.kind() != Kind::Float || found[at] {
+                return Err(PackedError::Weight {
+                    name: name.clone(),
+                    what: format!(
+                        "shape {:?} {:?}, expected {want:?} Float once",
+                        t.size(),
+                        t.kind()
+                    ),
+                });
+            }
+            found[at] = true;
+        }
+        if let Some(i) = found.iter().position(|f| !f) {
+            return Err(PackedError::Weight {
+                name: self.names[i].clone(),
+                what: "missing".into(),
+            });
+        }
+        tch::no_grad(|| {
+            for (name, t) in weights {
+                if let Some(at) = self.names.iter().position(|n| n == name) {
+                    self.weights[at].select(0, slot as i64).copy_(t);
+                }
+            }
+        });
+        Ok(())
+    }
+
+    /// Run `slot`'s weights as solo-named copies, in [`PromptDtConfig::parameter_names`] order.
+    pub fn slot_weights(&self, slot: usize) -> Result<Vec<(String, Tensor)>, PackedError> {
+        self.check_slot(slot)?;
+        Ok(tch::no_grad(|| {
+            self.names
+                .iter()
+                .zip(&self.weights)
+                .map(|(n, w)| (n.clone(), w.select(0, slot as i64).detach().copy()))
+                .collect()
+        }))
+    }
+
+    /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N*B, T, in]` -> `[N*B, T, out]`.
+    fn linear(&self, x: &Tensor, w: usize) -> Tensor {
+        let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
+        let s = x.size();
+        let n = self.slots as i64;
+        let y = bias.unsqueeze(1).baddbmm(&x.reshape([n, -1, s[2]]), &weight.transpose(1, 2), 1, 1); // [N, B*T, out]
+        y.view([s[0], s[1], -1])
+    }
+
+    /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`.
+    fn conv1d(&self, x: &Tensor, w: usize) -> Tensor {
+        let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
+        let s = x.size();
+        let n = self.slots as i64;
+        let y = bias.unsqueeze(1).baddbmm(&x.reshape([n, -1, s[2]]), weight, 1, 1); // [N, B*L, out]
+        y.view([s[0], s[1], -1])
+    }
+
+    /// LayerNorm over the last dimension with each run's weight and bias (`[N, H]`).
+    fn layer_norm(&self, x: &Tensor, w: usize, eps: f64) -> Tensor {
+        let s = x.size();
+        let n = self.slots as i64;
+        let h = s[2];
+        let normed = x.layer_norm([h], None::<&Tensor>, None::<&Tensor>, eps, false); // [N*B, L, H]
+        let y = normed.view([n, -1, h]) * self.weights[w].unsqueeze(1)
+            + self.weights[w + 1].unsqueeze(1);
+        y.view([s[0], s[1], h])
+    }
+
+    /// Interleaves (R_t, s_t, a_t) per step, as the solo `Embeddings::tokens`: tokens
+    /// `[N*B, 3T, H]` and their mask `[N*B, 3T]`.
+    fn tokens(&self, e: &EmbIdx, seg: &Segments, b: i64) -> (Tensor, Tensor) {
+        let hidden = self.cfg.hidden_size as i64;
+        let n = self.slots as i64;
+        let (rows, t) = (seg.batch_size(), seg.len());
+        let table = &self.weights[e.timestep]; // [N, E, H]
+        let big_e = table.size()[1];
+        // Run n's timesteps index rows n*E.. of the flattened table.
+        let offsets = Tensor::arange(n, (Kind::Int64, self.device)).view([n, 1, 1]) * big_e;
+        let index = (seg.timesteps.view([n, b, t]) + offsets).view([rows, t]);
+        let time = Tensor::embedding(&table.reshape([n * big_e, hidden]), &index, -1, false, false); // [N*B, T, H]
+        let s = self.linear(&seg.states, e.state) + &time;
+        let a = self.linear(&seg.actions, e.action) + &time;
+        let r = self.linear(&seg.returns_to_go, e.ret) + &time;
+        let tokens =
+            Tensor::stack(&[r, s, a], 1).permute([0, 2, 1, 3]).reshape([rows, 3 * t, hidden]);
+        let m = &seg.mask;
+        let mask = Tensor::stack(&[m, m, m], 1).permute([0, 2, 1]).reshape([rows, 3 * t]);
+        (tokens, mask)
+    }
+
+    /// Each run's dropout masks, drawn as its solo forward draws them (seed, then the sites in
+    /// order at the run's own sequence length), placed at the end of the packed sequence (the
+    /// padding, in front, keeps 1) and stacked.
+    fn dropout_masks(&self, batch: &PackedBatch, seeds: &DropoutSeeds, l: i64) -> Masks {
+        let cfg = &self.cfg;
+        let (b, h, nh) = (batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
+        // The sites in the solo forward's order: embeddings, then per layer attention weights,
+        // attention output, MLP output.
+        let mut sites: Vec<(f64, bool)> = vec![(cfg.embd_pdrop, false)];
+        for _ in 0..cfg.n_layer {
+            sites.extend([
+                (cfg.attn_pdrop, true),
+                (cfg.resid_pdrop, false),
+                (cfg.resid_pdrop, false),
+            ]);
+        }
+        let f = (Kind::Float, self.device);
+        let mut per_site: Vec<Vec<Tensor>> = (0..sites.len()).map(|_| Vec::new()).collect();
+        for (slot, seed) in seeds.0.iter().enumerate() {
+            let lj = 3 * (batch.prompt_lens[slot] + batch.k);
+            let off = l - lj;
+            if let Some(seed) = seed {
+                tch::manual_seed(*seed);
+            }
+            for (site, &(p, attn)) in sites.iter().enumerate() {
+                if p <= 0.0 {
+                    continue; // `at::dropout` draws nothing at p = 0
+                }
+                let full: Vec<i64> = if attn { vec![b, nh, l, l] } else { vec![b, l, h] };
+                let Some(_) = seed else {
+                    per_site[site].push(Tensor::ones(full.as_slice(), f));
+                    continue;
+                };
+                let own: Vec<i64> = if attn { vec![b, nh, lj, lj] } else { vec![b, lj, h] };
+                // `at::dropout` (CPU): noise = empty_like(x).bernoulli_(1 - p); noise.div_(1 - p).
+                let mut noise = Tensor::empty(own.as_slice(), f);
+                let _ = noise.bernoulli_float_(1.0 - p);
+                let _ = noise.g_div_scalar_(1.0 - p);
+                if off == 0 {
+                    per_site[site].push(noise);
+                    continue;
+                }
+                let placed = Tensor::ones(full.as_slice(), f);
+                let mut window = placed.narrow(attn as i64 + 1, off, lj);
+                if attn {
+                    window = window.narrow(3, off, lj);
+                }
+                window.copy_(&noise);
+                per_site[site].push(placed);
+            }
+        }
+        let mut stacked = sites
+            .iter()
+            .zip(per_site)
+            .map(|(&(p, _), masks)| (p > 0.0).then(|| Tensor::cat(&masks, 0)));
+        let embd = stacked.next().flatten();
+        let mut layers = Vec::with_capacity(cfg.n_layer);
+        for _ in 0..cfg.n_layer {
+            layers.push([
+                stacked.next().flatten(),
+                stacked.next().flatten(),
+                stacked.next().flatten(),
+            ]);
+        }
+        Masks { embd, layers }
+    }
+
+    fn attention(
+        &self,
+        x: &Tensor,
+        blk: &BlockIdx,
+        causal: &Tensor,
+        pad_bias: &Tensor,
+        masks: Option<&[Option<Tensor>; 3]>,
+    ) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let nh = self.cfg.n_head as i64;
+        let hd = hidden / nh;
+        let (rows, l) = (x.size()[0], x.size()[1]);
+        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
+        let q = qkv[0].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
+        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
+        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, L, L]
+        let w = w.where_self(causal, &self.masked_bias) + pad_bias;
+        let w = drop(w.softmax(-1, None::<Kind>), masks.and_then(|m| m[0].as_ref()));
+        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([rows, l, hidden]);
+        drop(self.conv1d(&a, blk.attn_proj), masks.and_then(|m| m[1].as_ref()))
+    }
+
+    /// Predicted actions of every run at every step of its packed sequence, prompt steps first:
+    /// `[N, B, P+K, da]` (run n's own steps are the last `prompt_lens[n] + K`). `dropout = None`
+    /// is eval mode.
+    pub fn forward_all_steps(&self, batch: &PackedBatch, dropout: Option<&DropoutSeeds>) -> Tensor {
+        let cfg = &self.cfg;
+        let hidden = cfg.hidden_size as i64;
+        let (n, b) = (self.slots as i64, batch.batch);
+        let rows = n * b;
+        let (tokens, mask) = self.tokens(&self.idx.history, &batch.history, b);
+        let tokens = self.layer_norm(&tokens, self.idx.embed_ln, 1e-5); // [N*B, 3K, H]
+        let (tokens, mask) = match &batch.prompt {
+            Some(p) => {
+                let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b); // [N*B, 3P, H], no LayerNorm
+                                                                              // A run without prompt gets zero prompt tokens (all masked): none of its prompt
+                                                                              // layers' values or gradients enter.
+                let keep: Vec<bool> = batch
+                    .prompt_lens
+                    .iter()
+                    .flat_map(|&lp| std::iter::repeat_n(lp > 0, b as usize))
+                    .collect();
+                let keep = Tensor::from_slice(&keep).to_device(self.device).view([rows, 1, 1]);
+                let p_tokens = p_tokens.where_scalarother(&keep, 0.0);
+                (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
+            }
+            None => (tokens, mask),
+        };
+        let l = tokens.size()[1]; // 3(P+K)
+        let masks = dropout.map(|s| self.dropout_masks(batch, s, l));
+        let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+        let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
+        let eps = cfg.layer_norm_epsilon;
+        let mut x = drop(tokens, masks.as_ref().and_then(|m| m.embd.as_ref()));
+        for (i, blk) in self.idx.blocks.iter().enumerate() {
+            let site = masks.as_ref().map(|m| &m.layers[i]);
+            let a =
+                self.attention(&self.layer_norm(&x, blk.ln_1, eps), blk, &causal, &pad_bias, site);
+            let h = &x + a;
+            let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
+            let m = drop(self.conv1d(&inner, blk.mlp_proj), site.and_then(|s| s[2].as_ref()));
+            x = &h + m;
+        }
+        let x = self.layer_norm(&x, self.idx.ln_f, eps);
+        let x = x.reshape([rows, -1, 3, hidden]).permute([0, 2, 1, 3]); // [N*B, 3, P+K, H]
+        let state_hidden = x.select(1, 1); // [N*B, P+K, H]
+        let actions = self.linear(&state_hidden, self.idx.predict_action); // [N*B, P+K, da]
+        let actions = if cfg.action_tanh { actions.tanh() } else { actions };
+        actions.view([n, b, batch.p + batch.k, -1])
+    }
+
+    /// The masked action MSE of each run (`PromptDt::action_loss` per run): `[N]`. Padded steps
+    /// are selected out (`where`), so a non-finite prediction there cannot reach the loss.
+    ///
+    /// # Shapes
+    /// `preds`, `targets`: `[N, B, T, da]`; `mask`: `[N, B, T]`.
+    pub fn action_loss(preds: &Tensor, targets: &Tensor, mask: &Tensor) -> Tensor {
+        let da = preds.size()[3];
+        let keep = mask.gt(0.0).unsqueeze(-1); // [N, B, T, 1]
+        let sq = (preds - targets).pow_tensor_scalar(2).where_scalarother(&keep, 0.0);
+        let count = keep.sum_dim_intlist([1i64, 2, 3].as_slice(), false, Kind::Float) * da as f64; // [N]
+        sq.sum_dim_intlist([1i64, 2, 3].as_slice(), false, Kind::Float) / count
+    }
+}

@@ -1,0 +1,216 @@
+//! [`BatchedEngine`]: a pack's runs as one batched model ([`pdt_model::packed`]) with a packed
+//! AdamW (`optim`): one forward, one backward and one optimiser pass for all runs of a step.
+//!
+//! The shapes of every step are fixed for the pack's life ([`PackLayout`]): a run without inputs in
+//! a step is computed on a finite placeholder and its results dropped, so that a run's results do
+//! not depend on which other runs are stepped (the first point of the [`PackEngine`] contract; a
+//! matrix product's kernel may depend on its batch count). Call [`PackEngine::step`] and
+//! [`BatchedEngine::new`] with libtorch's generator held (`crate::streams::torch_rng_lock`), as
+//! the solo learner is called.
+
+mod optim;
+
+use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+use crate::error::RunError;
+use crate::step::{LossOn, StepStats};
+use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
+use optim::PackedAdamW;
+use pdt_base::seed::derive_seed;
+use pdt_model::packed::{DropoutSeeds, PackedBatch, PackedError, PackedPromptDt, PackedRow};
+use pdt_model::PromptDt;
+use tch::{nn::VarStore, Device, Kind, Tensor};
+
+/// The shapes of every step's batches, fixed for the pack's life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackLayout {
+    /// Samples per batch (every run's `train.batch_size`).
+    pub batch_size: usize,
+    /// History steps K (every run's).
+    pub history_len: usize,
+    /// The longest prompt of the pack's runs in steps (J x H; 0 when no run uses a prompt).
+    /// Shorter prompts, and runs without one, are padded to it.
+    pub prompt_len: usize,
+}
+
+/// Steps every run of a pack with one batched computation.
+#[derive(Debug)]
+pub struct BatchedEngine {
+    specs: Vec<SlotSpec>,
+    layout: PackLayout,
+    model: PackedPromptDt,
+    opt: PackedAdamW,
+}
+
+fn invalid(e: PackedError) -> RunError {
+    RunError::Invalid(format!("pack: {e}"))
+}
+
+impl BatchedEngine {
+    /// A pack of `specs.len()` runs on `device`, each slot initialised as its solo run is (libtorch's
+    /// generator seeded with `derive_seed(seed, STREAM_INIT, 0)`, then `PromptDt::new`), with empty
+    /// moments. Every run must have the same model configuration.
+    pub fn new(specs: Vec<SlotSpec>, layout: PackLayout, device: Device) -> Result<Self, RunError> {
+        let first = specs.first().ok_or_else(|| RunError::Invalid("pack: no runs".into()))?;
+        let cfg = first.model.clone();
+        cfg.validate().map_err(|e| RunError::Invalid(format!("pack: {e}")))?;
+        if let Some((i, _)) = specs.iter().enumerate().find(|(_, s)| s.model != cfg) {
+            return Err(RunError::Invalid(format!(
+                "pack: run {i}'s model configuration differs from run 0's (a pack shares one shape)"
+            )));
+        }
+        let (p, k) = (layout.prompt_len, layout.history_len);
+        if specs.iter().any(|s| s.uses_prompt) && p == 0 {
+            return Err(RunError::Invalid(
+                "pack: a run uses a prompt, layout.prompt_len is 0".into(),
+            ));
+        }
+        if layout.batch_size == 0 || k == 0 || 3 * (p + k) > cfg.n_positions {
+            return Err(RunError::Invalid(format!(
+                "pack: layout {layout:?} (3 x (prompt + history) tokens must fit n_positions = {})",
+                cfg.n_positions
+            )));
+        }
+        let mut model = PackedPromptDt::new(&cfg, specs.len(), device).map_err(invalid)?;
+        for (slot, spec) in specs.iter().enumerate() {
+            tch::manual_seed(derive_seed(spec.seed, STREAM_INIT, 0) as i64);
+            let vs = VarStore::new(device);
+            let _solo = PromptDt::new(&vs.root(), &cfg);
+            let vars = vs.variables();
+            let weights: Vec<(String, Tensor)> = model
+                .names()
+                .iter()
+                .filter_map(|n| vars.get(n).map(|t| (n.clone(), t.shallow_clone())))
+                .collect();
+            model.set_slot(slot, &weights).map_err(invalid)?;
+        }
+        let uses: Vec<bool> = specs.iter().map(|s| s.uses_prompt).collect();
+        let cfgs = specs.iter().map(|s| s.optim.clone()).collect();
+        let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, &uses, device);
+        Ok(Self { specs, layout, model, opt })
+    }
+
+    pub fn layout(&self) -> PackLayout {
+        self.layout
+    }
+
+    /// The batched model (its stacked weights; for tests and measurements).
+    pub fn model(&self) -> &PackedPromptDt {
+        &self.model
+    }
+
+    fn check_slot(&self, slot: usize) -> Result<(), RunError> {
+        if slot >= self.specs.len() {
+            return Err(invalid(PackedError::Slot { slot, slots: self.specs.len() }));
+        }
+        Ok(())
+    }
+}
+
+impl PackEngine for BatchedEngine {
+    fn slots(&self) -> usize {
+        self.specs.len()
+    }
+
+    fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+        let n = self.specs.len();
+        if steps.len() != n {
+            return Err(RunError::Invalid(format!(
+                "pack: {} slot steps for a pack of {n} runs",
+                steps.len()
+            )));
+        }
+        let active: Vec<bool> = steps.iter().map(Option::is_some).collect();
+        if !active.iter().any(|&a| a) {
+            return Ok((0..n).map(|_| None).collect());
+        }
+        for (slot, (st, spec)) in steps.iter().zip(&self.specs).enumerate() {
+            let Some(st) = st else { continue };
+            if st.batch.prompt.is_some() != spec.uses_prompt {
+                return Err(RunError::Invalid(format!(
+                    "pack: run {slot} {} a prompt, its batch {}",
+                    if spec.uses_prompt { "uses" } else { "uses no" },
+                    if st.batch.prompt.is_some() { "has one" } else { "has none" }
+                )));
+            }
+        }
+        let rows: Vec<Option<PackedRow<'_>>> = steps
+            .iter()
+            .map(|s| {
+                s.as_ref().map(|s| PackedRow {
+                    history: &s.batch.history,
+                    prompt: s.batch.prompt.as_ref(),
+                })
+            })
+            .collect();
+        let l = &self.layout;
+        let batch = PackedBatch::new(
+            &rows,
+            l.batch_size as i64,
+            l.history_len as i64,
+            l.prompt_len as i64,
+            &self.model.cfg,
+            self.model.device(),
+        )
+        .map_err(invalid)?;
+        let seeds = DropoutSeeds(
+            steps
+                .iter()
+                .zip(&self.specs)
+                .map(|(s, spec)| {
+                    s.as_ref().map(|s| derive_seed(spec.seed, STREAM_DROPOUT, s.step) as i64)
+                })
+                .collect(),
+        );
+        let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
+                                                                        // As `crate::step::train_step`: the prompt's steps are supervised only with
+                                                                        // `LossOn::PromptAndHistory` and a prompt.
+        let supervise: Vec<bool> = self
+            .specs
+            .iter()
+            .map(|s| s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)
+            .collect();
+        let (targets, mask) = batch.targets(&supervise);
+        let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
+        let device = self.model.device();
+        let active_t = Tensor::from_slice(&active).to_device(device);
+        // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
+        let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
+        let inputs: Vec<&Tensor> = self.model.weights().iter().collect();
+        let grads: Vec<Option<Tensor>> = Tensor::run_backward(&[total], &inputs, false, false)
+            .into_iter()
+            .map(|g| g.defined().then_some(g))
+            .collect();
+        let lrs: Vec<f64> = steps
+            .iter()
+            .zip(&self.specs)
+            .map(|(s, spec)| s.as_ref().map_or(0.0, |s| spec.optim.lr_at(s.step)))
+            .collect();
+        let norms = self.opt.step(self.model.weights(), &grads, &active, &lrs); // [N]
+                                                                                // One copy to the host for every run's loss and norm.
+        let host = Tensor::stack(&[loss.detach(), norms], 0)
+            .to_kind(Kind::Double)
+            .to_device(Device::Cpu)
+            .view([-1]);
+        let host: Vec<f64> = Vec::<f64>::try_from(&host)
+            .map_err(|e| RunError::Invalid(format!("pack: reading the step's losses: {e}")))?;
+        Ok((0..n)
+            .map(|s| {
+                active[s].then(|| StepStats { loss: host[s], grad_norm: host[n + s], lr: lrs[s] })
+            })
+            .collect())
+    }
+
+    fn export(&self, slot: usize) -> Result<SlotState, RunError> {
+        self.check_slot(slot)?;
+        let weights = self.model.slot_weights(slot).map_err(invalid)?;
+        Ok(SlotState { weights, moments: self.opt.export(slot) })
+    }
+
+    fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
+        self.check_slot(slot)?;
+        self.model.set_slot(slot, &state.weights).map_err(invalid)?;
+        self.opt
+            .import(slot, &state.moments)
+            .map_err(|e| RunError::Invalid(format!("pack: run {slot}: {e}")))
+    }
+}
