@@ -8,6 +8,7 @@
 
 use pdt_base::table::{Rule, Table};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+pub mod pack;
 pub mod serve;
 
 use pdt_train::optim::{AdamW, AdamWConfig};
@@ -93,10 +94,12 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B> or macaw_w<W>_t<T>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B> or solo<N>_b<B>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
+    #[error("pack case `{case}`: {why}")]
+    Pack { case: String, why: String },
 }
 
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
@@ -159,7 +162,14 @@ fn parse_eval_case(name: &str) -> Option<EvalCase> {
 }
 
 /// Random segments of `b` samples x `t` steps; histories left-padded to a random length.
-fn random_segments(b: i64, t: i64, ds: i64, da: i64, full: bool, dev: Device) -> Segments {
+pub(crate) fn random_segments(
+    b: i64,
+    t: i64,
+    ds: i64,
+    da: i64,
+    full: bool,
+    dev: Device,
+) -> Segments {
     let opts = (Kind::Float, dev);
     let tlen = if full {
         Tensor::full([b], t, (Kind::Int64, dev))
@@ -427,11 +437,17 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
     let is_macaw = |c: &String| pdt_macaw::bench::parse_case(c).is_some();
     let is_eval = |c: &String| parse_eval_case(c).is_some();
+    // `pack<N>_b<B>` / `solo<N>_b<B>`: promptdt only (`pack.rs`).
+    let is_pack = |c: &String| pack::parse_case(c).is_some();
     let serve_clients = |c: &String| -> Option<usize> {
         c.strip_prefix("serve_c")?.parse().ok().filter(|&n: &usize| n > 0)
     };
     let is_serve = |c: &String| serve_clients(c).is_some();
-    for c in cfg.cases.iter().filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c)) {
+    for c in cfg
+        .cases
+        .iter()
+        .filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c) && !is_pack(c))
+    {
         parse_case(c)?;
     }
     let mut serve = Vec::new();
@@ -461,6 +477,10 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
         results.push(if let Some(case) = parse_eval_case(c) {
             time_eval(c, case, cfg)?
+        } else if let Some(case) = pack::parse_case(c) {
+            let ms = pack::time_pack(case, cfg.warmup, cfg.iters, cfg.device)
+                .map_err(|why| BenchError::Pack { case: c.clone(), why })?;
+            timing(c, ms)
         } else if let Some((w, t)) = pdt_macaw::bench::parse_case(c) {
             let ms = pdt_macaw::bench::time_meta_steps(w, t, cfg.warmup, cfg.iters, cfg.device);
             timing(c, ms)
@@ -482,7 +502,12 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         .cases
         .iter()
         .filter(|c| {
-            !is_eval(c) && !is_rl(c) && !is_macaw(c) && !is_serve(c) && !c.starts_with("act_b")
+            !is_eval(c)
+                && !is_rl(c)
+                && !is_macaw(c)
+                && !is_serve(c)
+                && !is_pack(c)
+                && !c.starts_with("act_b")
         })
         .cloned()
         .collect();

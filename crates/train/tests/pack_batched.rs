@@ -94,9 +94,9 @@ fn segments(seed: u64, t: usize) -> Segments {
     let start = uniform(seed + 3, B);
     let mut timesteps = vec![0i64; B * t];
     let mut mask = vec![1f32; B * t];
-    for b in 0..B {
+    for (b, &s0) in start.iter().enumerate() {
         let pad = (b % 3).min(t - 1);
-        let t0 = (start[b] * (c.max_ep_len - t) as f32) as i64;
+        let t0 = (s0 * (c.max_ep_len - t) as f32) as i64;
         for s in 0..t {
             let i = b * t + s;
             if s < pad {
@@ -396,4 +396,105 @@ fn mismatched_inputs_are_refused() {
     let mut mixed = specs();
     mixed[2].model.hidden_size = 16;
     assert!(BatchedEngine::new(mixed, layout(), Device::Cpu).is_err());
+}
+
+/// CPU time of a pack of 3 against 3 solo steps, the reference architecture (state 20, action 6,
+/// K = 20, a 5-step prompt), with the forward pass alone beside the whole step. A measurement,
+/// not a check: `cargo test --release -p pdt-train --test pack_batched -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn time_pack_of_three_against_three_solo_steps() {
+    let _g = lock();
+    let threads: i32 = std::env::var("PACK_THREADS").ok().and_then(|t| t.parse().ok()).unwrap_or(1);
+    tch::set_num_threads(threads);
+    let mcfg = PromptDtConfig::reference(20, 6);
+    for b in [16usize, 64] {
+        let (k, p) = (20usize, 5usize);
+        let seg = |seed: u64, t: usize| {
+            tch::manual_seed(seed as i64);
+            let (ds, da) = (20i64, 6i64);
+            let (bb, tt) = (b as i64, t as i64);
+            let f = (Kind::Float, Device::Cpu);
+            Segments {
+                states: Tensor::randn([bb, tt, ds], f),
+                actions: Tensor::rand([bb, tt, da], f) * 2.0 - 1.0,
+                returns_to_go: Tensor::rand([bb, tt, 1], f),
+                timesteps: Tensor::randint_low(0, 900, [bb, tt], (Kind::Int64, Device::Cpu)),
+                mask: Tensor::ones([bb, tt], f),
+            }
+        };
+        let batch = |run: u64, step: u64| DeviceBatch {
+            history: seg(100 * run + step, k),
+            prompt: Some(seg(100 * run + step + 50, p)),
+        };
+        let specs: Vec<SlotSpec> = (0..3)
+            .map(|seed| SlotSpec {
+                model: mcfg.clone(),
+                uses_prompt: true,
+                loss_on: LossOn::History,
+                optim: AdamWConfig::default(),
+                seed,
+            })
+            .collect();
+        let layout = PackLayout { batch_size: b, history_len: k, prompt_len: p };
+        let mut e = BatchedEngine::new(specs, layout, Device::Cpu).unwrap();
+        let solos: Vec<(VarStore, PromptDt)> = (0..3)
+            .map(|seed| {
+                tch::manual_seed(derive_seed(seed, STREAM_INIT, 0) as i64);
+                let vs = VarStore::new(Device::Cpu);
+                let m = PromptDt::new(&vs.root(), &mcfg);
+                (vs, m)
+            })
+            .collect();
+        let mut opts: Vec<AdamW> = solos
+            .iter()
+            .map(|(vs, _)| AdamW::new(vs, &mcfg.parameter_names(), AdamWConfig::default()))
+            .collect();
+        let median = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let (mut pack, mut solo, mut pack_fwd, mut solo_fwd) = (vec![], vec![], vec![], vec![]);
+        for step in 0..12u64 {
+            let steps: Vec<Option<SlotStep>> =
+                (0..3).map(|r| Some(SlotStep { step, batch: batch(r, step) })).collect();
+            let t0 = std::time::Instant::now();
+            e.step(steps).unwrap();
+            pack.push(t0.elapsed().as_secs_f64() * 1e3);
+            let batches: Vec<DeviceBatch> = (0..3).map(|r| batch(r, step)).collect();
+            let t0 = std::time::Instant::now();
+            for (r, ((_, m), opt)) in solos.iter().zip(&mut opts).enumerate() {
+                tch::manual_seed(derive_seed(r as u64, STREAM_DROPOUT, step) as i64);
+                train_step(m, opt, &batches[r], LossOn::History, step);
+            }
+            solo.push(t0.elapsed().as_secs_f64() * 1e3);
+            // Forward (train mode) alone.
+            let rows: Vec<Option<PackedRow<'_>>> = batches
+                .iter()
+                .map(|x| Some(PackedRow { history: &x.history, prompt: x.prompt.as_ref() }))
+                .collect();
+            let seeds = DropoutSeeds((0..3).map(|r| Some(r as i64 + step as i64)).collect());
+            let t0 = std::time::Instant::now();
+            let model = e.model();
+            let pb = PackedBatch::new(&rows, b as i64, k as i64, p as i64, &model.cfg, Device::Cpu)
+                .unwrap();
+            let _ = tch::no_grad(|| model.forward_all_steps(&pb, Some(&seeds)));
+            pack_fwd.push(t0.elapsed().as_secs_f64() * 1e3);
+            let t0 = std::time::Instant::now();
+            for (r, (_, m)) in solos.iter().enumerate() {
+                tch::manual_seed(r as i64 + step as i64);
+                let x = &batches[r];
+                let _ = tch::no_grad(|| m.forward(&x.history, x.prompt.as_ref(), true));
+            }
+            solo_fwd.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let skip = |v: Vec<f64>| v[2..].to_vec();
+        let (pk, so) = (median(skip(pack)), median(skip(solo)));
+        let (pf, sf) = (median(skip(pack_fwd)), median(skip(solo_fwd)));
+        eprintln!(
+            "b{b}, {threads} thread(s): pack of 3 {pk:.1} ms vs 3 solo steps {so:.1} ms per step \
+             (solo/pack {:.2}x); forward alone {pf:.1} vs {sf:.1} ms",
+            so / pk
+        );
+    }
 }

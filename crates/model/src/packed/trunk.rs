@@ -202,11 +202,12 @@ impl PackedPromptDt {
     }
 
     /// Each run's dropout masks, drawn as its solo forward draws them (seed, then the sites in
-    /// order at the run's own sequence length), placed at the end of the packed sequence (the
-    /// padding, in front, keeps 1) and stacked.
+    /// order at the run's own sequence length), in place into its rows of the stacked masks (a
+    /// run with padding: at the end of its sequence, the padding keeps 1).
     fn dropout_masks(&self, batch: &PackedBatch, seeds: &DropoutSeeds, l: i64) -> Masks {
         let cfg = &self.cfg;
         let (b, h, nh) = (batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
+        let rows = self.slots as i64 * b;
         // The sites in the solo forward's order: embeddings, then per layer attention weights,
         // attention output, MLP output.
         let mut sites: Vec<(f64, bool)> = vec![(cfg.embd_pdrop, false)];
@@ -218,44 +219,51 @@ impl PackedPromptDt {
             ]);
         }
         let f = (Kind::Float, self.device);
-        let mut per_site: Vec<Vec<Tensor>> = (0..sites.len()).map(|_| Vec::new()).collect();
+        let own_len = |slot: usize| 3 * (batch.prompt_lens[slot] + batch.k);
+        // Rows that are not all drawn (padding, or a run without dropout) start at 1.
+        let partial = seeds.0.iter().enumerate().any(|(s, seed)| seed.is_none() || own_len(s) < l);
+        let stacked: Vec<Option<Tensor>> = sites
+            .iter()
+            .map(|&(p, attn)| {
+                let full: Vec<i64> = if attn { vec![rows, nh, l, l] } else { vec![rows, l, h] };
+                (p > 0.0).then(|| {
+                    if partial {
+                        Tensor::ones(full.as_slice(), f)
+                    } else {
+                        Tensor::empty(full.as_slice(), f)
+                    }
+                })
+            })
+            .collect();
         for (slot, seed) in seeds.0.iter().enumerate() {
-            let lj = 3 * (batch.prompt_lens[slot] + batch.k);
+            let Some(seed) = seed else { continue };
+            tch::manual_seed(*seed);
+            let lj = own_len(slot);
             let off = l - lj;
-            if let Some(seed) = seed {
-                tch::manual_seed(*seed);
-            }
-            for (site, &(p, attn)) in sites.iter().enumerate() {
-                if p <= 0.0 {
-                    continue; // `at::dropout` draws nothing at p = 0
-                }
-                let full: Vec<i64> = if attn { vec![b, nh, l, l] } else { vec![b, l, h] };
-                let Some(_) = seed else {
-                    per_site[site].push(Tensor::ones(full.as_slice(), f));
-                    continue;
-                };
-                let own: Vec<i64> = if attn { vec![b, nh, lj, lj] } else { vec![b, lj, h] };
+            for (&(p, attn), mask) in sites.iter().zip(&stacked) {
+                // `at::dropout` draws nothing at p = 0.
+                let Some(mask) = mask else { continue };
                 // `at::dropout` (CPU): noise = empty_like(x).bernoulli_(1 - p); noise.div_(1 - p).
+                // A run's rows of the stacked mask are contiguous, so drawing into them draws
+                // what a fresh tensor of their shape gets.
+                let mut mine = mask.narrow(0, slot as i64 * b, b);
+                if off == 0 {
+                    let _ = mine.bernoulli_float_(1.0 - p);
+                    let _ = mine.g_div_scalar_(1.0 - p);
+                    continue;
+                }
+                let own: Vec<i64> = if attn { vec![b, nh, lj, lj] } else { vec![b, lj, h] };
                 let mut noise = Tensor::empty(own.as_slice(), f);
                 let _ = noise.bernoulli_float_(1.0 - p);
                 let _ = noise.g_div_scalar_(1.0 - p);
-                if off == 0 {
-                    per_site[site].push(noise);
-                    continue;
-                }
-                let placed = Tensor::ones(full.as_slice(), f);
-                let mut window = placed.narrow(attn as i64 + 1, off, lj);
+                let mut window = mine.narrow(attn as i64 + 1, off, lj);
                 if attn {
                     window = window.narrow(3, off, lj);
                 }
                 window.copy_(&noise);
-                per_site[site].push(placed);
             }
         }
-        let mut stacked = sites
-            .iter()
-            .zip(per_site)
-            .map(|(&(p, _), masks)| (p > 0.0).then(|| Tensor::cat(&masks, 0)));
+        let mut stacked = stacked.into_iter();
         let embd = stacked.next().flatten();
         let mut layers = Vec::with_capacity(cfg.n_layer);
         for _ in 0..cfg.n_layer {

@@ -147,8 +147,8 @@ impl PackedAdamW {
             if norms.is_empty() {
                 return Tensor::zeros([n as i64], (Kind::Float, self.device));
             }
+            // clip_grad_norm_ per run: coef = min(max_norm / (total + 1e-6), 1).
             let total = Tensor::stack(&norms, 0).norm_scalaropt_dim(2, [0i64].as_slice(), false); // [N]
-                                                                                                  // clip_grad_norm_: coef = min(max_norm / (total + 1e-6), 1), per run.
             let coef = ((&total + 1e-6).reciprocal() * &self.max_norm).clamp_max(1.0);
             let mut factors: HashMap<Vec<u64>, Tensor> = HashMap::new();
             for (i, (g, u)) in grads.iter().zip(&upd).enumerate() {
@@ -178,26 +178,30 @@ impl PackedAdamW {
                 let mut bshape = vec![n as i64];
                 bshape.resize(g.dim(), 1);
                 let c = |row: i64| f.get(row).view(bshape.as_slice());
-                let g = g * coef.view(bshape.as_slice());
-                let p = &params[i];
-                let p_new = p * c(DECAY);
+                let mut g = g.shallow_clone(); // a fresh gradient of this step: scaled in place
+                let _ = g.g_mul_(&coef.view(bshape.as_slice()));
+                let mut p = params[i].shallow_clone();
+                if u.iter().all(|&x| x) {
+                    // Every row updates: in place, as the solo optimiser (the same elementwise
+                    // ops as below, so the same bits).
+                    let _ = p.g_mul_(&c(DECAY));
+                    let _ = st.exp_avg.lerp_tensor_(&g, &c(W1));
+                    let _ = st.exp_avg_sq.g_mul_(&c(B2)).addcmul_(&(&g * c(W2)), &g);
+                    let denom = st.exp_avg_sq.sqrt() / c(BC2_SQRT) + c(EPS);
+                    let _ = p.addcdiv_(&(&st.exp_avg * c(NEG_STEP_SIZE)), &denom);
+                    continue;
+                }
+                let p_new = &p * c(DECAY);
                 let m_new = st.exp_avg.lerp_tensor(&g, &c(W1));
                 let v_new = (&st.exp_avg_sq * c(B2)).addcmul(&(&g * c(W2)), &g);
                 let denom = v_new.sqrt() / c(BC2_SQRT) + c(EPS);
                 let p_new = p_new.addcdiv(&(&m_new * c(NEG_STEP_SIZE)), &denom);
-                let mut p = p.shallow_clone();
-                if u.iter().all(|&x| x) {
-                    p.copy_(&p_new);
-                    st.exp_avg.copy_(&m_new);
-                    st.exp_avg_sq.copy_(&v_new);
-                } else {
-                    let keep = keep.view(bshape.as_slice());
-                    p.copy_(&p_new.where_self(&keep, &p));
-                    let m = m_new.where_self(&keep, &st.exp_avg);
-                    st.exp_avg.copy_(&m);
-                    let v = v_new.where_self(&keep, &st.exp_avg_sq);
-                    st.exp_avg_sq.copy_(&v);
-                }
+                let keep = keep.view(bshape.as_slice());
+                p.copy_(&p_new.where_self(&keep, &p));
+                let m = m_new.where_self(&keep, &st.exp_avg);
+                st.exp_avg.copy_(&m);
+                let v = v_new.where_self(&keep, &st.exp_avg_sq);
+                st.exp_avg_sq.copy_(&v);
             }
             total
         })

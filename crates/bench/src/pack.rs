@@ -1,0 +1,152 @@
+//! Pack cases (issue 30): `pack<N>_b<B>` times one gradient step of N runs trained as one pack
+//! (`pdt_train::pack::BatchedEngine`), `solo<N>_b<B>` the same N runs' steps one after another in
+//! one process (N models, N optimisers): per iteration, one step of every run. The reference
+//! architecture (state 20, action 6), K = 20, a 5-step prompt, B samples per run; each run its own
+//! random batch, left-padded histories.
+
+use crate::random_segments;
+use pdt_base::seed::derive_seed;
+use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_train::optim::{AdamW, AdamWConfig};
+use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
+use pdt_train::step::{train_step, DeviceBatch, LossOn};
+use std::time::Instant;
+use tch::{nn::VarStore, Device};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PackMode {
+    /// One `BatchedEngine` step for all runs.
+    Packed,
+    /// One `train_step` per run, in turn.
+    Solo,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackCase {
+    pub mode: PackMode,
+    pub runs: usize,
+    pub batch: usize,
+}
+
+/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1).
+pub fn parse_case(name: &str) -> Option<PackCase> {
+    let (mode, rest) = if let Some(r) = name.strip_prefix("pack") {
+        (PackMode::Packed, r)
+    } else {
+        (PackMode::Solo, name.strip_prefix("solo")?)
+    };
+    let (runs, batch) = rest.split_once("_b")?;
+    let runs = runs.parse().ok().filter(|&n: &usize| n > 0)?;
+    let batch = batch.parse().ok().filter(|&b: &usize| b > 0)?;
+    Some(PackCase { mode, runs, batch })
+}
+
+const K: usize = 20;
+const PROMPT: usize = 5;
+
+fn shallow(s: &Segments) -> Segments {
+    Segments {
+        states: s.states.shallow_clone(),
+        actions: s.actions.shallow_clone(),
+        returns_to_go: s.returns_to_go.shallow_clone(),
+        timesteps: s.timesteps.shallow_clone(),
+        mask: s.mask.shallow_clone(),
+    }
+}
+
+/// Milliseconds per iteration (one step of every run), `iters` timed after `warmup`.
+pub fn time_pack(
+    case: PackCase,
+    warmup: usize,
+    iters: usize,
+    device: Device,
+) -> Result<Vec<f64>, String> {
+    let cfg = PromptDtConfig::reference(20, 6);
+    let (b, k, p) = (case.batch as i64, K as i64, PROMPT as i64);
+    tch::manual_seed(0);
+    let batches: Vec<(Segments, Segments)> = (0..case.runs)
+        .map(|_| {
+            (
+                random_segments(b, k, 20, 6, false, device),
+                random_segments(b, p, 20, 6, true, device),
+            )
+        })
+        .collect();
+    let batch_of = |i: usize| DeviceBatch {
+        history: shallow(&batches[i].0),
+        prompt: Some(shallow(&batches[i].1)),
+    };
+    let sync = || {
+        if let Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+    };
+    type StepFn<'a> = Box<dyn FnMut(u64) -> Result<(), String> + 'a>;
+    let mut step_fn: StepFn<'_> = match case.mode {
+        PackMode::Packed => {
+            let specs = (0..case.runs as u64)
+                .map(|seed| SlotSpec {
+                    model: cfg.clone(),
+                    uses_prompt: true,
+                    loss_on: LossOn::History,
+                    optim: AdamWConfig::default(),
+                    seed,
+                })
+                .collect();
+            let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
+            let mut engine =
+                BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
+            Box::new(move |step| {
+                let steps =
+                    (0..case.runs).map(|i| Some(SlotStep { step, batch: batch_of(i) })).collect();
+                engine.step(steps).map(|_| ()).map_err(|e| e.to_string())
+            })
+        }
+        PackMode::Solo => {
+            let mut runs: Vec<(VarStore, PromptDt, AdamW)> = (0..case.runs as u64)
+                .map(|seed| {
+                    tch::manual_seed(derive_seed(seed, 1, 0) as i64);
+                    let vs = VarStore::new(device);
+                    let model = PromptDt::new(&vs.root(), &cfg);
+                    let opt = AdamW::new(&vs, &cfg.parameter_names(), AdamWConfig::default());
+                    (vs, model, opt)
+                })
+                .collect();
+            Box::new(move |step| {
+                for (i, (_, model, opt)) in runs.iter_mut().enumerate() {
+                    // As the solo learner: dropout re-seeded per run and step.
+                    tch::manual_seed(derive_seed(i as u64, 3, step) as i64);
+                    train_step(model, opt, &batch_of(i), LossOn::History, step);
+                }
+                Ok(())
+            })
+        }
+    };
+    for s in 0..warmup {
+        step_fn(s as u64)?;
+    }
+    sync();
+    (0..iters)
+        .map(|s| {
+            let t0 = Instant::now();
+            step_fn((warmup + s) as u64)?;
+            sync();
+            Ok(t0.elapsed().as_secs_f64() * 1e3)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pack_case_names() {
+        let c = |m, runs, batch| Some(PackCase { mode: m, runs, batch });
+        assert_eq!(parse_case("pack3_b64"), c(PackMode::Packed, 3, 64));
+        assert_eq!(parse_case("solo12_b16"), c(PackMode::Solo, 12, 16));
+        for bad in ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64"] {
+            assert_eq!(parse_case(bad), None, "{bad}");
+        }
+    }
+}
