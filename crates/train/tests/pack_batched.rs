@@ -398,15 +398,26 @@ fn mismatched_inputs_are_refused() {
     assert!(BatchedEngine::new(mixed, layout(), Device::Cpu).is_err());
 }
 
-/// CPU time of a pack of 3 against 3 solo steps, the reference architecture (state 20, action 6,
-/// K = 20, a 5-step prompt), with the forward pass alone beside the whole step. A measurement,
-/// not a check: `cargo test --release -p pdt-train --test pack_batched -- --ignored --nocapture`.
+/// This thread's time on a CPU, in milliseconds (`/proc/thread-self/schedstat`, Linux): unlike
+/// wall time, it leaves out the time other processes of a busy machine hold the cores.
+fn on_cpu_ms() -> f64 {
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|n| n.parse::<f64>().ok()))
+        .map_or(f64::NAN, |ns| ns / 1e6)
+}
+
+/// Time of a pack of 3 against 3 solo steps, the reference architecture (state 20, action 6,
+/// K = 20, a 5-step prompt), with the forward pass alone beside the whole step; wall time and
+/// on-CPU time (1 thread: libtorch works on the calling thread). A measurement, not a check:
+/// `cargo test --release -p pdt-train --test pack_batched -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn time_pack_of_three_against_three_solo_steps() {
     let _g = lock();
     let threads: i32 = std::env::var("PACK_THREADS").ok().and_then(|t| t.parse().ok()).unwrap_or(1);
     tch::set_num_threads(threads);
+    let steps: u64 = std::env::var("PACK_STEPS").ok().and_then(|t| t.parse().ok()).unwrap_or(12);
     let mcfg = PromptDtConfig::reference(20, 6);
     for b in [16usize, 64] {
         let (k, p) = (20usize, 5usize);
@@ -450,51 +461,64 @@ fn time_pack_of_three_against_three_solo_steps() {
             .iter()
             .map(|(vs, _)| AdamW::new(vs, &mcfg.parameter_names(), AdamWConfig::default()))
             .collect();
-        let median = |mut v: Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v[v.len() / 2]
+        // Medians of wall and on-CPU milliseconds, the first 2 steps left out (warm-up).
+        let median = |v: &[(f64, f64)]| {
+            let mut w: Vec<f64> = v[2..].iter().map(|x| x.0).collect();
+            let mut c: Vec<f64> = v[2..].iter().map(|x| x.1).collect();
+            w.sort_by(f64::total_cmp);
+            c.sort_by(f64::total_cmp);
+            (w[w.len() / 2], c[c.len() / 2])
         };
         let (mut pack, mut solo, mut pack_fwd, mut solo_fwd) = (vec![], vec![], vec![], vec![]);
-        for step in 0..12u64 {
+        for step in 0..steps {
             let steps: Vec<Option<SlotStep>> =
                 (0..3).map(|r| Some(SlotStep { step, batch: batch(r, step) })).collect();
-            let t0 = std::time::Instant::now();
+            let (t0, c0) = (std::time::Instant::now(), on_cpu_ms());
             e.step(steps).unwrap();
-            pack.push(t0.elapsed().as_secs_f64() * 1e3);
+            pack.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
             let batches: Vec<DeviceBatch> = (0..3).map(|r| batch(r, step)).collect();
-            let t0 = std::time::Instant::now();
+            let (t0, c0) = (std::time::Instant::now(), on_cpu_ms());
             for (r, ((_, m), opt)) in solos.iter().zip(&mut opts).enumerate() {
                 tch::manual_seed(derive_seed(r as u64, STREAM_DROPOUT, step) as i64);
                 train_step(m, opt, &batches[r], LossOn::History, step);
             }
-            solo.push(t0.elapsed().as_secs_f64() * 1e3);
+            solo.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
             // Forward (train mode) alone.
             let rows: Vec<Option<PackedRow<'_>>> = batches
                 .iter()
                 .map(|x| Some(PackedRow { history: &x.history, prompt: x.prompt.as_ref() }))
                 .collect();
             let seeds = DropoutSeeds((0..3).map(|r| Some(r as i64 + step as i64)).collect());
-            let t0 = std::time::Instant::now();
+            let (t0, c0) = (std::time::Instant::now(), on_cpu_ms());
             let model = e.model();
             let pb = PackedBatch::new(&rows, b as i64, k as i64, p as i64, &model.cfg, Device::Cpu)
                 .unwrap();
             let _ = tch::no_grad(|| model.forward_all_steps(&pb, Some(&seeds)));
-            pack_fwd.push(t0.elapsed().as_secs_f64() * 1e3);
-            let t0 = std::time::Instant::now();
+            pack_fwd.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
+            let (t0, c0) = (std::time::Instant::now(), on_cpu_ms());
             for (r, (_, m)) in solos.iter().enumerate() {
                 tch::manual_seed(r as i64 + step as i64);
                 let x = &batches[r];
                 let _ = tch::no_grad(|| m.forward(&x.history, x.prompt.as_ref(), true));
             }
-            solo_fwd.push(t0.elapsed().as_secs_f64() * 1e3);
+            solo_fwd.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
         }
-        let skip = |v: Vec<f64>| v[2..].to_vec();
-        let (pk, so) = (median(skip(pack)), median(skip(solo)));
-        let (pf, sf) = (median(skip(pack_fwd)), median(skip(solo_fwd)));
+        let (pk, so) = (median(&pack), median(&solo));
+        let (pf, sf) = (median(&pack_fwd), median(&solo_fwd));
         eprintln!(
-            "b{b}, {threads} thread(s): pack of 3 {pk:.1} ms vs 3 solo steps {so:.1} ms per step \
-             (solo/pack {:.2}x); forward alone {pf:.1} vs {sf:.1} ms",
-            so / pk
+            "b{b}, {threads} thread(s), per step of all 3 runs: pack {:.1} ms wall / {:.1} ms on \
+             CPU, 3 solo steps {:.1} / {:.1} (solo/pack {:.2}x wall, {:.2}x CPU); forward alone: \
+             pack {:.1} / {:.1}, solo {:.1} / {:.1}",
+            pk.0,
+            pk.1,
+            so.0,
+            so.1,
+            so.0 / pk.0,
+            so.1 / pk.1,
+            pf.0,
+            pf.1,
+            sf.0,
+            sf.1
         );
     }
 }
