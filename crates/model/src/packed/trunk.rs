@@ -179,10 +179,13 @@ impl PackedPromptDt {
             // On the CPU, libtorch's fused LayerNorm once per run (its own weight and bias): the
             // solo kernel's bits, and measured faster than one normalisation followed by a
             // broadcast affine (which adds passes over the activations, forward and backward).
-            let parts: Vec<Tensor> = (0..n)
-                .map(|i| {
-                    xs.get(i).layer_norm([h], Some(weight.get(i)), Some(bias.get(i)), eps, false)
-                })
+            // `unbind`, not `get(i)` per run: its backward is one `stack`, where each `select`'s
+            // would allocate and fill a gradient of the whole input.
+            let (xs, ws, bs) = (xs.unbind(0), weight.unbind(0), bias.unbind(0));
+            let parts: Vec<Tensor> = xs
+                .iter()
+                .zip(ws.iter().zip(&bs))
+                .map(|(x, (w, b))| x.layer_norm([h], Some(w), Some(b), eps, false))
                 .collect();
             return Tensor::stack(&parts, 0).view([s[0], s[1], h]);
         }
