@@ -6,7 +6,7 @@ pub mod macaw;
 mod options;
 mod overrides;
 
-pub use options::{AdamWConfig, Inference, LossOn};
+pub use options::{AdamWConfig, FlatOptim, Inference, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::DeviceSpec;
 pub use pdt_base::num::compact;
