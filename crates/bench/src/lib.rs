@@ -625,6 +625,15 @@ mod tests {
     use super::*;
 
     #[test]
+    fn train_cases_name_the_optimiser() {
+        assert_eq!(parse_case("train_b560").ok(), Some((Mode::Train, 560)));
+        assert_eq!(parse_case("train_b64_flat").ok(), Some((Mode::TrainFlat, 64)));
+        for bad in ["train_b64_flatx", "train_b_flat", "infer_b1_flat", "train_b0_flat"] {
+            assert!(parse_case(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
     fn eval_cases_name_any_family() {
         let case = |n: &str| parse_eval_case(n).map(|c| (c.env, c.inference, c.max_batch));
         use pdt_eval::Inference::{Cached, Full};
