@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use tch::{nn::VarStore, Tensor};
 
 // The settings are part of a run's configuration, which is read without libtorch.
-pub use crate::optim_flat::{FlatAdamW, FlatGrads, OptimError};
+pub use crate::optim_flat::{FlatAdamW, FlatGrads, OptimError, CPU_CHUNK};
 pub use pdt_rundir::config::{AdamWConfig, FlatOptim};
 
 /// Per-parameter AdamW state, created the first time the parameter has a gradient (as PyTorch does).

@@ -8,10 +8,12 @@
 //! the views, `checkpoint::load`'s in-place copies land in the buffer and whole-buffer updates are
 //! what the model sees. The Adam moments are flat buffers with the same layout.
 //!
-//! A step launches, independent of the number of tensors: 1 `cat` (gathering the gradients),
-//! 6 for clipping (`norm`, `+ 1e-6`, `reciprocal`, `* max_norm`, `clamp_max`, `mul_`), and 10
-//! for the update (`mul_`, `lerp_`, `mul_`, `mul`, `addcmul_`, `sqrt`, `div`, `add`, `mul`,
-//! `addcdiv_`): 17 kernels, plus the one read of the total norm for the caller.
+//! On CUDA a step launches, independent of the number of tensors: 1 `cat` (gathering the
+//! gradients), 6 for clipping (`norm`, `+ 1e-6`, `reciprocal`, `* max_norm`, `clamp_max`, `mul_`),
+//! and 10 for the update (`mul_`, `lerp_`, `mul_`, `mul`, `addcmul_`, `sqrt`, `div`, `add`, `mul`,
+//! `addcdiv_`): 17 kernels, plus the one read of the total norm for the caller. On CPU the update's
+//! 10 ops run per piece of [`CPU_CHUNK`] elements (cache-sized; 14 pieces for the reference
+//! model's 0.86 M parameters), which changes no result: every op is element-wise.
 //!
 //! Parameters without a gradient (PyTorch's `grad is None`: `wte`, the unused heads, the prompt
 //! layers of a no-prompt variant) get no update, no weight decay and no step count, as in
@@ -99,7 +101,16 @@ pub struct FlatAdamW {
     /// Bumped at every new layout, so that gradients gathered for an older one are not applied as
     /// one prefix.
     layout: u64,
+    /// Elements per piece of the update: the whole prefix at once on CUDA (launches are what
+    /// costs there); on CPU [`CPU_CHUNK`], so that each piece's ten ops run on data in cache.
+    chunk: Option<i64>,
 }
+
+/// Elements per piece of the CPU update: 256 KiB per buffer, so the weights, both moments, the
+/// gradient and the temporaries of one piece stay in a core's L2 cache. Whole-buffer ops (0.86 M
+/// elements) stream every buffer through memory ten times and took 2x the per-tensor loop's time
+/// (1 thread, AMD EPYC); pieces of 64-128 Ki elements took 0.7x.
+pub const CPU_CHUNK: i64 = 65_536;
 
 impl FlatAdamW {
     /// Optimises the same variables as [`AdamW::new`](crate::optim::AdamW::new) with the same
@@ -121,9 +132,16 @@ impl FlatAdamW {
             exp_avg_sq: empty,
             steps: vec![0; n],
             layout: 0,
+            chunk: (!vs.device().is_cuda()).then_some(CPU_CHUNK),
         };
         me.lay_out(&(0..n).collect::<Vec<_>>(), false);
         me
+    }
+
+    /// Elements per piece of the update (`None`: the whole buffer at once); the default is
+    /// [`CPU_CHUNK`] on CPU and `None` on CUDA. Results do not depend on it.
+    pub fn set_chunk(&mut self, elements: Option<i64>) {
+        self.chunk = elements;
     }
 
     /// Names of the optimised parameters, in optimisation order.
@@ -277,12 +295,25 @@ impl FlatAdamW {
             if one_prefix {
                 // The present parameters are the buffers' first `n` elements, in `buf`'s order.
                 let n = grads.buf.size()[0];
-                let mut w = self.weights.narrow(0, 0, n);
-                let moments = Moments {
-                    exp_avg: &mut self.exp_avg.narrow(0, 0, n),
-                    exp_avg_sq: &mut self.exp_avg_sq.narrow(0, 0, n),
-                };
-                adamw_update(&mut w, moments, &grads.buf, step, lr, &self.cfg);
+                let chunk = self.chunk.unwrap_or(n).max(1);
+                let mut start = 0;
+                while start < n {
+                    let len = chunk.min(n - start);
+                    let mut w = self.weights.narrow(0, start, len);
+                    let moments = Moments {
+                        exp_avg: &mut self.exp_avg.narrow(0, start, len),
+                        exp_avg_sq: &mut self.exp_avg_sq.narrow(0, start, len),
+                    };
+                    adamw_update(
+                        &mut w,
+                        moments,
+                        &grads.buf.narrow(0, start, len),
+                        step,
+                        lr,
+                        &self.cfg,
+                    );
+                    start += len;
+                }
             } else {
                 for &i in &present {
                     let (s, Some(g)) = (self.slots[i], grads.slots[i]) else { continue };

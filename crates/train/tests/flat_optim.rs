@@ -164,6 +164,28 @@ fn flat_trains_like_per_tensor_within_tolerance_over_50_steps() {
 }
 
 #[test]
+fn the_flat_update_gives_the_same_bits_in_pieces_or_whole() {
+    let _turn = rng_lock();
+    tch::set_num_threads(1);
+    let data = batches(8, 6, true);
+    let mut runs = Vec::new();
+    // Pieces of 1000 elements (an odd size: vector bodies and scalar tails fall elsewhere), the
+    // whole buffer at once (CUDA's default), and the CPU default.
+    for chunk in [Some(1000), None, Some(pdt_train::optim::CPU_CHUNK)] {
+        let mut t = trainee(21, FlatOptim::On);
+        let Optimizer::Flat(f) = &mut t.opt else { unreachable!("asked for the flat optimiser") };
+        f.set_chunk(chunk);
+        let losses = train(&mut t, &data, 0..6);
+        runs.push((losses, weights(&t.vs)));
+    }
+    assert!(runs[0].1.values().map(|w| w.numel()).sum::<usize>() > 10_000, "several pieces");
+    for (losses, w) in &runs[1..] {
+        assert_eq!(losses, &runs[0].0);
+        assert!(bitwise(w, &runs[0].1));
+    }
+}
+
+#[test]
 fn parameters_without_a_gradient_are_left_untouched() {
     let _turn = rng_lock();
     tch::set_num_threads(1);
