@@ -46,7 +46,7 @@ fi
 if [ -z "${SKIP_BENCH:-}" ]; then
 log "2. bench: model cases"
 timeout 150 "$BIN" bench --device $DEVICE --threads 4 --python "$PY" --iters ${ITERS:-30} --warmup 5 \
-  --cases train_b560,train_b64,infer_b1,infer_b50,act_b1,act_b50 --out "$WORK/bench_model" >>"$OUT/session.log" 2>&1 \
+  --cases train_b560,train_b64,train_b560_flat,train_b64_flat,infer_b1,infer_b50,act_b1,act_b50 --out "$WORK/bench_model" >>"$OUT/session.log" 2>&1 \
   || log "bench (model cases) failed: $?"
 log "2. bench: evaluation protocol"
 timeout 150 "$BIN" bench --device $DEVICE --threads 4 --python "$PY" --iters 3 --warmup 1 --eval-episodes ${EVAL_EPISODES:-50} \
