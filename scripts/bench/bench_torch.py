@@ -8,6 +8,7 @@ Cases:
   train_b560  one full training step at batch 560 (cheetah_vel: 16 x 35 tasks): forward in train mode,
               masked MSE, zero_grad, backward, clip_grad_norm_(0.25), AdamW step, LambdaLR step
   train_b64   the same at batch 64
+  train_b<N>_flat  the same as train_b<N> here (promptdt times its flat-buffer AdamW under this name)
   infer_b1    eval-mode forward under torch.no_grad() at batch 1 (one rollout step)
   infer_b50   the same at batch 50 (e.g. 50 parallel evaluation episodes)
 Inputs are random but shaped like get_batch: left-padded histories (mask 0 = pad), prompt of 5 steps.
@@ -101,8 +102,9 @@ def main():
         return step, lambda: model.eval()
 
     def make(name):
-        # train_b<N> / infer_b<N>, any batch size N
-        kind, _, batch = name.partition("_b")
+        # train_b<N> / infer_b<N>, any batch size N. train_b<N>_flat is promptdt's flat-buffer AdamW;
+        # PyTorch's side of it is the same default AdamW step (foreach on CUDA).
+        kind, _, batch = name.removesuffix("_flat").partition("_b")
         makers = {"train": train_case, "infer": infer_case}
         if kind not in makers or not batch.isdigit() or int(batch) < 1:
             raise SystemExit(f"unknown case {name!r} (train_b<N> or infer_b<N>)")

@@ -46,7 +46,7 @@ fi
 if [ -z "${SKIP_BENCH:-}" ]; then
 log "2. bench: model cases"
 timeout 150 "$BIN" bench --device $DEVICE --threads 4 --python "$PY" --iters ${ITERS:-30} --warmup 5 \
-  --cases train_b560,train_b64,infer_b1,infer_b50,act_b1,act_b50 --out "$WORK/bench_model" >>"$OUT/session.log" 2>&1 \
+  --cases train_b560,train_b64,train_b560_flat,train_b64_flat,infer_b1,infer_b50,act_b1,act_b50 --out "$WORK/bench_model" >>"$OUT/session.log" 2>&1 \
   || log "bench (model cases) failed: $?"
 log "2. bench: evaluation protocol"
 timeout 150 "$BIN" bench --device $DEVICE --threads 4 --python "$PY" --iters 3 --warmup 1 --eval-episodes ${EVAL_EPISODES:-50} \
@@ -79,7 +79,7 @@ while kill -0 $xr 2>/dev/null; do
 done
 kill $smi 2>/dev/null
 log "4. report and packing"
-timeout 30 "$BIN" reproduce fig2 --budget $BUDGET --out "$WORK/repro" --data-root "$DATA" --report-only >>"$OUT/session.log" 2>&1
+timeout 30 "$BIN" reproduce "${EXP:-fig2}" --budget $BUDGET --out "$WORK/repro" --data-root "$DATA" --report-only >>"$OUT/session.log" 2>&1
 # Small files of every run (curves, metrics, configs, logs), the report, and the datasets' summaries.
 (cd "$WORK" && find repro data bench_model bench_eval smi.csv -type f ! -name '*.safetensors' | tar czf "$OUT/small.tar.gz" -T -)
 # The latest resume point of the first CKPTS unfinished runs (default 4; model + optimizer state), one file each (16 MiB limit).

@@ -2,7 +2,9 @@
 //! (`scripts/bench/bench_torch.py`) in the same invocation.
 //!
 //! Cases (state 20, action 6, K = 20, prompt 5 steps, the reference architecture):
-//! `train_b560` / `train_b64` (forward in train mode, masked MSE, backward, clipping, AdamW) and
+//! `train_b560` / `train_b64` (forward in train mode, masked MSE, backward, clipping, AdamW; the
+//! per-tensor AdamW, PyTorch's single-tensor path), `train_b560_flat` / `train_b64_flat` (the same
+//! step with the flat-buffer AdamW, `optim.flat = "on"`; PyTorch's side is its default AdamW) and
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
@@ -11,7 +13,7 @@ use pdt_model::{PromptDt, PromptDtConfig, Segments};
 pub mod pack;
 pub mod serve;
 
-use pdt_train::optim::{AdamW, AdamWConfig};
+use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::Command;
@@ -27,7 +29,8 @@ pub struct BenchConfig {
     pub iters: usize,
     pub warmup: usize,
     pub device: Device,
-    /// Cases to run: any of `train_b560`, `train_b64`, `infer_b1`, `infer_b50`.
+    /// Cases to run: any of `train_b560`, `train_b64`, `train_b560_flat`, `train_b64_flat`,
+    /// `infer_b1`, `infer_b50` (and the other kinds `BenchError::UnknownCase` lists).
     pub cases: Vec<String>,
     /// Run the PyTorch baseline with this Python and script (None: promptdt only).
     pub pytorch: Option<PyTorchBaseline>,
@@ -94,7 +97,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>, infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B> or solo<N>_b<B>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>[_flat], infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B> or solo<N>_b<B>)")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -108,8 +111,10 @@ pub const EVAL_CASE: &str = "eval_point_robot";
 /// What a model case times.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Mode {
-    /// `train_b<N>`: one training step.
+    /// `train_b<N>`: one training step (per-tensor AdamW).
     Train,
+    /// `train_b<N>_flat`: one training step with the flat-buffer AdamW.
+    TrainFlat,
     /// `infer_b<N>`: one rollout step by the reference's path, the full forward.
     Infer,
     /// `act_b<N>`: one rollout step by `PromptDt::act` with the prompt's keys and values cached
@@ -120,7 +125,10 @@ enum Mode {
 fn parse_case(name: &str) -> Result<(Mode, i64), BenchError> {
     let bad = || BenchError::UnknownCase(name.to_string());
     let (mode, b) = if let Some(b) = name.strip_prefix("train_b") {
-        (Mode::Train, b)
+        match b.strip_suffix("_flat") {
+            Some(b) => (Mode::TrainFlat, b),
+            None => (Mode::Train, b),
+        }
     } else if let Some(b) = name.strip_prefix("infer_b") {
         (Mode::Infer, b)
     } else if let Some(b) = name.strip_prefix("act_b") {
@@ -213,11 +221,12 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 
 fn time_case(
     model: &PromptDt,
-    opt: &mut AdamW,
+    opts: &mut Optimizers<'_>,
     name: &str,
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
     let (mode, b) = parse_case(name)?;
+    let opt = opts.get(mode == Mode::TrainFlat);
     let dev = cfg.device;
     let history = random_segments(b, 20, 20, 6, false, dev);
     let prompt = random_segments(b, 5, 20, 6, true, dev);
@@ -229,7 +238,7 @@ fn time_case(
         if mode == Mode::Act {
             let a = tch::no_grad(|| model.act(&history, Some(&cache.select(&rows))));
             let _ = a.to_device(Device::Cpu);
-        } else if mode == Mode::Train {
+        } else if matches!(mode, Mode::Train | Mode::TrainFlat) {
             let preds = model.forward(&history, Some(&prompt), true);
             let loss = PromptDt::action_loss(&preds, &history.actions, &history.mask);
             let mut grads = opt.backward(&loss);
@@ -262,6 +271,32 @@ fn time_case(
         p90_ms: percentile(&ms, 0.9),
         iters: cfg.iters,
     })
+}
+
+/// The model's two optimisers, each built the first time a case needs it (building the flat one
+/// re-points the model's variables at its buffer; the per-tensor one shares those variables).
+struct Optimizers<'a> {
+    vs: &'a VarStore,
+    names: Vec<String>,
+    per_tensor: Option<Optimizer>,
+    flat: Option<Optimizer>,
+}
+
+impl Optimizers<'_> {
+    fn get(&mut self, flat: bool) -> &mut Optimizer {
+        let (slot, mode) = if flat {
+            (&mut self.flat, FlatOptim::On)
+        } else {
+            (&mut self.per_tensor, FlatOptim::Off)
+        };
+        slot.get_or_insert_with(|| {
+            Optimizer::new(
+                self.vs,
+                &self.names,
+                AdamWConfig { flat: mode, ..AdamWConfig::default() },
+            )
+        })
+    }
 }
 
 /// The `--device` value of the PyTorch baseline scripts for `dev`.
@@ -472,7 +507,8 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     let mcfg = PromptDtConfig::reference(20, 6);
     let vs = VarStore::new(cfg.device);
     let model = PromptDt::new(&vs.root(), &mcfg);
-    let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), AdamWConfig::default());
+    let mut opts =
+        Optimizers { vs: &vs, names: mcfg.parameter_names(), per_tensor: None, flat: None };
     let mut results = Vec::new();
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
         results.push(if let Some(case) = parse_eval_case(c) {
@@ -488,7 +524,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
             let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
             timing(c, ms)
         } else {
-            time_case(&model, &mut opt, c, cfg)?
+            time_case(&model, &mut opts, c, cfg)?
         });
     }
     let promptdt = EngineReport {
@@ -612,6 +648,15 @@ pub fn render_markdown(r: &BenchReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn train_cases_name_the_optimiser() {
+        assert_eq!(parse_case("train_b560").ok(), Some((Mode::Train, 560)));
+        assert_eq!(parse_case("train_b64_flat").ok(), Some((Mode::TrainFlat, 64)));
+        for bad in ["train_b64_flatx", "train_b_flat", "infer_b1_flat", "train_b0_flat"] {
+            assert!(parse_case(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn eval_cases_name_any_family() {

@@ -7,7 +7,7 @@
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_train::optim::{AdamW, AdamWConfig};
+use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn};
 use std::time::Instant;
@@ -103,12 +103,17 @@ pub fn time_pack(
             })
         }
         PackMode::Solo => {
-            let mut runs: Vec<(VarStore, PromptDt, AdamW)> = (0..case.runs as u64)
+            let mut runs: Vec<(VarStore, PromptDt, Optimizer)> = (0..case.runs as u64)
                 .map(|seed| {
                     tch::manual_seed(derive_seed(seed, 1, 0) as i64);
                     let vs = VarStore::new(device);
                     let model = PromptDt::new(&vs.root(), &cfg);
-                    let opt = AdamW::new(&vs, &cfg.parameter_names(), AdamWConfig::default());
+                    // The solo CPU path: the per-tensor optimiser.
+                    let opt = Optimizer::PerTensor(AdamW::new(
+                        &vs,
+                        &cfg.parameter_names(),
+                        AdamWConfig::default(),
+                    ));
                     (vs, model, opt)
                 })
                 .collect();

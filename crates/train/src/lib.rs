@@ -12,7 +12,9 @@
 //! - `streams`: the run seed's independent random streams.
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
 //!   PyTorch's `torch.optim.AdamW` (single-tensor CPU path), `LambdaLR` and `clip_grad_norm_`
-//!   bit for bit, with a state that can be saved and restored for resumable runs.
+//!   bit for bit, with a state that can be saved and restored for resumable runs; `FlatAdamW`,
+//!   the same maths over one flat buffer (a fixed handful of kernels per step, for CUDA), and
+//!   `Optimizer`, either of them as `optim.flat` chooses.
 //! - [`step`]: one gradient step on a sampled batch (the reference's `train_step_mix`).
 
 // Errors carry the offending path, shape or tensor name, so they are large; they are returned
@@ -24,6 +26,7 @@ mod error;
 mod evaluate;
 mod methods;
 pub mod optim;
+mod optim_flat;
 pub mod pack;
 pub mod run;
 mod run_dir;

@@ -10,7 +10,8 @@ use std::collections::BTreeMap;
 use tch::{nn::VarStore, Tensor};
 
 // The settings are part of a run's configuration, which is read without libtorch.
-pub use pdt_rundir::config::AdamWConfig;
+pub use crate::optim_flat::{FlatAdamW, FlatGrads, OptimError, CPU_CHUNK};
+pub use pdt_rundir::config::{AdamWConfig, FlatOptim};
 
 /// Per-parameter AdamW state, created the first time the parameter has a gradient (as PyTorch does).
 #[derive(Debug)]
@@ -37,14 +38,7 @@ impl AdamW {
     /// which clipping depends on: see `PromptDtConfig::parameter_names`). Variables of `vs` missing
     /// from `order` are appended in name order.
     pub fn new(vs: &VarStore, order: &[String], cfg: AdamWConfig) -> Self {
-        let mut vars = vs.variables();
-        let mut params: Vec<(String, Tensor)> =
-            order.iter().filter_map(|n| vars.remove(n).map(|t| (n.clone(), t))).collect();
-        let mut rest: Vec<(String, Tensor)> = vars.into_iter().collect();
-        rest.sort_by(|a, b| a.0.cmp(&b.0));
-        params.extend(rest);
-        params.retain(|(_, t)| t.requires_grad());
-        Self { cfg, params, state: BTreeMap::new() }
+        Self { cfg, params: optimised_params(vs, order), state: BTreeMap::new() }
     }
 
     /// Gradients of `loss` with respect to every optimised parameter, as fresh tensors.
@@ -80,8 +74,6 @@ impl AdamW {
 
     /// One AdamW update at learning rate `lr`, for every parameter that has a gradient.
     pub fn step(&mut self, grads: &Grads, lr: f64) {
-        let (b1, b2, eps, wd) =
-            (self.cfg.beta1, self.cfg.beta2, self.cfg.eps, self.cfg.weight_decay);
         tch::no_grad(|| {
             for ((name, p), grad) in self.params.iter_mut().zip(&grads.0) {
                 let Some(grad) = grad else { continue };
@@ -91,19 +83,8 @@ impl AdamW {
                     exp_avg_sq: p.zeros_like(),
                 });
                 st.step += 1;
-                let _ = p.g_mul_scalar_(1.0 - lr * wd);
-                let _ = st.exp_avg.lerp_(grad, 1.0 - b1);
-                // `addcmul_(g, g, value=v)` computes self + (v * g) * g; tch's addcmul_ has no
-                // `value`, and (v * g) with value 1 gives the same bits.
-                let _ = st.exp_avg_sq.g_mul_scalar_(b2).addcmul_(&(grad * (1.0 - b2)), grad);
-                let step = st.step as f64;
-                let bias_correction1 = 1.0 - b1.powf(step);
-                let bias_correction2 = 1.0 - b2.powf(step);
-                let step_size = lr / bias_correction1;
-                let bias_correction2_sqrt = bias_correction2.powf(0.5);
-                let denom = (st.exp_avg_sq.sqrt() / bias_correction2_sqrt) + eps;
-                // `addcdiv_(m, denom, value=-step_size)` is self + (value * m) / denom; same trick.
-                let _ = p.addcdiv_(&(&st.exp_avg * -step_size), &denom);
+                let moments = Moments { exp_avg: &mut st.exp_avg, exp_avg_sq: &mut st.exp_avg_sq };
+                adamw_update(p, moments, grad, st.step, lr, &self.cfg);
             }
         });
     }
@@ -111,5 +92,203 @@ impl AdamW {
     /// Names of the optimised parameters, in optimisation order.
     pub fn param_names(&self) -> impl Iterator<Item = &str> {
         self.params.iter().map(|(n, _)| n.as_str())
+    }
+}
+
+/// The trainable variables of `vs`: those named in `order` first, in that order, then the others
+/// in name order.
+pub(crate) fn optimised_params(vs: &VarStore, order: &[String]) -> Vec<(String, Tensor)> {
+    let mut vars = vs.variables();
+    let mut params: Vec<(String, Tensor)> =
+        order.iter().filter_map(|n| vars.remove(n).map(|t| (n.clone(), t))).collect();
+    let mut rest: Vec<(String, Tensor)> = vars.into_iter().collect();
+    rest.sort_by(|a, b| a.0.cmp(&b.0));
+    params.extend(rest);
+    params.retain(|(_, t)| t.requires_grad());
+    params
+}
+
+/// The two Adam moments of one tensor (or of one flat buffer), updated in place.
+pub(crate) struct Moments<'a> {
+    pub(crate) exp_avg: &'a mut Tensor,
+    pub(crate) exp_avg_sq: &'a mut Tensor,
+}
+
+/// PyTorch's `_single_tensor_adam` body (decoupled weight decay) for one tensor `p` whose `step`
+/// (1-based, already incremented) is given; element-wise only, so `FlatAdamW` runs the same ops
+/// on a whole flat buffer. Call under `no_grad`.
+pub(crate) fn adamw_update(
+    p: &mut Tensor,
+    m: Moments<'_>,
+    grad: &Tensor,
+    step: u64,
+    lr: f64,
+    cfg: &AdamWConfig,
+) {
+    let (b1, b2, eps, wd) = (cfg.beta1, cfg.beta2, cfg.eps, cfg.weight_decay);
+    let _ = p.g_mul_scalar_(1.0 - lr * wd);
+    let _ = m.exp_avg.lerp_(grad, 1.0 - b1);
+    // `addcmul_(g, g, value=v)` computes self + (v * g) * g; tch's addcmul_ has no `value`, and
+    // (v * g) with value 1 gives the same bits.
+    let _ = m.exp_avg_sq.g_mul_scalar_(b2).addcmul_(&(grad * (1.0 - b2)), grad);
+    let step = step as f64;
+    let bias_correction1 = 1.0 - b1.powf(step);
+    let bias_correction2 = 1.0 - b2.powf(step);
+    let step_size = lr / bias_correction1;
+    let bias_correction2_sqrt = bias_correction2.powf(0.5);
+    let denom = (m.exp_avg_sq.sqrt() / bias_correction2_sqrt) + eps;
+    // `addcdiv_(m, denom, value=-step_size)` is self + (value * m) / denom; same trick.
+    let _ = p.addcdiv_(&(&*m.exp_avg * -step_size), &denom);
+}
+
+/// Either optimiser, as `optim.flat` chooses, behind one API (the learners and the training step
+/// hold this).
+#[derive(Debug)]
+pub enum Optimizer {
+    /// PyTorch's single-tensor loops: bit for bit on CPU.
+    PerTensor(AdamW),
+    /// One flat buffer: a fixed handful of kernels per step.
+    Flat(FlatAdamW),
+}
+
+/// The gradients of one step, as the optimiser that computed them holds them.
+#[derive(Debug)]
+pub enum Gradients {
+    PerTensor(Grads),
+    Flat(FlatGrads),
+}
+
+impl Optimizer {
+    /// The optimiser `cfg.flat` asks for on the device of `vs` (`auto`: flat on CUDA only), over
+    /// the variables [`AdamW::new`] would optimise.
+    pub fn new(vs: &VarStore, order: &[String], cfg: AdamWConfig) -> Self {
+        if cfg.flat.use_flat(vs.device().is_cuda()) {
+            Self::Flat(FlatAdamW::new(vs, order, cfg))
+        } else {
+            Self::PerTensor(AdamW::new(vs, order, cfg))
+        }
+    }
+
+    pub fn cfg(&self) -> &AdamWConfig {
+        match self {
+            Self::PerTensor(o) => &o.cfg,
+            Self::Flat(o) => &o.cfg,
+        }
+    }
+
+    pub fn is_flat(&self) -> bool {
+        matches!(self, Self::Flat(_))
+    }
+
+    /// Names of the optimised parameters, in optimisation order.
+    pub fn param_names(&self) -> Vec<&str> {
+        match self {
+            Self::PerTensor(o) => o.param_names().collect(),
+            Self::Flat(o) => o.param_names().collect(),
+        }
+    }
+
+    /// See [`AdamW::backward`].
+    pub fn backward(&mut self, loss: &Tensor) -> Gradients {
+        match self {
+            Self::PerTensor(o) => Gradients::PerTensor(o.backward(loss)),
+            Self::Flat(o) => Gradients::Flat(o.backward(loss)),
+        }
+    }
+
+    /// See [`AdamW::clip_grad_norm`]. Gradients of the other kind (from another optimiser over
+    /// the same parameters) are converted first.
+    pub fn clip_grad_norm(&mut self, grads: &mut Gradients, max_norm: f64) -> f64 {
+        match (self, &mut *grads) {
+            (Self::PerTensor(o), Gradients::PerTensor(g)) => o.clip_grad_norm(g, max_norm),
+            // The views alias the flat buffer: scaling them scales it.
+            (Self::PerTensor(o), Gradients::Flat(g)) => {
+                o.clip_grad_norm(&mut g.per_param(), max_norm)
+            }
+            (Self::Flat(o), Gradients::Flat(g)) => o.clip_grad_norm(g, max_norm),
+            (Self::Flat(o), Gradients::PerTensor(g)) => {
+                let mut flat = o.gather(g);
+                let norm = o.clip_grad_norm(&mut flat, max_norm);
+                *grads = Gradients::Flat(flat);
+                norm
+            }
+        }
+    }
+
+    /// See [`AdamW::step`].
+    pub fn step(&mut self, grads: &Gradients, lr: f64) {
+        match (self, grads) {
+            (Self::PerTensor(o), Gradients::PerTensor(g)) => o.step(g, lr),
+            (Self::PerTensor(o), Gradients::Flat(g)) => o.step(&g.per_param(), lr),
+            (Self::Flat(o), Gradients::Flat(g)) => o.step(g, lr),
+            (Self::Flat(o), Gradients::PerTensor(g)) => {
+                let flat = o.gather(g);
+                o.step(&flat, lr)
+            }
+        }
+    }
+
+    /// The AdamW state per parameter name (the parameters that have one): what checkpoints
+    /// save as `exp_avg.<name>`, `exp_avg_sq.<name>` and the per-name step counts, the same for
+    /// both optimisers, so that a run saved by one resumes on the other.
+    pub fn state(&self) -> BTreeMap<String, ParamState> {
+        match self {
+            Self::PerTensor(o) => o
+                .state
+                .iter()
+                .map(|(n, s)| {
+                    let st = ParamState {
+                        step: s.step,
+                        exp_avg: s.exp_avg.shallow_clone(),
+                        exp_avg_sq: s.exp_avg_sq.shallow_clone(),
+                    };
+                    (n.clone(), st)
+                })
+                .collect(),
+            Self::Flat(o) => o.state(),
+        }
+    }
+
+    /// Replaces the state by `state` (as [`Optimizer::state`] gives it), moving its tensors to
+    /// the parameters' device.
+    pub fn set_state(&mut self, state: BTreeMap<String, ParamState>) -> Result<(), OptimError> {
+        match self {
+            Self::PerTensor(o) => {
+                let shapes: BTreeMap<&str, Vec<i64>> =
+                    o.params.iter().map(|(n, p)| (n.as_str(), p.size())).collect();
+                for (name, st) in &state {
+                    let expected = shapes
+                        .get(name.as_str())
+                        .ok_or_else(|| OptimError::UnknownParameter(name.clone()))?;
+                    for t in [&st.exp_avg, &st.exp_avg_sq] {
+                        if t.size() != *expected {
+                            return Err(OptimError::Shape {
+                                name: name.clone(),
+                                got: t.size(),
+                                expected: expected.clone(),
+                            });
+                        }
+                    }
+                }
+                let device = o.params.first().map(|(_, p)| p.device());
+                o.state = state
+                    .into_iter()
+                    .map(|(n, s)| {
+                        let to = |t: Tensor| match device {
+                            Some(d) => t.to_device(d),
+                            None => t,
+                        };
+                        let st = ParamState {
+                            step: s.step,
+                            exp_avg: to(s.exp_avg),
+                            exp_avg_sq: to(s.exp_avg_sq),
+                        };
+                        (n, st)
+                    })
+                    .collect();
+                Ok(())
+            }
+            Self::Flat(o) => o.set_state(&state),
+        }
     }
 }

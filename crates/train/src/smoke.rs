@@ -1,7 +1,7 @@
 //! A tiny end-to-end check that needs no data on disk: two synthetic tasks, one sampled batch, a
 //! few training steps. (The full demo, with environments, comes with the evaluation crate.)
 
-use crate::optim::{AdamW, AdamWConfig};
+use crate::optim::{AdamWConfig, Optimizer};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};
 use pdt_model::{PromptDt, PromptDtConfig};
@@ -50,7 +50,7 @@ pub fn run(seed: u64, steps: u64, device: Device) -> Vec<StepStats> {
     let vs = VarStore::new(device);
     let model = PromptDt::new(&vs.root(), &mcfg);
     let ocfg = AdamWConfig { warmup_steps: 1, learning_rate: 1e-3, ..AdamWConfig::default() };
-    let mut opt = AdamW::new(&vs, &mcfg.parameter_names(), ocfg);
+    let mut opt = Optimizer::new(&vs, &mcfg.parameter_names(), ocfg);
     (0..steps)
         .map(|i| {
             let batch = DeviceBatch::new(&sampler.sample(&mut rng), true, device);

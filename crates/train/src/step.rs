@@ -1,7 +1,7 @@
 //! One gradient step (the reference's `train_step_mix`): forward in train mode, masked MSE on the
 //! history actions, backward, global clipping, AdamW at the scheduled learning rate.
 
-use crate::optim::AdamW;
+use crate::optim::Optimizer;
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::{PromptDtBatch, SegmentBatch};
 use tch::{Device, Kind, Tensor};
@@ -55,7 +55,7 @@ impl DeviceBatch {
 /// One training step at gradient step index `step` (0-based; it sets the warm-up learning rate).
 pub fn train_step(
     model: &PromptDt,
-    opt: &mut AdamW,
+    opt: &mut Optimizer,
     batch: &DeviceBatch,
     loss_on: LossOn,
     step: u64,
@@ -71,8 +71,8 @@ pub fn train_step(
         _ => PromptDt::action_loss(&model.forward(h, p, true), &h.actions, &h.mask),
     };
     let mut grads = opt.backward(&loss);
-    let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg.grad_clip_norm);
-    let lr = opt.cfg.lr_at(step);
+    let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg().grad_clip_norm);
+    let lr = opt.cfg().lr_at(step);
     opt.step(&grads, lr);
     StepStats { loss: loss.to_kind(Kind::Double).double_value(&[]), grad_norm, lr }
 }

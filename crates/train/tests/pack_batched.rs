@@ -9,7 +9,7 @@
 use pdt_base::seed::derive_seed;
 use pdt_model::packed::{DropoutSeeds, PackedBatch, PackedRow};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_train::optim::{AdamW, AdamWConfig};
+use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn, StepStats};
 use std::sync::Mutex;
@@ -140,6 +140,14 @@ fn bit_equal(a: &Tensor, b: &Tensor) -> bool {
     a.size() == b.size()
         && a.kind() == b.kind()
         && a.view_dtype(Kind::Int).eq_tensor(&b.view_dtype(Kind::Int)).all().int64_value(&[]) == 1
+}
+
+/// The per-tensor optimiser of a solo run (the bitwise-PyTorch one the pack is compared with).
+fn adam(opt: &Optimizer) -> &AdamW {
+    match opt {
+        Optimizer::PerTensor(a) => a,
+        Optimizer::Flat(_) => panic!("the solo runs of these tests use the per-tensor AdamW"),
+    }
 }
 
 fn engine() -> BatchedEngine {
@@ -281,7 +289,7 @@ fn fifty_pack_steps_match_three_solo_runs() {
         let (vs, model) = solo(run);
         let init: Vec<(String, Tensor)> =
             vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-        let mut opt = AdamW::new(&vs, &cfg().parameter_names(), optim());
+        let mut opt = Optimizer::PerTensor(AdamW::new(&vs, &cfg().parameter_names(), optim()));
         for step in 0..STEPS {
             tch::manual_seed(derive_seed(RUNS[run].seed, STREAM_DROPOUT, step) as i64);
             let st = train_step(&model, &mut opt, &batch(run, step), RUNS[run].loss_on, step);
@@ -303,9 +311,9 @@ fn fifty_pack_steps_match_three_solo_runs() {
             }
             w_d = w_d.max(max_diff(t, &vars[name]));
         }
-        let names: Vec<&String> = opt.state.keys().collect();
+        let names: Vec<&String> = adam(&opt).state.keys().collect();
         assert_eq!(state.moments.keys().collect::<Vec<_>>(), names, "run {run}: moments");
-        for (name, st) in &opt.state {
+        for (name, st) in &adam(&opt).state {
             assert_eq!(state.moments[name].step, st.step, "run {run}: {name} step count");
         }
     }
@@ -382,8 +390,8 @@ fn an_imported_solo_state_continues_as_solo() {
     let _g = lock();
     let run = 2; // a shorter prompt, loss on prompt and history
     let (vs, model) = solo(run);
-    let mut opt = AdamW::new(&vs, &cfg().parameter_names(), optim());
-    let solo_step = |opt: &mut AdamW, step: u64| {
+    let mut opt = Optimizer::PerTensor(AdamW::new(&vs, &cfg().parameter_names(), optim()));
+    let solo_step = |opt: &mut Optimizer, step: u64| {
         tch::manual_seed(derive_seed(RUNS[run].seed, STREAM_DROPOUT, step) as i64);
         train_step(&model, opt, &batch(run, step), RUNS[run].loss_on, step)
     };
@@ -400,7 +408,7 @@ fn an_imported_solo_state_continues_as_solo() {
                 (n, t)
             })
             .collect(),
-        moments: opt
+        moments: adam(&opt)
             .state
             .iter()
             .map(|(n, st)| {
@@ -427,7 +435,7 @@ fn an_imported_solo_state_continues_as_solo() {
     let out = e.export(run).unwrap();
     let vars = vs.variables();
     let w_d = out.weights.iter().map(|(n, t)| max_diff(t, &vars[n])).fold(0.0, f64::max);
-    for (name, st) in &opt.state {
+    for (name, st) in &adam(&opt).state {
         assert_eq!(out.moments[name].step, st.step, "{name}: step count carried over");
     }
     eprintln!("resumed in a pack: max |loss diff| {loss_d:e}, max |weight diff| {w_d:e}");
@@ -516,9 +524,15 @@ fn time_pack_of_three_against_three_solo_steps() {
                 (vs, m)
             })
             .collect();
-        let mut opts: Vec<AdamW> = solos
+        let mut opts: Vec<Optimizer> = solos
             .iter()
-            .map(|(vs, _)| AdamW::new(vs, &mcfg.parameter_names(), AdamWConfig::default()))
+            .map(|(vs, _)| {
+                Optimizer::PerTensor(AdamW::new(
+                    vs,
+                    &mcfg.parameter_names(),
+                    AdamWConfig::default(),
+                ))
+            })
             .collect();
         // Medians of wall and on-CPU milliseconds, the first 2 steps left out (warm-up).
         let median = |v: &[(f64, f64)]| {

@@ -6,7 +6,7 @@ pub mod macaw;
 mod options;
 mod overrides;
 
-pub use options::{AdamWConfig, Inference, LossOn};
+pub use options::{AdamWConfig, FlatOptim, Inference, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::DeviceSpec;
 pub use pdt_base::num::compact;
@@ -552,6 +552,19 @@ mod tests {
         assert_eq!(c.eval.episodes, 50);
         let back: TrainConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
         assert_eq!(back, c);
+    }
+
+    #[test]
+    fn optim_flat_defaults_to_auto_and_is_written_only_when_set() {
+        let c: TrainConfig = toml::from_str("[optim]\nlearning_rate = 1e-3\n").unwrap();
+        assert_eq!(c.optim.flat, FlatOptim::Auto);
+        assert!(!c.to_toml().unwrap().contains("flat"), "files at the default stay as they were");
+        let on: TrainConfig = toml::from_str("[optim]\nflat = \"on\"\n").unwrap();
+        assert_eq!(on.optim.flat, FlatOptim::On);
+        assert!(on.to_toml().unwrap().contains("flat = \"on\""));
+        assert_eq!(toml::from_str::<TrainConfig>(&on.to_toml().unwrap()).unwrap(), on);
+        assert!((FlatOptim::Auto.use_flat(true), FlatOptim::Auto.use_flat(false)) == (true, false));
+        assert!(toml::from_str::<TrainConfig>("[optim]\nflat = \"yes\"\n").is_err());
     }
 
     #[test]

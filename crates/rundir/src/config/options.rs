@@ -20,6 +20,41 @@ pub struct AdamWConfig {
     pub warmup_steps: u64,
     /// Global L2 gradient-norm clipping threshold.
     pub grad_clip_norm: f64,
+    /// Whether clipping and AdamW run on one flat buffer (`pdt_train::optim::FlatAdamW`: a fixed
+    /// handful of kernels per step) or loop over the parameter tensors (`AdamW`: PyTorch's
+    /// single-tensor path, bit for bit on CPU). Left out of `config.toml` at its default, so files
+    /// written before it existed and files written now at the default are the same.
+    #[serde(skip_serializing_if = "FlatOptim::is_auto")]
+    pub flat: FlatOptim,
+}
+
+/// `optim.flat`: which AdamW implementation a run steps with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FlatOptim {
+    /// Flat on CUDA, where per-tensor kernel launches dominate a step; per-tensor on CPU, where
+    /// the bitwise parity with PyTorch holds.
+    #[default]
+    Auto,
+    /// Always the flat buffer (results within a tolerance of PyTorch's, not bit for bit).
+    On,
+    /// Always the per-tensor loops.
+    Off,
+}
+
+impl FlatOptim {
+    pub fn is_auto(&self) -> bool {
+        *self == FlatOptim::Auto
+    }
+
+    /// Whether the flat optimiser is used on a device that is (`cuda = true`) or is not CUDA.
+    pub fn use_flat(self, cuda: bool) -> bool {
+        match self {
+            FlatOptim::Auto => cuda,
+            FlatOptim::On => true,
+            FlatOptim::Off => false,
+        }
+    }
 }
 
 impl Default for AdamWConfig {
@@ -32,6 +67,7 @@ impl Default for AdamWConfig {
             weight_decay: 1e-4,
             warmup_steps: 10_000,
             grad_clip_norm: 0.25,
+            flat: FlatOptim::Auto,
         }
     }
 }

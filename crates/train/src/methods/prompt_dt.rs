@@ -8,7 +8,7 @@ use super::learner::{
 };
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
-use crate::optim::{AdamW, AdamWConfig, ParamState};
+use crate::optim::{AdamWConfig, Optimizer, ParamState};
 use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
@@ -51,7 +51,7 @@ pub(crate) struct PromptDtLearner<'s> {
     variant: Variant,
     vs: VarStore,
     model: PromptDt,
-    opt: AdamW,
+    opt: Optimizer,
     /// The training tasks' batch sampler.
     sampler: BatchSampler<'s>,
 }
@@ -63,8 +63,13 @@ impl<'s> PromptDtLearner<'s> {
         tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
         let vs = VarStore::new(setup.device);
         let model = PromptDt::new(&vs.root(), &setup.run_data.model_cfg);
-        let opt =
-            AdamW::new(&vs, &setup.run_data.model_cfg.parameter_names(), setup.cfg.optim.clone());
+        // `optim.flat` (default `auto`): the flat-buffer AdamW on CUDA, PyTorch's per-tensor one
+        // on CPU. Both save the same per-parameter state, so a run resumes on either.
+        let opt = Optimizer::new(
+            &vs,
+            &setup.run_data.model_cfg.parameter_names(),
+            setup.cfg.optim.clone(),
+        );
         Ok(Self { setup, variant, vs, model, opt, sampler })
     }
 }
@@ -114,14 +119,14 @@ impl Learner for PromptDtLearner<'_> {
     /// parameter name; each written under a temporary name and renamed.
     fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
         checkpoint::save(&self.vs, &files.weights, &self.model.cfg)?;
+        let state = self.opt.state();
         let mut named: Vec<(String, Tensor)> = Vec::new();
-        for (name, st) in &self.opt.state {
+        for (name, st) in &state {
             named.push((format!("exp_avg.{name}"), st.exp_avg.to_device(Device::Cpu)));
             named.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_device(Device::Cpu)));
         }
         write_tensors(&files.moments, &named)?;
-        let steps: BTreeMap<String, u64> =
-            self.opt.state.iter().map(|(n, s)| (n.clone(), s.step)).collect();
+        let steps: BTreeMap<String, u64> = state.iter().map(|(n, s)| (n.clone(), s.step)).collect();
         adam_steps_value(&steps, files)
     }
 
@@ -141,12 +146,12 @@ impl Learner for PromptDtLearner<'_> {
             .map_err(|e| corrupt(opt_path, e.to_string()))?
             .into_iter()
             .collect();
-        let device = self.vs.device();
+        let mut state = BTreeMap::new();
         for (name, &step) in &adam_steps {
             let get = |k: String| {
                 tensors
                     .get(&k)
-                    .map(|t| t.to_device(device))
+                    .map(Tensor::shallow_clone)
                     .ok_or_else(|| corrupt(opt_path, format!("missing `{k}`")))
             };
             let st = ParamState {
@@ -154,9 +159,9 @@ impl Learner for PromptDtLearner<'_> {
                 exp_avg: get(format!("exp_avg.{name}"))?,
                 exp_avg_sq: get(format!("exp_avg_sq.{name}"))?,
             };
-            self.opt.state.insert(name.clone(), st);
+            state.insert(name.clone(), st);
         }
-        Ok(())
+        self.opt.set_state(state).map_err(|e| corrupt(opt_path, e.to_string()))
     }
 
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError> {
@@ -233,7 +238,8 @@ fn eval_tasks(
             warmup_steps: 1,
             ..setup.cfg.optim.clone()
         };
-        let mut opt = AdamW::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
+        let mut opt =
+            Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
         for s in 0..setup.cfg.eval.finetune_steps {
             let seg = sampler.tail_segments(
                 i,
