@@ -82,6 +82,12 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     use pdt_train::config::{Overrides, TrainConfig};
+    if !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_train::pack::is_pack_dir) {
+        return crate::packs::train_pack(a);
+    }
+    if a.engine.is_some() {
+        bail!("--engine is for packs (--pack, or --resume of a pack directory)");
+    }
     let (cfg, dir) = match (&a.resume, &a.config) {
         (Some(dir), _) => (None, dir.clone()),
         (None, Some(path)) => {
@@ -131,7 +137,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let opts = pdt_train::run::TrainOptions {
         resume: a.resume.is_some(),
         resume_with,
-        stop_after_iterations: None,
+        stop_after_iterations: a.stop_after_iterations,
         progress: &mut progress,
     };
     let summary = pdt_train::run::train(cfg, &dir, opts)?;
