@@ -243,9 +243,16 @@ pub struct ReproduceArgs {
     /// The results registry `--report-only` reads absent runs from.
     #[arg(long, default_value = "results")]
     pub registry: PathBuf,
-    /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it) and write no report.
+    /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it), or these runs
+    /// (comma-separated), and write no report.
     #[arg(long)]
     pub only: Option<String>,
+    /// Train up to N runs of one family (one model shape, device and data; not MACAW) as one
+    /// pack, in one process (docs/packs.md); a pack counts as one of --jobs. With `--emit jobs`,
+    /// one job per pack. Default 1 (each run its own process): until the batched engine is in
+    /// this build, a pack steps its runs one after another.
+    #[arg(long, value_parser = count(1, 1024))]
+    pub pack: Option<usize>,
     /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
     #[arg(long, default_value = "PASSIVE")]
     pub omp_wait_policy: String,

@@ -458,6 +458,13 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         Some(t) => t,
         None => (cores / jobs).max(1),
     };
+    // Packing pays where one engine call steps the pack's runs at once (the batched engine);
+    // through the solo engine a pack takes its runs' steps one after another.
+    let pack = match a.pack {
+        Some(n) => n,
+        None if on_gpu && pdt_train::pack::Engine::batched_available() => 12,
+        None => 1,
+    };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {
         Some(d) => {
@@ -509,7 +516,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 true => std::path::absolute(name)?.to_string_lossy().into_owned(),
                 false => name.to_string(),
             };
-            let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra)?;
+            if pack > 1 {
+                extra.push("--pack".into());
+                extra.push(pack.to_string());
+            }
+            let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra, pack)?;
             out!(
                 "{} runs; wrote {}",
                 p.runs.len(),
@@ -532,6 +543,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             jobs,
             omp_wait_policy: Some(a.omp_wait_policy.clone()),
             pretrained_root: std::path::absolute(&a.pretrained_root)?,
+            pack,
         };
         let pb = bar(0, "{prefix} {bar:30} {pos}/{len} iterations [{elapsed} < {eta}] {msg}");
         pb.set_prefix(format!("{} {}", p.experiment, p.budget));

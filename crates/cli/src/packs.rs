@@ -12,7 +12,8 @@ use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,
 /// then each run's outcome; fails if any run failed.
 pub fn train_pack(a: &TrainArgs) -> Result<()> {
-    let engine = a.engine.as_deref().map(str::parse::<Engine>).transpose().map_err(anyhow::Error::msg)?;
+    let engine =
+        a.engine.as_deref().map(str::parse::<Engine>).transpose().map_err(anyhow::Error::msg)?;
     let multi = MultiProgress::new();
     if a.quiet {
         multi.set_draw_target(indicatif::ProgressDrawTarget::hidden());

@@ -31,7 +31,11 @@ fn three(cfg: &Path) -> Vec<PathBuf> {
     let each = [("train", "resume_interval", "1"), ("eval", "finetune_steps", "2")];
     let sets = |name: &str, method: &str, seed: &str| {
         let mut v = each.to_vec();
-        v.extend([("run", "method", method), ("run", "seed", seed), ("eval", "finetune_batch", "8")]);
+        v.extend([
+            ("run", "method", method),
+            ("run", "seed", seed),
+            ("eval", "finetune_batch", "8"),
+        ]);
         member(cfg, name, &v)
     };
     vec![
@@ -60,7 +64,8 @@ fn tree(dir: &Path, keep_pack: bool) -> BTreeMap<String, Vec<u8>> {
             }
             let bytes = std::fs::read(&p).unwrap();
             let text = || String::from_utf8(bytes.clone()).unwrap();
-            let clean = if name == "metrics.jsonl" {
+            let file = p.file_name().unwrap().to_string_lossy().into_owned();
+            let clean = if file == "metrics.jsonl" {
                 let lines: Vec<String> = text()
                     .lines()
                     .map(|l| {
@@ -70,7 +75,7 @@ fn tree(dir: &Path, keep_pack: bool) -> BTreeMap<String, Vec<u8>> {
                     })
                     .collect();
                 lines.join("\n").into_bytes()
-            } else if name == "metrics.csv" {
+            } else if file == "metrics.csv" {
                 let t = text();
                 let col = t
                     .lines()
@@ -88,7 +93,7 @@ fn tree(dir: &Path, keep_pack: bool) -> BTreeMap<String, Vec<u8>> {
                     })
                     .collect();
                 lines.join("\n").into_bytes()
-            } else if name == "run.json" {
+            } else if file == "run.json" {
                 let mut v: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
                 let o = v.as_object_mut().unwrap();
                 o.remove("created").unwrap();
@@ -152,15 +157,15 @@ fn a_run_trained_in_a_solo_engine_pack_is_the_run_trained_alone() {
     assert!(msg.contains("run 2: finished after iteration 8"), "{msg}");
     let runs = runs_of(&pack);
     assert_eq!(runs.len(), 3);
-    for (slot, run) in runs.iter().enumerate() {
-        let name = run.file_name().unwrap().to_string_lossy().into_owned();
-        let cfg = &configs[slot];
-        let alone = tmp.path().join("alone").join(&name);
-        ok(&["train", "--config", s(cfg), "--out", s(&alone), "--quiet"]);
-        assert_same_tree(run, &alone, false);
+    for run in &runs {
         let info: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+        let slot = info["pack"]["slot"].as_u64().unwrap() as usize;
         assert_eq!(info["pack"], serde_json::json!({"size": 3, "slot": slot, "engine": "solo"}));
+        let name = run.file_name().unwrap().to_string_lossy().into_owned();
+        let alone = tmp.path().join("alone").join(&name);
+        ok(&["train", "--config", s(&configs[slot]), "--out", s(&alone), "--quiet"]);
+        assert_same_tree(run, &alone, false);
         let solo = std::fs::read_to_string(alone.join("run.json")).unwrap();
         assert!(!solo.contains("pack"), "a solo run records no pack: {solo}");
     }
@@ -244,4 +249,46 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
     assert!(e.contains("--engine is for packs"), "{e}");
     let e = fails(&["train", "--engine", "batched", "--quiet", "--out", s(&out), "--pack", s(&a)]);
     assert!(e.contains("batched") && e.contains("--engine solo"), "{e}");
+}
+
+#[test]
+fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = tmp.path().join("packs.toml");
+    std::fs::write(&m, cli::tiny_manifest("packs", "Packs", "reproduce --pack", 2)).unwrap();
+    let data = tmp.path().join("data");
+    let (alone, packed, emitted) =
+        (tmp.path().join("alone"), tmp.path().join("packed"), tmp.path().join("emitted"));
+    let run = |out: &Path, more: &[&str]| {
+        let mut args = vec!["reproduce", s(&m), "--budget", "smoke", "--out", s(out)];
+        args.extend(["--data-root", s(&data), "--device", "cpu"]);
+        args.extend(more);
+        ok(&args)
+    };
+    run(&alone, &["--jobs", "2"]);
+    let msg = run(&packed, &["--pack", "4"]);
+    assert!(msg.contains("4 started, 0 resumed, 0 failed"), "{msg}");
+    let record = packed.join("packs/point_robot_prompt-dt_smoke_seed0-x4/pack.json");
+    assert!(record.is_file(), "{msg}");
+    let keys = [
+        "point_robot/prompt-dt/smoke/seed0",
+        "point_robot/prompt-dt/smoke/seed1",
+        "point_robot/mt-orl/smoke/seed0",
+        "point_robot/mt-orl/smoke/seed1",
+    ];
+    for k in keys {
+        assert_same_tree(&alone.join("runs").join(k), &packed.join("runs").join(k), false);
+    }
+    // A second call finds them finished.
+    assert!(run(&packed, &["--pack", "4"]).contains("4 runs already finished"));
+    // --emit jobs --pack: one job for the pack, naming its runs, which trains them all.
+    run(&emitted, &["--pack", "4", "--emit", "jobs"]);
+    let jobs = std::fs::read_to_string(emitted.join("jobs/packs-smoke/jobs.txt")).unwrap();
+    assert_eq!(jobs.lines().count(), 1, "{jobs}");
+    assert!(jobs.contains(&format!("--only '{}'", keys.join(","))) && jobs.contains("--pack"));
+    let st = std::process::Command::new("sh").arg("-c").arg(jobs.trim()).status().unwrap();
+    assert!(st.success(), "{jobs}");
+    for k in keys {
+        assert_same_tree(&alone.join("runs").join(k), &emitted.join("runs").join(k), false);
+    }
 }

@@ -1,8 +1,8 @@
 //! The typed files of a run directory: old names read, round trips, and errors that name the file.
 
 use pdt_rundir::{
-    EvalLine, FinalEval, Latest, MetricsLine, PackInfo, RunDir, RunDirError, RunInfo, RunStats, TaskResult,
-    TrainState,
+    EvalLine, FinalEval, Latest, MetricsLine, PackInfo, RunDir, RunDirError, RunInfo, RunStats,
+    TaskResult, TrainState,
 };
 use std::collections::BTreeMap;
 use std::fs;

@@ -8,8 +8,8 @@ use super::learner::{
 };
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
-use crate::pack::SlotState;
 use crate::optim::{AdamW, AdamWConfig, ParamState};
+use crate::pack::SlotState;
 use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};

@@ -9,7 +9,7 @@ use crate::error::{io_err, RunError};
 use crate::run_loop::TrainSummary;
 use pdt_base::fs::write_atomic;
 use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::{Component, Path, PathBuf};
 
 /// The file of a pack directory that names its runs.
 pub const PACK_JSON: &str = "pack.json";
@@ -26,7 +26,7 @@ pub struct PackRecord {
 /// One run of `pack.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PackRecordRun {
-    /// The run's directory, relative to the pack directory.
+    /// The run's directory: a name inside the pack directory, or an absolute path.
     pub dir: String,
     /// The configuration the run starts from (TOML, as its `config.toml`).
     pub config: String,
@@ -100,14 +100,22 @@ pub fn resume_pack_dir(
             path: path.clone(),
             message: format!("the configuration of run {}: {e}", r.dir),
         })?;
-        let rel = PathBuf::from(&r.dir);
-        if rel.is_absolute() || rel.components().count() != 1 {
+        let given = PathBuf::from(&r.dir);
+        // A name inside the pack directory (`train --pack`), or an absolute path (`reproduce
+        // --pack`, whose runs live in the plan's tree); nothing that climbs out of either.
+        let single = given.components().count() == 1;
+        let plain =
+            given.components().all(|c| matches!(c, Component::Normal(_) | Component::RootDir));
+        if !plain || !(given.is_absolute() || single) {
             return Err(RunError::Corrupt {
                 path: path.clone(),
-                message: format!("run directory `{}` is not a name inside the pack", r.dir),
+                message: format!(
+                    "run directory `{}` is neither a name inside the pack nor an absolute path",
+                    r.dir
+                ),
             });
         }
-        runs.push(PackRun { config, dir: dir.join(rel) });
+        runs.push(PackRun { config, dir: dir.join(given) });
     }
     let engine = Some(opts.engine.unwrap_or(recorded));
     train_pack(runs, PackOptions { resume: true, engine, ..opts })

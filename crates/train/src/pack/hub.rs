@@ -35,7 +35,11 @@ impl Table {
         // it while the engine does.
         let out = {
             let _rng = torch_rng_lock();
-            self.engine.step(steps)
+            // A panic in the engine (a libtorch error) fails this step for every run in it,
+            // rather than leaving the others waiting for results that never come.
+            let engine = &mut self.engine;
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
+                .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
         };
         for i in (0..submitted.len()).filter(|&i| submitted[i]) {
             self.results[i] = Some(match &out {

@@ -7,7 +7,9 @@ use super::engine::SlotStep;
 use super::hub::Hub;
 use crate::error::RunError;
 use crate::methods::prompt_dt::{checked, iteration_metrics, PromptDtLearner, Variant};
-use crate::methods::{CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval};
+use crate::methods::{
+    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+};
 use crate::setup::{Setup, Split};
 use crate::step::DeviceBatch;
 use crate::streams::torch_rng_lock;
@@ -52,13 +54,6 @@ impl<'s> PackMember<'s> {
             self.synced.set(true);
         }
         Ok(())
-    }
-}
-
-impl Drop for PackMember<'_> {
-    /// However the run ends (finished, stopped, failed), the pack stops waiting for it.
-    fn drop(&mut self) {
-        self.hub.leave(self.slot);
     }
 }
 

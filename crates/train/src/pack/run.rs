@@ -193,11 +193,26 @@ fn train_member(
     opts: TrainOptions<'_>,
     info: &PackInfo,
 ) -> Result<TrainSummary, RunError> {
+    // However the run ends (finished, stopped, failed before its first step, panicked), the pack
+    // stops waiting for it.
+    let _leave = Leave { hub, slot };
     let toml = m.cfg.to_toml()?;
     let setup = Setup::with_data(m.cfg, m.data)?;
     let mut learner = PackMember::new(&setup, slot, hub)?;
     learner.check_can_train()?;
     train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
+}
+
+/// Takes a run out of the hub when dropped.
+struct Leave<'h> {
+    hub: &'h Hub,
+    slot: usize,
+}
+
+impl Drop for Leave<'_> {
+    fn drop(&mut self) {
+        self.hub.leave(self.slot);
+    }
 }
 
 /// The one place an engine is built.

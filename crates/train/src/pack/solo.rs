@@ -119,7 +119,9 @@ impl PackEngine for SoloEngine {
         let given: BTreeMap<&str, &Tensor> =
             state.weights.iter().map(|(k, t)| (k.as_str(), t)).collect();
         if let Some(name) = vars.keys().find(|k| !given.contains_key(k.as_str())) {
-            return Err(RunError::Invalid(format!("pack engine: slot {slot}: no weights `{name}`")));
+            return Err(RunError::Invalid(format!(
+                "pack engine: slot {slot}: no weights `{name}`"
+            )));
         }
         for (name, t) in &given {
             let var = vars.get(*name).ok_or_else(|| {
