@@ -11,8 +11,11 @@ use cli::{fails, ok, s, tiny_setup};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// A setting of an experiment file: `(section, key, TOML value)`.
+type Set<'a> = (&'a str, &'a str, &'a str);
+
 /// The tiny experiment with `sets` (`(section, key, TOML value)`) applied, written as `name.toml`.
-fn member(cfg: &Path, name: &str, sets: &[(&str, &str, &str)]) -> PathBuf {
+fn member(cfg: &Path, name: &str, sets: &[Set]) -> PathBuf {
     let mut doc: toml::Table = std::fs::read_to_string(cfg).unwrap().parse().unwrap();
     for (section, key, value) in sets {
         let v: toml::Table = format!("v = {value}").parse().unwrap();
@@ -230,7 +233,7 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
     let cfg = tiny_setup(tmp.path());
     let out = tmp.path().join("p");
     let a = member(&cfg, "a", &[]);
-    let cases: [(&[(&str, &str, &str)], &str); 4] = [
+    let cases: [(&[Set], &str); 4] = [
         (&[("model", "hidden_size", "32"), ("run", "seed", "1")], "model.hidden_size"),
         (&[("run", "method", "\"macaw\""), ("run", "seed", "1")], "MACAW trains alone"),
         (&[("run", "device", "\"cuda\""), ("run", "seed", "1")], "run.device"),
