@@ -106,3 +106,39 @@ impl Setup {
 pub(crate) fn absolute(path: &Path) -> PathBuf {
     std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A pack's runs share their loaded data exactly when the loader would read the same.
+    #[test]
+    fn data_key_ignores_what_the_loader_never_reads() {
+        let base = TrainConfig::default();
+        let key = |f: &dyn Fn(&mut TrainConfig)| {
+            let mut c = base.clone();
+            f(&mut c);
+            Setup::data_key(&c).ok()
+        };
+        let same = key(&|_| {});
+        assert!(same.is_some());
+        for change in [
+            &|c: &mut TrainConfig| c.run.seed = 7,
+            &|c: &mut TrainConfig| c.run.method = Method::MtOrl,
+            &|c: &mut TrainConfig| c.train.iterations = 3,
+            &|c: &mut TrainConfig| c.optim.learning_rate = 0.5,
+        ] as [&dyn Fn(&mut TrainConfig); 4]
+        {
+            assert_eq!(key(change), same);
+        }
+        for change in [
+            &|c: &mut TrainConfig| c.run.method = Method::PromptMtBc,
+            &|c: &mut TrainConfig| c.sampler.prompt_length = Some(1),
+            &|c: &mut TrainConfig| c.data.dir = "elsewhere".into(),
+            &|c: &mut TrainConfig| c.model.hidden_size = 8,
+        ] as [&dyn Fn(&mut TrainConfig); 4]
+        {
+            assert_ne!(key(change), same);
+        }
+    }
+}
