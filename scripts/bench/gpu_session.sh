@@ -79,7 +79,7 @@ while kill -0 $xr 2>/dev/null; do
 done
 kill $smi 2>/dev/null
 log "4. report and packing"
-timeout 30 "$BIN" reproduce fig2 --budget $BUDGET --out "$WORK/repro" --data-root "$DATA" --report-only >>"$OUT/session.log" 2>&1
+timeout 30 "$BIN" reproduce "${EXP:-fig2}" --budget $BUDGET --out "$WORK/repro" --data-root "$DATA" --report-only >>"$OUT/session.log" 2>&1
 # Small files of every run (curves, metrics, configs, logs), the report, and the datasets' summaries.
 (cd "$WORK" && find repro data bench_model bench_eval smi.csv -type f ! -name '*.safetensors' | tar czf "$OUT/small.tar.gz" -T -)
 # The latest resume point of the first CKPTS unfinished runs (default 4; model + optimizer state), one file each (16 MiB limit).

@@ -35,7 +35,23 @@ pub const OOD_TRAIN_TASKS: [usize; 8] = [8, 13, 16, 20, 22, 26, 32, 37];
 /// Test tasks of the `ood` split.
 pub const OOD_TEST_TASKS: [usize; 3] = [1, 4, 41];
 /// Split names, the default first.
-pub const SPLIT_NAMES: [&str; 2] = ["default", "ood"];
+pub const SPLIT_NAMES: [&str; 3] = ["default", "ood", "ood-paper"];
+
+/// The `ood-paper` split: the paper's text (section 6.4: "the task index is proportional to the
+/// desired direction angle") applied to the reference's OOD indices. The stored goals are unsorted
+/// random angles (pitfall 17), so here an index is a rank in the tasks ordered by goal angle: the
+/// training tasks are those of angle ranks [8, 13, 16, 20, 22, 26, 32, 37] (one arc of goals,
+/// 42.7 to 279.7 degrees, with no test goal inside it), the test tasks those of ranks [1, 4, 41]:
+/// two below the smallest training angle (14.1 and 21.6 degrees) and one above the largest (298.5).
+/// A choice of ours (the paper names no tasks): it keeps the reference's index list and makes every
+/// test goal lie outside the training goals' range, which the reference's split does for one of
+/// three. The task numbers are computed from [`GOALS`] (a test pins them).
+pub fn ood_paper_split() -> (Vec<usize>, Vec<usize>) {
+    let mut by_angle: Vec<usize> = (0..NUM_TASKS).collect();
+    by_angle.sort_by(|&a, &b| GOALS[a].total_cmp(&GOALS[b]));
+    let pick = |ranks: &[usize]| ranks.iter().map(|&r| by_angle[r]).collect::<Vec<_>>();
+    (pick(&OOD_TRAIN_TASKS), pick(&OOD_TEST_TASKS))
+}
 
 /// Goal directions of the 50 tasks, radians in [0, 2 pi): fixed random draws.
 ///
@@ -218,7 +234,8 @@ impl EnvFamily for AntDirFamily {
 
     /// `default`: test [6, 17, 23, 30, 41], train the other 45. `ood`: train
     /// [8, 13, 16, 20, 22, 26, 32, 37], test [1, 4, 41] (only task 1's goal lies outside the
-    /// training goals' range: pitfall 17).
+    /// training goals' range: pitfall 17). `ood-paper`: the same ranks in the tasks ordered by
+    /// angle ([`ood_paper_split`]).
     fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
         match name {
             "default" => {
@@ -226,6 +243,7 @@ impl EnvFamily for AntDirFamily {
                 Ok((train, DEFAULT_TEST_TASKS.to_vec()))
             }
             "ood" => Ok((OOD_TRAIN_TASKS.to_vec(), OOD_TEST_TASKS.to_vec())),
+            "ood-paper" => Ok(ood_paper_split()),
             other => Err(EnvError::UnknownSplit {
                 env: ENV_NAME.into(),
                 split: other.into(),
@@ -335,6 +353,21 @@ mod tests {
         assert_eq!(train.len(), 45);
         let (train, test) = fam.split("ood").unwrap_or_default();
         assert_eq!((train.len(), test), (8, vec![1, 4, 41]));
+        // The paper-faithful split: two test goals below every training goal, one above.
+        let (train, test) = fam.split("ood-paper").unwrap_or_default();
+        assert_eq!(train, vec![35, 0, 27, 22, 16, 30, 41, 46]);
+        assert_eq!(test, vec![6, 9, 48]);
+        let angle = |t: &usize| GOALS[*t];
+        let lo = train.iter().map(angle).fold(f64::INFINITY, f64::min);
+        let hi = train.iter().map(angle).fold(f64::NEG_INFINITY, f64::max);
+        let below = test.iter().filter(|t| angle(t) < lo).count();
+        let above = test.iter().filter(|t| angle(t) > hi).count();
+        assert_eq!((below, above), (2, 1));
+        // The reference's split has one test goal outside the training range (pitfall 17).
+        let (train, test) = fam.split("ood").unwrap_or_default();
+        let lo = train.iter().map(angle).fold(f64::INFINITY, f64::min);
+        let hi = train.iter().map(angle).fold(f64::NEG_INFINITY, f64::max);
+        assert_eq!(test.iter().filter(|t| angle(t) < lo || angle(t) > hi).count(), 1);
         assert_eq!(fam.contact_cost, ContactCost::Reference);
         let p = fam.preset();
         assert_eq!((p.obs_dim, p.act_dim, p.rtg_scale, p.target_return), (27, 8, 500.0, 500.0));

@@ -20,6 +20,7 @@ pub mod plan;
 pub mod registry;
 pub mod render;
 pub mod report;
+pub mod task_blind;
 
 pub use exec::{ExecOptions, ExecSummary, Progress, Stage};
 pub use manifest::{Manifest, BUILTIN};

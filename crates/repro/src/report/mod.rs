@@ -467,14 +467,17 @@ fn write_outputs(m: &Manifest, plan: &Plan, rep: &mut Report) -> Result<(), Repr
         ("report.json".into(), serde_json::to_string_pretty(&rep).unwrap_or_default().into_bytes()),
     ];
     if m.layout == Layout::Curves || rep.cells.iter().any(|c| c.curve.len() > 1) {
+        // A panel per environment and split (the part of the cell id before the method), so
+        // Ant-Dir's two OOD splits get a panel each.
+        let panel = |c: &CellResult| c.id.split('/').next().unwrap_or(&c.env).to_string();
         let mut envs: Vec<String> = Vec::new();
         for c in &rep.cells {
-            if !envs.contains(&c.env) {
-                envs.push(c.env.clone());
+            if !envs.contains(&panel(c)) {
+                envs.push(panel(c));
             }
         }
         for env in envs {
-            let of_env: Vec<&CellResult> = rep.cells.iter().filter(|c| c.env == env).collect();
+            let of_env: Vec<&CellResult> = rep.cells.iter().filter(|c| panel(c) == env).collect();
             let mut series: Vec<pdt_report::Series> = of_env
                 .iter()
                 .filter(|c| !c.curve.is_empty())
@@ -531,9 +534,8 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
     let cell = |id: &str| cells.iter().find(|x| x.id == id);
     // Only cells with a finished seed count: a claim checked on a model still at iteration 1
     // would read "does not hold" for no reason.
-    let score = |id: &str| {
-        cell(id).filter(|x| x.seeds_finished > 0).and_then(|x| x.ours_normalised).map(|s| s.mean)
-    };
+    let stat = |id: &str| cell(id).filter(|x| x.seeds_finished > 0).and_then(|x| x.ours_normalised);
+    let score = |id: &str| stat(id).map(|s| s.mean);
     let fmt = |id: &str| {
         let Some(x) = cell(id) else { return format!("{id}: -") };
         let value = x.ours_normalised.map_or("-".into(), |s| format!("{:.1}", s.mean));
@@ -548,14 +550,31 @@ fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult 
             let (Some(x), Some(y)) = (score(a), score(b)) else {
                 return not_measured(c, format!("{} vs {}", fmt(a), fmt(b)));
             };
+            // The seed rule (docs/reproduce.md, "Claims"): a call needs a lead beyond both the
+            // claim's margin and the spread over seeds, the sum of the two cells' standard
+            // deviations over their seeds (0 for a cell of one seed, which the detail says).
             let margin = c.min_margin.unwrap_or(10.0);
+            let (sa, sb) = (stat(a), stat(b));
+            let spread = sa.map_or(0.0, |s| s.std) + sb.map_or(0.0, |s| s.std);
+            let seeds = |s: Option<Stat>| s.map_or(0, |s| s.n);
+            let spread_note = if seeds(sa) < 2 || seeds(sb) < 2 {
+                format!(
+                    "seed spread {spread:.1}; {} vs {} seeds, so the spread is not fully known",
+                    seeds(sa),
+                    seeds(sb)
+                )
+            } else {
+                format!("seed spread {spread:.1}")
+            };
             let detail = format!(
-                "{} vs {}; lead {:.1} (a call needs more than {margin})",
+                "{} vs {}; lead {:.1} (a call needs more than {margin} and more than the {spread_note})",
                 fmt(a),
                 fmt(b),
                 x - y
             );
-            let verdict = if (x - y).abs() <= margin { "too close to call" } else { holds(x > y) };
+            let lead = (x - y).abs();
+            let verdict =
+                if lead <= margin || lead <= spread { "too close to call" } else { holds(x > y) };
             (verdict, detail)
         }
         ClaimKind::Insensitive | ClaimKind::Ordered => {
@@ -649,6 +668,16 @@ mod tests {
         assert_eq!(verdict(75.0, 50.0, None), "holds");
         assert_eq!(verdict(50.0, 75.0, None), "does not hold");
         assert_eq!(verdict(36.4, 32.2, Some(2.0)), "holds");
+        // The seed spread: a lead of 25 beyond the margin but within the seeds' spread is no call.
+        let mut a = cell("a", 75.0);
+        a.ours_normalised = Some(Stat { mean: 75.0, std: 20.0, n: 3 });
+        let mut b = cell("b", 50.0);
+        b.ours_normalised = Some(Stat { mean: 50.0, std: 10.0, n: 3 });
+        let r = check_claim(&better(None), &[a.clone(), b.clone()]);
+        assert_eq!(r.verdict, "too close to call", "{}", r.detail);
+        assert!(r.detail.contains("seed spread 30.0"), "{}", r.detail);
+        a.ours_normalised = Some(Stat { mean: 95.0, std: 20.0, n: 3 });
+        assert_eq!(check_claim(&better(None), &[a, b]).verdict, "holds");
         let r = check_claim(&better(None), &[cell("a", 36.4), cell("b", 32.2)]);
         assert!(r.detail.contains("lead 4.2"), "{}", r.detail);
         // a cell with no finished seed is not measured, whatever the scores
