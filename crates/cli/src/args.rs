@@ -243,9 +243,16 @@ pub struct ReproduceArgs {
     /// The results registry `--report-only` reads absent runs from.
     #[arg(long, default_value = "results")]
     pub registry: PathBuf,
-    /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it) and write no report.
+    /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it), or these runs
+    /// (comma-separated), and write no report.
     #[arg(long)]
     pub only: Option<String>,
+    /// Train up to N runs of one family (one model shape, device and data; not MACAW) as one
+    /// pack, in one process (docs/packs.md); a pack counts as one of --jobs. With `--emit jobs`,
+    /// one job per pack. Default 1 (each run its own process): until the batched engine is in
+    /// this build, a pack steps its runs one after another.
+    #[arg(long, value_parser = count(1, 1024))]
+    pub pack: Option<usize>,
     /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
     #[arg(long, default_value = "PASSIVE")]
     pub omp_wait_policy: String,
@@ -550,15 +557,37 @@ pub struct CollectArgs {
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Experiment file (TOML; see configs/). Not with --resume (the run's config.toml is used).
-    #[arg(long, required_unless_present = "resume", conflicts_with = "resume")]
+    #[arg(long, required_unless_present_any = ["resume", "pack"], conflicts_with = "resume")]
     pub config: Option<PathBuf>,
-    /// Run directory to write.
+    /// Run directory to write (with --pack: the pack directory, holding one run directory per
+    /// experiment file).
     #[arg(long, conflicts_with = "resume")]
     pub out: Option<PathBuf>,
-    /// Continue the (killed) run in this directory from its last checkpoint. With it, only
-    /// --iterations (to extend the run), --device and --data (the same data, moved) may be given.
+    /// Continue the (killed) run in this directory from its last checkpoint, or the (killed) pack
+    /// in this pack directory (each of its runs). With it, only --iterations (to extend the run),
+    /// --device and --data (the same data, moved) may be given, and --engine for a pack.
     #[arg(long, conflicts_with_all = ["seed", "method", "macaw_preset"])]
     pub resume: Option<PathBuf>,
+    /// Train a pack: the runs of these experiment files in lockstep in one process on one device
+    /// (one environment family, one [model] shape and device; the Prompt-DT variants; MACAW trains
+    /// alone), each into its own run directory in --out. See docs/packs.md.
+    #[arg(
+        long,
+        num_args = 1..,
+        value_name = "CONFIG",
+        requires = "out",
+        conflicts_with_all = ["config", "resume", "seed", "method", "macaw_preset"]
+    )]
+    pub pack: Vec<PathBuf>,
+    /// The engine that steps a pack: `batched` or `solo` (each run's own step in turn, exactly
+    /// as alone). Default: batched where this build has it, else solo; a resumed pack keeps its
+    /// engine.
+    #[arg(long, value_parser = ["batched", "solo"])]
+    pub engine: Option<String>,
+    /// Stop after this many iterations of this invocation, leaving a resumable run (to test
+    /// interruption).
+    #[arg(long, hide = true)]
+    pub stop_after_iterations: Option<u64>,
     /// Override run.seed.
     #[arg(long)]
     pub seed: Option<u64>,

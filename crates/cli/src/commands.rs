@@ -82,6 +82,12 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     use pdt_train::config::{Overrides, TrainConfig};
+    if !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_train::pack::is_pack_dir) {
+        return crate::packs::train_pack(a);
+    }
+    if a.engine.is_some() {
+        bail!("--engine is for packs (--pack, or --resume of a pack directory)");
+    }
     let (cfg, dir) = match (&a.resume, &a.config) {
         (Some(dir), _) => (None, dir.clone()),
         (None, Some(path)) => {
@@ -131,7 +137,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let opts = pdt_train::run::TrainOptions {
         resume: a.resume.is_some(),
         resume_with,
-        stop_after_iterations: None,
+        stop_after_iterations: a.stop_after_iterations,
         progress: &mut progress,
     };
     let summary = pdt_train::run::train(cfg, &dir, opts)?;
@@ -452,6 +458,13 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         Some(t) => t,
         None => (cores / jobs).max(1),
     };
+    // Packing pays where one engine call steps the pack's runs at once (the batched engine);
+    // through the solo engine a pack takes its runs' steps one after another.
+    let pack = match a.pack {
+        Some(n) => n,
+        None if on_gpu && pdt_train::pack::Engine::batched_available() => 12,
+        None => 1,
+    };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {
         Some(d) => {
@@ -503,7 +516,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 true => std::path::absolute(name)?.to_string_lossy().into_owned(),
                 false => name.to_string(),
             };
-            let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra)?;
+            if pack > 1 {
+                extra.push("--pack".into());
+                extra.push(pack.to_string());
+            }
+            let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra, pack)?;
             out!(
                 "{} runs; wrote {}",
                 p.runs.len(),
@@ -526,6 +543,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             jobs,
             omp_wait_policy: Some(a.omp_wait_policy.clone()),
             pretrained_root: std::path::absolute(&a.pretrained_root)?,
+            pack,
         };
         let pb = bar(0, "{prefix} {bar:30} {pos}/{len} iterations [{elapsed} < {eta}] {msg}");
         pb.set_prefix(format!("{} {}", p.experiment, p.budget));

@@ -20,6 +20,7 @@ macro_rules! out_inline {
 
 mod args;
 mod commands;
+mod packs;
 
 use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};

@@ -24,6 +24,10 @@ pub struct ExecOptions {
     pub omp_wait_policy: Option<String>,
     /// Directory holding `pretrained/<env>/` agents (for `collect --from-pretrained`).
     pub pretrained_root: PathBuf,
+    /// Runs per process: up to this many runs of one family, model shape, device and data
+    /// directory train as one pack (`crate::packs`, docs/packs.md); 1: each run in its own process.
+    /// A pack counts as one of `jobs`.
+    pub pack: usize,
 }
 
 /// What the progress callback sees.
@@ -235,6 +239,50 @@ fn command(spec: &RunSpec, state: RunState, opts: &ExecOptions) -> Result<Comman
     Ok(cmd)
 }
 
+/// A run claimed and read, about to be trained (alone or in a pack).
+struct Member<'p> {
+    index: usize,
+    spec: &'p RunSpec,
+    state: RunState,
+    /// This process's claim on the run, held while the job runs.
+    _claim: std::fs::File,
+}
+
+/// A child process training one run, or a pack of them.
+struct Job<'p> {
+    members: Vec<Member<'p>>,
+    child: Child,
+    log_path: PathBuf,
+    /// The child's lifeline: it dies with this process (`DIE_WITH_PARENT`).
+    _parent_end: std::io::PipeWriter,
+}
+
+/// The command line that trains `members` as one pack: their record written into a pack directory
+/// under `out/packs/`, then `train --resume` of it (new runs start, partial ones resume). A moved
+/// tree's runs are pointed at the plan's data, as [`command`] does for one.
+fn pack_command(
+    out: &Path,
+    members: &[Member<'_>],
+    opts: &ExecOptions,
+) -> Result<Command, ReproError> {
+    let specs: Vec<&RunSpec> = members.iter().map(|m| m.spec).collect();
+    let dir = crate::packs::write_pack_dir(out, &specs)?;
+    let mut cmd = Command::new(&opts.exe);
+    cmd.arg(DIE_WITH_PARENT).arg("train").arg("--resume").arg(&dir);
+    let mut moved = None;
+    for m in members {
+        moved = moved.or(plan::moved_data(m.spec)?.map(|_| m.spec.data.dir.clone()));
+    }
+    if let Some(d) = moved {
+        cmd.arg("--data").arg(d);
+    }
+    cmd.arg("--quiet");
+    if let Some(p) = &opts.omp_wait_policy {
+        cmd.env("OMP_WAIT_POLICY", p);
+    }
+    Ok(cmd)
+}
+
 /// Iterations a run has finished, from the line count of its `metrics.jsonl` (cheap to poll).
 fn iterations_done(spec: &RunSpec) -> u64 {
     std::fs::read(pdt_rundir::RunDir::at(&spec.dir).metrics_path())
@@ -270,7 +318,8 @@ fn claim(spec: &RunSpec) -> Result<Option<std::fs::File>, ReproError> {
     Ok(Some(file))
 }
 
-/// Runs the plan's datasets and unfinished runs; `only` restricts it to one run key.
+/// Runs the plan's datasets and unfinished runs; `only` restricts it to one run key, or several
+/// separated by commas (a pack's runs, as `--emit jobs --pack` writes them).
 ///
 /// A run another process holds (another `reproduce` on the same `--out`, or a `train` on its
 /// directory) is waited for, not run twice: once it is free, it is counted as finished if the
@@ -282,14 +331,15 @@ pub fn execute(
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<ExecSummary, ReproError> {
     let runs: Vec<&RunSpec> = match only {
-        Some(k) => {
-            let r =
+        Some(keys) => keys
+            .split(',')
+            .map(|k| {
                 plan.runs.iter().find(|r| r.key == k).ok_or_else(|| ReproError::UnknownRun {
                     key: k.into(),
                     known: plan.runs.iter().map(|r| r.key.clone()).collect(),
-                })?;
-            vec![r]
-        }
+                })
+            })
+            .collect::<Result<_, _>>()?,
         None => plan.runs.iter().collect(),
     };
     // Check every existing run before starting anything: a mismatch is an error up front.
@@ -348,7 +398,7 @@ pub fn execute(
     }
     let mut waiting: Vec<(usize, &RunSpec)> = Vec::new();
     let mut waited: Vec<String> = Vec::new();
-    let mut running: Vec<(usize, &RunSpec, Child, std::fs::File, std::io::PipeWriter)> = Vec::new();
+    let mut running: Vec<Job<'_>> = Vec::new();
     let mut finished = summary.already_finished;
     let mut last = Instant::now() - Duration::from_secs(10);
     loop {
@@ -359,59 +409,84 @@ pub fn execute(
             let Some((index, spec)) = candidates.pop_front().or_else(|| queue.pop_front()) else {
                 break;
             };
-            let Some(claimed) = claim(spec)? else {
-                if !waited.contains(&spec.key) {
-                    waited.push(spec.key.clone());
-                }
-                waiting.push((index, spec));
-                continue;
-            };
-            // Read again now that it is ours: another process may have finished or advanced it.
-            let state = match plan::state(spec) {
-                Ok(s) => s,
-                Err(e) => {
-                    summary.failed.push((spec.key.clone(), e.to_string()));
-                    finished += 1;
-                    continue;
-                }
-            };
-            match state {
-                RunState::Finished => {
-                    summary.finished_elsewhere += 1;
-                    finished += 1;
-                    done[index] = iterations_done(spec);
-                    continue;
-                }
-                RunState::Partial { .. } => summary.resumed += 1,
-                RunState::New => {
-                    summary.started += 1;
-                    let text = spec
-                        .config
-                        .to_toml()
-                        .map_err(|e| ReproError::Invalid(format!("run {}: {e}", spec.key)))?;
-                    write_atomic(&spec.config_path, &text)?;
+            // The run, then (with packs) the compatible runs after it, each claimed and read.
+            let mut picked = vec![(index, spec)];
+            if let Some(key) = crate::packs::pack_key(spec).filter(|_| opts.pack > 1) {
+                for deque in [&mut candidates, &mut queue] {
+                    let mut i = 0;
+                    while i < deque.len() && picked.len() < opts.pack {
+                        if crate::packs::pack_key(deque[i].1).as_ref() == Some(&key) {
+                            picked.extend(deque.remove(i));
+                        } else {
+                            i += 1;
+                        }
+                    }
                 }
             }
-            if let Some(p) = spec.log_path.parent() {
+            let mut members: Vec<Member<'_>> = Vec::new();
+            for (index, spec) in picked {
+                let Some(claimed) = claim(spec)? else {
+                    if !waited.contains(&spec.key) {
+                        waited.push(spec.key.clone());
+                    }
+                    waiting.push((index, spec));
+                    continue;
+                };
+                // Read again now that it is ours: another process may have finished or advanced it.
+                let state = match plan::state(spec) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        summary.failed.push((spec.key.clone(), e.to_string()));
+                        finished += 1;
+                        continue;
+                    }
+                };
+                match state {
+                    RunState::Finished => {
+                        summary.finished_elsewhere += 1;
+                        finished += 1;
+                        done[index] = iterations_done(spec);
+                        continue;
+                    }
+                    RunState::Partial { .. } => summary.resumed += 1,
+                    RunState::New => {
+                        summary.started += 1;
+                        let text = spec
+                            .config
+                            .to_toml()
+                            .map_err(|e| ReproError::Invalid(format!("run {}: {e}", spec.key)))?;
+                        write_atomic(&spec.config_path, &text)?;
+                    }
+                }
+                members.push(Member { index, spec, state, _claim: claimed });
+            }
+            let Some(first) = members.first() else { continue };
+            // A pack writes one log: its first run's.
+            let log_path = first.spec.log_path.clone();
+            if let Some(p) = log_path.parent() {
                 std::fs::create_dir_all(p)
                     .map_err(|e| ReproError::Io { path: p.into(), source: e })?;
             }
             let log = std::fs::OpenOptions::new()
                 .create(true)
                 .append(true)
-                .open(&spec.log_path)
-                .map_err(|e| ReproError::Io { path: spec.log_path.clone(), source: e })?;
+                .open(&log_path)
+                .map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
             let err = log
                 .try_clone()
-                .map_err(|e| ReproError::Io { path: spec.log_path.clone(), source: e })?;
+                .map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
             let (stdin, parent_end) = parent_pipe(&opts.exe)?;
-            let child = command(spec, state, opts)?
+            let mut cmd = match members.as_slice() {
+                [one] => command(one.spec, one.state, opts)?,
+                many => pack_command(&plan.out, many, opts)?,
+            };
+            let child = cmd
                 .stdin(stdin)
                 .stdout(log)
                 .stderr(err)
                 .spawn()
                 .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
-            running.push((index, spec, child, claimed, parent_end));
+            running.push(Job { members, child, log_path, _parent_end: parent_end });
         }
         // Runs not reached this time (every job slot busy) wait their turn again.
         waiting.extend(candidates);
@@ -420,36 +495,45 @@ pub fn execute(
         }
         let mut i = 0;
         while i < running.len() {
-            match running[i].2.try_wait() {
+            match running[i].child.try_wait() {
                 Ok(Some(status)) => {
-                    let (index, spec, ..) = running.swap_remove(i);
-                    done[index] = iterations_done(spec);
-                    finished += 1;
+                    let job = running.swap_remove(i);
+                    for m in &job.members {
+                        done[m.index] = iterations_done(m.spec);
+                        finished += 1;
+                    }
                     if !status.success() {
-                        let tail = std::fs::read_to_string(&spec.log_path).unwrap_or_default();
+                        let tail = std::fs::read_to_string(&job.log_path).unwrap_or_default();
                         let tail: Vec<&str> = tail.lines().rev().take(5).collect();
-                        summary.failed.push((
-                            spec.key.clone(),
-                            format!(
-                                "{status}; last lines of {}: {}",
-                                spec.log_path.display(),
-                                tail.into_iter().rev().collect::<Vec<_>>().join(" | ")
-                            ),
-                        ));
+                        let message = format!(
+                            "{status}; last lines of {}: {}",
+                            job.log_path.display(),
+                            tail.into_iter().rev().collect::<Vec<_>>().join(" | ")
+                        );
+                        // In a pack, the runs that did not finish are the failed ones.
+                        for m in &job.members {
+                            let whole = job.members.len() == 1;
+                            if whole || !matches!(plan::state(m.spec), Ok(RunState::Finished)) {
+                                summary.failed.push((m.spec.key.clone(), message.clone()));
+                            }
+                        }
                     }
                 }
                 Ok(None) => i += 1,
-                Err(e) => return Err(ReproError::Io { path: running[i].1.dir.clone(), source: e }),
+                Err(e) => {
+                    let dir = running[i].members.first().map(|m| m.spec.dir.clone());
+                    return Err(ReproError::Io { path: dir.unwrap_or_default(), source: e });
+                }
             }
         }
         if last.elapsed() >= Duration::from_secs(2) {
-            for (index, spec, ..) in &running {
-                done[*index] = iterations_done(spec);
+            for m in running.iter().flat_map(|j| &j.members) {
+                done[m.index] = iterations_done(m.spec);
             }
             progress(&report(
                 Stage::Training,
                 finished,
-                running.iter().map(|(_, s, ..)| s.key.clone()).collect(),
+                running.iter().flat_map(|j| &j.members).map(|m| m.spec.key.clone()).collect(),
                 waiting.iter().map(|(_, s)| s.key.clone()).collect(),
                 &done,
             ));
@@ -466,16 +550,24 @@ pub fn execute(
 /// Slurm array script (`run.slurm`) into `dir`. Each command runs `reproduce --only` for one run, so
 /// it collects its data if missing, starts or resumes the run, and writes no report; `reproduce
 /// --report-only` merges the results from the run directories alone.
+///
+/// With `pack` > 1, one command per pack instead (`--only` naming its runs, comma-separated; the
+/// runs grouped as [`execute`] groups them: `crate::packs::group`); `extra_args` then carries
+/// `--pack`.
 pub fn emit_jobs(
     plan: &Plan,
     dir: &Path,
     exe: &Path,
     manifest_arg: &str,
     extra_args: &[String],
+    pack: usize,
 ) -> Result<Vec<PathBuf>, ReproError> {
     let q = |s: &str| format!("'{}'", s.replace('\'', r"'\''"));
     let mut lines = String::new();
-    for r in &plan.runs {
+    let runs: Vec<&RunSpec> = plan.runs.iter().collect();
+    let groups = crate::packs::group(&runs, pack.max(1));
+    for g in &groups {
+        let keys: Vec<&str> = g.iter().map(|r| r.key.as_str()).collect();
         let mut parts = vec![
             q(&exe.to_string_lossy()),
             "reproduce".into(),
@@ -485,7 +577,7 @@ pub fn emit_jobs(
             "--out".into(),
             q(&plan.out.to_string_lossy()),
             "--only".into(),
-            q(&r.key),
+            q(&keys.join(",")),
         ];
         parts.extend(extra_args.iter().map(|a| q(a)));
         lines.push_str(&parts.join(" "));
@@ -494,11 +586,12 @@ pub fn emit_jobs(
     let jobs = dir.join("jobs.txt");
     write_atomic(&jobs, &lines)?;
     let slurm = dir.join("run.slurm");
-    let n = plan.runs.len();
+    let n = groups.len();
+    let unit = if pack > 1 { "pack" } else { "run" };
     write_atomic(
         &slurm,
         &format!(
-            "#!/bin/bash\n# One array task per run of {exp} at the {budget} budget ({n} runs).\n\
+            "#!/bin/bash\n# One array task per {unit} of {exp} at the {budget} budget ({n} {unit}s).\n\
              # Submit: sbatch --array=1-{n} {slurm}\n\
              # Then:   {exe} reproduce {exp} --budget {budget} --out {out} --report-only\n\
              #SBATCH --job-name=promptdt-{exp}-{budget}\n#SBATCH --cpus-per-task=2\n\

@@ -4,6 +4,7 @@
 //! - [`plan`]: a manifest at a budget expanded into ordinary run directories and configurations.
 //! - [`exec`]: datasets, then every unfinished run as a `promptdt train` child process, `jobs` at a
 //!   time, resuming killed runs; or one command per run for a scheduler (`--emit jobs`).
+//! - [`packs`]: `--pack N`, runs of one family grouped into packs, one process each.
 //! - [`report`]: ours next to the paper, raw and normalised, with the paper's claims checked.
 //! - [`registry`]: finished runs' small files committed in `results/` (`promptdt results add`),
 //!   read by the report where a run directory is absent.
@@ -14,6 +15,7 @@
 pub mod baselines;
 pub mod exec;
 pub mod manifest;
+pub mod packs;
 pub mod plan;
 pub mod registry;
 pub mod render;

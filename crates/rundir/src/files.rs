@@ -34,6 +34,23 @@ pub struct RunInfo {
     /// "the loss"). Absent in runs written before it was recorded: see [`RunInfo::loss_metric`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loss_metric: Option<String>,
+    /// The pack the run was trained in (`docs/packs.md`); absent for a run trained alone, so a
+    /// solo run's `run.json` is what it has always been.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pack: Option<PackInfo>,
+}
+
+/// Where a run trained in a pack sat in it (`run.json`'s `pack`). Nothing reads a meaning into it
+/// beyond the record: a packed run's directory is an ordinary run directory.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PackInfo {
+    /// Runs in the pack when the run was created.
+    pub size: usize,
+    /// The run's position in the pack (0-based).
+    pub slot: usize,
+    /// The engine that stepped the pack: `batched` (one batched computation for all runs) or
+    /// `solo` (each run's ordinary step, one after another).
+    pub engine: String,
 }
 
 impl RunInfo {

@@ -1,8 +1,8 @@
 //! The typed files of a run directory: old names read, round trips, and errors that name the file.
 
 use pdt_rundir::{
-    EvalLine, FinalEval, Latest, MetricsLine, RunDir, RunDirError, RunInfo, RunStats, TaskResult,
-    TrainState,
+    EvalLine, FinalEval, Latest, MetricsLine, PackInfo, RunDir, RunDirError, RunInfo, RunStats,
+    TaskResult, TrainState,
 };
 use std::collections::BTreeMap;
 use std::fs;
@@ -19,6 +19,7 @@ fn info(method: &str) -> RunInfo {
         created: "2026-11-26T15:00:00Z".into(),
         promptdt_version: "0.1.0".into(),
         loss_metric: None,
+        pack: None,
     }
 }
 
@@ -45,6 +46,14 @@ fn run_json_reads_the_old_split_name_and_writes_the_new_one() -> TestResult {
     assert!(text.contains("\"task_split\":\"ood\"") && !text.contains("\"split\""), "{text}");
     // An old run records no loss column: absent, not null.
     assert!(!text.contains("loss_metric"), "{text}");
+    // A solo run records no pack; a packed run's record reads back.
+    assert!(!text.contains("pack"), "{text}");
+    let packed = RunInfo {
+        pack: Some(PackInfo { size: 3, slot: 1, engine: "solo".into() }),
+        ..info("mt-orl")
+    };
+    let back: RunInfo = serde_json::from_str(&serde_json::to_string(&packed)?)?;
+    assert_eq!(back, packed);
     assert_eq!(serde_json::from_str::<RunInfo>(&text)?, i);
     Ok(())
 }

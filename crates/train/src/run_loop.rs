@@ -20,7 +20,7 @@ use pdt_base::seed::derive_seed;
 use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
 use pdt_rundir::{
-    read_json, write_json, EvalLine, Latest, MetricsLine, RunDir, RunInfo, TrainState,
+    read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
 };
 use rand::SeedableRng;
 use std::path::{Path, PathBuf};
@@ -68,8 +68,8 @@ pub struct TrainSummary {
     pub last_test: Option<Vec<TaskResult>>,
 }
 
-/// The identity of a new run (`run.json`).
-fn run_info(setup: &Setup, loss_metric: &str) -> RunInfo {
+/// The identity of a new run (`run.json`); `pack` where it trains in one.
+fn run_info(setup: &Setup, loss_metric: &str, pack: Option<&PackInfo>) -> RunInfo {
     RunInfo {
         name: format!(
             "{}-{}-seed{}",
@@ -84,6 +84,7 @@ fn run_info(setup: &Setup, loss_metric: &str) -> RunInfo {
         created: now_utc(),
         promptdt_version: env!("CARGO_PKG_VERSION").into(),
         loss_metric: Some(loss_metric.into()),
+        pack: pack.cloned(),
     }
 }
 
@@ -96,7 +97,7 @@ pub fn train(
     dir: &Path,
     opts: TrainOptions<'_>,
 ) -> Result<TrainSummary, RunError> {
-    let cfg = run_config_for(cfg, dir, &opts)?;
+    let cfg = run_config_for(cfg, dir, opts.resume, &opts.resume_with)?;
     // Refuse before anything is written, each bad setting by name.
     cfg.validate()?;
     let toml = cfg.to_toml()?;
@@ -107,21 +108,35 @@ pub fn train(
     // The learner (its model initialised from the seed) and its checks, before anything is written.
     let mut learner = methods::learner(&setup)?;
     learner.check_can_train()?;
+    train_learner(&setup, &toml, dir, learner.as_mut(), opts, None)
+}
+
+/// Trains `learner` (its checks passed) of `setup` in `dir`: the directory created and owned,
+/// its records written (`toml` as `config.toml`; `pack` in `run.json`) or checked, then the loop.
+/// A pack's runs come here each with its member learner (`crate::pack`).
+pub(crate) fn train_learner(
+    setup: &Setup,
+    toml: &str,
+    dir: &Path,
+    learner: &mut dyn Learner,
+    opts: TrainOptions<'_>,
+    pack: Option<&PackInfo>,
+) -> Result<TrainSummary, RunError> {
     std::fs::create_dir_all(dir).map_err(io_err(dir))?;
     let _owner = lock_run_dir(dir)?;
-    prepare_run_dir(&setup, dir, opts.resume, &toml, learner.loss_metric())?;
-    run_loop(&setup, dir, learner.as_mut(), opts)
+    prepare_run_dir(setup, dir, opts.resume, toml, learner.loss_metric(), pack)?;
+    run_loop(setup, dir, learner, opts)
 }
 
 /// The configuration a call to [`train`] runs: `cfg` for a new run (its data directory made
 /// absolute), the run's `config.toml` with `opts.resume_with`'s changes to resume.
-fn run_config_for(
+pub(crate) fn run_config_for(
     cfg: Option<TrainConfig>,
     dir: &Path,
-    opts: &TrainOptions<'_>,
+    resume: bool,
+    with: &ResumeWith,
 ) -> Result<TrainConfig, RunError> {
-    let with = &opts.resume_with;
-    Ok(match (opts.resume, cfg) {
+    Ok(match (resume, cfg) {
         (true, _) => {
             let path = dir.join("config.toml");
             if !path.is_file() {
@@ -179,6 +194,7 @@ fn prepare_run_dir(
     resume: bool,
     toml: &str,
     loss_metric: &str,
+    pack: Option<&PackInfo>,
 ) -> Result<(), RunError> {
     // Temporary files of a killed writer (we own the directory, so none is live).
     for d in [dir.to_path_buf(), dir.join("checkpoints")] {
@@ -191,7 +207,7 @@ fn prepare_run_dir(
         // from it, so what is missing is recreated from the configuration and data, exactly as a
         // new run writes it, and the run starts.
         if !run.info_path().is_file() {
-            run.write_info(&run_info(setup, loss_metric))?;
+            run.write_info(&run_info(setup, loss_metric, pack))?;
         }
         run.write_stats(&setup.run_data.stats)?;
     } else if resume {
@@ -211,7 +227,7 @@ fn prepare_run_dir(
                 dir.display()
             )));
         }
-        run.write_info(&run_info(setup, loss_metric))?;
+        run.write_info(&run_info(setup, loss_metric, pack))?;
         let config = run.config_path();
         write_atomic(&config, toml.as_bytes()).map_err(io_err(&config))?;
         run.write_stats(&setup.run_data.stats)?;

@@ -2,7 +2,7 @@
 //! and checked by `pdt_policy::RunData` (the loader a served policy draws its prompts with, so that
 //! training, evaluation and serving see the same data), and the device.
 
-use crate::config::TrainConfig;
+use crate::config::{Method, TrainConfig};
 use crate::error::RunError;
 use crate::run_dir::EvalSchedule;
 use pdt_data::MultiTaskDataset;
@@ -11,6 +11,7 @@ use pdt_eval::EvalReturns;
 use pdt_policy::RunData;
 use pdt_prompt::BatchSampler;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use tch::Device;
 
 /// Which tasks an evaluation covers.
@@ -26,8 +27,9 @@ pub(crate) struct Setup {
     pub(crate) family: Box<dyn EnvFamily>,
     pub(crate) preset: EnvPreset,
     /// The datasets, normalisation, sampler settings, model shape and the statistics the run
-    /// records (`task_stats.json`).
-    pub(crate) run_data: RunData,
+    /// records (`task_stats.json`). Shared by the runs of a pack with the same data settings
+    /// (`crate::pack`), so a pack holds one copy of them.
+    pub(crate) run_data: Arc<RunData>,
     pub(crate) device: Device,
 }
 
@@ -36,9 +38,37 @@ impl Setup {
         cfg.validate()?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
-        let run_data = RunData::load(&cfg, family.as_ref())?;
+        let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
         let device = pdt_model::device::resolve(cfg.run.device)?;
         Ok(Self { cfg, family, preset, run_data, device })
+    }
+
+    /// The set-up of `cfg` over data already loaded for it (a pack's runs with the same data
+    /// settings: [`Setup::data_key`]).
+    pub(crate) fn with_data(cfg: TrainConfig, run_data: Arc<RunData>) -> Result<Self, RunError> {
+        cfg.validate()?;
+        let family = pdt_envs::family(&cfg.env.name)?;
+        let preset = family.preset();
+        let device = pdt_model::device::resolve(cfg.run.device)?;
+        Ok(Self { cfg, family, preset, run_data, device })
+    }
+
+    /// What `RunData::load` reads of `cfg`, as text: two configurations with the same key load
+    /// the same data. The settings it never reads (seed, training cadence, optimiser) are blanked,
+    /// and the method is reduced to what the loader asks of it (whether history returns are
+    /// zeroed); everything else counts, so a setting the loader may read one day never makes two
+    /// runs share data they would load differently.
+    pub(crate) fn data_key(cfg: &TrainConfig) -> Result<String, RunError> {
+        let mut k = cfg.clone();
+        k.run.seed = 0;
+        k.train = Default::default();
+        k.optim = Default::default();
+        k.run.method = if cfg.run.method.zeroes_history_returns() {
+            Method::PromptMtBc
+        } else {
+            Method::PromptDt
+        };
+        Ok(k.to_toml()?)
     }
 
     pub(crate) fn sampler<'a>(
@@ -75,4 +105,40 @@ impl Setup {
 /// not exist yet).
 pub(crate) fn absolute(path: &Path) -> PathBuf {
     std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A pack's runs share their loaded data exactly when the loader would read the same.
+    #[test]
+    fn data_key_ignores_what_the_loader_never_reads() {
+        let base = TrainConfig::default();
+        let key = |f: &dyn Fn(&mut TrainConfig)| {
+            let mut c = base.clone();
+            f(&mut c);
+            Setup::data_key(&c).ok()
+        };
+        let same = key(&|_| {});
+        assert!(same.is_some());
+        for change in [
+            &|c: &mut TrainConfig| c.run.seed = 7,
+            &|c: &mut TrainConfig| c.run.method = Method::MtOrl,
+            &|c: &mut TrainConfig| c.train.iterations = 3,
+            &|c: &mut TrainConfig| c.optim.learning_rate = 0.5,
+        ] as [&dyn Fn(&mut TrainConfig); 4]
+        {
+            assert_eq!(key(change), same);
+        }
+        for change in [
+            &|c: &mut TrainConfig| c.run.method = Method::PromptMtBc,
+            &|c: &mut TrainConfig| c.sampler.prompt_length = Some(1),
+            &|c: &mut TrainConfig| c.data.dir = "elsewhere".into(),
+            &|c: &mut TrainConfig| c.model.hidden_size = 8,
+        ] as [&dyn Fn(&mut TrainConfig); 4]
+        {
+            assert_ne!(key(change), same);
+        }
+    }
 }

@@ -9,6 +9,7 @@ use super::learner::{
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, Optimizer, ParamState};
+use crate::pack::SlotState;
 use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
@@ -74,6 +75,118 @@ impl<'s> PromptDtLearner<'s> {
     }
 }
 
+/// What a packed run (`crate::pack`) asks of the solo learner it evaluates and saves through.
+impl PromptDtLearner<'_> {
+    pub(crate) fn variant(&self) -> Variant {
+        self.variant
+    }
+
+    /// The next training batch from the run's batch stream, on the run's device.
+    pub(crate) fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch {
+        DeviceBatch::new(&self.sampler.sample(rng), self.variant.prompt, self.setup.device)
+    }
+
+    /// The weights and optimiser state, copied (the learner's own are never shared).
+    pub(crate) fn state(&self) -> SlotState {
+        tch::no_grad(|| {
+            let mut weights: Vec<(String, Tensor)> =
+                self.vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+            weights.sort_by(|a, b| a.0.cmp(&b.0));
+            let moments = self
+                .opt
+                .state()
+                .iter()
+                .map(|(n, st)| {
+                    let copy = ParamState {
+                        step: st.step,
+                        exp_avg: st.exp_avg.copy(),
+                        exp_avg_sq: st.exp_avg_sq.copy(),
+                    };
+                    (n.clone(), copy)
+                })
+                .collect();
+            SlotState { weights, moments }
+        })
+    }
+
+    /// Sets the weights (each by name and shape) and the optimiser state.
+    pub(crate) fn set_state(&mut self, state: SlotState) -> Result<(), RunError> {
+        let vars = self.vs.variables();
+        if vars.len() != state.weights.len() {
+            return Err(RunError::Invalid(format!(
+                "a pack's run state has {} weight tensors, the model {}",
+                state.weights.len(),
+                vars.len()
+            )));
+        }
+        for (name, t) in &state.weights {
+            match vars.get(name) {
+                Some(v) if v.size() == t.size() => {}
+                _ => {
+                    return Err(RunError::Invalid(format!(
+                        "a pack's run state has weights `{name}` of shape {:?} the model lacks",
+                        t.size()
+                    )))
+                }
+            }
+        }
+        tch::no_grad(|| {
+            for (name, t) in &state.weights {
+                if let Some(v) = vars.get(name) {
+                    v.shallow_clone().copy_(t);
+                }
+            }
+        });
+        self.opt
+            .set_state(state.moments)
+            .map_err(|e| RunError::Invalid(format!("a pack's run state: {e}")))?;
+        Ok(())
+    }
+
+    /// Leaves libtorch's generator where the solo run's gradient step `step` on `batch` leaves
+    /// it: re-seeded, then the step's dropout masks drawn again by the same forward pass in
+    /// training mode (its result dropped). The masks' draws depend on the shapes alone, not on
+    /// the weights. MT-BC-Finetune fine-tunes from that state after an iteration; a packed run's
+    /// generator has since served other runs. Mirrors `crate::step::train_step`'s forward.
+    /// Call with `crate::streams::torch_rng_lock` held.
+    pub(crate) fn redraw_step_dropout(&self, step: u64, batch: &DeviceBatch) {
+        tch::manual_seed(derive_seed(self.setup.cfg.run.seed, STREAM_DROPOUT, step) as i64);
+        let (h, p) = (&batch.history, batch.prompt.as_ref());
+        tch::no_grad(|| match (self.setup.cfg.train.loss_on, p) {
+            (LossOn::PromptAndHistory, Some(p)) => {
+                let _ = self.model.forward_all_steps(h, Some(p), true);
+            }
+            _ => {
+                let _ = self.model.forward(h, p, true);
+            }
+        });
+    }
+}
+
+/// The step's statistics, or the error of a divergence (a non-finite loss or gradient norm).
+pub(crate) fn checked(
+    at: IterationAt<'_>,
+    cfg: &TrainConfig,
+    step: u64,
+    st: StepStats,
+) -> Result<StepStats, RunError> {
+    if st.loss.is_finite() && st.grad_norm.is_finite() {
+        Ok(st)
+    } else {
+        Err(diverged(at.dir, cfg, at.iteration, step, &st))
+    }
+}
+
+/// What an iteration of `stats` logs: the mean loss, the mean gradient norm and the last rate.
+pub(crate) fn iteration_metrics(stats: &[StepStats]) -> IterationMetrics {
+    let n = stats.len() as f64;
+    let mut columns = BTreeMap::new();
+    columns
+        .insert("train/grad_norm".to_string(), stats.iter().map(|s| s.grad_norm).sum::<f64>() / n);
+    columns.insert("train/lr".to_string(), stats.last().map_or(0.0, |s| s.lr));
+    IterationMetrics { loss: stats.iter().map(|s| s.loss).sum::<f64>() / n, columns }
+}
+
 impl Learner for PromptDtLearner<'_> {
     fn loss_metric(&self) -> &'static str {
         "train/action_loss"
@@ -94,20 +207,9 @@ impl Learner for PromptDtLearner<'_> {
             tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, step) as i64);
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
             let st = train_step(&self.model, &mut self.opt, &batch, cfg.train.loss_on, step);
-            if st.loss.is_finite() && st.grad_norm.is_finite() {
-                Ok(st)
-            } else {
-                Err(diverged(at.dir, cfg, at.iteration, step, &st))
-            }
+            checked(at, cfg, step, st)
         })?;
-        let n = stats.len() as f64;
-        let mut columns = BTreeMap::new();
-        columns.insert(
-            "train/grad_norm".to_string(),
-            stats.iter().map(|s| s.grad_norm).sum::<f64>() / n,
-        );
-        columns.insert("train/lr".to_string(), stats.last().map_or(0.0, |s| s.lr));
-        Ok(IterationMetrics { loss: stats.iter().map(|s| s.loss).sum::<f64>() / n, columns })
+        Ok(iteration_metrics(&stats))
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {

@@ -1,10 +1,27 @@
 //! A pack: N independent runs of one environment family trained in lockstep in one process on one
 //! device (issue 30). Each run keeps its own seed streams, sampler, weights, optimiser state,
 //! clipping, schedule, evaluation and run directory; only the gradient steps are shared, by a
-//! [`PackEngine`] that steps every run of the pack at once.
+//! [`PackEngine`] that steps every run of the pack at once (`docs/packs.md`).
+//!
+//! - `engine`: the contract between the runs and an engine.
+//! - `solo`: [`SoloEngine`], the exact engine (each run's solo step in turn).
+//! - `batched`: [`BatchedEngine`], every run's step as one batched computation.
+//! - `hub`: where the runs' threads meet for each gradient step.
+//! - `member`: a run of the pack as the run loop's `Learner` (solo code for all but the step).
+//! - `run`: [`train_pack`], the pack checked, its data loaded once, its runs' loops in threads.
+//! - `dir`: a pack directory (`pack.json` and the runs' directories): [`train_pack_dir`],
+//!   [`resume_pack_dir`].
 
 pub mod batched;
+mod dir;
 pub mod engine;
+mod hub;
+mod member;
+mod run;
+pub mod solo;
 
 pub use batched::{BatchedEngine, PackLayout};
+pub use dir::{is_pack_dir, resume_pack_dir, train_pack_dir, PackRecord, PackRecordRun, PACK_JSON};
 pub use engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+pub use run::{train_pack, Engine, PackOptions, PackRun};
+pub use solo::SoloEngine;

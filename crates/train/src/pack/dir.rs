@@ -1,0 +1,122 @@
+//! A pack directory (`promptdt train --pack`): `pack.json`, the pack's record (each run's
+//! directory and configuration, the engine), written before any run is created, and one ordinary
+//! run directory per run beside it. With the record, a pack killed at any moment (even before some
+//! of its runs had a directory) resumes from its directory alone.
+
+use super::run::{prepare_pack, run_pack, train_pack, Engine, PackOptions, PackRun};
+use crate::config::TrainConfig;
+use crate::error::{io_err, RunError};
+use crate::run_loop::TrainSummary;
+use pdt_base::fs::write_atomic;
+use serde::{Deserialize, Serialize};
+use std::path::{Component, Path, PathBuf};
+
+/// The file of a pack directory that names its runs.
+pub const PACK_JSON: &str = "pack.json";
+
+/// `pack.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PackRecord {
+    /// The engine the pack was started with (`batched` or `solo`); a resumed pack keeps it unless
+    /// told otherwise, so its runs go on with the same arithmetic.
+    pub engine: String,
+    pub runs: Vec<PackRecordRun>,
+}
+
+/// One run of `pack.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PackRecordRun {
+    /// The run's directory: a name inside the pack directory, or an absolute path.
+    pub dir: String,
+    /// The configuration the run starts from (TOML, as its `config.toml`).
+    pub config: String,
+}
+
+/// Whether `dir` is a pack directory (it has `pack.json`).
+pub fn is_pack_dir(dir: &Path) -> bool {
+    dir.join(PACK_JSON).is_file()
+}
+
+/// Starts a pack of `configs` in the new pack directory `out`: `pack.json`, then each run in
+/// `out/<method>-<env>-seed<seed>`. `opts.resume` must be false (see [`resume_pack_dir`]).
+pub fn train_pack_dir(
+    mut configs: Vec<TrainConfig>,
+    out: &Path,
+    opts: PackOptions<'_>,
+) -> Result<Vec<Result<TrainSummary, RunError>>, RunError> {
+    if is_pack_dir(out) {
+        return Err(RunError::Invalid(format!(
+            "{} already holds a pack; resume it (`promptdt train --resume {}`) or pick another \
+             --out",
+            out.display(),
+            out.display()
+        )));
+    }
+    let mut runs = Vec::with_capacity(configs.len());
+    for cfg in &mut configs {
+        // Recorded absolute, so the pack resumes from any directory.
+        cfg.data.dir = crate::setup::absolute(&cfg.data.dir);
+        let family = pdt_envs::family(&cfg.env.name)?;
+        let name = cfg.run_name(family.name());
+        if runs.iter().any(|r: &PackRecordRun| r.dir == name) {
+            return Err(RunError::Invalid(format!(
+                "two runs of the pack are {name} (method, environment and seed): each run of a \
+                 pack needs its own; give them different seeds or train them in separate packs"
+            )));
+        }
+        runs.push(PackRecordRun { dir: name, config: cfg.to_toml()? });
+    }
+    let engine = opts.engine.unwrap_or_else(Engine::default_engine);
+    let members = runs.iter().map(|r| out.join(&r.dir)).zip(configs);
+    let members = members.map(|(dir, config)| PackRun { config, dir }).collect();
+    let opts = PackOptions { resume: false, engine: Some(engine), ..opts };
+    // Checked and built before anything is written: a refused pack leaves no record behind.
+    let ready = prepare_pack(members, &opts)?;
+    let record = PackRecord { engine: engine.name().into(), runs };
+    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    let path = out.join(PACK_JSON);
+    let text = serde_json::to_string_pretty(&record)
+        .map_err(|e| RunError::Corrupt { path: path.clone(), message: e.to_string() })?;
+    write_atomic(&path, format!("{text}\n").as_bytes()).map_err(io_err(&path))?;
+    Ok(run_pack(ready, opts))
+}
+
+/// Resumes the pack in `dir` (its `pack.json`): each run from its last checkpoint, a run the pack
+/// never got to create from its recorded configuration. The engine is the recorded one unless
+/// `opts.engine` says otherwise.
+pub fn resume_pack_dir(
+    dir: &Path,
+    opts: PackOptions<'_>,
+) -> Result<Vec<Result<TrainSummary, RunError>>, RunError> {
+    let path = dir.join(PACK_JSON);
+    let record: PackRecord = pdt_rundir::read_json(&path)?;
+    let recorded: Engine = record
+        .engine
+        .parse()
+        .map_err(|e: String| RunError::Corrupt { path: path.clone(), message: e })?;
+    let mut runs = Vec::with_capacity(record.runs.len());
+    for r in &record.runs {
+        let config: TrainConfig = toml::from_str(&r.config).map_err(|e| RunError::Corrupt {
+            path: path.clone(),
+            message: format!("the configuration of run {}: {e}", r.dir),
+        })?;
+        let given = PathBuf::from(&r.dir);
+        // A name inside the pack directory (`train --pack`), or an absolute path (`reproduce
+        // --pack`, whose runs live in the plan's tree); nothing that climbs out of either.
+        let single = given.components().count() == 1;
+        let plain =
+            given.components().all(|c| matches!(c, Component::Normal(_) | Component::RootDir));
+        if !plain || !(given.is_absolute() || single) {
+            return Err(RunError::Corrupt {
+                path: path.clone(),
+                message: format!(
+                    "run directory `{}` is neither a name inside the pack nor an absolute path",
+                    r.dir
+                ),
+            });
+        }
+        runs.push(PackRun { config, dir: dir.join(given) });
+    }
+    let engine = Some(opts.engine.unwrap_or(recorded));
+    train_pack(runs, PackOptions { resume: true, engine, ..opts })
+}

@@ -1,0 +1,122 @@
+//! The meeting point of a pack's runs: each run's thread submits its gradient step and waits; when
+//! every run still training has submitted (or left), one call of the engine steps them all and
+//! each run gets its own result.
+
+use super::engine::{PackEngine, SlotState, SlotStep};
+use crate::error::RunError;
+use crate::step::StepStats;
+use crate::streams::torch_rng_lock;
+use std::sync::{Condvar, Mutex, MutexGuard};
+
+/// The engine and the runs' submissions, behind one lock.
+struct Table {
+    engine: Box<dyn PackEngine + Send>,
+    /// The runs still training (a run that finished, stopped or failed has left).
+    active: Vec<bool>,
+    /// The steps submitted and not yet taken.
+    pending: Vec<Option<SlotStep>>,
+    /// Each submitted run's result, until it takes it (an engine error as its message, shared by
+    /// every run of the failed step).
+    results: Vec<Option<Result<StepStats, String>>>,
+}
+
+impl Table {
+    /// Every run still training has submitted, and at least one has.
+    fn ready(&self) -> bool {
+        let submitted = self.pending.iter().any(Option::is_some);
+        submitted && self.active.iter().zip(&self.pending).all(|(a, p)| !a || p.is_some())
+    }
+
+    /// One engine step for the submitted runs; their results filed.
+    fn step(&mut self) {
+        let steps: Vec<Option<SlotStep>> = self.pending.iter_mut().map(Option::take).collect();
+        let submitted: Vec<bool> = steps.iter().map(Option::is_some).collect();
+        // libtorch's generator (the dropout masks) is the process's: no other run may draw from
+        // it while the engine does.
+        let out = {
+            let _rng = torch_rng_lock();
+            // A panic in the engine (a libtorch error) fails this step for every run in it,
+            // rather than leaving the others waiting for results that never come.
+            let engine = &mut self.engine;
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
+                .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
+        };
+        for i in (0..submitted.len()).filter(|&i| submitted[i]) {
+            self.results[i] = Some(match &out {
+                Ok(stats) => stats.get(i).copied().flatten().ok_or_else(|| {
+                    format!("the pack engine returned no result for the run in slot {i}")
+                }),
+                Err(e) => Err(format!("the pack engine failed: {e}")),
+            });
+        }
+    }
+}
+
+/// Where a pack's runs meet to be stepped together.
+pub(crate) struct Hub {
+    table: Mutex<Table>,
+    stepped: Condvar,
+}
+
+impl Hub {
+    pub(crate) fn new(engine: Box<dyn PackEngine + Send>) -> Self {
+        let n = engine.slots();
+        Self {
+            table: Mutex::new(Table {
+                engine,
+                active: vec![true; n],
+                pending: (0..n).map(|_| None).collect(),
+                results: vec![None; n],
+            }),
+            stepped: Condvar::new(),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Table> {
+        // A run that panicked while holding the lock left the table consistent (every change to
+        // it is a single assignment), so the others go on.
+        self.table.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Submits `slot`'s gradient step and waits until the pack has taken it.
+    pub(crate) fn step(&self, slot: usize, step: SlotStep) -> Result<StepStats, RunError> {
+        let mut t = self.lock();
+        if !t.active.get(slot).copied().unwrap_or(false) {
+            return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
+        }
+        t.pending[slot] = Some(step);
+        if t.ready() {
+            t.step();
+            self.stepped.notify_all();
+        }
+        loop {
+            if let Some(r) = t.results[slot].take() {
+                return r.map_err(RunError::Invalid);
+            }
+            t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+
+    /// `slot`'s run stops training (finished, stopped or failed): the others no longer wait for it.
+    pub(crate) fn leave(&self, slot: usize) {
+        let mut t = self.lock();
+        if let Some(a) = t.active.get_mut(slot) {
+            *a = false;
+            t.pending[slot] = None;
+        }
+        if t.ready() {
+            t.step();
+            self.stepped.notify_all();
+        }
+    }
+
+    /// `slot`'s weights and optimiser state as a solo run holds them.
+    pub(crate) fn export(&self, slot: usize) -> Result<SlotState, RunError> {
+        self.lock().engine.export(slot)
+    }
+
+    /// Sets `slot`'s weights and optimiser state.
+    pub(crate) fn import(&self, slot: usize, state: SlotState) -> Result<(), RunError> {
+        self.lock().engine.import(slot, state)
+    }
+}

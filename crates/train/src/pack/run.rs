@@ -1,0 +1,356 @@
+//! Training a pack: its runs checked to fit one pack, their data loaded once per data setting, the
+//! engine built, then each run's ordinary run loop in its own thread with a [`PackMember`] whose
+//! gradient steps meet the others' in the [`Hub`].
+
+use super::engine::{PackEngine, SlotSpec};
+use super::hub::Hub;
+use super::member::PackMember;
+use super::solo::SoloEngine;
+use crate::config::{Method, TrainConfig};
+use crate::error::RunError;
+use crate::methods::Learner;
+use crate::run_loop::{
+    run_config_for, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
+};
+use crate::setup::{absolute, Setup};
+use crate::streams::torch_rng_lock;
+use pdt_policy::RunData;
+use pdt_rundir::PackInfo;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// The engine that steps a pack.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Engine {
+    /// One batched computation for all runs (stacked weights, batched products).
+    Batched,
+    /// Each run's ordinary solo step, one after another: exact (a run trained through it is the
+    /// same run trained alone, bit for bit).
+    Solo,
+}
+
+impl Engine {
+    pub fn name(self) -> &'static str {
+        match self {
+            Engine::Batched => "batched",
+            Engine::Solo => "solo",
+        }
+    }
+
+    /// Whether this build has the batched engine (`make_engine`).
+    pub fn batched_available() -> bool {
+        false
+    }
+
+    /// The engine a pack gets when none is asked for: the batched one where this build has it.
+    pub fn default_engine() -> Self {
+        if Self::batched_available() {
+            Engine::Batched
+        } else {
+            Engine::Solo
+        }
+    }
+}
+
+impl std::str::FromStr for Engine {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "batched" => Ok(Engine::Batched),
+            "solo" => Ok(Engine::Solo),
+            _ => Err(format!("unknown pack engine `{s}` (batched or solo)")),
+        }
+    }
+}
+
+/// One run of a pack: its configuration (used to start it; a run being resumed reads its
+/// `config.toml`, which is authoritative) and its run directory.
+#[derive(Debug, Clone)]
+pub struct PackRun {
+    pub config: TrainConfig,
+    pub dir: PathBuf,
+}
+
+/// How a call to [`train_pack`] runs.
+pub struct PackOptions<'a> {
+    /// Continue each run that has something to resume (its `config.toml`) from its last
+    /// checkpoint, and start the others (a pack killed before they were created) from their
+    /// configuration. Without it, a run directory that already holds a run is refused.
+    pub resume: bool,
+    /// With `resume`: what may change, for every run (as [`ResumeWith`] for one run).
+    pub resume_with: ResumeWith,
+    /// Stop each run after this many iterations of this call (an interruption, in tests).
+    pub stop_after_iterations: Option<u64>,
+    /// `None`: [`Engine::default_engine`].
+    pub engine: Option<Engine>,
+    /// Progress of the run in the given slot, after each of its iterations (called from the
+    /// run's thread).
+    pub progress: &'a (dyn Fn(usize, &Progress) + Sync),
+}
+
+/// A run of the pack ready to train: its configuration, data, and whether it resumes.
+struct Member {
+    cfg: TrainConfig,
+    data: Arc<RunData>,
+    dir: PathBuf,
+    resume: bool,
+}
+
+/// Trains the runs of a pack in lockstep, each into its own run directory, and returns each run's
+/// outcome in order: a run that fails (its data, its directory, a divergence) ends with its error
+/// while the others go on. The pack itself is refused, before anything is written, when its runs
+/// cannot share one pack (another family, model shape or device; MACAW; one directory twice) or a
+/// run's configuration or data is bad.
+pub fn train_pack(
+    runs: Vec<PackRun>,
+    opts: PackOptions<'_>,
+) -> Result<Vec<Result<TrainSummary, RunError>>, RunError> {
+    let ready = prepare_pack(runs, &opts)?;
+    Ok(run_pack(ready, opts))
+}
+
+/// A pack checked, its data loaded and its engine built: nothing written yet.
+pub(crate) struct ReadyPack {
+    members: Vec<Member>,
+    engine: Box<dyn PackEngine + Send>,
+    engine_kind: Engine,
+}
+
+/// Everything [`train_pack`] checks and builds before it writes anything.
+pub(crate) fn prepare_pack(
+    runs: Vec<PackRun>,
+    opts: &PackOptions<'_>,
+) -> Result<ReadyPack, RunError> {
+    let members = members(runs, opts)?;
+    let engine_kind = opts.engine.unwrap_or_else(Engine::default_engine);
+    let device = pdt_model::device::resolve(members[0].cfg.run.device)?;
+    let specs: Vec<SlotSpec> = members
+        .iter()
+        .map(|m| SlotSpec {
+            model: m.data.model_cfg.clone(),
+            uses_prompt: m.cfg.run.method.uses_prompt(),
+            loss_on: m.cfg.train.loss_on,
+            optim: m.cfg.optim.clone(),
+            seed: m.cfg.run.seed,
+        })
+        .collect();
+    let engine = {
+        let _rng = torch_rng_lock();
+        make_engine(engine_kind, specs, device)?
+    };
+    Ok(ReadyPack { members, engine, engine_kind })
+}
+
+/// Trains a prepared pack: each run's loop in its own thread, the gradient steps in the hub.
+pub(crate) fn run_pack(
+    ready: ReadyPack,
+    opts: PackOptions<'_>,
+) -> Vec<Result<TrainSummary, RunError>> {
+    let ReadyPack { members, engine, engine_kind } = ready;
+    if let Some(m) = members.first() {
+        tch::set_num_threads(pdt_base::threads(m.cfg.run.threads) as i32);
+    }
+    let hub = Hub::new(engine);
+    let size = members.len();
+    let (with, stop, progress) = (&opts.resume_with, opts.stop_after_iterations, opts.progress);
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = members
+            .into_iter()
+            .enumerate()
+            .map(|(slot, m)| {
+                let hub = &hub;
+                let info = PackInfo { size, slot, engine: engine_kind.name().into() };
+                scope.spawn(move || {
+                    let with = if m.resume { with.clone() } else { ResumeWith::default() };
+                    let mut report = |p: &Progress| progress(slot, p);
+                    let opts = TrainOptions {
+                        resume: m.resume,
+                        resume_with: with,
+                        stop_after_iterations: stop,
+                        progress: &mut report,
+                    };
+                    train_member(m, slot, hub, opts, &info)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join().unwrap_or_else(|_| {
+                    Err(RunError::Invalid("a run of the pack panicked (see above)".into()))
+                })
+            })
+            .collect()
+    })
+}
+
+/// One run of the pack, in its thread: its set-up over the shared data, its learner, its loop.
+fn train_member(
+    m: Member,
+    slot: usize,
+    hub: &Hub,
+    opts: TrainOptions<'_>,
+    info: &PackInfo,
+) -> Result<TrainSummary, RunError> {
+    // However the run ends (finished, stopped, failed before its first step, panicked), the pack
+    // stops waiting for it.
+    let _leave = Leave { hub, slot };
+    let toml = m.cfg.to_toml()?;
+    let setup = Setup::with_data(m.cfg, m.data)?;
+    let mut learner = PackMember::new(&setup, slot, hub)?;
+    learner.check_can_train()?;
+    train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
+}
+
+/// Takes a run out of the hub when dropped.
+struct Leave<'h> {
+    hub: &'h Hub,
+    slot: usize,
+}
+
+impl Drop for Leave<'_> {
+    fn drop(&mut self) {
+        self.hub.leave(self.slot);
+    }
+}
+
+/// The one place an engine is built.
+fn make_engine(
+    kind: Engine,
+    specs: Vec<SlotSpec>,
+    device: tch::Device,
+) -> Result<Box<dyn PackEngine + Send>, RunError> {
+    Ok(match kind {
+        Engine::Solo => Box::new(SoloEngine::new(specs, device)),
+        Engine::Batched => {
+            return Err(RunError::Invalid(
+                "the batched pack engine is not in this build yet; use the solo engine \
+                 (--engine solo), which trains each run exactly as alone"
+                    .into(),
+            ))
+        }
+    })
+}
+
+/// The runs' configurations (a resumed run's from its directory), checked to fit one pack, with
+/// their data loaded once per data setting.
+fn members(runs: Vec<PackRun>, opts: &PackOptions<'_>) -> Result<Vec<Member>, RunError> {
+    if runs.is_empty() {
+        return Err(RunError::Invalid("a pack needs at least one run".into()));
+    }
+    let mut seen = BTreeMap::new();
+    let mut picked = Vec::with_capacity(runs.len());
+    for (i, run) in runs.into_iter().enumerate() {
+        let dir = absolute(&run.dir);
+        if let Some(j) = seen.insert(dir.clone(), i) {
+            return Err(RunError::Invalid(format!(
+                "runs {j} and {i} of the pack would both write {}; give them different \
+                 directories (or seeds)",
+                dir.display()
+            )));
+        }
+        let resume = opts.resume && dir.join("config.toml").is_file();
+        let cfg = if resume {
+            run_config_for(None, &dir, true, &opts.resume_with)?
+        } else {
+            if dir.join("checkpoints").join("latest.json").exists() && !opts.resume {
+                return Err(RunError::Invalid(format!(
+                    "{} already holds a run; resume the pack or pick other directories",
+                    dir.display()
+                )));
+            }
+            let mut cfg = run.config;
+            if opts.resume {
+                // A run the pack never got to create starts as resuming it would have it end.
+                let with = &opts.resume_with;
+                if let Some(n) = with.iterations {
+                    cfg.train.iterations = n;
+                }
+                if let Some(d) = with.device {
+                    cfg.run.device = d;
+                }
+                if let Some(d) = &with.data {
+                    cfg.data.dir.clone_from(d);
+                }
+            }
+            run_config_for(Some(cfg), &dir, false, &opts.resume_with)?
+        };
+        cfg.validate().map_err(|e| in_run(&dir, e.into()))?;
+        picked.push((cfg, dir, resume));
+    }
+    check_fits(&picked)?;
+    let mut loaded: BTreeMap<String, Arc<RunData>> = BTreeMap::new();
+    let mut members = Vec::with_capacity(picked.len());
+    for (cfg, dir, resume) in picked {
+        let key = Setup::data_key(&cfg)?;
+        let data = match loaded.get(&key) {
+            Some(d) => Arc::clone(d),
+            None => {
+                let family = pdt_envs::family(&cfg.env.name)?;
+                let d = Arc::new(
+                    RunData::load(&cfg, family.as_ref()).map_err(|e| in_run(&dir, e.into()))?,
+                );
+                loaded.insert(key, Arc::clone(&d));
+                d
+            }
+        };
+        members.push(Member { cfg, data, dir, resume });
+    }
+    Ok(members)
+}
+
+/// `e`, naming the run directory it is about.
+fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
+    RunError::Invalid(format!("run {} of the pack: {e}", dir.display()))
+}
+
+/// Refuses runs that cannot share a pack, naming the setting: one environment family, one model
+/// shape (`[model]`), one device; the Prompt-DT variants only.
+fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
+    for (cfg, dir, _) in runs {
+        if cfg.run.method == Method::Macaw {
+            return Err(RunError::Invalid(format!(
+                "run {}: run.method = \"macaw\" cannot train in a pack (MACAW trains alone; \
+                 docs/packs.md); train it with `promptdt train --config`",
+                dir.display()
+            )));
+        }
+    }
+    let (first, first_dir, _) = &runs[0];
+    let model = section(&first.model)?;
+    for (cfg, dir, _) in &runs[1..] {
+        let differ = |field: &str, a: String, b: String| {
+            RunError::Invalid(format!(
+                "the runs of a pack must agree on {field}: {} has {a}, {} has {b}",
+                first_dir.display(),
+                dir.display()
+            ))
+        };
+        if cfg.env.name != first.env.name {
+            return Err(differ("env.name", first.env.name.clone(), cfg.env.name.clone()));
+        }
+        if cfg.run.device != first.run.device {
+            return Err(differ(
+                "run.device",
+                format!("{:?}", first.run.device),
+                format!("{:?}", cfg.run.device),
+            ));
+        }
+        let other = section(&cfg.model)?;
+        for (k, v) in &model {
+            let w = other.get(k);
+            if w != Some(v) {
+                let shown = |x: Option<&toml::Value>| x.map_or("nothing".into(), |x| x.to_string());
+                return Err(differ(&format!("model.{k}"), shown(Some(v)), shown(w)));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A configuration section's fields by name.
+fn section<T: serde::Serialize>(s: &T) -> Result<toml::Table, RunError> {
+    toml::Table::try_from(s)
+        .map_err(|e| RunError::Invalid(format!("a configuration section as TOML: {e}")))
+}

@@ -1,0 +1,202 @@
+//! Packs through the library (issue 30, docs/packs.md): each run of a pack matches the same run
+//! trained alone on every logged loss (bit for bit through the solo engine); a run that diverges
+//! stops with its error while the others finish; runs that cannot share a pack are refused.
+#![allow(clippy::unwrap_used, clippy::result_large_err)] // test helpers: a failed unwrap is a failed test
+
+#[path = "support/runs.rs"]
+mod runs;
+
+use pdt_train::config::{Method, TrainConfig};
+use pdt_train::pack::{train_pack, Engine, PackOptions, PackRun};
+use pdt_train::run::{RunError, TrainSummary};
+use runs::{lines, tiny_data};
+use std::path::Path;
+
+/// A tiny point-robot run: 50 iterations of one gradient step each, so `metrics.jsonl` logs the
+/// loss of every one of its first 50 steps.
+fn config(data: &Path, method: Method, seed: u64) -> TrainConfig {
+    let mut c: TrainConfig = toml::from_str(
+        r#"
+        [env]
+        name = "point_robot"
+        [sampler]
+        k = 4
+        batch_size_per_task = 1
+        [model]
+        hidden_size = 16
+        n_layer = 1
+        n_inner = 32
+        [optim]
+        learning_rate = 1e-3
+        warmup_steps = 3
+        [train]
+        iterations = 50
+        steps_per_iteration = 1
+        test_eval_interval = 25
+        train_eval_interval = 0
+        save_interval = 25
+        [eval]
+        episodes = 2
+        [run]
+        threads = 1
+        device = "cpu"
+        "#,
+    )
+    .unwrap();
+    c.data.dir = data.to_path_buf();
+    c.run.method = method;
+    c.run.seed = seed;
+    c
+}
+
+fn pack(
+    runs: Vec<PackRun>,
+    engine: Engine,
+) -> Result<Vec<Result<TrainSummary, RunError>>, RunError> {
+    let progress = |_: usize, _: &pdt_train::run::Progress| {};
+    train_pack(
+        runs,
+        PackOptions {
+            resume: false,
+            resume_with: Default::default(),
+            stop_after_iterations: None,
+            engine: Some(engine),
+            progress: &progress,
+        },
+    )
+}
+
+/// The largest difference between a packed run's logged losses and its solo run's that an
+/// engine may show: none for the solo engine (the same arithmetic, in the same order).
+fn loss_tolerance(engine: Engine) -> f64 {
+    match engine {
+        Engine::Solo => 0.0,
+        // Batched products sum in another order; to be set from the measured difference, as the
+        // portable parity tests do, when the batched engine lands.
+        Engine::Batched => 1e-4,
+    }
+}
+
+#[test]
+fn every_run_of_a_pack_matches_its_run_trained_alone() {
+    let (tmp, data) = tiny_data();
+    let members = [(Method::PromptDt, 0), (Method::MtOrl, 1), (Method::PromptDt, 2)];
+    let mut engines = vec![Engine::Solo];
+    if Engine::batched_available() {
+        engines.push(Engine::Batched);
+    }
+    let alone: Vec<_> = members
+        .iter()
+        .map(|&(m, seed)| {
+            let dir = tmp.path().join(format!("alone-{seed}"));
+            runs::run(Some(config(&data, m, seed)), &dir, false, None).unwrap();
+            dir
+        })
+        .collect();
+    for engine in engines {
+        let runs: Vec<PackRun> = members
+            .iter()
+            .map(|&(m, seed)| PackRun {
+                config: config(&data, m, seed),
+                dir: tmp.path().join(format!("{}-{seed}", engine.name())),
+            })
+            .collect();
+        let dirs: Vec<_> = runs.iter().map(|r| r.dir.clone()).collect();
+        for r in pack(runs, engine).unwrap() {
+            assert!(r.unwrap().finished);
+        }
+        for (dir, solo) in dirs.iter().zip(&alone) {
+            let (p, s) = (lines(&dir.join("metrics.jsonl")), lines(&solo.join("metrics.jsonl")));
+            assert_eq!(p.len(), 50);
+            for (a, b) in p.iter().zip(&s) {
+                let (x, y) = (
+                    a["train/action_loss"].as_f64().unwrap(),
+                    b["train/action_loss"].as_f64().unwrap(),
+                );
+                assert!(
+                    (x - y).abs() <= loss_tolerance(engine),
+                    "{} engine, {}: iteration {}: loss {x} packed, {y} alone",
+                    engine.name(),
+                    dir.display(),
+                    a["iteration"]
+                );
+            }
+            if engine == Engine::Solo {
+                assert_eq!(p, s, "{}", dir.display());
+                let evals = |d: &Path| lines(&d.join("eval.jsonl"));
+                assert_eq!(evals(dir), evals(solo), "{}", dir.display());
+            }
+        }
+    }
+}
+
+#[test]
+fn a_run_that_diverges_stops_with_its_error_and_the_others_finish() {
+    let (tmp, data) = tiny_data();
+    // A second copy of the data whose actions are too large to square in f32 (every task's, so
+    // the first batch meets them).
+    let bad = tmp.path().join("bad");
+    let collect = pdt_envs::collect_scripted::CollectConfig {
+        episodes_per_task: 4,
+        prompt_episodes: 2,
+        ..Default::default()
+    };
+    pdt_envs::collect_scripted::collect(&collect, &bad, &mut |_, _| {}).unwrap();
+    for entry in std::fs::read_dir(&bad).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "safetensors") {
+            continue;
+        }
+        let meta = pdt_data::native::read_file_meta(&path).unwrap();
+        let mut ds = pdt_data::native::read_task_dataset(&path).unwrap();
+        for t in &mut ds.trajectories {
+            t.actions.iter_mut().for_each(|a| *a = 1e30);
+        }
+        pdt_data::native::write_task_dataset(&path, &ds, &meta).unwrap();
+    }
+    let short = |d: &Path, seed| {
+        let mut c = config(d, Method::PromptDt, seed);
+        c.train.iterations = 4;
+        c.train.test_eval_interval = 2;
+        c.train.save_interval = 2;
+        c
+    };
+    let runs = vec![
+        PackRun { config: short(&data, 0), dir: tmp.path().join("good-0") },
+        PackRun { config: short(&bad, 1), dir: tmp.path().join("bad-1") },
+        PackRun { config: short(&data, 2), dir: tmp.path().join("good-2") },
+    ];
+    let out = pack(runs, Engine::Solo).unwrap();
+    assert!(out[0].as_ref().unwrap().finished && out[2].as_ref().unwrap().finished);
+    let e = out[1].as_ref().unwrap_err().to_string();
+    assert!(e.contains("training diverged at iteration 1, gradient step 0"), "{e}");
+    assert_eq!(lines(&tmp.path().join("good-2").join("metrics.jsonl")).len(), 4);
+}
+
+#[test]
+fn runs_that_cannot_share_a_pack_are_refused_before_anything_is_written() {
+    let (tmp, data) = tiny_data();
+    let a = PackRun { config: config(&data, Method::PromptDt, 0), dir: tmp.path().join("a") };
+    let mut wide = config(&data, Method::PromptDt, 1);
+    wide.model.hidden_size = 32;
+    let mut macaw = config(&data, Method::PromptDt, 1);
+    macaw.run.method = Method::Macaw;
+    let cases = [
+        (wide, "model.hidden_size"),
+        (macaw, "cannot train in a pack"),
+        (config(&data, Method::MtOrl, 1), "both write"),
+    ];
+    for (i, (cfg, expect)) in cases.into_iter().enumerate() {
+        let dir = if i == 2 { a.dir.clone() } else { tmp.path().join("b") };
+        let e = pack(vec![a.clone(), PackRun { config: cfg, dir }], Engine::Solo)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains(expect), "{expect}: {e}");
+        assert!(!a.dir.exists() && !tmp.path().join("b").exists(), "{expect}: nothing written");
+    }
+    let e = pack(vec![a.clone()], Engine::Batched).err().map(|e| e.to_string());
+    if !Engine::batched_available() {
+        assert!(e.unwrap().contains("--engine solo"));
+    }
+}
