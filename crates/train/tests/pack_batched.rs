@@ -595,3 +595,10 @@ fn time_pack_of_three_against_three_solo_steps() {
         );
     }
 }
+
+/// The pack's hub steps the engine from its own thread (`Box<dyn PackEngine + Send>`).
+#[test]
+fn the_engine_can_move_to_another_thread() {
+    fn send<T: Send>() {}
+    send::<BatchedEngine>();
+}
