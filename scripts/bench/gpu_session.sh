@@ -95,5 +95,13 @@ for r in $RUNS; do
   (cd "$WORK" && tar cf "$OUT/ckpt-$(echo "$r" | tr / _).tar" "$d/checkpoints/$m" "$d/checkpoints/$s" 2>/dev/null)
   n=$((n + 1))
 done
+# Optional: bench cases after the runs (AFTER_CASES, within AFTER_S seconds), so that the runs get
+# the device first and the timings an idle device.
+if [ -n "${AFTER_CASES:-}" ]; then
+  log "5. bench after the runs: $AFTER_CASES"
+  timeout "${AFTER_S:-60}" "$BIN" bench --device $DEVICE --threads 4 ${AFTER_PYTHON:+--python "$PY"} --iters ${ITERS:-10} --warmup 3 \
+    --cases "$AFTER_CASES" --out "$WORK/bench_after" >>"$OUT/session.log" 2>&1 || log "bench after the runs failed: $?"
+  cp "$WORK/bench_after/bench.md" "$OUT/bench_after.md" 2>/dev/null
+fi
 log "done"
 ls -la "$OUT"

@@ -250,8 +250,6 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
     assert!(e.contains("--out"), "{e}");
     let e = fails(&["train", "--config", s(&a), "--engine", "solo", "--out", s(&out)]);
     assert!(e.contains("--engine is for packs"), "{e}");
-    let e = fails(&["train", "--engine", "batched", "--quiet", "--out", s(&out), "--pack", s(&a)]);
-    assert!(e.contains("batched") && e.contains("--engine solo"), "{e}");
 }
 
 #[test]

@@ -71,9 +71,9 @@ fn pack(
 fn loss_tolerance(engine: Engine) -> f64 {
     match engine {
         Engine::Solo => 0.0,
-        // Batched products sum in another order; to be set from the measured difference, as the
-        // portable parity tests do, when the batched engine lands.
-        Engine::Batched => 1e-4,
+        // Batched products sum in another order: measured at most 3e-8 over the first 50 logged
+        // losses of these runs (AMD EPYC, 1 thread); the bound is ~15x that.
+        Engine::Batched => 5e-7,
     }
 }
 

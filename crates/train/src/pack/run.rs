@@ -2,6 +2,7 @@
 //! engine built, then each run's ordinary run loop in its own thread with a [`PackMember`] whose
 //! gradient steps meet the others' in the [`Hub`].
 
+use super::batched::{BatchedEngine, PackLayout};
 use super::engine::{PackEngine, SlotSpec};
 use super::hub::Hub;
 use super::member::PackMember;
@@ -40,7 +41,7 @@ impl Engine {
 
     /// Whether this build has the batched engine (`make_engine`).
     pub fn batched_available() -> bool {
-        false
+        true
     }
 
     /// The engine a pack gets when none is asked for: the batched one where this build has it.
@@ -135,9 +136,25 @@ pub(crate) fn prepare_pack(
             seed: m.cfg.run.seed,
         })
         .collect();
+    // The batched engine's fixed shapes: the largest batch, history and prompt of the pack (a
+    // run with less is padded and masked).
+    let layout = PackLayout {
+        batch_size: members
+            .iter()
+            .map(|m| m.data.sampler_cfg.batch_size_per_task * m.data.train_data.tasks.len())
+            .max()
+            .unwrap_or(0),
+        history_len: members.iter().map(|m| m.data.sampler_cfg.k).max().unwrap_or(0),
+        prompt_len: members
+            .iter()
+            .filter(|m| m.cfg.run.method.uses_prompt())
+            .map(|m| m.data.sampler_cfg.prompt_steps())
+            .max()
+            .unwrap_or(0),
+    };
     let engine = {
         let _rng = torch_rng_lock();
-        make_engine(engine_kind, specs, device)?
+        make_engine(engine_kind, specs, layout, device)?
     };
     Ok(ReadyPack { members, engine, engine_kind })
 }
@@ -219,17 +236,12 @@ impl Drop for Leave<'_> {
 fn make_engine(
     kind: Engine,
     specs: Vec<SlotSpec>,
+    layout: PackLayout,
     device: tch::Device,
 ) -> Result<Box<dyn PackEngine + Send>, RunError> {
     Ok(match kind {
         Engine::Solo => Box::new(SoloEngine::new(specs, device)),
-        Engine::Batched => {
-            return Err(RunError::Invalid(
-                "the batched pack engine is not in this build yet; use the solo engine \
-                 (--engine solo), which trains each run exactly as alone"
-                    .into(),
-            ))
-        }
+        Engine::Batched => Box::new(BatchedEngine::new(specs, layout, device)?),
     })
 }
 
