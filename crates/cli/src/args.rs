@@ -249,10 +249,13 @@ pub struct ReproduceArgs {
     pub only: Option<String>,
     /// Train up to N runs of one family (one model shape, device and data; not MACAW) as one
     /// pack, in one process (docs/packs.md); a pack counts as one of --jobs. With `--emit jobs`,
-    /// one job per pack. Default 1 (each run its own process): until the batched engine is in
-    /// this build, a pack steps its runs one after another.
+    /// one job per pack. Default: 12 on a GPU, 1 (each run its own process) on the CPU.
     #[arg(long, value_parser = count(1, 1024))]
     pub pack: Option<usize>,
+    /// The engine of the packs (docs/packs.md): `batched` (the default: one batched computation
+    /// for the pack, within a tolerance of solo training) or `solo` (each run exactly as alone).
+    #[arg(long, value_parser = ["batched", "solo"])]
+    pub pack_engine: Option<String>,
     /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
     #[arg(long, default_value = "PASSIVE")]
     pub omp_wait_policy: String,

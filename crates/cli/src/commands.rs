@@ -465,6 +465,10 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         None if on_gpu && pdt_train::pack::Engine::batched_available() => 12,
         None => 1,
     };
+    let pack_engine = match a.pack_engine.as_deref() {
+        Some(e) => e.parse::<pdt_train::pack::Engine>().map_err(anyhow::Error::msg)?,
+        None => pdt_train::pack::Engine::default_engine(),
+    };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {
         Some(d) => {
@@ -519,6 +523,8 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             if pack > 1 {
                 extra.push("--pack".into());
                 extra.push(pack.to_string());
+                extra.push("--pack-engine".into());
+                extra.push(pack_engine.name().into());
             }
             let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra, pack)?;
             out!(
@@ -544,6 +550,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             omp_wait_policy: Some(a.omp_wait_policy.clone()),
             pretrained_root: std::path::absolute(&a.pretrained_root)?,
             pack,
+            pack_engine,
         };
         let pb = bar(0, "{prefix} {bar:30} {pos}/{len} iterations [{elapsed} < {eta}] {msg}");
         pb.set_prefix(format!("{} {}", p.experiment, p.budget));

@@ -146,7 +146,11 @@ fn runs_of(pack: &Path) -> Vec<PathBuf> {
 }
 
 fn pack_args<'a>(configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
-    let mut args = vec!["train", "--quiet", "--engine", "solo", "--out", s(out), "--pack"];
+    engine_pack_args("solo", configs, out)
+}
+
+fn engine_pack_args<'a>(engine: &'a str, configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
+    let mut args = vec!["train", "--quiet", "--engine", engine, "--out", s(out), "--pack"];
     args.extend(configs.iter().map(|c| s(c)));
     args
 }
@@ -182,13 +186,20 @@ fn a_run_trained_in_a_solo_engine_pack_is_the_run_trained_alone() {
 
 #[test]
 fn a_pack_stopped_or_killed_and_resumed_ends_as_if_never_interrupted() {
+    // Both engines: the batched one is not the solo runs bit for bit, but it is itself.
+    for engine in ["solo", "batched"] {
+        stopped_killed_and_resumed(engine);
+    }
+}
+
+fn stopped_killed_and_resumed(engine: &str) {
     let tmp = tempfile::tempdir().unwrap();
     let configs = three(&tiny_setup(tmp.path()));
     let (straight, cut) = (tmp.path().join("straight"), tmp.path().join("cut"));
-    ok(&pack_args(&configs, &straight));
+    ok(&engine_pack_args(engine, &configs, &straight));
     // Stopped after 3 iterations of each run, resumed, stopped again, then killed at several
     // moments (creating the directories, training, checkpointing), then resumed to the end.
-    let mut first = pack_args(&configs, &cut);
+    let mut first = engine_pack_args(engine, &configs, &cut);
     first.extend(["--stop-after-iterations", "3"]);
     let msg = ok(&first);
     assert!(msg.contains("stopped after iteration 3"), "{msg}");
@@ -267,7 +278,31 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
         ok(&args)
     };
     run(&alone, &["--jobs", "2"]);
-    let msg = run(&packed, &["--pack", "4"]);
+    // The batched engine (the default): the same runs within its tolerance, not bit for bit.
+    let batched = tmp.path().join("batched");
+    run(&batched, &["--pack", "4"]);
+    let record = std::fs::read_to_string(
+        batched.join("packs/point_robot_prompt-dt_smoke_seed0-x4/pack.json"),
+    )
+    .unwrap();
+    assert!(record.contains("\"engine\": \"batched\""), "{record}");
+    for k in ["point_robot/prompt-dt/smoke/seed0", "point_robot/mt-orl/smoke/seed1"] {
+        let losses = |root: &Path| -> Vec<f64> {
+            std::fs::read_to_string(root.join("runs").join(k).join("metrics.jsonl"))
+                .unwrap()
+                .lines()
+                .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+                .map(|v| v["train/action_loss"].as_f64().unwrap())
+                .collect()
+        };
+        let (a, b) = (losses(&alone), losses(&batched));
+        assert_eq!(a.len(), b.len(), "{k}");
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() <= 5e-7 * x.abs().max(1.0), "{k}: {x} alone, {y} batched");
+        }
+    }
+    // The solo engine: the runs trained alone, file for file.
+    let msg = run(&packed, &["--pack", "4", "--pack-engine", "solo"]);
     assert!(msg.contains("4 started, 0 resumed, 0 failed"), "{msg}");
     let record = packed.join("packs/point_robot_prompt-dt_smoke_seed0-x4/pack.json");
     assert!(record.is_file(), "{msg}");
@@ -283,7 +318,7 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
     // A second call finds them finished.
     assert!(run(&packed, &["--pack", "4"]).contains("4 runs already finished"));
     // --emit jobs --pack: one job for the pack, naming its runs, which trains them all.
-    run(&emitted, &["--pack", "4", "--emit", "jobs"]);
+    run(&emitted, &["--pack", "4", "--pack-engine", "solo", "--emit", "jobs"]);
     let jobs = std::fs::read_to_string(emitted.join("jobs/packs-smoke/jobs.txt")).unwrap();
     assert_eq!(jobs.lines().count(), 1, "{jobs}");
     assert!(jobs.contains(&format!("--only '{}'", keys.join(","))) && jobs.contains("--pack"));

@@ -28,6 +28,8 @@ pub struct ExecOptions {
     /// directory train as one pack (`crate::packs`, docs/packs.md); 1: each run in its own process.
     /// A pack counts as one of `jobs`.
     pub pack: usize,
+    /// The packs' engine (written into each pack's record).
+    pub pack_engine: pdt_train::pack::Engine,
 }
 
 /// What the progress callback sees.
@@ -266,7 +268,7 @@ fn pack_command(
     opts: &ExecOptions,
 ) -> Result<Command, ReproError> {
     let specs: Vec<&RunSpec> = members.iter().map(|m| m.spec).collect();
-    let dir = crate::packs::write_pack_dir(out, &specs)?;
+    let dir = crate::packs::write_pack_dir(out, &specs, opts.pack_engine)?;
     let mut cmd = Command::new(&opts.exe);
     cmd.arg(DIE_WITH_PARENT).arg("train").arg("--resume").arg(&dir);
     let mut moved = None;

@@ -43,7 +43,11 @@ pub fn group<'a>(runs: &[&'a RunSpec], size: usize) -> Vec<Vec<&'a RunSpec>> {
 /// Writes the pack record of `runs` (absolute run directories, their configurations) into a pack
 /// directory under `out/packs/`, named after its first run, and returns that directory: `train
 /// --resume` of it starts each new run and resumes each partial one.
-pub fn write_pack_dir(out: &Path, runs: &[&RunSpec]) -> Result<PathBuf, ReproError> {
+pub fn write_pack_dir(
+    out: &Path,
+    runs: &[&RunSpec],
+    engine: Engine,
+) -> Result<PathBuf, ReproError> {
     let first = runs.first().ok_or_else(|| ReproError::Invalid("an empty pack".into()))?;
     let name: String = first
         .key
@@ -59,7 +63,7 @@ pub fn write_pack_dir(out: &Path, runs: &[&RunSpec]) -> Result<PathBuf, ReproErr
             .map_err(|e| ReproError::Io { path: r.dir.clone(), source: e })?;
         members.push(PackRecordRun { dir: abs.to_string_lossy().into_owned(), config });
     }
-    let record = PackRecord { engine: Engine::default_engine().name().into(), runs: members };
+    let record = PackRecord { engine: engine.name().into(), runs: members };
     let text = serde_json::to_string_pretty(&record)
         .map_err(|e| ReproError::Invalid(format!("pack record: {e}")))?;
     let path = dir.join(PACK_JSON);

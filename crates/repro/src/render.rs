@@ -179,7 +179,7 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
     let _ = writeln!(
         s,
         "The paper's claims, checked on the normalised means of the archived runs (the manifests' \
-         rules: a \"beats\" claim needs a lead beyond its margin).\n"
+         rules: a \"beats\" claim needs a lead beyond both its margin and the spread over seeds, docs/reproduce.md#claims).\n"
     );
     for sec in &sections {
         let r = &sec.report;
