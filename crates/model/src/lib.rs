@@ -5,6 +5,7 @@
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
+//! - [`host_memory`]: keeps the memory libtorch frees on the CPU for reuse (no page-fault churn).
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
 //! so a checkpoint moves between promptdt and PyTorch without renaming.
@@ -18,6 +19,7 @@ pub mod config;
 pub mod device;
 pub mod forward_file;
 pub mod gpt2;
+pub mod host_memory;
 pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;
