@@ -59,6 +59,7 @@ impl Attention {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
+
         // All rows (training, full forward): no narrow. A narrow of the whole length is a no-op
         // view forward, but its backward allocates a zeroed `[B, L, H]` and copies the gradient
         // into it, at every layer of every training step (the reference has no such op).

@@ -13,7 +13,10 @@
 //!
 //! [`keep_freed_memory`] makes glibc serve every block from the heap and never trim it, so the
 //! memory of one step is reused by the next: after the first step a step takes no page faults.
-//! The resident size stays at the peak of a step (which it reaches every step anyway). Nothing
+//! The resident size stays at the peak of a step (which it reaches every step anyway). It covers
+//! the main thread's allocations (glibc's main arena), where `promptdt` trains and evaluates; a
+//! block above 64 MB asked for on another thread is still served by its own mmap (glibc's
+//! per-thread arenas fall back to mmap whatever `M_MMAP_MAX` says). Nothing
 //! else changes: the same kernels run on the same values, so results are bit-identical (the
 //! parity tests do not call this and still pass; the training-run byte comparison in
 //! BENCHMARKS.md was made with it).
@@ -50,7 +53,8 @@ mod imp {
         // plain integers and touches no memory of ours.
         #[allow(unsafe_code)]
         let ok = unsafe {
-            libc::mallopt(libc::M_MMAP_MAX, 0) == 1 && libc::mallopt(libc::M_TRIM_THRESHOLD, -1) == 1
+            libc::mallopt(libc::M_MMAP_MAX, 0) == 1
+                && libc::mallopt(libc::M_TRIM_THRESHOLD, -1) == 1
         };
         if ok {
             HostMemory::Kept
