@@ -7,12 +7,15 @@
 //! with a fresh `mmap` and gives them back with `munmap` on free, and it trims the top of the heap
 //! when more than its trim threshold is free there: either way the next step touches new pages and
 //! the kernel zero-fills every one of them on first touch. Measured with `perf` on `promptdt bench
-//! --cases train_b560 --threads 1` (AVX2 EPYC): 2.28 M page faults over four steps, about a
-//! quarter of the step's CPU time in the kernel's fault path and page zeroing (PyTorch's own
-//! process has the same churn, a little less by luck of its heap layout: 1.45 M).
+//! --cases train_b560 --threads 1` (AVX2 EPYC): 2.28 M page faults over four steps, a fifth of
+//! the samples in the kernel's fault path and page zeroing (PyTorch's own process has the same
+//! churn, a little less by luck of its heap layout: 1.45 M). With this setting (and one op less
+//! in the attention's backward) a step's CPU time went from 4.4 s to 2.8 s (PyTorch: 3.2 s;
+//! BENCHMARKS.md, issue 30).
 //!
 //! [`keep_freed_memory`] makes glibc serve every block from the heap and never trim it, so the
-//! memory of one step is reused by the next: after the first step a step takes no page faults.
+//! memory of one step is reused by the next: once the heap has grown to a step's peak (two steps),
+//! a step takes no page faults.
 //! The resident size stays at the peak of a step (which it reaches every step anyway). It covers
 //! the main thread's allocations (glibc's main arena), where `promptdt` trains and evaluates; a
 //! block above 64 MB asked for on another thread is still served by its own mmap (glibc's
