@@ -59,7 +59,12 @@ impl Attention {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
-        let q = qkv[0].narrow(1, l - rows, rows).view([b, rows, self.n_head, hd]);
+
+        // All rows (training, full forward): no narrow. A narrow of the whole length is a no-op
+        // view forward, but its backward allocates a zeroed `[B, L, H]` and copies the gradient
+        // into it, at every layer of every training step (the reference has no such op).
+        let q = if rows == l { qkv[0].shallow_clone() } else { qkv[0].narrow(1, l - rows, rows) };
+        let q = q.view([b, rows, self.n_head, hd]);
         let k = qkv[1].view([b, l, self.n_head, hd]).permute([0, 2, 3, 1]);
         let v = qkv[2].view([b, l, self.n_head, hd]).permute([0, 2, 1, 3]);
         (q.permute([0, 2, 1, 3]), k, v)

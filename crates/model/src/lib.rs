@@ -6,6 +6,7 @@
 //! - [`packed`]: N models of one shape as one (stacked weights, batched products): a pack of runs.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
+//! - [`host_memory`]: keeps the memory libtorch frees on the CPU for reuse (no page-fault churn).
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
 //! so a checkpoint moves between promptdt and PyTorch without renaming.
@@ -19,6 +20,7 @@ pub mod config;
 pub mod device;
 pub mod forward_file;
 pub mod gpt2;
+pub mod host_memory;
 pub mod packed;
 pub mod prompt_dt;
 
