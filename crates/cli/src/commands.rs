@@ -82,9 +82,7 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     use pdt_train::config::{Overrides, TrainConfig};
-    if !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_train::pack::is_pack_dir) {
-        return crate::packs::train_pack(a);
-    }
+    // (A pack, `--pack` or `--resume` of a pack directory, goes to `crate::packs` from `main`.)
     if a.engine.is_some() {
         bail!("--engine is for packs (--pack, or --resume of a pack directory)");
     }

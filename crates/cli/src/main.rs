@@ -202,6 +202,7 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Collect(a) => collect(&a)?,
+        Command::Train(a) if packs::is_pack(&a) => packs::train_pack(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
             let r = pdt_train::run::evaluate_run_with(

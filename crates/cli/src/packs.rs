@@ -3,6 +3,11 @@
 
 use crate::args::TrainArgs;
 use crate::commands::bar;
+
+/// Whether `train` is asked for a pack: `--pack`, or `--resume` of a pack directory.
+pub fn is_pack(a: &TrainArgs) -> bool {
+    !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_train::pack::is_pack_dir)
+}
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
 use pdt_train::config::{Overrides, TrainConfig};

@@ -26,7 +26,6 @@ mod error;
 mod evaluate;
 mod methods;
 pub mod optim;
-mod optim_flat;
 pub mod pack;
 pub mod run;
 mod run_dir;

@@ -1,5 +1,5 @@
 //! AdamW and global gradient clipping over one contiguous buffer per run: the same maths as
-//! [`AdamW`](crate::optim::AdamW), in a fixed number of kernel launches per step whatever the number
+//! [`AdamW`](super::adamw::AdamW), in a fixed number of kernel launches per step whatever the number
 //! of parameter tensors (on CUDA the per-tensor loops are launch-bound; tch 0.24 binds no
 //! `_foreach_*` or `_fused_adamw_`).
 //!
@@ -28,7 +28,7 @@
 //! element-wise update itself is the same ops). See docs/reproducibility.md for the measured
 //! tolerance.
 
-use crate::optim::{adamw_update, optimised_params, AdamWConfig, Grads, Moments, ParamState};
+use super::adamw::{adamw_update, optimised_params, AdamWConfig, Grads, Moments, ParamState};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use tch::{nn::VarStore, Tensor};
