@@ -32,7 +32,7 @@ def test_reproduce_runs_an_experiment_and_reports_it(repo, tmp_path):
         "fig4", budget="smoke", out=out, jobs=2, exe=exe, pretrained_root=repo / "pretrained"
     )
     assert r["experiment"] == "fig4" and r["budget"] == "smoke"
-    assert len(r["cells"]) == 5 and all(c["status"] == "ran" for c in r["cells"])
+    assert len(r["cells"]) == 9 and all(c["status"] == "ran" for c in r["cells"])
     assert (out / "reports" / "fig4-smoke" / "report.md").is_file()
     # The runs are finished: the report alone gives the same cells.
     again = promptdt.reproduce("fig4", budget="smoke", out=out, exe=exe, report_only=True)
