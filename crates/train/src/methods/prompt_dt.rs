@@ -88,25 +88,7 @@ impl PromptDtLearner<'_> {
 
     /// The weights and optimiser state, copied (the learner's own are never shared).
     pub(crate) fn state(&self) -> SlotState {
-        tch::no_grad(|| {
-            let mut weights: Vec<(String, Tensor)> =
-                self.vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-            weights.sort_by(|a, b| a.0.cmp(&b.0));
-            let moments = self
-                .opt
-                .state()
-                .iter()
-                .map(|(n, st)| {
-                    let copy = ParamState {
-                        step: st.step,
-                        exp_avg: st.exp_avg.copy(),
-                        exp_avg_sq: st.exp_avg_sq.copy(),
-                    };
-                    (n.clone(), copy)
-                })
-                .collect();
-            SlotState { weights, moments }
-        })
+        SlotState::copy_of(&self.vs, &self.opt)
     }
 
     /// Sets the weights (each by name and shape) and the optimiser state.

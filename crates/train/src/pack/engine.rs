@@ -50,6 +50,31 @@ pub struct SlotState {
     pub moments: BTreeMap<String, ParamState>,
 }
 
+impl SlotState {
+    /// A copy of a solo model's weights (sorted by name) and its optimiser's state: never shared
+    /// with the model it was read from.
+    pub fn copy_of(vs: &tch::nn::VarStore, opt: &crate::optim::Optimizer) -> Self {
+        tch::no_grad(|| {
+            let mut weights: Vec<(String, Tensor)> =
+                vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+            weights.sort_by(|a, b| a.0.cmp(&b.0));
+            let moments = opt
+                .state()
+                .iter()
+                .map(|(n, st)| {
+                    let copy = ParamState {
+                        step: st.step,
+                        exp_avg: st.exp_avg.copy(),
+                        exp_avg_sq: st.exp_avg_sq.copy(),
+                    };
+                    (n.clone(), copy)
+                })
+                .collect();
+            SlotState { weights, moments }
+        })
+    }
+}
+
 /// Steps the runs of a pack together.
 pub trait PackEngine {
     /// Number of slots (runs) in the pack.

@@ -5,7 +5,7 @@
 
 use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
-use crate::optim::{Optimizer, ParamState};
+use crate::optim::Optimizer;
 use crate::step::{train_step, StepStats};
 use crate::streams::STREAM_DROPOUT;
 use pdt_base::seed::derive_seed;
@@ -90,25 +90,7 @@ impl PackEngine for SoloEngine {
 
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {
         let s = self.slot(slot)?;
-        tch::no_grad(|| {
-            let mut weights: Vec<(String, Tensor)> =
-                s.vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-            weights.sort_by(|a, b| a.0.cmp(&b.0));
-            let moments = s
-                .opt
-                .state()
-                .iter()
-                .map(|(n, st)| {
-                    let copy = ParamState {
-                        step: st.step,
-                        exp_avg: st.exp_avg.copy(),
-                        exp_avg_sq: st.exp_avg_sq.copy(),
-                    };
-                    (n.clone(), copy)
-                })
-                .collect();
-            Ok(SlotState { weights, moments })
-        })
+        Ok(SlotState::copy_of(&s.vs, &s.opt))
     }
 
     fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
