@@ -31,6 +31,8 @@ def test_check_env_passes_for_every_family(gid):
     with warnings.catch_warnings():
         # gymnasium only advises a [-1, 1] action box (the point robot's is [-0.1, 0.1]).
         warnings.filterwarnings("ignore", message=".*symmetric and normalized.*")
+        # Nor are observations bounded (gymnasium's own MuJoCo envs use the same infinite box).
+        warnings.filterwarnings("ignore", message=".*Box observation space m.* infinity.*")
         check_env(env.unwrapped)
     env.close()
 
@@ -80,6 +82,11 @@ def test_gymnasium_make_vec_works_in_every_mode():
     np.testing.assert_array_equal(so, vo)
     sync.step(sync.action_space.sample())
     sync.close()
+    # gymnasium's AsyncVectorEnv (a process per env) too.
+    asy = gym.make_vec("promptdt/CheetahVel-v0", num_envs=2, vectorization_mode="async", task=3)
+    ao, _ = asy.reset(seed=0)
+    np.testing.assert_array_equal(ao, vo)
+    asy.close()
     # gymnasium's vector wrappers work on ours.
     w = gym.wrappers.vector.RecordEpisodeStatistics(gym.make_vec("promptdt/PointRobot-v0", num_envs=2))
     w.reset(seed=0)

@@ -45,7 +45,8 @@ pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 #[pyfunction]
 pub(crate) fn task_params(family: &str, task: &Bound<'_, PyAny>) -> PyResult<String> {
     let f = pdt_envs::family(family).map_err(value_error)?;
-    let task = usize_arg("task", task, &format!("a task index of {} (0..{})", f.name(), f.num_tasks()))?;
+    let task =
+        usize_arg("task", task, &format!("a task index of {} (0..{})", f.name(), f.num_tasks()))?;
     Ok(f.task_params(task).map_err(value_error)?.to_string())
 }
 

@@ -63,24 +63,21 @@ pub(crate) fn uint_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyRe
 /// [`uint_arg`] as a `usize`.
 pub(crate) fn usize_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<usize> {
     let x = uint_arg(name, v, expected)?;
-    usize::try_from(x).map_err(|_| value_error(format!("{name}: {x} is too large, expected {expected}")))
+    usize::try_from(x)
+        .map_err(|_| value_error(format!("{name}: {x} is too large, expected {expected}")))
 }
 
 /// A list of non-negative integers (any iterable but a string): each checked as [`uint_arg`],
 /// named `name[i]`.
 pub(crate) fn uint_list(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<Vec<u64>> {
     let ty = v.get_type().name().map_or_else(|_| "?".to_string(), |n| n.to_string());
-    let not_a_list = || {
-        PyTypeError::new_err(format!("{name}: a {ty} given, expected a list of {expected}s"))
-    };
+    let not_a_list =
+        || PyTypeError::new_err(format!("{name}: a {ty} given, expected a list of {expected}s"));
     if v.is_instance_of::<PyString>() || v.is_instance_of::<PyBytes>() {
         return Err(not_a_list());
     }
     let items = v.try_iter().map_err(|_| not_a_list())?;
-    items
-        .enumerate()
-        .map(|(i, x)| uint_arg(&format!("{name}[{i}]"), &x?, expected))
-        .collect()
+    items.enumerate().map(|(i, x)| uint_arg(&format!("{name}[{i}]"), &x?, expected)).collect()
 }
 
 /// [`uint_list`] as `usize`s.
@@ -89,8 +86,9 @@ pub(crate) fn usize_list(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> Py
         .into_iter()
         .enumerate()
         .map(|(i, x)| {
-            usize::try_from(x)
-                .map_err(|_| value_error(format!("{name}[{i}]: {x} is too large, expected {expected}")))
+            usize::try_from(x).map_err(|_| {
+                value_error(format!("{name}[{i}]: {x} is too large, expected {expected}"))
+            })
         })
         .collect()
 }

@@ -224,9 +224,14 @@ impl Policy {
     /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one (`seed`:
     /// None is 0).
     #[pyo3(signature = (task, seed = None))]
-    fn task_prompt(&self, task: &Bound<'_, PyAny>, seed: Option<&Bound<'_, PyAny>>) -> PyResult<Prompt> {
+    fn task_prompt(
+        &self,
+        task: &Bound<'_, PyAny>,
+        seed: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Prompt> {
         let task = usize_arg("task", task, "a task index of the run's family")?;
-        let seed = seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let seed =
+            seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
         let st = lock(&self.state)?;
         Ok(Prompt { inner: st.run.task_prompt(task, seed).map_err(value_error)? })
     }
@@ -266,8 +271,9 @@ impl Policy {
         split: &str,
         episodes: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Vec<TaskPlan>> {
-        let episodes =
-            episodes.map(|e| usize_arg("episodes", e, "a number of episodes per task")).transpose()?;
+        let episodes = episodes
+            .map(|e| usize_arg("episodes", e, "a number of episodes per task"))
+            .transpose()?;
         let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
         plan.into_iter()
             .map(|t| {
@@ -390,10 +396,13 @@ impl Policy {
         }
         // One value per episode: a scalar or an [n, 1] column is refused rather than broadcast.
         let per_episode = |name: &str, shape: &[usize]| -> PyResult<()> {
-            if shape == [n] {
-                return Ok(());
+            match shape {
+                [m] if *m == n => Ok(()),
+                [m] => Err(value_error(format!("{name}: {m} values for {n} episodes"))),
+                _ => Err(value_error(format!(
+                    "{name}: shape {shape:?}, expected [{n}] (one per episode)"
+                ))),
             }
-            Err(value_error(format!("{name}: shape {shape:?}, expected [{n}] (one per episode)")))
         };
         let reward: Option<Vec<f64>> = match reward {
             Some(r) => {

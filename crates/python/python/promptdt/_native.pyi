@@ -6,7 +6,29 @@ import numpy as np
 import numpy.typing as npt
 
 _Path = Union[str, PathLike]
-F32 = npt.NDArray[np.float32]
+_F32 = npt.NDArray[np.float32]
+
+# The module's own __all__ (PyO3 lists everything it adds); stubtest checks the two agree.
+__all__ = [
+    "__version__",
+    "LIBTORCH_VERSION",
+    "load_dataset",
+    "write_dataset",
+    "families",
+    "task_params",
+    "train",
+    "evaluate",
+    "collect_scripted",
+    "is_scripted",
+    "experiments",
+    "collect_from_agent",
+    "set_num_threads",
+    "bench_envs",
+    "VecEnv",
+    "Policy",
+    "Prompt",
+    "TaskPlan",
+]
 
 __version__: str
 LIBTORCH_VERSION: str
@@ -67,10 +89,10 @@ class VecEnv:
     @property
     def num_envs(self) -> int: ...
     def __new__(cls, family: str, tasks: Sequence[int], threads: Optional[int] = None) -> "VecEnv": ...
-    def reset(self, seeds: Sequence[int], indices: Optional[Sequence[int]] = None) -> F32: ...
+    def reset(self, seeds: Sequence[int], indices: Optional[Sequence[int]] = None) -> _F32: ...
     def step(
         self, actions: npt.ArrayLike, mask: Optional[Sequence[bool]] = None
-    ) -> Tuple[F32, F32, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]: ...
+    ) -> Tuple[_F32, _F32, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]: ...
     def last_success(self) -> Optional[npt.NDArray[np.bool_]]: ...
 
 @final
@@ -78,15 +100,15 @@ class Prompt:
     @property
     def steps(self) -> int: ...
     @property
-    def states(self) -> F32: ...
+    def states(self) -> _F32: ...
     @property
-    def actions(self) -> F32: ...
+    def actions(self) -> _F32: ...
     @property
-    def returns_to_go(self) -> F32: ...
+    def returns_to_go(self) -> _F32: ...
     @property
     def timesteps(self) -> npt.NDArray[np.int64]: ...
     @property
-    def mask(self) -> F32: ...
+    def mask(self) -> _F32: ...
 
 @final
 class TaskPlan:
@@ -145,7 +167,7 @@ class Policy:
         obs: npt.ArrayLike,
         reward: Optional[npt.ArrayLike] = None,
         done: Optional[npt.ArrayLike] = None,
-    ) -> F32: ...
+    ) -> _F32: ...
     def episode_returns(self) -> List[Optional[float]]: ...
 
 def write_dataset(

@@ -113,7 +113,7 @@ def _options(options: Optional[Dict[str, Any]]) -> Optional[Any]:
     return options.get("task")
 
 
-class PromptDTEnv(gym.Env[Obs, Obs]):
+class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
     """One environment of a family, on one of its tasks: a plain ``gymnasium.Env``
     (``gymnasium.make("promptdt/CheetahVel-v0", task=3)``). ``reset(options={"task": t})``
     switches task."""
@@ -191,8 +191,9 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         self.tasks: List[int] = list(self._env.tasks)
         self.num_envs = self._env.num_envs
         self.horizon: int = self._env.horizon
+        self._act_dim: int = self._env.act_dim
         self.single_observation_space, self.single_action_space = _spaces(
-            self.family, self._env.obs_dim, self._env.act_dim
+            self.family, self._env.obs_dim, self._act_dim
         )
         self.observation_space = gym.vector.utils.batch_space(
             self.single_observation_space, self.num_envs
@@ -275,10 +276,10 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape != (self.num_envs, self.single_action_space.shape[0]):
+        if actions.shape != (self.num_envs, self._act_dim):
             raise ValueError(
                 f"actions: shape {actions.shape}, expected "
-                f"{(self.num_envs, self.single_action_space.shape[0])} (num_envs, act_dim)"
+                f"{(self.num_envs, self._act_dim)} (num_envs, act_dim)"
             )
         stepped = ~self._autoreset
         obs, rewards, term, trunc = env.step(actions, stepped.tolist())
@@ -368,8 +369,8 @@ def register_envs() -> None:
             continue
         gym.register(
             id=gid,
-            entry_point=PromptDTEnv,
-            vector_entry_point=_vector_entry_point,
+            entry_point=f"{__name__}:PromptDTEnv",
+            vector_entry_point=f"{__name__}:_vector_entry_point",
             kwargs={"family": family},
             # The environments truncate at their own horizon (no TimeLimit wrapper needed).
             max_episode_steps=None,
