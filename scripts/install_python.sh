@@ -30,7 +30,7 @@ python3 scripts/fetch_mujoco.py
 if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
-pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7" "safetensors>=0.4")
+pkgs=("maturin>=1.9.4,<2" "numpy>=1.21" "gymnasium>=1.0,<2" "pytest>=7" "safetensors>=0.4" "mypy>=1.10")
 if [[ ",${PROMPTDT_PY_EXTRAS:-}," == *",minari,"* ]]; then
     pkgs+=("minari[hdf5]>=0.5,<0.6" "pillow")  # minari 0.5.4's hdf5 storage imports PIL
 fi

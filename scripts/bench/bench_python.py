@@ -61,7 +61,7 @@ def bench_envs(family, steps_single, steps_vec, seed):
         rows.append((name, r["steps_per_s"]))
     rng = np.random.default_rng(seed)
     for n, threads, steps in [(1, 1, steps_single), (16, 1, steps_vec), (16, 2, steps_vec)]:
-        env = make_vec(family, 0, num_envs=n, threads=threads)
+        env = make_vec(family, n, task=0, threads=threads)
         env.reset(seed=seed)
         acts = rng.uniform(-1, 1, (steps, n, ACT[family])).astype(np.float32)
 

@@ -11,7 +11,7 @@ gym = pytest.importorskip("gymnasium")
 
 @pytest.mark.parametrize("family,tasks", [("cheetah_vel", [0, 3, 7]), ("ant_dir", [1, 2]), ("point_robot", [0, 39])])
 def test_vector_env_equals_single_envs_step_for_step(family, tasks):
-    env = make_vec(family, tasks, threads=2)
+    env = make_vec(family, tasks=tasks, threads=2)
     obs, info = env.reset(seed=[5, 6, 7][: len(tasks)])
     singles = [_native.VecEnv(family, [t], 0) for t in tasks]
     first = np.concatenate([s.reset([seed]) for s, seed in zip(singles, [5, 6, 7])])
@@ -29,7 +29,7 @@ def test_vector_env_equals_single_envs_step_for_step(family, tasks):
 
 
 def test_gymnasium_api_and_autoreset():
-    env = make_vec("point_robot", 3, num_envs=2)
+    env = make_vec("point_robot", 2, task=3)
     assert isinstance(env, gym.vector.VectorEnv)
     assert env.observation_space.shape == (2, 2) and env.action_space.shape == (2, 2)
     obs, info = env.reset(seed=0)
@@ -48,12 +48,12 @@ def test_gymnasium_api_and_autoreset():
 
 
 def test_make_vec_tasks_and_errors():
-    env = make_vec("cheetah_vel", [2, 7], num_envs=4)
+    env = make_vec("cheetah_vel", 4, tasks=[2, 7])
     assert env.tasks == [2, 2, 7, 7]
     with pytest.raises(ValueError, match="unknown environment `nope`"):
-        make_vec("nope", [0])
+        make_vec("nope", tasks=[0])
     with pytest.raises(ValueError, match="unknown task 99 of cheetah_vel"):
-        make_vec("cheetah_vel", [99])
+        make_vec("cheetah_vel", tasks=[99])
     env.reset(seed=1)
     with pytest.raises(ValueError, match=r"actions: shape"):
         env.step(np.zeros((4, 5)))
@@ -63,7 +63,7 @@ def test_make_vec_tasks_and_errors():
         env.step(bad)
     # Nothing stepped: the next good step is every environment's first.
     obs, *_ = env.step(np.zeros((4, 6)))
-    fresh = make_vec("cheetah_vel", [2, 7], num_envs=4)
+    fresh = make_vec("cheetah_vel", 4, tasks=[2, 7])
     fresh.reset(seed=1)
     first, *_ = fresh.step(np.zeros((4, 6)))
     np.testing.assert_array_equal(obs, first)
@@ -74,7 +74,7 @@ def test_make_vec_tasks_and_errors():
 
 
 def test_make_vec_metaworld_reach_reports_success():
-    env = make_vec("metaworld_reach", [1, 6], num_envs=2)
+    env = make_vec("metaworld_reach", 2, tasks=[1, 6])
     obs, _ = env.reset(seed=0)
     # ML1 observations: 39 values, the goal slot zeroed.
     assert obs.shape == (2, 39) and np.all(obs[:, 36:39] == 0)
@@ -83,7 +83,7 @@ def test_make_vec_metaworld_reach_reports_success():
     assert not infos["success"].any() and infos["_success"].all()
     assert (rew > 0).all() and not term.any() and not trunc.any()
     # Families without a success criterion put none in infos.
-    c = make_vec("cheetah_vel", [2], num_envs=1)
+    c = make_vec("cheetah_vel", 1, tasks=[2])
     c.reset(seed=0)
     *_, info = c.step(np.zeros((1, 6)))
     assert "success" not in info
@@ -108,7 +108,7 @@ def test_dial_from_python(tmp_path):
     d = fams["dial"]
     assert (d["num_tasks"], d["obs_dim"], d["act_dim"], d["horizon"], d["prompt_length"]) == (10, 39, 9, 200, 15)
     assert d["splits"]["default"] == ([1, 2, 3, 4, 5, 8], [6, 7, 9, 0])
-    env = make_vec("dial", [6, 0], num_envs=2)
+    env = make_vec("dial", 2, tasks=[6, 0])
     obs, _ = env.reset(seed=0)
     assert obs.shape == (2, 39)
     obs, rew, term, trunc, infos = env.step(np.zeros((2, 9)))
@@ -133,7 +133,7 @@ def test_family_knowledge_comes_from_rust(tmp_path):
     fams = promptdt.families()
     assert set(fams) == {"point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"}
     for name, f in fams.items():
-        env = make_vec(name, 0, num_envs=1)
+        env = make_vec(name, 1, task=0)
         space = env.single_action_space
         np.testing.assert_array_equal(space.low, np.asarray(f["action_low"], np.float32), err_msg=name)
         np.testing.assert_array_equal(space.high, np.asarray(f["action_high"], np.float32), err_msg=name)

@@ -12,7 +12,7 @@ def rollout(policy, plan, family, threads=2):
     """All episodes of all tasks together, as `promptdt eval` runs them: returns per episode."""
     tasks = [t.index for t in plan for _ in t.seeds]
     seeds = [s for t in plan for s in t.seeds]
-    env = make_vec(family, tasks, threads=threads)
+    env = make_vec(family, tasks=tasks, threads=threads)
     obs, _ = env.reset(seed=seeds)
     policy.reset(len(tasks))
     policy.set_prompt([t.prompt for t in plan for _ in t.seeds])
@@ -53,7 +53,7 @@ def test_act_keeps_each_episode_history(point_run):
     # One episode alone (one policy), and the same episode batched with another (a second one):
     # the same actions, within a few f32 ulps (batch size picks other kernels).
     other = promptdt.Policy.load(point_run, threads=1)
-    env = make_vec("point_robot", [0, 5])
+    env = make_vec("point_robot", tasks=[0, 5])
     obs, _ = env.reset(seed=[11, 12])
     policy.set_prompt(prompt)
     other.set_prompt([prompt, policy.task_prompt(policy.prompt_tasks()[1])])
@@ -146,3 +146,74 @@ def test_policy_refuses_what_serve_refuses(point_run):
     assert policy.episode_returns() == [0.5]
     with pytest.raises(ValueError, match=r"prompt.returns_to_go\[0\] = 1e31 is outside"):
         policy.prompt(np.zeros((1, 2)), np.zeros((1, 2)), np.array([1e31]), np.array([0]))
+
+
+def test_act_with_done_follows_episode_boundaries(point_run):
+    """Issue 34 point 2: a loop of 3 x horizon steps that passes the env's done flags to `act`
+    (NEXT_STEP autoreset: the step after an end is the new episode's first) gives each episode
+    the return it has when the episodes are run one by one, restarting the policy's episode one
+    step after its end."""
+    n, task = 3, 0
+
+    def prompted():
+        p = promptdt.Policy.load(point_run, threads=1)
+        p.set_prompt(p.task_prompt(p.prompt_tasks()[0]))
+        p.reset(n)
+        return p
+
+    def segments(rewards, ends):
+        """Per environment, the return of each episode (rewards up to and including its end)."""
+        out = [[] for _ in range(n)]
+        acc = np.zeros(n)
+        for r, e in zip(rewards, ends):
+            acc += r
+            for i in np.flatnonzero(e):
+                out[i].append(acc[i])
+                acc[i] = 0.0
+        return out
+
+    # With `done`: the policy follows the boundaries itself.
+    policy = prompted()
+    env = make_vec("point_robot", n, task=task)
+    obs, _ = env.reset(seed=0)
+    actions = policy.act(obs)
+    rewards, ends, finals = [], [], [[] for _ in range(n)]
+    for _ in range(3 * env.horizon):
+        obs, rew, term, trunc, _ = env.step(actions)
+        done = term | trunc
+        actions = policy.act(obs, rew, done=done)
+        rewards.append(rew)
+        ends.append(done)
+        if done.any():
+            assert np.all(actions[done] == 0)  # ignored by the autoreset
+            for i in np.flatnonzero(done):
+                finals[i].append(policy.episode_returns()[i])
+    with_done = segments(rewards, ends)
+
+    # One by one: the episode restarted the step after its end, as docs/python.md said before.
+    ref = prompted()
+    env = make_vec("point_robot", n, task=task)
+    obs, _ = env.reset(seed=0)
+    actions = ref.act(obs)
+    rewards, ends, prev = [], [], np.zeros(n, bool)
+    for _ in range(3 * env.horizon):
+        obs, rew, term, trunc, _ = env.step(actions)
+        if prev.any():
+            ref.restart(np.flatnonzero(prev).tolist())
+            fresh = ref.act(obs, rew)
+        elif (term | trunc).any():
+            fresh = np.zeros_like(actions)  # the autoreset ignores it
+        else:
+            fresh = ref.act(obs, rew)
+        actions, prev = fresh, term | trunc
+        rewards.append(rew)
+        ends.append(term | trunc)
+    one_by_one = segments(rewards, ends)
+
+    assert all(len(s) >= 2 for s in with_done), with_done
+    assert with_done == one_by_one
+    # `episode_returns` holds the ended episode's return until its next observation.
+    for i in range(n):
+        np.testing.assert_allclose(finals[i], with_done[i], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="done: 2 values for 3 episodes"):
+        policy.act(obs, rew, done=np.zeros(2, bool))

@@ -1,8 +1,8 @@
 //! The environment families and their vector of environments stepped on worker threads.
 
-use crate::{array2, lock, value_error};
+use crate::{array2, lock, uint_list, usize_arg, usize_list, value_error};
 use numpy::prelude::*;
-use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike2};
+use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLikeDyn};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::sync::Mutex;
@@ -43,8 +43,10 @@ pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 
 /// A task's parameters as JSON text (`{"goal": [x, y]}`, `{"velocity": v}`, ...).
 #[pyfunction]
-pub(crate) fn task_params(family: &str, task: usize) -> PyResult<String> {
+pub(crate) fn task_params(family: &str, task: &Bound<'_, PyAny>) -> PyResult<String> {
     let f = pdt_envs::family(family).map_err(value_error)?;
+    let task =
+        usize_arg("task", task, &format!("a task index of {} (0..{})", f.name(), f.num_tasks()))?;
     Ok(f.task_params(task).map_err(value_error)?.to_string())
 }
 
@@ -75,13 +77,23 @@ pub(crate) struct VecEnv {
 #[pymethods]
 impl VecEnv {
     /// One environment per entry of `tasks` (task indices of `family`, repeats allowed), stepped
-    /// on `threads` threads (0: one per core, at most one per environment).
+    /// on `threads` threads (0 or None: one per core, at most one per environment).
     #[new]
-    #[pyo3(signature = (family, tasks, threads = 0))]
-    fn new(family: &str, tasks: Vec<usize>, threads: usize) -> PyResult<Self> {
+    #[pyo3(signature = (family, tasks, threads = None))]
+    fn new(
+        family: &str,
+        tasks: &Bound<'_, PyAny>,
+        threads: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
         let f = pdt_envs::family(family).map_err(value_error)?;
+        let expected = format!("task indices of {} (0..{})", f.name(), f.num_tasks());
+        let tasks = usize_list("tasks", tasks, &expected)?;
+        let threads = match threads {
+            Some(t) => usize_arg("threads", t, "a number of threads (0: one per core)")?,
+            None => 0,
+        };
         if tasks.is_empty() {
-            return Err(value_error("tasks: give at least one task"));
+            return Err(value_error("tasks: an empty list given, expected at least one task"));
         }
         let envs =
             tasks.iter().map(|&t| f.make(t)).collect::<Result<Vec<_>, _>>().map_err(value_error)?;
@@ -109,11 +121,15 @@ impl VecEnv {
     fn reset<'py>(
         &self,
         py: Python<'py>,
-        seeds: Vec<u64>,
-        indices: Option<Vec<usize>>,
+        seeds: &Bound<'py, PyAny>,
+        indices: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let n = self.tasks.len();
-        let indices = indices.unwrap_or_else(|| (0..n).collect());
+        let seeds = uint_list("seeds", seeds, "a seed in [0, 2**64)")?;
+        let indices = match indices {
+            Some(v) => usize_list("indices", v, &format!("an environment index (0..{n})"))?,
+            None => (0..n).collect(),
+        };
         if indices.len() != seeds.len() {
             return Err(value_error(format!(
                 "reset: {} seeds for {} environments",
@@ -141,7 +157,7 @@ impl VecEnv {
     fn step<'py>(
         &self,
         py: Python<'py>,
-        actions: PyArrayLike2<'py, f32, AllowTypeChange>,
+        actions: PyArrayLikeDyn<'py, f32, AllowTypeChange>,
         mask: Option<Vec<bool>>,
     ) -> PyResult<(
         Bound<'py, PyArray2<f32>>,

@@ -15,8 +15,9 @@
 
 use numpy::prelude::*;
 use numpy::PyArray2;
-use pyo3::exceptions::{PyFileNotFoundError, PyRuntimeError, PyValueError};
+use pyo3::exceptions::{PyFileNotFoundError, PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyString};
 use std::path::Path;
 use std::sync::{Mutex, MutexGuard};
 
@@ -40,6 +41,58 @@ pub(crate) fn existing(path: &Path, what: &str) -> PyResult<()> {
     }
 }
 
+/// A non-negative integer argument `name` (`expected` says what it is, e.g. "a task index").
+/// PyO3's own conversion to an unsigned type raises `OverflowError: can't convert negative int to
+/// unsigned`, which names neither the argument nor what it takes; a float raises a TypeError
+/// without the argument's name when it comes through a list.
+pub(crate) fn uint_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<u64> {
+    if let Ok(x) = v.extract::<u64>() {
+        return Ok(x);
+    }
+    let given = v.repr().map_or_else(|_| "?".to_string(), |r| r.to_string());
+    if let Ok(x) = v.extract::<i64>() {
+        return Err(value_error(format!("{name}: {x} given, expected {expected} (>= 0)")));
+    }
+    if v.is_instance_of::<pyo3::types::PyInt>() {
+        return Err(value_error(format!("{name}: {given} is too large, expected {expected}")));
+    }
+    let ty = v.get_type().name().map_or_else(|_| "?".to_string(), |n| n.to_string());
+    Err(PyTypeError::new_err(format!("{name}: {given} ({ty}) given, expected {expected} (an int)")))
+}
+
+/// [`uint_arg`] as a `usize`.
+pub(crate) fn usize_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<usize> {
+    let x = uint_arg(name, v, expected)?;
+    usize::try_from(x)
+        .map_err(|_| value_error(format!("{name}: {x} is too large, expected {expected}")))
+}
+
+/// A list of non-negative integers (any iterable but a string): each checked as [`uint_arg`],
+/// named `name[i]`.
+pub(crate) fn uint_list(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<Vec<u64>> {
+    let ty = v.get_type().name().map_or_else(|_| "?".to_string(), |n| n.to_string());
+    let not_a_list =
+        || PyTypeError::new_err(format!("{name}: a {ty} given, expected a list of {expected}s"));
+    if v.is_instance_of::<PyString>() || v.is_instance_of::<PyBytes>() {
+        return Err(not_a_list());
+    }
+    let items = v.try_iter().map_err(|_| not_a_list())?;
+    items.enumerate().map(|(i, x)| uint_arg(&format!("{name}[{i}]"), &x?, expected)).collect()
+}
+
+/// [`uint_list`] as `usize`s.
+pub(crate) fn usize_list(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<Vec<usize>> {
+    uint_list(name, v, expected)?
+        .into_iter()
+        .enumerate()
+        .map(|(i, x)| {
+            usize::try_from(x).map_err(|_| {
+                value_error(format!("{name}[{i}]: {x} is too large, expected {expected}"))
+            })
+        })
+        .collect()
+}
+
 /// A `[rows, cols]` numpy array that owns `v` (no copy).
 pub(crate) fn array2<'py, T: numpy::Element>(
     py: Python<'py>,
@@ -61,9 +114,10 @@ mod runs;
 
 /// Sets libtorch's intra-op threads for this process.
 #[pyfunction]
-fn set_num_threads(threads: usize) -> PyResult<()> {
+fn set_num_threads(threads: &Bound<'_, PyAny>) -> PyResult<()> {
+    let threads = usize_arg("threads", threads, "a number of threads")?;
     if threads == 0 {
-        return Err(value_error("threads must be at least 1"));
+        return Err(value_error("threads: 0 given, expected at least 1"));
     }
     tch::set_num_threads(threads as i32);
     Ok(())

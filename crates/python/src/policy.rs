@@ -1,8 +1,8 @@
 //! A trained run's prompted policy (`pdt_policy`) and the prompts it acts from.
 
-use crate::{array2, existing, lock, value_error};
+use crate::{array2, existing, lock, uint_arg, usize_arg, usize_list, value_error};
 use numpy::prelude::*;
-use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike1, PyArrayLike2};
+use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike1, PyArrayLike2, PyArrayLikeDyn};
 use pdt_model::PrefixCache;
 use pdt_policy::{Episode, Inputs, PolicyError, PromptArrays, Target};
 use pdt_prompt::SegmentBatch;
@@ -93,6 +93,8 @@ struct PolicyState {
     /// One per episode (its history, last action and checks); `None` until its first
     /// observation.
     episodes: Vec<Option<Episode>>,
+    /// The return of each episode that `act`'s `done` ended, until its slot starts again.
+    ended: Vec<Option<f64>>,
     /// The first return token of the episodes (`reset`'s target return).
     target: Target,
 }
@@ -129,14 +131,17 @@ pub(crate) struct Policy {
     prompt_steps: usize,
 }
 
-/// What `act` does with an episode: start it at its first observation, or record its step.
+/// What `act` does with an episode: start it at its first observation, record its step, or end
+/// it (`done`: its final reward is counted, and its next observation is a first one).
 enum Next {
     Start(pdt_policy::Observation),
     Step(pdt_policy::Step),
+    End(f64),
 }
 
 impl Policy {
-    fn batch_prefix(st: &PolicyState, n: usize) -> PyResult<Option<PrefixCache>> {
+    /// The prompt rows of the episodes `active` (indices among `n`).
+    fn batch_prefix(st: &PolicyState, n: usize, active: &[usize]) -> PyResult<Option<PrefixCache>> {
         if !st.run.method.uses_prompt() {
             return Ok(None);
         }
@@ -152,6 +157,7 @@ impl Policy {
                 )))
             }
         };
+        let rows: Vec<i64> = active.iter().map(|&i| rows[i]).collect();
         let index = Tensor::from_slice(&rows).to_device(st.run.device);
         Ok(Some(cache.select(&index)))
     }
@@ -170,13 +176,14 @@ impl Policy {
         run_dir: PathBuf,
         device: &str,
         data: Option<PathBuf>,
-        threads: Option<usize>,
+        threads: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         existing(&run_dir, "run directory")?;
         let device: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
         if let Some(t) = threads {
+            let t = usize_arg("threads", t, "a number of libtorch threads")?;
             if t == 0 {
-                return Err(value_error("threads must be at least 1"));
+                return Err(value_error("threads: 0 given, expected at least 1"));
             }
             tch::set_num_threads(t as i32);
         }
@@ -199,7 +206,13 @@ impl Policy {
             max_ep_len: run.max_ep_len(),
             iteration: run.iteration,
             prompt_steps: run.prompt_steps,
-            state: Mutex::new(PolicyState { run, prefix: None, episodes: Vec::new(), target }),
+            state: Mutex::new(PolicyState {
+                run,
+                prefix: None,
+                episodes: Vec::new(),
+                ended: Vec::new(),
+                target,
+            }),
         })
     }
 
@@ -208,9 +221,17 @@ impl Policy {
         lock(&self.state)?.run.prompt_tasks().map_err(value_error)
     }
 
-    /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one.
-    #[pyo3(signature = (task, seed = 0))]
-    fn task_prompt(&self, task: usize, seed: u64) -> PyResult<Prompt> {
+    /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one (`seed`:
+    /// None is 0).
+    #[pyo3(signature = (task, seed = None))]
+    fn task_prompt(
+        &self,
+        task: &Bound<'_, PyAny>,
+        seed: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Prompt> {
+        let task = usize_arg("task", task, "a task index of the run's family")?;
+        let seed =
+            seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
         let st = lock(&self.state)?;
         Ok(Prompt { inner: st.run.task_prompt(task, seed).map_err(value_error)? })
     }
@@ -248,8 +269,11 @@ impl Policy {
         &self,
         py: Python<'_>,
         split: &str,
-        episodes: Option<usize>,
+        episodes: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Vec<TaskPlan>> {
+        let episodes = episodes
+            .map(|e| usize_arg("episodes", e, "a number of episodes per task"))
+            .transpose()?;
         let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
         plan.into_iter()
             .map(|t| {
@@ -312,41 +336,51 @@ impl Policy {
     /// Starts `n_episodes` new episodes (the next `act` takes their first observations), aiming
     /// at `target_return` (None: the run's G*).
     #[pyo3(signature = (n_episodes, target_return = None))]
-    fn reset(&self, n_episodes: usize, target_return: Option<f64>) -> PyResult<()> {
+    fn reset(&self, n_episodes: &Bound<'_, PyAny>, target_return: Option<f64>) -> PyResult<()> {
+        let n_episodes = usize_arg("n_episodes", n_episodes, "a number of episodes")?;
         if n_episodes == 0 {
-            return Err(value_error("n_episodes must be at least 1"));
+            return Err(value_error("n_episodes: 0 given, expected at least 1"));
         }
         let mut st = lock(&self.state)?;
         st.target = st.run.target(target_return).map_err(value_error)?;
         st.episodes = vec![None; n_episodes];
+        st.ended = vec![None; n_episodes];
         Ok(())
     }
 
     /// Restarts the given episodes (e.g. those an environment reset): their next observation is
     /// a first one.
-    fn restart(&self, episodes: Vec<usize>) -> PyResult<()> {
+    fn restart(&self, episodes: &Bound<'_, PyAny>) -> PyResult<()> {
         let mut st = lock(&self.state)?;
         let n = st.episodes.len();
+        let episodes = usize_list("episodes", episodes, &format!("an episode index (0..{n})"))?;
+        if let Some(i) = episodes.iter().find(|&&i| i >= n) {
+            return Err(value_error(format!(
+                "episodes: episode {i} given, expected an episode index (0..{n})"
+            )));
+        }
         for &i in &episodes {
-            let slot =
-                st.episodes.get_mut(i).ok_or_else(|| value_error(format!("episode {i} of {n}")))?;
-            *slot = None;
+            st.episodes[i] = None;
+            st.ended[i] = None;
         }
         Ok(())
     }
 
     /// The next action of every episode, `[n, act_dim]` float32. `obs`: `[n, obs_dim]` raw
     /// observations; `reward`: `[n]`, the rewards the last actions earned (ignored for episodes at
-    /// their first observation, required for the others).
-    #[pyo3(signature = (obs, reward = None))]
+    /// their first observation, required for the others); `done`: `[n]` bool, the episodes that
+    /// ended with this step (a gymnasium env's `terminated | truncated`). An episode that is done
+    /// counts its reward and ends: its row of the result is zeros (a NEXT_STEP-autoreset env
+    /// ignores it), and its next observation is the first of a new episode, as after `restart`.
+    #[pyo3(signature = (obs, reward = None, done = None))]
     fn act<'py>(
         &self,
         py: Python<'py>,
-        obs: PyArrayLike2<'py, f64, AllowTypeChange>,
-        reward: Option<PyArrayLike1<'py, f64, AllowTypeChange>>,
+        obs: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+        reward: Option<PyArrayLikeDyn<'py, f64, AllowTypeChange>>,
+        done: Option<PyArrayLikeDyn<'py, bool, AllowTypeChange>>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let obs = obs.as_array();
-        let reward: Option<Vec<f64>> = reward.map(|r| r.as_array().to_vec());
         let mut guard = lock(&self.state)?;
         let st = &mut *guard;
         let n = st.episodes.len();
@@ -360,17 +394,44 @@ impl Policy {
                 self.obs_dim
             )));
         }
-        if let Some(r) = &reward {
-            if r.len() != n {
-                return Err(value_error(format!("reward: {} values for {n} episodes", r.len())));
+        // One value per episode: a scalar or an [n, 1] column is refused rather than broadcast.
+        let per_episode = |name: &str, shape: &[usize]| -> PyResult<()> {
+            match shape {
+                [m] if *m == n => Ok(()),
+                [m] => Err(value_error(format!("{name}: {m} values for {n} episodes"))),
+                _ => Err(value_error(format!(
+                    "{name}: shape {shape:?}, expected [{n}] (one per episode)"
+                ))),
             }
-        }
+        };
+        let reward: Option<Vec<f64>> = match reward {
+            Some(r) => {
+                let r = r.as_array();
+                per_episode("reward", r.shape())?;
+                Some(r.iter().copied().collect())
+            }
+            None => None,
+        };
+        let done: Vec<bool> = match done {
+            Some(d) => {
+                let d = d.as_array();
+                per_episode("done", d.shape())?;
+                d.iter().copied().collect()
+            }
+            None => vec![false; n],
+        };
         // Check everything before changing any episode, so an error leaves the state as it was.
         let at = |i: usize| move |e: PolicyError| value_error(format!("episode {i}: {e}"));
         let mut steps = Vec::with_capacity(n);
         for (i, row) in obs.rows().into_iter().enumerate() {
             let o = st.run.observation(&row.to_vec()).map_err(at(i))?;
             let Some(e) = &st.episodes[i] else {
+                if done[i] {
+                    return Err(value_error(format!(
+                        "done[{i}] is true, but episode {i} is at its first observation (an \
+                         episode ends on a step after its first act)"
+                    )));
+                }
                 steps.push(Next::Start(o));
                 continue;
             };
@@ -383,6 +444,11 @@ impl Policy {
                 Some(r) => r[i],
             };
             let step = st.run.step(r, o).map_err(at(i))?;
+            if done[i] {
+                // Its final observation is not recorded: no action is taken from it.
+                steps.push(Next::End(e.ret() + r));
+                continue;
+            }
             match st.run.check(e, &step) {
                 Err(PolicyError::EpisodeFull { max_ep_len }) => {
                     return Err(value_error(format!(
@@ -393,22 +459,39 @@ impl Policy {
                 Ok(()) => steps.push(Next::Step(step)),
             }
         }
-        let prefix = Self::batch_prefix(st, n)?;
         let starts: Vec<bool> = steps.iter().map(|s| matches!(s, Next::Start(_))).collect();
+        let active: Vec<usize> = (0..n).filter(|&i| !done[i]).collect();
+        let prefix = if active.is_empty() { None } else { Self::batch_prefix(st, n, &active)? };
         let target = st.target;
-        for (slot, next) in st.episodes.iter_mut().zip(steps) {
-            match (slot, next) {
-                (Some(e), Next::Step(step)) => st.run.record(e, step).map_err(value_error)?,
-                (slot, Next::Start(o)) => *slot = Some(st.run.start(o, target)),
-                (None, Next::Step(_)) => return Err(value_error("internal: a step of no episode")),
+        // The episodes `done` ends and the returns of ended ones, kept until the call is accepted.
+        let mut finished: Vec<(usize, Episode)> = Vec::new();
+        let ended_before = st.ended.clone();
+        for (i, next) in steps.into_iter().enumerate() {
+            let slot = &mut st.episodes[i];
+            let internal = || value_error(format!("internal: episode {i} has no state"));
+            match next {
+                Next::Start(o) => {
+                    *slot = Some(st.run.start(o, target));
+                    st.ended[i] = None;
+                }
+                Next::Step(step) => {
+                    let e = slot.as_mut().ok_or_else(internal)?;
+                    st.run.record(e, step).map_err(value_error)?;
+                }
+                Next::End(ret) => {
+                    finished.push((i, slot.take().ok_or_else(internal)?));
+                    st.ended[i] = Some(ret);
+                }
             }
         }
-        let flat = {
+        let flat = if active.is_empty() {
+            Vec::new()
+        } else {
             // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
             let st: &mut PolicyState = st;
             py.detach(move || {
                 let eps: Vec<&Episode> = st.episodes.iter().flatten().collect();
-                st.run.act(&eps, prefix.as_ref()) // [n * da]
+                st.run.act(&eps, prefix.as_ref()) // [active * da]
             })
         };
         let da = self.act_dim;
@@ -416,8 +499,10 @@ impl Policy {
         // model) refuses the whole call: every episode goes back to where it was before it.
         let bad = flat.chunks_exact(da).position(|a| a.iter().any(|x| !x.is_finite()));
         if let Some(b) = bad {
+            let b = active[b];
             let mut why = None;
-            for (i, (slot, a)) in st.episodes.iter_mut().zip(flat.chunks_exact(da)).enumerate() {
+            for (&i, a) in active.iter().zip(flat.chunks_exact(da)) {
+                let slot = &mut st.episodes[i];
                 let Some(e) = slot else { continue };
                 if i == b {
                     why = e.accept(a).err();
@@ -429,22 +514,35 @@ impl Policy {
                     *slot = None;
                 }
             }
+            for (i, e) in finished {
+                st.episodes[i] = Some(e);
+            }
+            st.ended = ended_before;
             let why = why.map_or_else(String::new, |e| e.to_string());
             return Err(value_error(format!(
                 "episode {b}: {why}. The call is refused and every episode is as it was before it"
             )));
         }
-        for (slot, a) in st.episodes.iter_mut().zip(flat.chunks_exact(da)) {
-            if let Some(e) = slot {
+        let mut out = vec![0f32; n * da];
+        for (&i, a) in active.iter().zip(flat.chunks_exact(da)) {
+            if let Some(e) = &mut st.episodes[i] {
                 e.accept(a).map_err(value_error)?;
             }
+            out[i * da..(i + 1) * da].copy_from_slice(a);
         }
-        array2(py, flat, n, da)
+        array2(py, out, n, da)
     }
 
-    /// Returns so far of each episode (None before its first observation).
+    /// Returns so far of each episode: None before its first observation; the final return of an
+    /// episode `act`'s `done` ended, until its next observation starts a new one.
     fn episode_returns(&self) -> PyResult<Vec<Option<f64>>> {
-        Ok(lock(&self.state)?.episodes.iter().map(|e| e.as_ref().map(Episode::ret)).collect())
+        let st = lock(&self.state)?;
+        Ok(st
+            .episodes
+            .iter()
+            .zip(&st.ended)
+            .map(|(e, ended)| e.as_ref().map(Episode::ret).or(*ended))
+            .collect())
     }
 
     fn __repr__(&self) -> String {

@@ -1,7 +1,7 @@
 """promptdt: the Prompt-based Decision Transformer (Prompt-DT) in Rust, from Python.
 
-A trained run's policy (``Policy``), the environment families as a gymnasium vector env
-(``promptdt.envs.make_vec``), the dataset readers (``load_dataset``), and training, evaluation and
+A trained run's policy (``Policy``), the environment families as gymnasium environments
+(``gymnasium.make("promptdt/CheetahVel-v0", task=3)``, ``promptdt.make_vec``), the dataset readers (``load_dataset``), and training, evaluation and
 collection (``train``, ``evaluate``, ``collect``), over the same library code as the ``promptdt``
 command. Arrays are numpy arrays; errors are Python exceptions (``ValueError``,
 ``FileNotFoundError``) that name the file, field or shape.
@@ -33,6 +33,18 @@ from . import _native  # noqa: E402
 from ._native import Policy, Prompt, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
+
+# gymnasium is optional: with it, `import promptdt` registers the families' gymnasium ids
+# (`promptdt/CheetahVel-v0`, ...: promptdt.envs.ENV_IDS) and offers `promptdt.make_vec`.
+try:
+    import gymnasium as _gymnasium  # noqa: F401
+except ImportError:  # pragma: no cover - exercised only without gymnasium
+    pass
+else:
+    from .envs import make_vec as make_vec  # noqa: E402
+    from .envs import register_envs as _register_envs  # noqa: E402
+
+    _register_envs()
 
 PathLike = Union[str, "_os.PathLike[str]"]
 

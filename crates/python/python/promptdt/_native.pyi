@@ -1,12 +1,34 @@
 """Typed stubs of promptdt._native (the Rust extension module)."""
 from os import PathLike
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 import numpy.typing as npt
 
 _Path = Union[str, PathLike]
-F32 = npt.NDArray[np.float32]
+_F32 = npt.NDArray[np.float32]
+
+# The module's own __all__ (PyO3 lists everything it adds); stubtest checks the two agree.
+__all__ = [
+    "__version__",
+    "LIBTORCH_VERSION",
+    "load_dataset",
+    "write_dataset",
+    "families",
+    "task_params",
+    "train",
+    "evaluate",
+    "collect_scripted",
+    "is_scripted",
+    "experiments",
+    "collect_from_agent",
+    "set_num_threads",
+    "bench_envs",
+    "VecEnv",
+    "Policy",
+    "Prompt",
+    "TaskPlan",
+]
 
 __version__: str
 LIBTORCH_VERSION: str
@@ -51,52 +73,84 @@ def collect_from_agent(
 ) -> int: ...
 def set_num_threads(threads: int) -> None: ...
 
+# PyO3 classes are final (not subclassable) and built by `__new__`.
+@final
 class VecEnv:
-    family: str
-    tasks: List[int]
-    obs_dim: int
-    act_dim: int
-    horizon: int
-    num_envs: int
-    def __init__(self, family: str, tasks: Sequence[int], threads: int = 0) -> None: ...
-    def reset(self, seeds: Sequence[int], indices: Optional[Sequence[int]] = None) -> F32: ...
+    @property
+    def family(self) -> str: ...
+    @property
+    def tasks(self) -> List[int]: ...
+    @property
+    def obs_dim(self) -> int: ...
+    @property
+    def act_dim(self) -> int: ...
+    @property
+    def horizon(self) -> int: ...
+    @property
+    def num_envs(self) -> int: ...
+    def __new__(cls, family: str, tasks: Sequence[int], threads: Optional[int] = None) -> "VecEnv": ...
+    def reset(self, seeds: Sequence[int], indices: Optional[Sequence[int]] = None) -> _F32: ...
     def step(
         self, actions: npt.ArrayLike, mask: Optional[Sequence[bool]] = None
-    ) -> Tuple[F32, F32, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]: ...
+    ) -> Tuple[_F32, _F32, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]: ...
     def last_success(self) -> Optional[npt.NDArray[np.bool_]]: ...
 
+@final
 class Prompt:
-    steps: int
-    states: F32
-    actions: F32
-    returns_to_go: F32
-    timesteps: npt.NDArray[np.int64]
-    mask: F32
+    @property
+    def steps(self) -> int: ...
+    @property
+    def states(self) -> _F32: ...
+    @property
+    def actions(self) -> _F32: ...
+    @property
+    def returns_to_go(self) -> _F32: ...
+    @property
+    def timesteps(self) -> npt.NDArray[np.int64]: ...
+    @property
+    def mask(self) -> _F32: ...
 
+@final
 class TaskPlan:
-    name: str
-    index: int
-    seeds: List[int]
-    prompt: Optional[Prompt]
+    @property
+    def name(self) -> str: ...
+    @property
+    def index(self) -> int: ...
+    @property
+    def seeds(self) -> List[int]: ...
+    @property
+    def prompt(self) -> Optional[Prompt]: ...
 
+@final
 class Policy:
-    obs_dim: int
-    act_dim: int
-    k: int
-    method: str
-    env: str
-    uses_prompt: bool
-    target_return: float
-    rtg_scale: float
-    max_ep_len: int
-    iteration: int
-    prompt_steps: int
+    @property
+    def obs_dim(self) -> int: ...
+    @property
+    def act_dim(self) -> int: ...
+    @property
+    def k(self) -> int: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def env(self) -> str: ...
+    @property
+    def uses_prompt(self) -> bool: ...
+    @property
+    def target_return(self) -> float: ...
+    @property
+    def rtg_scale(self) -> float: ...
+    @property
+    def max_ep_len(self) -> int: ...
+    @property
+    def iteration(self) -> int: ...
+    @property
+    def prompt_steps(self) -> int: ...
     @staticmethod
     def load(
         run_dir: _Path, device: str = "cpu", data: Optional[_Path] = None, threads: Optional[int] = None
     ) -> "Policy": ...
     def prompt_tasks(self) -> List[int]: ...
-    def task_prompt(self, task: int, seed: int = 0) -> Prompt: ...
+    def task_prompt(self, task: int, seed: Optional[int] = None) -> Prompt: ...
     def prompt(
         self,
         states: npt.ArrayLike,
@@ -108,7 +162,12 @@ class Policy:
     def set_prompt(self, prompt: Union[Prompt, Sequence[Prompt]]) -> None: ...
     def reset(self, n_episodes: int, target_return: Optional[float] = None) -> None: ...
     def restart(self, episodes: Sequence[int]) -> None: ...
-    def act(self, obs: npt.ArrayLike, reward: Optional[npt.ArrayLike] = None) -> F32: ...
+    def act(
+        self,
+        obs: npt.ArrayLike,
+        reward: Optional[npt.ArrayLike] = None,
+        done: Optional[npt.ArrayLike] = None,
+    ) -> _F32: ...
     def episode_returns(self) -> List[Optional[float]]: ...
 
 def write_dataset(

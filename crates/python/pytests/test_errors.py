@@ -1,0 +1,75 @@
+"""Issue 34, point 9: bad arguments raise a ValueError or TypeError that names the argument, what
+was given and what is expected (before: OverflowError "can't convert negative int to unsigned",
+TypeError "dimensionality mismatch", "'float' object is not iterable", AttributeError on a closed
+env, "give at least one task" for num_envs=-2)."""
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+
+import promptdt  # noqa: E402
+from promptdt import _native  # noqa: E402
+from promptdt.envs import make_vec  # noqa: E402
+
+
+def started_env():
+    env = make_vec("cheetah_vel", 2, task=0)
+    env.reset(seed=0)
+    return env
+
+
+def closed(env):
+    env.close()
+    return env
+
+
+def policy_under_way(run):
+    """A policy with one episode under way (its first action taken)."""
+    p = promptdt.Policy.load(run, threads=1)
+    p.set_prompt(p.task_prompt(p.prompt_tasks()[0]))
+    p.reset(1)
+    p.act(np.zeros((1, p.obs_dim)))
+    return p
+
+
+# (call, exception, message): `run` is a trained point-robot run.
+CASES = {
+    "task=-1": (lambda run: make_vec("cheetah_vel", 2, task=-1), ValueError, r"task: -1 given, expected a task index \(>= 0\)"),
+    "num_envs=-2": (lambda run: make_vec("cheetah_vel", -2, task=0), ValueError, r"num_envs: -2 given, expected a number of environments \(>= 1\)"),
+    "seed=-1": (lambda run: started_env().reset(seed=-1), ValueError, r"seed: -1 given, expected a seed \(in \[0, 18446744073709551616\)\)"),
+    "seed list -1": (lambda run: started_env().reset(seed=[0, -1]), ValueError, r"seed\[1\]: -1 given, expected a seed"),
+    "threads=-1": (lambda run: make_vec("cheetah_vel", 1, task=0, threads=-1), ValueError, r"threads: -1 given, expected a number of threads"),
+    "task_params task=-1": (lambda run: promptdt.task_params("cheetah_vel", -1), ValueError, r"task: -1 given, expected a task index of cheetah_vel \(0\.\.40\)"),
+    "set_num_threads(-1)": (lambda run: promptdt.set_num_threads(-1), ValueError, r"threads: -1 given, expected a number of threads"),
+    "native tasks=[-1]": (lambda run: _native.VecEnv("cheetah_vel", [3, -1]), ValueError, r"tasks\[1\]: -1 given, expected task indices of cheetah_vel"),
+    "float task": (lambda run: make_vec("cheetah_vel", 1, task=1.5), TypeError, r"task: 1\.5 \(float\) given, expected a task index \(an int\)"),
+    "float seed": (lambda run: started_env().reset(seed=1.5), TypeError, r"seed: 1\.5 \(float\) given, expected an int"),
+    "native float task": (lambda run: _native.VecEnv("cheetah_vel", [1.5]), TypeError, r"tasks\[0\]: 1\.5 \(float\) given"),
+    "gym.make task=-1": (lambda run: gym.make("promptdt/CheetahVel-v0", task=-1), ValueError, r"task: -1 given"),
+    "step after close": (lambda run: closed(started_env()).step(np.zeros((2, 6))), ValueError, r"step: this environment is closed"),
+    "single step after close": (lambda run: closed(gym.make("promptdt/PointRobot-v0")).unwrapped.step(np.zeros(2)), ValueError, r"step: this environment is closed"),
+    "policy.reset(-1)": (lambda run: promptdt.Policy.load(run).reset(-1), ValueError, r"n_episodes: -1 given, expected a number of episodes"),
+    "task_prompt(-1)": (lambda run: promptdt.Policy.load(run).task_prompt(-1), ValueError, r"task: -1 given, expected a task index"),
+    "task_prompt seed=-1": (lambda run: promptdt.Policy.load(run).task_prompt(0, seed=-1), ValueError, r"seed: -1 given, expected a seed"),
+    "eval_plan episodes=-1": (lambda run: promptdt.Policy.load(run).eval_plan(episodes=-1), ValueError, r"episodes: -1 given, expected a number of episodes"),
+    "restart([-1])": (lambda run: policy_under_way(run).restart([-1]), ValueError, r"episodes\[0\]: -1 given, expected an episode index \(0\.\.1\)"),
+    "Policy.load threads=-1": (lambda run: promptdt.Policy.load(run, threads=-1), ValueError, r"threads: -1 given"),
+    "1-D obs": (lambda run: policy_under_way(run).act(np.zeros(2), np.zeros(1)), ValueError, r"obs: shape \[2\], expected \[1, 2\] \(episodes, obs_dim\)"),
+    "3-D obs": (lambda run: policy_under_way(run).act(np.zeros((1, 1, 2)), np.zeros(1)), ValueError, r"obs: shape \[1, 1, 2\], expected \[1, 2\]"),
+    "scalar reward": (lambda run: policy_under_way(run).act(np.zeros((1, 2)), 0.5), ValueError, r"reward: shape \[\], expected \[1\] \(one per episode\)"),
+    "[n, 1] reward": (lambda run: policy_under_way(run).act(np.zeros((1, 2)), np.zeros((1, 1))), ValueError, r"reward: shape \[1, 1\], expected \[1\]"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_argument_raises_a_clear_error(case, point_run):
+    call, exc, message = CASES[case]
+    with pytest.raises(exc, match=message):
+        call(point_run)
+
+
+def test_closed_env_error_is_gymnasiums_too():
+    env = started_env()
+    env.close()
+    with pytest.raises(gym.error.ClosedEnvironmentError):
+        env.reset(seed=0)
