@@ -1,0 +1,91 @@
+//! Offscreen rendering of every family (`pdt_envs::render`): frames have the asked size, are not
+//! blank, follow the state, and leave the episode unchanged.
+//!
+//! With `PROMPTDT_RENDER_DOCS=<dir>` the test also writes one PNG per family there (the frames of
+//! `docs/rendering.md`, 320x240, after 30 steps of a fixed action pattern).
+
+use pdt_envs::render::{render, Frame, FrameSize, RenderError};
+use pdt_envs::{family, Env, FAMILY_NAMES};
+
+fn size(w: usize, h: usize) -> FrameSize {
+    FrameSize::new(w, h).unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn frame(env: &mut dyn Env, s: FrameSize) -> Frame {
+    render(env, s).unwrap_or_else(|e| panic!("render: {e}"))
+}
+
+/// A deterministic, varied action (so the body moves).
+fn action(t: usize, dim: usize) -> Vec<f32> {
+    (0..dim).map(|i| (0.3 * t as f32 + 1.7 * i as f32).sin()).collect()
+}
+
+fn distinct_colours(f: &Frame) -> usize {
+    let mut seen: Vec<&[u8]> = f.rgb.chunks(3).collect();
+    seen.sort_unstable();
+    seen.dedup();
+    seen.len()
+}
+
+#[test]
+fn every_family_renders_frames_that_change_and_leave_the_episode_alone() {
+    let docs = std::env::var_os("PROMPTDT_RENDER_DOCS").map(std::path::PathBuf::from);
+    for name in FAMILY_NAMES {
+        let fam = family(name).unwrap_or_else(|e| panic!("{e}"));
+        let mut env = fam.make(0).unwrap_or_else(|e| panic!("{e}"));
+        let mut twin = fam.make(0).unwrap_or_else(|e| panic!("{e}"));
+        env.reset(5);
+        twin.reset(5);
+        let s = size(96, 72);
+        let first = frame(env.as_mut(), s);
+        assert_eq!((first.width, first.height, first.rgb.len()), (96, 72, 96 * 72 * 3), "{name}");
+        assert!(distinct_colours(&first) > 3, "{name}: the first frame is (nearly) one colour");
+        let mut last = first.clone();
+        let mut changed = 0;
+        for t in 0..10 {
+            let a = action(t, env.act_dim());
+            let r = env.step(&a).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let r_twin = twin.step(&a).unwrap_or_else(|e| panic!("{name}: {e}"));
+            // Rendering reads the state only: the rendered env steps as its twin does.
+            assert_eq!(r, r_twin, "{name}: rendering changed the episode at step {t}");
+            let f = frame(env.as_mut(), s);
+            changed += usize::from(f != last);
+            last = f;
+        }
+        assert!(changed >= 5, "{name}: only {changed} of 10 frames changed");
+        // Another size rebuilds this thread's renderer.
+        let big = frame(env.as_mut(), size(160, 120));
+        assert_eq!(big.rgb.len(), 160 * 120 * 3, "{name}");
+        if let Some(dir) = &docs {
+            write_doc_frame(dir, name, fam.as_ref());
+        }
+    }
+}
+
+#[test]
+fn a_bad_size_is_refused_naming_the_limits() {
+    for (w, h) in [(0, 10), (10, 0), (641, 100), (100, 481)] {
+        let err = FrameSize::new(w, h).expect_err("refused");
+        assert!(matches!(err, RenderError::Size { .. }), "{err}");
+        let text = err.to_string();
+        assert!(text.contains(&format!("{w}x{h}")) && text.contains("640"), "{text}");
+    }
+}
+
+fn write_doc_frame(dir: &std::path::Path, name: &str, fam: &dyn pdt_envs::EnvFamily) {
+    let mut env = fam.make(0).unwrap_or_else(|e| panic!("{e}"));
+    env.reset(1);
+    for t in 0..30 {
+        if env.step(&action(t, env.act_dim())).is_err() {
+            break;
+        }
+    }
+    let f = frame(env.as_mut(), size(320, 240));
+    let path = dir.join(format!("{name}.png"));
+    let file = std::fs::File::create(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), 320, 240);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().unwrap_or_else(|e| panic!("{e}"));
+    w.write_image_data(&f.rgb).unwrap_or_else(|e| panic!("{e}"));
+}
