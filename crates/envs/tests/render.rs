@@ -89,3 +89,24 @@ fn write_doc_frame(dir: &std::path::Path, name: &str, fam: &dyn pdt_envs::EnvFam
     let mut w = enc.write_header().unwrap_or_else(|e| panic!("{e}"));
     w.write_image_data(&f.rgb).unwrap_or_else(|e| panic!("{e}"));
 }
+
+#[test]
+fn a_vec_env_renders_each_environment_on_its_own_thread() {
+    use pdt_envs::vec_env::VecEnv;
+    let fam = family("cheetah_vel").unwrap_or_else(|e| panic!("{e}"));
+    let envs = (0..3).map(|t| fam.make(t).unwrap_or_else(|e| panic!("{e}"))).collect();
+    // Three threads: environments 1 and 2 live on workers, 0 on the calling thread.
+    let mut venv = VecEnv::new(envs, 3);
+    venv.reset(&[1, 2, 3]).unwrap_or_else(|e| panic!("{e}"));
+    let mut alone = fam.make(2).unwrap_or_else(|e| panic!("{e}"));
+    alone.reset(3);
+    let s = size(64, 48);
+    let frames: Vec<Frame> = (0..3)
+        .map(|i| venv.render(i, s).unwrap_or_else(|e| panic!("env {i}: {e}")))
+        .collect();
+    // Same task and seed, rendered on this thread instead of a worker: the same picture.
+    assert_eq!(frames[2], frame(alone.as_mut(), s));
+    assert_ne!(frames[0], frames[1], "different seeds should give different poses");
+    let err = venv.render(3, s).expect_err("no environment 3");
+    assert!(err.to_string().contains("environment 3 of 3"), "{err}");
+}
