@@ -13,7 +13,7 @@ instance). Later automatic resets draw their seeds from a generator seeded at th
 """
 from __future__ import annotations
 
-from typing import Any, List, Optional, Sequence, Union
+from typing import Any, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -36,9 +36,18 @@ def families() -> dict:
 class PromptDTVectorEnv(VectorEnv):
     """Environments of one family, one per entry of ``tasks``, stepped together in Rust."""
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"]}
 
-    def __init__(self, family: str, tasks: Sequence[int], threads: int = 0):
+    def __init__(
+        self,
+        family: str,
+        tasks: Sequence[int],
+        threads: int = 0,
+        render_mode: Optional[str] = None,
+        render_size: Tuple[int, int] = (480, 480),
+    ):
+        # Rendering (docs/rendering.md): checked before any environment is built.
+        self.render_mode, self._render_size = _render_args(render_mode, render_size)
         self._env = _native.VecEnv(family, [int(t) for t in tasks], threads)
         self.family = self._env.family
         self.tasks = list(self._env.tasks)
@@ -119,8 +128,34 @@ class PromptDTVectorEnv(VectorEnv):
         self._autoreset = term | trunc
         return obs, rewards.astype(np.float64), term, trunc, infos
 
+    def render(self) -> Optional[Tuple[np.ndarray, ...]]:
+        """With ``render_mode="rgb_array"``: each environment's current state as a
+        ``[height, width, 3]`` uint8 frame (``render_size`` is ``(width, height)``), as
+        ``SyncVectorEnv.render`` returns them; without a render mode: None."""
+        if self.render_mode is None:
+            return None
+        if self._env is None:
+            raise RuntimeError("render: the environment is closed")
+        w, h = self._render_size
+        return tuple(_native.render(self._env, i, w, h) for i in range(self.num_envs))
+
     def close_extras(self, **kwargs: Any) -> None:
         self._env = None
+
+
+def _render_args(
+    render_mode: Optional[str], render_size: Any
+) -> Tuple[Optional[str], Tuple[int, int]]:
+    """``render_mode`` and ``render_size`` checked (rendering: docs/rendering.md)."""
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode: {render_mode!r}, expected None or 'rgb_array'")
+    try:
+        w, h = (int(v) for v in render_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"render_size: {render_size!r}, expected (width, height)") from None
+    if not (1 <= w <= 640 and 1 <= h <= 480):
+        raise ValueError(f"render_size: {(w, h)}, expected width 1..640 and height 1..480")
+    return render_mode, (w, h)
 
 
 def make_vec(
@@ -129,12 +164,15 @@ def make_vec(
     num_envs: Optional[int] = None,
     *,
     threads: int = 0,
+    render_mode: Optional[str] = None,
+    render_size: Tuple[int, int] = (480, 480),
 ) -> PromptDTVectorEnv:
     """A gymnasium vector env of ``family`` (``cheetah_vel``, ``cheetah_dir``, ``ant_dir``,
     ``point_robot``). ``tasks``: one task index for all ``num_envs`` environments, or one per
     environment (a list; ``num_envs`` then defaults to its length, or repeats it task by task:
     ``make_vec("cheetah_vel", [2, 7], num_envs=4)`` is tasks ``[2, 2, 7, 7]``). ``threads``: worker
-    threads stepping them (0: one per core)."""
+    threads stepping them (0: one per core). ``render_mode="rgb_array"``: ``render()`` returns
+    each environment's frame, ``render_size`` = (width, height) pixels."""
     if isinstance(tasks, (int, np.integer)):
         task_list = [int(tasks)] * (num_envs or 1)
     else:
@@ -150,7 +188,9 @@ def make_vec(
             raise ValueError(
                 f"num_envs {num_envs} is not a multiple of the {len(base)} tasks given"
             )
-    return PromptDTVectorEnv(family, task_list, threads=threads)
+    return PromptDTVectorEnv(
+        family, task_list, threads=threads, render_mode=render_mode, render_size=render_size
+    )
 
 
 __all__ = ["PromptDTVectorEnv", "families", "make_vec"]
