@@ -156,39 +156,62 @@ fn caption(mut f: Frame, ret: f64, t: usize) -> Frame {
     f
 }
 
-/// An animated GIF written frame by frame (each frame quantised to its own 256-colour palette).
+/// An animated GIF written frame by frame, all frames in one global palette of [`COLOURS`]
+/// colours, learnt (NeuQuant) from the first frame: a scene keeps its colours from frame to frame,
+/// and fewer, stable colours compress about twice as well as a 256-colour palette per frame.
 struct GifWriter {
-    encoder: gif::Encoder<BufWriter<File>>,
+    file: Option<BufWriter<File>>,
+    encoder: Option<(gif::Encoder<BufWriter<File>>, color_quant::NeuQuant)>,
     path: PathBuf,
+    size: FrameSize,
     delay: u16,
 }
 
+/// Colours of a GIF's palette.
+const COLOURS: usize = 64;
+
 impl GifWriter {
     fn create(path: &Path, size: FrameSize, fps: u32) -> Result<Self, VideoError> {
-        let err = |message: String| VideoError::Write { path: path.into(), message };
-        let file = File::create(path).map_err(|e| err(e.to_string()))?;
-        // FrameSize caps both at 640, well inside u16.
-        let (w, h) = (size.width() as u16, size.height() as u16);
-        let mut encoder =
-            gif::Encoder::new(BufWriter::new(file), w, h, &[]).map_err(|e| err(e.to_string()))?;
-        encoder.set_repeat(gif::Repeat::Infinite).map_err(|e| err(e.to_string()))?;
+        let file = File::create(path)
+            .map_err(|e| VideoError::Write { path: path.into(), message: e.to_string() })?;
         let delay = (100 / fps).max(1) as u16;
-        Ok(Self { encoder, path: path.into(), delay })
+        Ok(Self { file: Some(BufWriter::new(file)), encoder: None, path: path.into(), size, delay })
+    }
+
+    fn err(&self, e: impl std::fmt::Display) -> VideoError {
+        VideoError::Write { path: self.path.clone(), message: e.to_string() }
     }
 
     fn frame(&mut self, f: Frame) -> Result<(), VideoError> {
-        // Speed 10: NeuQuant's default trade of time for palette quality.
-        let mut g = gif::Frame::from_rgb_speed(f.width as u16, f.height as u16, &f.rgb, 10);
+        let rgba: Vec<u8> = f.rgb.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect();
+        if self.encoder.is_none() {
+            let file = self.file.take().ok_or_else(|| self.err("written twice"))?;
+            // Sample factor 10: NeuQuant's default trade of time for palette quality.
+            let quant = color_quant::NeuQuant::new(10, COLOURS, &rgba);
+            // FrameSize caps both at 640, well inside u16.
+            let (w, h) = (self.size.width() as u16, self.size.height() as u16);
+            let mut encoder =
+                gif::Encoder::new(file, w, h, &quant.color_map_rgb()).map_err(|e| self.err(e))?;
+            encoder.set_repeat(gif::Repeat::Infinite).map_err(|e| self.err(e))?;
+            self.encoder = Some((encoder, quant));
+        }
+        let Some((encoder, quant)) = self.encoder.as_mut() else {
+            return Err(self.err("no encoder"));
+        };
+        let indices: Vec<u8> = rgba.chunks_exact(4).map(|p| quant.index_of(p) as u8).collect();
+        let mut g = gif::Frame::from_indexed_pixels(f.width as u16, f.height as u16, indices, None);
         g.delay = self.delay;
-        self.encoder
-            .write_frame(&g)
-            .map_err(|e| VideoError::Write { path: self.path.clone(), message: e.to_string() })
+        let written = encoder.write_frame(&g);
+        written.map_err(|e| self.err(e))
     }
 
     fn finish(self) -> Result<(), VideoError> {
+        let Some((encoder, _)) = self.encoder else {
+            return Err(VideoError::Write { path: self.path, message: "no frame".into() });
+        };
         let path = self.path;
         let err = |message: String| VideoError::Write { path: path.clone(), message };
-        let mut w = self.encoder.into_inner().map_err(|e| err(e.to_string()))?;
+        let mut w = encoder.into_inner().map_err(|e| err(e.to_string()))?;
         std::io::Write::flush(&mut w).map_err(|e| err(e.to_string()))
     }
 }

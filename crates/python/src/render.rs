@@ -33,7 +33,7 @@ pub(crate) fn render<'py>(
 ) -> PyResult<Bound<'py, PyArray3<u8>>> {
     let size = FrameSize::new(width, height).map_err(render_error)?;
     let env = env.get();
-    let n = env.tasks.len();
+    let n = env.with_venv(|venv| venv.len())?;
     if index >= n {
         return Err(PyValueError::new_err(format!("index: {index}, expected 0..{n} (num_envs)")));
     }
