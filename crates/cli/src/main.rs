@@ -313,7 +313,14 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Render(a) => {
             let mut cfg = pdt_policy::video::VideoConfig::new(
-                a.run, a.task, a.out, a.width, a.height, a.fps, a.max_steps, a.seed,
+                a.run,
+                a.task,
+                a.out,
+                a.width,
+                a.height,
+                a.fps,
+                a.max_steps,
+                a.seed,
             )?;
             (cfg.device, cfg.data) = (a.device, a.data);
             let v = pdt_policy::video::record_episode(&cfg)?;

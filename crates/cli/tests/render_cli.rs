@@ -28,22 +28,34 @@ fn render_writes_a_gif_of_a_prompted_episode() {
     ok(&["train", "--config", s(&cfg), "--out", s(&run), "--quiet"]);
     let gif = tmp.path().join("episode.gif");
     let msg = ok(&[
-        "render", "--run", s(&run), "--task", "34", "--out", s(&gif), "--width", "64", "--height",
-        "48", "--fps", "10",
+        "render",
+        "--run",
+        s(&run),
+        "--task",
+        "34",
+        "--out",
+        s(&gif),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--fps",
+        "10",
     ]);
     // The point robot's episodes last its horizon, 20 steps: 21 frames with the start.
     assert!(msg.contains("point_robot task 34, 20 steps") && msg.contains("(21 frames)"), "{msg}");
     assert_eq!(gif_frames(&gif), (21, 64, 48));
     let short = tmp.path().join("short.gif");
-    let msg = ok(&["render", "--run", s(&run), "--task", "34", "--out", s(&short), "--max-steps", "5"]);
+    let msg =
+        ok(&["render", "--run", s(&run), "--task", "34", "--out", s(&short), "--max-steps", "5"]);
     assert!(msg.contains("5 steps"), "{msg}");
     assert_eq!(gif_frames(&short), (6, 160, 120));
 
-    let e = fails(&["render", "--run", s(&run), "--task", "34", "--out", s(&tmp.path().join("a.mp4"))]);
+    let e =
+        fails(&["render", "--run", s(&run), "--task", "34", "--out", s(&tmp.path().join("a.mp4"))]);
     assert!(e.contains("a.mp4") && e.contains(".gif"), "{e}");
-    let e = fails(&[
-        "render", "--run", s(&run), "--task", "34", "--out", s(&gif), "--width", "1000",
-    ]);
+    let e =
+        fails(&["render", "--run", s(&run), "--task", "34", "--out", s(&gif), "--width", "1000"]);
     assert!(e.contains("frame size 1000x120"), "{e}");
     let e = fails(&["render", "--run", s(&run), "--task", "99", "--out", s(&gif)]);
     assert!(e.contains("task 99"), "{e}");

@@ -236,7 +236,10 @@ enum Command {
         slots: Vec<Option<Range<usize>>>,
     },
     /// Render the environment at this place of the chunk.
-    Render { place: usize, size: FrameSize },
+    Render {
+        place: usize,
+        size: FrameSize,
+    },
     Shutdown,
 }
 

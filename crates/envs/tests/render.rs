@@ -101,9 +101,8 @@ fn a_vec_env_renders_each_environment_on_its_own_thread() {
     let mut alone = fam.make(2).unwrap_or_else(|e| panic!("{e}"));
     alone.reset(3);
     let s = size(64, 48);
-    let frames: Vec<Frame> = (0..3)
-        .map(|i| venv.render(i, s).unwrap_or_else(|e| panic!("env {i}: {e}")))
-        .collect();
+    let frames: Vec<Frame> =
+        (0..3).map(|i| venv.render(i, s).unwrap_or_else(|e| panic!("env {i}: {e}"))).collect();
     // Same task and seed, rendered on this thread instead of a worker: the same picture.
     assert_eq!(frames[2], frame(alone.as_mut(), s));
     assert_ne!(frames[0], frames[1], "different seeds should give different poses");
