@@ -109,3 +109,44 @@ fn a_vec_env_renders_each_environment_on_its_own_thread() {
     let err = venv.render(3, s).expect_err("no environment 3");
     assert!(err.to_string().contains("environment 3 of 3"), "{err}");
 }
+
+/// Without libEGL the process still runs and a frame fails naming the packages to install. The
+/// library is hidden by bind-mounting /dev/null over it in a private mount namespace (`unshare
+/// -m`, root only); where that is not possible the test says so and checks nothing.
+#[test]
+fn without_egl_a_frame_fails_naming_the_debian_packages() {
+    if std::env::var_os("PROMPTDT_RENDER_NO_EGL_CHILD").is_some() {
+        let fam = family("cheetah_vel").unwrap_or_else(|e| panic!("{e}"));
+        let mut env = fam.make(0).unwrap_or_else(|e| panic!("{e}"));
+        let err = render(env.as_mut(), size(32, 24)).expect_err("no EGL: no frame");
+        assert!(matches!(err, RenderError::NoContext { .. }), "{err}");
+        assert!(err.to_string().contains(pdt_envs::render::GL_PACKAGES), "{err}");
+        // The drawn family needs no GL.
+        let mut point =
+            family("point_robot").and_then(|f| f.make(0)).unwrap_or_else(|e| panic!("{e}"));
+        assert!(render(point.as_mut(), size(32, 24)).is_ok());
+        return;
+    }
+    let Ok(lib) = std::fs::canonicalize("/usr/lib/x86_64-linux-gnu/libEGL.so.1") else {
+        return eprintln!("skipped: no /usr/lib/x86_64-linux-gnu/libEGL.so.1 to hide");
+    };
+    let exe = std::env::current_exe().unwrap_or_else(|e| panic!("{e}"));
+    let out = std::process::Command::new("unshare")
+        .args(["-m", "sh", "-c", "mount --bind /dev/null \"$1\" && exec \"$2\" --exact \"$3\""])
+        .arg("sh")
+        .arg(&lib)
+        .arg(&exe)
+        .arg("without_egl_a_frame_fails_naming_the_debian_packages")
+        .env("PROMPTDT_RENDER_NO_EGL_CHILD", "1")
+        .output();
+    let out = match out {
+        Ok(o) => o,
+        Err(e) => return eprintln!("skipped: cannot run unshare ({e})"),
+    };
+    let text =
+        format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    if !out.status.success() && (text.contains("unshare:") || text.contains("mount:")) {
+        return eprintln!("skipped: no private mount namespace here: {text}");
+    }
+    assert!(out.status.success() && text.contains("1 passed"), "{text}");
+}
