@@ -11,6 +11,7 @@
 use pdt_base::table::{Rule, Table};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 pub mod pack;
+pub mod render;
 pub mod serve;
 
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
@@ -103,6 +104,8 @@ pub enum BenchError {
     Baseline { cmd: String, why: String },
     #[error("pack case `{case}`: {why}")]
     Pack { case: String, why: String },
+    #[error("render case `{case}`: {why}")]
+    Render { case: String, why: String },
 }
 
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
@@ -478,11 +481,11 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         c.strip_prefix("serve_c")?.parse().ok().filter(|&n: &usize| n > 0)
     };
     let is_serve = |c: &String| serve_clients(c).is_some();
-    for c in cfg
-        .cases
-        .iter()
-        .filter(|c| !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c) && !is_pack(c))
-    {
+    // `render_<family>_<W>x<H>`: promptdt only (`render.rs`).
+    let is_render = |c: &String| render::parse_case(c).is_some();
+    for c in cfg.cases.iter().filter(|c| {
+        !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c) && !is_pack(c) && !is_render(c)
+    }) {
         parse_case(c)?;
     }
     let mut serve = Vec::new();
@@ -513,6 +516,10 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
         results.push(if let Some(case) = parse_eval_case(c) {
             time_eval(c, case, cfg)?
+        } else if let Some((family, w, h)) = render::parse_case(c) {
+            let ms = render::time_frames(family, w, h, cfg.warmup, cfg.iters)
+                .map_err(|why| BenchError::Render { case: c.clone(), why })?;
+            timing(c, ms)
         } else if let Some(case) = pack::parse_case(c) {
             let ms = pack::time_pack(case, cfg.warmup, cfg.iters, cfg.device)
                 .map_err(|why| BenchError::Pack { case: c.clone(), why })?;
@@ -543,6 +550,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
                 && !is_macaw(c)
                 && !is_serve(c)
                 && !is_pack(c)
+                && !is_render(c)
                 && !c.starts_with("act_b")
         })
         .cloned()

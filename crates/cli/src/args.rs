@@ -51,6 +51,9 @@ pub enum Command {
     Reproduce(ReproduceArgs),
     /// Serve a trained run's prompted policy over HTTP+JSON (docs/serve.md).
     Serve(ServeArgs),
+    /// A prompted policy's episode as an animated GIF, its return in the corner
+    /// (docs/rendering.md).
+    Render(RenderArgs),
     /// The results registry (`results/`): archive finished runs, generate RESULTS.md.
     #[command(subcommand)]
     Results(ResultsCommand),
@@ -194,6 +197,39 @@ pub struct ServeArgs {
     /// bit-identical to `promptdt eval`'s and do not depend on the other episodes of its batch.
     #[arg(long, default_value_t = 1, value_parser = count(1, 1024))]
     pub threads: usize,
+}
+
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// Run directory (its latest checkpoint acts).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Task index of the run's family; the prompt is drawn from the run's data of that task.
+    #[arg(long)]
+    pub task: usize,
+    /// The animated GIF to write (`.gif`).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Frame width in pixels (at most 640).
+    #[arg(long, default_value_t = 160)]
+    pub width: usize,
+    /// Frame height in pixels (at most 480).
+    #[arg(long, default_value_t = 120)]
+    pub height: usize,
+    /// Frames a second (1 to 100).
+    #[arg(long, default_value_t = 20)]
+    pub fps: u32,
+    /// Stop after this many steps (default: the whole episode).
+    #[arg(long)]
+    pub max_steps: Option<usize>,
+    /// Seeds the reset and the prompt's draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+    /// Where the run's data moved (prompts are drawn from it).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]

@@ -311,6 +311,29 @@ fn run(cli: Cli) -> Result<()> {
                 out!("wrote {}", f.display());
             }
         }
+        Command::Render(a) => {
+            let mut cfg = pdt_policy::video::VideoConfig::new(
+                a.run,
+                a.task,
+                a.out,
+                a.width,
+                a.height,
+                a.fps,
+                a.max_steps,
+                a.seed,
+            )?;
+            (cfg.device, cfg.data) = (a.device, a.data);
+            let v = pdt_policy::video::record_episode(&cfg)?;
+            out!(
+                "{}: {} task {}, {} steps, return {:.2} ({} frames)",
+                v.out.display(),
+                v.family,
+                v.task,
+                v.steps,
+                v.ret,
+                v.frames
+            );
+        }
         Command::Serve(a) => {
             let run = pdt_policy::Policy::load(&a.run, a.device, a.data.as_deref())?;
             let opts = pdt_serve::ServeOptions {

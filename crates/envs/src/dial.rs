@@ -415,6 +415,16 @@ impl Env for Dial {
             success: Some(s.success),
         })
     }
+    /// A fixed camera on the table: the pin pad in front, the arm beside it.
+    fn view(&mut self) -> Result<crate::render::View<'_>, EnvError> {
+        let camera = crate::render::Camera::Fixed {
+            lookat: [0.4, 0.0, 0.2],
+            distance: 1.6,
+            azimuth: 200.0,
+            elevation: -35.0,
+        };
+        Ok(crate::render::View::Mujoco { data: &mut self.data, camera })
+    }
 }
 
 /// A perturbed start pose for data collection: the init pose plus the original collector's noise

@@ -16,6 +16,7 @@ pub mod dial;
 pub mod metaworld_reach;
 pub mod mujoco_env;
 pub mod point_robot;
+pub mod render;
 pub mod replay;
 pub mod rollout;
 pub mod vec_env;
@@ -86,6 +87,12 @@ pub trait Env: Send {
     fn reset(&mut self, seed: u64) -> Vec<f32>;
     /// Applies `action`; errors on a wrong length, a non-finite value, or a finished episode.
     fn step(&mut self, action: &[f32]) -> Result<StepResult, EnvError>;
+
+    /// The current state as a renderer draws it, with the family's camera ([`render`]); families
+    /// that cannot be drawn keep this default.
+    fn view(&mut self) -> Result<render::View<'_>, EnvError> {
+        Err(EnvError::Unsupported { env: "this environment".to_owned(), what: "rendering" })
+    }
 }
 
 /// The reference's per-environment constants (`promptdt-reference.md` c.4).

@@ -59,6 +59,28 @@ impl Body {
         }
     }
 
+    /// How a frame looks at the body: the cheetah through its model's `track` camera (gym's side
+    /// view, following its centre of mass), the ant (whose model has no camera) from a camera
+    /// tracking its torso from behind and above.
+    pub fn camera(self, model: &MjModel, torso: usize) -> crate::render::Camera {
+        let track = model.name_to_id(MjtObjBase::mjOBJ_CAMERA, "track");
+        match (self, track) {
+            (Body::HalfCheetah, Some(id)) => crate::render::Camera::Model { id },
+            (Body::HalfCheetah, None) => crate::render::Camera::Tracking {
+                body: torso,
+                distance: 3.0,
+                azimuth: 90.0,
+                elevation: -10.0,
+            },
+            (Body::Ant, _) => crate::render::Camera::Tracking {
+                body: torso,
+                distance: 5.0,
+                azimuth: 90.0,
+                elevation: -35.0,
+            },
+        }
+    }
+
     /// Number of actuators.
     pub fn act_dim(self) -> usize {
         match self {
@@ -407,6 +429,11 @@ impl Env for MujocoEnv {
             truncated,
             success: None,
         })
+    }
+    /// The body's camera (see [`Body::camera`]).
+    fn view(&mut self) -> Result<crate::render::View<'_>, EnvError> {
+        let camera = self.task.body().camera(self.data.model(), self.torso);
+        Ok(crate::render::View::Mujoco { data: &mut self.data, camera })
     }
 }
 

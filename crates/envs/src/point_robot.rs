@@ -176,6 +176,12 @@ impl Env for PointRobot {
             success: None,
         })
     }
+    /// A top view of the arena (the goals lie on the unit half circle; 20 steps of at most 0.1
+    /// reach 2 from the origin, mostly inside 1.5).
+    fn view(&mut self) -> Result<crate::render::View<'_>, EnvError> {
+        let plane = crate::render::Plane { position: self.pos, goal: Some(self.goal), extent: 1.5 };
+        Ok(crate::render::View::Plane(plane))
+    }
 }
 
 /// The 40-task point-robot family (see the module docs). Build it with `default()`.

@@ -26,6 +26,7 @@ use std::panic::{self, AssertUnwindSafe};
 use std::sync::mpsc::{self, Receiver, Sender};
 use std::thread::JoinHandle;
 
+use crate::render::{Frame, FrameSize, RenderError};
 use crate::{Env, EnvError, StepResult};
 
 /// One environment's outcome in a masked step: `None` where it was not stepped.
@@ -170,6 +171,19 @@ impl VecEnv {
         })
     }
 
+    /// Renders environment `i`'s current state ([`crate::render::render`]), on the thread that owns
+    /// it (each thread keeps its own GL context).
+    pub fn render(&mut self, i: usize, size: FrameSize) -> Result<Frame, RenderError> {
+        if i >= self.len() {
+            return Err(RenderError::Env(vec_error(format!(
+                "render: environment {i} of {}",
+                self.len()
+            ))));
+        }
+        let mut out = self.pool.render_one(i, size)?;
+        out.swap_remove(i).ok_or_else(|| RenderError::Env(missing("rendered")))?
+    }
+
     fn check_len(&self, what: &str, got: usize) -> Result<(), EnvError> {
         if got == self.len() {
             Ok(())
@@ -221,6 +235,11 @@ enum Command {
         actions: Vec<f32>,
         slots: Vec<Option<Range<usize>>>,
     },
+    /// Render the environment at this place of the chunk.
+    Render {
+        place: usize,
+        size: FrameSize,
+    },
     Shutdown,
 }
 
@@ -231,6 +250,7 @@ type Chunk = Vec<Box<dyn Env>>;
 enum Reply {
     Reset(Vec<Option<Vec<f32>>>),
     Step(Vec<StepSlot>),
+    Render(Vec<Option<Result<Frame, RenderError>>>),
 }
 
 /// What a call sent a worker.
@@ -320,7 +340,7 @@ impl Pool {
             |envs, members| reset_chunk(envs, members.map(&seed_of)),
             |reply| match reply {
                 Reply::Reset(obs) => Some(obs),
-                Reply::Step(_) => None,
+                _ => None,
             },
         )
     }
@@ -347,7 +367,23 @@ impl Pool {
             |envs, members| step_chunk(envs, members.map(&action_of)),
             |reply| match reply {
                 Reply::Step(out) => Some(out),
-                Reply::Reset(_) => None,
+                _ => None,
+            },
+        )
+    }
+
+    /// Renders environment `i` alone: only the thread owning it is woken.
+    fn render_one(
+        &mut self,
+        i: usize,
+        size: FrameSize,
+    ) -> Result<Vec<Option<Result<Frame, RenderError>>>, EnvError> {
+        self.dispatch(
+            |mut members| members.position(|m| m == i).map(|place| Command::Render { place, size }),
+            |envs, mut members| render_chunk(envs, members.position(|m| m == i), size),
+            |reply| match reply {
+                Reply::Render(out) => Some(out),
+                _ => None,
             },
         )
     }
@@ -473,6 +509,9 @@ fn work(chunk: Receiver<Chunk>, commands: Receiver<Command>, replies: Sender<Rep
                 let acts = slots.into_iter().map(|s| s.map(|r| actions.get(r).unwrap_or(&[])));
                 Reply::Step(step_chunk(&mut envs, acts))
             }
+            Command::Render { place, size } => {
+                Reply::Render(render_chunk(&mut envs, Some(place), size))
+            }
             Command::Shutdown => return,
         };
         if replies.send(reply).is_err() {
@@ -486,6 +525,16 @@ fn reset_chunk(
     seeds: impl Iterator<Item = Option<u64>>,
 ) -> Vec<Option<Vec<f32>>> {
     envs.iter_mut().zip(seeds).map(|(env, seed)| seed.map(|s| env.reset(s))).collect()
+}
+
+fn render_chunk(
+    envs: &mut [Box<dyn Env>],
+    place: Option<usize>,
+    size: FrameSize,
+) -> Vec<Option<Result<Frame, RenderError>>> {
+    (0..envs.len())
+        .map(|j| (Some(j) == place).then(|| crate::render::render(envs[j].as_mut(), size)))
+        .collect()
 }
 
 fn step_chunk<'a>(

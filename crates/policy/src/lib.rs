@@ -9,6 +9,7 @@
 //!   finite.
 //! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
 //!   normalisation and the statistics a run records.
+//! - [`video`]: a prompted episode rendered as an animated GIF (`promptdt render`).
 //! - [`files`]: the run-directory files acting on a run reads (its configuration with this
 //!   invocation's device and data place, `task_stats.json` checked, the latest checkpoint), with
 //!   what a missing or bad one means; the trainer's final evaluation and resume read them here too.
@@ -20,7 +21,9 @@ pub mod data;
 pub mod episode;
 mod error;
 pub mod files;
+mod font;
 pub mod policy;
+pub mod video;
 
 pub use data::RunData;
 pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};

@@ -226,3 +226,13 @@ impl VecEnv {
         Ok(st.success.clone().map(|v| v.into_pyarray(py)))
     }
 }
+
+impl VecEnv {
+    /// Runs `f` on the Rust vector env, under its lock (`src/render.rs` renders through it).
+    pub(crate) fn with_venv<R>(
+        &self,
+        f: impl FnOnce(&mut pdt_envs::vec_env::VecEnv) -> R,
+    ) -> PyResult<R> {
+        Ok(f(&mut lock(&self.state)?.venv))
+    }
+}

@@ -109,6 +109,8 @@ mod data;
 mod envs;
 /// `Policy`, `Prompt`, `TaskPlan`: a trained run acting through `pdt_policy`.
 mod policy;
+// The frames of `render_mode="rgb_array"` (issue 34, point 4).
+mod render;
 /// The CLI's library calls: train, evaluate, collect, experiments, benchmark.
 mod runs;
 
@@ -139,6 +141,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(runs::collect_from_agent, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;
     m.add_function(wrap_pyfunction!(runs::bench_envs, m)?)?;
+    m.add_function(wrap_pyfunction!(render::render, m)?)?;
     m.add_class::<envs::VecEnv>()?;
     m.add_class::<policy::Policy>()?;
     m.add_class::<policy::Prompt>()?;

@@ -426,6 +426,16 @@ impl Env for MetaWorldReach {
             success: Some(s.success),
         })
     }
+    /// A fixed camera in front of the table, looking at the arm and the reach area.
+    fn view(&mut self) -> Result<crate::render::View<'_>, EnvError> {
+        let camera = crate::render::Camera::Fixed {
+            lookat: [0.0, 0.65, 0.15],
+            distance: 1.7,
+            azimuth: 135.0,
+            elevation: -25.0,
+        };
+        Ok(crate::render::View::Mujoco { data: &mut self.data, camera })
+    }
 }
 
 fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {

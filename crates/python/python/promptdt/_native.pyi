@@ -16,6 +16,7 @@ __all__ = [
     "write_dataset",
     "families",
     "task_params",
+    "render",
     "train",
     "evaluate",
     "collect_scripted",
@@ -36,6 +37,9 @@ LIBTORCH_VERSION: str
 def load_dataset(path: _Path) -> Dict[str, Any]: ...
 def families() -> Dict[str, Dict[str, Any]]: ...
 def task_params(family: str, task: int) -> str: ...
+def render(
+    env: VecEnv, index: int, width: int = 480, height: int = 480
+) -> npt.NDArray[np.uint8]: ...
 def train(
     out: _Path,
     config: Optional[_Path] = None,

@@ -118,14 +118,19 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
     (``gymnasium.make("promptdt/CheetahVel-v0", task=3)``). ``reset(options={"task": t})``
     switches task."""
 
-    metadata: Dict[str, Any] = {"render_modes": []}
+    metadata: Dict[str, Any] = {"render_modes": ["rgb_array"]}
 
-    def __init__(self, family: str, task: int = 0, render_mode: Optional[str] = None):
+    def __init__(
+        self,
+        family: str,
+        task: int = 0,
+        render_mode: Optional[str] = None,
+        render_size: Tuple[int, int] = (480, 480),
+    ):
         family = _family_of(family)
         task = _uint("task", task, "a task index")
-        if render_mode is not None:
-            raise ValueError(f"render_mode: {render_mode!r} given, expected None (no rendering yet)")
-        self.render_mode = render_mode
+        # Rendering (docs/rendering.md): checked before the environment is built.
+        self.render_mode, self._render_size = _render_args(render_mode, render_size)
         self._env: Optional[_native.VecEnv] = _native.VecEnv(family, [task], 1)
         self.family: str = self._env.family
         self.task: int = task
@@ -175,6 +180,15 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
             info["success"] = bool(success[0])
         return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
 
+    def render(self) -> Optional[npt.NDArray[np.uint8]]:
+        """With ``render_mode="rgb_array"``: the current state as a ``[height, width, 3]`` uint8
+        frame (``render_size`` is ``(width, height)``); without a render mode: None."""
+        if self.render_mode is None:
+            return None
+        env = self._native_env("render")
+        w, h = self._render_size
+        return _native.render(env, 0, w, h)
+
     def close(self) -> None:
         self._env = None
 
@@ -182,9 +196,21 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
 class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
     """Environments of one family, one per entry of ``tasks``, stepped together in Rust."""
 
-    metadata: Dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata: Dict[str, Any] = {
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": ["rgb_array"],
+    }
 
-    def __init__(self, family: str, tasks: Sequence[int], threads: int = 0):
+    def __init__(
+        self,
+        family: str,
+        tasks: Sequence[int],
+        threads: int = 0,
+        render_mode: Optional[str] = None,
+        render_size: Tuple[int, int] = (480, 480),
+    ):
+        # Rendering (docs/rendering.md): checked before any environment is built.
+        self.render_mode, self._render_size = _render_args(render_mode, render_size)
         self._threads = threads
         self._env: Optional[_native.VecEnv] = _native.VecEnv(_family_of(family), list(tasks), threads)
         self.family: str = self._env.family
@@ -297,8 +323,34 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         self._autoreset = term | trunc
         return obs, rewards.astype(np.float64), term, trunc, infos
 
+    def render(self) -> Optional[Tuple[np.ndarray, ...]]:
+        """With ``render_mode="rgb_array"``: each environment's current state as a
+        ``[height, width, 3]`` uint8 frame (``render_size`` is ``(width, height)``), as
+        ``SyncVectorEnv.render`` returns them; without a render mode: None."""
+        if self.render_mode is None:
+            return None
+        if self._env is None:
+            raise RuntimeError("render: the environment is closed")
+        w, h = self._render_size
+        return tuple(_native.render(self._env, i, w, h) for i in range(self.num_envs))
+
     def close_extras(self, **kwargs: Any) -> None:
         self._env = None
+
+
+def _render_args(
+    render_mode: Optional[str], render_size: Any
+) -> Tuple[Optional[str], Tuple[int, int]]:
+    """``render_mode`` and ``render_size`` checked (rendering: docs/rendering.md)."""
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode: {render_mode!r}, expected None or 'rgb_array'")
+    try:
+        w, h = (int(v) for v in render_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"render_size: {render_size!r}, expected (width, height)") from None
+    if not (1 <= w <= 640 and 1 <= h <= 480):
+        raise ValueError(f"render_size: {(w, h)}, expected width 1..640 and height 1..480")
+    return render_mode, (w, h)
 
 
 def make_vec(
@@ -308,6 +360,8 @@ def make_vec(
     task: Optional[int] = None,
     tasks: Optional[Sequence[int]] = None,
     threads: int = 0,
+    render_mode: Optional[str] = None,
+    render_size: Tuple[int, int] = (480, 480),
 ) -> PromptDTVectorEnv:
     """A gymnasium vector env of a family, in ``gymnasium.make_vec``'s argument order: ``id`` is a
     family (``families()``: ``point_robot``, ``cheetah_dir``, ``cheetah_vel``, ``ant_dir``,
@@ -315,7 +369,8 @@ def make_vec(
     environments, all on ``task=t``, or on ``tasks=[...]`` (``num_envs`` then defaults to its
     length, or repeats it task by task: ``make_vec("cheetah_vel", 4, tasks=[2, 7])`` is tasks
     ``[2, 2, 7, 7]``). The task is a keyword, and required. ``threads``: worker threads stepping
-    them (0: one per core)."""
+    them (0: one per core). ``render_mode="rgb_array"``: ``render()`` returns each environment's
+    frame, ``render_size`` = (width, height) pixels (docs/rendering.md)."""
     family = _family_of(id)
     if num_envs is not None and not isinstance(num_envs, (int, np.integer)):
         raise TypeError(
@@ -344,7 +399,9 @@ def make_vec(
             task_list = [t for t in base for _ in range(n // len(base))]
         else:
             raise ValueError(f"num_envs: {n} given, expected a multiple of the {len(base)} tasks given")
-    return PromptDTVectorEnv(family, task_list, threads=threads)
+    return PromptDTVectorEnv(
+        family, task_list, threads=threads, render_mode=render_mode, render_size=render_size
+    )
 
 
 def _vector_entry_point(
@@ -354,12 +411,22 @@ def _vector_entry_point(
     task: Optional[int] = None,
     tasks: Optional[Sequence[int]] = None,
     threads: int = 0,
+    render_mode: Optional[str] = None,
+    render_size: Tuple[int, int] = (480, 480),
 ) -> PromptDTVectorEnv:
     """``gymnasium.make_vec(id, num_envs=n, task=t)``: our vector env (task 0 when none is given,
     as ``gymnasium.make``)."""
     if task is None and tasks is None:
         task = 0
-    return make_vec(family, num_envs, task=task, tasks=tasks, threads=threads)
+    return make_vec(
+        family,
+        num_envs,
+        task=task,
+        tasks=tasks,
+        threads=threads,
+        render_mode=render_mode,
+        render_size=render_size,
+    )
 
 
 def register_envs() -> None:
