@@ -11,12 +11,16 @@ PYTHON ?= python3
 TORCH_PYTHON ?= .venv/bin/python
 LIVE_GOLDEN := target/golden-live
 
-.PHONY: demo test setup bench fmt lint torch-venv live-golden python python-test
+.PHONY: demo test setup setup-render bench fmt lint torch-venv live-golden python python-test
 
 setup:
 	$(PYTHON) scripts/fetch_libtorch.py
 	$(PYTHON) scripts/fetch_mujoco.py
 	$(PYTHON) scripts/fetch_metaworld.py
+
+# EGL and Mesa for the rendering tests (docs/rendering.md): installed with apt-get where missing.
+setup-render:
+	bash scripts/setup_render.sh
 
 demo: setup
 	$(CARGO) run --release -p promptdt -- demo
@@ -30,7 +34,7 @@ REFERENCE_SKIPS := target/reference-data-skipped.txt
 # --no-fail-fast: every test binary runs even when one fails, so a failure report is complete.
 # OMP_WAIT_POLICY=PASSIVE: tests run side by side, each with libtorch threads; spinning OpenMP
 # threads then slow everything down many times over (results do not depend on it).
-test: setup live-golden
+test: setup setup-render live-golden
 	@rm -f $(REFERENCE_SKIPS)
 	@echo "$(CARGO) test --release --workspace --no-fail-fast"
 	@status=0; OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) PROMPTDT_REFERENCE_SKIP_LOG=$(abspath $(REFERENCE_SKIPS)) $(CARGO) test --release --workspace --no-fail-fast || status=$$?; \
