@@ -50,6 +50,34 @@ done
 rm -rf "$libs"
 mv "$libs.tmp" "$libs"
 
+# --- licences (issue 34 point 12) ------------------------------------------------------------------
+# The licence texts of this project and of every library copied into _libs, in promptdt/_licenses/
+# (installed beside _libs) and, through pyproject.toml's license-files, in the wheel's
+# .dist-info/licenses/ (what `pip show` and `unzip -l` list). Sources: the wheels the libraries come
+# from (fetch_libtorch.py / fetch_mujoco.py keep their licence files beside third_party/ installs) and,
+# for libgomp, the GPL-3.0 text and GCC Runtime Library Exception in crates/python/licenses/libgomp.
+lic=crates/python/python/promptdt/_licenses
+rm -rf "$lic.tmp"
+mkdir -p "$lic.tmp/promptdt" "$lic.tmp/torch" "$lic.tmp/nvidia-cuda-runtime" "$lic.tmp/nvidia-cuda-cupti" \
+    "$lic.tmp/libgomp" "$lic.tmp/mujoco"
+for pair in LICENSE:promptdt \
+            third_party/libtorch/licenses/torch/LICENSE:torch third_party/libtorch/licenses/torch/NOTICE:torch \
+            third_party/libtorch/licenses/nvidia-cuda-runtime/License.txt:nvidia-cuda-runtime \
+            third_party/libtorch/licenses/nvidia-cuda-cupti/License.txt:nvidia-cuda-cupti \
+            crates/python/licenses/libgomp/COPYING3:libgomp crates/python/licenses/libgomp/COPYING.RUNTIME:libgomp \
+            crates/python/licenses/libgomp/README:libgomp \
+            third_party/mujoco/LICENSE:mujoco third_party/mujoco/LICENSES_THIRD_PARTY.md:mujoco; do
+    f=${pair%:*}
+    if [ ! -f "$f" ]; then
+        echo "install_python: licence file $f is missing (run scripts/fetch_libtorch.py / fetch_mujoco.py)" >&2
+        exit 1
+    fi
+    cp "$f" "$lic.tmp/${pair##*:}/"
+done
+rm -rf "$lic"
+mv "$lic.tmp" "$lic"
+# --- end licences -----------------------------------------------------------------------------------
+
 # maturin's own rpath and linker settings are not wanted: the workspace's .cargo/config.toml
 # rustflags stay as they are (so the library crates are not rebuilt), and crates/python/build.rs
 # adds the $ORIGIN/_libs rpath.
