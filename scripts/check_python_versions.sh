@@ -51,6 +51,7 @@ from promptdt.envs import make_vec
 assert promptdt.families(), "no families"
 env = make_vec("point_robot", tasks=[0, 1], num_envs=2)
 obs, _ = env.reset(seed=0)
+env.action_space.seed(0)
 total = np.zeros(2)
 for _ in range(5):
     obs, rew, term, trunc, _ = env.step(env.action_space.sample())

@@ -6,18 +6,23 @@
 #   VENV/bin/python -c "import promptdt"
 #
 # What it does:
-#   1. fetches libtorch 2.11.0 (CPU part) and MuJoCo 3.17.0 into third_party/ if they are not there
-#      (the same scripts as `make setup`);
+#   1. fetches libtorch 2.11.0 (CPU part), MuJoCo 3.17.0 and Meta-World's reach scene into
+#      third_party/ if they are not there (the same scripts as `make setup`);
 #   2. creates VENV if needed and installs the build and test tools in it (maturin, numpy,
 #      gymnasium, pytest, safetensors; minari with PROMPTDT_PY_EXTRAS=minari);
 #   3. copies the shared libraries the module links (libtorch_cpu, libc10, libgomp, the CUDA runtime
 #      and CUPTI stubs libtorch_cpu names, libmujoco) into promptdt/_libs, where the module's
 #      $ORIGIN/_libs rpath finds them: the wheel is self-contained (no torch, no environment
 #      variables), and it does not depend on this checkout once installed;
-#   4. builds the wheel into target/wheels (release, stripped) and pip-installs it into VENV.
+#   4. copies the licence texts of the project and of each bundled library into promptdt/_licenses
+#      (the wheel also lists them in its .dist-info/licenses, see pyproject.toml);
+#   5. builds the wheel into target/wheels (release, stripped; one cp39-abi3 wheel for CPython 3.9+)
+#      and pip-installs it into VENV.
 #
-# The build reuses target/ (a second run after a change only rebuilds the extension). Cost and
-# wheel size: see docs/python.md.
+# The build reuses target/: the library crates are built with the same features as by `make test`
+# and `make demo` (crates/testkit/tests/one_build.rs), so after either only pyo3 and the extension
+# are compiled, and a second run after a change only rebuilds the extension. Cost and wheel size:
+# see docs/python.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv="${1:-.venv-promptdt}"
@@ -26,6 +31,10 @@ start=$(date +%s)
 
 python3 scripts/fetch_libtorch.py
 python3 scripts/fetch_mujoco.py
+# Also Meta-World's reach scene, as `make setup` does. pdt-envs' build script would fetch it itself,
+# but it watches the file the fetch creates: the next cargo build (`make demo`, `make test`) would
+# then run it again and rebuild pdt-envs and the eight crates above it.
+python3 scripts/fetch_metaworld.py
 
 if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
