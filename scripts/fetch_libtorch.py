@@ -12,6 +12,11 @@ Every extracted file is checked against the sha256 in its wheel's RECORD.
 Layout (what torch-sys wants in LIBTORCH: include/ and lib/):
   third_party/libtorch/torch/{include,lib,build-version}   <- LIBTORCH (set in .cargo/config.toml)
   third_party/libtorch/nvidia/cu13/lib/                     <- libcudart.so.13, libcupti.so.13
+  third_party/libtorch/licenses/<distribution>/             <- each wheel's licence files, as its
+      .dist-info/licenses/ has them: torch/{LICENSE,NOTICE} (BSD-3-Clause and the third-party
+      notices), nvidia-cuda-runtime/License.txt, nvidia-cuda-cupti/License.txt (NVIDIA's licence).
+      They travel with what is built on these libraries (scripts/install_python.sh puts them in the
+      wheel). An install made before they were kept gets them on the next run (a few kB of reads).
 
 Standard library only; safe to run concurrently (extracts to a temp dir, then renames into place).
 
@@ -130,11 +135,62 @@ def record_hashes(zf):
     return hashes
 
 
+# Each wheel's licence files (PEP 639 puts them under .dist-info/licenses/; older wheels keep them
+# directly in .dist-info/). They are installed as licenses/<distribution>/<file name>.
+LICENSE_RE = re.compile(r"[^/]+\.dist-info/(?:licenses/)?((?:LICEN[CS]E|NOTICE|COPYING)[^/]*)", re.I)
+LICENSES_DIR = "licenses"
+
+
+def licence_members(zf, dist):
+    """(zip member, installed path under licenses/) of a wheel's licence files."""
+    out = []
+    for name in zf.namelist():
+        m = LICENSE_RE.fullmatch(name)
+        if m:
+            out.append((name, os.path.join(LICENSES_DIR, dist, m.group(1))))
+    if not out:
+        sys.exit(f"fetch_libtorch: {dist}: no licence file in the wheel's .dist-info")
+    return out
+
+
+def extract_checked(zf, hashes, member, path, url):
+    data = zf.read(member)
+    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+    if hashes.get(member) != digest:
+        sys.exit(f"fetch_libtorch: sha256 mismatch for {member} in {url}")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "wb") as out:
+        out.write(data)
+
+
+def install_licences(dest):
+    """Adds licenses/ to an install made before the licence files were kept: only those members
+    are read (the zip index and a few kB per wheel), into a temporary directory renamed into place."""
+    tmp = tempfile.mkdtemp(prefix=".licenses-", dir=dest)
+    try:
+        for dist, version, pattern, _ in WHEELS:
+            url = wheel_url(dist, pattern)
+            zf = zipfile.ZipFile(HttpRangeFile(url, block_size=1 << 20))
+            hashes = record_hashes(zf)
+            for member, rel in licence_members(zf, dist):
+                extract_checked(zf, hashes, member, os.path.join(tmp, rel), url)
+        try:
+            os.rename(os.path.join(tmp, LICENSES_DIR), os.path.join(dest, LICENSES_DIR))
+        except OSError:
+            if not os.path.isdir(os.path.join(dest, LICENSES_DIR)):  # not a concurrent run's win
+                raise
+        print(f"fetch_libtorch: added the wheels' licence files to {dest}/{LICENSES_DIR}", file=sys.stderr)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def install_cpu():
     root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "third_party")
     dest = os.path.normpath(os.path.join(root, "libtorch"))
     stamp = os.path.join(dest, "torch", "build-version")
     if os.path.exists(stamp) and open(stamp).read().strip() == TORCH_VERSION:
+        if not os.path.isdir(os.path.join(dest, LICENSES_DIR)):
+            install_licences(dest)
         return  # already installed
     os.makedirs(root, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".libtorch-", dir=root)
@@ -150,16 +206,12 @@ def install_cpu():
             print(f"fetch_libtorch: {dist} {version}: {len(members)} files, {size:.0f} MB of "
                   f"{f.size / 1e6:.0f} MB", file=sys.stderr)
             for i in members:
-                data = zf.read(i)
-                digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
-                if hashes.get(i.filename) != digest:
-                    sys.exit(f"fetch_libtorch: sha256 mismatch for {i.filename} in {url}")
                 path = os.path.join(tmp, i.filename)
-                os.makedirs(os.path.dirname(path), exist_ok=True)
-                with open(path, "wb") as out:
-                    out.write(data)
+                extract_checked(zf, hashes, i.filename, path, url)
                 if ".so" in i.filename:
                     os.chmod(path, 0o755)
+            for member, rel in licence_members(zf, dist):
+                extract_checked(zf, hashes, member, os.path.join(tmp, rel), url)
             total += f.fetched
         lib = os.path.join(tmp, "torch", "lib")
         # torch-sys links -ltorch; the wheel's libtorch.so would pull in libtorch_cuda.so (~1 GB of
