@@ -14,7 +14,8 @@
 #      and CUPTI stubs libtorch_cpu names, libmujoco) into promptdt/_libs, where the module's
 #      $ORIGIN/_libs rpath finds them: the wheel is self-contained (no torch, no environment
 #      variables), and it does not depend on this checkout once installed;
-#   4. builds the wheel into target/wheels (release, stripped) and pip-installs it into VENV.
+#   4. copies the trained agents (pretrained/) into promptdt/pretrained, the `collect` default;
+#   5. builds the wheel into target/wheels (release, stripped) and pip-installs it into VENV.
 #
 # The build reuses target/ (a second run after a change only rebuilds the extension). Cost and
 # wheel size: see docs/python.md.
@@ -49,6 +50,14 @@ for f in third_party/libtorch/torch/lib/libtorch_cpu.so third_party/libtorch/tor
 done
 rm -rf "$libs"
 mv "$libs.tmp" "$libs"
+
+# The trained agents of the MuJoCo families (2.4 MB), so that `promptdt.collect` works from the
+# wheel alone (`promptdt.pretrained_dir`); gitignored there, like _libs.
+agents=crates/python/python/promptdt/pretrained
+rm -rf "$agents.tmp"
+cp -r pretrained "$agents.tmp"
+rm -rf "$agents"
+mv "$agents.tmp" "$agents"
 
 # maturin's own rpath and linker settings are not wanted: the workspace's .cargo/config.toml
 # rustflags stay as they are (so the library crates are not rebuilt), and crates/python/build.rs
