@@ -65,6 +65,7 @@ def test_ctrl_c_stops_train_within_5s_and_the_run_resumes(repo, point_data, tmp_
     code = (f"import promptdt; promptdt.train({str(out)!r}, {str(config)!r}, "
             f"data={str(point_data)!r})")
     elapsed, rc, err = _interrupt(code, lambda: _metrics_lines(out) >= 3, tmp_path)
+    print(f"train: SIGINT -> exit in {elapsed:.2f} s")
     assert elapsed < 5.0, f"took {elapsed:.1f} s to stop"
     assert rc != 0 and "KeyboardInterrupt" in err, err[-2000:]
     # The default progress line went to stderr: iteration, loss and the time left.
@@ -95,6 +96,7 @@ def test_ctrl_c_stops_collect_within_5s(tmp_path):
     code = (f"import promptdt; promptdt.collect('metaworld_reach', {str(out)!r}, episodes=200)")
     files = lambda: out.is_dir() and any(p.suffix == ".safetensors" for p in out.iterdir())
     elapsed, rc, err = _interrupt(code, files, tmp_path)
+    print(f"collect: SIGINT -> exit in {elapsed:.2f} s")
     assert elapsed < 5.0, f"took {elapsed:.1f} s to stop"
     assert rc != 0 and "KeyboardInterrupt" in err, err[-2000:]
     assert not (out / "dataset.json").exists()

@@ -116,17 +116,25 @@ def test_export_has_env_spec_and_no_warnings(point_data, tmp_path, monkeypatch):
 
 
 def test_export_picks_a_family_of_the_reference_prompt_folder(repo, tmp_path, monkeypatch):
+    """The reference prompt folder holds cheetah_dir (tasks 0, 1) and cheetah_vel (0..39) files."""
     folder = repo.parent / "shared/data/official-prompts"
     if not folder.exists():
         pytest.skip("../shared/data is not beside the checkout")
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
-    ds = promptdt.export_minari(folder, "ref/cheetah_vel/prompt-v0", mode="prompt-expert", tasks=[2, 7],
-                                env="cheetah_vel")
-    tasks = [m["options"]["task"] for m in ds.storage.get_episode_metadata(ds.episode_indices)]
-    assert sorted(set(tasks)) == [2, 7] and ds.storage.metadata["promptdt_env"] == "cheetah_vel"
-    # Without env: the families with files for tasks 2 and 7 are named.
-    with pytest.raises(ValueError, match=r"several families \(.*cheetah_vel.*\).*give env="):
-        promptdt.export_minari(folder, "ref/x/prompt-v0", mode="prompt-expert", tasks=[2, 7])
+
+    def tasks_of(ds):
+        return sorted({m["options"]["task"] for m in ds.storage.get_episode_metadata(ds.episode_indices)})
+
+    # Only cheetah_vel has tasks 2 and 7: it is taken.
+    ds = promptdt.export_minari(folder, "ref/cheetah_vel/prompt-v0", mode="prompt-expert", tasks=[2, 7])
+    assert tasks_of(ds) == [2, 7] and ds.storage.metadata["promptdt_env"] == "cheetah_vel"
+    # Tasks 0 and 1 are both families': env= picks one, and without it the error names them.
+    ds = promptdt.export_minari(folder, "ref/cheetah_dir/prompt-v0", mode="prompt-expert", tasks=[0, 1],
+                                env="cheetah_dir")
+    assert tasks_of(ds) == [0, 1] and ds.storage.metadata["promptdt_env"] == "cheetah_dir"
+    assert ds.total_episodes == len(promptdt.load_dataset(folder / "cheetah_dir-0-prompt-expert.pkl")) * 2
+    with pytest.raises(ValueError, match=r"several families \(cheetah_dir, cheetah_vel\).*give env="):
+        promptdt.export_minari(folder, "ref/x/prompt-v0", mode="prompt-expert", tasks=[0, 1])
     with pytest.raises(ValueError, match="unknown family `nonsense`"):
         promptdt.export_minari(folder, "ref/y/prompt-v0", mode="prompt-expert", env="nonsense")
 
@@ -137,7 +145,7 @@ def test_minari_extra_has_what_export_imports(repo):
     import importlib.metadata
     import re
 
-    reqs = [r for r in importlib.metadata.requires("promptdt") if 'extra == "minari"' in r]
+    reqs = [r for r in importlib.metadata.requires("promptdt") if re.search(r"extra == .minari.", r)]
     names = {re.match(r"[A-Za-z0-9_.-]+(\[[^\]]*\])?", r).group(0).lower() for r in reqs}
     assert {"minari[hdf5]", "pillow", "gymnasium"} <= names, reqs
     script = (repo / "scripts/install_python.sh").read_text()
