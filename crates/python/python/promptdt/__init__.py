@@ -105,6 +105,7 @@ class _ProgressLine:
     def __init__(self, what: str):
         self.what = what
         self.first: Optional[int] = None
+        self.shown = float("-inf")
         self.open = False
 
     def __call__(self, p: dict) -> None:
@@ -121,6 +122,9 @@ class _ProgressLine:
         extra = f"  loss {p['loss']:.5f}" if "loss" in p else ""
         if p.get("test_return") is not None:
             extra += f"  test return {p['test_return']:.2f}"
+        if done < total and elapsed - self.shown < 0.1:
+            return  # at most ten lines a second (a scripted collection reports hundreds)
+        self.shown = elapsed
         line = (f"\r{self.what} {done}/{total} {unit}{extra}  "
                 f"[{_clock(elapsed)} elapsed, ETA {_clock(eta)}]")
         _sys.stderr.write(line)
