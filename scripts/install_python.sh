@@ -15,7 +15,8 @@
 #      $ORIGIN/_libs rpath finds them: the wheel is self-contained (no torch, no environment
 #      variables), and it does not depend on this checkout once installed;
 #   4. copies the licence texts of the project and of each bundled library into promptdt/_licenses
-#      (the wheel also lists them in its .dist-info/licenses, see pyproject.toml);
+#      (the wheel also lists them in its .dist-info/licenses, see pyproject.toml), and the trained
+#      agents (pretrained/) into promptdt/pretrained, the `collect` default;
 #   5. builds the wheel into target/wheels (release, stripped; one cp39-abi3 wheel for CPython 3.9+)
 #      and pip-installs it into VENV.
 #
@@ -86,6 +87,14 @@ done
 rm -rf "$lic"
 mv "$lic.tmp" "$lic"
 # --- end licences -----------------------------------------------------------------------------------
+
+# The trained agents of the MuJoCo families (2.4 MB), so that `promptdt.collect` works from the
+# wheel alone (`promptdt.pretrained_dir`); gitignored there, like _libs.
+agents=crates/python/python/promptdt/pretrained
+rm -rf "$agents.tmp"
+cp -r pretrained "$agents.tmp"
+rm -rf "$agents"
+mv "$agents.tmp" "$agents"
 
 # maturin's own rpath and linker settings are not wanted: the workspace's .cargo/config.toml
 # rustflags stay as they are (so the library crates are not rebuilt), and crates/python/build.rs

@@ -9,12 +9,14 @@
 //! - [`random`]: standard normal samples (Box-Muller) from any uniform source.
 //! - [`threads`]: thread-count settings where 0 means all cores.
 //! - [`table`]: Markdown and aligned plain-text tables.
+//! - [`stop`]: a request to stop a long call early (Ctrl-C from a front end).
 
 pub mod device;
 pub mod fs;
 pub mod num;
 pub mod random;
 pub mod seed;
+pub mod stop;
 pub mod table;
 pub mod threads;
 

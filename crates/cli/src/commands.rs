@@ -137,6 +137,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         resume_with,
         stop_after_iterations: a.stop_after_iterations,
         progress: &mut progress,
+        interrupt: Default::default(),
     };
     let summary = pdt_train::run::train(cfg, &dir, opts)?;
     pb.finish_and_clear();
@@ -199,6 +200,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 resume_with: Default::default(),
                 stop_after_iterations: None,
                 progress: &mut progress,
+                interrupt: Default::default(),
             };
             pdt_train::run::train(Some(cfg), &dir, opts)?;
             pb.finish_and_clear();

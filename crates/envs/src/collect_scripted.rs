@@ -158,6 +158,11 @@ pub struct CollectConfig {
     /// of a task are then all the same (spec §5: "200 copies").
     #[serde(default = "default_reach_noise")]
     pub reach_action_noise: f64,
+    /// A request to stop now (a front end's Ctrl-C), checked before every episode: the call then
+    /// returns [`CollectError::Interrupted`]; the files already written are whole (each is
+    /// written atomically) and the card is not written. Not a setting: never serialised.
+    #[serde(skip)]
+    pub interrupt: pdt_base::stop::StopFlag,
 }
 
 fn default_reach_noise() -> f64 {
@@ -174,6 +179,7 @@ impl Default for CollectConfig {
             modes: Mode::ALL.to_vec(),
             tasks: ScriptedFamily::PointRobot.policies().default_tasks(),
             reach_action_noise: REACH_ACTION_NOISE,
+            interrupt: pdt_base::stop::StopFlag::default(),
         }
     }
 }
@@ -297,6 +303,9 @@ pub enum CollectError {
     /// The file was not written because writing another one failed first.
     #[error("stopped after an earlier error")]
     Stopped,
+    /// A stop was asked for ([`CollectConfig::interrupt`]).
+    #[error("collection interrupted: the files written so far are whole, the card was not written; collect again to finish")]
+    Interrupted,
     /// The generated episodes did not form a valid dataset (a bug here, not a user error).
     #[error("generated data for {env}-{task} ({mode}) is invalid: {source}")]
     Data {

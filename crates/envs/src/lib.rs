@@ -59,6 +59,18 @@ pub enum EnvError {
     UnknownTask { env: String, task: usize, n: usize },
     #[error("unknown environment `{0}` (known: {1})")]
     UnknownEnv(String, String),
+    /// Data said to be of a family whose observation or action size differs ([`check_dims`]).
+    #[error(
+        "data of obs_dim {obs_dim} and act_dim {act_dim} cannot be {env}'s: {env} has obs_dim \
+         {expected_obs} and act_dim {expected_act}"
+    )]
+    WrongDims {
+        env: String,
+        obs_dim: usize,
+        act_dim: usize,
+        expected_obs: usize,
+        expected_act: usize,
+    },
     #[error("unknown split `{split}` of {env} (known: {known})")]
     UnknownSplit { env: String, split: String, known: String },
     #[error("{env}: {message}")]
@@ -252,6 +264,25 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         // The reconstructed Jaco pin-pad: see `dial`.
         "dial" => Ok(Box::new(dial::DialFamily)),
         other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
+    }
+}
+
+/// Checks that data of `obs_dim`-sized observations and `act_dim`-sized actions can be the family
+/// `name`'s (a dataset written or imported under its name): an unknown family or other sizes are
+/// refused, each error naming both.
+pub fn check_dims(name: &str, obs_dim: usize, act_dim: usize) -> Result<(), EnvError> {
+    let fam = family(name)?;
+    let preset = fam.preset();
+    if (obs_dim, act_dim) == (preset.obs_dim, preset.act_dim) {
+        Ok(())
+    } else {
+        Err(EnvError::WrongDims {
+            env: fam.name().to_owned(),
+            obs_dim,
+            act_dim,
+            expected_obs: preset.obs_dim,
+            expected_act: preset.act_dim,
+        })
     }
 }
 

@@ -21,6 +21,7 @@ fn config(seed: u64) -> CollectConfig {
         // A training task and a test task of the paper's split.
         tasks: vec![1, 6],
         reach_action_noise: 0.2,
+        ..CollectConfig::default()
     }
 }
 

@@ -305,3 +305,30 @@ fn write_errors_name_the_file() {
     let err = collect(&small_config(0), &file.join("sub"), &mut no_progress()).expect_err("fail");
     assert!(matches!(err, CollectError::CreateDir { .. }), "{err:?}");
 }
+
+#[test]
+fn an_interrupted_collection_writes_no_card_and_names_the_stop() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = small_config(0);
+    cfg.interrupt.set();
+    let err = collect(&cfg, tmp.path(), &mut no_progress()).unwrap_err();
+    assert!(matches!(err, CollectError::Interrupted), "{err}");
+    assert!(err.to_string().contains("interrupted"), "{err}");
+    assert!(!tmp.path().join(native::CARD_FILE_NAME).exists());
+    // The flag is no setting: a configuration with it set equals one without.
+    assert_eq!(cfg, small_config(0));
+    assert!(collect(&small_config(0), tmp.path(), &mut no_progress()).is_ok());
+}
+
+#[test]
+fn check_dims_names_the_family_and_both_sizes() {
+    assert!(pdt_envs::check_dims("point_robot", 2, 2).is_ok());
+    let e = pdt_envs::check_dims("cheetah_vel", 3, 1).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "data of obs_dim 3 and act_dim 1 cannot be cheetah_vel's: cheetah_vel has obs_dim 20 and \
+         act_dim 6"
+    );
+    let e = pdt_envs::check_dims("nonsense_family", 2, 2).unwrap_err();
+    assert!(matches!(e, EnvError::UnknownEnv(..)), "{e}");
+}

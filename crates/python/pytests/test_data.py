@@ -54,3 +54,51 @@ def test_bad_files_raise(tmp_path):
     with pytest.raises(ValueError, match="unknown file type"):
         (tmp_path / "a.txt").write_text("hi")
         promptdt.load_dataset(tmp_path / "a.txt")
+
+
+def _one_trajectory(obs_dim, act_dim, steps=4):
+    z = np.zeros
+    return promptdt.Trajectory(observations=z((steps, obs_dim), np.float32), actions=z((steps, act_dim), np.float32),
+                               rewards=z(steps, np.float32), terminated=z(steps, bool),
+                               truncated=np.array([False] * (steps - 1) + [True]))
+
+
+def test_write_dataset_checks_the_family(tmp_path):
+    bad = promptdt.Dataset(obs_dim=3, act_dim=1, trajectories=[_one_trajectory(3, 1)], env="cheetah_vel",
+                           task=0, mode="expert")
+    with pytest.raises(ValueError, match=r"obs_dim 3 and act_dim 1 cannot be cheetah_vel's: "
+                                         r"cheetah_vel has obs_dim 20 and act_dim 6"):
+        promptdt.write_dataset(tmp_path / "a.safetensors", bad)
+    bad.env = "nonsense_family"
+    with pytest.raises(ValueError, match=r"unknown environment `nonsense_family` \(known: point_robot"):
+        promptdt.write_dataset(tmp_path / "a.safetensors", bad)
+    assert not (tmp_path / "a.safetensors").exists()
+    good = promptdt.Dataset(obs_dim=2, act_dim=2, trajectories=[_one_trajectory(2, 2)], env="point_robot",
+                            task=1, mode="expert")
+    promptdt.write_dataset(tmp_path / "b.safetensors", good)
+    assert promptdt.load_dataset(tmp_path / "b.safetensors").env == "point_robot"
+
+
+def test_write_dataset_into_a_missing_directory(tmp_path):
+    ds = promptdt.Dataset(obs_dim=2, act_dim=2, trajectories=[_one_trajectory(2, 2)])
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        promptdt.write_dataset(tmp_path / "nowhere" / "a.safetensors", ds)
+
+
+def test_flat_dataset_is_every_step_in_task_order(point_data):
+    flat = promptdt.flat_dataset(point_data, mode="expert", tasks=[3, 0])
+    parts = [(t, promptdt.load_dataset(point_data / f"point_robot-{t}-expert.safetensors")) for t in (0, 3)]
+    trajs = [(t, x) for t, ds in parts for x in ds.trajectories]
+    n = sum(len(x) for _, x in trajs)
+    assert len(flat) == n and flat.observations.shape == (n, 2) and flat.actions.shape == (n, 2)
+    assert flat.observations.dtype == np.float32 and flat.terminals.dtype == bool
+    assert flat.task_ids.dtype == np.int64 and flat.timeouts.dtype == bool
+    np.testing.assert_array_equal(flat.observations, np.concatenate([x.observations for _, x in trajs]))
+    np.testing.assert_array_equal(flat.rewards, np.concatenate([x.rewards for _, x in trajs]))
+    np.testing.assert_array_equal(flat.timeouts, np.concatenate([x.truncated for _, x in trajs]))
+    np.testing.assert_array_equal(flat.task_ids, np.concatenate([np.full(len(x), t) for t, x in trajs]))
+    assert len(flat.episode_starts) == len(trajs) and (flat.env, flat.mode) == ("point_robot", "expert")
+    # The same from Dataset objects.
+    again = promptdt.flat_dataset([ds for _, ds in parts])
+    np.testing.assert_array_equal(again.actions, flat.actions)
+    np.testing.assert_array_equal(again.task_ids, flat.task_ids)

@@ -59,3 +59,126 @@ def test_write_dataset_refuses_bad_arrays(tmp_path):
     with pytest.raises(ValueError, match=r"`actions` has shape \[3, 5\], expected \[T, 2\]"):
         promptdt._native.write_dataset(str(tmp_path / "a.safetensors"), [t], 2, 2)
     assert not (tmp_path / "a.safetensors").exists()
+
+
+class OneTaskEnv:
+    """Defined in gymnasium's terms below: one task of a family, for `recover_environment` where
+    the package itself registers no `promptdt/...` ids."""
+
+
+def _register_point_robot():
+    import gymnasium as gym
+
+    from promptdt.minari_io import gym_id
+
+    env_id = gym_id("point_robot")
+    assert env_id == "promptdt/PointRobot-v0"
+    if env_id in gym.registry:
+        return env_id
+
+    class _Env(gym.Env):
+        def __init__(self, task=0):
+            self._env = promptdt._native.VecEnv("point_robot", [task], 1)
+            fam = promptdt.families()["point_robot"]
+            self.observation_space = gym.spaces.Box(-np.inf, np.inf, (fam["obs_dim"],), np.float32)
+            self.action_space = gym.spaces.Box(np.float32(fam["action_low"][0]),
+                                               np.float32(fam["action_high"][0]), (fam["act_dim"],), np.float32)
+            self.task = task
+
+        def reset(self, *, seed=None, options=None):
+            return self._env.reset([seed or 0])[0], {}
+
+        def step(self, action):
+            obs, r, term, trunc = self._env.step(np.asarray([action], np.float32), [True])
+            return obs[0], float(r[0]), bool(term[0]), bool(trunc[0]), {}
+
+    globals()["OneTaskEnv"] = _Env
+    gym.register(env_id, entry_point=f"{__name__}:OneTaskEnv")
+    return env_id
+
+
+def test_export_has_env_spec_and_no_warnings(point_data, tmp_path, monkeypatch):
+    import warnings
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    env_id = _register_point_robot()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        promptdt.export_minari(point_data, "promptdt/point_robot/spec-v0", tasks=[3, 34])
+        ds = minari.load_dataset("promptdt/point_robot/spec-v0")
+    assert ds.spec.env_spec is not None and ds.spec.env_spec.id == env_id
+    assert ds.spec.env_spec.kwargs["task"] == 3
+    env = ds.recover_environment()
+    assert env.spec.kwargs["task"] == 3 and env.observation_space.shape == (2,)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (2,)
+    assert ds.recover_environment(task=34).spec.kwargs["task"] == 34
+
+
+def test_export_picks_a_family_of_the_reference_prompt_folder(repo, tmp_path, monkeypatch):
+    """The reference prompt folder holds cheetah_dir (tasks 0, 1) and cheetah_vel (0..39) files."""
+    folder = repo.parent / "shared/data/official-prompts"
+    if not folder.exists():
+        pytest.skip("../shared/data is not beside the checkout")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+
+    def tasks_of(ds):
+        return sorted({m["options"]["task"] for m in ds.storage.get_episode_metadata(ds.episode_indices)})
+
+    # Only cheetah_vel has tasks 2 and 7: it is taken.
+    ds = promptdt.export_minari(folder, "ref/cheetah_vel/prompt-v0", mode="prompt-expert", tasks=[2, 7])
+    assert tasks_of(ds) == [2, 7] and ds.storage.metadata["promptdt_env"] == "cheetah_vel"
+    # Tasks 0 and 1 are both families': env= picks one, and without it the error names them.
+    ds = promptdt.export_minari(folder, "ref/cheetah_dir/prompt-v0", mode="prompt-expert", tasks=[0, 1],
+                                env="cheetah_dir")
+    assert tasks_of(ds) == [0, 1] and ds.storage.metadata["promptdt_env"] == "cheetah_dir"
+    assert ds.total_episodes == len(promptdt.load_dataset(folder / "cheetah_dir-0-prompt-expert.pkl")) * 2
+    with pytest.raises(ValueError, match=r"several families \(cheetah_dir, cheetah_vel\).*give env="):
+        promptdt.export_minari(folder, "ref/x/prompt-v0", mode="prompt-expert", tasks=[0, 1])
+    with pytest.raises(ValueError, match="unknown family `nonsense`"):
+        promptdt.export_minari(folder, "ref/y/prompt-v0", mode="prompt-expert", env="nonsense")
+
+
+def test_minari_extra_has_what_export_imports(repo):
+    """`pip install promptdt[minari]` installs what export_minari imports (PIL through Minari's
+    HDF5 storage), the same packages as the install script's PROMPTDT_PY_EXTRAS=minari."""
+    import importlib.metadata
+    import re
+
+    reqs = [r for r in importlib.metadata.requires("promptdt") if re.search(r"extra == .minari.", r)]
+    names = {re.match(r"[A-Za-z0-9_.-]+(\[[^\]]*\])?", r).group(0).lower() for r in reqs}
+    assert {"minari[hdf5]", "pillow", "gymnasium"} <= names, reqs
+    script = (repo / "scripts/install_python.sh").read_text()
+    line = next(x for x in script.splitlines() if "minari[hdf5]" in x)
+    for pkg in ("minari[hdf5]", "pillow"):
+        assert pkg in line
+
+
+def _pendulum_like(tmp_path, monkeypatch):
+    import gymnasium as gym
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    rng = np.random.default_rng(0)
+    buf = [minari.data_collector.EpisodeBuffer(
+        id=0, observations=rng.standard_normal((6, 3)).astype(np.float32),
+        actions=rng.standard_normal((5, 1)).astype(np.float32), rewards=np.zeros(5),
+        terminations=np.zeros(5, bool), truncations=np.array([0, 0, 0, 0, 1], bool))]
+    minari.create_dataset_from_buffers(
+        "other/pendulum/x-v0", buf, observation_space=gym.spaces.Box(-1, 1, (3,), np.float32),
+        action_space=gym.spaces.Box(-1, 1, (1,), np.float32), algorithm_name="x", author="x",
+        author_email="x", code_permalink="x", description="x")
+    return "other/pendulum/x-v0"
+
+
+def test_import_refuses_data_that_contradicts_its_family(tmp_path, monkeypatch):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Minari's notices about the test's own dataset
+        dataset_id = _pendulum_like(tmp_path, monkeypatch)
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=r"obs_dim 3 and act_dim 1 cannot be cheetah_vel's: cheetah_vel has obs_dim 20 and act_dim 6"):
+        promptdt.import_minari(dataset_id, out, env="cheetah_vel", task=0, mode="expert")
+    with pytest.raises(ValueError, match=r"unknown environment `nonsense_family` \(known: .*cheetah_vel"):
+        promptdt.import_minari(dataset_id, out, env="nonsense_family", task=0, mode="expert")
+    assert not out.exists() or not any(out.iterdir())

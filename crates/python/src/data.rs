@@ -3,6 +3,7 @@
 use crate::{array2, existing, value_error};
 use numpy::prelude::*;
 use numpy::{AllowTypeChange, PyArrayLike1, PyArrayLike2};
+use pyo3::exceptions::PyFileNotFoundError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
@@ -98,7 +99,8 @@ fn trajectory_from_py(
 
 /// Writes trajectories (dicts with the keys `load_dataset` returns) as a native `.safetensors`
 /// file, atomically (a temporary file, then a rename), after the reader's checks (finite values,
-/// flags only at an episode's last step, shapes).
+/// flags only at an episode's last step, shapes). With `env`, the family must exist and have
+/// `obs_dim` and `act_dim` (`pdt_envs::check_dims`). The directory must exist.
 #[pyfunction]
 #[pyo3(signature = (path, trajectories, obs_dim, act_dim, env = None, task = None, mode = None))]
 #[allow(clippy::too_many_arguments)]
@@ -112,6 +114,18 @@ pub(crate) fn write_dataset(
     task: Option<usize>,
     mode: Option<String>,
 ) -> PyResult<()> {
+    if let Some(env) = &env {
+        pdt_envs::check_dims(env, obs_dim, act_dim).map_err(value_error)?;
+    }
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        if !dir.is_dir() {
+            return Err(PyFileNotFoundError::new_err(format!(
+                "directory {} (to write {}): no such directory",
+                dir.display(),
+                path.display()
+            )));
+        }
+    }
     let trajs = trajectories
         .iter()
         .enumerate()
@@ -120,4 +134,11 @@ pub(crate) fn write_dataset(
     let ds = pdt_data::TaskDataset { obs_dim, act_dim, trajectories: trajs };
     let meta = pdt_data::native::FileMeta { env, task_index: task, mode };
     py.detach(|| pdt_data::native::write_task_dataset(&path, &ds, &meta)).map_err(value_error)
+}
+
+/// Checks that data of `obs_dim` x `act_dim` can be the family `env`'s (`pdt_envs::check_dims`):
+/// `ValueError` naming the family and both sizes, or the known families for an unknown one.
+#[pyfunction]
+pub(crate) fn check_dims(env: &str, obs_dim: usize, act_dim: usize) -> PyResult<()> {
+    pdt_envs::check_dims(env, obs_dim, act_dim).map_err(value_error)
 }

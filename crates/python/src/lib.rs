@@ -11,7 +11,7 @@
 //! Arrays cross as numpy arrays: outputs are moved into numpy without a copy (a Rust `Vec` becomes
 //! the array's buffer), inputs are read in place when they already have the dtype and layout
 //! wanted, converted otherwise. Every error is a Python exception naming the file, field or shape.
-//! Long calls release the GIL.
+//! Long calls release the GIL; train and collect also stop on Ctrl-C (`signals`).
 
 use numpy::prelude::*;
 use numpy::PyArray2;
@@ -113,6 +113,8 @@ mod policy;
 mod render;
 /// The CLI's library calls: train, evaluate, collect, experiments, benchmark.
 mod runs;
+/// Long calls that Ctrl-C stops, and their progress reported to Python.
+mod signals;
 
 /// Sets libtorch's intra-op threads for this process.
 #[pyfunction]
@@ -131,6 +133,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("LIBTORCH_VERSION", "2.11.0")?;
     m.add_function(wrap_pyfunction!(data::load_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(data::write_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(data::check_dims, m)?)?;
     m.add_function(wrap_pyfunction!(envs::families, m)?)?;
     m.add_function(wrap_pyfunction!(envs::task_params, m)?)?;
     m.add_function(wrap_pyfunction!(runs::train, m)?)?;

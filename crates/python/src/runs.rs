@@ -1,14 +1,25 @@
 //! Runs: the CLI's library calls (train, evaluate, collect, list experiments, benchmark).
 
+use crate::signals::{interruptible, Progress};
 use crate::{existing, value_error};
+use pdt_base::stop::StopFlag;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
 
+/// The error of a long call stopped by Ctrl-C or by its progress callable: the callable's
+/// exception when it raised one, else the library's (an `Interrupted` error, or a real failure).
+fn stopped_or(progress: &Progress, e: impl std::fmt::Display) -> PyErr {
+    progress.take_error().unwrap_or_else(|| value_error(e))
+}
+
 /// `promptdt train`: trains from `config` (a TOML file) into `out`, or resumes the run in `out`
 /// (`resume=True`). Returns `{"dir", "iterations_done", "finished", "last_test_mean"}`.
+/// `progress`: called after every iteration with `{"iteration", "iterations", "loss",
+/// "test_return", "elapsed_s"}`. Ctrl-C (or an exception of `progress`) stops it before the next
+/// gradient step and raises; the run resumes from its last checkpoint or resume point.
 #[pyfunction]
-#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, data = None))]
+#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, data = None, progress = None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn train<'py>(
     py: Python<'py>,
@@ -20,6 +31,7 @@ pub(crate) fn train<'py>(
     method: Option<String>,
     device: Option<&str>,
     data: Option<PathBuf>,
+    progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     use pdt_train::config::{Method, Overrides, TrainConfig};
     let device: Option<pdt_model::device::DeviceSpec> =
@@ -50,18 +62,29 @@ pub(crate) fn train<'py>(
             Some(cfg)
         }
     };
-    let summary = py
-        .detach(|| {
-            let mut progress = |_: &pdt_train::run::Progress| {};
-            let opts = pdt_train::run::TrainOptions {
-                resume,
-                resume_with: pdt_train::run::ResumeWith { iterations, device, data: data.clone() },
-                stop_after_iterations: None,
-                progress: &mut progress,
-            };
-            pdt_train::run::train(cfg, &out, opts).map_err(|e| e.to_string())
-        })
-        .map_err(value_error)?;
+    let interrupt = StopFlag::default();
+    let report = Progress::new(progress, &interrupt);
+    let started = std::time::Instant::now();
+    let summary = interruptible(py, &interrupt, || {
+        let mut progress = |p: &pdt_train::run::Progress| {
+            report.report(|d| {
+                d.set_item("iteration", p.iteration)?;
+                d.set_item("iterations", p.iterations)?;
+                d.set_item("loss", p.loss)?;
+                d.set_item("test_return", p.test_return)?;
+                d.set_item("elapsed_s", started.elapsed().as_secs_f64())
+            })
+        };
+        let opts = pdt_train::run::TrainOptions {
+            resume,
+            resume_with: pdt_train::run::ResumeWith { iterations, device, data: data.clone() },
+            stop_after_iterations: None,
+            progress: &mut progress,
+            interrupt: interrupt.clone(),
+        };
+        pdt_train::run::train(cfg, &out, opts).map_err(|e| e.to_string())
+    })?
+    .map_err(|e| stopped_or(&report, e))?;
     let d = PyDict::new(py);
     d.set_item("dir", summary.dir)?;
     d.set_item("iterations_done", summary.iterations_done)?;
@@ -135,9 +158,13 @@ pub(crate) fn is_scripted(family: &str) -> PyResult<bool> {
 /// `promptdt collect --env FAMILY` for a family with scripted policies: the scripted
 /// expert/medium/random datasets and prompt sets of the family's default tasks, into `out`.
 /// `action_noise`: the expert's noise where the family takes one (Meta-World reach: standard
-/// deviation; default 0.2, 0 = deterministic).
+/// deviation; default 0.2, 0 = deterministic). Returns the number of files written (a dataset and
+/// a prompt set per task and mode). `progress`: called with `{"done", "total", "unit": "sets",
+/// "elapsed_s"}` each time a task's mode is written; Ctrl-C stops it between episodes and raises
+/// (the files written are whole; the card is written only at the end).
 #[pyfunction]
-#[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None))]
+#[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None, progress = None))]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn collect_scripted(
     py: Python<'_>,
     family: &str,
@@ -146,6 +173,7 @@ pub(crate) fn collect_scripted(
     episodes: Option<usize>,
     prompt_episodes: Option<usize>,
     action_noise: Option<f64>,
+    progress: Option<Py<PyAny>>,
 ) -> PyResult<usize> {
     use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
     let fam = pdt_envs::family(family).map_err(value_error)?;
@@ -175,16 +203,26 @@ pub(crate) fn collect_scripted(
         }
         cfg.reach_action_noise = n;
     }
-    let summary = py
-        .detach(|| pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}))
-        .map_err(value_error)?;
+    let report = Progress::new(progress, &cfg.interrupt);
+    let started = std::time::Instant::now();
+    let summary = interruptible(py, &cfg.interrupt, || {
+        pdt_envs::collect_scripted::collect(&cfg, &out, &mut |done, total| {
+            report.report(|d| progress_items(d, done, total, "sets", started))
+        })
+        .map_err(|e| e.to_string())
+    })?
+    .map_err(|e| stopped_or(&report, e))?;
+    // Each entry is one task's mode: its dataset and its prompt set.
     Ok(summary.entries.len() * 2)
 }
 
 /// `promptdt collect --env FAMILY --from-pretrained`: datasets and prompt sets of a MuJoCo family
-/// from a committed agent directory (`pretrained/<family>`), into `out`.
+/// from an agent directory (`pretrained/<family>`), into `out`. Returns the number of files
+/// written. `progress`: called with `{"done", "total", "unit": "episodes", "elapsed_s"}` after
+/// each chunk of episodes; Ctrl-C stops it between steps and raises (the files written are whole).
 #[pyfunction]
-#[pyo3(signature = (agent_dir, out, seed = 0, episodes = None, prompt_episodes = None, device = "cpu"))]
+#[pyo3(signature = (agent_dir, out, seed = 0, episodes = None, prompt_episodes = None, device = "cpu", progress = None))]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn collect_from_agent(
     py: Python<'_>,
     agent_dir: PathBuf,
@@ -193,6 +231,7 @@ pub(crate) fn collect_from_agent(
     episodes: Option<usize>,
     prompt_episodes: Option<usize>,
     device: &str,
+    progress: Option<Py<PyAny>>,
 ) -> PyResult<usize> {
     existing(&agent_dir, "agent directory")?;
     let spec: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
@@ -204,10 +243,30 @@ pub(crate) fn collect_from_agent(
     if let Some(e) = prompt_episodes {
         cfg.prompt_episodes = e;
     }
-    let summary = py
-        .detach(|| pdt_rl::datasets::generate(&agent_dir, &out, &cfg, device, &mut |_, _| {}))
-        .map_err(value_error)?;
-    Ok(summary.entries.len())
+    let report = Progress::new(progress, &cfg.interrupt);
+    let started = std::time::Instant::now();
+    let summary = interruptible(py, &cfg.interrupt, || {
+        pdt_rl::datasets::generate(&agent_dir, &out, &cfg, device, &mut |done, total| {
+            report.report(|d| progress_items(d, done, total, "episodes", started))
+        })
+        .map_err(|e| e.to_string())
+    })?
+    .map_err(|e| stopped_or(&report, e))?;
+    Ok(summary.files)
+}
+
+/// A collection's progress report.
+fn progress_items(
+    d: &Bound<'_, PyDict>,
+    done: usize,
+    total: usize,
+    unit: &str,
+    started: std::time::Instant,
+) -> PyResult<()> {
+    d.set_item("done", done)?;
+    d.set_item("total", total)?;
+    d.set_item("unit", unit)?;
+    d.set_item("elapsed_s", started.elapsed().as_secs_f64())
 }
 
 /// The Rust environment benchmark (`pdt_envs::bench`, no Python in the loop), for comparison with

@@ -50,6 +50,11 @@ pub struct DatasetConfig {
     pub chunk: usize,
     /// Threads stepping the environments (the data does not depend on this).
     pub threads: usize,
+    /// A request to stop now (a front end's Ctrl-C), checked before every step of the episodes:
+    /// the call then returns [`RlError::Interrupted`]; the files already written are whole
+    /// (each is written atomically) and the card is not written. Not a setting: never serialised.
+    #[serde(skip)]
+    pub interrupt: pdt_base::stop::StopFlag,
 }
 
 impl Default for DatasetConfig {
@@ -63,6 +68,7 @@ impl Default for DatasetConfig {
             noise: None,
             chunk: 256,
             threads: pdt_base::threads::available_cores(),
+            interrupt: pdt_base::stop::StopFlag::default(),
         }
     }
 }
@@ -194,6 +200,7 @@ pub fn generate(
                 cfg.chunk,
                 cfg.threads,
                 &mut |d| progress(done_before + d, total),
+                &cfg.interrupt,
             )?;
             done_before += trajs.len();
             let mut trajs = trajs.into_iter();

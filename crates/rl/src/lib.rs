@@ -55,6 +55,9 @@ pub enum RlError {
     NoCheckpoint { path: PathBuf },
     #[error("training diverged: {0}")]
     Diverged(String),
+    /// A stop was asked for (`datasets::DatasetConfig::interrupt`).
+    #[error("collection interrupted: the files written so far are whole, the card was not written; collect again to finish")]
+    Interrupted,
 }
 
 pub use pdt_base::seed::derive_seed;

@@ -5,6 +5,7 @@
 use crate::agent::{actor_raw, Noise, PolicyHead, TaskEncoder};
 use crate::nets::Mlp;
 use crate::RlError;
+use pdt_base::stop::StopFlag;
 use pdt_data::Trajectory;
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
@@ -53,12 +54,17 @@ struct Chunk<'b> {
     running: Vec<Running>,
     /// The actor's input rows, reused across steps.
     inputs: Vec<f32>,
+    /// Checked before every step of the chunk (a chunk of MuJoCo episodes takes seconds).
+    interrupt: &'b StopFlag,
 }
 
 impl BatchPolicy for Chunk<'_> {
     type Error = RlError;
 
     fn act(&mut self, slots: &[usize]) -> Result<Vec<f32>, RlError> {
+        if self.interrupt.is_set() {
+            return Err(RlError::Interrupted);
+        }
         let act_dim = self.act_dim;
         let raw = match self.behaviour {
             Behaviour::Actor { actor, encoder, device, .. } => {
@@ -126,7 +132,8 @@ impl BatchPolicy for Chunk<'_> {
 
 /// Runs `specs` in chunks of `chunk` episodes, stepping each chunk's environments on `threads`
 /// threads (a [`VecEnv`]); returns the trajectories in spec order. `progress(done)` is called with
-/// the number of finished episodes after each chunk.
+/// the number of finished episodes after each chunk. A stop asked for through `interrupt` ends it
+/// with [`RlError::Interrupted`] before the next step.
 ///
 /// The result depends on the specs and `chunk` only: not on `threads` (environments are
 /// independent), but `chunk` sets the actor's batch sizes, and a batched matmul may round the
@@ -138,6 +145,7 @@ pub fn run_episodes(
     chunk: usize,
     threads: usize,
     progress: &mut dyn FnMut(usize),
+    interrupt: &StopFlag,
 ) -> Result<Vec<Trajectory>, RlError> {
     let preset = family.preset();
     let (obs_dim, act_dim) = (preset.obs_dim, preset.act_dim);
@@ -166,7 +174,7 @@ pub fn run_episodes(
             r.obs = obs;
         }
         let slots = (0..running.len()).collect();
-        let mut chunk = Chunk { behaviour, act_dim, running, inputs: Vec::new() };
+        let mut chunk = Chunk { behaviour, act_dim, running, inputs: Vec::new(), interrupt };
         run_batch(&mut venv, slots, &mut chunk)?;
         let running = chunk.running;
         for ep in running {

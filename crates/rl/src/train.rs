@@ -585,6 +585,7 @@ pub(crate) fn evaluate_tasks(
         // Threads for stepping evaluation episodes: the machine's cores.
         pdt_base::threads::available_cores(),
         &mut |_| {},
+        &pdt_base::stop::StopFlag::default(),
     )?;
     Ok(trajs
         .chunks(episodes)

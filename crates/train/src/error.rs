@@ -37,6 +37,14 @@ pub enum RunError {
     Corrupt { path: PathBuf, message: String },
     #[error("{0}")]
     Invalid(String),
+    /// A stop was asked for ([`crate::run::TrainOptions::interrupt`]) during `iteration`; nothing
+    /// of it was written.
+    #[error(
+        "{}: training interrupted during iteration {iteration}; resume goes on from the run's \
+         last checkpoint",
+        dir.display()
+    )]
+    Interrupted { dir: PathBuf, iteration: u64 },
 }
 
 /// Maps an I/O error on `path` to [`RunError::Io`], naming the path.

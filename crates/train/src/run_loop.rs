@@ -44,6 +44,10 @@ pub struct TrainOptions<'a> {
     /// Stop after this many iterations of this call (simulates an interruption in tests).
     pub stop_after_iterations: Option<u64>,
     pub progress: &'a mut dyn FnMut(&Progress),
+    /// A request to stop now (a front end's Ctrl-C), checked before every gradient step: the call
+    /// then returns [`RunError::Interrupted`] and writes nothing of the iteration under way, so
+    /// the run resumes from its last checkpoint or resume point. Never set by default.
+    pub interrupt: pdt_base::stop::StopFlag,
 }
 
 /// What may change when a run is resumed. Anything else (seed, method, data settings) would make
@@ -309,6 +313,9 @@ fn run_loop(
     let mut last_test = None;
     let mut done_here = 0;
     while iteration < t.iterations {
+        if opts.interrupt.is_set() {
+            return Err(RunError::Interrupted { dir: dir.into(), iteration: iteration + 1 });
+        }
         if opts.stop_after_iterations.is_some_and(|n| done_here >= n) {
             return Ok(TrainSummary {
                 dir: dir.into(),
@@ -322,6 +329,7 @@ fn run_loop(
             iteration: iteration + 1,
             first_step: step,
             steps: t.steps_per_iteration,
+            interrupt: &opts.interrupt,
         };
         let IterationMetrics { loss, mut columns } = learner.train_iteration(at, &mut batch_rng)?;
         step += t.steps_per_iteration;

@@ -113,6 +113,7 @@ fn starting_over_an_existing_run_is_refused() {
             resume_with: Default::default(),
             stop_after_iterations: None,
             progress: &mut progress,
+            interrupt: Default::default(),
         },
     )
     .unwrap_err();
@@ -154,6 +155,38 @@ fn resume_points_between_checkpoints_lose_nothing_and_leave_no_files() {
     assert_eq!(lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
     assert_eq!(lines(&full.join("eval.jsonl")), lines(&cut.join("eval.jsonl")));
     assert_eq!(names(&full), names(&cut));
+    let w = |d: &Path| std::fs::read(d.join("checkpoints/step_12.safetensors")).unwrap();
+    assert!(w(&full) == w(&cut), "final weights differ");
+}
+
+#[test]
+fn interrupted_run_writes_nothing_more_and_resumes_to_the_same_run() {
+    let (tmp, data) = tiny_data();
+    let mut cfg = config(&data, Method::PromptDt);
+    cfg.train.resume_interval = 1;
+    let (full, cut) = (tmp.path().join("full"), tmp.path().join("cut"));
+    assert!(run(Some(cfg.clone()), &full, false, None).finished);
+    // A front end's Ctrl-C after iteration 3's report.
+    let interrupt = pdt_base::stop::StopFlag::default();
+    let mut progress = |p: &pdt_train::run::Progress| {
+        if p.iteration == 3 {
+            interrupt.set();
+        }
+    };
+    let opts = TrainOptions {
+        resume: false,
+        resume_with: Default::default(),
+        stop_after_iterations: None,
+        progress: &mut progress,
+        interrupt: interrupt.clone(),
+    };
+    let err = train(Some(cfg), &cut, opts).unwrap_err();
+    assert!(matches!(err, pdt_train::run::RunError::Interrupted { iteration: 4, .. }), "{err}");
+    assert!(err.to_string().contains("interrupted during iteration 4"), "{err}");
+    assert_eq!(lines(&cut.join("metrics.jsonl")).len(), 3);
+    assert!(run(None, &cut, true, None).finished);
+    assert_eq!(lines(&full.join("metrics.jsonl")), lines(&cut.join("metrics.jsonl")));
+    assert_eq!(lines(&full.join("eval.jsonl")), lines(&cut.join("eval.jsonl")));
     let w = |d: &Path| std::fs::read(d.join("checkpoints/step_12.safetensors")).unwrap();
     assert!(w(&full) == w(&cut), "final weights differ");
 }

@@ -59,7 +59,13 @@ fn run_train(
     train(
         cfg,
         dir,
-        TrainOptions { resume, resume_with, stop_after_iterations: None, progress: &mut progress },
+        TrainOptions {
+            resume,
+            resume_with,
+            stop_after_iterations: None,
+            progress: &mut progress,
+            interrupt: Default::default(),
+        },
     )
 }
 

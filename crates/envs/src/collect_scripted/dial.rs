@@ -139,6 +139,9 @@ impl ScriptedPolicies for DialPolicies {
         let mut t = Vec::with_capacity(episodes);
         let mut wins = 0usize;
         for e in 0..episodes {
+            if cfg.interrupt.is_set() {
+                return Err(CollectError::Interrupted);
+            }
             let mut rng = episode_rng(cfg.seed, task, mode, set, e);
             let (traj, ok) = run_dial_episode(&mut sim, mode, &mut rng)?;
             wins += usize::from(ok);

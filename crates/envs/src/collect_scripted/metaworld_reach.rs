@@ -134,6 +134,9 @@ impl ScriptedPolicies for ReachPolicies {
         let mut t = Vec::with_capacity(episodes);
         let mut wins = 0usize;
         for e in 0..episodes {
+            if cfg.interrupt.is_set() {
+                return Err(CollectError::Interrupted);
+            }
             let mut rng = episode_rng(cfg.seed, task, mode, set, e);
             let noise = cfg.reach_action_noise;
             let (traj, ok) = run_reach_episode(&mut sim, task, mode, noise, &mut rng)?;

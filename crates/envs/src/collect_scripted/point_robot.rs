@@ -106,7 +106,12 @@ impl ScriptedPolicies for PointRobotPolicies {
         episodes: usize,
     ) -> Result<(Vec<Trajectory>, Option<f64>), CollectError> {
         let t = (0..episodes)
-            .map(|e| run_episode(task, mode, &mut episode_rng(cfg.seed, task, mode, set, e)))
+            .map(|e| {
+                if cfg.interrupt.is_set() {
+                    return Err(CollectError::Interrupted);
+                }
+                run_episode(task, mode, &mut episode_rng(cfg.seed, task, mode, set, e))
+            })
             .collect::<Result<Vec<_>, _>>()?;
         Ok((t, None))
     }

@@ -13,7 +13,7 @@ import os as _os
 import sys as _sys
 from dataclasses import dataclass as _dataclass
 from pathlib import Path as _Path
-from typing import List, Optional, Union
+from typing import Any, Callable, Iterable, List, Optional, Sequence, Union
 
 import numpy as _np
 
@@ -105,6 +105,73 @@ def task_params(family: str, task: int) -> dict:
     return _json.loads(_native.task_params(family, task))
 
 
+#: What ``train``'s and ``collect``'s ``progress`` takes: True (a progress line on stderr), False
+#: (nothing), or a callable called with each report (a dict).
+ProgressArg = Union[bool, Callable[[dict], Any]]
+
+
+class _ProgressLine:
+    """A tqdm-style line on stderr, rewritten in place: what is done, the loss (training) and
+    the time left."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self.first: Optional[int] = None
+        self.shown = float("-inf")
+        self.open = False
+
+    def __call__(self, p: dict) -> None:
+        if "iteration" in p:
+            done, total, unit = p["iteration"], p["iterations"], "iterations"
+        else:
+            done, total, unit = p["done"], p["total"], p["unit"]
+        if self.first is None:
+            # A resumed run counts from where it stopped; a collection from nothing.
+            self.first = done - 1 if "iteration" in p else 0
+        elapsed = p["elapsed_s"]
+        rate = (done - self.first) / elapsed if elapsed > 0 else 0.0
+        eta = (total - done) / rate if rate > 0 else 0.0
+        extra = f"  loss {p['loss']:.5f}" if "loss" in p else ""
+        if p.get("test_return") is not None:
+            extra += f"  test return {p['test_return']:.2f}"
+        if done < total and elapsed - self.shown < 0.1:
+            return  # at most ten lines a second (a scripted collection reports hundreds)
+        self.shown = elapsed
+        line = (f"\r{self.what} {done}/{total} {unit}{extra}  "
+                f"[{_clock(elapsed)} elapsed, ETA {_clock(eta)}]")
+        _sys.stderr.write(line)
+        self.open = done < total
+        if not self.open:
+            _sys.stderr.write("\n")
+        _sys.stderr.flush()
+
+    def close(self) -> None:
+        """Ends an unfinished line (the call was stopped) so that what follows starts a line."""
+        if self.open:
+            _sys.stderr.write("\n")
+            _sys.stderr.flush()
+            self.open = False
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+def _with_progress(progress: ProgressArg, what: str, call: Callable[[Any], Any]) -> Any:
+    if progress is True:
+        line = _ProgressLine(what)
+        try:
+            return call(line)
+        finally:
+            line.close()
+    if progress is False or progress is None:
+        return call(None)
+    if not callable(progress):
+        raise TypeError(f"progress: expected True, False or a callable, got {progress!r}")
+    return call(progress)
+
+
 def train(
     out: PathLike,
     config: Optional[PathLike] = None,
@@ -115,11 +182,19 @@ def train(
     method: Optional[str] = None,
     device: Optional[str] = None,
     data: Optional[PathLike] = None,
+    progress: ProgressArg = True,
 ) -> dict:
     """``promptdt train``: trains from ``config`` (TOML) into ``out``, or continues the run in
-    ``out`` exactly where it stopped (``resume=True``). Returns ``{"dir", "iterations_done",
-    "finished", "last_test_mean"}``."""
-    return _native.train(
+    ``out`` exactly where it stopped (``resume=True``; ``iterations`` then sets the run's length).
+    Returns ``{"dir", "iterations_done", "finished", "last_test_mean"}``.
+
+    ``progress``: True (default) shows a line on stderr (iteration, loss, time left), False shows
+    nothing, a callable is called after every iteration with ``{"iteration", "iterations",
+    "loss", "test_return", "elapsed_s"}`` (an exception it raises stops the run and propagates).
+    Ctrl-C stops training before the next gradient step and raises ``KeyboardInterrupt``; the
+    iteration under way is dropped, and ``train(out, resume=True)`` goes on from the run's last
+    checkpoint or resume point (``train.resume_interval`` sets how often one is written)."""
+    return _with_progress(progress, "train", lambda report: _native.train(
         _os.fspath(out),
         config=None if config is None else _os.fspath(config),
         resume=resume,
@@ -128,7 +203,8 @@ def train(
         method=method,
         device=device,
         data=None if data is None else _os.fspath(data),
-    )
+        progress=report,
+    ))
 
 
 def evaluate(
@@ -152,6 +228,26 @@ def evaluate(
     )
 
 
+def pretrained_dir(env: str) -> _Path:
+    """The trained agent directory of a MuJoCo family shipped in this package
+    (``promptdt/pretrained/<env>``: ``cheetah_dir``, ``cheetah_vel``, ``ant_dir``), the one
+    ``collect`` uses by default. Raises ``ValueError`` for an unknown family or one collected with
+    scripted policies, ``FileNotFoundError`` when the package was built without the agents."""
+    return _shipped_agents(env)
+
+
+def _shipped_agents(env: str) -> _Path:
+    if _native.is_scripted(env):  # raises ValueError naming an unknown family and the known ones
+        raise ValueError(f"{env} is collected with scripted policies: it has no agent directory")
+    path = _Path(__file__).resolve().parent / "pretrained" / env
+    if not (path / "agent.json").is_file():
+        raise FileNotFoundError(
+            f"agent directory {path}: not in this installation (scripts/install_python.sh copies "
+            "the checkout's pretrained/ into the package); pass pretrained_dir=..."
+        )
+    return path
+
+
 def collect(
     env: str,
     out: PathLike,
@@ -162,6 +258,7 @@ def collect(
     pretrained_dir: Optional[PathLike] = None,
     device: str = "cpu",
     action_noise: Optional[float] = None,
+    progress: ProgressArg = True,
 ) -> int:
     """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
     Families with scripted policies (``families()[env]["scripted"]``: ``point_robot``,
@@ -169,27 +266,37 @@ def collect(
     default; ``action_noise`` is its expert's noise, 0.2 by default, 0 for the deterministic
     expert; dial: the 10 digits, 200 episodes each); the others (the MuJoCo families) use a trained
     agent directory
-    (``pretrained_dir``, default ``pretrained/<env>`` of the checkout, as ``--from-pretrained``).
-    Returns the number of files written."""
-    if _native.is_scripted(env):
-        return _native.collect_scripted(
+    (``pretrained_dir``, default the agents shipped in the package: ``promptdt.pretrained_dir(env)``,
+    as ``--from-pretrained``). Returns the number of ``.safetensors`` files written: a dataset and
+    a prompt set for every task and mode. An unknown ``env`` raises ``ValueError`` naming the known
+    families.
+
+    ``progress``: True (default) shows a line on stderr, False nothing, a callable gets
+    ``{"done", "total", "unit", "elapsed_s"}`` (``unit``: ``"sets"`` (a task's mode written) for
+    scripted families, ``"episodes"`` for the others). Ctrl-C stops it within a step or an episode
+    and raises ``KeyboardInterrupt``; the files already written are whole, ``dataset.json`` (the
+    card) is written only by a call that finishes: collect again to finish."""
+    scripted = _native.is_scripted(env)  # raises ValueError naming an unknown family
+    if scripted:
+        return _with_progress(progress, f"collect {env}", lambda report: _native.collect_scripted(
             env,
             _os.fspath(out),
             seed=seed,
             episodes=episodes,
             prompt_episodes=prompt_episodes,
             action_noise=action_noise,
-        )
-    if pretrained_dir is None:
-        pretrained_dir = _Path("pretrained") / env
-    return _native.collect_from_agent(
-        _os.fspath(pretrained_dir),
+            progress=report,
+        ))
+    agents = _shipped_agents(env) if pretrained_dir is None else pretrained_dir
+    return _with_progress(progress, f"collect {env}", lambda report: _native.collect_from_agent(
+        _os.fspath(agents),
         _os.fspath(out),
         seed=seed,
         episodes=episodes,
         prompt_episodes=prompt_episodes,
         device=device,
-    )
+        progress=report,
+    ))
 
 
 def experiments() -> list:
@@ -273,7 +380,10 @@ def import_minari(*args, **kwargs):
 
 
 def write_dataset(path: PathLike, dataset: "Dataset") -> None:
-    """Writes ``dataset`` as a native ``.safetensors`` file, atomically, after the reader's checks."""
+    """Writes ``dataset`` as a native ``.safetensors`` file, atomically, after the reader's checks.
+    A dataset that names its family (``dataset.env``) must have that family's ``obs_dim`` and
+    ``act_dim`` (``ValueError`` otherwise, also for an unknown family); a missing directory raises
+    ``FileNotFoundError``."""
     trajs = [
         dict(observations=t.observations, actions=t.actions, rewards=t.rewards,
              terminated=t.terminated, truncated=t.truncated)
@@ -283,7 +393,94 @@ def write_dataset(path: PathLike, dataset: "Dataset") -> None:
                           env=dataset.env, task=dataset.task, mode=dataset.mode)
 
 
+@_dataclass
+class FlatDataset:
+    """Every step of a multi-task dataset in flat arrays, as d3rlpy's ``MDPDataset`` and other
+    offline RL libraries take them (``d3rlpy.dataset.MDPDataset(observations=..., actions=...,
+    rewards=..., terminals=..., timeouts=...)``). Step ``i`` belongs to task ``task_ids[i]``; an
+    episode ends at a step whose ``terminals`` or ``timeouts`` is set."""
+
+    observations: _np.ndarray  # [N, obs_dim] float32: the observation before actions[i]
+    actions: _np.ndarray  # [N, act_dim] float32
+    rewards: _np.ndarray  # [N] float32
+    terminals: _np.ndarray  # [N] bool: the MDP ended after step i
+    timeouts: _np.ndarray  # [N] bool: a time limit cut the episode after step i
+    task_ids: _np.ndarray  # [N] int64: the task of step i
+    env: Optional[str] = None
+    mode: Optional[str] = None
+
+    def __len__(self) -> int:
+        return len(self.rewards)
+
+    @property
+    def episode_starts(self) -> _np.ndarray:
+        """The index of each episode's first step."""
+        ends = _np.flatnonzero(self.terminals | self.timeouts)
+        return _np.concatenate([[0], ends[:-1] + 1]).astype(_np.int64) if len(ends) else ends
+
+
+def flat_dataset(
+    source: Union[PathLike, Iterable[Dataset]],
+    *,
+    mode: str = "expert",
+    tasks: Optional[Sequence[int]] = None,
+    env: Optional[str] = None,
+) -> FlatDataset:
+    """The ``mode`` files (``expert``, ``prompt-expert``, ...) of the directory ``source`` (what
+    ``collect`` wrote, or the reference release's pickles; ``tasks``: a subset; ``env``: the
+    family where the directory holds several), or a sequence of ``Dataset`` objects (each with its
+    ``task``), as one :class:`FlatDataset`. The arrays are concatenated in task order."""
+    if isinstance(source, (str, _os.PathLike)):
+        from .minari_io import _task_files
+
+        files = _task_files(source, mode, tasks, env)
+        env = files[0][0]
+        parts = [(task, load_dataset(path)) for _, task, path in files]
+    else:
+        parts = []
+        for i, ds in enumerate(source):
+            if not isinstance(ds, Dataset):
+                raise TypeError(f"source[{i}]: expected a promptdt.Dataset, got {type(ds).__name__}")
+            if ds.task is None:
+                raise ValueError(f"source[{i}]: the dataset names no task (a reference pickle): "
+                                 "pass the directory instead")
+            parts.append((ds.task, ds))
+        if not parts:
+            raise ValueError("source: no datasets")
+        envs = {ds.env for _, ds in parts}
+        if len(envs) > 1:
+            raise ValueError(f"source: datasets of several families ({sorted(map(str, envs))})")
+        env = envs.pop()
+        modes = {ds.mode for _, ds in parts}
+        mode = modes.pop() if len(modes) == 1 else None
+    dims = {(ds.obs_dim, ds.act_dim) for _, ds in parts}
+    if len(dims) > 1:
+        raise ValueError(f"source: datasets of different (obs_dim, act_dim): {sorted(dims)}")
+    trajs = [(task, t) for task, ds in parts for t in ds.trajectories]
+    obs_dim, act_dim = dims.pop()
+
+    def cat(field: str, shape: tuple, dtype) -> _np.ndarray:
+        if not trajs:
+            return _np.zeros(shape, dtype)
+        return _np.concatenate([getattr(t, field) for _, t in trajs]).astype(dtype, copy=False)
+
+    return FlatDataset(
+        observations=cat("observations", (0, obs_dim), _np.float32),
+        actions=cat("actions", (0, act_dim), _np.float32),
+        rewards=cat("rewards", (0,), _np.float32),
+        terminals=cat("terminated", (0,), bool),
+        timeouts=cat("truncated", (0,), bool),
+        task_ids=_np.concatenate([_np.full(len(t), task, _np.int64) for task, t in trajs])
+        if trajs else _np.zeros(0, _np.int64),
+        env=env,
+        mode=mode,
+    )
+
+
 __all__ = [
+    "FlatDataset",
+    "flat_dataset",
+    "pretrained_dir",
     "export_minari",
     "import_minari",
     "write_dataset",

@@ -1,6 +1,6 @@
 """Typed stubs of promptdt._native (the Rust extension module)."""
 from os import PathLike
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union, final
 
 import numpy as np
 import numpy.typing as npt
@@ -14,6 +14,7 @@ __all__ = [
     "LIBTORCH_VERSION",
     "load_dataset",
     "write_dataset",
+    "check_dims",
     "families",
     "task_params",
     "render",
@@ -49,6 +50,7 @@ def train(
     method: Optional[str] = None,
     device: Optional[str] = None,
     data: Optional[_Path] = None,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> Dict[str, Any]: ...
 def evaluate(
     run_dir: _Path,
@@ -66,6 +68,7 @@ def collect_scripted(
     episodes: Optional[int] = None,
     prompt_episodes: Optional[int] = None,
     action_noise: Optional[float] = None,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> int: ...
 def collect_from_agent(
     agent_dir: _Path,
@@ -74,6 +77,7 @@ def collect_from_agent(
     episodes: Optional[int] = None,
     prompt_episodes: Optional[int] = None,
     device: str = "cpu",
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> int: ...
 def set_num_threads(threads: int) -> None: ...
 
@@ -183,6 +187,7 @@ def write_dataset(
     task: Optional[int] = None,
     mode: Optional[str] = None,
 ) -> None: ...
+def check_dims(env: str, obs_dim: int, act_dim: int) -> None: ...
 def bench_envs(
     families: Sequence[str], steps_per_env: int, vec_envs: int, threads: Sequence[int], seed: int = 0
 ) -> str: ...

@@ -11,12 +11,19 @@ promptdt -> Minari -> promptdt gives back the same bits.
 Per episode, the options hold the task index, its parameters (``{"velocity": 0.3}``), the split it
 belongs to (``train``/``test`` of the family's named split) and the set (``expert``,
 ``prompt-expert``, ...); the import regroups episodes into one native file per task and set.
+
+The export records the family's gymnasium environment (``promptdt/CheetahVel-v0``, the first
+exported task as its ``task`` keyword), so ``dataset.recover_environment()`` works wherever the
+``promptdt/...`` ids are registered with gymnasium; ``recover_environment(task=t)`` gives another
+task.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
@@ -39,31 +46,72 @@ def _minari():
     return minari
 
 
-def _task_files(data: PathLike, mode: str, tasks: Optional[Sequence[int]]) -> List[Tuple[str, int, Path]]:
+def _task_files(
+    data: PathLike, mode: str, tasks: Optional[Sequence[int]], env: Optional[str] = None
+) -> List[Tuple[str, int, Path]]:
+    """The ``mode`` files of ``data``, one per task, of one family: ``env``, else the only family
+    with files there (or, with ``tasks``, the only one with a file for each of them)."""
     data = Path(data)
     if not data.is_dir():
         raise FileNotFoundError(f"{data}: not a directory of dataset files")
-    found: Dict[int, Tuple[str, Path]] = {}
-    envs = set()
+    if env is not None and env not in _native.families():
+        raise ValueError(f"env: unknown family `{env}` (known: {', '.join(_native.families())})")
+    by_env: Dict[str, Dict[int, Path]] = {}
     for p in sorted(data.iterdir()):
         m = _NAME.match(p.name)
         if not m or m.group("mode") != mode:
             continue
+        found = by_env.setdefault(m.group("env"), {})
         task = int(m.group("task"))
-        if task in found and found[task][1].suffix == ".safetensors":
+        if task in found and found[task].suffix == ".safetensors":
             continue  # the native file wins over a pickle of the same task, as `auto` picks it
-        found[task] = (m.group("env"), p)
-        envs.add(m.group("env"))
-    if len(envs) > 1:
-        raise ValueError(f"{data}: files of several families ({', '.join(sorted(envs))}) for mode {mode}")
+        found[task] = p
+    if env is None and len(by_env) > 1:
+        fits = [e for e in by_env if tasks is not None and all(t in by_env[e] for t in tasks)]
+        if len(fits) != 1:
+            raise ValueError(
+                f"{data}: files of several families ({', '.join(sorted(by_env))}) for mode {mode}; "
+                "give env=... to pick one"
+            )
+        env = fits[0]
+    if env is None:
+        env = next(iter(by_env), None)
+    found = by_env.get(env, {}) if env is not None else {}
     if tasks is not None:
         missing = [t for t in tasks if t not in found]
         if missing:
-            raise ValueError(f"{data}: no {mode} file for tasks {missing}")
+            raise ValueError(f"{data}: no {mode} file for tasks {missing}" + (f" of {env}" if env else ""))
         found = {t: found[t] for t in tasks}
     if not found:
-        raise ValueError(f"{data}: no `{{env}}-{{task}}-{mode}.safetensors` (or .pkl) files")
-    return [(env, t, p) for t, (env, p) in sorted(found.items())]
+        name = env or "{env}"
+        raise ValueError(f"{data}: no `{name}-{{task}}-{mode}.safetensors` (or .pkl) files")
+    return [(env, t, p) for t, p in sorted(found.items())]
+
+
+def gym_id(family: str) -> str:
+    """The gymnasium id of a family: ``promptdt/`` + its name in CamelCase + ``-v0``
+    (``cheetah_vel`` -> ``promptdt/CheetahVel-v0``), the task a keyword argument."""
+    try:  # the registration's own naming, where the package registers the families
+        from .envs import gym_id as registered
+
+        return registered(family)
+    except ImportError:
+        return "promptdt/" + "".join(w.capitalize() for w in family.split("_")) + "-v0"
+
+
+def _env_spec(gym, family: str, task: int):
+    """The registered spec of ``family`` with ``task`` as its keyword, or None where the id is not
+    registered (then the dataset has no environment to recover)."""
+    env_id = gym_id(family)
+    if env_id not in gym.registry:
+        try:
+            from . import envs as _envs  # noqa: F401  (registers the families where it does)
+        except ImportError:
+            pass
+    if env_id not in gym.registry:
+        return None
+    spec = gym.spec(env_id)
+    return dataclasses.replace(spec, kwargs={**spec.kwargs, "task": task})
 
 
 def export_minari(
@@ -74,15 +122,20 @@ def export_minari(
     tasks: Optional[Sequence[int]] = None,
     split: str = "default",
     author: Optional[str] = None,
+    author_email: Optional[str] = None,
     description: Optional[str] = None,
+    env: Optional[str] = None,
 ):
     """Writes the ``mode`` files of ``data`` (a directory ``promptdt collect`` wrote, or the
     reference release's pickles) as the Minari dataset ``dataset_id`` (under
-    ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``). Returns the ``MinariDataset``."""
+    ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``). ``tasks``: a subset; ``env``: the
+    family, where ``data`` holds files of several (the reference prompt folder). The dataset
+    records the family's gymnasium environment (``env_spec``, see the module docs). Returns the
+    ``MinariDataset``."""
     minari = _minari()
     import gymnasium as gym
 
-    files = _task_files(data, mode, tasks)
+    files = _task_files(data, mode, tasks, env)
     env = files[0][0]
     fams = _native.families()
     if env not in fams:
@@ -96,6 +149,11 @@ def export_minari(
     for _, task, path in files:
         ds = _native.load_dataset(os.fspath(path))
         obs_dim, act_dim = ds["obs_dim"], ds["act_dim"]
+        if (obs_dim, act_dim) != (fam["obs_dim"], fam["act_dim"]):
+            raise ValueError(
+                f"{path}: obs_dim {obs_dim} and act_dim {act_dim}, but {env} has obs_dim "
+                f"{fam['obs_dim']} and act_dim {fam['act_dim']}"
+            )
         which = "train" if task in train else "test" if task in test else "none"
         options = {
             "task": task,
@@ -120,18 +178,28 @@ def export_minari(
     # The family's action box, per dimension, from Rust (`EnvFamily::action_bounds`).
     low = np.asarray(fam["action_low"], np.float32)
     high = np.asarray(fam["action_high"], np.float32)
-    dataset = minari.create_dataset_from_buffers(
-        dataset_id=dataset_id,
-        buffer=buffers,
-        observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
-        action_space=gym.spaces.Box(low, high, (act_dim,), np.float32),
-        algorithm_name="promptdt collect",
-        author=author or "promptdt",
-        code_permalink="https://github.com/promptdt/promptdt",
-        description=description
-        or f"promptdt {env} {mode} data, {len(files)} tasks (split `{split}`); the last observation "
-        "of each episode is a repeat (not recorded)",
-    )
+    spec = _env_spec(gym, env, files[0][1])
+    with warnings.catch_warnings():
+        if spec is None:
+            # No registered environment to record: Minari's two notices about it say nothing the
+            # metadata (`promptdt_env`) does not.
+            warnings.filterwarnings("ignore", message=r".*env_spec is None", category=UserWarning)
+            warnings.filterwarnings("ignore", message=r"`eval_env` is set to None", category=UserWarning)
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id=dataset_id,
+            buffer=buffers,
+            env=spec,
+            eval_env=spec,
+            observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
+            action_space=gym.spaces.Box(low, high, (act_dim,), np.float32),
+            algorithm_name="promptdt collect",
+            author=author or "promptdt",
+            author_email=author_email or "https://github.com/promptdt/promptdt/issues",
+            code_permalink="https://github.com/promptdt/promptdt",
+            description=description
+            or f"promptdt {env} {mode} data, {len(files)} tasks (split `{split}`); the last "
+            "observation of each episode is a repeat (not recorded)",
+        )
     dataset.storage.update_metadata(
         {
             "promptdt_env": env,
@@ -163,6 +231,8 @@ def import_minari(
     env = env or meta.get("promptdt_env")
     if env is None:
         raise ValueError("the dataset was not exported by promptdt: give env, task and mode")
+    if env not in _native.families():
+        _native.check_dims(env, 0, 0)  # raises the library's error naming the known families
     groups: Dict[Tuple[int, str], List[dict]] = {}
     episode_meta = list(dataset.storage.get_episode_metadata(dataset.episode_indices))
     for ep, em in zip(dataset.iterate_episodes(), episode_meta):
@@ -186,6 +256,15 @@ def import_minari(
                 "truncated": np.asarray(ep.truncations, dtype=bool),
             }
         )
+    # Every group checked against the family before anything is written.
+    for (t, m), trajs in groups.items():
+        obs, act = trajs[0]["observations"], trajs[0]["actions"]
+        if obs.ndim != 2 or act.ndim != 2:
+            raise ValueError(
+                f"task {t} ({m}): observations {obs.shape} and actions {act.shape}; promptdt takes "
+                "[T, dim] Box observations and actions"
+            )
+        _native.check_dims(env, obs.shape[1], act.shape[1])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []

@@ -30,16 +30,29 @@ pub(crate) struct IterationAt<'a> {
     pub(crate) first_step: u64,
     /// Gradient steps it takes (`train.steps_per_iteration`).
     pub(crate) steps: u64,
+    /// Checked before each step: one iteration can outlast a user's patience for Ctrl-C.
+    pub(crate) interrupt: &'a pdt_base::stop::StopFlag,
 }
 
 impl IterationAt<'_> {
     /// Takes the iteration's `steps` gradient steps, `one(step)` each (`step` counted from
-    /// `first_step`), and returns their statistics; the first error (a divergence) ends it.
+    /// `first_step`), and returns their statistics; the first error (a divergence, or
+    /// [`RunError::Interrupted`] when a stop was asked for before a step) ends it.
     pub(crate) fn each_step<S>(
         &self,
         mut one: impl FnMut(u64) -> Result<S, RunError>,
     ) -> Result<Vec<S>, RunError> {
-        (self.first_step..self.first_step + self.steps).map(&mut one).collect()
+        (self.first_step..self.first_step + self.steps)
+            .map(|step| {
+                if self.interrupt.is_set() {
+                    return Err(RunError::Interrupted {
+                        dir: self.dir.into(),
+                        iteration: self.iteration,
+                    });
+                }
+                one(step)
+            })
+            .collect()
     }
 }
 

@@ -186,6 +186,8 @@ pub(crate) fn run_pack(
                         resume_with: with,
                         stop_after_iterations: stop,
                         progress: &mut report,
+                        // A pack is the CLI's (`promptdt pack`), which Ctrl-C ends outright.
+                        interrupt: Default::default(),
                     };
                     train_member(m, slot, hub, opts, &info)
                 })

@@ -49,6 +49,7 @@ pub fn run(
             resume_with: Default::default(),
             stop_after_iterations: stop,
             progress: &mut progress,
+            interrupt: Default::default(),
         },
     )
 }
