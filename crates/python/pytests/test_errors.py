@@ -57,6 +57,11 @@ CASES = {
     "1-D obs": (lambda run: policy_under_way(run).act(np.zeros(2), np.zeros(1)), ValueError, r"obs: shape \[2\], expected \[1, 2\] \(episodes, obs_dim\)"),
     "3-D obs": (lambda run: policy_under_way(run).act(np.zeros((1, 1, 2)), np.zeros(1)), ValueError, r"obs: shape \[1, 1, 2\], expected \[1, 2\]"),
     "scalar reward": (lambda run: policy_under_way(run).act(np.zeros((1, 2)), 0.5), ValueError, r"reward: shape \[\], expected \[1\] \(one per episode\)"),
+    "train seed=-1": (lambda run: promptdt.train(run, seed=-1, progress=False), ValueError, r"seed: -1 given, expected a seed"),
+    "train iterations=-3": (lambda run: promptdt.train(run, iterations=-3, progress=False), ValueError, r"iterations: -3 given, expected a number of iterations"),
+    "evaluate episodes=-1": (lambda run: promptdt.evaluate(run, episodes=-1), ValueError, r"episodes: -1 given, expected a number of episodes"),
+    "collect episodes=-1": (lambda run: promptdt.collect("point_robot", "/nonexistent", episodes=-1, progress=False), ValueError, r"episodes: -1 given, expected a number of episodes"),
+    "collect seed=1.5": (lambda run: promptdt.collect("point_robot", "/nonexistent", seed=1.5, progress=False), TypeError, r"seed: 1\.5 \(float\) given, expected a seed \(an int\)"),
     "[n, 1] reward": (lambda run: policy_under_way(run).act(np.zeros((1, 2)), np.zeros((1, 1))), ValueError, r"reward: shape \[1, 1\], expected \[1\]"),
 }
 

@@ -172,6 +172,16 @@ def _with_progress(progress: ProgressArg, what: str, call: Callable[[Any], Any])
     return call(progress)
 
 
+def _opt_uint(name: str, value: Any, expected: str, *, low: int = 0) -> Optional[int]:
+    """``None``, or a checked integer argument: a ``TypeError``/``ValueError`` naming it, what was
+    given and what is expected (never an ``OverflowError`` from the native layer)."""
+    if value is None:
+        return None
+    from .envs import _uint
+
+    return _uint(name, value, expected, low=low, high=2**64)
+
+
 def train(
     out: PathLike,
     config: Optional[PathLike] = None,
@@ -194,6 +204,8 @@ def train(
     Ctrl-C stops training before the next gradient step and raises ``KeyboardInterrupt``; the
     iteration under way is dropped, and ``train(out, resume=True)`` goes on from the run's last
     checkpoint or resume point (``train.resume_interval`` sets how often one is written)."""
+    seed = _opt_uint("seed", seed, "a seed")
+    iterations = _opt_uint("iterations", iterations, "a number of iterations")
     return _with_progress(progress, "train", lambda report: _native.train(
         _os.fspath(out),
         config=None if config is None else _os.fspath(config),
@@ -217,6 +229,7 @@ def evaluate(
 ) -> dict:
     """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
     run's ``eval_final.json``; returns its content."""
+    episodes = _opt_uint("episodes", episodes, "a number of episodes")
     return _json.loads(
         _native.evaluate(
             _os.fspath(run),
@@ -276,6 +289,9 @@ def collect(
     scripted families, ``"episodes"`` for the others). Ctrl-C stops it within a step or an episode
     and raises ``KeyboardInterrupt``; the files already written are whole, ``dataset.json`` (the
     card) is written only by a call that finishes: collect again to finish."""
+    seed = _opt_uint("seed", seed, "a seed")
+    episodes = _opt_uint("episodes", episodes, "a number of episodes")
+    prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of episodes")
     scripted = _native.is_scripted(env)  # raises ValueError naming an unknown family
     if scripted:
         return _with_progress(progress, f"collect {env}", lambda report: _native.collect_scripted(
