@@ -329,10 +329,9 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         ``SyncVectorEnv.render`` returns them; without a render mode: None."""
         if self.render_mode is None:
             return None
-        if self._env is None:
-            raise RuntimeError("render: the environment is closed")
+        env = self._native_env("render")
         w, h = self._render_size
-        return tuple(_native.render(self._env, i, w, h) for i in range(self.num_envs))
+        return tuple(_native.render(env, i, w, h) for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:
         self._env = None
