@@ -98,7 +98,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>[_flat], infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B> or solo<N>_b<B>)")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>[_flat], infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B>[_flat|_pt] or solo<N>_b<B>[_flat|_pt])")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },

@@ -2,12 +2,16 @@
 //! (`pdt_train::pack::BatchedEngine`), `solo<N>_b<B>` the same N runs' steps one after another in
 //! one process (N models, N optimisers): per iteration, one step of every run. The reference
 //! architecture (state 20, action 6), K = 20, a 5-step prompt, B samples per run; each run its own
-//! random batch, left-padded histories.
+//! random batch, left-padded histories. Both use what a run uses on the device (`optim.flat =
+//! "auto"`: the flat optimisers and per-run mask draws on CUDA, the per-tensor ones on the CPU);
+//! the suffix `_flat` asks for the CUDA configuration on any device (`optim.flat = "on"`, the
+//! pack's masks drawn per run), `_pt` for the CPU one (`optim.flat = "off"`, masks in solo order).
 
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
+use pdt_model::packed::MaskDraw;
+use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn};
 use std::time::Instant;
@@ -26,19 +30,28 @@ pub struct PackCase {
     pub mode: PackMode,
     pub runs: usize,
     pub batch: usize,
+    /// `optim.flat` (`_flat`: on, `_pt`: off, no suffix: auto).
+    pub flat: FlatOptim,
 }
 
-/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1).
+/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1), then `_flat` or `_pt` if wanted.
 pub fn parse_case(name: &str) -> Option<PackCase> {
     let (mode, rest) = if let Some(r) = name.strip_prefix("pack") {
         (PackMode::Packed, r)
     } else {
         (PackMode::Solo, name.strip_prefix("solo")?)
     };
+    let (rest, flat) = if let Some(r) = rest.strip_suffix("_flat") {
+        (r, FlatOptim::On)
+    } else if let Some(r) = rest.strip_suffix("_pt") {
+        (r, FlatOptim::Off)
+    } else {
+        (rest, FlatOptim::Auto)
+    };
     let (runs, batch) = rest.split_once("_b")?;
     let runs = runs.parse().ok().filter(|&n: &usize| n > 0)?;
     let batch = batch.parse().ok().filter(|&b: &usize| b > 0)?;
-    Some(PackCase { mode, runs, batch })
+    Some(PackCase { mode, runs, batch, flat })
 }
 
 const K: usize = 20;
@@ -82,6 +95,7 @@ pub fn time_pack(
         }
     };
     type StepFn<'a> = Box<dyn FnMut(u64) -> Result<(), String> + 'a>;
+    let optim = AdamWConfig { flat: case.flat, ..AdamWConfig::default() };
     let mut step_fn: StepFn<'_> = match case.mode {
         PackMode::Packed => {
             let specs = (0..case.runs as u64)
@@ -89,13 +103,16 @@ pub fn time_pack(
                     model: cfg.clone(),
                     uses_prompt: true,
                     loss_on: LossOn::History,
-                    optim: AdamWConfig::default(),
+                    optim: optim.clone(),
                     seed,
                 })
                 .collect();
             let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
             let mut engine =
                 BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
+            // The mask draw goes with the optimiser's configuration (`_flat`: CUDA's).
+            let cuda_like = case.flat.use_flat(device.is_cuda());
+            engine.set_mask_draw(if cuda_like { MaskDraw::PerRun } else { MaskDraw::SoloOrder });
             Box::new(move |step| {
                 let steps =
                     (0..case.runs).map(|i| Some(SlotStep { step, batch: batch_of(i) })).collect();
@@ -108,12 +125,8 @@ pub fn time_pack(
                     tch::manual_seed(derive_seed(seed, 1, 0) as i64);
                     let vs = VarStore::new(device);
                     let model = PromptDt::new(&vs.root(), &cfg);
-                    // The solo CPU path: the per-tensor optimiser.
-                    let opt = Optimizer::PerTensor(AdamW::new(
-                        &vs,
-                        &cfg.parameter_names(),
-                        AdamWConfig::default(),
-                    ));
+                    // The optimiser a solo run uses here (flat on CUDA).
+                    let opt = Optimizer::new(&vs, &cfg.parameter_names(), optim.clone());
                     (vs, model, opt)
                 })
                 .collect();
@@ -147,10 +160,14 @@ mod tests {
 
     #[test]
     fn pack_case_names() {
-        let c = |m, runs, batch| Some(PackCase { mode: m, runs, batch });
-        assert_eq!(parse_case("pack3_b64"), c(PackMode::Packed, 3, 64));
-        assert_eq!(parse_case("solo12_b16"), c(PackMode::Solo, 12, 16));
-        for bad in ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64"] {
+        let c = |m, runs, batch| PackCase { mode: m, runs, batch, flat: FlatOptim::Auto };
+        assert_eq!(parse_case("pack3_b64"), Some(c(PackMode::Packed, 3, 64)));
+        assert_eq!(parse_case("solo12_b16"), Some(c(PackMode::Solo, 12, 16)));
+        let flat = PackCase { flat: FlatOptim::On, ..c(PackMode::Packed, 12, 32) };
+        assert_eq!(parse_case("pack12_b32_flat"), Some(flat));
+        let pt = PackCase { flat: FlatOptim::Off, ..c(PackMode::Solo, 1, 8) };
+        assert_eq!(parse_case("solo1_b8_pt"), Some(pt));
+        for bad in ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64", "pack3_b2_x"] {
             assert_eq!(parse_case(bad), None, "{bad}");
         }
     }

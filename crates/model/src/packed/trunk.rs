@@ -11,6 +11,34 @@ use tch::{Device, Kind, Tensor};
 #[derive(Debug, Clone)]
 pub struct DropoutSeeds(pub Vec<Option<i64>>);
 
+/// How a pack draws its runs' dropout masks. Either way a run's masks come from libtorch's
+/// generator seeded with the run's own seed for the step, so they depend on nothing of the other
+/// runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MaskDraw {
+    /// As the run's solo forward draws them on the CPU (`at::dropout`): one draw per site in the
+    /// solo order at the run's own sequence length, so on the CPU bit for bit the solo run's
+    /// masks. Two kernels per site and run.
+    SoloOrder,
+    /// Every site of a run in one draw over the pack's sequence length, then one scaling for the
+    /// whole pack: one kernel per run. (On the CPU, where `bernoulli_` draws element after
+    /// element from one stream, a run without padding gets `SoloOrder`'s masks.) On CUDA no draw order gives the solo run's masks anyway
+    /// (libtorch's fused CUDA dropout kernel draws its own stream), and the ~20 launches per run
+    /// and step that `SoloOrder` costs are what bound a pack's step there.
+    PerRun,
+}
+
+impl MaskDraw {
+    /// `PerRun` on CUDA, `SoloOrder` elsewhere.
+    pub fn default_for(device: Device) -> Self {
+        if device.is_cuda() {
+            MaskDraw::PerRun
+        } else {
+            MaskDraw::SoloOrder
+        }
+    }
+}
+
 /// N Prompt-DT models of one shape with stacked weights (see the module documentation of
 /// [`crate::packed`]).
 #[derive(Debug)]
@@ -19,13 +47,16 @@ pub struct PackedPromptDt {
     slots: usize,
     /// Solo parameter names, reference `state_dict` order.
     names: Vec<String>,
-    /// `[N, solo shape]` per name, leaf tensors that require gradients.
+    /// `[N, solo shape]` per name, leaf tensors that require gradients. Their run dimension may be
+    /// strided (a flat optimiser re-points them at columns of one `[N, total]` buffer), so they
+    /// are never `view`ed across it.
     weights: Vec<Tensor>,
     idx: Idx,
     /// tril(ones(n_positions, n_positions)) as bool (the reference's `attn.bias` buffer).
     causal: Tensor,
     masked_bias: Tensor,
     device: Device,
+    mask_draw: MaskDraw,
 }
 
 /// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site).
@@ -38,7 +69,9 @@ struct Masks {
 fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
     match mask {
         // `at::dropout` returns `input * noise`.
-        Some(m) => x * m,
+        Some(m) if m.size() == x.size() => x * m,
+        // A `PerRun` mask, `[N, B, ...]` over `x`'s `[N*B, ...]`.
+        Some(m) => (x.reshape(m.size()) * m).reshape(x.size()),
         None => x,
     }
 }
@@ -66,6 +99,7 @@ impl PackedPromptDt {
             causal: Tensor::ones([np, np], (Kind::Bool, device)).tril(0),
             masked_bias: Tensor::from(-1e4f32).to_device(device),
             device,
+            mask_draw: MaskDraw::default_for(device),
         })
     }
 
@@ -75,6 +109,11 @@ impl PackedPromptDt {
 
     pub fn device(&self) -> Device {
         self.device
+    }
+
+    /// How the dropout masks are drawn (default [`MaskDraw::default_for`] the device).
+    pub fn set_mask_draw(&mut self, draw: MaskDraw) {
+        self.mask_draw = draw;
     }
 
     /// Solo parameter names, in the order of [`Self::weights`].
@@ -235,6 +274,9 @@ impl PackedPromptDt {
                 (cfg.resid_pdrop, false),
             ]);
         }
+        if self.mask_draw == MaskDraw::PerRun {
+            return self.masks_per_run(batch, seeds, l, &sites);
+        }
         let f = (Kind::Float, self.device);
         let own_len = |slot: usize| 3 * (batch.prompt_lens[slot] + batch.k);
         // Rows that are not all drawn (padding, or a run without dropout) start at 1.
@@ -291,6 +333,72 @@ impl PackedPromptDt {
             ]);
         }
         Masks { embd, layers }
+    }
+
+    /// [`MaskDraw::PerRun`]: each run's masks for every site (`sites`: probability, attention
+    /// weights or not) in one draw into its row of one `[N, total]` buffer, at the pack's length
+    /// `l` (a padded step's mask multiplies values nothing reads); each site a `[N, B, ...]` view.
+    fn masks_per_run(
+        &self,
+        batch: &PackedBatch,
+        seeds: &DropoutSeeds,
+        l: i64,
+        sites: &[(f64, bool)],
+    ) -> Masks {
+        let cfg = &self.cfg;
+        let (n, b, h, nh) =
+            (self.slots as i64, batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
+        let shape = |attn: bool| if attn { vec![n, b, nh, l, l] } else { vec![n, b, l, h] };
+        let size = |attn: bool| shape(attn).iter().skip(1).product::<i64>();
+        let drawn: Vec<(f64, bool)> = sites.iter().copied().filter(|&(p, _)| p > 0.0).collect();
+        let total: i64 = drawn.iter().map(|&(_, a)| size(a)).sum();
+        let f = (Kind::Float, self.device);
+        // A run without inputs this step keeps 1 (its placeholder's values stay finite).
+        let noise = if seeds.0.iter().any(Option::is_none) {
+            Tensor::ones([n, total], f)
+        } else {
+            Tensor::empty([n, total], f)
+        };
+        let one_p = drawn.windows(2).all(|w| w[0].0 == w[1].0);
+        for (slot, seed) in seeds.0.iter().enumerate() {
+            let Some(seed) = seed else { continue };
+            tch::manual_seed(*seed);
+            let mut row = noise.get(slot as i64);
+            match drawn.first() {
+                Some(&(p, _)) if one_p => {
+                    let _ = row.bernoulli_float_(1.0 - p);
+                }
+                _ => {
+                    let mut off = 0;
+                    for &(p, attn) in &drawn {
+                        let _ = row.narrow(0, off, size(attn)).bernoulli_float_(1.0 - p);
+                        off += size(attn);
+                    }
+                }
+            }
+        }
+        // `at::dropout`'s scaling, noise / (1 - p), for the whole pack at once.
+        let mut off = 0;
+        let mut views = Vec::with_capacity(drawn.len());
+        for &(p, attn) in &drawn {
+            let mut site = noise.narrow(1, off, size(attn));
+            if !one_p {
+                let _ = site.g_div_scalar_(1.0 - p);
+            }
+            views.push(site.view(shape(attn).as_slice()));
+            off += size(attn);
+        }
+        if one_p {
+            if let Some(&(p, _)) = drawn.first() {
+                let mut all = noise.shallow_clone();
+                let _ = all.g_div_scalar_(1.0 - p);
+            }
+        }
+        let mut views = views.into_iter();
+        let mut next = |p: f64| (p > 0.0).then(|| views.next()).flatten();
+        let embd = next(sites[0].0);
+        let layers = sites[1..].chunks(3).map(|c| [next(c[0].0), next(c[1].0), next(c[2].0)]);
+        Masks { embd, layers: layers.collect() }
     }
 
     fn attention(

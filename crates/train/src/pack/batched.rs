@@ -16,7 +16,9 @@ use crate::step::{LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
-use pdt_model::packed::{DropoutSeeds, PackedBatch, PackedError, PackedPromptDt, PackedRow};
+use pdt_model::packed::{
+    DropoutSeeds, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
+};
 use pdt_model::PromptDt;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
@@ -85,7 +87,9 @@ impl BatchedEngine {
         }
         let uses: Vec<bool> = specs.iter().map(|s| s.uses_prompt).collect();
         let cfgs = specs.iter().map(|s| s.optim.clone()).collect();
-        let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, &uses, device);
+        // Flat when every run's `optim.flat` asks for it on this device (`auto`: on CUDA).
+        let flat = specs.iter().all(|s| s.optim.flat.use_flat(device.is_cuda()));
+        let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, &uses, device, flat);
         Ok(Self { specs, layout, model, opt })
     }
 
@@ -96,6 +100,16 @@ impl BatchedEngine {
     /// The batched model (its stacked weights; for tests and measurements).
     pub fn model(&self) -> &PackedPromptDt {
         &self.model
+    }
+
+    /// Whether the optimiser runs on flat buffers (every run's `optim.flat` on this device).
+    pub fn is_flat(&self) -> bool {
+        self.opt.is_flat()
+    }
+
+    /// How dropout masks are drawn (default: [`MaskDraw::default_for`] the pack's device).
+    pub fn set_mask_draw(&mut self, draw: MaskDraw) {
+        self.model.set_mask_draw(draw);
     }
 
     fn check_slot(&self, slot: usize) -> Result<(), RunError> {

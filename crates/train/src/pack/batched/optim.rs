@@ -6,6 +6,18 @@
 //! A (run, parameter) pair updates when the run is stepped and reads the parameter; every other row
 //! is kept with `where` (never a product with 0, which would turn a NaN into a NaN), so a run that
 //! is not stepped, or a parameter its run never reads, is left bit for bit as it was.
+//!
+//! Flat mode (`optim.flat`, on CUDA by default, as the solo optimiser): the pack's weights and
+//! moments live in run-major buffers `[N, total]`, each parameter a view of its columns (the model's
+//! weight tensors are re-pointed there with `set_data`, so they are strided in the run dimension).
+//! A step then gathers every gradient into one `[N, prefix]` buffer (one `cat`) and clips and
+//! updates all runs and parameters at once: about 20 kernels per step whatever N and the number of
+//! parameter tensors, where the per-tensor loop launches about 15 per tensor (some 900 for the
+//! reference model). The parameters some run reads come first, so the columns updated are one
+//! prefix. The element-wise update is the same ops as the per-tensor loop; the clipping norm is one
+//! reduction per run instead of the norm of the per-tensor norms, so it differs in the last bits
+//! (as the solo flat optimiser's, `crate::optim::flat`). A step whose runs' step counts differ
+//! between parameters (a state imported from elsewhere) takes the per-tensor loop over the views.
 
 use crate::optim::{AdamWConfig, ParamState};
 use std::collections::{BTreeMap, HashMap};
@@ -43,10 +55,30 @@ pub(super) struct PackedAdamW {
     names: Vec<String>,
     /// `[parameter][run]`: see [`reads`].
     used: Vec<Vec<bool>>,
+    /// Per parameter (in flat mode, views of the flat moment buffers).
     moments: Vec<Moments>,
     /// `[N]`: each run's clipping threshold.
     max_norm: Tensor,
     device: Device,
+    flat: Option<Flat>,
+}
+
+/// The run-major buffers of flat mode (see the module documentation).
+#[derive(Debug)]
+struct Flat {
+    /// `[N, total]`: every run's weights, the model's weight tensors are views of its columns.
+    weights: Tensor,
+    /// `[N, total]` each, the moments' views likewise.
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    /// The parameters some run reads, in column order (their columns are `[0, prefix)`).
+    read: Vec<usize>,
+    /// Per parameter: its number of elements per run.
+    numel: Vec<i64>,
+    prefix: i64,
+    /// Per step's pattern of stepped runs: which (run, column) pairs update, `[N, prefix]`; `None`
+    /// when every pair does.
+    keep: HashMap<Vec<bool>, Option<Tensor>>,
 }
 
 /// The per-run factors of one update, rows of a `[7, N]` tensor.
@@ -60,28 +92,42 @@ const NEG_STEP_SIZE: i64 = 6; // -lr / (1 - beta1^step)
 
 impl PackedAdamW {
     /// Zero moments for `params` (`[N, ...]`, named `names`); `uses_prompt[n]` and `cfgs[n]` per run.
+    /// `flat`: flat mode, which re-points `params` (the model's weights) at views of one buffer,
+    /// their values kept.
     pub(super) fn new(
         names: &[String],
         params: &[Tensor],
         cfgs: Vec<AdamWConfig>,
         uses_prompt: &[bool],
         device: Device,
+        flat: bool,
     ) -> Self {
         let n = cfgs.len();
-        let used =
+        let used: Vec<Vec<bool>> =
             names.iter().map(|nm| uses_prompt.iter().map(|&u| reads(nm, u)).collect()).collect();
-        let moments = params
-            .iter()
-            .map(|p| Moments {
-                exp_avg: p.zeros_like().detach(),
-                exp_avg_sq: p.zeros_like().detach(),
-                steps: vec![0; n],
-                has_state: vec![false; n],
-            })
-            .collect();
+        let (moments, flat) = if flat {
+            let (m, f) = Flat::new(params, &used, n);
+            (m, Some(f))
+        } else {
+            let m = params
+                .iter()
+                .map(|p| Moments {
+                    exp_avg: p.zeros_like().detach(),
+                    exp_avg_sq: p.zeros_like().detach(),
+                    steps: vec![0; n],
+                    has_state: vec![false; n],
+                })
+                .collect();
+            (m, None)
+        };
         let max: Vec<f32> = cfgs.iter().map(|c| c.grad_clip_norm as f32).collect();
         let max_norm = Tensor::from_slice(&max).to_device(device);
-        Self { cfgs, names: names.to_vec(), used, moments, max_norm, device }
+        Self { cfgs, names: names.to_vec(), used, moments, max_norm, device, flat }
+    }
+
+    /// Whether the weights and moments live in flat buffers.
+    pub(super) fn is_flat(&self) -> bool {
+        self.flat.is_some()
     }
 
     fn slots(&self) -> usize {
@@ -125,6 +171,9 @@ impl PackedAdamW {
         active: &[bool],
         lrs: &[f64],
     ) -> Tensor {
+        if let Some(total) = self.flat_step(grads, active, lrs) {
+            return total;
+        }
         let n = self.slots();
         tch::no_grad(|| {
             let mut masks: HashMap<Vec<bool>, Tensor> = HashMap::new();
@@ -269,5 +318,154 @@ impl PackedAdamW {
             }
         });
         Ok(())
+    }
+}
+
+impl Flat {
+    /// Copies `params` (`[N, ...]` each) into run-major buffers, the parameters some run reads
+    /// first, re-points each parameter at its columns, and gives zero moments as views likewise.
+    fn new(params: &[Tensor], used: &[Vec<bool>], n: usize) -> (Vec<Moments>, Self) {
+        let n = n as i64;
+        let numel: Vec<i64> = params.iter().map(|p| p.numel() as i64 / n.max(1)).collect();
+        let read: Vec<usize> = (0..params.len()).filter(|&i| used[i].iter().any(|&u| u)).collect();
+        let unread = (0..params.len()).filter(|&i| !used[i].iter().any(|&u| u));
+        let order: Vec<usize> = read.iter().copied().chain(unread).collect();
+        let prefix: i64 = read.iter().map(|&i| numel[i]).sum();
+        tch::no_grad(|| {
+            let parts: Vec<Tensor> = order.iter().map(|&i| params[i].reshape([n, -1])).collect();
+            let weights = Tensor::cat(&parts, 1); // [N, total]
+            let exp_avg = weights.zeros_like();
+            let exp_avg_sq = weights.zeros_like();
+            let mut moments: Vec<Option<Moments>> = (0..params.len()).map(|_| None).collect();
+            let mut offset = 0;
+            for &i in &order {
+                let shape = params[i].size(); // [N, solo shape]
+                let view = |b: &Tensor| b.narrow(1, offset, numel[i]).view(shape.as_slice());
+                // The model's weight tensor itself (a shallow copy shares it): from now on its
+                // values are the buffer's columns, strided by `total` in the run dimension.
+                params[i].shallow_clone().set_data(&view(&weights));
+                moments[i] = Some(Moments {
+                    exp_avg: view(&exp_avg),
+                    exp_avg_sq: view(&exp_avg_sq),
+                    steps: vec![0; n as usize],
+                    has_state: vec![false; n as usize],
+                });
+                offset += numel[i];
+            }
+            let moments = moments.into_iter().flatten().collect();
+            let keep = HashMap::new();
+            (moments, Self { weights, exp_avg, exp_avg_sq, read, numel, prefix, keep })
+        })
+    }
+
+    /// Which (run, column) pairs of the prefix update when the runs `active` are stepped; `None`
+    /// when every pair does. Cached per pattern (a pack's patterns are few: all runs, then the
+    /// runs still going near the end).
+    fn keep(&mut self, used: &[Vec<bool>], active: &[bool], device: Device) -> Option<Tensor> {
+        let (read, numel) = (&self.read, &self.numel);
+        self.keep
+            .entry(active.to_vec())
+            .or_insert_with(|| {
+                let pair = |s: usize, i: usize| active[s] && used[i][s];
+                if (0..active.len()).all(|s| read.iter().all(|&i| pair(s, i))) {
+                    return None;
+                }
+                let mut m = Vec::with_capacity(active.len() * self.prefix as usize);
+                for s in 0..active.len() {
+                    for &i in read {
+                        m.extend(std::iter::repeat_n(pair(s, i), numel[i] as usize));
+                    }
+                }
+                let m = Tensor::from_slice(&m).to_device(device);
+                Some(m.view([active.len() as i64, self.prefix]))
+            })
+            .as_ref()
+            .map(Tensor::shallow_clone)
+    }
+}
+
+impl PackedAdamW {
+    /// The flat step (module documentation): `None`, with nothing changed, where it does not
+    /// apply (not in flat mode; a run whose parameters are at different step counts; a parameter
+    /// that would update without a gradient), so that the per-tensor loop takes the step.
+    fn flat_step(
+        &mut self,
+        grads: &[Option<Tensor>],
+        active: &[bool],
+        lrs: &[f64],
+    ) -> Option<Tensor> {
+        let n = self.slots();
+        let fl = self.flat.as_ref()?;
+        // Each stepped run's one step count over the parameters it updates.
+        let mut count: Vec<Option<u64>> = vec![None; n];
+        for &i in &fl.read {
+            for s in (0..n).filter(|&s| active[s] && self.used[i][s]) {
+                grads[i].as_ref()?;
+                let c = self.moments[i].steps[s];
+                match count[s] {
+                    None => count[s] = Some(c),
+                    Some(k) if k != c => return None,
+                    Some(_) => {}
+                }
+            }
+        }
+        let device = self.device;
+        let (nn, prefix) = (n as i64, fl.prefix);
+        let parts: Vec<Tensor> = fl
+            .read
+            .iter()
+            .map(|&i| match &grads[i] {
+                Some(g) => g.reshape([nn, -1]),
+                // Read by a run not stepped now: no pair of it updates (`keep`).
+                None => Tensor::zeros([nn, fl.numel[i]], (Kind::Float, device)),
+            })
+            .collect();
+        let used = &self.used;
+        let keep = self.flat.as_mut()?.keep(used, active, device);
+        let fl = self.flat.as_ref()?;
+        let steps: Vec<u64> = count.iter().map(|c| c.map_or(0, |c| c + 1)).collect();
+        let f = self.factors(&steps, lrs);
+        let total = tch::no_grad(|| {
+            let mut g = Tensor::cat(&parts, 1); // [N, prefix]
+            if let Some(k) = &keep {
+                g = g.where_scalarother(k, 0.0);
+            }
+            // clip_grad_norm_ per run over its updating pairs: coef = min(max / (total + 1e-6), 1).
+            let total = g.norm_scalaropt_dim(2, [1i64].as_slice(), false); // [N]
+            let coef = ((&total + 1e-6).reciprocal() * &self.max_norm).clamp_max(1.0);
+            let _ = g.g_mul_(&coef.view([nn, 1]));
+            let c = |row: i64| f.get(row).view([nn, 1]);
+            let mut p = fl.weights.narrow(1, 0, prefix);
+            let mut m = fl.exp_avg.narrow(1, 0, prefix);
+            let mut v = fl.exp_avg_sq.narrow(1, 0, prefix);
+            match &keep {
+                None => {
+                    // The per-tensor loop's in-place ops, over every run and parameter at once.
+                    let _ = p.g_mul_(&c(DECAY));
+                    let _ = m.lerp_tensor_(&g, &c(W1));
+                    let _ = v.g_mul_(&c(B2)).addcmul_(&(&g * c(W2)), &g);
+                    let denom = v.sqrt() / c(BC2_SQRT) + c(EPS);
+                    let _ = p.addcdiv_(&(&m * c(NEG_STEP_SIZE)), &denom);
+                }
+                Some(k) => {
+                    let m_new = m.lerp_tensor(&g, &c(W1));
+                    let v_new = (&v * c(B2)).addcmul(&(&g * c(W2)), &g);
+                    let denom = v_new.sqrt() / c(BC2_SQRT) + c(EPS);
+                    let p_new = (&p * c(DECAY)).addcdiv(&(&m_new * c(NEG_STEP_SIZE)), &denom);
+                    p.copy_(&p_new.where_self(k, &p));
+                    m.copy_(&m_new.where_self(k, &m));
+                    v.copy_(&v_new.where_self(k, &v));
+                }
+            }
+            // A run not stepped has every pair kept, so its row of `g`, and its norm, is 0.
+            total
+        });
+        for &i in &fl.read {
+            for s in (0..n).filter(|&s| active[s] && self.used[i][s]) {
+                self.moments[i].steps[s] += 1;
+                self.moments[i].has_state[s] = true;
+            }
+        }
+        Some(total)
     }
 }
