@@ -9,8 +9,8 @@
 
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
-use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_model::packed::MaskDraw;
+use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn};
@@ -167,7 +167,9 @@ mod tests {
         assert_eq!(parse_case("pack12_b32_flat"), Some(flat));
         let pt = PackCase { flat: FlatOptim::Off, ..c(PackMode::Solo, 1, 8) };
         assert_eq!(parse_case("solo1_b8_pt"), Some(pt));
-        for bad in ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64", "pack3_b2_x"] {
+        for bad in
+            ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64", "pack3_b2_x"]
+        {
             assert_eq!(parse_case(bad), None, "{bad}");
         }
     }

@@ -31,7 +31,13 @@ fn member(cfg: &Path, name: &str, sets: &[Set]) -> PathBuf {
 /// fine-tuning draws dropout from where its last step left libtorch's generator), each
 /// checkpointing after every iteration (so a kill lands between checkpoints often).
 fn three(cfg: &Path) -> Vec<PathBuf> {
-    let each = [("train", "resume_interval", "1"), ("eval", "finetune_steps", "2")];
+    three_with(cfg, &[])
+}
+
+/// [`three`] with `extra` settings in every run.
+fn three_with(cfg: &Path, extra: &[(&str, &str, &str)]) -> Vec<PathBuf> {
+    let mut each = vec![("train", "resume_interval", "1"), ("eval", "finetune_steps", "2")];
+    each.extend_from_slice(extra);
     let sets = |name: &str, method: &str, seed: &str| {
         let mut v = each.to_vec();
         v.extend([
@@ -186,15 +192,19 @@ fn a_run_trained_in_a_solo_engine_pack_is_the_run_trained_alone() {
 
 #[test]
 fn a_pack_stopped_or_killed_and_resumed_ends_as_if_never_interrupted() {
-    // Both engines: the batched one is not the solo runs bit for bit, but it is itself.
-    for engine in ["solo", "batched"] {
-        stopped_killed_and_resumed(engine);
+    // Both engines: the batched one is not the solo runs bit for bit, but it is itself; and the
+    // batched one with the flat pack optimiser (`optim.flat = "on"`, the CUDA default), whose
+    // resumed runs re-enter the flat buffers through `import`.
+    for (engine, extra) in
+        [("solo", None), ("batched", None), ("batched", Some(("optim", "flat", "\"on\"")))]
+    {
+        stopped_killed_and_resumed(engine, extra.as_slice());
     }
 }
 
-fn stopped_killed_and_resumed(engine: &str) {
+fn stopped_killed_and_resumed(engine: &str, extra: &[(&str, &str, &str)]) {
     let tmp = tempfile::tempdir().unwrap();
-    let configs = three(&tiny_setup(tmp.path()));
+    let configs = three_with(&tiny_setup(tmp.path()), extra);
     let (straight, cut) = (tmp.path().join("straight"), tmp.path().join("cut"));
     ok(&engine_pack_args(engine, &configs, &straight));
     // Stopped after 3 iterations of each run, resumed, stopped again, then killed at several

@@ -64,3 +64,18 @@ mod tests {
         assert!("gpu".parse::<DeviceSpec>().unwrap_err().contains("gpu"));
     }
 }
+
+/// Host values as a tensor on `device`, without making the host wait: on CUDA through pinned
+/// memory and an asynchronous copy. A plain `to_device` from pageable memory waits until the
+/// stream has run everything queued before it, so each small upload in the middle of a step (a
+/// mask, a pack's per-run factors) made the host's next kernel launches wait for the device's work
+/// instead of overlapping it. (libtorch's pinned-memory cache keeps the host buffer until the copy
+/// is done.) Elsewhere a plain copy.
+pub fn upload<T: tch::kind::Element>(values: &[T], device: Device) -> tch::Tensor {
+    let host = tch::Tensor::from_slice(values);
+    if device.is_cuda() {
+        host.pin_memory(device).to_device_(device, host.kind(), true, false)
+    } else {
+        host.to_device(device)
+    }
+}

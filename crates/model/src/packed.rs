@@ -274,7 +274,7 @@ impl PackedBatch {
         };
         let da = h.actions.size()[2];
         let keep: Vec<f32> = supervise_prompt.iter().map(|&s| if s { 1.0 } else { 0.0 }).collect();
-        let keep = Tensor::from_slice(&keep).to_device(h.mask.device()).view([n, 1, 1]);
+        let keep = crate::device::upload(&keep, h.mask.device()).view([n, 1, 1]);
         let prompt_mask = p.mask.view([n, b, self.p]) * keep; // 0/1 products of finite masks
         let actions = Tensor::cat(&[&p.actions, &h.actions], 1).view([n, b, self.p + self.k, da]);
         let mask = Tensor::cat(&[prompt_mask, h.mask.view([n, b, self.k])], 2);

@@ -39,6 +39,40 @@ impl Segments {
         device: Device,
     ) -> Self {
         let (b, t, ds, da) = (b as i64, t as i64, ds as i64, da as i64);
+        let sizes_fit = [
+            (states.len(), b * t * ds),
+            (actions.len(), b * t * da),
+            (returns_to_go.len(), b * t),
+            (mask.len(), b * t),
+            (timesteps.len(), b * t),
+        ]
+        .iter()
+        .all(|&(len, want)| len as i64 == want);
+        // (Sizes that do not fit take the plain path, whose `view` refuses them as before.)
+        if device.is_cuda() && sizes_fit {
+            // Two uploads (one per dtype) instead of five, neither making the host wait for the
+            // stream (`crate::device::upload`); the fields are views of the float buffer.
+            let mut floats =
+                Vec::with_capacity(states.len() + actions.len() + returns_to_go.len() + mask.len());
+            for v in [states, actions, returns_to_go, mask] {
+                floats.extend_from_slice(v);
+            }
+            let buf = crate::device::upload(&floats, device);
+            let mut at = 0i64;
+            let mut take = |shape: &[i64]| {
+                let n: i64 = shape.iter().product();
+                let v = buf.narrow(0, at, n).view(shape);
+                at += n;
+                v
+            };
+            return Self {
+                states: take(&[b, t, ds]),
+                actions: take(&[b, t, da]),
+                returns_to_go: take(&[b, t, 1]),
+                mask: take(&[b, t]),
+                timesteps: crate::device::upload(timesteps, device).view([b, t]),
+            };
+        }
         let f = |v: &[f32], shape: &[i64]| Tensor::from_slice(v).view(shape).to_device(device);
         Self {
             states: f(states, &[b, t, ds]),

@@ -444,7 +444,7 @@ impl PackedPromptDt {
                     .iter()
                     .flat_map(|&lp| std::iter::repeat_n(lp > 0, b as usize))
                     .collect();
-                let keep = Tensor::from_slice(&keep).to_device(self.device).view([rows, 1, 1]);
+                let keep = crate::device::upload(&keep, self.device).view([rows, 1, 1]);
                 let p_tokens = p_tokens.where_scalarother(&keep, 0.0);
                 (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
             }

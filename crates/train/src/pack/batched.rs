@@ -186,7 +186,7 @@ impl PackEngine for BatchedEngine {
         let (targets, mask) = batch.targets(&supervise);
         let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
         let device = self.model.device();
-        let active_t = Tensor::from_slice(&active).to_device(device);
+        let active_t = pdt_model::device::upload(&active, device);
         // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
         let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
         let inputs: Vec<&Tensor> = self.model.weights().iter().collect();

@@ -1,6 +1,6 @@
-//! The meeting point of a pack's runs: each run's thread submits its gradient step and waits; when
-//! every run still training has submitted (or left), one call of the engine steps them all and
-//! each run gets its own result.
+//! The meeting point of a pack's runs: each run's thread submits its gradient step, prepares its
+//! next batch and waits; when every run still training has submitted (or left), one call of the
+//! engine, by a waiting run, steps them all and each run gets its own result.
 
 use super::engine::{PackEngine, SlotState, SlotStep};
 use crate::error::RunError;
@@ -78,20 +78,41 @@ impl Hub {
         self.table.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Submits `slot`'s gradient step and waits until the pack has taken it.
-    pub(crate) fn step(&self, slot: usize, step: SlotStep) -> Result<StepStats, RunError> {
+    /// Submits `slot`'s gradient step without waiting for it, so that the run can prepare its next
+    /// batch while the pack is stepped; [`Self::wait`] takes the result. Once every run still
+    /// training has submitted, a run waiting in [`Self::wait`] takes the engine step.
+    pub(crate) fn submit(&self, slot: usize, step: SlotStep) -> Result<(), RunError> {
         let mut t = self.lock();
         if !t.active.get(slot).copied().unwrap_or(false) {
             return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
         }
+        if t.pending[slot].is_some() || t.results[slot].is_some() {
+            return Err(RunError::Invalid(format!(
+                "slot {slot} submitted a step before taking its last one's result"
+            )));
+        }
         t.pending[slot] = Some(step);
         if t.ready() {
-            t.step();
             self.stepped.notify_all();
         }
+        Ok(())
+    }
+
+    /// The result of `slot`'s submitted step, taking the engine step if the pack is ready and no
+    /// other run has taken it yet.
+    pub(crate) fn wait(&self, slot: usize) -> Result<StepStats, RunError> {
+        let mut t = self.lock();
         loop {
-            if let Some(r) = t.results[slot].take() {
+            if let Some(r) = t.results.get_mut(slot).and_then(Option::take) {
                 return r.map_err(RunError::Invalid);
+            }
+            if t.ready() {
+                t.step();
+                self.stepped.notify_all();
+                continue;
+            }
+            if t.pending.get(slot).is_none_or(Option::is_none) {
+                return Err(RunError::Invalid(format!("slot {slot} waits for no submitted step")));
             }
             t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
         }

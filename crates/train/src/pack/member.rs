@@ -93,12 +93,24 @@ impl Learner for PackMember<'_> {
         self.synced.set(false);
         let (hub, slot) = (self.hub, self.slot);
         let mut last = None;
+        // Each step's batch is sampled while the pack takes the previous step (the engine runs
+        // on whichever run waits first): the sampler draws the same batches in the same order as
+        // the solo loop, and none beyond the iteration's last step, so its stream stands where
+        // the solo run's does at every checkpoint.
+        let end = at.first_step + at.steps;
+        let mut next = (at.steps > 0).then(|| solo.sample_batch(rng));
         let stats = at.each_step(|step| {
-            let batch = solo.sample_batch(rng);
+            let batch = next.take().ok_or_else(|| {
+                RunError::Invalid(format!("pack slot {slot}: no batch for step {step}"))
+            })?;
             if finetune {
                 last = Some((step, alias(&batch)));
             }
-            let st = hub.step(slot, SlotStep { step, batch })?;
+            hub.submit(slot, SlotStep { step, batch })?;
+            if step + 1 < end {
+                next = Some(solo.sample_batch(rng));
+            }
+            let st = hub.wait(slot)?;
             checked(at, cfg, step, st)
         })?;
         drop(solo);

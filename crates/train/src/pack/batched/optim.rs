@@ -20,6 +20,7 @@
 //! between parameters (a state imported from elsewhere) takes the per-tensor loop over the views.
 
 use crate::optim::{AdamWConfig, ParamState};
+use pdt_model::device::upload;
 use std::collections::{BTreeMap, HashMap};
 use tch::{Device, Kind, Tensor};
 
@@ -121,7 +122,7 @@ impl PackedAdamW {
             (m, None)
         };
         let max: Vec<f32> = cfgs.iter().map(|c| c.grad_clip_norm as f32).collect();
-        let max_norm = Tensor::from_slice(&max).to_device(device);
+        let max_norm = upload(&max, device);
         Self { cfgs, names: names.to_vec(), used, moments, max_norm, device, flat }
     }
 
@@ -135,7 +136,7 @@ impl PackedAdamW {
     }
 
     fn bools(&self, v: &[bool]) -> Tensor {
-        Tensor::from_slice(v).to_device(self.device)
+        upload(v, self.device)
     }
 
     /// The factors of one update for runs at the given step counts (after this step's increment).
@@ -157,7 +158,7 @@ impl PackedAdamW {
             rows[at(EPS)] = cfg.eps as f32;
             rows[at(NEG_STEP_SIZE)] = (-(lr / (1.0 - cfg.beta1.powf(step)))) as f32;
         }
-        Tensor::from_slice(&rows).to_device(self.device).view([7, n as i64])
+        upload(&rows, self.device).view([7, n as i64])
     }
 
     /// Clips each run's gradients by its global norm and takes one AdamW step for every (run,
@@ -376,7 +377,7 @@ impl Flat {
                         m.extend(std::iter::repeat_n(pair(s, i), numel[i] as usize));
                     }
                 }
-                let m = Tensor::from_slice(&m).to_device(device);
+                let m = upload(&m, device);
                 Some(m.view([active.len() as i64, self.prefix]))
             })
             .as_ref()

@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# Issue 30's GPU measurements in one bounded call, then (optional) a family's cpu-budget cells as one
+# pack for the results registry (issue 31). For a machine with an NVIDIA GPU and PyTorch 2.11 (CUDA
+# 13); promptdt built anywhere (CPU-only link) takes libtorch's CUDA part from that PyTorch.
+#   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
+#   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
+#      pack `_pt`, one solo run's step with the flat optimiser);
+#   C. kernels per step: the same cases run twice under scripts/bench/launch_count.c (LD_PRELOAD),
+#      with ITERS and 3 x ITERS, the difference over 2 x ITERS steps;
+#   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
+#      (4 methods x 3 seeds), one solo run, then the 12 runs as 12 processes at once; memory and
+#      utilisation sampled by nvidia-smi every 0.5 s;
+#   E. FAMILY's cells of EXP at the cpu budget as one pack (collecting its data first), until the
+#      deadline.
+# Usage (repository root): BIN=... DATA=... OUT=... [DEADLINE=570] bash scripts/bench/gpu_pack.sh
+set -u
+start=$(date +%s)
+BIN=${BIN:?}; OUT=${OUT:?}; DATA=${DATA:?}
+PY=${PYTHON:-/opt/torch/.venv/bin/python}
+DEADLINE=${DEADLINE:-570}
+WORK=${WORK:-/tmp/pdt-pack}
+SHIM=${SHIM:-}
+# At most 8 files come back from a device call: the samples and logs go to $WORK/o, packed at the end.
+O=$WORK/o
+mkdir -p "$OUT" "$WORK" "$O"
+log() { echo "[$(($(date +%s) - start)) s] $*" | tee -a "$OUT/session.log"; }
+left() { echo $((start + DEADLINE - $(date +%s))); }
+TL=$("$PY" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')
+SP=$(dirname "$(dirname "$TL")")
+CUDART=$(dirname "$(find "$SP/nvidia" -name 'libcudart.so.13*' | head -1)")
+CUPTI=$(dirname "$(find "$SP/nvidia" -name 'libcupti.so.13*' | head -1)")
+export LD_LIBRARY_PATH=$PWD/third_party/mujoco/lib:$TL:$CUDART:$CUPTI
+export OMP_WAIT_POLICY=PASSIVE
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee -a "$OUT/session.log"
+(nproc; grep -m1 "model name" /proc/cpuinfo; sha256sum "$BIN"; cat "$BIN.commit" 2>/dev/null) | tee -a "$OUT/session.log"
+smi() { # file: GPU utilisation and memory, and each process's memory, every 0.5 s
+  nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -lms 500 >"$1.gpu.csv" 2>/dev/null &
+  echo $! >"$WORK/smi1"
+  nvidia-smi --query-compute-apps=timestamp,pid,used_memory --format=csv,noheader -lms 500 >"$1.apps.csv" 2>/dev/null &
+  echo $! >"$WORK/smi2"
+}
+smi_stop() { kill "$(cat "$WORK/smi1")" "$(cat "$WORK/smi2")" 2>/dev/null; }
+bench() { # timeout out-name args...
+  local t=$1 name=$2; shift 2
+  timeout "$t" "$BIN" bench --device cuda --threads 4 --out "$WORK/$name" "$@" >>"$OUT/session.log" 2>&1 || log "bench $name: rc $?"
+  cp "$WORK/$name/bench.md" "$OUT/$name.md" 2>/dev/null
+}
+
+log "0. link check"
+timeout 120 "$BIN" bench --device cuda --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
+PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt}
+if [ -z "${SKIP_A:-}" ]; then
+  log "A. training step vs PyTorch"
+  bench 90 bench_train --python "$PY" --iters 15 --warmup 5 --cases train_b64_flat,train_b560_flat
+fi
+log "B. packs"; smi "$O/packs"
+bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
+smi_stop
+if [ -n "$SHIM" ] && [ "$(left)" -gt 300 ]; then
+  log "C. kernels per step"
+  for it in 5 15; do
+    mkdir -p "$WORK/lc$it"
+    LAUNCH_COUNT_DIR=$WORK/lc$it LD_PRELOAD=$SHIM timeout 90 "$BIN" bench --device cuda --threads 4 --python "$PY" \
+      --iters $it --warmup 2 --cases train_b64_flat --out "$WORK/lcb$it" >>"$OUT/session.log" 2>&1 || log "count $it: rc $?"
+    for c in ${COUNT_CASES:-solo1_b32 pack12_b32}; do
+      LAUNCH_COUNT_DIR=$WORK/lc$it LD_PRELOAD=$SHIM timeout 60 "$BIN" bench --device cuda --threads 4 \
+        --iters $it --warmup 2 --cases $c --out "$WORK/lcb$it-$c" >>"$OUT/session.log" 2>&1 || log "count $it $c: rc $?"
+    done
+    cat "$WORK"/lc$it/launches.* | sed "s/^/iters $it: /" | tee -a "$OUT/launches.txt"
+  done
+fi
+CELLS=""
+for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done
+CELLS=${CELLS#,}
+repro() { # timeout out-dir args...
+  local t=$1 d=$2; shift 2
+  timeout "$t" "$BIN" reproduce fig2 --budget paper --device cuda --out "$WORK/$d" --data-root "$DATA" \
+    --pretrained-root pretrained "$@" >"$O/$d.log" 2>&1; log "$d: rc $?"
+  find "$WORK/$d" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
+}
+if [ "$(left)" -gt 200 ]; then
+  log "D1. pack of 12, paper budget"; smi "$O/pk12"
+  repro ${D_PACK_S:-100} pk12 --pack 12 --jobs 1 --threads 4 --only "$CELLS"; smi_stop
+  log "D2. one solo run"; smi "$O/solo1"
+  repro ${D_SOLO_S:-45} solo1 --pack 1 --jobs 1 --threads 4 --only cheetah_dir/prompt-dt/paper/seed0; smi_stop
+  log "D3. 12 processes at once"; smi "$O/proc12"
+  repro ${D_PROC_S:-60} proc12 --pack 1 --jobs 12 --threads 1 --only "$CELLS"; smi_stop
+fi
+(cd "$WORK" && find pk12 solo1 proc12 -name metrics.csv -o -name 'run.json' -o -name pack.json 2>/dev/null | tar czf "$O/realloop.tar.gz" -T -)
+if [ -n "${FAMILY:-}" ] && [ "$(left)" -gt 120 ]; then
+  log "E. $FAMILY cpu-budget cells of ${EXP:-fig2}, one pack, $(left) s left"; smi "$O/fam"
+  timeout $(( $(left) - 25 )) "$BIN" reproduce "${EXP:-fig2}" --budget cpu --device cuda --out "$WORK/fam" --data-root "$WORK/famdata" \
+    --pretrained-root pretrained --pack 12 --jobs 1 --threads 4 --only "$FAMILY_CELLS" >"$O/fam.log" 2>&1; log "E: rc $?"
+  smi_stop
+  (cd "$WORK" && find fam famdata -type f ! -name '*.safetensors' | tar czf "$OUT/fam_small.tar.gz" -T -)
+fi
+log "done"
+(cd "$WORK" && tar czf "$OUT/samples.tar.gz" o)
+ls -la "$OUT"
