@@ -78,13 +78,20 @@ repro() { # timeout out-dir args...
     --pretrained-root pretrained "$@" >"$O/$d.log" 2>&1; log "$d: rc $?"
   find "$WORK/$d" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
 }
-if [ "$(left)" -gt 200 ]; then
-  log "D1. pack of 12, paper budget"; smi "$O/pk12"
-  repro ${D_PACK_S:-100} pk12 --pack 12 --jobs 1 --threads 4 --only "$CELLS"; smi_stop
-  log "D2. one solo run"; smi "$O/solo1"
-  repro ${D_SOLO_S:-45} solo1 --pack 1 --jobs 1 --threads 4 --only cheetah_dir/prompt-dt/paper/seed0; smi_stop
-  log "D3. 12 processes at once"; smi "$O/proc12"
-  repro ${D_PROC_S:-60} proc12 --pack 1 --jobs 12 --threads 1 --only "$CELLS"; smi_stop
+if [ "$(left)" -gt ${D_MIN_S:-200} ]; then
+  # A phase given 0 s is skipped.
+  if [ "${D_PACK_S:-100}" -gt 0 ]; then
+    log "D1. pack of 12, paper budget"; smi "$O/pk12"
+    repro ${D_PACK_S:-100} pk12 --pack 12 --jobs 1 --threads 4 --only "$CELLS"; smi_stop
+  fi
+  if [ "${D_SOLO_S:-45}" -gt 0 ]; then
+    log "D2. one solo run"; smi "$O/solo1"
+    repro ${D_SOLO_S:-45} solo1 --pack 1 --jobs 1 --threads 4 --only cheetah_dir/prompt-dt/paper/seed0; smi_stop
+  fi
+  if [ "${D_PROC_S:-60}" -gt 0 ]; then
+    log "D3. 12 processes at once"; smi "$O/proc12"
+    repro ${D_PROC_S:-60} proc12 --pack 1 --jobs 12 --threads 1 --only "$CELLS"; smi_stop
+  fi
 fi
 (cd "$WORK" && find pk12 solo1 proc12 -name metrics.csv -o -name 'run.json' -o -name pack.json 2>/dev/null | tar czf "$O/realloop.tar.gz" -T -)
 if [ -n "${FAMILY:-}" ] && [ "$(left)" -gt 120 ]; then
