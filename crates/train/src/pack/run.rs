@@ -216,17 +216,7 @@ fn train_member(
     // stops waiting for it.
     let _leave = Leave { hub, slot };
     let toml = m.cfg.to_toml()?;
-    let mut cfg = m.cfg;
-    // The pack's runs evaluate at the same iterations, each on its own thread: with `eval.
-    // env_threads = 0` (all cores) every run's environments would start a thread per core, N x
-    // cores threads in all (12 runs on 16 cores: 192, each polling before it sleeps); measured so,
-    // a pack of 12 took 4.6 s per evaluation where one run alone took 0.6 s (H200 machine,
-    // BENCHMARKS.md). Each run gets its share of the cores instead. Results do not depend on the
-    // number of threads (`pdt_envs::vec_env`), and the run's config.toml keeps 0.
-    if cfg.eval.env_threads == 0 {
-        cfg.eval.env_threads = (pdt_base::threads(0) / info.size.max(1)).max(1);
-    }
-    let setup = Setup::with_data(cfg, m.data)?;
+    let setup = Setup::with_data(m.cfg, m.data)?;
     let mut learner = PackMember::new(&setup, slot, hub)?;
     learner.check_can_train()?;
     train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
