@@ -26,12 +26,7 @@ mkdir -p "$OUT" "$WORK" "$DATA"
 log() { echo "[$(($(date +%s) - start)) s] $*" | tee -a "$OUT/session.log"; }
 left() { echo $((start + DEADLINE - $(date +%s))); }
 
-TL=$("$PY" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')
-SP=$(dirname "$(dirname "$TL")")
-CUDART=$(dirname "$(find "$SP/nvidia" -name 'libcudart.so.13*' | head -1)")
-CUPTI=$(dirname "$(find "$SP/nvidia" -name 'libcupti.so.13*' | head -1)")
-export LD_LIBRARY_PATH=$PWD/third_party/mujoco/lib:$TL:$CUDART:$CUPTI
-export OMP_WAIT_POLICY=PASSIVE
+. "$(dirname "$0")/gpu_env.sh"
 log "torch lib: $TL"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee -a "$OUT/session.log"
 nproc | sed 's/^/cores: /' | tee -a "$OUT/session.log"
