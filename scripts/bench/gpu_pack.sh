@@ -5,8 +5,6 @@
 #   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
 #      pack `_pt`, one solo run's step with the flat optimiser);
-#   C. kernels per step: the same cases run twice under scripts/bench/launch_count.c (LD_PRELOAD),
-#      with ITERS and 3 x ITERS, the difference over 2 x ITERS steps;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
 #      (4 methods x 3 seeds), one solo run, then the 12 runs as 12 processes at once; memory and
 #      utilisation sampled by nvidia-smi every 0.5 s;
@@ -19,7 +17,6 @@ BIN=${BIN:?}; OUT=${OUT:?}; DATA=${DATA:?}
 PY=${PYTHON:-/opt/torch/.venv/bin/python}
 DEADLINE=${DEADLINE:-570}
 WORK=${WORK:-/tmp/pdt-pack}
-SHIM=${SHIM:-}
 # At most 8 files come back from a device call: the samples and logs go to $WORK/o, packed at the end.
 O=$WORK/o
 mkdir -p "$OUT" "$WORK" "$O"
@@ -51,19 +48,6 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
-if [ -n "$SHIM" ] && [ "$(left)" -gt 300 ]; then
-  log "C. kernels per step"
-  for it in 5 15; do
-    mkdir -p "$WORK/lc$it"
-    LAUNCH_COUNT_DIR=$WORK/lc$it LD_PRELOAD=$SHIM timeout 90 "$BIN" bench --device cuda --threads 4 --python "$PY" \
-      --iters $it --warmup 2 --cases train_b64_flat --out "$WORK/lcb$it" >>"$OUT/session.log" 2>&1 || log "count $it: rc $?"
-    for c in ${COUNT_CASES:-solo1_b32 pack12_b32}; do
-      LAUNCH_COUNT_DIR=$WORK/lc$it LD_PRELOAD=$SHIM timeout 60 "$BIN" bench --device cuda --threads 4 \
-        --iters $it --warmup 2 --cases $c --out "$WORK/lcb$it-$c" >>"$OUT/session.log" 2>&1 || log "count $it $c: rc $?"
-    done
-    cat "$WORK"/lc$it/launches.* | sed "s/^/iters $it: /" | tee -a "$OUT/launches.txt"
-  done
-fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done
 CELLS=${CELLS#,}
