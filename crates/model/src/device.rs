@@ -52,19 +52,6 @@ pub fn resolve(spec: DeviceSpec) -> Result<Device, DeviceError> {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn device_names_round_trip() {
-        for spec in [DeviceSpec::Auto, DeviceSpec::Cpu, DeviceSpec::Cuda] {
-            assert_eq!(spec.as_str().parse::<DeviceSpec>(), Ok(spec));
-        }
-        assert!("gpu".parse::<DeviceSpec>().unwrap_err().contains("gpu"));
-    }
-}
-
 /// Host values as a tensor on `device`, without making the host wait: on CUDA through pinned
 /// memory and an asynchronous copy. A plain `to_device` from pageable memory waits until the
 /// stream has run everything queued before it, so each small upload in the middle of a step (a
@@ -77,5 +64,27 @@ pub fn upload<T: tch::kind::Element>(values: &[T], device: Device) -> tch::Tenso
         host.pin_memory(device).to_device_(device, host.kind(), true, false)
     } else {
         host.to_device(device)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_names_round_trip() {
+        for spec in [DeviceSpec::Auto, DeviceSpec::Cpu, DeviceSpec::Cuda] {
+            assert_eq!(spec.as_str().parse::<DeviceSpec>(), Ok(spec));
+        }
+        assert!("gpu".parse::<DeviceSpec>().unwrap_err().contains("gpu"));
+    }
+
+    #[test]
+    fn upload_keeps_values_and_kind() {
+        let t = upload(&[1.5f32, -2.0, 3.25], Device::Cpu);
+        assert_eq!(t.kind(), tch::Kind::Float);
+        assert_eq!(Vec::<f32>::try_from(&t).ok(), Some(vec![1.5, -2.0, 3.25]));
+        let b = upload(&[true, false], Device::Cpu);
+        assert_eq!(b.kind(), tch::Kind::Bool);
     }
 }
