@@ -681,6 +681,72 @@ pub struct EvalArgs {
     /// MACAW runs: transitions per task to adapt on (default: the run's macaw.adapt_batch).
     #[arg(long, value_parser = count(2, 1_000_000))]
     pub adapt_batch: Option<usize>,
+    /// Test-time prompt strategy (docs/prompt-control.md): reference (default: the run's
+    /// [eval.prompt], reference unless set), random-segment, best-return, nearest-start, bandit.
+    /// Other than the default, results go to eval_prompt_<strategy>.json with the choices made.
+    #[arg(long, value_parser = prompt_strategy)]
+    pub prompt_strategy: Option<pdt_prompt::PromptStrategyKind>,
+    /// Test-time prompt segments J (default: the run's sampler.prompt_episodes).
+    #[arg(long, value_parser = count(1, 1000))]
+    pub prompt_episodes: Option<usize>,
+    /// Test-time steps per prompt segment H (default: the run's prompt length).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_length: Option<usize>,
+    /// nearest-start and bandit: candidate segments start every this many steps (default: 1 for
+    /// nearest-start, H for bandit).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_stride: Option<usize>,
+    /// bandit: `epsilon-greedy` (default, as the bandit paper) or `ucb`.
+    #[arg(long, value_parser = bandit_rule)]
+    pub bandit_rule: Option<pdt_prompt::BanditRule>,
+    /// bandit: exploration probability of epsilon-greedy (default 0.1).
+    #[arg(long)]
+    pub bandit_epsilon: Option<f64>,
+    /// bandit: episodes per task in one round, between updates (default 1).
+    #[arg(long, value_parser = count(1, 10_000))]
+    pub bandit_round: Option<usize>,
+}
+
+impl EvalArgs {
+    /// The prompt strategy the flags ask for; `None` when no prompt flag is given (the run's own).
+    pub fn prompt(&self) -> Option<pdt_prompt::PromptStrategy> {
+        let any = self.prompt_strategy.is_some()
+            || self.prompt_episodes.is_some()
+            || self.prompt_length.is_some()
+            || self.prompt_stride.is_some()
+            || self.bandit_rule.is_some()
+            || self.bandit_epsilon.is_some()
+            || self.bandit_round.is_some();
+        if !any {
+            return None;
+        }
+        let d = pdt_prompt::BanditConfig::default();
+        Some(pdt_prompt::PromptStrategy {
+            strategy: self.prompt_strategy.unwrap_or_default(),
+            episodes: self.prompt_episodes,
+            length: self.prompt_length,
+            stride: self.prompt_stride,
+            bandit: pdt_prompt::BanditConfig {
+                rule: self.bandit_rule.unwrap_or(d.rule),
+                epsilon: self.bandit_epsilon.unwrap_or(d.epsilon),
+                episodes_per_round: self.bandit_round.unwrap_or(d.episodes_per_round),
+                ..d
+            },
+        })
+    }
+}
+
+/// A prompt strategy by name; the error names the value and the known names.
+fn prompt_strategy(s: &str) -> Result<pdt_prompt::PromptStrategyKind, String> {
+    s.parse().map_err(|e: pdt_prompt::StrategyError| e.to_string())
+}
+
+fn bandit_rule(s: &str) -> Result<pdt_prompt::BanditRule, String> {
+    match s {
+        "epsilon-greedy" => Ok(pdt_prompt::BanditRule::EpsilonGreedy),
+        "ucb" => Ok(pdt_prompt::BanditRule::Ucb),
+        other => Err(format!("unknown bandit rule `{other}` (known: epsilon-greedy, ucb)")),
+    }
 }
 
 #[derive(Debug, Args)]
