@@ -197,6 +197,17 @@ pub struct ServeArgs {
     /// bit-identical to `promptdt eval`'s and do not depend on the other episodes of its batch.
     #[arg(long, default_value_t = 1, value_parser = count(1, 1024))]
     pub threads: usize,
+    /// Prompt strategy of episodes opened with a `task` (docs/prompt-control.md; a request's
+    /// `prompt_strategy` overrides it): reference (default), random-segment, best-return,
+    /// nearest-start, bandit (one per task, learning from the returns of closed episodes).
+    #[arg(long, value_parser = prompt_strategy)]
+    pub prompt_strategy: Option<pdt_prompt::PromptStrategyKind>,
+    /// Test-time prompt segments J of `task` prompts (default: the run's).
+    #[arg(long, value_parser = count(1, 1000))]
+    pub prompt_episodes: Option<usize>,
+    /// Test-time steps per prompt segment H of `task` prompts (default: the run's).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_length: Option<usize>,
 }
 
 #[derive(Debug, Args)]

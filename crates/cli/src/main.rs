@@ -356,6 +356,12 @@ fn run(cli: Cli) -> Result<()> {
                 body_timeout: std::time::Duration::from_secs(a.body_timeout_s as u64),
                 max_connections: a.max_connections,
                 threads: a.threads,
+                prompt_strategy: pdt_prompt::PromptStrategy {
+                    strategy: a.prompt_strategy.unwrap_or_default(),
+                    episodes: a.prompt_episodes,
+                    length: a.prompt_length,
+                    ..Default::default()
+                },
                 ..Default::default()
             };
             let server = pdt_serve::Server::start(run, opts)?;
