@@ -16,6 +16,8 @@ use tch::Tensor;
 #[pyclass(module = "promptdt._native", frozen)]
 pub(crate) struct Prompt {
     inner: SegmentBatch,
+    /// The demonstration segments a prompt strategy chose (empty otherwise).
+    segments: Vec<pdt_prompt::SegmentChoice>,
 }
 
 #[pymethods]
@@ -51,6 +53,16 @@ impl Prompt {
     #[getter]
     fn mask<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
         self.inner.mask.clone().into_pyarray(py)
+    }
+    /// The segments a prompt strategy (`task_prompt(prompt_strategy=...)`) made the prompt of,
+    /// in order: `{"demo": index in the task's prompt set, "start": first step}`; empty for the
+    /// reference draw and array prompts.
+    #[getter]
+    fn segments(&self) -> Vec<std::collections::BTreeMap<&'static str, usize>> {
+        self.segments
+            .iter()
+            .map(|c| [("demo", c.demo), ("start", c.start)].into_iter().collect())
+            .collect()
     }
     fn __repr__(&self) -> String {
         format!(
@@ -222,18 +234,46 @@ impl Policy {
     }
 
     /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one (`seed`:
-    /// None is 0).
-    #[pyo3(signature = (task, seed = None))]
+    /// None is 0). `prompt_strategy` (docs/prompt-control.md): `reference` (default),
+    /// `random-segment`, `best-return` or `nearest-start` (nearest `observation`, the episode's
+    /// raw first observation); `prompt_episodes` / `prompt_length`: the test-time J and H.
+    #[pyo3(signature = (task, seed = None, prompt_strategy = None, observation = None,
+                        prompt_episodes = None, prompt_length = None))]
     fn task_prompt(
         &self,
         task: &Bound<'_, PyAny>,
         seed: Option<&Bound<'_, PyAny>>,
+        prompt_strategy: Option<&str>,
+        observation: Option<PyArrayLike1<'_, f32, AllowTypeChange>>,
+        prompt_episodes: Option<&Bound<'_, PyAny>>,
+        prompt_length: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Prompt> {
         let task = usize_arg("task", task, "a task index of the run's family")?;
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let count = |name: &str, v: Option<&Bound<'_, PyAny>>| {
+            v.map(|v| usize_arg(name, v, "a number of prompt steps (at least 1)")).transpose()
+        };
+        let strategy = pdt_prompt::PromptStrategy {
+            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
+            episodes: count("prompt_episodes", prompt_episodes)?,
+            length: count("prompt_length", prompt_length)?,
+            ..Default::default()
+        };
+        let obs: Option<Vec<f32>> = observation.map(|o| o.as_array().to_vec());
         let st = lock(&self.state)?;
-        Ok(Prompt { inner: st.run.task_prompt(task, seed).map_err(value_error)? })
+        if strategy.is_default() {
+            let inner = st.run.task_prompt(task, seed).map_err(value_error)?;
+            return Ok(Prompt { inner, segments: vec![] });
+        }
+        if let Some(o) = &obs {
+            st.run
+                .observation(&o.iter().map(|&x| f64::from(x)).collect::<Vec<_>>())
+                .map_err(value_error)?;
+        }
+        let chosen =
+            st.run.strategy_prompt(task, seed, &strategy, obs.as_deref()).map_err(value_error)?;
+        Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
     }
 
     /// A prompt from a demonstration's arrays: raw states `[n, obs_dim]`, actions `[n, act_dim]`,
@@ -258,7 +298,8 @@ impl Policy {
         // The prompt's largest inputs are not kept: an episode names its own when its action is
         // refused.
         let mut inputs = Inputs::default();
-        Ok(Prompt { inner: st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)? })
+        let inner = st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)?;
+        Ok(Prompt { inner, segments: vec![] })
     }
 
     /// What `promptdt eval --split SPLIT --episodes N` draws for each task, in its order. Acting
@@ -277,7 +318,10 @@ impl Policy {
         let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
         plan.into_iter()
             .map(|t| {
-                let prompt = t.prompt.map(|p| Py::new(py, Prompt { inner: p })).transpose()?;
+                let prompt = t
+                    .prompt
+                    .map(|p| Py::new(py, Prompt { inner: p, segments: vec![] }))
+                    .transpose()?;
                 Ok(TaskPlan { name: t.name, index: t.index, seeds: t.seeds, prompt })
             })
             .collect()

@@ -58,6 +58,9 @@ def evaluate(
     split: str = "test",
     device: Optional[str] = None,
     data: Optional[_Path] = None,
+    prompt_strategy: Optional[str] = None,
+    prompt_episodes: Optional[int] = None,
+    prompt_length: Optional[int] = None,
 ) -> str: ...
 def experiments() -> str: ...
 def is_scripted(family: str) -> bool: ...
@@ -117,6 +120,8 @@ class Prompt:
     def timesteps(self) -> npt.NDArray[np.int64]: ...
     @property
     def mask(self) -> _F32: ...
+    @property
+    def segments(self) -> List[Dict[str, int]]: ...
 
 @final
 class TaskPlan:
@@ -158,7 +163,15 @@ class Policy:
         run_dir: _Path, device: str = "cpu", data: Optional[_Path] = None, threads: Optional[int] = None
     ) -> "Policy": ...
     def prompt_tasks(self) -> List[int]: ...
-    def task_prompt(self, task: int, seed: Optional[int] = None) -> Prompt: ...
+    def task_prompt(
+        self,
+        task: int,
+        seed: Optional[int] = None,
+        prompt_strategy: Optional[str] = None,
+        observation: Optional[npt.ArrayLike] = None,
+        prompt_episodes: Optional[int] = None,
+        prompt_length: Optional[int] = None,
+    ) -> Prompt: ...
     def prompt(
         self,
         states: npt.ArrayLike,
