@@ -87,7 +87,7 @@ impl SegmentBandit {
     pub fn choose(&mut self, rng: &mut Rng) -> BanditChoice {
         let n = self.arms.len();
         let slots = self.stats.len();
-        let choice = match self.cfg.rule {
+        match self.cfg.rule {
             BanditRule::EpsilonGreedy => {
                 // Nothing tried yet: the greedy arm would be arm 0 by index only, so explore.
                 let untried = self.rounds == 0;
@@ -128,8 +128,7 @@ impl SegmentBandit {
                     .collect();
                 BanditChoice { arms, explored }
             }
-        };
-        choice
+        }
     }
 
     /// Records the returns of the episodes that used `choice` (every slot's arm earns each

@@ -721,6 +721,9 @@ fn check(opts: &ServeOptions) -> Result<usize, ServeError> {
             opts.batch_wait
         ));
     }
+    if let Err(e) = opts.prompt_strategy.validate() {
+        return bad(format!("--prompt-strategy: {e}"));
+    }
     if opts.idle_timeout.is_zero() {
         // 0 would close every episode at once.
         return bad("idle timeout (--idle-timeout-s) must be more than 0".into());
