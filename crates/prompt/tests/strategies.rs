@@ -1,4 +1,5 @@
 //! Each prompt strategy picks a known segment in a known case (issue 33).
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};
 use pdt_prompt::bandit::SegmentBandit;

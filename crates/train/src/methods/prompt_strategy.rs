@@ -174,6 +174,10 @@ impl EpisodePrompts for NearestStart<'_> {
     }
 }
 
+/// Builds a task's evaluation from its plan, the episodes' seeds and its prompt.
+type MakeTask<'a> =
+    dyn Fn(&TaskPlan, &[u64], Option<SegmentBatch>) -> Result<EvalTask, RunError> + 'a;
+
 /// The bandit's rounds: each round, every task's bandit picks its arms, the tasks' round episodes
 /// run together, and each bandit learns its episodes' returns. Returns every episode (task
 /// positions as in `plans`, episodes in order) and one pick per task and round.
@@ -186,7 +190,7 @@ fn bandit_rounds(
     strategy: &PromptStrategy,
     stride: usize,
     rng: &mut Rng,
-    envs_of: &dyn Fn(&TaskPlan, &[u64], Option<SegmentBatch>) -> Result<EvalTask, RunError>,
+    envs_of: &MakeTask<'_>,
 ) -> Result<(Vec<EpisodeRecord>, Vec<PromptPick>), RunError> {
     let j = sampler.config().prompt_episodes;
     let mut bandits = plans
