@@ -91,3 +91,47 @@ fn unknown_strategies_and_prompts_that_do_not_fit_are_refused_by_name() {
     let e = fails(&["eval", "--run", r, "--prompt-strategy", "bandit", "--bandit-epsilon", "2"]);
     assert!(e.contains("bandit.epsilon") && e.contains('2'), "{e}");
 }
+
+#[test]
+fn a_runs_eval_prompt_section_sets_its_evaluations_strategy() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let base = std::fs::read_to_string(&cfg).unwrap();
+    // The default writes no [eval.prompt]: configuration files are what they were.
+    let plain = tmp.path().join("plain");
+    ok(&["train", "--config", cfg.to_str().unwrap(), "--out", plain.to_str().unwrap(), "--quiet"]);
+    assert!(!std::fs::read_to_string(plain.join("config.toml")).unwrap().contains("prompt]"));
+    let with = tmp.path().join("with.toml");
+    let section = "\n[eval.prompt]\nstrategy = \"nearest-start\"\nlength = 3\n";
+    std::fs::write(&with, format!("{base}{section}")).unwrap();
+    let run = tmp.path().join("run");
+    let r = run.to_str().unwrap();
+    ok(&["train", "--config", with.to_str().unwrap(), "--out", r, "--quiet"]);
+    let written = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(written.contains("[eval.prompt]") && written.contains("nearest-start"), "{written}");
+    let out = ok(&["eval", "--run", r, "--episodes", "2"]);
+    assert!(out.contains("eval_prompt_nearest-start.json"), "{out}");
+    let v = json(&run.join("eval_prompt_nearest-start.json"));
+    assert_eq!(v["prompt_strategy"]["length"], 3);
+    // A method without a prompt refuses a strategy, naming both.
+    let orl = tmp.path().join("orl.toml");
+    std::fs::write(
+        &orl,
+        format!("{base}{section}").replace("[run]\n", "[run]\nmethod = \"mt-orl\"\n"),
+    )
+    .unwrap();
+    let out_dir = tmp.path().join("orl");
+    let e =
+        fails(&["train", "--config", orl.to_str().unwrap(), "--out", out_dir.to_str().unwrap()]);
+    assert!(e.contains("eval.prompt") && e.contains("mt-orl"), "{e}");
+    // An unknown strategy name in the file is refused with the known ones.
+    std::fs::write(&with, format!("{base}\n[eval.prompt]\nstrategy = \"tail\"\n")).unwrap();
+    let e = fails(&[
+        "train",
+        "--config",
+        with.to_str().unwrap(),
+        "--out",
+        tmp.path().join("x").to_str().unwrap(),
+    ]);
+    assert!(e.contains("tail") && e.contains("best-return"), "{e}");
+}
