@@ -221,8 +221,14 @@ pub struct PromptPick {
     pub round: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub explored: Option<bool>,
-    /// The return of the episode (mean of the round's episodes, for a bandit round).
+    /// The return of the episode (mean of the round's episodes, for a bandit round). serde_json
+    /// writes a NaN (a diverged policy) as `null`; it reads back as NaN.
+    #[serde(deserialize_with = "f64_or_null")]
     pub episode_return: f64,
+}
+
+fn f64_or_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -233,8 +239,6 @@ pub enum StrategyError {
     Setting { field: &'static str, why: String },
     #[error("{0}")]
     Sampler(#[from] SamplerError),
-    #[error("prompt strategy `{strategy}`: {why}")]
-    Unsupported { strategy: PromptStrategyKind, why: String },
 }
 
 /// Candidate windows of `h` steps in a demonstration of `t` steps, every `stride` steps, each

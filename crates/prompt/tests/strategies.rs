@@ -162,3 +162,19 @@ fn test_time_length_overrides_training_and_must_fit() {
     let zero = PromptStrategy { episodes: Some(0), ..PromptStrategy::default() };
     assert!(check_fits(&zero, &trained, 1024).unwrap_err().to_string().contains("episodes"));
 }
+
+#[test]
+fn a_pick_with_a_nan_return_reads_back() {
+    let p = pdt_prompt::PromptPick {
+        task: "toy-0".into(),
+        episode: 0,
+        segments: vec![SegmentChoice { demo: 1, start: 2 }],
+        round: Some(0),
+        explored: Some(true),
+        episode_return: f64::NAN,
+    };
+    let text = serde_json::to_string(&p).unwrap();
+    assert!(text.contains("\"episode_return\":null"), "{text}");
+    let back: pdt_prompt::PromptPick = serde_json::from_str(&text).unwrap();
+    assert!(back.episode_return.is_nan() && back.segments == p.segments);
+}
