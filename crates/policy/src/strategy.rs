@@ -58,34 +58,33 @@ impl Policy {
     ) -> Result<ChosenPrompt, PolicyError> {
         let sampler = self.task_sampler(task, Some(strategy))?;
         let mut rng = Rng::seed_from_u64(seed);
-        let segments = match strategy.strategy {
-            PromptStrategyKind::Reference => {
-                return Ok(ChosenPrompt {
-                    prompt: sampler.eval_prompt(0, &mut rng),
-                    segments: vec![],
-                })
-            }
-            PromptStrategyKind::RandomSegment => sampler.random_segments(0, &mut rng),
-            PromptStrategyKind::BestReturn => sampler.best_return_segments(0),
-            PromptStrategyKind::NearestStart => {
-                let obs = obs.ok_or_else(|| {
-                    PolicyError::Input(
-                        "prompt strategy `nearest-start` needs the episode's first observation"
-                            .into(),
-                    )
-                })?;
-                let stride = strategy.stride_for(sampler.config().prompt_length);
-                sampler.nearest_start_segments(0, obs, stride)?
-            }
-            PromptStrategyKind::Bandit => {
-                return Err(PolicyError::Input(
-                    "prompt strategy `bandit` learns across a task's episodes: it is kept per \
-                     task (Policy::task_bandit; serve keeps one per task, `promptdt eval \
-                     --prompt-strategy bandit` one per evaluation)"
+        let segments =
+            match strategy.strategy {
+                PromptStrategyKind::Reference => {
+                    return Ok(ChosenPrompt {
+                        prompt: sampler.eval_prompt(0, &mut rng),
+                        segments: vec![],
+                    })
+                }
+                PromptStrategyKind::RandomSegment => sampler.random_segments(0, &mut rng),
+                PromptStrategyKind::BestReturn => sampler.best_return_segments(0),
+                PromptStrategyKind::NearestStart => {
+                    let obs = obs.ok_or_else(|| {
+                        PolicyError::Input(
+                            "prompt strategy `nearest-start` needs the episode's first observation"
+                                .into(),
+                        )
+                    })?;
+                    let stride = strategy.stride_for(sampler.config().prompt_length);
+                    sampler.nearest_start_segments(0, obs, stride)?
+                }
+                PromptStrategyKind::Bandit => return Err(PolicyError::Input(
+                    "prompt strategy `bandit` learns across a task's episodes, so it is kept per \
+                     task: `Policy::task_bandit` (Python: `Policy.prompt_bandit`; serve keeps one \
+                     per task; `promptdt eval --prompt-strategy bandit` one per evaluation)"
                         .into(),
-                ))
-            }
-        };
+                )),
+            };
         let prompt = sampler.prompt_from_choices(0, &segments)?;
         Ok(ChosenPrompt { prompt, segments })
     }

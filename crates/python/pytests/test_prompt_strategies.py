@@ -85,3 +85,34 @@ def test_bad_strategies_are_refused_by_name(point_run):
         policy.task_prompt(task, prompt_strategy="bandit")
     with pytest.raises(ValueError, match="unknown prompt strategy `greedy`"):
         promptdt.evaluate(point_run, episodes=1, prompt_strategy="greedy")
+
+
+def test_prompt_bandit_chooses_learns_and_is_seeded(point_run):
+    policy = promptdt.Policy.load(point_run, threads=1)
+    task = policy.prompt_tasks()[0]
+
+    def picks(seed, paying=None):
+        b = policy.prompt_bandit(task, seed=seed, epsilon=0.2)
+        assert b.task == task
+        out = []
+        for _ in range(40):
+            p = b.choose()
+            assert p.steps == policy.prompt_steps and len(p.segments) == 1
+            seg = p.segments[0]
+            out.append((seg["demo"], seg["start"]))
+            paying = paying or out[0]
+            b.update(10.0 if out[-1] == paying else 0.0)
+        return out
+
+    a = picks(0)
+    assert a == picks(0)
+    assert a != picks(1)
+    # the arm that pays is taken whenever the bandit does not explore (epsilon 0.2)
+    assert sum(x == a[0] for x in a[1:]) >= 25, a
+    b = policy.prompt_bandit(task, seed=0, rule="ucb", prompt_length=3)
+    assert b.choose().steps == 3
+    with pytest.raises(ValueError, match="unknown bandit rule `thompson`"):
+        policy.prompt_bandit(task, rule="thompson")
+    fresh = policy.prompt_bandit(task)
+    with pytest.raises(ValueError, match="call choose"):
+        fresh.update(1.0)

@@ -97,6 +97,55 @@ impl TaskPlan {
     }
 }
 
+/// A `bandit` prompt strategy over one task's candidate segments (docs/prompt-control.md): each
+/// `choose()` gives the next episode's prompt, each `update(episode_return)` teaches it that
+/// episode's return. Made by `Policy.prompt_bandit`.
+#[pyclass(module = "promptdt._native", frozen)]
+pub(crate) struct PromptBandit {
+    policy: Py<Policy>,
+    state: Mutex<BanditState>,
+    /// The task whose prompts it chooses.
+    #[pyo3(get)]
+    task: usize,
+}
+
+struct BanditState {
+    bandit: pdt_policy::TaskBandit,
+    /// The arms of the prompt chosen last, until its return is reported.
+    pending: Option<pdt_prompt::bandit::BanditChoice>,
+}
+
+#[pymethods]
+impl PromptBandit {
+    /// The next episode's prompt (its segments in `Prompt.segments`). A choice whose return was
+    /// not reported is dropped.
+    fn choose(&self, py: Python<'_>) -> PyResult<Prompt> {
+        let policy = self.policy.bind(py).get();
+        let st = lock(&policy.state)?;
+        let mut b = lock(&self.state)?;
+        let (chosen, choice) = b.bandit.choose(&st.run).map_err(value_error)?;
+        b.pending = Some(choice);
+        Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
+    }
+
+    /// The return of the episode acted with the prompt `choose()` gave last.
+    fn update(&self, episode_return: f64) -> PyResult<()> {
+        if !episode_return.is_finite() {
+            return Err(value_error(format!("episode_return {episode_return} is not finite")));
+        }
+        let mut b = lock(&self.state)?;
+        let choice = b.pending.take().ok_or_else(|| {
+            value_error("update: no prompt chosen since the last update (call choose() first)")
+        })?;
+        b.bandit.update(&choice, episode_return);
+        Ok(())
+    }
+
+    fn __repr__(&self) -> String {
+        format!("PromptBandit(task={})", self.task)
+    }
+}
+
 struct PolicyState {
     run: pdt_policy::Policy,
     /// The keys and values of the distinct prompts set (`None`: no prompt set), and the row of
@@ -274,6 +323,58 @@ impl Policy {
         let chosen =
             st.run.strategy_prompt(task, seed, &strategy, obs.as_deref()).map_err(value_error)?;
         Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
+    }
+
+    /// A `bandit` prompt strategy over task `task`'s candidate segments, its choices seeded by
+    /// `seed` (None is 0): `rule` `"epsilon-greedy"` (default) or `"ucb"`, `epsilon` (0.1),
+    /// `prompt_episodes` / `prompt_length` the test-time J and H, `stride` the candidates' step
+    /// (default H).
+    #[pyo3(signature = (task, seed = None, rule = None, epsilon = None, prompt_episodes = None,
+                        prompt_length = None, stride = None))]
+    #[allow(clippy::too_many_arguments)] // the keywords of a Python method
+    fn prompt_bandit(
+        slf: &Bound<'_, Self>,
+        task: &Bound<'_, PyAny>,
+        seed: Option<&Bound<'_, PyAny>>,
+        rule: Option<&str>,
+        epsilon: Option<f64>,
+        prompt_episodes: Option<&Bound<'_, PyAny>>,
+        prompt_length: Option<&Bound<'_, PyAny>>,
+        stride: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<PromptBandit> {
+        let task = usize_arg("task", task, "a task index of the run's family")?;
+        let seed =
+            seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let count = |name: &str, v: Option<&Bound<'_, PyAny>>| {
+            v.map(|v| usize_arg(name, v, "a number of steps (at least 1)")).transpose()
+        };
+        let d = pdt_prompt::BanditConfig::default();
+        let rule = match rule {
+            None | Some("epsilon-greedy") => pdt_prompt::BanditRule::EpsilonGreedy,
+            Some("ucb") => pdt_prompt::BanditRule::Ucb,
+            Some(other) => {
+                return Err(value_error(format!(
+                    "unknown bandit rule `{other}` (known: epsilon-greedy, ucb)"
+                )))
+            }
+        };
+        let strategy = pdt_prompt::PromptStrategy {
+            strategy: pdt_prompt::PromptStrategyKind::Bandit,
+            episodes: count("prompt_episodes", prompt_episodes)?,
+            length: count("prompt_length", prompt_length)?,
+            stride: count("stride", stride)?,
+            bandit: pdt_prompt::BanditConfig { rule, epsilon: epsilon.unwrap_or(d.epsilon), ..d },
+        };
+        strategy.validate().map_err(value_error)?;
+        let bandit = {
+            let st = lock(&slf.get().state)?;
+            st.run.task_bandit(task, seed, &strategy).map_err(value_error)?
+        };
+        Ok(PromptBandit {
+            policy: slf.clone().unbind(),
+            state: Mutex::new(BanditState { bandit, pending: None }),
+            task,
+        })
     }
 
     /// A prompt from a demonstration's arrays: raw states `[n, obs_dim]`, actions `[n, act_dim]`,

@@ -30,7 +30,7 @@ if "torch" in _sys.modules:
         )
 
 from . import _native  # noqa: E402
-from ._native import Policy, Prompt, TaskPlan, families, set_num_threads  # noqa: E402,F401
+from ._native import Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
 
@@ -517,6 +517,7 @@ __all__ = [
     "Dataset",
     "Policy",
     "Prompt",
+    "PromptBandit",
     "TaskPlan",
     "Trajectory",
     "collect",

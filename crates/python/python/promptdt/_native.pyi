@@ -29,6 +29,7 @@ __all__ = [
     "VecEnv",
     "Policy",
     "Prompt",
+    "PromptBandit",
     "TaskPlan",
 ]
 
@@ -124,6 +125,13 @@ class Prompt:
     def segments(self) -> List[Dict[str, int]]: ...
 
 @final
+class PromptBandit:
+    @property
+    def task(self) -> int: ...
+    def choose(self) -> Prompt: ...
+    def update(self, episode_return: float) -> None: ...
+
+@final
 class TaskPlan:
     @property
     def name(self) -> str: ...
@@ -179,6 +187,16 @@ class Policy:
         returns_to_go: npt.ArrayLike,
         timesteps: npt.ArrayLike,
     ) -> Prompt: ...
+    def prompt_bandit(
+        self,
+        task: int,
+        seed: Optional[int] = None,
+        rule: Optional[str] = None,
+        epsilon: Optional[float] = None,
+        prompt_episodes: Optional[int] = None,
+        prompt_length: Optional[int] = None,
+        stride: Optional[int] = None,
+    ) -> PromptBandit: ...
     def eval_plan(self, split: str = "test", episodes: Optional[int] = None) -> List[TaskPlan]: ...
     def set_prompt(self, prompt: Union[Prompt, Sequence[Prompt]]) -> None: ...
     def reset(self, n_episodes: int, target_return: Optional[float] = None) -> None: ...
