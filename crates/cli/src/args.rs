@@ -1,5 +1,6 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
+use crate::prompt_args::{bandit_rule, prompt_strategy};
 use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand};
 use pdt_model::device::DeviceSpec;
@@ -716,48 +717,6 @@ pub struct EvalArgs {
     /// bandit: episodes per task in one round, between updates (default 1).
     #[arg(long, value_parser = count(1, 10_000))]
     pub bandit_round: Option<usize>,
-}
-
-impl EvalArgs {
-    /// The prompt strategy the flags ask for; `None` when no prompt flag is given (the run's own).
-    pub fn prompt(&self) -> Option<pdt_prompt::PromptStrategy> {
-        let any = self.prompt_strategy.is_some()
-            || self.prompt_episodes.is_some()
-            || self.prompt_length.is_some()
-            || self.prompt_stride.is_some()
-            || self.bandit_rule.is_some()
-            || self.bandit_epsilon.is_some()
-            || self.bandit_round.is_some();
-        if !any {
-            return None;
-        }
-        let d = pdt_prompt::BanditConfig::default();
-        Some(pdt_prompt::PromptStrategy {
-            strategy: self.prompt_strategy.unwrap_or_default(),
-            episodes: self.prompt_episodes,
-            length: self.prompt_length,
-            stride: self.prompt_stride,
-            bandit: pdt_prompt::BanditConfig {
-                rule: self.bandit_rule.unwrap_or(d.rule),
-                epsilon: self.bandit_epsilon.unwrap_or(d.epsilon),
-                episodes_per_round: self.bandit_round.unwrap_or(d.episodes_per_round),
-                ..d
-            },
-        })
-    }
-}
-
-/// A prompt strategy by name; the error names the value and the known names.
-fn prompt_strategy(s: &str) -> Result<pdt_prompt::PromptStrategyKind, String> {
-    s.parse().map_err(|e: pdt_prompt::StrategyError| e.to_string())
-}
-
-fn bandit_rule(s: &str) -> Result<pdt_prompt::BanditRule, String> {
-    match s {
-        "epsilon-greedy" => Ok(pdt_prompt::BanditRule::EpsilonGreedy),
-        "ucb" => Ok(pdt_prompt::BanditRule::Ucb),
-        other => Err(format!("unknown bandit rule `{other}` (known: epsilon-greedy, ucb)")),
-    }
 }
 
 #[derive(Debug, Args)]

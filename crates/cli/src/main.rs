@@ -21,6 +21,7 @@ macro_rules! out_inline {
 mod args;
 mod commands;
 mod packs;
+mod prompt_args;
 
 use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
@@ -212,7 +213,7 @@ fn run(cli: Cli) -> Result<()> {
                 a.device,
                 a.data.as_deref(),
                 &pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
-                a.prompt().as_ref(),
+                commands::eval_prompt(&a).as_ref(),
             )?;
             let r = &prompted.eval;
             // Families with a success criterion (Meta-World) also show the success rate.
