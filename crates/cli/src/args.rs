@@ -1,5 +1,6 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
+use crate::prompt_args::{bandit_rule, prompt_strategy};
 use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand};
 use pdt_model::device::DeviceSpec;
@@ -197,6 +198,17 @@ pub struct ServeArgs {
     /// bit-identical to `promptdt eval`'s and do not depend on the other episodes of its batch.
     #[arg(long, default_value_t = 1, value_parser = count(1, 1024))]
     pub threads: usize,
+    /// Prompt strategy of episodes opened with a `task` (docs/prompt-control.md; a request's
+    /// `prompt_strategy` overrides it): reference (default), random-segment, best-return,
+    /// nearest-start, bandit (one per task, learning from the returns of closed episodes).
+    #[arg(long, value_parser = prompt_strategy)]
+    pub prompt_strategy: Option<pdt_prompt::PromptStrategyKind>,
+    /// Test-time prompt segments J of `task` prompts (default: the run's).
+    #[arg(long, value_parser = count(1, 1000))]
+    pub prompt_episodes: Option<usize>,
+    /// Test-time steps per prompt segment H of `task` prompts (default: the run's).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_length: Option<usize>,
 }
 
 #[derive(Debug, Args)]
@@ -681,6 +693,30 @@ pub struct EvalArgs {
     /// MACAW runs: transitions per task to adapt on (default: the run's macaw.adapt_batch).
     #[arg(long, value_parser = count(2, 1_000_000))]
     pub adapt_batch: Option<usize>,
+    /// Test-time prompt strategy (docs/prompt-control.md): reference (default: the run's
+    /// [eval.prompt], reference unless set), random-segment, best-return, nearest-start, bandit.
+    /// Other than the default, results go to eval_prompt_<strategy>.json with the choices made.
+    #[arg(long, value_parser = prompt_strategy)]
+    pub prompt_strategy: Option<pdt_prompt::PromptStrategyKind>,
+    /// Test-time prompt segments J (default: the run's sampler.prompt_episodes).
+    #[arg(long, value_parser = count(1, 1000))]
+    pub prompt_episodes: Option<usize>,
+    /// Test-time steps per prompt segment H (default: the run's prompt length).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_length: Option<usize>,
+    /// nearest-start and bandit: candidate segments start every this many steps (default: 1 for
+    /// nearest-start, H for bandit).
+    #[arg(long, value_parser = count(1, 100_000))]
+    pub prompt_stride: Option<usize>,
+    /// bandit: `epsilon-greedy` (default, as the bandit paper) or `ucb`.
+    #[arg(long, value_parser = bandit_rule)]
+    pub bandit_rule: Option<pdt_prompt::BanditRule>,
+    /// bandit: exploration probability of epsilon-greedy (default 0.1).
+    #[arg(long)]
+    pub bandit_epsilon: Option<f64>,
+    /// bandit: episodes per task in one round, between updates (default 1).
+    #[arg(long, value_parser = count(1, 10_000))]
+    pub bandit_round: Option<usize>,
 }
 
 #[derive(Debug, Args)]

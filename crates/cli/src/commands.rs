@@ -626,3 +626,30 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     out!("report: {}", p.report_dir().display());
     Ok(())
 }
+
+/// The prompt strategy the flags ask for; `None` when no prompt flag is given (the run's own).
+pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::PromptStrategy> {
+    let any = a.prompt_strategy.is_some()
+        || a.prompt_episodes.is_some()
+        || a.prompt_length.is_some()
+        || a.prompt_stride.is_some()
+        || a.bandit_rule.is_some()
+        || a.bandit_epsilon.is_some()
+        || a.bandit_round.is_some();
+    if !any {
+        return None;
+    }
+    let d = pdt_prompt::BanditConfig::default();
+    Some(pdt_prompt::PromptStrategy {
+        strategy: a.prompt_strategy.unwrap_or_default(),
+        episodes: a.prompt_episodes,
+        length: a.prompt_length,
+        stride: a.prompt_stride,
+        bandit: pdt_prompt::BanditConfig {
+            rule: a.bandit_rule.unwrap_or(d.rule),
+            epsilon: a.bandit_epsilon.unwrap_or(d.epsilon),
+            episodes_per_round: a.bandit_round.unwrap_or(d.episodes_per_round),
+            ..d
+        },
+    })
+}

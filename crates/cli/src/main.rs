@@ -21,6 +21,7 @@ macro_rules! out_inline {
 mod args;
 mod commands;
 mod packs;
+mod prompt_args;
 
 use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
@@ -205,14 +206,16 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) if packs::is_pack(&a) => packs::train_pack(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            let r = pdt_train::run::evaluate_run_with(
+            let prompted = pdt_train::run::evaluate_run_prompted(
                 &a.run,
                 a.episodes,
                 &a.split,
                 a.device,
                 a.data.as_deref(),
                 &pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
+                commands::eval_prompt(&a).as_ref(),
             )?;
+            let r = &prompted.eval;
             // Families with a success criterion (Meta-World) also show the success rate.
             let rates: Option<Vec<f64>> = r.tasks.iter().map(|t| t.success_rate).collect();
             let rates = rates.filter(|v| !v.is_empty());
@@ -244,8 +247,15 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(how) = &r.adaptation {
                 out!("adapted to each task with {how}");
             }
+            let file = if prompted.prompt_strategy.is_default() {
+                pdt_rundir::EVAL_FINAL_JSON.to_string()
+            } else {
+                let s = &prompted.prompt_strategy;
+                out!("prompt strategy {} ({} choices logged)", s.strategy, prompted.picks.len());
+                format!("eval_prompt_{}.json", s.strategy)
+            };
             out!(
-                "checkpoint {} (iteration {}); wrote {}/eval_final.json",
+                "checkpoint {} (iteration {}); wrote {}/{file}",
                 r.checkpoint,
                 r.iteration,
                 a.run.display()
@@ -347,6 +357,12 @@ fn run(cli: Cli) -> Result<()> {
                 body_timeout: std::time::Duration::from_secs(a.body_timeout_s as u64),
                 max_connections: a.max_connections,
                 threads: a.threads,
+                prompt_strategy: pdt_prompt::PromptStrategy {
+                    strategy: a.prompt_strategy.unwrap_or_default(),
+                    episodes: a.prompt_episodes,
+                    length: a.prompt_length,
+                    ..Default::default()
+                },
                 ..Default::default()
             };
             let server = pdt_serve::Server::start(run, opts)?;

@@ -43,6 +43,20 @@ pub struct EvalTask {
     pub prompt: Option<SegmentBatch>,
 }
 
+/// Prompts chosen per episode when it starts (the `nearest-start` strategy): given to
+/// [`evaluate_with`], it replaces the tasks' shared prompts. Each episode's prompt is one row of
+/// the forward (and of the cached prefix), computed once at the episode's reset.
+pub trait EpisodePrompts {
+    /// The `[1, J*H]` prompt of episode `episode` of task `task` (its position in the tasks
+    /// passed), from the episode's first (raw) observation. All prompts have one length.
+    fn at_reset(
+        &mut self,
+        task: usize,
+        episode: usize,
+        obs: &[f32],
+    ) -> Result<SegmentBatch, EvalError>;
+}
+
 /// Settings shared by all tasks.
 /// The model a `[model]` section describes, for an environment's dimensions. (A trait here, not a
 /// method of the section: the configuration is `pdt_rundir`'s, read without libtorch.)
@@ -188,6 +202,8 @@ struct Running {
     h: History,
     /// `None` until a step reports a success criterion, then whether any step succeeded.
     success: Option<bool>,
+    /// With per-episode prompts: the row of this episode's prompt in the batch's table.
+    row: Option<usize>,
 }
 
 /// Normalises one raw observation in f32, as the reference does it on torch tensors at evaluation.
@@ -247,6 +263,10 @@ struct Batch<'a> {
     /// The prompts' keys and values, one row per task, when inference is cached.
     prefix: Option<&'a PrefixCache>,
     prompts: &'a [Option<SegmentBatch>],
+    /// Per-episode prompts of the episodes started last (rows: [`Running::row`]), and their keys
+    /// and values when inference is cached. Empty without [`EpisodePrompts`].
+    episode_prompts: Vec<SegmentBatch>,
+    episode_prefix: Option<PrefixCache>,
     names: &'a [String],
     /// `Some` while the episode in that slot runs.
     eps: Vec<Option<Running>>,
@@ -273,14 +293,28 @@ impl BatchPolicy for Batch<'_> {
             slots.iter().map(|&s| self.running(s)).collect::<Result<_, _>>()?;
         let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
         let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
-        let last = match (cfg.inference, self.prefix) {
-            (Inference::Cached, Some(c)) => {
+        let per_episode: Option<Vec<usize>> = eps.iter().map(|e| e.row).collect();
+        let last = match (cfg.inference, self.prefix, per_episode) {
+            (Inference::Cached, _, Some(rows)) if self.episode_prefix.is_some() => {
+                let rows: Vec<i64> = rows.iter().map(|&r| r as i64).collect();
+                let rows = Tensor::from_slice(&rows).to_device(cfg.device);
+                let c = self.episode_prefix.as_ref().map(|c| c.select(&rows));
+                tch::no_grad(|| model.act(&history, c.as_ref())) // [A, da]
+            }
+            (_, _, Some(rows)) => {
+                let p: Vec<&SegmentBatch> =
+                    rows.iter().map(|&r| &self.episode_prompts[r]).collect();
+                let prompt = prompt_batch(&p, cfg.device);
+                let preds = tch::no_grad(|| model.forward(&history, Some(&prompt), false)); // [A, K, da]
+                preds.select(1, cfg.k as i64 - 1) // [A, da]
+            }
+            (Inference::Cached, Some(c), None) => {
                 let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
                 let rows = Tensor::from_slice(&rows).to_device(cfg.device);
                 tch::no_grad(|| model.act(&history, Some(&c.select(&rows))))
                 // [A, da]
             }
-            (Inference::Cached, None) if self.prompts.iter().all(Option::is_none) => {
+            (Inference::Cached, None, None) if self.prompts.iter().all(Option::is_none) => {
                 tch::no_grad(|| model.act(&history, None)) // [A, da]
             }
             _ => {
@@ -372,6 +406,18 @@ pub fn evaluate(
     tasks: Vec<EvalTask>,
     cfg: &EvalSettings,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
+    evaluate_with(model, tasks, cfg, None)
+}
+
+/// [`evaluate`], with each episode's prompt chosen at its reset by `chooser` when given (the
+/// tasks' own prompts are then not used). Episodes are still stepped together; each batch's new
+/// prompts go through the model's prefix in one forward.
+pub fn evaluate_with(
+    model: &PromptDt,
+    tasks: Vec<EvalTask>,
+    cfg: &EvalSettings,
+    mut chooser: Option<&mut dyn EpisodePrompts>,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
     let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
     let mut names: Vec<String> = Vec::with_capacity(tasks.len());
@@ -401,6 +447,7 @@ pub fn evaluate(
                 seed,
                 h: History::default(),
                 success: None,
+                row: None,
             });
             envs.push(env);
         }
@@ -411,7 +458,7 @@ pub fn evaluate(
     // The prompts' keys and values, once per task (all tasks have a prompt or none does).
     let all_prompts: Option<Vec<&SegmentBatch>> = prompts.iter().map(Option::as_ref).collect();
     let prefix = match (cfg.inference, all_prompts) {
-        (Inference::Cached, Some(all)) if !all.is_empty() => {
+        (Inference::Cached, Some(all)) if !all.is_empty() && chooser.is_none() => {
             Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device))))
         }
         _ => None,
@@ -422,6 +469,8 @@ pub fn evaluate(
         cfg,
         prefix: prefix.as_ref(),
         prompts: &prompts,
+        episode_prompts: Vec::new(),
+        episode_prefix: None,
         names: &names,
         eps: (0..n).map(|_| None).collect(),
         done: Vec::with_capacity(n),
@@ -438,10 +487,32 @@ pub fn evaluate(
             batch.eps[id] = Some(ep);
         }
         let first = venv.reset_some(&resets).map_err(|source| batch.batch_error(&slots, source))?;
+        let mut chosen = Vec::new();
         for (&id, obs) in slots.iter().zip(first) {
             if let Some(ep) = batch.eps[id].as_mut() {
                 ep.h = History::start(&cfg.norm, &obs, first_rtg);
+                if let Some(c) = chooser.as_deref_mut() {
+                    ep.row = Some(chosen.len());
+                    chosen.push(c.at_reset(ep.task, ep.episode, &obs)?);
+                }
             }
+        }
+        if !chosen.is_empty() {
+            if let Some(p) = chosen.iter().find(|p| p.steps != chosen[0].steps || p.batch != 1) {
+                let why = format!(
+                    "per-episode prompts of {} and {} steps: one length is needed",
+                    chosen[0].steps, p.steps
+                );
+                return Err(EvalError::Setup { task: String::new(), why });
+            }
+            let refs: Vec<&SegmentBatch> = chosen.iter().collect();
+            batch.episode_prefix = match cfg.inference {
+                Inference::Cached => {
+                    Some(tch::no_grad(|| model.prefix(&prompt_batch(&refs, cfg.device))))
+                }
+                Inference::Full => None,
+            };
+            batch.episode_prompts = chosen;
         }
         run_batch(&mut venv, slots, &mut batch)?;
     }

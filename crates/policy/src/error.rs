@@ -12,6 +12,8 @@ pub enum PolicyError {
     #[error(transparent)]
     Sampler(#[from] pdt_prompt::SamplerError),
     #[error(transparent)]
+    Strategy(#[from] pdt_prompt::StrategyError),
+    #[error(transparent)]
     Checkpoint(#[from] pdt_model::checkpoint::CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),

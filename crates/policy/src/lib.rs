@@ -7,6 +7,8 @@
 //! - [`Episode`] ([`episode`]): one episode's history and checks (observation, reward, target
 //!   return, `max_ep_len`, return-to-go overflow), and the undo of a step whose action is not
 //!   finite.
+//! - [`strategy`]: test-time prompt strategies for an acting policy ([`Policy::strategy_prompt`],
+//!   the per-task [`TaskBandit`]).
 //! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
 //!   normalisation and the statistics a run records.
 //! - [`video`]: a prompted episode rendered as an animated GIF (`promptdt render`).
@@ -23,6 +25,7 @@ mod error;
 pub mod files;
 mod font;
 pub mod policy;
+pub mod strategy;
 pub mod video;
 
 pub use data::RunData;
@@ -30,3 +33,4 @@ pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};
 pub use error::PolicyError;
 pub use pdt_rundir::RunStats;
 pub use policy::{eval_returns, plan_task, Policy, PromptArrays, TaskPlan};
+pub use strategy::{ChosenPrompt, TaskBandit};

@@ -357,6 +357,17 @@ impl Policy {
     /// A prompt of task `task` drawn as the evaluation draws one (`BatchSampler::eval_prompt`),
     /// from a generator seeded with `seed`.
     pub fn task_prompt(&self, task: usize, seed: u64) -> Result<SegmentBatch, PolicyError> {
+        let sampler = self.task_sampler(task, None)?;
+        Ok(sampler.eval_prompt(0, &mut Rng::seed_from_u64(seed)))
+    }
+
+    /// A sampler over task `task`'s prompt set alone (the run's sampler settings, or those of a
+    /// test-time prompt `strategy`, checked to fit the model).
+    pub(crate) fn task_sampler(
+        &self,
+        task: usize,
+        strategy: Option<&pdt_prompt::PromptStrategy>,
+    ) -> Result<BatchSampler<'_>, PolicyError> {
         let p = self.prompts.as_ref().map_err(|why| PolicyError::Unavailable {
             what: "no task prompts: ",
             why: why.clone(),
@@ -367,12 +378,11 @@ impl Policy {
             let known: Vec<String> = known.iter().map(usize::to_string).collect();
             PolicyError::UnknownTask { task, known: known.join(", ") }
         })?;
-        let sampler = BatchSampler::new(
-            p.data.sampler_cfg.clone(),
-            &[t],
-            p.data.norm.clone(),
-            p.data.model_cfg.n_positions,
-        )?;
-        Ok(sampler.eval_prompt(0, &mut Rng::seed_from_u64(seed)))
+        let n_positions = p.data.model_cfg.n_positions;
+        let cfg = match strategy {
+            None => p.data.sampler_cfg.clone(),
+            Some(s) => pdt_prompt::strategy::check_fits(s, &p.data.sampler_cfg, n_positions)?,
+        };
+        Ok(BatchSampler::new(cfg, &[t], p.data.norm.clone(), n_positions)?)
     }
 }

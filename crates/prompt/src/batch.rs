@@ -29,7 +29,7 @@ pub struct SegmentBatch {
 }
 
 impl SegmentBatch {
-    fn zeros(batch: usize, steps: usize, state_dim: usize, act_dim: usize) -> Self {
+    pub(crate) fn zeros(batch: usize, steps: usize, state_dim: usize, act_dim: usize) -> Self {
         let n = batch * steps;
         Self {
             batch,
@@ -137,6 +137,19 @@ impl<'a> BatchSampler<'a> {
 
     pub fn norm(&self) -> &StateNorm {
         &self.norm
+    }
+
+    pub fn state_dim(&self) -> usize {
+        self.state_dim
+    }
+
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// Writes one prompt segment (returns-to-go kept) with this sampler's settings.
+    pub(crate) fn write_one(&self, traj: &Trajectory, si: usize, len: usize, out: SegmentOut<'_>) {
+        self.write(traj, si, len, false, out);
     }
 
     /// Writes one segment with this sampler's normalisation, return scale and timestep clip.

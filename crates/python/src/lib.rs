@@ -148,6 +148,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<envs::VecEnv>()?;
     m.add_class::<policy::Policy>()?;
     m.add_class::<policy::Prompt>()?;
+    m.add_class::<policy::PromptBandit>()?;
     m.add_class::<policy::TaskPlan>()?;
     Ok(())
 }

@@ -16,6 +16,8 @@ use tch::Tensor;
 #[pyclass(module = "promptdt._native", frozen)]
 pub(crate) struct Prompt {
     inner: SegmentBatch,
+    /// The demonstration segments a prompt strategy chose (empty otherwise).
+    segments: Vec<pdt_prompt::SegmentChoice>,
 }
 
 #[pymethods]
@@ -52,6 +54,16 @@ impl Prompt {
     fn mask<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
         self.inner.mask.clone().into_pyarray(py)
     }
+    /// The segments a prompt strategy (`task_prompt(prompt_strategy=...)`) made the prompt of,
+    /// in order: `{"demo": index in the task's prompt set, "start": first step}`; empty for the
+    /// reference draw and array prompts.
+    #[getter]
+    fn segments(&self) -> Vec<std::collections::BTreeMap<&'static str, usize>> {
+        self.segments
+            .iter()
+            .map(|c| [("demo", c.demo), ("start", c.start)].into_iter().collect())
+            .collect()
+    }
     fn __repr__(&self) -> String {
         format!(
             "Prompt(steps={}, obs_dim={}, act_dim={})",
@@ -82,6 +94,55 @@ impl TaskPlan {
             self.index,
             self.seeds.len()
         )
+    }
+}
+
+/// A `bandit` prompt strategy over one task's candidate segments (docs/prompt-control.md): each
+/// `choose()` gives the next episode's prompt, each `update(episode_return)` teaches it that
+/// episode's return. Made by `Policy.prompt_bandit`.
+#[pyclass(module = "promptdt._native", frozen)]
+pub(crate) struct PromptBandit {
+    policy: Py<Policy>,
+    state: Mutex<BanditState>,
+    /// The task whose prompts it chooses.
+    #[pyo3(get)]
+    task: usize,
+}
+
+struct BanditState {
+    bandit: pdt_policy::TaskBandit,
+    /// The arms of the prompt chosen last, until its return is reported.
+    pending: Option<pdt_prompt::bandit::BanditChoice>,
+}
+
+#[pymethods]
+impl PromptBandit {
+    /// The next episode's prompt (its segments in `Prompt.segments`). A choice whose return was
+    /// not reported is dropped.
+    fn choose(&self, py: Python<'_>) -> PyResult<Prompt> {
+        let policy = self.policy.bind(py).get();
+        let st = lock(&policy.state)?;
+        let mut b = lock(&self.state)?;
+        let (chosen, choice) = b.bandit.choose(&st.run).map_err(value_error)?;
+        b.pending = Some(choice);
+        Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
+    }
+
+    /// The return of the episode acted with the prompt `choose()` gave last.
+    fn update(&self, episode_return: f64) -> PyResult<()> {
+        if !episode_return.is_finite() {
+            return Err(value_error(format!("episode_return {episode_return} is not finite")));
+        }
+        let mut b = lock(&self.state)?;
+        let choice = b.pending.take().ok_or_else(|| {
+            value_error("update: no prompt chosen since the last update (call choose() first)")
+        })?;
+        b.bandit.update(&choice, episode_return);
+        Ok(())
+    }
+
+    fn __repr__(&self) -> String {
+        format!("PromptBandit(task={})", self.task)
     }
 }
 
@@ -222,18 +283,98 @@ impl Policy {
     }
 
     /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one (`seed`:
-    /// None is 0).
-    #[pyo3(signature = (task, seed = None))]
+    /// None is 0). `prompt_strategy` (docs/prompt-control.md): `reference` (default),
+    /// `random-segment`, `best-return` or `nearest-start` (nearest `observation`, the episode's
+    /// raw first observation); `prompt_episodes` / `prompt_length`: the test-time J and H.
+    #[pyo3(signature = (task, seed = None, prompt_strategy = None, observation = None,
+                        prompt_episodes = None, prompt_length = None))]
     fn task_prompt(
         &self,
         task: &Bound<'_, PyAny>,
         seed: Option<&Bound<'_, PyAny>>,
+        prompt_strategy: Option<&str>,
+        observation: Option<PyArrayLike1<'_, f32, AllowTypeChange>>,
+        prompt_episodes: Option<&Bound<'_, PyAny>>,
+        prompt_length: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Prompt> {
         let task = usize_arg("task", task, "a task index of the run's family")?;
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let count = |name: &str, v: Option<&Bound<'_, PyAny>>| {
+            v.map(|v| usize_arg(name, v, "a number of prompt steps (at least 1)")).transpose()
+        };
+        let strategy = pdt_prompt::PromptStrategy {
+            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
+            episodes: count("prompt_episodes", prompt_episodes)?,
+            length: count("prompt_length", prompt_length)?,
+            ..Default::default()
+        };
+        let obs: Option<Vec<f32>> = observation.map(|o| o.as_array().to_vec());
         let st = lock(&self.state)?;
-        Ok(Prompt { inner: st.run.task_prompt(task, seed).map_err(value_error)? })
+        if strategy.is_default() {
+            let inner = st.run.task_prompt(task, seed).map_err(value_error)?;
+            return Ok(Prompt { inner, segments: vec![] });
+        }
+        if let Some(o) = &obs {
+            st.run
+                .observation(&o.iter().map(|&x| f64::from(x)).collect::<Vec<_>>())
+                .map_err(value_error)?;
+        }
+        let chosen =
+            st.run.strategy_prompt(task, seed, &strategy, obs.as_deref()).map_err(value_error)?;
+        Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
+    }
+
+    /// A `bandit` prompt strategy over task `task`'s candidate segments, its choices seeded by
+    /// `seed` (None is 0): `rule` `"epsilon-greedy"` (default) or `"ucb"`, `epsilon` (0.1),
+    /// `prompt_episodes` / `prompt_length` the test-time J and H, `stride` the candidates' step
+    /// (default H).
+    #[pyo3(signature = (task, seed = None, rule = None, epsilon = None, prompt_episodes = None,
+                        prompt_length = None, stride = None))]
+    #[allow(clippy::too_many_arguments)] // the keywords of a Python method
+    fn prompt_bandit(
+        slf: &Bound<'_, Self>,
+        task: &Bound<'_, PyAny>,
+        seed: Option<&Bound<'_, PyAny>>,
+        rule: Option<&str>,
+        epsilon: Option<f64>,
+        prompt_episodes: Option<&Bound<'_, PyAny>>,
+        prompt_length: Option<&Bound<'_, PyAny>>,
+        stride: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<PromptBandit> {
+        let task = usize_arg("task", task, "a task index of the run's family")?;
+        let seed =
+            seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let count = |name: &str, v: Option<&Bound<'_, PyAny>>| {
+            v.map(|v| usize_arg(name, v, "a number of steps (at least 1)")).transpose()
+        };
+        let d = pdt_prompt::BanditConfig::default();
+        let rule = match rule {
+            None | Some("epsilon-greedy") => pdt_prompt::BanditRule::EpsilonGreedy,
+            Some("ucb") => pdt_prompt::BanditRule::Ucb,
+            Some(other) => {
+                return Err(value_error(format!(
+                    "unknown bandit rule `{other}` (known: epsilon-greedy, ucb)"
+                )))
+            }
+        };
+        let strategy = pdt_prompt::PromptStrategy {
+            strategy: pdt_prompt::PromptStrategyKind::Bandit,
+            episodes: count("prompt_episodes", prompt_episodes)?,
+            length: count("prompt_length", prompt_length)?,
+            stride: count("stride", stride)?,
+            bandit: pdt_prompt::BanditConfig { rule, epsilon: epsilon.unwrap_or(d.epsilon), ..d },
+        };
+        strategy.validate().map_err(value_error)?;
+        let bandit = {
+            let st = lock(&slf.get().state)?;
+            st.run.task_bandit(task, seed, &strategy).map_err(value_error)?
+        };
+        Ok(PromptBandit {
+            policy: slf.clone().unbind(),
+            state: Mutex::new(BanditState { bandit, pending: None }),
+            task,
+        })
     }
 
     /// A prompt from a demonstration's arrays: raw states `[n, obs_dim]`, actions `[n, act_dim]`,
@@ -258,7 +399,8 @@ impl Policy {
         // The prompt's largest inputs are not kept: an episode names its own when its action is
         // refused.
         let mut inputs = Inputs::default();
-        Ok(Prompt { inner: st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)? })
+        let inner = st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)?;
+        Ok(Prompt { inner, segments: vec![] })
     }
 
     /// What `promptdt eval --split SPLIT --episodes N` draws for each task, in its order. Acting
@@ -277,7 +419,10 @@ impl Policy {
         let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
         plan.into_iter()
             .map(|t| {
-                let prompt = t.prompt.map(|p| Py::new(py, Prompt { inner: p })).transpose()?;
+                let prompt = t
+                    .prompt
+                    .map(|p| Py::new(py, Prompt { inner: p, segments: vec![] }))
+                    .transpose()?;
                 Ok(TaskPlan { name: t.name, index: t.index, seeds: t.seeds, prompt })
             })
             .collect()

@@ -98,8 +98,13 @@ pub(crate) fn train<'py>(
 
 /// `promptdt eval`: the final evaluation of a run's latest checkpoint (written to the run's
 /// `eval_final.json`); returns that file's content as JSON text.
+/// With `prompt_strategy` (or a test-time `prompt_episodes` / `prompt_length`) the evaluation
+/// uses that strategy (docs/prompt-control.md), writes `eval_prompt_<strategy>.json` and returns
+/// its content: the evaluation, `prompt_strategy` and the strategy's `picks`.
 #[pyfunction]
-#[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None))]
+#[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None,
+                    prompt_strategy = None, prompt_episodes = None, prompt_length = None))]
+#[allow(clippy::too_many_arguments)] // the keywords of `promptdt.evaluate`
 pub(crate) fn evaluate(
     py: Python<'_>,
     run_dir: PathBuf,
@@ -107,17 +112,42 @@ pub(crate) fn evaluate(
     split: &str,
     device: Option<&str>,
     data: Option<PathBuf>,
+    prompt_strategy: Option<&str>,
+    prompt_episodes: Option<usize>,
+    prompt_length: Option<usize>,
 ) -> PyResult<String> {
     existing(&run_dir, "run directory")?;
     let device: Option<pdt_model::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
+    let prompt = match (prompt_strategy, prompt_episodes, prompt_length) {
+        (None, None, None) => None,
+        (name, episodes, length) => Some(pdt_prompt::PromptStrategy {
+            strategy: name.unwrap_or("reference").parse().map_err(value_error)?,
+            episodes,
+            length,
+            ..Default::default()
+        }),
+    };
     let r = py
         .detach(|| {
-            pdt_train::run::evaluate_run(&run_dir, episodes, split, device, data.as_deref())
-                .map_err(|e| e.to_string())
+            pdt_train::run::evaluate_run_prompted(
+                &run_dir,
+                episodes,
+                split,
+                device,
+                data.as_deref(),
+                &Default::default(),
+                prompt.as_ref(),
+            )
+            .map_err(|e| e.to_string())
         })
         .map_err(value_error)?;
-    serde_json::to_string(&r).map_err(value_error)
+    // The default strategy returns `eval_final.json`'s content, as before strategies.
+    if r.prompt_strategy.is_default() {
+        serde_json::to_string(&r.eval).map_err(value_error)
+    } else {
+        serde_json::to_string(&r).map_err(value_error)
+    }
 }
 
 /// `promptdt reproduce --list`: every committed experiment with its cells and its cost per budget,

@@ -252,6 +252,16 @@ impl RunDir {
         write_json(&self.final_eval_path(), eval)
     }
 
+    /// `eval_prompt_<strategy>.json`: a final evaluation with a prompt strategy
+    /// ([`crate::files::PromptEval`]).
+    pub fn prompt_eval_path(&self, strategy: pdt_prompt::PromptStrategyKind) -> PathBuf {
+        self.root.join(format!("eval_prompt_{}.json", strategy.name()))
+    }
+
+    pub fn write_prompt_eval(&self, eval: &crate::files::PromptEval) -> Result<(), RunDirError> {
+        write_json(&self.prompt_eval_path(eval.prompt_strategy.strategy), eval)
+    }
+
     /// Appends lines to `eval.jsonl` (the CSV beside it is the trainer's log's).
     pub fn append_eval_lines(&self, lines: &[EvalLine]) -> Result<(), RunDirError> {
         append_jsonl(&self.eval_path(), lines)

@@ -258,6 +258,18 @@ pub struct FinalEval {
     pub adaptation: Option<String>,
 }
 
+/// A final evaluation with a prompt strategy other than the default (`promptdt eval
+/// --prompt-strategy`): `eval_prompt_<strategy>.json`, beside `eval_final.json` (which stays the
+/// reference rule's, as reports read it). Its `picks` log each strategy choice (for a bandit,
+/// every round's arms and whether it explored).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PromptEval {
+    #[serde(flatten)]
+    pub eval: FinalEval,
+    pub prompt_strategy: pdt_prompt::PromptStrategy,
+    pub picks: Vec<pdt_prompt::PromptPick>,
+}
+
 /// One line of `eval.jsonl`: one task's evaluation at one iteration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalLine {

@@ -58,6 +58,9 @@ pub struct ServeOptions {
     pub max_connections: Option<usize>,
     /// Requests waiting for the model thread at most (503 beyond).
     pub queue: usize,
+    /// The prompt strategy of episodes opened with a `task` and no `prompt_strategy` of their own
+    /// (`promptdt serve --prompt-strategy`; default `reference`).
+    pub prompt_strategy: pdt_prompt::PromptStrategy,
     /// libtorch intra-op threads of the model thread (0: libtorch's default, all cores). With 1,
     /// an episode gets the same bits alone or batched with others on AVX2 CPUs (within 1e-6 on
     /// AVX-512 ones, whose kernels depend on the batch size).
@@ -77,6 +80,7 @@ impl Default for ServeOptions {
             body_timeout: Duration::from_secs(10),
             max_connections: None,
             queue: 4096,
+            prompt_strategy: pdt_prompt::PromptStrategy::default(),
             threads: 0,
         }
     }
@@ -115,6 +119,18 @@ pub struct OpenRequest {
     /// with this seed (default 0).
     #[serde(default)]
     pub prompt_seed: Option<u64>,
+    /// How a `task`'s prompt is chosen (`docs/prompt-control.md`): `reference` (the evaluation's
+    /// draw), `random-segment`, `best-return`, `nearest-start` (nearest this episode's first
+    /// observation) or `bandit` (one per task on the server, learning from the returns of the
+    /// task's closed episodes). Default: the server's `--prompt-strategy`.
+    #[serde(default)]
+    pub prompt_strategy: Option<String>,
+    /// Test-time prompt segments J and steps per segment H (default: the server's, else the
+    /// run's).
+    #[serde(default)]
+    pub prompt_episodes: Option<usize>,
+    #[serde(default)]
+    pub prompt_length: Option<usize>,
     /// G* (default: the run's).
     #[serde(default)]
     pub target_return: Option<f64>,
@@ -136,6 +152,10 @@ pub struct ActionReply {
     pub episode: u64,
     pub t: usize,
     pub action: Vec<f32>,
+    /// The opening reply of an episode whose prompt a strategy other than `reference` chose:
+    /// the segments it is made of (demonstration, first step), in prompt order.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prompt_segments: Option<Vec<pdt_prompt::SegmentChoice>>,
 }
 
 /// `GET /v1/info`.
@@ -218,6 +238,10 @@ struct Episode {
     /// The prompt's keys and values (one row), `None` for methods without a prompt.
     prefix: Option<PrefixCache>,
     seen: Instant,
+    /// The segments a strategy chose, sent with the first action.
+    segments: Option<Vec<pdt_prompt::SegmentChoice>>,
+    /// `bandit`: the task and the arms pulled, reported with the return when it closes.
+    bandit: Option<(usize, pdt_prompt::bandit::BanditChoice)>,
 }
 
 /// What the model thread owns: the policy and every open episode.
@@ -226,6 +250,8 @@ struct Worker {
     opts: ServeOptions,
     episodes: HashMap<u64, Episode>,
     next_id: u64,
+    /// `bandit` prompts: one bandit per task, across its episodes.
+    bandits: HashMap<usize, pdt_policy::TaskBandit>,
 }
 
 /// An action to compute in this batch, and where its answer goes.
@@ -238,7 +264,7 @@ struct Pending {
 
 impl Worker {
     fn new(run: Policy, opts: ServeOptions) -> Self {
-        Self { run, opts, episodes: HashMap::new(), next_id: 1 }
+        Self { run, opts, episodes: HashMap::new(), next_id: 1, bandits: HashMap::new() }
     }
 
     fn run(mut self, rx: mpsc::Receiver<Msg>) {
@@ -297,7 +323,15 @@ impl Worker {
                     }
                     Msg::Close(id, reply) => {
                         let r = match self.episodes.remove(&id) {
-                            Some(_) => Ok(()),
+                            Some(ep) => {
+                                // A bandit learns the return of each episode it prompted.
+                                if let Some((task, choice)) = &ep.bandit {
+                                    if let Some(b) = self.bandits.get_mut(task) {
+                                        b.update(choice, ep.e.ret());
+                                    }
+                                }
+                                Ok(())
+                            }
                             None => Err(unknown(id)),
                         };
                         let _ = reply.send(r);
@@ -349,6 +383,8 @@ impl Worker {
             ));
         }
         let mut obs = self.run.observation(&req.observation)?;
+        let strategy = self.strategy(&req)?;
+        let (mut segments, mut bandit) = (None, None);
         let prompt = match (self.run.method.uses_prompt(), req.prompt, req.task) {
             (false, None, None) => None,
             (false, ..) => {
@@ -361,8 +397,34 @@ impl Worker {
                 return Err(ApiError::bad("give either `prompt` or `task`, not both"))
             }
             (true, Some(p), None) => Some(self.run.prompt_from_arrays(&p, obs.inputs_mut())?),
-            (true, None, Some(task)) => {
+            (true, None, Some(task)) if strategy.is_default() => {
                 Some(self.run.task_prompt(task, req.prompt_seed.unwrap_or(0))?)
+            }
+            (true, None, Some(task)) => {
+                let seed = req.prompt_seed.unwrap_or(0);
+                let chosen = if strategy.strategy.learns_from_returns() {
+                    let b = match self.bandits.entry(task) {
+                        std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                        std::collections::hash_map::Entry::Vacant(v) => {
+                            v.insert(self.run.task_bandit(task, seed, &strategy)?)
+                        }
+                    };
+                    if b.strategy() != &strategy {
+                        return Err(ApiError::bad(format!(
+                            "task {task} has a bandit with other settings ({:?}); its episodes \
+                             share it, so open them with the same prompt settings",
+                            b.strategy()
+                        )));
+                    }
+                    let (chosen, choice) = b.choose(&self.run)?;
+                    bandit = Some((task, choice));
+                    chosen
+                } else {
+                    let first: Vec<f32> = req.observation.iter().map(|&x| x as f32).collect();
+                    self.run.strategy_prompt(task, seed, &strategy, Some(&first))?
+                };
+                segments = Some(chosen.segments);
+                Some(chosen.prompt)
             }
             (true, None, None) => {
                 return Err(ApiError::bad(
@@ -378,8 +440,31 @@ impl Worker {
         let id = self.next_id;
         self.next_id += 1;
         let e = self.run.start(obs, target);
-        self.episodes.insert(id, Episode { e, prefix, seen: Instant::now() });
+        self.episodes.insert(id, Episode { e, prefix, seen: Instant::now(), segments, bandit });
         Ok(id)
+    }
+
+    /// The prompt strategy of an opening request: the server's, with what the request names.
+    fn strategy(&self, req: &OpenRequest) -> Result<pdt_prompt::PromptStrategy, ApiError> {
+        let mut s = self.opts.prompt_strategy.clone();
+        if let Some(name) = &req.prompt_strategy {
+            s.strategy = name.parse().map_err(|e: pdt_prompt::StrategyError| {
+                ApiError::bad(format!("prompt_strategy: {e}"))
+            })?;
+        }
+        s.episodes = req.prompt_episodes.or(s.episodes);
+        s.length = req.prompt_length.or(s.length);
+        let named = req.prompt_strategy.is_some()
+            || req.prompt_episodes.is_some()
+            || req.prompt_length.is_some();
+        if named && req.task.is_none() {
+            return Err(ApiError::bad(
+                "prompt_strategy, prompt_episodes and prompt_length choose a `task`'s prompt; \
+                 send a `task`",
+            ));
+        }
+        s.validate().map_err(|e| ApiError::bad(e.to_string()))?;
+        Ok(s)
     }
 
     fn step(&mut self, id: u64, req: StepRequest) -> Result<(), ApiError> {
@@ -438,7 +523,13 @@ impl Worker {
                 let Some(ep) = self.episodes.get_mut(&p.id) else { continue };
                 let why = match ep.e.accept(a) {
                     Ok(()) => {
-                        let reply = ActionReply { episode: p.id, t: ep.e.t(), action: a.to_vec() };
+                        let segments = if p.opening { ep.segments.take() } else { None };
+                        let reply = ActionReply {
+                            episode: p.id,
+                            t: ep.e.t(),
+                            action: a.to_vec(),
+                            prompt_segments: segments,
+                        };
                         let _ = p.reply.send(Ok(reply));
                         continue;
                     }
@@ -629,6 +720,9 @@ fn check(opts: &ServeOptions) -> Result<usize, ServeError> {
             "batch wait (--batch-wait-ms) of {:?} is over {MAX_BATCH_WAIT:?}",
             opts.batch_wait
         ));
+    }
+    if let Err(e) = opts.prompt_strategy.validate() {
+        return bad(format!("--prompt-strategy: {e}"));
     }
     if opts.idle_timeout.is_zero() {
         // 0 would close every episode at once.

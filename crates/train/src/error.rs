@@ -21,6 +21,8 @@ pub enum RunError {
     #[error(transparent)]
     Eval(#[from] EvalError),
     #[error(transparent)]
+    Strategy(#[from] pdt_prompt::StrategyError),
+    #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),

@@ -8,7 +8,8 @@ use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
-use pdt_rundir::{FinalEval, RunDir};
+use pdt_prompt::PromptStrategy;
+use pdt_rundir::{FinalEval, PromptEval, RunDir};
 use std::path::Path;
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
@@ -31,10 +32,29 @@ pub fn evaluate_run_with(
     data: Option<&Path>,
     adaptation: &MacawAdaptation,
 ) -> Result<FinalEval, RunError> {
+    evaluate_run_prompted(dir, episodes, split, device, data, adaptation, None).map(|e| e.eval)
+}
+
+/// [`evaluate_run_with`] with a test-time prompt strategy (`None`: the run's `[eval.prompt]`,
+/// `reference` unless set). The default strategy writes `eval_final.json`, as before strategies;
+/// any other writes `eval_prompt_<strategy>.json` ([`PromptEval`], with its choices), leaving
+/// `eval_final.json` to the reference rule.
+pub fn evaluate_run_prompted(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+    adaptation: &MacawAdaptation,
+    prompt: Option<&PromptStrategy>,
+) -> Result<PromptEval, RunError> {
     let run = RunDir::at(dir);
     let mut cfg = run_config(&run, device, data)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
+    }
+    if let Some(p) = prompt {
+        cfg.eval.prompt = p.clone();
     }
     let setup = Setup::new(cfg)?;
     let stats_path = run.stats_path();
@@ -69,6 +89,7 @@ pub fn evaluate_run_with(
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
     let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
+    let picks = learner.take_prompt_picks();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
         adaptation: learner.adaptation(),
@@ -79,6 +100,12 @@ pub fn evaluate_run_with(
         tasks,
         mean_return,
     };
-    run.write_final_eval(&result)?;
-    Ok(result)
+    let prompt_strategy = setup.cfg.eval.prompt.clone();
+    let out = PromptEval { eval: result, prompt_strategy, picks };
+    if out.prompt_strategy.is_default() {
+        run.write_final_eval(&out.eval)?;
+    } else {
+        run.write_prompt_eval(&out)?;
+    }
+    Ok(out)
 }

@@ -30,7 +30,7 @@ if "torch" in _sys.modules:
         )
 
 from . import _native  # noqa: E402
-from ._native import Policy, Prompt, TaskPlan, families, set_num_threads  # noqa: E402,F401
+from ._native import Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
 
@@ -226,10 +226,21 @@ def evaluate(
     split: str = "test",
     device: Optional[str] = None,
     data: Optional[PathLike] = None,
+    prompt_strategy: Optional[str] = None,
+    prompt_episodes: Optional[int] = None,
+    prompt_length: Optional[int] = None,
 ) -> dict:
     """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
-    run's ``eval_final.json``; returns its content."""
+    run's ``eval_final.json``; returns its content.
+
+    ``prompt_strategy`` (``promptdt eval --prompt-strategy``; docs/prompt-control.md):
+    ``reference`` (default), ``random-segment``, ``best-return``, ``nearest-start`` or ``bandit``;
+    ``prompt_episodes`` / ``prompt_length``: the test-time prompt's J and H. Other than the
+    default, the result goes to ``eval_prompt_<strategy>.json`` and carries ``prompt_strategy``
+    and the strategy's ``picks``."""
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
+    prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of segments", low=1)
+    prompt_length = _opt_uint("prompt_length", prompt_length, "a number of steps", low=1)
     return _json.loads(
         _native.evaluate(
             _os.fspath(run),
@@ -237,6 +248,9 @@ def evaluate(
             split=split,
             device=device,
             data=None if data is None else _os.fspath(data),
+            prompt_strategy=prompt_strategy,
+            prompt_episodes=prompt_episodes,
+            prompt_length=prompt_length,
         )
     )
 
@@ -503,6 +517,7 @@ __all__ = [
     "Dataset",
     "Policy",
     "Prompt",
+    "PromptBandit",
     "TaskPlan",
     "Trajectory",
     "collect",

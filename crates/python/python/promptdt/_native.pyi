@@ -29,6 +29,7 @@ __all__ = [
     "VecEnv",
     "Policy",
     "Prompt",
+    "PromptBandit",
     "TaskPlan",
 ]
 
@@ -58,6 +59,9 @@ def evaluate(
     split: str = "test",
     device: Optional[str] = None,
     data: Optional[_Path] = None,
+    prompt_strategy: Optional[str] = None,
+    prompt_episodes: Optional[int] = None,
+    prompt_length: Optional[int] = None,
 ) -> str: ...
 def experiments() -> str: ...
 def is_scripted(family: str) -> bool: ...
@@ -117,6 +121,15 @@ class Prompt:
     def timesteps(self) -> npt.NDArray[np.int64]: ...
     @property
     def mask(self) -> _F32: ...
+    @property
+    def segments(self) -> List[Dict[str, int]]: ...
+
+@final
+class PromptBandit:
+    @property
+    def task(self) -> int: ...
+    def choose(self) -> Prompt: ...
+    def update(self, episode_return: float) -> None: ...
 
 @final
 class TaskPlan:
@@ -158,7 +171,15 @@ class Policy:
         run_dir: _Path, device: str = "cpu", data: Optional[_Path] = None, threads: Optional[int] = None
     ) -> "Policy": ...
     def prompt_tasks(self) -> List[int]: ...
-    def task_prompt(self, task: int, seed: Optional[int] = None) -> Prompt: ...
+    def task_prompt(
+        self,
+        task: int,
+        seed: Optional[int] = None,
+        prompt_strategy: Optional[str] = None,
+        observation: Optional[npt.ArrayLike] = None,
+        prompt_episodes: Optional[int] = None,
+        prompt_length: Optional[int] = None,
+    ) -> Prompt: ...
     def prompt(
         self,
         states: npt.ArrayLike,
@@ -166,6 +187,16 @@ class Policy:
         returns_to_go: npt.ArrayLike,
         timesteps: npt.ArrayLike,
     ) -> Prompt: ...
+    def prompt_bandit(
+        self,
+        task: int,
+        seed: Optional[int] = None,
+        rule: Optional[str] = None,
+        epsilon: Optional[float] = None,
+        prompt_episodes: Optional[int] = None,
+        prompt_length: Optional[int] = None,
+        stride: Optional[int] = None,
+    ) -> PromptBandit: ...
     def eval_plan(self, split: str = "test", episodes: Optional[int] = None) -> List[TaskPlan]: ...
     def set_prompt(self, prompt: Union[Prompt, Sequence[Prompt]]) -> None: ...
     def reset(self, n_episodes: int, target_return: Optional[float] = None) -> None: ...

@@ -11,7 +11,7 @@ pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::DeviceSpec;
 pub use pdt_base::num::compact;
 use pdt_data::multitask::DataFormat;
-use pdt_prompt::{NormalizationScope, PromptPosition, TrajectoryRanking};
+use pdt_prompt::{NormalizationScope, PromptPosition, PromptStrategy, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -292,6 +292,11 @@ pub struct EvalSection {
     /// layer for the last 8 positions only; `full`: the reference's full forward at every step.
     /// Equal within 1e-6, not bit for bit (`crates/model/tests/act.rs`).
     pub inference: Inference,
+    /// `[eval.prompt]`: the test-time prompt strategy and length (`docs/prompt-control.md`).
+    /// Written only when it differs from the default (`reference`, the training length), so the
+    /// configuration files of runs that never set it are what they were.
+    #[serde(skip_serializing_if = "PromptStrategy::is_default")]
+    pub prompt: PromptStrategy,
 }
 
 impl Default for EvalSection {
@@ -306,6 +311,7 @@ impl Default for EvalSection {
             finetune_batch: 256,
             finetune_lr: 1e-4,
             inference: Inference::Cached,
+            prompt: PromptStrategy::default(),
         }
     }
 }
@@ -422,6 +428,16 @@ impl TrainConfig {
         v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
         v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
         v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
+        if let Err(err) = e.prompt.validate() {
+            v.fail(format!("eval.prompt: {err}"));
+        }
+        if !e.prompt.is_default() && !self.run.method.uses_prompt() {
+            v.fail(format!(
+                "eval.prompt: {} takes no prompt; a prompt strategy applies to prompt-dt and \
+                 prompt-mt-bc runs",
+                self.run.method.name()
+            ));
+        }
         if macaw {
             if let Err(e) = self.macaw.validate() {
                 v.fail(e.to_string());

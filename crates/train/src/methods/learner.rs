@@ -165,6 +165,12 @@ pub(crate) trait Learner {
     /// Loads weights alone (a final evaluation), each tensor by name and shape.
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
 
+    /// The prompt strategy's choices in the last [`Learner::evaluate`] (`[eval.prompt]`), taken
+    /// out; empty for the reference rule and the methods without a prompt.
+    fn take_prompt_picks(&mut self) -> Vec<pdt_prompt::PromptPick> {
+        Vec::new()
+    }
+
     /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
     /// transitions`); `None` for the methods without one.
     fn adaptation(&self) -> Option<String> {

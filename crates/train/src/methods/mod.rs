@@ -9,6 +9,7 @@
 mod learner;
 pub(crate) mod macaw;
 pub(crate) mod prompt_dt;
+mod prompt_strategy;
 
 pub use learner::MacawAdaptation;
 pub(crate) use learner::{

@@ -6,6 +6,7 @@ use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
     Learner, SavedSteps, TaskEval,
 };
+use super::prompt_strategy::evaluate_strategy;
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, Optimizer, ParamState};
@@ -18,7 +19,7 @@ use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
-use pdt_prompt::{BatchSampler, Rng};
+use pdt_prompt::{BatchSampler, PromptPick, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -55,6 +56,8 @@ pub(crate) struct PromptDtLearner<'s> {
     opt: Optimizer,
     /// The training tasks' batch sampler.
     sampler: BatchSampler<'s>,
+    /// The prompt strategy's choices in the last evaluation (empty for the reference rule).
+    picks: Vec<PromptPick>,
 }
 
 impl<'s> PromptDtLearner<'s> {
@@ -71,7 +74,7 @@ impl<'s> PromptDtLearner<'s> {
             &setup.run_data.model_cfg.parameter_names(),
             setup.cfg.optim.clone(),
         );
-        Ok(Self { setup, variant, vs, model, opt, sampler })
+        Ok(Self { setup, variant, vs, model, opt, sampler, picks: Vec::new() })
     }
 }
 
@@ -195,6 +198,7 @@ impl Learner for PromptDtLearner<'_> {
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+        self.picks.clear();
         let results = eval_tasks(self, split, rng)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
@@ -252,6 +256,10 @@ impl Learner for PromptDtLearner<'_> {
         checkpoint::load(&mut self.vs, path, self.setup.run_data.model_cfg.n_layer)?;
         Ok(())
     }
+
+    fn take_prompt_picks(&mut self) -> Vec<PromptPick> {
+        std::mem::take(&mut self.picks)
+    }
 }
 
 /// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
@@ -289,6 +297,13 @@ fn eval_tasks(
         env_threads: pdt_base::threads(setup.cfg.eval.env_threads),
         inference: setup.cfg.eval.inference,
     };
+    // A prompt strategy other than the reference rule (`[eval.prompt]`): its own evaluation.
+    let strategy = &setup.cfg.eval.prompt;
+    if !strategy.is_default() {
+        let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
+        learner.picks = s.picks;
+        return Ok(s.results);
+    }
     // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
     // whose episodes carry `task_index == k`.
     let summarise_all = |positions: &[usize], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
