@@ -467,7 +467,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     };
     let pack_engine = match a.pack_engine.as_deref() {
         Some(e) => e.parse::<pdt_train::pack::Engine>().map_err(anyhow::Error::msg)?,
-        None => pdt_train::pack::Engine::default_engine(),
+        None => pdt_train::pack::Engine::default_for(if on_gpu {
+            tch::Device::Cuda(0)
+        } else {
+            tch::Device::Cpu
+        }),
     };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {

@@ -29,9 +29,14 @@ fn member(cfg: &Path, name: &str, sets: &[Set]) -> PathBuf {
 
 /// Three runs of the point robot: different seeds, one MT-ORL and one MT-BC-Finetune (whose
 /// fine-tuning draws dropout from where its last step left libtorch's generator), each
-/// checkpointing after every iteration (so a kill lands between checkpoints often).
+/// checkpointing after every iteration (so a kill lands between checkpoints often), with two
+/// threads (so the solo engine steps them at once, one thread each).
 fn three(cfg: &Path) -> Vec<PathBuf> {
-    let each = [("train", "resume_interval", "1"), ("eval", "finetune_steps", "2")];
+    let each = [
+        ("train", "resume_interval", "1"),
+        ("eval", "finetune_steps", "2"),
+        ("run", "threads", "2"),
+    ];
     let sets = |name: &str, method: &str, seed: &str| {
         let mut v = each.to_vec();
         v.extend([

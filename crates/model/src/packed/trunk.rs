@@ -3,6 +3,7 @@
 
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
 use crate::config::PromptDtConfig;
+use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
 use crate::prompt_dt::Segments;
 use tch::{Device, Kind, Tensor};
 
@@ -28,12 +29,10 @@ pub struct PackedPromptDt {
     device: Device,
 }
 
-/// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site).
-struct Masks {
-    embd: Option<Tensor>,
-    /// Per layer: attention weights `[N*B, nh, L, L]`, attention output and MLP output `[N*B, L, H]`.
-    layers: Vec<[Option<Tensor>; 3]>,
-}
+/// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
+/// embeddings `[N*B, L, H]`; per layer attention weights `[N*B, nh, L, L]`, attention output and
+/// MLP output `[N*B, L, H]`.
+type Masks = DropoutMasks;
 
 fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
     match mask {
@@ -225,23 +224,15 @@ impl PackedPromptDt {
         let cfg = &self.cfg;
         let (b, h, nh) = (batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
         let rows = self.slots as i64 * b;
-        // The sites in the solo forward's order: embeddings, then per layer attention weights,
-        // attention output, MLP output.
-        let mut sites: Vec<(f64, bool)> = vec![(cfg.embd_pdrop, false)];
-        for _ in 0..cfg.n_layer {
-            sites.extend([
-                (cfg.attn_pdrop, true),
-                (cfg.resid_pdrop, false),
-                (cfg.resid_pdrop, false),
-            ]);
-        }
+        // The sites in the solo forward's order.
+        let sites = dropout_sites(cfg);
         let f = (Kind::Float, self.device);
         let own_len = |slot: usize| 3 * (batch.prompt_lens[slot] + batch.k);
         // Rows that are not all drawn (padding, or a run without dropout) start at 1.
         let partial = seeds.0.iter().enumerate().any(|(s, seed)| seed.is_none() || own_len(s) < l);
         let stacked: Vec<Option<Tensor>> = sites
             .iter()
-            .map(|&(p, attn)| {
+            .map(|&DropoutSite { p, attention: attn }| {
                 let full: Vec<i64> = if attn { vec![rows, nh, l, l] } else { vec![rows, l, h] };
                 (p > 0.0).then(|| {
                     if partial {
@@ -257,7 +248,7 @@ impl PackedPromptDt {
             tch::manual_seed(*seed);
             let lj = own_len(slot);
             let off = l - lj;
-            for (&(p, attn), mask) in sites.iter().zip(&stacked) {
+            for (&DropoutSite { p, attention: attn }, mask) in sites.iter().zip(&stacked) {
                 // `at::dropout` draws nothing at p = 0.
                 let Some(mask) = mask else { continue };
                 // `at::dropout` (CPU): noise = empty_like(x).bernoulli_(1 - p); noise.div_(1 - p).
@@ -265,14 +256,12 @@ impl PackedPromptDt {
                 // what a fresh tensor of their shape gets.
                 let mut mine = mask.narrow(0, slot as i64 * b, b);
                 if off == 0 {
-                    let _ = mine.bernoulli_float_(1.0 - p);
-                    let _ = mine.g_div_scalar_(1.0 - p);
+                    draw_noise(&mut mine, p);
                     continue;
                 }
                 let own: Vec<i64> = if attn { vec![b, nh, lj, lj] } else { vec![b, lj, h] };
                 let mut noise = Tensor::empty(own.as_slice(), f);
-                let _ = noise.bernoulli_float_(1.0 - p);
-                let _ = noise.g_div_scalar_(1.0 - p);
+                draw_noise(&mut noise, p);
                 let mut window = mine.narrow(attn as i64 + 1, off, lj);
                 if attn {
                     window = window.narrow(3, off, lj);
@@ -280,17 +269,7 @@ impl PackedPromptDt {
                 window.copy_(&noise);
             }
         }
-        let mut stacked = stacked.into_iter();
-        let embd = stacked.next().flatten();
-        let mut layers = Vec::with_capacity(cfg.n_layer);
-        for _ in 0..cfg.n_layer {
-            layers.push([
-                stacked.next().flatten(),
-                stacked.next().flatten(),
-                stacked.next().flatten(),
-            ]);
-        }
-        Masks { embd, layers }
+        Masks::from_sites(stacked)
     }
 
     fn attention(
