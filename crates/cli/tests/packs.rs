@@ -283,9 +283,10 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
         ok(&args)
     };
     run(&alone, &["--jobs", "2"]);
-    // The batched engine (the default): the same runs within its tolerance, not bit for bit.
+    // The batched engine (the default on a GPU): the same runs within its tolerance, not bit for
+    // bit.
     let batched = tmp.path().join("batched");
-    run(&batched, &["--pack", "4"]);
+    run(&batched, &["--pack", "4", "--pack-engine", "batched"]);
     let record = std::fs::read_to_string(
         batched.join("packs/point_robot_prompt-dt_smoke_seed0-x4/pack.json"),
     )
@@ -320,7 +321,7 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
     for k in keys {
         assert_same_tree(&alone.join("runs").join(k), &packed.join("runs").join(k), false);
     }
-    // A second call finds them finished.
+    // A second call (the default engine: solo on the CPU) finds them finished.
     assert!(run(&packed, &["--pack", "4"]).contains("4 runs already finished"));
     // --emit jobs --pack: one job for the pack, naming its runs, which trains them all.
     run(&emitted, &["--pack", "4", "--pack-engine", "solo", "--emit", "jobs"]);
