@@ -150,7 +150,7 @@ fn runs_stepped_at_once_in_threads_are_their_solo_steps_bit_for_bit() {
 }
 
 fn stepped_as_alone(threads: SoloThreads) {
-    let mut engine = SoloEngine::with_threads(specs(), Device::Cpu, threads);
+    let mut engine = SoloEngine::with_threads(specs(), Device::Cpu, threads).unwrap();
     assert_eq!(engine.threads(), threads);
     let mut alone: Vec<Solo> = (0..3).map(solo).collect();
     for (i, s) in alone.iter().enumerate() {

@@ -253,7 +253,7 @@ fn make_engine(
     solo_threads: SoloThreads,
 ) -> Result<Box<dyn PackEngine + Send>, RunError> {
     Ok(match kind {
-        Engine::Solo => Box::new(SoloEngine::with_threads(specs, device, solo_threads)),
+        Engine::Solo => Box::new(SoloEngine::with_threads(specs, device, solo_threads)?),
         Engine::Batched => Box::new(BatchedEngine::new(specs, layout, device)?),
     })
 }

@@ -3,24 +3,28 @@
 //! trained alone, bit for bit; it is the fallback for whatever the batched engine cannot pack, and
 //! the reference the batched engine is tested against.
 //!
-//! On the CPU it steps the slots concurrently, one OS thread per slot, each with the run's libtorch
-//! threads ([`SoloThreads`]): a pack of N runs computes as N processes of the same runs would (and
-//! keeps the cores as busy), with one copy of the data. libtorch's generator is the process's, so each slot's dropout masks are drawn
-//! first, one slot after another (seeded as the contract says, in the solo forward's order and
-//! shapes: `PromptDt::draw_dropout`), and given to its step; on the CPU these are the bits the solo
-//! forward draws itself (`pdt_model::dropout`). Elsewhere (CUDA, whose dropout kernel draws
-//! otherwise, or a pack of one) the slots are stepped one after another, each drawing its masks.
+//! On the CPU it steps the slots concurrently, one OS thread per slot for the pack's life
+//! (`workers`), each with the run's libtorch threads ([`SoloThreads`]): a pack of N runs computes
+//! as N processes of the same runs would (and keeps the cores as busy), with one copy of the data.
+//! libtorch's generator is the process's, so each slot's dropout masks are drawn first, one slot
+//! after another (seeded as the contract says, in the solo forward's order and shapes:
+//! `PromptDt::draw_dropout`), and given to its step; on the CPU these are the bits the solo forward
+//! draws itself (`pdt_model::dropout`). Elsewhere (CUDA, whose dropout kernel draws otherwise, or a
+//! pack of one) the slots are stepped one after another, each drawing its own masks.
+
+mod workers;
 
 use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::optim::Optimizer;
-use crate::step::{train_step, train_step_with, StepStats};
+use crate::step::{train_step_with, StepStats};
 use crate::streams::STREAM_DROPOUT;
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::{Dropout, DropoutMasks};
 use pdt_model::PromptDt;
 use std::collections::BTreeMap;
 use tch::{nn::VarStore, Device, Tensor};
+use workers::{Job, Reply, Worker};
 
 /// One run of the pack: its model and optimiser, as a solo run holds them.
 struct Slot {
@@ -28,6 +32,52 @@ struct Slot {
     vs: VarStore,
     model: PromptDt,
     opt: Optimizer,
+}
+
+impl Slot {
+    /// The solo step; `dropout` is [`Dropout::Draw`] (seeded by the caller) or masks drawn for it.
+    fn step(&mut self, input: &SlotStep, dropout: Dropout<'_>) -> StepStats {
+        let (batch, loss_on) = (&input.batch, self.spec.loss_on);
+        train_step_with(&self.model, &mut self.opt, batch, loss_on, input.step, dropout)
+    }
+
+    fn state(&self) -> SlotState {
+        SlotState::copy_of(&self.vs, &self.opt)
+    }
+
+    /// Sets the weights and optimiser state (slot `slot` of the pack, for the errors).
+    fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
+        let vars = self.vs.variables();
+        let given: BTreeMap<&str, &Tensor> =
+            state.weights.iter().map(|(k, t)| (k.as_str(), t)).collect();
+        if let Some(name) = vars.keys().find(|k| !given.contains_key(k.as_str())) {
+            return Err(RunError::Invalid(format!(
+                "pack engine: slot {slot}: no weights `{name}`"
+            )));
+        }
+        for (name, t) in &given {
+            let var = vars.get(*name).ok_or_else(|| {
+                RunError::Invalid(format!("pack engine: slot {slot}: unknown weights `{name}`"))
+            })?;
+            if var.size() != t.size() {
+                return Err(RunError::Invalid(format!(
+                    "pack engine: slot {slot}: `{name}` has shape {:?}, the model {:?}",
+                    t.size(),
+                    var.size()
+                )));
+            }
+        }
+        tch::no_grad(|| {
+            for (name, t) in &given {
+                if let Some(var) = vars.get(*name) {
+                    var.shallow_clone().copy_(t);
+                }
+            }
+        });
+        self.opt
+            .set_state(state.moments)
+            .map_err(|e| RunError::Invalid(format!("pack engine: slot {slot}: {e}")))
+    }
 }
 
 /// How the solo engine uses the CPU's threads.
@@ -56,10 +106,19 @@ impl SoloThreads {
     }
 }
 
+/// Where the slots live: here (stepped one after another) or each on its worker thread.
+enum Slots {
+    Here(Vec<Slot>),
+    Workers(Vec<Worker>),
+}
+
 /// N solo models, stepped at once in threads or one after another ([`SoloThreads`]).
 pub struct SoloEngine {
-    slots: Vec<Slot>,
+    /// The slots' specs (the workers own the slots themselves).
+    specs: Vec<SlotSpec>,
+    slots: Slots,
     threads: SoloThreads,
+    device: Device,
 }
 
 impl SoloEngine {
@@ -69,24 +128,35 @@ impl SoloEngine {
     /// before its first step.
     /// The slots are stepped one after another ([`Self::with_threads`] to step them at once).
     pub fn new(specs: Vec<SlotSpec>, device: Device) -> Self {
-        Self::with_threads(specs, device, SoloThreads { concurrent: false, intra_op: 1 })
+        let threads = SoloThreads { concurrent: false, intra_op: 1 };
+        let slots = Slots::Here(specs.iter().map(|s| new_slot(s, device)).collect());
+        Self { specs, slots, threads, device }
     }
 
-    /// [`Self::new`], stepping the slots as `threads` says (concurrent only on the CPU: the
-    /// dropout masks drawn beforehand are the solo forward's bits there alone).
-    pub fn with_threads(specs: Vec<SlotSpec>, device: Device, threads: SoloThreads) -> Self {
-        let threads =
+    /// [`Self::new`], stepping the slots as `threads` says: concurrent (only on the CPU, where the
+    /// dropout masks drawn beforehand are the solo forward's bits), each slot on its own thread
+    /// from now until the engine is dropped.
+    pub fn with_threads(
+        specs: Vec<SlotSpec>,
+        device: Device,
+        threads: SoloThreads,
+    ) -> Result<Self, RunError> {
+        let mut engine = Self::new(specs, device);
+        engine.threads =
             SoloThreads { concurrent: threads.concurrent && device == Device::Cpu, ..threads };
-        let slots = specs
-            .into_iter()
-            .map(|spec| {
-                let vs = VarStore::new(device);
-                let model = PromptDt::new(&vs.root(), &spec.model);
-                let opt = Optimizer::new(&vs, &spec.model.parameter_names(), spec.optim.clone());
-                Slot { spec, vs, model, opt }
-            })
-            .collect();
-        Self { slots, threads }
+        if engine.threads.concurrent {
+            let Slots::Here(slots) = std::mem::replace(&mut engine.slots, Slots::Here(Vec::new()))
+            else {
+                return Err(RunError::Invalid("pack engine: slots already on threads".into()));
+            };
+            let workers = slots
+                .into_iter()
+                .enumerate()
+                .map(|(i, slot)| Worker::start(i, slot, engine.threads.intra_op))
+                .collect::<Result<Vec<_>, _>>()?;
+            engine.slots = Slots::Workers(workers);
+        }
+        Ok(engine)
     }
 
     /// How the slots are stepped.
@@ -94,159 +164,131 @@ impl SoloEngine {
         self.threads
     }
 
-    fn slot(&self, slot: usize) -> Result<&Slot, RunError> {
-        self.slots.get(slot).ok_or_else(|| no_slot(slot, self.slots.len()))
+    fn check(&self, slot: usize) -> Result<(), RunError> {
+        if slot < self.specs.len() {
+            Ok(())
+        } else {
+            Err(RunError::Invalid(format!(
+                "pack engine: slot {slot} out of range (the pack has {} runs)",
+                self.specs.len()
+            )))
+        }
     }
 }
 
+fn new_slot(spec: &SlotSpec, device: Device) -> Slot {
+    let vs = VarStore::new(device);
+    let model = PromptDt::new(&vs.root(), &spec.model);
+    let opt = Optimizer::new(&vs, &spec.model.parameter_names(), spec.optim.clone());
+    Slot { spec: spec.clone(), vs, model, opt }
+}
+
 /// The seed of the slot's dropout stream for this step (the engine contract).
-fn dropout_seed(slot: &Slot, input: &SlotStep) -> i64 {
-    derive_seed(slot.spec.seed, STREAM_DROPOUT, input.step) as i64
+fn dropout_seed(spec: &SlotSpec, input: &SlotStep) -> i64 {
+    derive_seed(spec.seed, STREAM_DROPOUT, input.step) as i64
 }
 
 /// Refuses a batch with a prompt for a run without one, or the other way round.
-fn check_prompt(i: usize, slot: &Slot, input: &SlotStep) -> Result<(), RunError> {
-    if input.batch.prompt.is_some() != slot.spec.uses_prompt {
+fn check_prompt(i: usize, spec: &SlotSpec, input: &SlotStep) -> Result<(), RunError> {
+    if input.batch.prompt.is_some() != spec.uses_prompt {
         return Err(RunError::Invalid(format!(
             "pack engine: slot {i}'s batch {} a prompt, but its run {}",
             if input.batch.prompt.is_some() { "has" } else { "lacks" },
-            if slot.spec.uses_prompt { "uses one" } else { "uses none" }
+            if spec.uses_prompt { "uses one" } else { "uses none" }
         )));
     }
     Ok(())
 }
 
-/// One step of every slot given an input, at once: each slot's masks drawn in turn (the caller
-/// holds libtorch's generator, `crate::streams::torch_rng_lock`), then each slot's forward,
-/// backward and update on its own thread with `intra_op` libtorch threads, drawing nothing.
-fn step_concurrently(
-    slots: &mut [Slot],
-    steps: Vec<Option<SlotStep>>,
-    intra_op: usize,
-) -> Result<Vec<Option<StepStats>>, RunError> {
-    let work: Vec<Option<(SlotStep, DropoutMasks)>> = slots
-        .iter()
-        .zip(steps)
-        .map(|(slot, input)| {
-            input.map(|input| {
-                tch::manual_seed(dropout_seed(slot, &input));
-                let b = &input.batch;
-                let masks = slot.model.draw_dropout(&b.history, b.prompt.as_ref());
-                (input, masks)
-            })
-        })
-        .collect();
-    let intra_op = i32::try_from(intra_op).unwrap_or(i32::MAX);
-    let results: Vec<Option<std::thread::Result<StepStats>>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = slots
-            .iter_mut()
-            .zip(work)
-            .map(|(slot, work)| {
-                // Each worker owns its inputs (a tensor may move to another thread, not be shared).
-                let (input, masks) = work?;
-                Some(scope.spawn(move || {
-                    // libtorch's intra-op thread count is per OS thread (OpenMP's): set on each
-                    // worker (it also sets the process default, the same for every worker).
-                    tch::set_num_threads(intra_op);
-                    let Slot { model, opt, spec, .. } = slot;
-                    let given = Dropout::Given(&masks);
-                    train_step_with(model, opt, &input.batch, spec.loss_on, input.step, given)
-                }))
-            })
-            .collect();
-        handles.into_iter().map(|h| h.map(|h| h.join())).collect()
-    });
-    results
-        .into_iter()
-        .enumerate()
-        .map(|(i, r)| match r {
-            None => Ok(None),
-            Some(Ok(st)) => Ok(Some(st)),
-            Some(Err(_)) => {
-                Err(RunError::Invalid(format!("pack engine: slot {i}'s step panicked (see above)")))
-            }
-        })
-        .collect()
-}
-
-fn no_slot(slot: usize, n: usize) -> RunError {
-    RunError::Invalid(format!("pack engine: slot {slot} out of range (the pack has {n} runs)"))
+/// A worker's reply that should have been `what`.
+fn unexpected(slot: usize, what: &str) -> RunError {
+    RunError::Invalid(format!("pack engine: slot {slot}'s thread answered other than {what}"))
 }
 
 impl PackEngine for SoloEngine {
     fn slots(&self) -> usize {
-        self.slots.len()
+        self.specs.len()
     }
 
     fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
-        if steps.len() != self.slots.len() {
+        if steps.len() != self.specs.len() {
             return Err(RunError::Invalid(format!(
                 "pack engine: {} slot inputs for a pack of {} runs",
                 steps.len(),
-                self.slots.len()
+                self.specs.len()
             )));
         }
-        for (i, (slot, input)) in self.slots.iter().zip(&steps).enumerate() {
+        for (i, (spec, input)) in self.specs.iter().zip(&steps).enumerate() {
             if let Some(input) = input {
-                check_prompt(i, slot, input)?;
+                check_prompt(i, spec, input)?;
             }
         }
-        if self.threads.concurrent {
-            return step_concurrently(&mut self.slots, steps, self.threads.intra_op);
+        match &mut self.slots {
+            Slots::Here(slots) => Ok(slots
+                .iter_mut()
+                .zip(steps)
+                .map(|(slot, input)| {
+                    let input = input?;
+                    // The contract's dropout stream: the solo learner seeds the same.
+                    tch::manual_seed(dropout_seed(&slot.spec, &input));
+                    Some(slot.step(&input, Dropout::Draw))
+                })
+                .collect()),
+            Slots::Workers(workers) => {
+                // Every slot's masks, one slot after another (the caller holds libtorch's
+                // generator: `crate::streams::torch_rng_lock`), then the steps at once.
+                let mut sent = Vec::with_capacity(steps.len());
+                for ((spec, worker), input) in self.specs.iter().zip(workers.iter()).zip(steps) {
+                    let Some(input) = input else {
+                        sent.push(false);
+                        continue;
+                    };
+                    tch::manual_seed(dropout_seed(spec, &input));
+                    let (h, p) = (&input.batch.history, input.batch.prompt.as_ref());
+                    let len = PromptDt::token_count(h, p);
+                    let masks = DropoutMasks::draw(&spec.model, h.batch_size(), len, self.device);
+                    worker.send(Job::Step(input, masks))?;
+                    sent.push(true);
+                }
+                // Every reply taken before any error is returned: the next step's replies must
+                // not meet this one's.
+                let replies: Vec<Option<Result<Reply, RunError>>> =
+                    workers.iter().zip(&sent).map(|(w, &sent)| sent.then(|| w.reply())).collect();
+                replies
+                    .into_iter()
+                    .enumerate()
+                    .map(|(i, r)| match r {
+                        None => Ok(None),
+                        Some(Ok(Reply::Step(st))) => Ok(Some(st)),
+                        Some(Ok(Reply::Failed(e))) | Some(Err(e)) => Err(e),
+                        Some(Ok(_)) => Err(unexpected(i, "a step")),
+                    })
+                    .collect()
+            }
         }
-        let mut out = Vec::with_capacity(steps.len());
-        for (slot, input) in self.slots.iter_mut().zip(steps) {
-            let Some(input) = input else {
-                out.push(None);
-                continue;
-            };
-            // The contract's dropout stream: the solo learner seeds the same before its step.
-            tch::manual_seed(dropout_seed(slot, &input));
-            let st =
-                train_step(&slot.model, &mut slot.opt, &input.batch, slot.spec.loss_on, input.step);
-            out.push(Some(st));
-        }
-        Ok(out)
     }
 
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {
-        let s = self.slot(slot)?;
-        Ok(SlotState::copy_of(&s.vs, &s.opt))
+        self.check(slot)?;
+        match &self.slots {
+            Slots::Here(slots) => Ok(slots[slot].state()),
+            Slots::Workers(workers) => match workers[slot].call(Job::Export)? {
+                Reply::State(state) => Ok(state),
+                Reply::Failed(e) => Err(e),
+                _ => Err(unexpected(slot, "its state")),
+            },
+        }
     }
 
     fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
-        let n = self.slots.len();
-        let s = self.slots.get_mut(slot).ok_or_else(|| no_slot(slot, n))?;
-        let vars = s.vs.variables();
-        let given: BTreeMap<&str, &Tensor> =
-            state.weights.iter().map(|(k, t)| (k.as_str(), t)).collect();
-        if let Some(name) = vars.keys().find(|k| !given.contains_key(k.as_str())) {
-            return Err(RunError::Invalid(format!(
-                "pack engine: slot {slot}: no weights `{name}`"
-            )));
+        self.check(slot)?;
+        match &mut self.slots {
+            Slots::Here(slots) => slots[slot].import(slot, state),
+            Slots::Workers(workers) => match workers[slot].call(Job::Import(state))? {
+                Reply::Imported => Ok(()),
+                Reply::Failed(e) => Err(e),
+                _ => Err(unexpected(slot, "an import")),
+            },
         }
-        for (name, t) in &given {
-            let var = vars.get(*name).ok_or_else(|| {
-                RunError::Invalid(format!("pack engine: slot {slot}: unknown weights `{name}`"))
-            })?;
-            if var.size() != t.size() {
-                return Err(RunError::Invalid(format!(
-                    "pack engine: slot {slot}: `{name}` has shape {:?}, the model {:?}",
-                    t.size(),
-                    var.size()
-                )));
-            }
-        }
-        tch::no_grad(|| {
-            for (name, t) in &given {
-                if let Some(var) = vars.get(*name) {
-                    var.shallow_clone().copy_(t);
-                }
-            }
-        });
-        s.opt
-            .set_state(state.moments)
-            .map_err(|e| RunError::Invalid(format!("pack engine: slot {slot}: {e}")))?;
-        Ok(())
     }
 }
