@@ -112,6 +112,16 @@ enum Slots {
     Workers(Vec<Worker>),
 }
 
+/// Dropout masks drawn ahead for a slot's next step, and what they were drawn for.
+struct Ahead {
+    /// The gradient step whose stream they come from.
+    step: u64,
+    /// The batch size and token count of the forward they fit.
+    batch: i64,
+    len: i64,
+    masks: DropoutMasks,
+}
+
 /// N solo models, stepped at once in threads or one after another ([`SoloThreads`]).
 pub struct SoloEngine {
     /// The slots' specs (the workers own the slots themselves).
@@ -119,6 +129,11 @@ pub struct SoloEngine {
     slots: Slots,
     threads: SoloThreads,
     device: Device,
+    /// Per slot (workers only), the masks of its next step, drawn while the workers compute this
+    /// one: the draws (one slot after another on libtorch's one generator) are then off the
+    /// step's critical path. A run's next step is its step + 1 with the same shapes unless it
+    /// left or resumed elsewhere; masks that do not fit are drawn again.
+    ahead: Vec<Option<Ahead>>,
 }
 
 impl SoloEngine {
@@ -130,7 +145,8 @@ impl SoloEngine {
     pub fn new(specs: Vec<SlotSpec>, device: Device) -> Self {
         let threads = SoloThreads { concurrent: false, intra_op: 1 };
         let slots = Slots::Here(specs.iter().map(|s| new_slot(s, device)).collect());
-        Self { specs, slots, threads, device }
+        let ahead = specs.iter().map(|_| None).collect();
+        Self { specs, slots, threads, device, ahead }
     }
 
     /// [`Self::new`], stepping the slots as `threads` says: concurrent (only on the CPU, where the
@@ -200,6 +216,13 @@ fn check_prompt(i: usize, spec: &SlotSpec, input: &SlotStep) -> Result<(), RunEr
     Ok(())
 }
 
+/// Slot `spec`'s masks for its gradient step `step`: a forward of `batch` sequences of `len` tokens.
+/// Seeds libtorch's generator (the caller holds it).
+fn draw_masks(spec: &SlotSpec, step: u64, batch: i64, len: i64, device: Device) -> DropoutMasks {
+    tch::manual_seed(derive_seed(spec.seed, STREAM_DROPOUT, step) as i64);
+    DropoutMasks::draw(&spec.model, batch, len, device)
+}
+
 /// A worker's reply that should have been `what`.
 fn unexpected(slot: usize, what: &str) -> RunError {
     RunError::Invalid(format!("pack engine: slot {slot}'s thread answered other than {what}"))
@@ -236,24 +259,37 @@ impl PackEngine for SoloEngine {
                 .collect()),
             Slots::Workers(workers) => {
                 // Every slot's masks, one slot after another (the caller holds libtorch's
-                // generator: `crate::streams::torch_rng_lock`), then the steps at once.
+                // generator: `crate::streams::torch_rng_lock`), each slot's step started as soon
+                // as its masks are there; those drawn ahead when they fit.
+                let device = self.device;
                 let mut sent = Vec::with_capacity(steps.len());
-                for ((spec, worker), input) in self.specs.iter().zip(workers.iter()).zip(steps) {
+                for (i, input) in steps.into_iter().enumerate() {
                     let Some(input) = input else {
-                        sent.push(false);
+                        sent.push(None);
                         continue;
                     };
-                    tch::manual_seed(dropout_seed(spec, &input));
+                    let spec = &self.specs[i];
                     let (h, p) = (&input.batch.history, input.batch.prompt.as_ref());
-                    let len = PromptDt::token_count(h, p);
-                    let masks = DropoutMasks::draw(&spec.model, h.batch_size(), len, self.device);
-                    worker.send(Job::Step(input, masks))?;
-                    sent.push(true);
+                    let (batch, len) = (h.batch_size(), PromptDt::token_count(h, p));
+                    let masks = match self.ahead[i].take() {
+                        Some(a) if (a.step, a.batch, a.len) == (input.step, batch, len) => a.masks,
+                        _ => draw_masks(spec, input.step, batch, len, device),
+                    };
+                    let next = input.step + 1;
+                    workers[i].send(Job::Step(input, masks))?;
+                    sent.push(Some((next, batch, len)));
+                }
+                // While the workers compute: the masks of each stepped slot's next step.
+                for (i, next) in sent.iter().enumerate() {
+                    if let Some((step, batch, len)) = *next {
+                        let masks = draw_masks(&self.specs[i], step, batch, len, device);
+                        self.ahead[i] = Some(Ahead { step, batch, len, masks });
+                    }
                 }
                 // Every reply taken before any error is returned: the next step's replies must
                 // not meet this one's.
                 let replies: Vec<Option<Result<Reply, RunError>>> =
-                    workers.iter().zip(&sent).map(|(w, &sent)| sent.then(|| w.reply())).collect();
+                    workers.iter().zip(&sent).map(|(w, sent)| sent.map(|_| w.reply())).collect();
                 replies
                     .into_iter()
                     .enumerate()
