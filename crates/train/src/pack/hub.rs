@@ -1,6 +1,8 @@
 //! The meeting point of a pack's runs: each run's thread submits its gradient step and waits; when
 //! every run still training has submitted (or left), one call of the engine steps them all and
-//! each run gets its own result.
+//! each run gets its own result. An engine whose slots step alone (`PackEngine::steps_alone`: the
+//! solo engine on its threads) starts each run's step as soon as it is submitted, and the run
+//! waits for its own result only: its runs are not in lockstep, as separate processes would not be.
 
 use super::engine::{PackEngine, SlotState, SlotStep};
 use crate::error::RunError;
@@ -83,6 +85,20 @@ impl Hub {
         let mut t = self.lock();
         if !t.active.get(slot).copied().unwrap_or(false) {
             return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
+        }
+        if t.engine.steps_alone() {
+            let started = {
+                // The step's dropout masks are drawn as it starts.
+                let _rng = torch_rng_lock();
+                let engine = &mut t.engine;
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.start(slot, step)))
+                    .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
+            };
+            // The others may start, export or import while this step computes.
+            drop(t);
+            return started
+                .and_then(|p| p.wait())
+                .map_err(|e| RunError::Invalid(format!("the pack engine failed: {e}")));
         }
         t.pending[slot] = Some(step);
         if t.ready() {

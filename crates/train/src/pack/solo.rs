@@ -14,7 +14,7 @@
 
 mod workers;
 
-use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+use super::engine::{PackEngine, PendingStep, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::optim::Optimizer;
 use crate::step::{train_step_with, StepStats};
@@ -24,7 +24,7 @@ use pdt_model::dropout::{Dropout, DropoutMasks};
 use pdt_model::PromptDt;
 use std::collections::BTreeMap;
 use tch::{nn::VarStore, Device, Tensor};
-use workers::{Job, Reply, Worker};
+use workers::Worker;
 
 /// One run of the pack: its model and optimiser, as a solo run holds them.
 struct Slot {
@@ -223,9 +223,29 @@ fn draw_masks(spec: &SlotSpec, step: u64, batch: i64, len: i64, device: Device) 
     DropoutMasks::draw(&spec.model, batch, len, device)
 }
 
-/// A worker's reply that should have been `what`.
-fn unexpected(slot: usize, what: &str) -> RunError {
-    RunError::Invalid(format!("pack engine: slot {slot}'s thread answered other than {what}"))
+impl SoloEngine {
+    /// Starts `slot`'s step on its worker: its masks (drawn ahead when they fit) handed over, then
+    /// the masks of its next step drawn while the worker computes. The caller holds libtorch's
+    /// generator (`crate::streams::torch_rng_lock`).
+    fn start_on_worker(&mut self, slot: usize, input: SlotStep) -> Result<PendingStep, RunError> {
+        self.check(slot)?;
+        let Slots::Workers(workers) = &self.slots else {
+            return Err(RunError::Invalid("pack engine: the runs are not on threads".into()));
+        };
+        let spec = &self.specs[slot];
+        check_prompt(slot, spec, &input)?;
+        let (h, p) = (&input.batch.history, input.batch.prompt.as_ref());
+        let (batch, len) = (h.batch_size(), PromptDt::token_count(h, p));
+        let masks = match self.ahead[slot].take() {
+            Some(a) if (a.step, a.batch, a.len) == (input.step, batch, len) => a.masks,
+            _ => draw_masks(spec, input.step, batch, len, self.device),
+        };
+        let step = input.step + 1;
+        let pending = workers[slot].step(input, masks)?;
+        let masks = draw_masks(spec, step, batch, len, self.device);
+        self.ahead[slot] = Some(Ahead { step, batch, len, masks });
+        Ok(pending)
+    }
 }
 
 impl PackEngine for SoloEngine {
@@ -246,8 +266,8 @@ impl PackEngine for SoloEngine {
                 check_prompt(i, spec, input)?;
             }
         }
-        match &mut self.slots {
-            Slots::Here(slots) => Ok(slots
+        if let Slots::Here(slots) = &mut self.slots {
+            return Ok(slots
                 .iter_mut()
                 .zip(steps)
                 .map(|(slot, input)| {
@@ -256,63 +276,24 @@ impl PackEngine for SoloEngine {
                     tch::manual_seed(dropout_seed(&slot.spec, &input));
                     Some(slot.step(&input, Dropout::Draw))
                 })
-                .collect()),
-            Slots::Workers(workers) => {
-                // Every slot's masks, one slot after another (the caller holds libtorch's
-                // generator: `crate::streams::torch_rng_lock`), each slot's step started as soon
-                // as its masks are there; those drawn ahead when they fit.
-                let device = self.device;
-                let mut sent = Vec::with_capacity(steps.len());
-                for (i, input) in steps.into_iter().enumerate() {
-                    let Some(input) = input else {
-                        sent.push(None);
-                        continue;
-                    };
-                    let spec = &self.specs[i];
-                    let (h, p) = (&input.batch.history, input.batch.prompt.as_ref());
-                    let (batch, len) = (h.batch_size(), PromptDt::token_count(h, p));
-                    let masks = match self.ahead[i].take() {
-                        Some(a) if (a.step, a.batch, a.len) == (input.step, batch, len) => a.masks,
-                        _ => draw_masks(spec, input.step, batch, len, device),
-                    };
-                    let next = input.step + 1;
-                    workers[i].send(Job::Step(input, masks))?;
-                    sent.push(Some((next, batch, len)));
-                }
-                // While the workers compute: the masks of each stepped slot's next step.
-                for (i, next) in sent.iter().enumerate() {
-                    if let Some((step, batch, len)) = *next {
-                        let masks = draw_masks(&self.specs[i], step, batch, len, device);
-                        self.ahead[i] = Some(Ahead { step, batch, len, masks });
-                    }
-                }
-                // Every reply taken before any error is returned: the next step's replies must
-                // not meet this one's.
-                let replies: Vec<Option<Result<Reply, RunError>>> =
-                    workers.iter().zip(&sent).map(|(w, sent)| sent.map(|_| w.reply())).collect();
-                replies
-                    .into_iter()
-                    .enumerate()
-                    .map(|(i, r)| match r {
-                        None => Ok(None),
-                        Some(Ok(Reply::Step(st))) => Ok(Some(st)),
-                        Some(Ok(Reply::Failed(e))) | Some(Err(e)) => Err(e),
-                        Some(Ok(_)) => Err(unexpected(i, "a step")),
-                    })
-                    .collect()
-            }
+                .collect());
         }
+        // On the workers: every slot's step started (one after another: their masks come from
+        // the one generator), then every result awaited before any error is returned.
+        let mut pending = Vec::with_capacity(steps.len());
+        for (i, input) in steps.into_iter().enumerate() {
+            pending.push(input.map(|input| self.start_on_worker(i, input)));
+        }
+        let done: Vec<Option<Result<StepStats, RunError>>> =
+            pending.into_iter().map(|p| p.map(|p| p.and_then(PendingStep::wait))).collect();
+        done.into_iter().map(Option::transpose).collect()
     }
 
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {
         self.check(slot)?;
         match &self.slots {
             Slots::Here(slots) => Ok(slots[slot].state()),
-            Slots::Workers(workers) => match workers[slot].call(Job::Export)? {
-                Reply::State(state) => Ok(state),
-                Reply::Failed(e) => Err(e),
-                _ => Err(unexpected(slot, "its state")),
-            },
+            Slots::Workers(workers) => workers[slot].export(),
         }
     }
 
@@ -320,11 +301,15 @@ impl PackEngine for SoloEngine {
         self.check(slot)?;
         match &mut self.slots {
             Slots::Here(slots) => slots[slot].import(slot, state),
-            Slots::Workers(workers) => match workers[slot].call(Job::Import(state))? {
-                Reply::Imported => Ok(()),
-                Reply::Failed(e) => Err(e),
-                _ => Err(unexpected(slot, "an import")),
-            },
+            Slots::Workers(workers) => workers[slot].import(state),
         }
+    }
+
+    fn steps_alone(&self) -> bool {
+        matches!(self.slots, Slots::Workers(_))
+    }
+
+    fn start(&mut self, slot: usize, step: SlotStep) -> Result<PendingStep, RunError> {
+        self.start_on_worker(slot, step)
     }
 }

@@ -1,6 +1,7 @@
 //! The solo engine's worker threads on the CPU: one per slot for the pack's life, owning the slot
 //! (its model and optimiser) and taking its jobs (a step with its dropout masks, an export, an
-//! import) in order.
+//! import) in order, each answered on the job's own channel (so a step's result can be awaited by
+//! whoever started it, while others talk to the engine).
 //!
 //! Why threads that live as long as the pack rather than one per step: a thread's libtorch
 //! intra-op count (OpenMP's) is set once, its OpenMP helper threads stay, and glibc's malloc keeps
@@ -10,14 +11,14 @@
 
 use super::Slot;
 use crate::error::RunError;
-use crate::pack::engine::{SlotState, SlotStep};
+use crate::pack::engine::{PendingStep, SlotState, SlotStep};
 use crate::step::StepStats;
 use pdt_model::dropout::{Dropout, DropoutMasks};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::thread::JoinHandle;
 
 /// What a worker is asked to do with its slot.
-pub(super) enum Job {
+enum Job {
     /// One gradient step with these masks (drawn beforehand: the worker draws nothing).
     Step(SlotStep, DropoutMasks),
     /// A copy of the slot's weights and optimiser state.
@@ -25,8 +26,8 @@ pub(super) enum Job {
     Import(SlotState),
 }
 
-/// A worker's answer to a [`Job`], in the order of the jobs.
-pub(super) enum Reply {
+/// A worker's answer to a [`Job`].
+enum Reply {
     Step(StepStats),
     State(SlotState),
     Imported,
@@ -36,49 +37,76 @@ pub(super) enum Reply {
 /// One slot on its own thread.
 pub(super) struct Worker {
     slot: usize,
-    /// `None` once dropped (closing it ends the thread).
-    jobs: Option<Sender<Job>>,
-    replies: Receiver<Reply>,
+    /// Each job with the channel its reply goes to; `None` once dropped (closing it ends the
+    /// thread).
+    jobs: Option<Sender<(Job, Sender<Reply>)>>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl Worker {
     /// Starts slot `slot`'s thread with `intra_op` libtorch threads.
     pub(super) fn start(slot: usize, owned: Slot, intra_op: usize) -> Result<Self, RunError> {
-        let (jobs, inbox) = channel::<Job>();
-        let (outbox, replies) = channel::<Reply>();
+        let (jobs, inbox) = channel::<(Job, Sender<Reply>)>();
         let intra_op = i32::try_from(intra_op).unwrap_or(i32::MAX);
         let thread = std::thread::Builder::new()
             .name(format!("pack-slot-{slot}"))
-            .spawn(move || serve(owned, intra_op, slot, &inbox, &outbox))
+            .spawn(move || serve(owned, intra_op, slot, &inbox))
             .map_err(|e| RunError::Invalid(format!("pack engine: slot {slot}'s thread: {e}")))?;
-        Ok(Self { slot, jobs: Some(jobs), replies, thread: Some(thread) })
+        Ok(Self { slot, jobs: Some(jobs), thread: Some(thread) })
     }
 
-    /// Hands the worker a job (its reply comes with [`Self::reply`]).
-    pub(super) fn send(&self, job: Job) -> Result<(), RunError> {
-        let sent = self.jobs.as_ref().map(|j| j.send(job).is_ok()).unwrap_or(false);
+    /// Hands the worker a job; its reply comes on the returned channel.
+    fn send(&self, job: Job) -> Result<Receiver<Reply>, RunError> {
+        let (reply, answer) = channel();
+        let sent = self.jobs.as_ref().is_some_and(|j| j.send((job, reply)).is_ok());
         if sent {
-            Ok(())
+            Ok(answer)
         } else {
-            Err(self.gone())
+            Err(gone(self.slot))
         }
     }
 
-    /// The reply to the oldest job not yet answered.
-    pub(super) fn reply(&self) -> Result<Reply, RunError> {
-        self.replies.recv().map_err(|_| self.gone())
+    /// Starts a step with these masks; its statistics come with [`PendingStep::wait`].
+    pub(super) fn step(
+        &self,
+        input: SlotStep,
+        masks: DropoutMasks,
+    ) -> Result<PendingStep, RunError> {
+        let answer = self.send(Job::Step(input, masks))?;
+        let slot = self.slot;
+        Ok(PendingStep::new(move || match answer.recv().map_err(|_| gone(slot))? {
+            Reply::Step(st) => Ok(st),
+            Reply::Failed(e) => Err(e),
+            _ => Err(unexpected(slot, "a step")),
+        }))
     }
 
-    /// A job and its reply.
-    pub(super) fn call(&self, job: Job) -> Result<Reply, RunError> {
-        self.send(job)?;
-        self.reply()
+    /// A copy of the slot's weights and optimiser state.
+    pub(super) fn export(&self) -> Result<SlotState, RunError> {
+        match self.send(Job::Export)?.recv().map_err(|_| gone(self.slot))? {
+            Reply::State(state) => Ok(state),
+            Reply::Failed(e) => Err(e),
+            _ => Err(unexpected(self.slot, "its state")),
+        }
     }
 
-    fn gone(&self) -> RunError {
-        RunError::Invalid(format!("pack engine: slot {}'s thread has ended", self.slot))
+    /// Sets the slot's weights and optimiser state.
+    pub(super) fn import(&self, state: SlotState) -> Result<(), RunError> {
+        match self.send(Job::Import(state))?.recv().map_err(|_| gone(self.slot))? {
+            Reply::Imported => Ok(()),
+            Reply::Failed(e) => Err(e),
+            _ => Err(unexpected(self.slot, "an import")),
+        }
     }
+}
+
+fn gone(slot: usize) -> RunError {
+    RunError::Invalid(format!("pack engine: slot {slot}'s thread has ended"))
+}
+
+/// A worker's reply that should have been `what`.
+fn unexpected(slot: usize, what: &str) -> RunError {
+    RunError::Invalid(format!("pack engine: slot {slot}'s thread answered other than {what}"))
 }
 
 impl Drop for Worker {
@@ -92,11 +120,11 @@ impl Drop for Worker {
 }
 
 /// The worker's loop: its jobs in order until the engine drops it.
-fn serve(mut slot: Slot, intra_op: i32, index: usize, inbox: &Receiver<Job>, out: &Sender<Reply>) {
+fn serve(mut slot: Slot, intra_op: i32, index: usize, inbox: &Receiver<(Job, Sender<Reply>)>) {
     // libtorch's intra-op thread count is per OS thread (OpenMP's): set once for this thread (it
     // also sets the process default, which is the same count for every thread of the pack).
     tch::set_num_threads(intra_op);
-    for job in inbox {
+    for (job, out) in inbox {
         // A libtorch error (a panic in tch) fails this job, not the thread: the run fails with it,
         // and the engine can still be dropped.
         let done = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match job {
@@ -112,8 +140,7 @@ fn serve(mut slot: Slot, intra_op: i32, index: usize, inbox: &Receiver<Job>, out
                 "pack engine: slot {index}'s step panicked (see above)"
             )))
         });
-        if out.send(reply).is_err() {
-            return;
-        }
+        // Nobody waiting (the caller gave up) is no reason to stop serving the others.
+        let _ = out.send(reply);
     }
 }
