@@ -101,7 +101,7 @@ struct Member {
     resume: bool,
 }
 
-/// Trains the runs of a pack in lockstep, each into its own run directory, and returns each run's
+/// Trains the runs of a pack together, each into its own run directory, and returns each run's
 /// outcome in order: a run that fails (its data, its directory, a divergence) ends with its error
 /// while the others go on. The pack itself is refused, before anything is written, when its runs
 /// cannot share one pack (another family, model shape or device; MACAW; one directory twice) or a
