@@ -10,7 +10,8 @@
 #   DATA=path/to/data/cheetah_dir ITER=3 THREADS=1 bash scripts/bench/pack_cpu.sh
 # BIN_OLD=path/to/promptdt adds C: that binary's solo-engine pack (e.g. a build from before the
 # concurrent solo engine, whose runs were stepped one after another). OMP_WAIT_POLICY is passed on
-# (PASSIVE unless set, as `reproduce` gives its runs).
+# (PASSIVE unless set, as `reproduce` gives its runs). CASES picks the comparisons (default
+# "SB AS", and SC with BIN_OLD), e.g. CASES=SB for the pack against three processes alone.
 set -eu
 BIN=${BIN:-target/release/promptdt}
 DATA=${DATA:?set DATA to a Cheetah-Dir data directory (promptdt collect --env cheetah_dir ...)}
@@ -55,11 +56,16 @@ d=\$(mktemp -d -p "$W")
 "\${2:-$BIN}" train --quiet --engine "\$1" --out "\$d/pack" --pack $C
 rm -rf "\$d"
 SH
-echo "== S (solo-engine pack) vs B (three processes at once)"
-farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/three.sh" -- bash "$W/pack.sh" solo
-echo "== A (batched pack) vs S (solo-engine pack)"
-farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo" -- bash "$W/pack.sh" batched
-if [ -n "${BIN_OLD:-}" ]; then
+CASES=${CASES:-SB AS${BIN_OLD:+ SC}}
+case " $CASES " in *" SB "*)
+  echo "== S (solo-engine pack) vs B (three processes at once)"
+  farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/three.sh" -- bash "$W/pack.sh" solo ;;
+esac
+case " $CASES " in *" AS "*)
+  echo "== A (batched pack) vs S (solo-engine pack)"
+  farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo" -- bash "$W/pack.sh" batched ;;
+esac
+if [ -n "${BIN_OLD:-}" ] && [[ " $CASES " == *" SC "* ]]; then
   echo "== S (solo-engine pack) vs C (solo-engine pack of $BIN_OLD)"
   farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo $(realpath "$BIN_OLD")" -- \
     bash "$W/pack.sh" solo
