@@ -1,17 +1,23 @@
 #!/usr/bin/env bash
 # Issue 30 on the CPU: three Cheetah-Dir runs (Prompt-DT seeds 0 and 1, MT-ORL seed 0; the reference
 # model, batch 2 x 16, K = 20) trained three ways, each timed as a whole process with farm-bench:
-#   A  one batched pack in one process        (train --pack a b c)
-#   B  three processes at once, sharing the cores
-#   C  a solo-engine pack (the same three runs stepped one after another in one process)
+#   S  a solo-engine pack in one process      (train --engine solo --pack a b c: on the CPU its
+#      runs' steps at once, one thread each with THREADS libtorch threads, one copy of the data)
+#   B  three processes at once, sharing the cores (each with THREADS libtorch threads)
+#   A  a batched pack in one process          (train --engine batched --pack a b c)
 # ITER iterations of 10 steps each, no evaluation until the last (1 episode per task), so the time is
 # the training steps. Usage (from the repository root, a release build, Cheetah-Dir data at DATA):
 #   DATA=path/to/data/cheetah_dir ITER=3 THREADS=1 bash scripts/bench/pack_cpu.sh
+# BIN_OLD=path/to/promptdt adds C: that binary's solo-engine pack (e.g. a build from before the
+# concurrent solo engine, whose runs were stepped one after another). OMP_WAIT_POLICY is passed on
+# (PASSIVE unless set, as `reproduce` gives its runs). CASES picks the comparisons (default
+# "SB AS", and SC with BIN_OLD), e.g. CASES=SB for the pack against three processes alone.
 set -eu
 BIN=${BIN:-target/release/promptdt}
 DATA=${DATA:?set DATA to a Cheetah-Dir data directory (promptdt collect --env cheetah_dir ...)}
 ITER=${ITER:-3}
 THREADS=${THREADS:-1}
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 W=$(mktemp -d)
 trap 'rm -rf "$W"' EXIT
 mk() { # method seed
@@ -47,10 +53,20 @@ SH
 cat >"$W/pack.sh" <<SH
 #!/usr/bin/env bash
 d=\$(mktemp -d -p "$W")
-"$BIN" train --quiet --engine "\$1" --out "\$d/pack" --pack $C
+"\${2:-$BIN}" train --quiet --engine "\$1" --out "\$d/pack" --pack $C
 rm -rf "\$d"
 SH
-echo "== A (batched pack) vs B (three processes at once)"
-farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/three.sh" -- bash "$W/pack.sh" batched
-echo "== A (batched pack) vs C (solo-engine pack)"
-farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo" -- bash "$W/pack.sh" batched
+CASES=${CASES:-SB AS${BIN_OLD:+ SC}}
+case " $CASES " in *" SB "*)
+  echo "== S (solo-engine pack) vs B (three processes at once)"
+  farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/three.sh" -- bash "$W/pack.sh" solo ;;
+esac
+case " $CASES " in *" AS "*)
+  echo "== A (batched pack) vs S (solo-engine pack)"
+  farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo" -- bash "$W/pack.sh" batched ;;
+esac
+if [ -n "${BIN_OLD:-}" ] && [[ " $CASES " == *" SC "* ]]; then
+  echo "== S (solo-engine pack) vs C (solo-engine pack of $BIN_OLD)"
+  farm-bench -n ${N:-3} --timeout 3000 --vs "bash $W/pack.sh solo $(realpath "$BIN_OLD")" -- \
+    bash "$W/pack.sh" solo
+fi

@@ -300,8 +300,9 @@ pub struct ReproduceArgs {
     /// one job per pack. Default: 12 on a GPU, 1 (each run its own process) on the CPU.
     #[arg(long, value_parser = count(1, 1024))]
     pub pack: Option<usize>,
-    /// The engine of the packs (docs/packs.md): `batched` (the default: one batched computation
-    /// for the pack, within a tolerance of solo training) or `solo` (each run exactly as alone).
+    /// The engine of the packs (docs/packs.md): `batched` (one batched computation for the pack,
+    /// within a tolerance of solo training; the default on a GPU) or `solo` (each run exactly as
+    /// alone; on the CPU the runs' steps at once, one thread each; the default on the CPU).
     #[arg(long, value_parser = ["batched", "solo"])]
     pub pack_engine: Option<String>,
     /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
@@ -630,9 +631,9 @@ pub struct TrainArgs {
         conflicts_with_all = ["config", "resume", "seed", "method", "macaw_preset"]
     )]
     pub pack: Vec<PathBuf>,
-    /// The engine that steps a pack: `batched` or `solo` (each run's own step in turn, exactly
-    /// as alone). Default: batched where this build has it, else solo; a resumed pack keeps its
-    /// engine.
+    /// The engine that steps a pack: `batched` (one batched computation) or `solo` (each run's own
+    /// step, exactly as alone; on the CPU the runs' steps at once, one thread each). Default: solo
+    /// on the CPU, batched on a GPU; a resumed pack keeps its engine.
     #[arg(long, value_parser = ["batched", "solo"])]
     pub engine: Option<String>,
     /// Stop after this many iterations of this invocation, leaving a resumable run (to test

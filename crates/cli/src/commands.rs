@@ -458,8 +458,9 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         Some(t) => t,
         None => (cores / jobs).max(1),
     };
-    // Packing pays where one engine call steps the pack's runs at once (the batched engine);
-    // through the solo engine a pack takes its runs' steps one after another.
+    // On a GPU packing pays: one batched engine call steps the pack's runs at once. On the CPU a
+    // pack (the solo engine: its runs' steps at once in threads) computes as its runs in separate
+    // processes would, with one copy of the data; one run per process stays the default there.
     let pack = match a.pack {
         Some(n) => n,
         None if on_gpu && pdt_train::pack::Engine::batched_available() => 12,
@@ -467,7 +468,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     };
     let pack_engine = match a.pack_engine.as_deref() {
         Some(e) => e.parse::<pdt_train::pack::Engine>().map_err(anyhow::Error::msg)?,
-        None => pdt_train::pack::Engine::default_engine(),
+        None => pdt_train::pack::Engine::default_for(if on_gpu {
+            tch::Device::Cuda(0)
+        } else {
+            tch::Device::Cpu
+        }),
     };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {

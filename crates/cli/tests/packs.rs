@@ -29,14 +29,19 @@ fn member(cfg: &Path, name: &str, sets: &[Set]) -> PathBuf {
 
 /// Three runs of the point robot: different seeds, one MT-ORL and one MT-BC-Finetune (whose
 /// fine-tuning draws dropout from where its last step left libtorch's generator), each
-/// checkpointing after every iteration (so a kill lands between checkpoints often).
+/// checkpointing after every iteration (so a kill lands between checkpoints often), with two
+/// threads (so the solo engine steps them at once, one thread each).
 fn three(cfg: &Path) -> Vec<PathBuf> {
     three_with(cfg, &[])
 }
 
 /// [`three`] with `extra` settings in every run.
 fn three_with(cfg: &Path, extra: &[(&str, &str, &str)]) -> Vec<PathBuf> {
-    let mut each = vec![("train", "resume_interval", "1"), ("eval", "finetune_steps", "2")];
+    let mut each = vec![
+        ("train", "resume_interval", "1"),
+        ("eval", "finetune_steps", "2"),
+        ("run", "threads", "2"),
+    ];
     each.extend_from_slice(extra);
     let sets = |name: &str, method: &str, seed: &str| {
         let mut v = each.to_vec();
@@ -288,9 +293,10 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
         ok(&args)
     };
     run(&alone, &["--jobs", "2"]);
-    // The batched engine (the default): the same runs within its tolerance, not bit for bit.
+    // The batched engine (the default on a GPU): the same runs within its tolerance, not bit for
+    // bit.
     let batched = tmp.path().join("batched");
-    run(&batched, &["--pack", "4"]);
+    run(&batched, &["--pack", "4", "--pack-engine", "batched"]);
     let record = std::fs::read_to_string(
         batched.join("packs/point_robot_prompt-dt_smoke_seed0-x4/pack.json"),
     )
@@ -325,7 +331,7 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
     for k in keys {
         assert_same_tree(&alone.join("runs").join(k), &packed.join("runs").join(k), false);
     }
-    // A second call finds them finished.
+    // A second call (the default engine: solo on the CPU) finds them finished.
     assert!(run(&packed, &["--pack", "4"]).contains("4 runs already finished"));
     // --emit jobs --pack: one job for the pack, naming its runs, which trains them all.
     run(&emitted, &["--pack", "4", "--pack-engine", "solo", "--emit", "jobs"]);

@@ -6,6 +6,7 @@
 //! `softmax`, `at::dropout`.
 
 use crate::config::PromptDtConfig;
+use crate::dropout::{At, Dropout};
 use tch::nn::{self, Init, Module};
 use tch::{Kind, Tensor};
 
@@ -70,7 +71,7 @@ impl Attention {
         (q.permute([0, 2, 1, 3]), k, v)
     }
 
-    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
+    fn forward(&self, x: &Tensor, masks: &Masks<'_>, drop: &Dropout<'_>, layer: usize) -> Tensor {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let (q, k, v) = self.qkv(x, l); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
@@ -78,10 +79,10 @@ impl Attention {
                                                       // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
                                                       // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
         let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
-        let w = w.softmax(-1, None::<Kind>).dropout(self.attn_pdrop, train);
+        let w = drop.apply(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
         let a = w.matmul(&v); // [B, nh, L, hd]
         let a = a.permute([0, 2, 1, 3]).contiguous().view([b, l, self.hidden]); // [B, L, H]
-        self.c_proj.forward(&a).dropout(self.resid_pdrop, train)
+        drop.apply(self.c_proj.forward(&a), self.resid_pdrop, At::Layer(layer, 1))
     }
 
     /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
@@ -129,8 +130,9 @@ struct Mlp {
 }
 
 impl Mlp {
-    fn forward(&self, x: &Tensor, train: bool) -> Tensor {
-        self.c_proj.forward(&self.c_fc.forward(x).relu()).dropout(self.resid_pdrop, train)
+    fn forward(&self, x: &Tensor, drop: &Dropout<'_>, layer: usize) -> Tensor {
+        let y = self.c_proj.forward(&self.c_fc.forward(x).relu());
+        drop.apply(y, self.resid_pdrop, At::Layer(layer, 2))
     }
 }
 
@@ -166,9 +168,9 @@ impl Block {
         }
     }
 
-    fn forward(&self, x: &Tensor, masks: &Masks<'_>, train: bool) -> Tensor {
-        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, train);
-        &h + self.mlp.forward(&self.ln_2.forward(&h), train)
+    fn forward(&self, x: &Tensor, masks: &Masks<'_>, drop: &Dropout<'_>, layer: usize) -> Tensor {
+        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, drop, layer);
+        &h + self.mlp.forward(&self.ln_2.forward(&h), drop, layer)
     }
 
     /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
@@ -192,7 +194,7 @@ impl Block {
             rows,
         );
         let h = x.narrow(1, l - rows, rows) + a; // [B, rows, H]
-        &h + self.mlp.forward(&self.ln_2.forward(&h), false)
+        &h + self.mlp.forward(&self.ln_2.forward(&h), &Dropout::Off, 0)
     }
 }
 
@@ -314,6 +316,17 @@ impl Gpt2 {
     /// `inputs_embeds`: `[B, L, H]`; `token_mask`: `[B, L]` (1 = real token, 0 = padding), float.
     /// Returns `[B, L, H]`.
     pub fn forward(&self, inputs_embeds: &Tensor, token_mask: &Tensor, train: bool) -> Tensor {
+        self.forward_with(inputs_embeds, token_mask, Dropout::train(train))
+    }
+
+    /// [`Self::forward`] with its dropout as given (masks drawn beforehand, see
+    /// [`crate::dropout`]).
+    pub fn forward_with(
+        &self,
+        inputs_embeds: &Tensor,
+        token_mask: &Tensor,
+        drop: Dropout<'_>,
+    ) -> Tensor {
         let l = inputs_embeds.size()[1];
         debug_assert!(l <= self.n_positions, "caller checks the sequence length");
         // As the reference, the causal mask is the top-left L x L slice of the persistent buffer.
@@ -321,9 +334,9 @@ impl Gpt2 {
         // [B, 1, 1, L]: 0 for real tokens, -1e4 for padding (HF's extended attention mask).
         let pad_bias = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0;
         let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
-        let mut x = inputs_embeds.dropout(self.embd_pdrop, train);
-        for block in &self.h {
-            x = block.forward(&x, &masks, train);
+        let mut x = drop.apply(inputs_embeds.shallow_clone(), self.embd_pdrop, At::Embeddings);
+        for (i, block) in self.h.iter().enumerate() {
+            x = block.forward(&x, &masks, &drop, i);
         }
         self.ln_f.forward(&x)
     }
@@ -342,7 +355,7 @@ impl Gpt2 {
         for block in &self.h {
             let (keys, values) = block.attn.keys_values(&block.ln_1.forward(&x));
             layers.push(LayerCache { keys, values });
-            x = block.forward(&x, &masks, false);
+            x = block.forward(&x, &masks, &Dropout::Off, 0);
         }
         PrefixCache { layers, pad_bias }
     }

@@ -6,6 +6,7 @@
 //! - [`packed`]: N models of one shape as one (stacked weights, batched products): a pack of runs.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
+//! - [`dropout`]: the trunk's dropout sites and masks (drawn in the forward or beforehand).
 //! - [`host_memory`]: keeps the memory libtorch frees on the CPU for reuse (no page-fault churn).
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
@@ -18,6 +19,7 @@
 pub mod checkpoint;
 pub mod config;
 pub mod device;
+pub mod dropout;
 pub mod forward_file;
 pub mod gpt2;
 pub mod host_memory;

@@ -5,6 +5,7 @@
 //! *state* token, so it sees R_t and s_t but not a_t (causal attention).
 
 use crate::config::PromptDtConfig;
+use crate::dropout::{Dropout, DropoutMasks};
 use crate::gpt2::{Gpt2, PrefixCache};
 use tch::nn::{self, Init, Module};
 use tch::{Device, Kind, Tensor};
@@ -289,8 +290,18 @@ impl PromptDt {
     /// the prompt length is 1, 11, 21, ... it drops the last prompt return-to-go and crashes. Here
     /// every sample always gets its own prompt, whatever the lengths.
     pub fn forward(&self, history: &Segments, prompt: Option<&Segments>, train: bool) -> Tensor {
+        self.forward_with(history, prompt, Dropout::train(train))
+    }
+
+    /// [`Self::forward`] with its dropout as given (see [`Self::forward_all_steps_with`]).
+    pub fn forward_with(
+        &self,
+        history: &Segments,
+        prompt: Option<&Segments>,
+        dropout: Dropout<'_>,
+    ) -> Tensor {
         let k = history.len();
-        let all = self.forward_all_steps(history, prompt, train); // [B, Lp+K, da]
+        let all = self.forward_all_steps_with(history, prompt, dropout); // [B, Lp+K, da]
         let steps = all.size()[1];
         all.narrow(1, steps - k, k) // [B, K, da]
     }
@@ -302,6 +313,18 @@ impl PromptDt {
         history: &Segments,
         prompt: Option<&Segments>,
         train: bool,
+    ) -> Tensor {
+        self.forward_all_steps_with(history, prompt, Dropout::train(train))
+    }
+
+    /// [`Self::forward_all_steps`] with its dropout as given: [`Dropout::Given`] takes masks drawn
+    /// beforehand ([`DropoutMasks::draw`] for [`Self::token_count`] tokens), the same bits on the
+    /// CPU as the masks the forward would draw itself.
+    pub fn forward_all_steps_with(
+        &self,
+        history: &Segments,
+        prompt: Option<&Segments>,
+        dropout: Dropout<'_>,
     ) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
         let b = history.batch_size();
@@ -315,7 +338,7 @@ impl PromptDt {
             }
             None => (tokens, mask),
         };
-        let x = self.transformer.forward(&tokens, &mask, train); // [B, 3(Lp+K), H]
+        let x = self.transformer.forward_with(&tokens, &mask, dropout); // [B, 3(Lp+K), H]
         let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
         let state_hidden = x.select(1, 1); // [B, Lp+K, H]: hidden state at each state token
         let actions = self.predict_action.forward(&state_hidden); // [B, Lp+K, da]
@@ -324,6 +347,18 @@ impl PromptDt {
         } else {
             actions
         }
+    }
+
+    /// The trunk's sequence length for these inputs: 3 tokens per prompt and history step.
+    pub fn token_count(history: &Segments, prompt: Option<&Segments>) -> i64 {
+        3 * (history.len() + prompt.map_or(0, Segments::len))
+    }
+
+    /// The masks a training forward of these inputs draws ([`crate::dropout`]), drawn now from
+    /// libtorch's generator as it stands.
+    pub fn draw_dropout(&self, history: &Segments, prompt: Option<&Segments>) -> DropoutMasks {
+        let len = Self::token_count(history, prompt);
+        DropoutMasks::draw(&self.cfg, history.batch_size(), len, history.states.device())
     }
 
     /// The prompt's keys and values at every layer, once per prompt (eval mode), for

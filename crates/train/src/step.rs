@@ -2,6 +2,7 @@
 //! history actions, backward, global clipping, AdamW at the scheduled learning rate.
 
 use crate::optim::Optimizer;
+use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::{PromptDtBatch, SegmentBatch};
 use tch::{Device, Kind, Tensor};
@@ -60,15 +61,29 @@ pub fn train_step(
     loss_on: LossOn,
     step: u64,
 ) -> StepStats {
+    train_step_with(model, opt, batch, loss_on, step, Dropout::Draw)
+}
+
+/// [`train_step`] with its dropout as given: [`Dropout::Given`] masks drawn beforehand
+/// (`PromptDt::draw_dropout` for this batch) make the step draw nothing from libtorch's generator,
+/// so steps of several models can run at once in threads (the pack's solo engine).
+pub fn train_step_with(
+    model: &PromptDt,
+    opt: &mut Optimizer,
+    batch: &DeviceBatch,
+    loss_on: LossOn,
+    step: u64,
+    dropout: Dropout<'_>,
+) -> StepStats {
     let (h, p) = (&batch.history, batch.prompt.as_ref());
     let loss = match (loss_on, p) {
         (LossOn::PromptAndHistory, Some(p)) => {
-            let preds = model.forward_all_steps(h, Some(p), true); // [B, Lp+K, da]
+            let preds = model.forward_all_steps_with(h, Some(p), dropout); // [B, Lp+K, da]
             let targets = Tensor::cat(&[&p.actions, &h.actions], 1);
             let mask = Tensor::cat(&[&p.mask, &h.mask], 1);
             PromptDt::action_loss(&preds, &targets, &mask)
         }
-        _ => PromptDt::action_loss(&model.forward(h, p, true), &h.actions, &h.mask),
+        _ => PromptDt::action_loss(&model.forward_with(h, p, dropout), &h.actions, &h.mask),
     };
     let mut grads = opt.backward(&loss);
     let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg().grad_clip_norm);

@@ -1,14 +1,15 @@
 //! Packs through the library (issue 30, docs/packs.md): each run of a pack matches the same run
-//! trained alone on every logged loss (bit for bit through the solo engine; within a measured bound
-//! through the batched one, whose final held-out returns lie within the seed-to-seed spread); a run that diverges
-//! stops with its error while the others finish; runs that cannot share a pack are refused.
+//! trained alone on every logged loss (bit for bit through the solo engine, its runs stepped at
+//! once in threads; within a measured bound through the batched one, whose
+//! final held-out returns lie within the seed-to-seed spread); a run that diverges stops with its
+//! error while the others finish; runs that cannot share a pack are refused.
 #![allow(clippy::unwrap_used, clippy::result_large_err)] // test helpers: a failed unwrap is a failed test
 
 #[path = "support/runs.rs"]
 mod runs;
 
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::pack::{train_pack, Engine, PackOptions, PackRun};
+use pdt_train::pack::{train_pack, Engine, PackOptions, PackRun, SoloThreads};
 use pdt_train::run::{RunError, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;
@@ -82,7 +83,13 @@ fn loss_tolerance(engine: Engine) -> f64 {
 fn every_run_of_a_pack_matches_its_run_trained_alone() {
     let (tmp, data) = tiny_data();
     let members = [(Method::PromptDt, 0), (Method::MtOrl, 1), (Method::PromptDt, 2)];
+    // The solo engine steps a CPU pack's runs at once, one thread each with the runs' libtorch
+    // threads (so a packed run computes as the same run alone).
     let mut engines = vec![Engine::Solo];
+    assert_eq!(
+        SoloThreads::for_pack(tch::Device::Cpu, 1, 3),
+        SoloThreads { concurrent: true, intra_op: 1 }
+    );
     if Engine::batched_available() {
         engines.push(Engine::Batched);
     }

@@ -3,6 +3,7 @@
 
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
 use crate::config::PromptDtConfig;
+use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
 use crate::prompt_dt::Segments;
 use tch::{Device, Kind, Tensor};
 
@@ -59,12 +60,10 @@ pub struct PackedPromptDt {
     mask_draw: MaskDraw,
 }
 
-/// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site).
-struct Masks {
-    embd: Option<Tensor>,
-    /// Per layer: attention weights `[N*B, nh, L, L]`, attention output and MLP output `[N*B, L, H]`.
-    layers: Vec<[Option<Tensor>; 3]>,
-}
+/// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
+/// embeddings `[N*B, L, H]`; per layer attention weights `[N*B, nh, L, L]`, attention output and
+/// MLP output `[N*B, L, H]`.
+type Masks = DropoutMasks;
 
 fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
     match mask {
@@ -264,16 +263,8 @@ impl PackedPromptDt {
         let cfg = &self.cfg;
         let (b, h, nh) = (batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
         let rows = self.slots as i64 * b;
-        // The sites in the solo forward's order: embeddings, then per layer attention weights,
-        // attention output, MLP output.
-        let mut sites: Vec<(f64, bool)> = vec![(cfg.embd_pdrop, false)];
-        for _ in 0..cfg.n_layer {
-            sites.extend([
-                (cfg.attn_pdrop, true),
-                (cfg.resid_pdrop, false),
-                (cfg.resid_pdrop, false),
-            ]);
-        }
+        // The sites in the solo forward's order.
+        let sites = dropout_sites(cfg);
         if self.mask_draw == MaskDraw::PerRun {
             return self.masks_per_run(batch, seeds, l, &sites);
         }
@@ -283,7 +274,7 @@ impl PackedPromptDt {
         let partial = seeds.0.iter().enumerate().any(|(s, seed)| seed.is_none() || own_len(s) < l);
         let stacked: Vec<Option<Tensor>> = sites
             .iter()
-            .map(|&(p, attn)| {
+            .map(|&DropoutSite { p, attention: attn }| {
                 let full: Vec<i64> = if attn { vec![rows, nh, l, l] } else { vec![rows, l, h] };
                 (p > 0.0).then(|| {
                     if partial {
@@ -299,7 +290,7 @@ impl PackedPromptDt {
             tch::manual_seed(*seed);
             let lj = own_len(slot);
             let off = l - lj;
-            for (&(p, attn), mask) in sites.iter().zip(&stacked) {
+            for (&DropoutSite { p, attention: attn }, mask) in sites.iter().zip(&stacked) {
                 // `at::dropout` draws nothing at p = 0.
                 let Some(mask) = mask else { continue };
                 // `at::dropout` (CPU): noise = empty_like(x).bernoulli_(1 - p); noise.div_(1 - p).
@@ -307,14 +298,12 @@ impl PackedPromptDt {
                 // what a fresh tensor of their shape gets.
                 let mut mine = mask.narrow(0, slot as i64 * b, b);
                 if off == 0 {
-                    let _ = mine.bernoulli_float_(1.0 - p);
-                    let _ = mine.g_div_scalar_(1.0 - p);
+                    draw_noise(&mut mine, p);
                     continue;
                 }
                 let own: Vec<i64> = if attn { vec![b, nh, lj, lj] } else { vec![b, lj, h] };
                 let mut noise = Tensor::empty(own.as_slice(), f);
-                let _ = noise.bernoulli_float_(1.0 - p);
-                let _ = noise.g_div_scalar_(1.0 - p);
+                draw_noise(&mut noise, p);
                 let mut window = mine.narrow(attn as i64 + 1, off, lj);
                 if attn {
                     window = window.narrow(3, off, lj);
@@ -322,35 +311,26 @@ impl PackedPromptDt {
                 window.copy_(&noise);
             }
         }
-        let mut stacked = stacked.into_iter();
-        let embd = stacked.next().flatten();
-        let mut layers = Vec::with_capacity(cfg.n_layer);
-        for _ in 0..cfg.n_layer {
-            layers.push([
-                stacked.next().flatten(),
-                stacked.next().flatten(),
-                stacked.next().flatten(),
-            ]);
-        }
-        Masks { embd, layers }
+        Masks::from_sites(stacked)
     }
 
-    /// [`MaskDraw::PerRun`]: each run's masks for every site (`sites`: probability, attention
-    /// weights or not) in one draw into its row of one `[N, total]` buffer, at the pack's length
-    /// `l` (a padded step's mask multiplies values nothing reads); each site a `[N, B, ...]` view.
+    /// [`MaskDraw::PerRun`]: each run's masks for every site in one draw into its row of one
+    /// `[N, total]` buffer, at the pack's length `l` (a padded step's mask multiplies values
+    /// nothing reads); each site a `[N, B, ...]` view.
     fn masks_per_run(
         &self,
         batch: &PackedBatch,
         seeds: &DropoutSeeds,
         l: i64,
-        sites: &[(f64, bool)],
+        sites: &[DropoutSite],
     ) -> Masks {
         let cfg = &self.cfg;
         let (n, b, h, nh) =
             (self.slots as i64, batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
         let shape = |attn: bool| if attn { vec![n, b, nh, l, l] } else { vec![n, b, l, h] };
         let size = |attn: bool| shape(attn).iter().skip(1).product::<i64>();
-        let drawn: Vec<(f64, bool)> = sites.iter().copied().filter(|&(p, _)| p > 0.0).collect();
+        let drawn: Vec<(f64, bool)> =
+            sites.iter().filter(|s| s.p > 0.0).map(|s| (s.p, s.attention)).collect();
         let total: i64 = drawn.iter().map(|&(_, a)| size(a)).sum();
         let f = (Kind::Float, self.device);
         // A run without inputs this step keeps 1 (its placeholder's values stay finite).
@@ -395,10 +375,9 @@ impl PackedPromptDt {
             }
         }
         let mut views = views.into_iter();
-        let mut next = |p: f64| (p > 0.0).then(|| views.next()).flatten();
-        let embd = next(sites[0].0);
-        let layers = sites[1..].chunks(3).map(|c| [next(c[0].0), next(c[1].0), next(c[2].0)]);
-        Masks { embd, layers: layers.collect() }
+        Masks::from_sites(
+            sites.iter().map(|s| (s.p > 0.0).then(|| views.next()).flatten()).collect(),
+        )
     }
 
     fn attention(

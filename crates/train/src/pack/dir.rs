@@ -66,7 +66,14 @@ pub fn train_pack_dir(
         }
         runs.push(PackRecordRun { dir: name, config: cfg.to_toml()? });
     }
-    let engine = opts.engine.unwrap_or_else(Engine::default_engine);
+    let engine = match opts.engine {
+        Some(e) => e,
+        None => {
+            let first = configs.first().map(|c| c.run.device);
+            let device = first.map(pdt_model::device::resolve).transpose()?;
+            Engine::default_for(device.unwrap_or(tch::Device::Cpu))
+        }
+    };
     let members = runs.iter().map(|r| out.join(&r.dir)).zip(configs);
     let members = members.map(|(dir, config)| PackRun { config, dir }).collect();
     let opts = PackOptions { resume: false, engine: Some(engine), ..opts };

@@ -75,6 +75,20 @@ impl SlotState {
     }
 }
 
+/// A slot's step started on its own ([`PackEngine::start`]): its statistics once computed.
+pub struct PendingStep(Box<dyn FnOnce() -> Result<StepStats, RunError> + Send>);
+
+impl PendingStep {
+    pub fn new(wait: impl FnOnce() -> Result<StepStats, RunError> + Send + 'static) -> Self {
+        Self(Box::new(wait))
+    }
+
+    /// Waits for the step's statistics (holding nothing of the pack's meanwhile).
+    pub fn wait(self) -> Result<StepStats, RunError> {
+        (self.0)()
+    }
+}
+
 /// Steps the runs of a pack together.
 pub trait PackEngine {
     /// Number of slots (runs) in the pack.
@@ -87,4 +101,20 @@ pub trait PackEngine {
     /// Sets the slot's weights and optimiser state (a fresh run's initial weights with empty
     /// moments, or a resumed run's checkpoint).
     fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError>;
+    /// Whether a slot can be stepped on its own as soon as its run is ready ([`Self::start`]),
+    /// the others not waited for: an engine whose slots share no computation (the solo engine on
+    /// its threads). Such a pack's runs are not in lockstep; by the contract above, each run's
+    /// results are the same either way.
+    fn steps_alone(&self) -> bool {
+        false
+    }
+    /// Starts one gradient step of `slot` alone (an engine that [`Self::steps_alone`]); call it
+    /// with libtorch's generator held (the step's dropout masks are drawn here). Its statistics
+    /// come from the returned [`PendingStep`], awaited without holding anything.
+    fn start(&mut self, slot: usize, step: SlotStep) -> Result<PendingStep, RunError> {
+        let _ = step;
+        Err(RunError::Invalid(format!(
+            "pack engine: slot {slot}: this engine steps the runs of a pack together"
+        )))
+    }
 }

@@ -1,8 +1,11 @@
 //! The meeting point of a pack's runs: each run's thread submits its gradient step, prepares its
 //! next batch and waits; when every run still training has submitted (or left), one call of the
-//! engine, by a waiting run, steps them all and each run gets its own result.
+//! engine, by a waiting run, steps them all and each run gets its own result. An engine whose slots
+//! step alone (`PackEngine::steps_alone`: the solo engine on its threads) starts each run's step as
+//! soon as it is submitted, and the run waits for its own result only: its runs are not in
+//! lockstep, as separate processes would not be.
 
-use super::engine::{PackEngine, SlotState, SlotStep};
+use super::engine::{PackEngine, PendingStep, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::step::StepStats;
 use crate::streams::torch_rng_lock;
@@ -18,6 +21,9 @@ struct Table {
     /// Each submitted run's result, until it takes it (an engine error as its message, shared by
     /// every run of the failed step).
     results: Vec<Option<Result<StepStats, String>>>,
+    /// An engine that steps its slots alone: each run's started step (or the error of its start),
+    /// until the run waits for it.
+    started: Vec<Option<Result<PendingStep, RunError>>>,
 }
 
 impl Table {
@@ -67,6 +73,7 @@ impl Hub {
                 active: vec![true; n],
                 pending: (0..n).map(|_| None).collect(),
                 results: vec![None; n],
+                started: (0..n).map(|_| None).collect(),
             }),
             stepped: Condvar::new(),
         }
@@ -86,10 +93,21 @@ impl Hub {
         if !t.active.get(slot).copied().unwrap_or(false) {
             return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
         }
-        if t.pending[slot].is_some() || t.results[slot].is_some() {
+        if t.pending[slot].is_some() || t.results[slot].is_some() || t.started[slot].is_some() {
             return Err(RunError::Invalid(format!(
                 "slot {slot} submitted a step before taking its last one's result"
             )));
+        }
+        if t.engine.steps_alone() {
+            let started = {
+                // The step's dropout masks are drawn as it starts.
+                let _rng = torch_rng_lock();
+                let engine = &mut t.engine;
+                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.start(slot, step)))
+                    .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
+            };
+            t.started[slot] = Some(started);
+            return Ok(());
         }
         t.pending[slot] = Some(step);
         if t.ready() {
@@ -102,6 +120,13 @@ impl Hub {
     /// other run has taken it yet.
     pub(crate) fn wait(&self, slot: usize) -> Result<StepStats, RunError> {
         let mut t = self.lock();
+        if let Some(started) = t.started.get_mut(slot).and_then(Option::take) {
+            // The others may start, export or import while this step computes.
+            drop(t);
+            return started
+                .and_then(PendingStep::wait)
+                .map_err(|e| RunError::Invalid(format!("the pack engine failed: {e}")));
+        }
         loop {
             if let Some(r) = t.results.get_mut(slot).and_then(Option::take) {
                 return r.map_err(RunError::Invalid);
@@ -124,6 +149,7 @@ impl Hub {
         if let Some(a) = t.active.get_mut(slot) {
             *a = false;
             t.pending[slot] = None;
+            t.started[slot] = None;
         }
         if t.ready() {
             t.step();

@@ -6,7 +6,7 @@ use super::batched::{BatchedEngine, PackLayout};
 use super::engine::{PackEngine, SlotSpec};
 use super::hub::Hub;
 use super::member::PackMember;
-use super::solo::SoloEngine;
+use super::solo::{SoloEngine, SoloThreads};
 use crate::config::{Method, TrainConfig};
 use crate::error::RunError;
 use crate::methods::Learner;
@@ -26,8 +26,9 @@ use std::sync::Arc;
 pub enum Engine {
     /// One batched computation for all runs (stacked weights, batched products).
     Batched,
-    /// Each run's ordinary solo step, one after another: exact (a run trained through it is the
-    /// same run trained alone, bit for bit).
+    /// Each run's ordinary solo step: exact (a run trained through it is the same run trained
+    /// alone, bit for bit). On the CPU the runs' steps run at once, one OS thread each with the
+    /// run's libtorch threads ([`SoloThreads::for_pack`]); elsewhere one after another.
     Solo,
 }
 
@@ -44,9 +45,11 @@ impl Engine {
         true
     }
 
-    /// The engine a pack gets when none is asked for: the batched one where this build has it.
-    pub fn default_engine() -> Self {
-        if Self::batched_available() {
+    /// The engine a pack on `device` gets when none is asked for: on the CPU the solo one (its
+    /// runs stepped at once in threads: exact, and the fastest there, BENCHMARKS.md "Packs on the
+    /// CPU"); on a GPU the batched one where this build has it (one launch for all runs).
+    pub fn default_for(device: tch::Device) -> Self {
+        if device != tch::Device::Cpu && Self::batched_available() {
             Engine::Batched
         } else {
             Engine::Solo
@@ -83,7 +86,7 @@ pub struct PackOptions<'a> {
     pub resume_with: ResumeWith,
     /// Stop each run after this many iterations of this call (an interruption, in tests).
     pub stop_after_iterations: Option<u64>,
-    /// `None`: [`Engine::default_engine`].
+    /// `None`: [`Engine::default_for`] the runs' device.
     pub engine: Option<Engine>,
     /// Progress of the run in the given slot, after each of its iterations (called from the
     /// run's thread).
@@ -98,7 +101,7 @@ struct Member {
     resume: bool,
 }
 
-/// Trains the runs of a pack in lockstep, each into its own run directory, and returns each run's
+/// Trains the runs of a pack together, each into its own run directory, and returns each run's
 /// outcome in order: a run that fails (its data, its directory, a divergence) ends with its error
 /// while the others go on. The pack itself is refused, before anything is written, when its runs
 /// cannot share one pack (another family, model shape or device; MACAW; one directory twice) or a
@@ -116,6 +119,10 @@ pub(crate) struct ReadyPack {
     members: Vec<Member>,
     engine: Box<dyn PackEngine + Send>,
     engine_kind: Engine,
+    /// libtorch's intra-op threads for every thread of the pack (its runs' loops and the engine's
+    /// workers: the first run's `run.threads`): one count for all, since a thread's first parallel
+    /// op takes the process's count as its own.
+    libtorch_threads: usize,
 }
 
 /// Everything [`train_pack`] checks and builds before it writes anything.
@@ -124,8 +131,8 @@ pub(crate) fn prepare_pack(
     opts: &PackOptions<'_>,
 ) -> Result<ReadyPack, RunError> {
     let members = members(runs, opts)?;
-    let engine_kind = opts.engine.unwrap_or_else(Engine::default_engine);
     let device = pdt_model::device::resolve(members[0].cfg.run.device)?;
+    let engine_kind = opts.engine.unwrap_or_else(|| Engine::default_for(device));
     let specs: Vec<SlotSpec> = members
         .iter()
         .map(|m| SlotSpec {
@@ -152,11 +159,13 @@ pub(crate) fn prepare_pack(
             .max()
             .unwrap_or(0),
     };
+    let libtorch_threads = pdt_base::threads(members[0].cfg.run.threads);
+    let solo_threads = SoloThreads::for_pack(device, libtorch_threads, members.len());
     let engine = {
         let _rng = torch_rng_lock();
-        make_engine(engine_kind, specs, layout, device)?
+        make_engine(engine_kind, specs, layout, device, solo_threads)?
     };
-    Ok(ReadyPack { members, engine, engine_kind })
+    Ok(ReadyPack { members, engine, engine_kind, libtorch_threads })
 }
 
 /// Trains a prepared pack: each run's loop in its own thread, the gradient steps in the hub.
@@ -164,10 +173,9 @@ pub(crate) fn run_pack(
     ready: ReadyPack,
     opts: PackOptions<'_>,
 ) -> Vec<Result<TrainSummary, RunError>> {
-    let ReadyPack { members, engine, engine_kind } = ready;
-    if let Some(m) = members.first() {
-        tch::set_num_threads(pdt_base::threads(m.cfg.run.threads) as i32);
-    }
+    let ReadyPack { members, engine, engine_kind, libtorch_threads } = ready;
+    let libtorch_threads = i32::try_from(libtorch_threads).unwrap_or(i32::MAX);
+    tch::set_num_threads(libtorch_threads);
     let hub = Hub::new(engine);
     let size = members.len();
     let (with, stop, progress) = (&opts.resume_with, opts.stop_after_iterations, opts.progress);
@@ -179,6 +187,8 @@ pub(crate) fn run_pack(
                 let hub = &hub;
                 let info = PackInfo { size, slot, engine: engine_kind.name().into() };
                 scope.spawn(move || {
+                    // Per OS thread (OpenMP's): this run's evaluations get the pack's count.
+                    tch::set_num_threads(libtorch_threads);
                     let with = if m.resume { with.clone() } else { ResumeWith::default() };
                     let mut report = |p: &Progress| progress(slot, p);
                     let opts = TrainOptions {
@@ -240,9 +250,10 @@ fn make_engine(
     specs: Vec<SlotSpec>,
     layout: PackLayout,
     device: tch::Device,
+    solo_threads: SoloThreads,
 ) -> Result<Box<dyn PackEngine + Send>, RunError> {
     Ok(match kind {
-        Engine::Solo => Box::new(SoloEngine::new(specs, device)),
+        Engine::Solo => Box::new(SoloEngine::with_threads(specs, device, solo_threads)?),
         Engine::Batched => Box::new(BatchedEngine::new(specs, layout, device)?),
     })
 }
