@@ -716,6 +716,37 @@ pub struct EvalArgs {
     /// bandit: episodes per task in one round, between updates (default 1).
     #[arg(long, value_parser = count(1, 10_000))]
     pub bandit_round: Option<usize>,
+    /// Evaluation-time adaptation to each test task from its demonstrations, the backbone
+    /// frozen (docs/prompt-control.md): soft-prompt, ptdt, lora (default: the run's
+    /// [eval.adapt], none unless set). Results go to eval_adapt_<kind>.json. With it,
+    /// --adapt-steps and --adapt-batch set the adaptation's iterations and demonstration
+    /// segments per iteration.
+    #[arg(long, value_parser = adapt_kind)]
+    pub adapt: Option<pdt_rundir::config::AdaptKind>,
+    /// --adapt soft-prompt / lora: Adam's learning rate.
+    #[arg(long)]
+    pub adapt_lr: Option<f64>,
+    /// --adapt ptdt: candidates per iteration.
+    #[arg(long)]
+    pub ptdt_candidates: Option<usize>,
+    /// --adapt ptdt: standard deviation of the perturbations.
+    #[arg(long)]
+    pub ptdt_sigma: Option<f64>,
+    /// --adapt ptdt: step along the ranking direction.
+    #[arg(long)]
+    pub ptdt_step: Option<f64>,
+    /// --adapt ptdt: what ranks the candidates: action-loss (default, offline) or return.
+    #[arg(long, value_parser = ptdt_score)]
+    pub ptdt_score: Option<pdt_rundir::config::PtdtScore>,
+    /// --adapt lora: rank r.
+    #[arg(long)]
+    pub lora_rank: Option<usize>,
+    /// --adapt lora: alpha (the delta is scaled by alpha / r).
+    #[arg(long)]
+    pub lora_alpha: Option<f64>,
+    /// --adapt lora: also adapt attn.c_proj.
+    #[arg(long)]
+    pub lora_c_proj: bool,
 }
 
 impl EvalArgs {
@@ -744,6 +775,42 @@ impl EvalArgs {
                 ..d
             },
         })
+    }
+}
+
+impl EvalArgs {
+    /// The adaptation the flags ask for, on top of `run` (the run's `[eval.adapt]`); `None`
+    /// without `--adapt`. Values are checked by the caller (`AdaptConfig::validate`).
+    pub fn adapt(
+        &self,
+        run: &pdt_rundir::config::AdaptConfig,
+    ) -> Option<pdt_rundir::config::AdaptConfig> {
+        let kind = self.adapt?;
+        let mut c = run.clone();
+        c.kind = kind;
+        c.steps = self.adapt_steps.unwrap_or(c.steps);
+        c.batch = self.adapt_batch.unwrap_or(c.batch);
+        c.lr = self.adapt_lr.unwrap_or(c.lr);
+        c.ptdt.candidates = self.ptdt_candidates.unwrap_or(c.ptdt.candidates);
+        c.ptdt.sigma = self.ptdt_sigma.unwrap_or(c.ptdt.sigma);
+        c.ptdt.step = self.ptdt_step.unwrap_or(c.ptdt.step);
+        c.ptdt.score = self.ptdt_score.unwrap_or(c.ptdt.score);
+        c.lora.rank = self.lora_rank.unwrap_or(c.lora.rank);
+        c.lora.alpha = self.lora_alpha.unwrap_or(c.lora.alpha);
+        c.lora.c_proj |= self.lora_c_proj;
+        Some(c)
+    }
+}
+
+fn adapt_kind(s: &str) -> Result<pdt_rundir::config::AdaptKind, String> {
+    s.parse().map_err(|e: pdt_rundir::config::AdaptError| e.to_string())
+}
+
+fn ptdt_score(s: &str) -> Result<pdt_rundir::config::PtdtScore, String> {
+    match s {
+        "action-loss" => Ok(pdt_rundir::config::PtdtScore::ActionLoss),
+        "return" => Ok(pdt_rundir::config::PtdtScore::Return),
+        other => Err(format!("unknown ptdt score `{other}` (known: action-loss, return)")),
     }
 }
 

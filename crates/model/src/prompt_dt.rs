@@ -335,6 +335,11 @@ impl PromptDt {
         }
     }
 
+    /// The device the weights live on.
+    pub fn device(&self) -> Device {
+        self.predict_action.ws.device()
+    }
+
     /// The prompt's embedded tokens (no LayerNorm, as in [`PromptDt::forward_all_steps`]).
     pub fn prompt_tokens(&self, prompt: &Segments) -> PromptTokens {
         let (tokens, mask) = self.prompt.tokens(prompt, self.cfg.hidden_size as i64);
