@@ -216,7 +216,9 @@ fn run(cli: Cli) -> Result<()> {
             };
             let macaw = match adapt {
                 Some(_) => pdt_train::run::MacawAdaptation::default(),
-                None => pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
+                None => {
+                    pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch }
+                }
             };
             let prompted = pdt_train::run::evaluate_run_adapted(
                 &a.run,

@@ -164,7 +164,8 @@ pub fn new_adapters(model: &PromptDt, cfg: &LoraConfig, rng: &mut Rng) -> LoraAd
 
 /// Scores prompt candidates for the Prompt-Tuning DT update; higher is better.
 pub trait PromptScore {
-    fn scores(&mut self, candidates: &[SegmentBatch], rng: &mut Rng) -> Result<Vec<f64>, EvalError>;
+    fn scores(&mut self, candidates: &[SegmentBatch], rng: &mut Rng)
+        -> Result<Vec<f64>, EvalError>;
 }
 
 /// The offline score: minus the action loss on one batch of demonstration segments, drawn per
@@ -176,7 +177,11 @@ pub struct ActionLossScore<'a, 'd> {
 }
 
 impl PromptScore for ActionLossScore<'_, '_> {
-    fn scores(&mut self, candidates: &[SegmentBatch], rng: &mut Rng) -> Result<Vec<f64>, EvalError> {
+    fn scores(
+        &mut self,
+        candidates: &[SegmentBatch],
+        rng: &mut Rng,
+    ) -> Result<Vec<f64>, EvalError> {
         let batch = (self.demos)(self.batch, rng);
         let device = self.model.device();
         Ok(candidates

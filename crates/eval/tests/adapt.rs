@@ -143,7 +143,11 @@ fn lora_at_step_zero_is_the_frozen_model_and_training_moves_the_loss_down() {
         let one = m.prompt_tokens(&p);
         let index = tch::Tensor::from_slice(&[0i64; 8]);
         let plain = m.act(&demos, Some(&m.prefix(&p).select(&index)));
-        let with = m.act_with(&demos, Some(&m.prefix_with(&one, Some(&fresh)).select(&index)), Some(&fresh));
+        let with = m.act_with(
+            &demos,
+            Some(&m.prefix_with(&one, Some(&fresh)).select(&index)),
+            Some(&fresh),
+        );
         assert_eq!(to_vec(&plain), to_vec(&with));
     });
     let before = loss(&m, &demos, &prompt);

@@ -71,10 +71,7 @@ impl LoraAdapters {
             LoraPair { a: a.set_requires_grad(true), b: b.set_requires_grad(true), scale }
         };
         let layers = (0..cfg.n_layer)
-            .map(|_| LoraLayer {
-                c_attn: pair(h, 3 * h),
-                c_proj: shape.c_proj.then(|| pair(h, h)),
-            })
+            .map(|_| LoraLayer { c_attn: pair(h, 3 * h), c_proj: shape.c_proj.then(|| pair(h, h)) })
             .collect();
         Self { layers }
     }

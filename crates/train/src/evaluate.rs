@@ -125,7 +125,8 @@ pub fn evaluate_run_adapted(
     };
     let prompt_strategy = setup.cfg.eval.prompt.clone();
     // Training tasks are not adapted: their file is the strategy's.
-    let adapt = if which == Split::Test { setup.cfg.eval.adapt.clone() } else { Default::default() };
+    let adapt =
+        if which == Split::Test { setup.cfg.eval.adapt.clone() } else { Default::default() };
     let out = PromptEval { eval: result, prompt_strategy, picks, adapt, adapt_log };
     if out.prompt_strategy.is_default() && out.adapt.is_none() {
         run.write_final_eval(&out.eval)?;

@@ -87,7 +87,13 @@ pub struct PtdtConfig {
 
 impl Default for PtdtConfig {
     fn default() -> Self {
-        Self { candidates: 8, sigma: 0.05, step: 0.05, score: PtdtScore::ActionLoss, score_episodes: 1 }
+        Self {
+            candidates: 8,
+            sigma: 0.05,
+            step: 0.05,
+            score: PtdtScore::ActionLoss,
+            score_episodes: 1,
+        }
     }
 }
 

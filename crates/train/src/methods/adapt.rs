@@ -98,7 +98,8 @@ pub(crate) fn evaluate_adapted(
         }
         .ok_or_else(|| RunError::Invalid(format!("task {}: no prompt to adapt", plan.name)))?;
         let prompt = to_segments(&start, device);
-        let mut demos = |n: usize, r: &mut Rng| to_segments(&sampler.demo_segments(i, n, r), device);
+        let mut demos =
+            |n: usize, r: &mut Rng| to_segments(&sampler.demo_segments(i, n, r), device);
         let probe = demos(cfg.batch, &mut arng);
         let loss_of = |p: &PromptTokens, lora| {
             tch::no_grad(|| demo_loss(model, &probe, p, lora).double_value(&[]))
@@ -109,8 +110,8 @@ pub(crate) fn evaluate_adapted(
         let fail = |e: adapt::AdaptError| RunError::Invalid(format!("task {}: {e}", plan.name));
         let (loss_after, trainable) = match cfg.kind {
             AdaptKind::SoftPrompt => {
-                let t = adapt::soft_prompt(model, &prompt, cfg, &mut demos, &mut arng)
-                    .map_err(fail)?;
+                let t =
+                    adapt::soft_prompt(model, &prompt, cfg, &mut demos, &mut arng).map_err(fail)?;
                 let after = loss_of(&t, None);
                 prefixes.push(tch::no_grad(|| model.prefix_with(&t, None)));
                 (after, t.tokens.numel())
@@ -212,7 +213,8 @@ fn ptdt_for(
             Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
         }
         PtdtScore::Return => {
-            let mut score = ReturnScore { model, settings, plan, make, episodes: cfg.ptdt.score_episodes };
+            let mut score =
+                ReturnScore { model, settings, plan, make, episodes: cfg.ptdt.score_episodes };
             Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
         }
     }
@@ -236,7 +238,8 @@ impl PromptScore for ReturnScore<'_> {
         rng: &mut Rng,
     ) -> Result<Vec<f64>, EvalError> {
         let seeds: Vec<u64> = (0..self.episodes).map(|_| rng.next_u64()).collect();
-        let setup_err = |e: RunError| EvalError::Setup { task: self.plan.name.clone(), why: e.to_string() };
+        let setup_err =
+            |e: RunError| EvalError::Setup { task: self.plan.name.clone(), why: e.to_string() };
         let tasks = candidates
             .iter()
             .map(|c| (self.make)(self.plan, &seeds, Some(c.clone())))

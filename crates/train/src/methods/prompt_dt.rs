@@ -76,7 +76,16 @@ impl<'s> PromptDtLearner<'s> {
             &setup.run_data.model_cfg.parameter_names(),
             setup.cfg.optim.clone(),
         );
-        Ok(Self { setup, variant, vs, model, opt, sampler, picks: Vec::new(), adapt_log: Vec::new() })
+        Ok(Self {
+            setup,
+            variant,
+            vs,
+            model,
+            opt,
+            sampler,
+            picks: Vec::new(),
+            adapt_log: Vec::new(),
+        })
     }
 }
 
