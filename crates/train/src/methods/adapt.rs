@@ -65,6 +65,9 @@ pub(crate) fn evaluate_adapted(
         .map(|i| plan_task(method, &reference, data, i, episodes, rng))
         .collect();
     let mut arng = Rng::seed_from_u64(rng.next_u64());
+    // The probe batches (loss before/after) come from a generator of their own, so they are the
+    // same whichever adaptation runs: the logs of two adaptations compare task by task.
+    let probe_seed = rng.next_u64();
     let rd = &setup.run_data;
     let scfg = check_fits(strategy, &rd.sampler_cfg, rd.model_cfg.n_positions)?;
     let tasks: Vec<&TaskData> = data.tasks.iter().collect();
@@ -100,7 +103,7 @@ pub(crate) fn evaluate_adapted(
         let prompt = to_segments(&start, device);
         let mut demos =
             |n: usize, r: &mut Rng| to_segments(&sampler.demo_segments(i, n, r), device);
-        let probe = demos(cfg.batch, &mut arng);
+        let probe = demos(cfg.batch, &mut Rng::seed_from_u64(probe_seed.wrapping_add(i as u64)));
         let loss_of = |p: &PromptTokens, lora| {
             tch::no_grad(|| demo_loss(model, &probe, p, lora).double_value(&[]))
         };
