@@ -78,8 +78,8 @@ impl Adam {
     }
 }
 
-/// Gradient steps of the demonstrations' action loss on `params`; returns the gradient norm of
-/// the last step. `loss` builds the loss of one demonstration batch.
+/// `cfg.steps` Adam steps of the demonstrations' action loss on `params`; `loss` builds the loss
+/// of one demonstration batch. A non-finite loss stops it with an error naming the rate.
 fn gradient_steps(
     params: &[&Tensor],
     cfg: &AdaptConfig,

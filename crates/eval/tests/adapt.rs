@@ -134,7 +134,7 @@ fn lora_at_step_zero_is_the_frozen_model_and_training_moves_the_loss_down() {
     let fresh = adapt::new_adapters(&m, &lcfg, &mut rng);
     tch::no_grad(|| {
         // Full forward: prompt repeated per row, as the loss feeds it.
-        let rows = prompt_batch(&vec![&prompt; 8], Device::Cpu);
+        let rows = prompt_batch(&[&prompt; 8], Device::Cpu);
         let frozen = m.forward_all_steps(&demos, Some(&rows), false);
         let tokens = m.prompt_tokens(&rows);
         let adapted = m.forward_all_steps_with(&demos, Some(&tokens), false, Some(&fresh));
