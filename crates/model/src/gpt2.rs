@@ -115,6 +115,7 @@ impl Attention {
     /// # Shapes
     /// `prefix`: keys `[B, nh, hd, P]`, values `[B, nh, P, hd]`; `causal`: bool `[1, 1, rows, P+L]`;
     /// `pad_bias`: `[B, 1, 1, P+L]`. Returns `[B, rows, H]`.
+    #[allow(clippy::too_many_arguments)] // the masks and rows of one cached pass, from one caller
     fn forward_cached(
         &self,
         x: &Tensor,
@@ -198,6 +199,7 @@ impl Block {
 
     /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
     /// returns `[B, rows, H]`. Keys and values still come from every position of `x`.
+    #[allow(clippy::too_many_arguments)] // the masks and rows of one cached pass, from one caller
     fn forward_cached(
         &self,
         x: &Tensor,
