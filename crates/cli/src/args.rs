@@ -1,6 +1,6 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
-use crate::prompt_args::{bandit_rule, prompt_strategy};
+use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags};
 use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand};
 use pdt_model::device::DeviceSpec;
@@ -718,6 +718,9 @@ pub struct EvalArgs {
     /// bandit: episodes per task in one round, between updates (default 1).
     #[arg(long, value_parser = count(1, 10_000))]
     pub bandit_round: Option<usize>,
+    /// Evaluation-time adaptation: --adapt and its settings.
+    #[command(flatten)]
+    pub adaptation: AdaptFlags,
 }
 
 #[derive(Debug, Args)]

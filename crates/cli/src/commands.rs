@@ -632,6 +632,28 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     Ok(())
 }
 
+/// The adaptation `promptdt eval`'s flags ask for, on top of the run's `[eval.adapt]`; `None`
+/// without `--adapt`. Values are checked by the evaluation (`AdaptConfig::validate`).
+pub(crate) fn eval_adapt(
+    a: &crate::args::EvalArgs,
+    run: &pdt_rundir::config::AdaptConfig,
+) -> Option<pdt_rundir::config::AdaptConfig> {
+    let kind = a.adaptation.adapt?;
+    let mut c = run.clone();
+    c.kind = kind;
+    c.steps = a.adapt_steps.unwrap_or(c.steps);
+    c.batch = a.adapt_batch.unwrap_or(c.batch);
+    c.lr = a.adaptation.adapt_lr.unwrap_or(c.lr);
+    c.ptdt.candidates = a.adaptation.ptdt_candidates.unwrap_or(c.ptdt.candidates);
+    c.ptdt.sigma = a.adaptation.ptdt_sigma.unwrap_or(c.ptdt.sigma);
+    c.ptdt.step = a.adaptation.ptdt_step.unwrap_or(c.ptdt.step);
+    c.ptdt.score = a.adaptation.ptdt_score.unwrap_or(c.ptdt.score);
+    c.lora.rank = a.adaptation.lora_rank.unwrap_or(c.lora.rank);
+    c.lora.alpha = a.adaptation.lora_alpha.unwrap_or(c.lora.alpha);
+    c.lora.c_proj |= a.adaptation.lora_c_proj;
+    Some(c)
+}
+
 /// The prompt strategy the flags ask for; `None` when no prompt flag is given (the run's own).
 pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::PromptStrategy> {
     let any = a.prompt_strategy.is_some()

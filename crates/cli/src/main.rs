@@ -206,14 +206,30 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) if packs::is_pack(&a) => packs::train_pack(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            let prompted = pdt_train::run::evaluate_run_prompted(
+            // With --adapt, --adapt-steps/--adapt-batch are the adaptation's, not MACAW's.
+            let adapt = match a.adaptation.adapt {
+                Some(_) => {
+                    let run = pdt_rundir::RunDir::at(&a.run);
+                    let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
+                    commands::eval_adapt(&a, &cfg.eval.adapt)
+                }
+                None => None,
+            };
+            let macaw = match adapt {
+                Some(_) => pdt_train::run::MacawAdaptation::default(),
+                None => {
+                    pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch }
+                }
+            };
+            let prompted = pdt_train::run::evaluate_run_adapted(
                 &a.run,
                 a.episodes,
                 &a.split,
                 a.device,
                 a.data.as_deref(),
-                &pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch },
+                &macaw,
                 commands::eval_prompt(&a).as_ref(),
+                adapt.as_ref(),
             )?;
             let r = &prompted.eval;
             // Families with a success criterion (Meta-World) also show the success rate.
@@ -247,7 +263,21 @@ fn run(cli: Cli) -> Result<()> {
             if let Some(how) = &r.adaptation {
                 out!("adapted to each task with {how}");
             }
-            let file = if prompted.prompt_strategy.is_default() {
+            for l in &prompted.adapt_log {
+                out!(
+                    "adapted {:<24} action loss {:.5} -> {:.5} ({} steps, {} values, {:.2} s)",
+                    l.task,
+                    l.loss_before,
+                    l.loss_after,
+                    l.steps,
+                    l.trainable,
+                    l.seconds
+                );
+            }
+            let file = if !prompted.adapt.is_none() {
+                out!("adaptation {} (eval.adapt)", prompted.adapt.kind);
+                format!("eval_adapt_{}.json", prompted.adapt.kind)
+            } else if prompted.prompt_strategy.is_default() {
                 pdt_rundir::EVAL_FINAL_JSON.to_string()
             } else {
                 let s = &prompted.prompt_strategy;

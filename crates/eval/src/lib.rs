@@ -13,7 +13,9 @@
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, StepResult};
-use pdt_model::{PrefixCache, PromptDt, Segments};
+pub mod adapt;
+
+use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -262,6 +264,8 @@ struct Batch<'a> {
     cfg: &'a EvalSettings,
     /// The prompts' keys and values, one row per task, when inference is cached.
     prefix: Option<&'a PrefixCache>,
+    /// LoRA adapters every forward runs with ([`evaluate_given`]).
+    lora: Option<&'a LoraAdapters>,
     prompts: &'a [Option<SegmentBatch>],
     /// Per-episode prompts of the episodes started last (rows: [`Running::row`]), and their keys
     /// and values when inference is cached. Empty without [`EpisodePrompts`].
@@ -311,7 +315,7 @@ impl BatchPolicy for Batch<'_> {
             (Inference::Cached, Some(c), None) => {
                 let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
                 let rows = Tensor::from_slice(&rows).to_device(cfg.device);
-                tch::no_grad(|| model.act(&history, Some(&c.select(&rows))))
+                tch::no_grad(|| model.act_with(&history, Some(&c.select(&rows)), self.lora))
                 // [A, da]
             }
             (Inference::Cached, None, None) if self.prompts.iter().all(Option::is_none) => {
@@ -416,7 +420,45 @@ pub fn evaluate_with(
     model: &PromptDt,
     tasks: Vec<EvalTask>,
     cfg: &EvalSettings,
+    chooser: Option<&mut dyn EpisodePrompts>,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
+    evaluate_inner(model, tasks, cfg, chooser, None)
+}
+
+/// What an adapted evaluation acts with in place of the tasks' prompts: the prompts' keys and
+/// values (one row per task, in task order; from tuned prompt tokens) and optional LoRA
+/// adapters, computed by the caller with the same adapters (`adapt`).
+pub struct GivenPrompts<'a> {
+    pub prefix: PrefixCache,
+    pub lora: Option<&'a LoraAdapters>,
+}
+
+/// [`evaluate`] with the prompts given as a prefix (and optional adapters), always through the
+/// cached path (the prefix is all there is of the prompt).
+pub fn evaluate_given(
+    model: &PromptDt,
+    tasks: Vec<EvalTask>,
+    cfg: &EvalSettings,
+    given: GivenPrompts<'_>,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
+    if given.prefix.rows() != tasks.len() as i64 {
+        let why = format!(
+            "{} given prompt rows for {} tasks (internal error)",
+            given.prefix.rows(),
+            tasks.len()
+        );
+        return Err(EvalError::Setup { task: String::new(), why });
+    }
+    let cfg = EvalSettings { inference: Inference::Cached, ..cfg.clone() };
+    evaluate_inner(model, tasks, &cfg, None, Some(given))
+}
+
+fn evaluate_inner(
+    model: &PromptDt,
+    tasks: Vec<EvalTask>,
+    cfg: &EvalSettings,
     mut chooser: Option<&mut dyn EpisodePrompts>,
+    given: Option<GivenPrompts<'_>>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
     let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
@@ -457,7 +499,9 @@ pub fn evaluate_with(
     let n = envs.len();
     // The prompts' keys and values, once per task (all tasks have a prompt or none does).
     let all_prompts: Option<Vec<&SegmentBatch>> = prompts.iter().map(Option::as_ref).collect();
+    let lora = given.as_ref().and_then(|g| g.lora);
     let prefix = match (cfg.inference, all_prompts) {
+        _ if given.is_some() => given.map(|g| g.prefix),
         (Inference::Cached, Some(all)) if !all.is_empty() && chooser.is_none() => {
             Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device))))
         }
@@ -468,6 +512,7 @@ pub fn evaluate_with(
         model,
         cfg,
         prefix: prefix.as_ref(),
+        lora,
         prompts: &prompts,
         episode_prompts: Vec::new(),
         episode_prefix: None,

@@ -7,6 +7,7 @@
 
 use crate::config::PromptDtConfig;
 use crate::dropout::{At, Dropout};
+use crate::lora::{LoraLayer, LoraPair};
 use tch::nn::{self, Init, Module};
 use tch::{Kind, Tensor};
 
@@ -34,6 +35,16 @@ impl Conv1D {
         size_out.push(self.n_out);
         self.bias.addmm(&x.view([-1, n_in]), &self.weight).view(size_out.as_slice())
     }
+
+    /// [`Self::forward`] plus a LoRA delta when one is given. Without one it is exactly
+    /// [`Self::forward`] (the same ops), so the default path keeps its bits.
+    fn forward_lora(&self, x: &Tensor, lora: Option<&LoraPair>) -> Tensor {
+        let y = self.forward(x);
+        match lora {
+            None => y,
+            Some(l) => y + l.delta(x),
+        }
+    }
 }
 
 fn layer_norm(p: nn::Path, h: usize, eps: f64) -> nn::LayerNorm {
@@ -56,10 +67,10 @@ impl Attention {
     /// `x`: `[B, L, H]`; `causal`: bool `[1, 1, L, L]`; `pad_bias`: `[B, 1, 1, L]` (0 keep, -1e4 pad).
     /// Queries of the last `rows` positions `[B, nh, rows, hd]`, keys `[B, nh, hd, L]` and values
     /// `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
-    fn qkv(&self, x: &Tensor, rows: i64) -> (Tensor, Tensor, Tensor) {
+    fn qkv(&self, x: &Tensor, rows: i64, lora: Option<&LoraLayer>) -> (Tensor, Tensor, Tensor) {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
-        let qkv = self.c_attn.forward(x).split(self.hidden, 2); // 3 x [B, L, H]
+        let qkv = self.c_attn.forward_lora(x, lora.map(|l| &l.c_attn)).split(self.hidden, 2); // 3 x [B, L, H]
 
         // All rows (training, full forward): no narrow. A narrow of the whole length is a no-op
         // view forward, but its backward allocates a zeroed `[B, L, H]` and copies the gradient
@@ -71,10 +82,17 @@ impl Attention {
         (q.permute([0, 2, 1, 3]), k, v)
     }
 
-    fn forward(&self, x: &Tensor, masks: &Masks<'_>, drop: &Dropout<'_>, layer: usize) -> Tensor {
+    fn forward(
+        &self,
+        x: &Tensor,
+        masks: &Masks<'_>,
+        drop: &Dropout<'_>,
+        layer: usize,
+        lora: Option<&LoraLayer>,
+    ) -> Tensor {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
-        let (q, k, v) = self.qkv(x, l); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
+        let (q, k, v) = self.qkv(x, l, lora); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
                                                       // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
                                                       // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
@@ -82,12 +100,13 @@ impl Attention {
         let w = drop.apply(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
         let a = w.matmul(&v); // [B, nh, L, hd]
         let a = a.permute([0, 2, 1, 3]).contiguous().view([b, l, self.hidden]); // [B, L, H]
-        drop.apply(self.c_proj.forward(&a), self.resid_pdrop, At::Layer(layer, 1))
+        let proj = lora.and_then(|l| l.c_proj.as_ref());
+        drop.apply(self.c_proj.forward_lora(&a, proj), self.resid_pdrop, At::Layer(layer, 1))
     }
 
     /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
-    fn keys_values(&self, x: &Tensor) -> (Tensor, Tensor) {
-        let (_, k, v) = self.qkv(x, 0);
+    fn keys_values(&self, x: &Tensor, lora: Option<&LoraLayer>) -> (Tensor, Tensor) {
+        let (_, k, v) = self.qkv(x, 0, lora);
         (k, v)
     }
 
@@ -98,6 +117,7 @@ impl Attention {
     /// # Shapes
     /// `prefix`: keys `[B, nh, hd, P]`, values `[B, nh, P, hd]`; `causal`: bool `[1, 1, rows, P+L]`;
     /// `pad_bias`: `[B, 1, 1, P+L]`. Returns `[B, rows, H]`.
+    #[allow(clippy::too_many_arguments)] // the masks and rows of one cached pass, from one caller
     fn forward_cached(
         &self,
         x: &Tensor,
@@ -106,10 +126,11 @@ impl Attention {
         masked_bias: &Tensor,
         pad_bias: &Tensor,
         rows: i64,
+        lora: Option<&LoraLayer>,
     ) -> Tensor {
         let b = x.size()[0];
         let hd = self.hidden / self.n_head;
-        let (q, k, v) = self.qkv(x, rows); // [B, nh, rows, hd], [B, nh, hd, L], [B, nh, L, hd]
+        let (q, k, v) = self.qkv(x, rows, lora); // [B, nh, rows, hd], [B, nh, hd, L], [B, nh, L, hd]
         let (k, v) = match prefix {
             Some(c) => (Tensor::cat(&[&c.keys, &k], 3), Tensor::cat(&[&c.values, &v], 2)), // P+L
             None => (k, v),
@@ -118,7 +139,7 @@ impl Attention {
         let w = w.where_self(causal, masked_bias) + pad_bias;
         let a = w.softmax(-1, None::<Kind>).matmul(&v); // [B, nh, rows, hd]
         let a = a.permute([0, 2, 1, 3]).contiguous().view([b, rows, self.hidden]); // [B, rows, H]
-        self.c_proj.forward(&a)
+        self.c_proj.forward_lora(&a, lora.and_then(|l| l.c_proj.as_ref()))
     }
 }
 
@@ -168,13 +189,21 @@ impl Block {
         }
     }
 
-    fn forward(&self, x: &Tensor, masks: &Masks<'_>, drop: &Dropout<'_>, layer: usize) -> Tensor {
-        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, drop, layer);
+    fn forward(
+        &self,
+        x: &Tensor,
+        masks: &Masks<'_>,
+        drop: &Dropout<'_>,
+        layer: usize,
+        lora: Option<&LoraLayer>,
+    ) -> Tensor {
+        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, drop, layer, lora);
         &h + self.mlp.forward(&self.ln_2.forward(&h), drop, layer)
     }
 
     /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
     /// returns `[B, rows, H]`. Keys and values still come from every position of `x`.
+    #[allow(clippy::too_many_arguments)] // the masks and rows of one cached pass, from one caller
     fn forward_cached(
         &self,
         x: &Tensor,
@@ -183,6 +212,7 @@ impl Block {
         masked_bias: &Tensor,
         pad_bias: &Tensor,
         rows: i64,
+        lora: Option<&LoraLayer>,
     ) -> Tensor {
         let l = x.size()[1];
         let a = self.attn.forward_cached(
@@ -192,6 +222,7 @@ impl Block {
             masked_bias,
             pad_bias,
             rows,
+            lora,
         );
         let h = x.narrow(1, l - rows, rows) + a; // [B, rows, H]
         &h + self.mlp.forward(&self.ln_2.forward(&h), &Dropout::Off, 0)
@@ -316,7 +347,7 @@ impl Gpt2 {
     /// `inputs_embeds`: `[B, L, H]`; `token_mask`: `[B, L]` (1 = real token, 0 = padding), float.
     /// Returns `[B, L, H]`.
     pub fn forward(&self, inputs_embeds: &Tensor, token_mask: &Tensor, train: bool) -> Tensor {
-        self.forward_with(inputs_embeds, token_mask, Dropout::train(train))
+        self.forward_impl(inputs_embeds, token_mask, Dropout::train(train), None)
     }
 
     /// [`Self::forward`] with its dropout as given (masks drawn beforehand, see
@@ -327,6 +358,27 @@ impl Gpt2 {
         token_mask: &Tensor,
         drop: Dropout<'_>,
     ) -> Tensor {
+        self.forward_impl(inputs_embeds, token_mask, drop, None)
+    }
+
+    /// [`Self::forward`] with LoRA adapters on the attention projections (one per layer).
+    pub fn forward_lora(
+        &self,
+        inputs_embeds: &Tensor,
+        token_mask: &Tensor,
+        train: bool,
+        lora: Option<&[LoraLayer]>,
+    ) -> Tensor {
+        self.forward_impl(inputs_embeds, token_mask, Dropout::train(train), lora)
+    }
+
+    fn forward_impl(
+        &self,
+        inputs_embeds: &Tensor,
+        token_mask: &Tensor,
+        drop: Dropout<'_>,
+        lora: Option<&[LoraLayer]>,
+    ) -> Tensor {
         let l = inputs_embeds.size()[1];
         debug_assert!(l <= self.n_positions, "caller checks the sequence length");
         // As the reference, the causal mask is the top-left L x L slice of the persistent buffer.
@@ -336,7 +388,7 @@ impl Gpt2 {
         let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
         let mut x = drop.apply(inputs_embeds.shallow_clone(), self.embd_pdrop, At::Embeddings);
         for (i, block) in self.h.iter().enumerate() {
-            x = block.forward(&x, &masks, &drop, i);
+            x = block.forward(&x, &masks, &drop, i, lora.and_then(|a| a.get(i)));
         }
         self.ln_f.forward(&x)
     }
@@ -346,16 +398,27 @@ impl Gpt2 {
     /// # Shapes
     /// `embeds`: `[P, Lp, H]`; `token_mask`: `[P, Lp]` float (1 real, 0 padding).
     pub fn prefix(&self, embeds: &Tensor, token_mask: &Tensor) -> PrefixCache {
+        self.prefix_lora(embeds, token_mask, None)
+    }
+
+    /// [`Self::prefix`] with LoRA adapters (one per layer).
+    pub fn prefix_lora(
+        &self,
+        embeds: &Tensor,
+        token_mask: &Tensor,
+        lora: Option<&[LoraLayer]>,
+    ) -> PrefixCache {
         let l = embeds.size()[1];
         let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
         let pad_bias = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [P, 1, 1, Lp]
         let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
         let mut layers = Vec::with_capacity(self.h.len());
         let mut x = embeds.shallow_clone();
-        for block in &self.h {
-            let (keys, values) = block.attn.keys_values(&block.ln_1.forward(&x));
+        for (i, block) in self.h.iter().enumerate() {
+            let adapter = lora.and_then(|a| a.get(i));
+            let (keys, values) = block.attn.keys_values(&block.ln_1.forward(&x), adapter);
             layers.push(LayerCache { keys, values });
-            x = block.forward(&x, &masks, &Dropout::Off, 0);
+            x = block.forward(&x, &masks, &Dropout::Off, 0, adapter);
         }
         PrefixCache { layers, pad_bias }
     }
@@ -372,6 +435,17 @@ impl Gpt2 {
         prefix: Option<&PrefixCache>,
         embeds: &Tensor,
         token_mask: &Tensor,
+    ) -> Tensor {
+        self.forward_last_lora(prefix, embeds, token_mask, None)
+    }
+
+    /// [`Self::forward_last`] with LoRA adapters (one per layer).
+    pub fn forward_last_lora(
+        &self,
+        prefix: Option<&PrefixCache>,
+        embeds: &Tensor,
+        token_mask: &Tensor,
+        lora: Option<&[LoraLayer]>,
     ) -> Tensor {
         let l = embeds.size()[1];
         let p = prefix.map_or(0, PrefixCache::len);
@@ -400,10 +474,11 @@ impl Gpt2 {
         let n = self.h.len();
         for (i, block) in self.h.iter().enumerate() {
             let cache = prefix.map(|c| &c.layers[i]);
+            let adapter = lora.and_then(|a| a.get(i));
             x = if i + 1 < n {
-                block.forward_cached(&x, cache, &all, &self.masked_bias, &pad_bias, l)
+                block.forward_cached(&x, cache, &all, &self.masked_bias, &pad_bias, l, adapter)
             } else {
-                block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, tail)
+                block.forward_cached(&x, cache, &last, &self.masked_bias, &pad_bias, tail, adapter)
             };
         }
         self.ln_f.forward(&x) // [B, tail, H]

@@ -4,6 +4,7 @@
 //! - [`gpt2`]: the GPT-2 trunk without position embedding (the reference's `trajectory_gpt2.py`).
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
 //! - [`packed`]: N models of one shape as one (stacked weights, batched products): a pack of runs.
+//! - [`lora`]: LoRA adapters on the attention projections, held apart from the weights.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
 //! - [`dropout`]: the trunk's dropout sites and masks (drawn in the forward or beforehand).
@@ -23,10 +24,12 @@ pub mod dropout;
 pub mod forward_file;
 pub mod gpt2;
 pub mod host_memory;
+pub mod lora;
 pub mod packed;
 pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;
 pub use config::PromptDtConfig;
 pub use gpt2::PrefixCache;
-pub use prompt_dt::{PromptDt, Segments};
+pub use lora::{LoraAdapters, LoraLayer, LoraPair, LoraShape};
+pub use prompt_dt::{PromptDt, PromptTokens, Segments};

@@ -7,6 +7,7 @@
 use crate::config::PromptDtConfig;
 use crate::dropout::{Dropout, DropoutMasks};
 use crate::gpt2::{Gpt2, PrefixCache};
+use crate::lora::LoraAdapters;
 use tch::nn::{self, Init, Module};
 use tch::{Device, Kind, Tensor};
 
@@ -154,6 +155,18 @@ impl Embeddings {
         let mask = Tensor::stack(&[m, m, m], 1).permute([0, 2, 1]).reshape([b, 3 * t]); // [B, 3T]
         (tokens, mask)
     }
+}
+
+/// A prompt already embedded: the tokens the trunk sees before the history, as
+/// [`PromptDt::prompt_tokens`] makes them from segments, or as an adaptation tuned them (soft
+/// prompt tuning learns `tokens` directly).
+///
+/// # Shapes
+/// `tokens [P, 3Lp, H]`, `mask [P, 3Lp]` (float, 1 = real token).
+#[derive(Debug)]
+pub struct PromptTokens {
+    pub tokens: Tensor,
+    pub mask: Tensor,
 }
 
 /// Why a forward pass was refused. (Shapes are checked up front because libtorch would otherwise
@@ -382,6 +395,79 @@ impl PromptDt {
             self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, R, H]
                                                                                                    // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
                                                                                                    // the last, the state token of the last step.
+        let rows = tail.size()[1];
+        let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
+        if self.cfg.action_tanh {
+            actions.tanh()
+        } else {
+            actions
+        }
+    }
+
+    /// The device the weights live on.
+    pub fn device(&self) -> Device {
+        self.predict_action.ws.device()
+    }
+
+    /// The prompt's embedded tokens (no LayerNorm, as in [`PromptDt::forward_all_steps`]).
+    pub fn prompt_tokens(&self, prompt: &Segments) -> PromptTokens {
+        let (tokens, mask) = self.prompt.tokens(prompt, self.cfg.hidden_size as i64);
+        PromptTokens { tokens, mask }
+    }
+
+    /// [`PromptDt::forward_all_steps`] with the prompt given as tokens and optional LoRA
+    /// adapters: the hook of the evaluation-time adaptations (`pdt_eval::adapt`). With
+    /// `prompt_tokens(p)` and no adapters it runs the same ops as `forward_all_steps(h, Some(p))`.
+    pub fn forward_all_steps_tokens(
+        &self,
+        history: &Segments,
+        prompt: Option<&PromptTokens>,
+        train: bool,
+        lora: Option<&LoraAdapters>,
+    ) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let b = history.batch_size();
+        let (tokens, mask) = self.history.tokens(history, hidden);
+        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
+        let (tokens, mask) = match prompt {
+            Some(p) => (Tensor::cat(&[&p.tokens, &tokens], 1), Tensor::cat(&[&p.mask, &mask], 1)),
+            None => (tokens, mask),
+        }; // [B, 3(Lp+K), H]
+        let layers = lora.map(|a| a.layers.as_slice());
+        let x = self.transformer.forward_lora(&tokens, &mask, train, layers); // [B, 3(Lp+K), H]
+        let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
+        let actions = self.predict_action.forward(&x.select(1, 1)); // [B, Lp+K, da]
+        if self.cfg.action_tanh {
+            actions.tanh()
+        } else {
+            actions
+        }
+    }
+
+    /// [`PromptDt::prefix`] of an embedded prompt, with optional LoRA adapters.
+    pub fn prefix_with(&self, prompt: &PromptTokens, lora: Option<&LoraAdapters>) -> PrefixCache {
+        let layers = lora.map(|a| a.layers.as_slice());
+        self.transformer.prefix_lora(&prompt.tokens, &prompt.mask, layers)
+    }
+
+    /// [`PromptDt::act`] with optional LoRA adapters (the prefix made with the same adapters).
+    pub fn act_with(
+        &self,
+        history: &Segments,
+        prompt: Option<&PrefixCache>,
+        lora: Option<&LoraAdapters>,
+    ) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let (tokens, mask) = self.history.tokens(history, hidden);
+        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
+        let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
+        let layers = lora.map(|a| a.layers.as_slice());
+        let tail = self.transformer.forward_last_lora(
+            prompt,
+            &tokens.narrow(1, 0, n),
+            &mask.narrow(1, 0, n),
+            layers,
+        ); // [B, R, H]
         let rows = tail.size()[1];
         let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
         if self.cfg.action_tanh {

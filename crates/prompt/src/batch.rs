@@ -267,6 +267,23 @@ impl<'a> BatchSampler<'a> {
         out
     }
 
+    /// `n` history segments of K steps from task `task`'s demonstrations (its prompt set P_i,
+    /// the data a test task has): per segment a uniformly drawn demonstration and a uniformly
+    /// drawn start, as training draws histories. What the evaluation-time adaptations learn from
+    /// (`pdt_eval::adapt`); returns-to-go zeroed where the sampler zeroes the history's.
+    pub fn demo_segments(&self, task: usize, n: usize, rng: &mut Rng) -> SegmentBatch {
+        let demos = &self.tasks[task].data.prompts.trajectories;
+        let k = self.cfg.k;
+        let mut out = SegmentBatch::zeros(n, k, self.state_dim, self.act_dim);
+        for row in 0..n {
+            let traj = &demos[rng.random_range(0..demos.len())];
+            let si = rng.random_range(0..traj.len());
+            let slot = out.rows(row, 1);
+            self.write(traj, si, k, self.cfg.zero_history_returns, slot);
+        }
+        out
+    }
+
     pub fn num_tasks(&self) -> usize {
         self.tasks.len()
     }

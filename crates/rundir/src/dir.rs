@@ -258,7 +258,15 @@ impl RunDir {
         self.root.join(format!("eval_prompt_{}.json", strategy.name()))
     }
 
+    /// `eval_adapt_<kind>.json`: a final evaluation with an evaluation-time adaptation.
+    pub fn adapt_eval_path(&self, kind: crate::config::AdaptKind) -> PathBuf {
+        self.root.join(format!("eval_adapt_{}.json", kind.name()))
+    }
+
     pub fn write_prompt_eval(&self, eval: &crate::files::PromptEval) -> Result<(), RunDirError> {
+        if !eval.adapt.is_none() {
+            return write_json(&self.adapt_eval_path(eval.adapt.kind), eval);
+        }
         write_json(&self.prompt_eval_path(eval.prompt_strategy.strategy), eval)
     }
 

@@ -268,6 +268,12 @@ pub struct PromptEval {
     pub eval: FinalEval,
     pub prompt_strategy: pdt_prompt::PromptStrategy,
     pub picks: Vec<pdt_prompt::PromptPick>,
+    /// `[eval.adapt]` when an adaptation was used (then the file is `eval_adapt_<kind>.json`).
+    #[serde(default, skip_serializing_if = "crate::config::AdaptConfig::is_none")]
+    pub adapt: crate::config::AdaptConfig,
+    /// Per test task: the demonstrations' action loss before and after, budget, wall time.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub adapt_log: Vec<crate::config::AdaptLog>,
 }
 
 /// One line of `eval.jsonl`: one task's evaluation at one iteration.

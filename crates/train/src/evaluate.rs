@@ -9,6 +9,7 @@ use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
 use pdt_prompt::PromptStrategy;
+use pdt_rundir::config::AdaptConfig;
 use pdt_rundir::{FinalEval, PromptEval, RunDir};
 use std::path::Path;
 
@@ -48,6 +49,23 @@ pub fn evaluate_run_prompted(
     adaptation: &MacawAdaptation,
     prompt: Option<&PromptStrategy>,
 ) -> Result<PromptEval, RunError> {
+    evaluate_run_adapted(dir, episodes, split, device, data, adaptation, prompt, None)
+}
+
+/// [`evaluate_run_prompted`] with an evaluation-time adaptation of the test tasks (`None`: the
+/// run's `[eval.adapt]`, none unless set; `docs/prompt-control.md`). With one, the results go to
+/// `eval_adapt_<kind>.json` with each task's adaptation log.
+#[allow(clippy::too_many_arguments)] // the flags of `promptdt eval`, each optional
+pub fn evaluate_run_adapted(
+    dir: &Path,
+    episodes: Option<usize>,
+    split: &str,
+    device: Option<pdt_model::device::DeviceSpec>,
+    data: Option<&Path>,
+    adaptation: &MacawAdaptation,
+    prompt: Option<&PromptStrategy>,
+    adapt: Option<&AdaptConfig>,
+) -> Result<PromptEval, RunError> {
     let run = RunDir::at(dir);
     let mut cfg = run_config(&run, device, data)?;
     if let Some(e) = episodes {
@@ -55,6 +73,10 @@ pub fn evaluate_run_prompted(
     }
     if let Some(p) = prompt {
         cfg.eval.prompt = p.clone();
+    }
+    if let Some(a) = adapt {
+        a.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
+        cfg.eval.adapt = a.clone();
     }
     let setup = Setup::new(cfg)?;
     let stats_path = run.stats_path();
@@ -90,6 +112,7 @@ pub fn evaluate_run_prompted(
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
     let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
     let picks = learner.take_prompt_picks();
+    let adapt_log = learner.take_adapt_log();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
         adaptation: learner.adaptation(),
@@ -101,8 +124,11 @@ pub fn evaluate_run_prompted(
         mean_return,
     };
     let prompt_strategy = setup.cfg.eval.prompt.clone();
-    let out = PromptEval { eval: result, prompt_strategy, picks };
-    if out.prompt_strategy.is_default() {
+    // Training tasks are not adapted: their file is the strategy's.
+    let adapt =
+        if which == Split::Test { setup.cfg.eval.adapt.clone() } else { Default::default() };
+    let out = PromptEval { eval: result, prompt_strategy, picks, adapt, adapt_log };
+    if out.prompt_strategy.is_default() && out.adapt.is_none() {
         run.write_final_eval(&out.eval)?;
     } else {
         run.write_prompt_eval(&out)?;

@@ -2,10 +2,12 @@
 //! reference code's values (`promptdt-reference.md` c.3, c.4). Per-environment constants (rtg scale,
 //! target return, horizon, prompt length) come from the environment's preset unless set here.
 
+pub mod adapt;
 pub mod macaw;
 mod options;
 mod overrides;
 
+pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore};
 pub use options::{AdamWConfig, FlatOptim, Inference, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::DeviceSpec;
@@ -297,6 +299,10 @@ pub struct EvalSection {
     /// configuration files of runs that never set it are what they were.
     #[serde(skip_serializing_if = "PromptStrategy::is_default")]
     pub prompt: PromptStrategy,
+    /// `[eval.adapt]`: an adaptation to each test task from its demonstrations, the backbone
+    /// frozen (`docs/prompt-control.md`). Written only when one is set.
+    #[serde(skip_serializing_if = "AdaptConfig::is_none")]
+    pub adapt: AdaptConfig,
 }
 
 impl Default for EvalSection {
@@ -312,6 +318,7 @@ impl Default for EvalSection {
             finetune_lr: 1e-4,
             inference: Inference::Cached,
             prompt: PromptStrategy::default(),
+            adapt: AdaptConfig::default(),
         }
     }
 }
@@ -435,6 +442,17 @@ impl TrainConfig {
             v.fail(format!(
                 "eval.prompt: {} takes no prompt; a prompt strategy applies to prompt-dt and \
                  prompt-mt-bc runs",
+                self.run.method.name()
+            ));
+        }
+        if let Err(err) = e.adapt.validate() {
+            v.fail(err.to_string());
+        }
+        if !e.adapt.is_none() && !self.run.method.uses_prompt() {
+            v.fail(format!(
+                "eval.adapt.kind = {}: {} takes no prompt; the adaptations apply to prompt-dt and \
+                 prompt-mt-bc runs",
+                e.adapt.kind,
                 self.run.method.name()
             ));
         }

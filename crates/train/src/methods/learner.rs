@@ -171,6 +171,12 @@ pub(crate) trait Learner {
         Vec::new()
     }
 
+    /// What `[eval.adapt]`'s adaptation did per test task in the last [`Learner::evaluate`],
+    /// taken out; empty without one.
+    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
+        Vec::new()
+    }
+
     /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
     /// transitions`); `None` for the methods without one.
     fn adaptation(&self) -> Option<String> {

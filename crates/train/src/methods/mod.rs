@@ -6,6 +6,7 @@
 //! A new method: its module here, one line in [`learner`], and its section of the configuration
 //! (`docs/adding-a-method.md`).
 
+mod adapt;
 mod learner;
 pub(crate) mod macaw;
 pub(crate) mod prompt_dt;

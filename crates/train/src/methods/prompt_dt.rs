@@ -58,6 +58,8 @@ pub(crate) struct PromptDtLearner<'s> {
     sampler: BatchSampler<'s>,
     /// The prompt strategy's choices in the last evaluation (empty for the reference rule).
     picks: Vec<PromptPick>,
+    /// What `[eval.adapt]`'s adaptation did per test task in the last evaluation.
+    adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
 }
 
 impl<'s> PromptDtLearner<'s> {
@@ -74,7 +76,16 @@ impl<'s> PromptDtLearner<'s> {
             &setup.run_data.model_cfg.parameter_names(),
             setup.cfg.optim.clone(),
         );
-        Ok(Self { setup, variant, vs, model, opt, sampler, picks: Vec::new() })
+        Ok(Self {
+            setup,
+            variant,
+            vs,
+            model,
+            opt,
+            sampler,
+            picks: Vec::new(),
+            adapt_log: Vec::new(),
+        })
     }
 }
 
@@ -199,6 +210,7 @@ impl Learner for PromptDtLearner<'_> {
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
         self.picks.clear();
+        self.adapt_log.clear();
         let results = eval_tasks(self, split, rng)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
@@ -260,6 +272,10 @@ impl Learner for PromptDtLearner<'_> {
     fn take_prompt_picks(&mut self) -> Vec<PromptPick> {
         std::mem::take(&mut self.picks)
     }
+
+    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
+        std::mem::take(&mut self.adapt_log)
+    }
 }
 
 /// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
@@ -297,8 +313,24 @@ fn eval_tasks(
         env_threads: pdt_base::threads(setup.cfg.eval.env_threads),
         inference: setup.cfg.eval.inference,
     };
-    // A prompt strategy other than the reference rule (`[eval.prompt]`): its own evaluation.
+    // An adaptation (`[eval.adapt]`) of the test tasks: its own evaluation, starting from the
+    // strategy's prompt. Training tasks are evaluated as they are.
     let strategy = &setup.cfg.eval.prompt;
+    let adapt_cfg = &setup.cfg.eval.adapt;
+    if !adapt_cfg.is_none() && split == Split::Test {
+        let a = super::adapt::evaluate_adapted(
+            &learner.model,
+            setup,
+            data,
+            &settings,
+            strategy,
+            adapt_cfg,
+            rng,
+        )?;
+        learner.adapt_log = a.log;
+        return Ok(a.results);
+    }
+    // A prompt strategy other than the reference rule (`[eval.prompt]`): its own evaluation.
     if !strategy.is_default() {
         let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
         learner.picks = s.picks;

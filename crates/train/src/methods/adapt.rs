@@ -1,0 +1,260 @@
+//! Evaluation with an evaluation-time adaptation (`[eval.adapt]`, `promptdt eval --adapt`;
+//! `docs/prompt-control.md`): per test task, the prompt the strategy picks (one per task:
+//! `reference`, `random-segment` or `best-return`) is the starting point; soft prompt tuning,
+//! the Prompt-Tuning DT update or LoRA adapt from the task's demonstrations, the backbone frozen;
+//! then the task's episodes run with the result.
+//!
+//! Reset seeds are the reference evaluation's (tasks planned by `plan_task`, as the strategies
+//! do), so an adapted evaluation meets the same start states as Prompt-DT. The adaptation draws
+//! from its own generator, seeded from the same evaluation stream after the plans.
+
+use crate::error::RunError;
+use crate::setup::Setup;
+use crate::step::to_segments;
+use pdt_data::{MultiTaskDataset, TaskData};
+use pdt_eval::adapt::{
+    self, demo_loss, ActionLossScore, AdaptConfig, AdaptKind, AdaptLog, PromptScore, PtdtScore,
+};
+use pdt_eval::{
+    evaluate, evaluate_given, summarise, EpisodeRecord, EvalError, EvalSettings, EvalTask,
+    GivenPrompts, TaskResult,
+};
+use pdt_model::{PrefixCache, PromptDt, PromptTokens, Segments};
+use pdt_policy::{plan_task, TaskPlan};
+use pdt_prompt::strategy::check_fits;
+use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
+use rand::{RngCore, SeedableRng};
+use std::time::Instant;
+
+/// An adapted evaluation's per-task results and what each adaptation did.
+pub(crate) struct AdaptedEval {
+    pub(crate) results: Vec<TaskResult>,
+    pub(crate) log: Vec<AdaptLog>,
+}
+
+/// Evaluates every task of `data` after adapting to each from its demonstrations.
+pub(crate) fn evaluate_adapted(
+    model: &PromptDt,
+    setup: &Setup,
+    data: &MultiTaskDataset,
+    settings: &EvalSettings,
+    strategy: &PromptStrategy,
+    cfg: &AdaptConfig,
+    rng: &mut Rng,
+) -> Result<AdaptedEval, RunError> {
+    let method = setup.cfg.run.method;
+    if !method.uses_prompt() {
+        return Err(RunError::Invalid(format!(
+            "adaptation `{}`: {} takes no prompt; the adaptations apply to prompt-dt and \
+             prompt-mt-bc runs",
+            cfg.kind,
+            method.name()
+        )));
+    }
+    if strategy.strategy.per_episode() || strategy.strategy.learns_from_returns() {
+        return Err(RunError::Invalid(format!(
+            "adaptation `{}` starts from one prompt per task; prompt strategy `{}` picks one per \
+             episode or round (use reference, random-segment or best-return)",
+            cfg.kind, strategy.strategy
+        )));
+    }
+    cfg.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
+    let episodes = setup.cfg.eval.episodes;
+    let reference = setup.sampler(data)?;
+    let plans: Vec<TaskPlan> = (0..data.tasks.len())
+        .map(|i| plan_task(method, &reference, data, i, episodes, rng))
+        .collect();
+    let mut arng = Rng::seed_from_u64(rng.next_u64());
+    // The probe batches (loss before/after) come from a generator of their own, so they are the
+    // same whichever adaptation runs: the logs of two adaptations compare task by task.
+    let probe_seed = rng.next_u64();
+    let rd = &setup.run_data;
+    let scfg = check_fits(strategy, &rd.sampler_cfg, rd.model_cfg.n_positions)?;
+    let tasks: Vec<&TaskData> = data.tasks.iter().collect();
+    let sampler = BatchSampler::new(scfg, &tasks, rd.norm.clone(), rd.model_cfg.n_positions)?;
+    let device = setup.device;
+    let make = |plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>| {
+        let envs = seeds.iter().map(|_| setup.family.make(plan.index)).collect::<Result<_, _>>()?;
+        Ok::<_, RunError>(EvalTask {
+            name: plan.name.clone(),
+            index: plan.index,
+            envs,
+            seeds: seeds.to_vec(),
+            prompt,
+        })
+    };
+    let mut log = Vec::with_capacity(plans.len());
+    let mut all: Vec<EpisodeRecord> = Vec::new();
+    // Soft prompt and PTDT results go through one batched evaluation of all tasks; LoRA's
+    // adapters differ per task, so each task runs alone with its own.
+    let mut prefixes: Vec<PrefixCache> = Vec::new();
+    let mut tuned: Vec<SegmentBatch> = Vec::new();
+    for (i, plan) in plans.iter().enumerate() {
+        let start = match strategy.strategy {
+            PromptStrategyKind::Reference if strategy.is_default() => plan.prompt.clone(),
+            PromptStrategyKind::Reference => Some(sampler.eval_prompt(i, &mut arng)),
+            PromptStrategyKind::RandomSegment => {
+                let c = sampler.random_segments(i, &mut arng);
+                Some(sampler.prompt_from_choices(i, &c)?)
+            }
+            _ => Some(sampler.prompt_from_choices(i, &sampler.best_return_segments(i))?),
+        }
+        .ok_or_else(|| RunError::Invalid(format!("task {}: no prompt to adapt", plan.name)))?;
+        let prompt = to_segments(&start, device);
+        let mut demos =
+            |n: usize, r: &mut Rng| to_segments(&sampler.demo_segments(i, n, r), device);
+        let probe = demos(cfg.batch, &mut Rng::seed_from_u64(probe_seed.wrapping_add(i as u64)));
+        let loss_of = |p: &PromptTokens, lora| {
+            tch::no_grad(|| demo_loss(model, &probe, p, lora).double_value(&[]))
+        };
+        let start_tokens = tch::no_grad(|| model.prompt_tokens(&prompt));
+        let loss_before = loss_of(&start_tokens, None);
+        let clock = Instant::now();
+        let fail = |e: adapt::AdaptError| RunError::Invalid(format!("task {}: {e}", plan.name));
+        let (loss_after, trainable) = match cfg.kind {
+            AdaptKind::SoftPrompt => {
+                let t =
+                    adapt::soft_prompt(model, &prompt, cfg, &mut demos, &mut arng).map_err(fail)?;
+                let after = loss_of(&t, None);
+                prefixes.push(tch::no_grad(|| model.prefix_with(&t, None)));
+                (after, t.tokens.numel())
+            }
+            AdaptKind::Ptdt => {
+                let p = ptdt_for(model, settings, plan, &start, cfg, &mut demos, &make, &mut arng)?;
+                let tokens = tch::no_grad(|| model.prompt_tokens(&to_segments(&p, device)));
+                let after = loss_of(&tokens, None);
+                tuned.push(p);
+                (after, adapt::ptdt_trainable(&start))
+            }
+            AdaptKind::Lora => {
+                let a = adapt::lora(model, &prompt, cfg, &mut demos, &mut arng).map_err(fail)?;
+                let after = loss_of(&start_tokens, Some(&a));
+                let seconds = clock.elapsed().as_secs_f64();
+                let prefix = tch::no_grad(|| model.prefix_with(&start_tokens, Some(&a)));
+                let given = GivenPrompts { prefix, lora: Some(&a) };
+                let mut eps =
+                    evaluate_given(model, vec![make(plan, &plan.seeds, None)?], settings, given)?;
+                eps.iter_mut().for_each(|e| e.task_index = i);
+                all.extend(eps);
+                log.push(entry(plan, cfg, loss_before, after, a.numel(), seconds));
+                continue;
+            }
+            AdaptKind::None => {
+                return Err(RunError::Invalid("no adaptation asked for (internal error)".into()))
+            }
+        };
+        let seconds = clock.elapsed().as_secs_f64();
+        log.push(entry(plan, cfg, loss_before, loss_after, trainable, seconds));
+    }
+    match cfg.kind {
+        AdaptKind::SoftPrompt => {
+            let refs: Vec<&PrefixCache> = prefixes.iter().collect();
+            let prefix = PrefixCache::cat(&refs)
+                .ok_or_else(|| RunError::Invalid("tuned prompts of different lengths".into()))?;
+            let tasks =
+                plans.iter().map(|p| make(p, &p.seeds, None)).collect::<Result<Vec<_>, _>>()?;
+            all = evaluate_given(model, tasks, settings, GivenPrompts { prefix, lora: None })?;
+        }
+        AdaptKind::Ptdt => {
+            let tasks = plans
+                .iter()
+                .zip(tuned)
+                .map(|(p, t)| make(p, &p.seeds, Some(t)))
+                .collect::<Result<Vec<_>, _>>()?;
+            all = evaluate(model, tasks, settings)?;
+        }
+        _ => {}
+    }
+    let results = plans
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let mine: Vec<&EpisodeRecord> = all.iter().filter(|e| e.task_index == k).collect();
+            summarise(&p.name, p.index, &mine)
+        })
+        .collect();
+    Ok(AdaptedEval { results, log })
+}
+
+fn entry(
+    plan: &TaskPlan,
+    cfg: &AdaptConfig,
+    loss_before: f64,
+    loss_after: f64,
+    trainable: usize,
+    seconds: f64,
+) -> AdaptLog {
+    AdaptLog {
+        task: plan.name.clone(),
+        loss_before,
+        loss_after,
+        steps: cfg.steps,
+        trainable,
+        seconds,
+    }
+}
+
+/// Builds a task's evaluation from its plan, the episodes' seeds and its prompt.
+type MakeTask<'a> =
+    dyn Fn(&TaskPlan, &[u64], Option<SegmentBatch>) -> Result<EvalTask, RunError> + 'a;
+
+/// The Prompt-Tuning DT update of one task's prompt, with the configured score.
+#[allow(clippy::too_many_arguments)] // the evaluation's pieces, from one caller
+fn ptdt_for(
+    model: &PromptDt,
+    settings: &EvalSettings,
+    plan: &TaskPlan,
+    start: &SegmentBatch,
+    cfg: &AdaptConfig,
+    demos: &mut dyn FnMut(usize, &mut Rng) -> Segments,
+    make: &MakeTask<'_>,
+    rng: &mut Rng,
+) -> Result<SegmentBatch, RunError> {
+    match cfg.ptdt.score {
+        PtdtScore::ActionLoss => {
+            let mut score = ActionLossScore { model, batch: cfg.batch, demos };
+            Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
+        }
+        PtdtScore::Return => {
+            let mut score =
+                ReturnScore { model, settings, plan, make, episodes: cfg.ptdt.score_episodes };
+            Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
+        }
+    }
+}
+
+/// The online score: the mean return of `episodes` episodes per candidate in the task's
+/// environment, every candidate on the same reset seeds (drawn per call, apart from the
+/// evaluation's), all candidates' episodes stepped together.
+struct ReturnScore<'a> {
+    model: &'a PromptDt,
+    settings: &'a EvalSettings,
+    plan: &'a TaskPlan,
+    make: &'a MakeTask<'a>,
+    episodes: usize,
+}
+
+impl PromptScore for ReturnScore<'_> {
+    fn scores(
+        &mut self,
+        candidates: &[SegmentBatch],
+        rng: &mut Rng,
+    ) -> Result<Vec<f64>, EvalError> {
+        let seeds: Vec<u64> = (0..self.episodes).map(|_| rng.next_u64()).collect();
+        let setup_err =
+            |e: RunError| EvalError::Setup { task: self.plan.name.clone(), why: e.to_string() };
+        let tasks = candidates
+            .iter()
+            .map(|c| (self.make)(self.plan, &seeds, Some(c.clone())))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(setup_err)?;
+        let eps = evaluate(self.model, tasks, self.settings)?;
+        Ok((0..candidates.len())
+            .map(|k| {
+                let r: Vec<f64> =
+                    eps.iter().filter(|e| e.task_index == k).map(|e| e.episode_return).collect();
+                r.iter().sum::<f64>() / r.len().max(1) as f64
+            })
+            .collect())
+    }
+}
