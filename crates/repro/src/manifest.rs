@@ -420,9 +420,11 @@ impl Manifest {
     fn check_variant(&self, c: &Cell) -> Result<(), String> {
         let Some(name) = &c.variant else {
             return match c.eval {
-                Some(_) => Err("`eval` overrides the evaluation of a variant: give it a `variant` \
+                Some(_) => {
+                    Err("`eval` overrides the evaluation of a variant: give it a `variant` \
                                 name (docs/reproduce.md, \"Variants\")"
-                    .into()),
+                        .into())
+                }
                 None => Ok(()),
             };
         };
@@ -443,8 +445,7 @@ impl Manifest {
         }
         // The keys are checked now, against a default configuration (a typo fails here, not after
         // hours of training); the values again with each run's own configuration.
-        crate::variant::with_eval(&pdt_rundir::config::TrainConfig::default(), eval)
-            .map(|_| ())
+        crate::variant::with_eval(&pdt_rundir::config::TrainConfig::default(), eval).map(|_| ())
     }
 
     /// The settings of `cell` at `budget`: the budget's, then every matching rule in order.

@@ -61,7 +61,7 @@ pub fn with_eval(config: &TrainConfig, eval: &toml::Table) -> Result<TrainConfig
     let toml::Value::Table(t) = &mut v else {
         return Err("a configuration is a TOML table".into());
     };
-    let section = t.entry("eval").or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    let section = t.entry("eval").or_insert(toml::Value::Table(toml::Table::new()));
     merge(section, eval);
     v.try_into().map_err(|e: toml::de::Error| format!("eval: {}", e.message()))
 }
@@ -72,12 +72,11 @@ fn merge(into: &mut toml::Value, from: &toml::Table) {
         return;
     };
     for (k, v) in from {
-        match (t.get_mut(k), v) {
-            (Some(old @ toml::Value::Table(_)), toml::Value::Table(sub)) => merge(old, sub),
-            _ => {
-                t.insert(k.clone(), v.clone());
-            }
+        if let (Some(old @ toml::Value::Table(_)), toml::Value::Table(sub)) = (t.get_mut(k), v) {
+            merge(old, sub);
+            continue;
         }
+        t.insert(k.clone(), v.clone());
     }
 }
 
@@ -147,14 +146,16 @@ fn prepare(spec: &RunSpec, base: &BaseRun) -> Result<(), ReproError> {
     if std::fs::hard_link(&w, &w_to).is_err() {
         std::fs::copy(&w, &w_to).map_err(io(&w))?;
     }
-    let text = spec.config.to_toml().map_err(|e| ReproError::Invalid(format!("{}: {e}", spec.key)))?;
+    let text =
+        spec.config.to_toml().map_err(|e| ReproError::Invalid(format!("{}: {e}", spec.key)))?;
     let path = to.config_path();
     pdt_base::fs::write_atomic(&path, text.as_bytes()).map_err(io(&path))
 }
 
 /// The evaluation file `promptdt eval` wrote into `dir` (the only one: the directory was emptied).
 fn result_file(dir: &Path) -> Result<String, ReproError> {
-    let entries = std::fs::read_dir(dir).map_err(|e| ReproError::Io { path: dir.into(), source: e })?;
+    let entries =
+        std::fs::read_dir(dir).map_err(|e| ReproError::Io { path: dir.into(), source: e })?;
     let mut found: Vec<String> = entries
         .flatten()
         .filter_map(|e| e.file_name().to_str().map(str::to_string))
@@ -167,7 +168,9 @@ fn result_file(dir: &Path) -> Result<String, ReproError> {
     found.sort();
     match found.as_slice() {
         [one] => Ok(one.clone()),
-        [] => Err(ReproError::Invalid(format!("{}: `promptdt eval` wrote no result", dir.display()))),
+        [] => {
+            Err(ReproError::Invalid(format!("{}: `promptdt eval` wrote no result", dir.display())))
+        }
         many => Err(ReproError::Invalid(format!(
             "{}: several results ({}), expected one",
             dir.display(),
@@ -203,7 +206,13 @@ fn finish(spec: &RunSpec, base: &BaseRun, seconds: f64) -> Result<(), ReproError
     };
     let mut lines = Vec::with_capacity(result.tasks.len());
     for t in &result.tasks {
-        lines.push(EvalLine::new(t, result.iteration, result.step, &result.eval_on, target(t.task_index)?));
+        lines.push(EvalLine::new(
+            t,
+            result.iteration,
+            result.step,
+            &result.eval_on,
+            target(t.task_index)?,
+        ));
     }
     run.append_eval_lines(&lines)?;
     let record = VariantRecord {
@@ -245,8 +254,8 @@ fn start<'p>(
     let log = std::fs::File::create(log_path)
         .map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
     let err = log.try_clone().map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
-    let (reader, writer) = std::io::pipe()
-        .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
+    let (reader, writer) =
+        std::io::pipe().map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
     let mut cmd = Command::new(&opts.exe);
     cmd.arg(DIE_WITH_PARENT).args(["eval", "--run"]).arg(&spec.dir);
     cmd.args(["--device", spec.config.run.device.as_str()]);
@@ -299,7 +308,9 @@ pub fn evaluate(
                     i += 1;
                     continue;
                 }
-                Err(e) => return Err(ReproError::Io { path: running[i].spec.dir.clone(), source: e }),
+                Err(e) => {
+                    return Err(ReproError::Io { path: running[i].spec.dir.clone(), source: e })
+                }
             };
             let job = running.swap_remove(i);
             let key = job.spec.key.clone();
@@ -333,8 +344,11 @@ mod tests {
     fn the_override_merges_into_eval_and_unknown_keys_are_named() {
         let base = TrainConfig::default();
         let t = |s: &str| -> toml::Table { toml::from_str(s).expect("table") };
-        let c = with_eval(&base, &t("episodes = 7\n[prompt]\nstrategy = 'bandit'\n[prompt.bandit]\nrule = 'ucb'\n"))
-            .expect("merges");
+        let c = with_eval(
+            &base,
+            &t("episodes = 7\n[prompt]\nstrategy = 'bandit'\n[prompt.bandit]\nrule = 'ucb'\n"),
+        )
+        .expect("merges");
         assert_eq!(c.eval.episodes, 7);
         assert_eq!(c.eval.prompt.strategy, pdt_prompt::PromptStrategyKind::Bandit);
         assert_eq!(c.eval.prompt.bandit.rule, pdt_prompt::BanditRule::Ucb);
@@ -349,7 +363,8 @@ mod tests {
             let err = with_eval(&base, &t(bad)).expect_err(bad);
             assert!(err.contains(named) && err.starts_with("eval"), "{bad}: {err}");
         }
-        let err = with_eval(&base, &t("[prompt]\nstrategy = 'tail'")).expect_err("unknown strategy");
+        let err =
+            with_eval(&base, &t("[prompt]\nstrategy = 'tail'")).expect_err("unknown strategy");
         assert!(err.contains("tail"), "{err}");
     }
 
@@ -425,7 +440,10 @@ mod tests {
             assert!(b.base.is_none());
             let base = v.base.as_ref().expect("a variant");
             assert_eq!((base.key.as_str(), &base.dir), (b.key.as_str(), &b.dir));
-            assert_eq!(v.dir, Path::new("/o/runs/cheetah_vel/prompt-dt@bandit/smoke").join(format!("seed{seed}")));
+            assert_eq!(
+                v.dir,
+                Path::new("/o/runs/cheetah_vel/prompt-dt@bandit/smoke").join(format!("seed{seed}"))
+            );
             // The base run's configuration (seed, training, data), its [eval] overridden.
             assert_eq!((v.config.run.seed, &v.config.train), (b.config.run.seed, &b.config.train));
             assert_eq!(v.data, b.data);
@@ -444,7 +462,8 @@ mod tests {
         let p = plan_of(&off);
         assert!(p.runs.is_empty());
         assert_eq!(p.skipped.len(), 2);
-        let pending = BASE.replace("method = 'prompt-dt'\n", "method = 'prompt-dt'\npending = 'later'\n");
+        let pending =
+            BASE.replace("method = 'prompt-dt'\n", "method = 'prompt-dt'\npending = 'later'\n");
         let m = crate::Manifest::parse(&format!("{pending}{BANDIT}"), "t");
         let err = m.expect_err("a variant of a pending cell").to_string();
         assert!(err.contains("base cell cheetah_vel/prompt-dt is pending"), "{err}");
@@ -455,7 +474,10 @@ mod tests {
         let p = plan_of(&manifest(BANDIT).expect("parses"));
         let v = &p.runs[2];
         let why = base_not_ready(&p, v, v.base.as_ref().expect("variant")).expect("not ready");
-        assert!(why.contains("cheetah_vel/prompt-dt/smoke/seed0") && why.contains("has not run yet"), "{why}");
+        assert!(
+            why.contains("cheetah_vel/prompt-dt/smoke/seed0") && why.contains("has not run yet"),
+            "{why}"
+        );
         assert!(why.contains("variant cheetah_vel/prompt-dt@bandit/smoke/seed0"), "{why}");
         assert_eq!(state(v).expect("state"), RunState::New);
     }
