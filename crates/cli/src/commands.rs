@@ -538,6 +538,17 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
             );
             out!("run them, e.g.: xargs -P 2 -I{{}} sh -c {{}} < {}", files[0].display());
+            let variants = p.runs.iter().filter(|r| r.base.is_some()).count();
+            if variants > 0 {
+                // Variants evaluate the trained weights: after the jobs, not beside them.
+                out!(
+                    "then: promptdt reproduce {name} --budget {} --out {} (evaluates the {variants} \
+                     variant runs, then reports)",
+                    p.budget,
+                    out.display()
+                );
+                return Ok(());
+            }
             out!(
                 "then: promptdt reproduce {name} --budget {} --out {} --report-only",
                 p.budget,
@@ -593,6 +604,9 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             summary.resumed,
             summary.failed.len()
         );
+        if summary.evaluated > 0 {
+            out!("{} variant runs evaluated (docs/reproduce.md, \"Variants\")", summary.evaluated);
+        }
         if !summary.waited.is_empty() {
             // Another process (a second `reproduce` on this --out, or a `train` on the run) had
             // them: not failed, and not run twice.

@@ -27,7 +27,7 @@ fn repo() -> PathBuf {
     cli::repo("")
 }
 
-const EXPERIMENTS: [&str; 7] = [
+const EXPERIMENTS: [&str; 8] = [
     "fig2",
     "table1",
     "fig3",
@@ -35,6 +35,7 @@ const EXPERIMENTS: [&str; 7] = [
     "appendix_prompt_length_mt_bc",
     "appendix_finetune_mt_bc",
     "appendix_finetune_macaw",
+    "prompt_control",
 ];
 
 #[test]

@@ -68,6 +68,8 @@ pub struct ExecSummary {
     pub finished_elsewhere: usize,
     /// Temporary data directories of a killed `reproduce`, removed.
     pub removed_temps: Vec<PathBuf>,
+    /// Variants' evaluations done (`crate::variant`; those done before count as finished).
+    pub evaluated: usize,
 }
 
 /// Collects `d` unless its `dataset.json` is there: into a temporary directory beside it, renamed
@@ -344,6 +346,12 @@ pub fn execute(
             .collect::<Result<_, _>>()?,
         None => plan.runs.iter().collect(),
     };
+    // Variants are evaluated once the training is done: they need their base runs' weights.
+    let (variants, runs): (Vec<&RunSpec>, Vec<&RunSpec>) =
+        runs.into_iter().partition(|r| r.base.is_some());
+    for v in &variants {
+        crate::variant::state(v)?;
+    }
     // Check every existing run before starting anything: a mismatch is an error up front.
     let states = runs.iter().map(|r| plan::state(r)).collect::<Result<Vec<_>, _>>()?;
     let total: u64 = runs.iter().map(|r| r.config.train.iterations).sum();
@@ -544,6 +552,7 @@ pub fn execute(
         std::thread::sleep(Duration::from_millis(200));
     }
     summary.waited = waited;
+    crate::variant::evaluate(plan, &variants, opts, &mut summary)?;
     progress(&report(Stage::Done, finished, Vec::new(), Vec::new(), &done));
     Ok(summary)
 }
@@ -566,7 +575,8 @@ pub fn emit_jobs(
 ) -> Result<Vec<PathBuf>, ReproError> {
     let q = |s: &str| format!("'{}'", s.replace('\'', r"'\''"));
     let mut lines = String::new();
-    let runs: Vec<&RunSpec> = plan.runs.iter().collect();
+    // Variants are left to the `reproduce` call after the jobs (they need the trained weights).
+    let runs: Vec<&RunSpec> = plan.runs.iter().filter(|r| r.base.is_none()).collect();
     let groups = crate::packs::group(&runs, pack.max(1));
     for g in &groups {
         let keys: Vec<&str> = g.iter().map(|r| r.key.as_str()).collect();

@@ -4,6 +4,8 @@
 //! - [`plan`]: a manifest at a budget expanded into ordinary run directories and configurations.
 //! - [`exec`]: datasets, then every unfinished run as a `promptdt train` child process, `jobs` at a
 //!   time, resuming killed runs; or one command per run for a scheduler (`--emit jobs`).
+//! - [`variant`]: evaluation variants of a trained cell (a prompt strategy, an adaptation): its
+//!   finished runs evaluated with an `[eval]` override, no training of their own.
 //! - [`packs`]: `--pack N`, runs of one family grouped into packs, one process each.
 //! - [`report`]: ours next to the paper, raw and normalised, with the paper's claims checked.
 //! - [`registry`]: finished runs' small files committed in `results/` (`promptdt results add`),
@@ -21,6 +23,7 @@ pub mod registry;
 pub mod render;
 pub mod report;
 pub mod task_blind;
+pub mod variant;
 
 pub use exec::{ExecOptions, ExecSummary, Progress, Stage};
 pub use manifest::{Manifest, BUILTIN};

@@ -22,6 +22,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ),
     ("appendix_finetune_mt_bc", include_str!("../../../experiments/appendix_finetune_mt_bc.toml")),
     ("appendix_finetune_macaw", include_str!("../../../experiments/appendix_finetune_macaw.toml")),
+    ("prompt_control", include_str!("../../../experiments/prompt_control.toml")),
 ];
 
 /// How the report lays an experiment out.
@@ -247,7 +248,18 @@ pub struct Cell {
     /// Dial): the cell is listed in the report with its paper value and this reason, not run.
     #[serde(default)]
     pub pending: Option<String>,
+    /// An evaluation variant of a trained cell (docs/reproduce.md, "Variants"): its name, and the
+    /// table merged into the base cell's runs' `[eval]` configuration. The base cell is the cell
+    /// with the same fields but no `variant` (its id is this id before the `@`); it is not trained
+    /// again: each of its finished runs (same seeds) is evaluated with the merged configuration.
+    #[serde(default)]
+    pub variant: Option<String>,
+    #[serde(default)]
+    pub eval: Option<toml::Table>,
 }
+
+/// What separates a variant's name from its base cell's id in its id.
+pub const VARIANT_SEP: char = '@';
 
 impl Cell {
     /// The cell's identity, also the relative path of its runs: `env[-split]/method[-variant]`.
@@ -274,7 +286,16 @@ impl Cell {
                 self.finetune_steps.map_or("def".into(), |s| s.to_string())
             ));
         }
-        format!("{env}/{m}")
+        match &self.variant {
+            Some(v) => format!("{env}/{m}{VARIANT_SEP}{v}"),
+            None => format!("{env}/{m}"),
+        }
+    }
+
+    /// The id of the cell a variant evaluates (`None` for a trained cell).
+    pub fn base_id(&self) -> Option<String> {
+        self.variant.as_ref()?;
+        Some(Cell { variant: None, ..self.clone() }.id())
     }
 
     /// Legend or row name.
@@ -317,6 +338,9 @@ impl Manifest {
         for c in &self.cells {
             if !ids.insert(c.id()) {
                 return bad(format!("cell {} appears twice", c.id()));
+            }
+            if let Err(why) = self.check_variant(c) {
+                return bad(format!("cell {}: {why}", c.id()));
             }
             if c.pending.is_none() {
                 if pdt_envs::family(&c.env).is_err() {
@@ -378,6 +402,50 @@ impl Manifest {
             return bad("every experiment needs a smoke budget (CI runs it)".into());
         }
         Ok(())
+    }
+
+    /// A variant's base cell, by [`Cell::base_id`]; `Err` names it when it is not in the manifest.
+    pub fn base_of(&self, cell: &Cell) -> Result<Option<(usize, &Cell)>, String> {
+        let Some(base) = cell.base_id() else { return Ok(None) };
+        match self.cells.iter().enumerate().find(|(_, c)| c.id() == base) {
+            Some(found) => Ok(Some(found)),
+            None => Err(format!(
+                "its base cell {base} (the same cell without `variant`) is not in the manifest"
+            )),
+        }
+    }
+
+    /// A variant names a base cell of this manifest and an `[eval]` table that reads as one; a
+    /// trained cell has no `eval` table (the override belongs to a variant).
+    fn check_variant(&self, c: &Cell) -> Result<(), String> {
+        let Some(name) = &c.variant else {
+            return match c.eval {
+                Some(_) => {
+                    Err("`eval` overrides the evaluation of a variant: give it a `variant` \
+                                name (docs/reproduce.md, \"Variants\")"
+                        .into())
+                }
+                None => Ok(()),
+            };
+        };
+        let bad_name = |ch: char| !(ch.is_ascii_alphanumeric() || ch == '-' || ch == '_');
+        if name.is_empty() || name.contains(bad_name) {
+            return Err(format!("variant {name:?}: use letters, digits, `-` and `_`"));
+        }
+        let Some(eval) = &c.eval else {
+            return Err("a variant needs an `eval` table (what its evaluation changes)".into());
+        };
+        let Some((_, base)) = self.base_of(c)? else { return Ok(()) };
+        if c.pending.is_some() {
+            // Its override may name what is not built yet (`[eval.adapt]` before it lands).
+            return Ok(());
+        }
+        if let Some(why) = &base.pending {
+            return Err(format!("its base cell {} is pending ({why})", base.id()));
+        }
+        // The keys are checked now, against a default configuration (a typo fails here, not after
+        // hours of training); the values again with each run's own configuration.
+        crate::variant::with_eval(&pdt_rundir::config::TrainConfig::default(), eval).map(|_| ())
     }
 
     /// The settings of `cell` at `budget`: the budget's, then every matching rule in order.

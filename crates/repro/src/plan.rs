@@ -43,6 +43,9 @@ pub struct RunSpec {
     pub log_path: PathBuf,
     pub config: TrainConfig,
     pub data: DataSpec,
+    /// A variant's run (`crate::variant`): the trained run it evaluates, not trains. `config` is
+    /// that run's with the variant's `[eval]` merged in.
+    pub base: Option<crate::variant::BaseRun>,
 }
 
 /// A cell that is not run at this budget, and why.
@@ -113,8 +116,20 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
             skipped.push(Skipped { cell: i, reason: reason.clone() });
             continue;
         }
-        let s = m.settings(budget, cell)?;
-        if s.run == Some(false) {
+        // A variant runs where its base cell runs, on its runs: their data, seeds and training.
+        let base = m.base_of(cell).map_err(|message| ReproError::Manifest {
+            origin: m.name.clone(),
+            message: format!("cell {}: {message}", cell.id()),
+        })?;
+        let trained = base.map_or(cell, |(_, b)| b);
+        if let Some(reason) = base.and_then(|(_, b)| b.pending.as_ref()) {
+            let reason = format!("its base cell {} is pending ({reason})", trained.id());
+            skipped.push(Skipped { cell: i, reason });
+            continue;
+        }
+        let s = m.settings(budget, trained)?;
+        let own = m.settings(budget, cell)?;
+        if s.run == Some(false) || own.run == Some(false) {
             skipped.push(Skipped { cell: i, reason: format!("not run at the {budget} budget") });
             continue;
         }
@@ -131,8 +146,20 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
         for seed in 0..u64::from(n) {
             let key = format!("{}/{budget}/seed{seed}", cell.id());
             let flat = key.replace('/', "__");
-            let mut config = config_for(cell, &s, seed, o.threads, &data.dir)?;
+            let mut config = config_for(trained, &s, seed, o.threads, &data.dir)?;
             config.run.device = o.device;
+            let mut variant = None;
+            if let (Some(_), Some(eval)) = (base, &cell.eval) {
+                let base_key = format!("{}/{budget}/seed{seed}", trained.id());
+                let invalid = |e: String| ReproError::Invalid(format!("cell {}: {e}", cell.id()));
+                config = crate::variant::with_eval(&config, eval).map_err(invalid)?;
+                config.validate().map_err(|e| invalid(e.to_string()))?;
+                variant = Some(crate::variant::BaseRun {
+                    dir: out.join("runs").join(&base_key),
+                    key: base_key,
+                    eval: eval.clone(),
+                });
+            }
             runs.push(RunSpec {
                 dir: out.join("runs").join(&key),
                 config_path: out.join("configs").join(format!("{flat}.toml")),
@@ -142,6 +169,7 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
                 seed,
                 config,
                 data: data.clone(),
+                base: variant,
             });
         }
     }
@@ -404,6 +432,9 @@ pub fn config_differences(recorded: &TrainConfig, planned: &TrainConfig) -> Vec<
 /// The state of a run directory, after checking that a run already there was started from the
 /// same configuration (apart from the thread count).
 pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
+    if spec.base.is_some() {
+        return crate::variant::state(spec);
+    }
     let run = RunDir::at(&spec.dir);
     let latest = run.latest_path();
     if !latest.exists() {

@@ -156,7 +156,21 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
         return Err(refuse(dir, format!("eval.jsonl has no test evaluation of iteration {n}")));
     }
     let metrics = run.metrics()?.map(|l| l.rows).unwrap_or_default();
-    let wall_time_s = metrics.last().map_or(f64::NAN, |l| l.elapsed_s);
+    // A variant's time is its evaluation's (it trained nothing); its record names its files.
+    let variant = match &spec.base {
+        Some(_) => {
+            let path = dir.join(crate::variant::VARIANT_JSON);
+            if !path.is_file() {
+                return Err(refuse(dir, format!("a variant not evaluated: no {}", path.display())));
+            }
+            Some(pdt_rundir::read_json::<crate::variant::VariantRecord>(&path)?)
+        }
+        None => None,
+    };
+    let wall_time_s = match &variant {
+        Some(v) => v.seconds,
+        None => metrics.last().map_or(f64::NAN, |l| l.elapsed_s),
+    };
     let data_dir = match &o.data_root {
         Some(_) => spec.data.dir.clone(),
         None => config.data.dir.clone(),
@@ -217,6 +231,12 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
             continue;
         }
         std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
+    }
+    if let Some(v) = &variant {
+        for name in [crate::variant::VARIANT_JSON, v.result_file.as_str()] {
+            let (from, to) = (dir.join(name), tmp.join(name));
+            std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
+        }
     }
     out.append_metrics(&thin(&metrics, &eval_iters))?;
     pdt_rundir::write_json(&tmp.join(NORMALISATION_JSON), &norm)?;
