@@ -6,71 +6,12 @@
 //! Child processes rather than threads: libtorch's random generator and thread pool are global to a
 //! process, so runs in one process could not be seeded independently or given their own cores.
 
+pub use crate::exec_types::{ExecOptions, ExecSummary, Progress, Stage, DIE_WITH_PARENT};
 use crate::plan::{self, DataSpec, Plan, RunSpec, RunState};
 use crate::ReproError;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// How to run a plan.
-#[derive(Debug, Clone)]
-pub struct ExecOptions {
-    /// The `promptdt` binary the children run.
-    pub exe: PathBuf,
-    /// Runs at once.
-    pub jobs: usize,
-    /// `OMP_WAIT_POLICY` given to the children (`PASSIVE`: idle OpenMP threads sleep rather than
-    /// spin, which matters when runs share cores; see BENCHMARKS.md).
-    pub omp_wait_policy: Option<String>,
-    /// Directory holding `pretrained/<env>/` agents (for `collect --from-pretrained`).
-    pub pretrained_root: PathBuf,
-    /// Runs per process: up to this many runs of one family, model shape, device and data
-    /// directory train as one pack (`crate::packs`, docs/packs.md); 1: each run in its own process.
-    /// A pack counts as one of `jobs`.
-    pub pack: usize,
-    /// The packs' engine (written into each pack's record).
-    pub pack_engine: pdt_train::pack::Engine,
-}
-
-/// What the progress callback sees.
-#[derive(Debug, Clone)]
-pub struct Progress {
-    pub stage: Stage,
-    pub runs_total: usize,
-    pub runs_finished: usize,
-    /// Training iterations done and planned, over every run of the plan.
-    pub iterations_done: u64,
-    pub iterations_total: u64,
-    /// Keys of the runs in progress.
-    pub running: Vec<String>,
-    /// Keys of the runs another process holds, waited for.
-    pub waiting: Vec<String>,
-}
-
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Stage {
-    Data(String),
-    Training,
-    Done,
-}
-
-/// What [`execute`] did.
-#[derive(Debug, Clone, Default)]
-pub struct ExecSummary {
-    pub already_finished: usize,
-    pub started: usize,
-    pub resumed: usize,
-    /// `(run key, message)` for every run whose process failed; the others still ran.
-    pub failed: Vec<(String, String)>,
-    /// Runs another process held when this one came to them, waited for.
-    pub waited: Vec<String>,
-    /// Of the runs waited for, those the other process finished.
-    pub finished_elsewhere: usize,
-    /// Temporary data directories of a killed `reproduce`, removed.
-    pub removed_temps: Vec<PathBuf>,
-    /// Variants' evaluations done (`crate::variant`; those done before count as finished).
-    pub evaluated: usize,
-}
 
 /// Collects `d` unless its `dataset.json` is there: into a temporary directory beside it, renamed
 /// into place at the end, so a killed collection leaves nothing half-written and two processes
@@ -142,12 +83,6 @@ fn collect_into(d: &DataSpec, tmp: &Path, opts: &ExecOptions) -> Result<bool, Re
     }
     Ok(true)
 }
-
-/// The global flag that makes a `promptdt` child stop when its standard input reaches its end,
-/// which happens when the parent holding the pipe's other end dies, however it dies (even
-/// SIGKILL): no `collect` or `train` child outlives a killed `reproduce`. (A pipe rather than
-/// `prctl(PR_SET_PDEATHSIG)`, which needs unsafe code.)
-pub const DIE_WITH_PARENT: &str = "--die-with-parent";
 
 /// A pipe whose read end is a child's standard input and whose write end this process keeps (and
 /// never writes to) for as long as the child should live. std opens both ends close-on-exec, so no
@@ -350,7 +285,7 @@ pub fn execute(
     let (variants, runs): (Vec<&RunSpec>, Vec<&RunSpec>) =
         runs.into_iter().partition(|r| r.base.is_some());
     for v in &variants {
-        crate::variant::state(v)?;
+        plan::state(v)?;
     }
     // Check every existing run before starting anything: a mismatch is an error up front.
     let states = runs.iter().map(|r| plan::state(r)).collect::<Result<Vec<_>, _>>()?;

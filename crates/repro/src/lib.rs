@@ -16,6 +16,7 @@
 
 pub mod baselines;
 pub mod exec;
+pub mod exec_types;
 pub mod manifest;
 pub mod packs;
 pub mod plan;
@@ -24,6 +25,7 @@ pub mod render;
 pub mod report;
 pub mod task_blind;
 pub mod variant;
+pub mod variant_spec;
 
 pub use exec::{ExecOptions, ExecSummary, Progress, Stage};
 pub use manifest::{Manifest, BUILTIN};

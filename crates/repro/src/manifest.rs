@@ -445,7 +445,8 @@ impl Manifest {
         }
         // The keys are checked now, against a default configuration (a typo fails here, not after
         // hours of training); the values again with each run's own configuration.
-        crate::variant::with_eval(&pdt_rundir::config::TrainConfig::default(), eval).map(|_| ())
+        crate::variant_spec::with_eval(&pdt_rundir::config::TrainConfig::default(), eval)
+            .map(|_| ())
     }
 
     /// The settings of `cell` at `budget`: the budget's, then every matching rule in order.

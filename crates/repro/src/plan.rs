@@ -45,7 +45,7 @@ pub struct RunSpec {
     pub data: DataSpec,
     /// A variant's run (`crate::variant`): the trained run it evaluates, not trains. `config` is
     /// that run's with the variant's `[eval]` merged in.
-    pub base: Option<crate::variant::BaseRun>,
+    pub base: Option<crate::variant_spec::BaseRun>,
 }
 
 /// A cell that is not run at this budget, and why.
@@ -152,9 +152,9 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
             if let (Some(_), Some(eval)) = (base, &cell.eval) {
                 let base_key = format!("{}/{budget}/seed{seed}", trained.id());
                 let invalid = |e: String| ReproError::Invalid(format!("cell {}: {e}", cell.id()));
-                config = crate::variant::with_eval(&config, eval).map_err(invalid)?;
+                config = crate::variant_spec::with_eval(&config, eval).map_err(invalid)?;
                 config.validate().map_err(|e| invalid(e.to_string()))?;
-                variant = Some(crate::variant::BaseRun {
+                variant = Some(crate::variant_spec::BaseRun {
                     dir: out.join("runs").join(&base_key),
                     key: base_key,
                     eval: eval.clone(),
@@ -429,11 +429,25 @@ pub fn config_differences(recorded: &TrainConfig, planned: &TrainConfig) -> Vec<
     diff
 }
 
+/// The state of a variant's run: finished once its `variant.json` is there (checked against the
+/// configuration the plan gives it, as a trained run's is), new otherwise.
+fn variant_state(spec: &RunSpec) -> Result<RunState, ReproError> {
+    if !spec.dir.join(crate::variant_spec::VARIANT_JSON).is_file() {
+        return Ok(RunState::New);
+    }
+    let recorded = RunDir::at(&spec.dir).config()?;
+    let diff = config_differences(&recorded, &spec.config);
+    if !diff.is_empty() {
+        return Err(ReproError::ConfigMismatch { dir: spec.dir.clone(), keys: diff.join(", ") });
+    }
+    Ok(RunState::Finished)
+}
+
 /// The state of a run directory, after checking that a run already there was started from the
 /// same configuration (apart from the thread count).
 pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
     if spec.base.is_some() {
-        return crate::variant::state(spec);
+        return variant_state(spec);
     }
     let run = RunDir::at(&spec.dir);
     let latest = run.latest_path();

@@ -159,11 +159,11 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     // A variant's time is its evaluation's (it trained nothing); its record names its files.
     let variant = match &spec.base {
         Some(_) => {
-            let path = dir.join(crate::variant::VARIANT_JSON);
+            let path = dir.join(crate::variant_spec::VARIANT_JSON);
             if !path.is_file() {
                 return Err(refuse(dir, format!("a variant not evaluated: no {}", path.display())));
             }
-            Some(pdt_rundir::read_json::<crate::variant::VariantRecord>(&path)?)
+            Some(pdt_rundir::read_json::<crate::variant_spec::VariantRecord>(&path)?)
         }
         None => None,
     };
@@ -233,7 +233,7 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
         std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
     }
     if let Some(v) = &variant {
-        for name in [crate::variant::VARIANT_JSON, v.result_file.as_str()] {
+        for name in [crate::variant_spec::VARIANT_JSON, v.result_file.as_str()] {
             let (from, to) = (dir.join(name), tmp.join(name));
             std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
         }

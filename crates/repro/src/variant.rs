@@ -18,81 +18,14 @@
 //! So a variant reads like any run to the report and the results registry (`eval.jsonl` at the
 //! last iteration), and the base run directory is never written to.
 
-use crate::exec::{ExecOptions, ExecSummary, DIE_WITH_PARENT};
+use crate::exec_types::{ExecOptions, ExecSummary, DIE_WITH_PARENT};
 use crate::plan::{self, Plan, RunSpec, RunState};
+use crate::variant_spec::{BaseRun, VariantRecord, VARIANT_JSON};
 use crate::ReproError;
-use pdt_rundir::config::TrainConfig;
 use pdt_rundir::{EvalLine, FinalEval, RunDir};
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
-
-/// The record a finished variant evaluation writes last.
-pub const VARIANT_JSON: &str = "variant.json";
-
-/// `variant.json`: which run was evaluated, how, and what it wrote.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct VariantRecord {
-    /// The base run's key (`<base id>/<budget>/seed<N>`).
-    pub base: String,
-    /// The table merged into the base run's `[eval]`.
-    pub eval: toml::Table,
-    /// The evaluation's own file in this directory (`eval_prompt_bandit.json`, ...).
-    pub result_file: String,
-    /// The base run's iteration whose weights were evaluated.
-    pub iteration: u64,
-    /// Wall time of the evaluation (the `promptdt eval` process), seconds.
-    pub seconds: f64,
-}
-
-/// The base run of a variant's run, and the variant's override of its `[eval]`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct BaseRun {
-    pub key: String,
-    pub dir: PathBuf,
-    pub eval: toml::Table,
-}
-
-/// `config` with `eval` merged into its `[eval]` section (tables merged key by key, other values
-/// replaced), read back as a configuration: an unknown key is an error naming it.
-pub fn with_eval(config: &TrainConfig, eval: &toml::Table) -> Result<TrainConfig, String> {
-    let mut v = config.to_toml_value().map_err(|e| e.to_string())?;
-    let toml::Value::Table(t) = &mut v else {
-        return Err("a configuration is a TOML table".into());
-    };
-    let section = t.entry("eval").or_insert(toml::Value::Table(toml::Table::new()));
-    merge(section, eval);
-    v.try_into().map_err(|e: toml::de::Error| format!("eval: {}", e.message()))
-}
-
-fn merge(into: &mut toml::Value, from: &toml::Table) {
-    let toml::Value::Table(t) = into else {
-        *into = toml::Value::Table(from.clone());
-        return;
-    };
-    for (k, v) in from {
-        if let (Some(old @ toml::Value::Table(_)), toml::Value::Table(sub)) = (t.get_mut(k), v) {
-            merge(old, sub);
-            continue;
-        }
-        t.insert(k.clone(), v.clone());
-    }
-}
-
-/// The state of a variant's run: finished once its `variant.json` is there (checked against the
-/// configuration the plan gives it, as a trained run's is), new otherwise.
-pub fn state(spec: &RunSpec) -> Result<RunState, ReproError> {
-    if !spec.dir.join(VARIANT_JSON).is_file() {
-        return Ok(RunState::New);
-    }
-    let recorded = RunDir::at(&spec.dir).config()?;
-    let diff = plan::config_differences(&recorded, &spec.config);
-    if !diff.is_empty() {
-        return Err(ReproError::ConfigMismatch { dir: spec.dir.clone(), keys: diff.join(", ") });
-    }
-    Ok(RunState::Finished)
-}
 
 /// Why `spec`'s base run cannot be evaluated yet, if it cannot: it is missing or unfinished.
 fn base_not_ready(plan: &Plan, spec: &RunSpec, base: &BaseRun) -> Option<String> {
@@ -283,7 +216,7 @@ pub fn evaluate(
 ) -> Result<(), ReproError> {
     let mut queue = std::collections::VecDeque::new();
     for r in runs {
-        match state(r)? {
+        match plan::state(r)? {
             RunState::Finished => summary.already_finished += 1,
             _ => queue.push_back(*r),
         }
@@ -339,6 +272,9 @@ pub fn evaluate(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::plan::state;
+    use crate::variant_spec::with_eval;
+    use pdt_rundir::config::TrainConfig;
 
     #[test]
     fn the_override_merges_into_eval_and_unknown_keys_are_named() {
