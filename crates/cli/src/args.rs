@@ -1,6 +1,6 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
-use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags};
+use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags, ServeAdaptFlags};
 use anyhow::{bail, Result};
 use clap::{Args, Parser, Subcommand};
 use pdt_model::device::DeviceSpec;
@@ -209,6 +209,8 @@ pub struct ServeArgs {
     /// Test-time steps per prompt segment H of `task` prompts (default: the run's).
     #[arg(long, value_parser = count(1, 100_000))]
     pub prompt_length: Option<usize>,
+    #[command(flatten)]
+    pub adaptation: ServeAdaptFlags,
 }
 
 #[derive(Debug, Args)]

@@ -655,16 +655,7 @@ pub(crate) fn eval_adapt(
     let kind = a.adaptation.adapt?;
     let mut c = run.clone();
     c.kind = kind;
-    c.steps = a.adapt_steps.unwrap_or(c.steps);
-    c.batch = a.adapt_batch.unwrap_or(c.batch);
-    c.lr = a.adaptation.adapt_lr.unwrap_or(c.lr);
-    c.ptdt.candidates = a.adaptation.ptdt_candidates.unwrap_or(c.ptdt.candidates);
-    c.ptdt.sigma = a.adaptation.ptdt_sigma.unwrap_or(c.ptdt.sigma);
-    c.ptdt.step = a.adaptation.ptdt_step.unwrap_or(c.ptdt.step);
-    c.ptdt.score = a.adaptation.ptdt_score.unwrap_or(c.ptdt.score);
-    c.lora.rank = a.adaptation.lora_rank.unwrap_or(c.lora.rank);
-    c.lora.alpha = a.adaptation.lora_alpha.unwrap_or(c.lora.alpha);
-    c.lora.c_proj |= a.adaptation.lora_c_proj;
+    a.adaptation.apply(&mut c, a.adapt_steps, a.adapt_batch);
     Some(c)
 }
 

@@ -393,6 +393,7 @@ fn run(cli: Cli) -> Result<()> {
                     length: a.prompt_length,
                     ..Default::default()
                 },
+                adapt: a.adaptation.to_config(),
                 ..Default::default()
             };
             let server = pdt_serve::Server::start(run, opts)?;

@@ -32,10 +32,10 @@ fn ptdt_score(s: &str) -> Result<pdt_rundir::config::PtdtScore, String> {
 #[derive(Debug, clap::Args)]
 pub struct AdaptFlags {
     /// Evaluation-time adaptation to each test task from its demonstrations, the backbone
-    /// frozen (docs/prompt-control.md): soft-prompt, ptdt, lora (default: the run's
-    /// [eval.adapt], none unless set). Results go to eval_adapt_<kind>.json. With it,
-    /// --adapt-steps and --adapt-batch set the adaptation's iterations and demonstration
-    /// segments per iteration.
+    /// frozen (docs/prompt-control.md): soft-prompt, ptdt, lora. eval: default the run's
+    /// [eval.adapt] (none unless set), results to eval_adapt_<kind>.json; serve: episodes opened
+    /// with a `task` (default none; a request's `adapt` names one). --adapt-steps and
+    /// --adapt-batch set the adaptation's iterations and demonstration segments per iteration.
     #[arg(long, value_parser = adapt_kind)]
     pub adapt: Option<pdt_rundir::config::AdaptKind>,
     /// --adapt soft-prompt / lora: Adam's learning rate.
@@ -62,4 +62,53 @@ pub struct AdaptFlags {
     /// --adapt lora: also adapt attn.c_proj.
     #[arg(long)]
     pub lora_c_proj: bool,
+}
+
+impl AdaptFlags {
+    /// Sets the adaptation settings these flags name (and the budget's `steps` and `batch`) in
+    /// `c`; the kind is the caller's. Values are checked by `AdaptConfig::validate`.
+    pub(crate) fn apply(
+        &self,
+        c: &mut pdt_rundir::config::AdaptConfig,
+        steps: Option<usize>,
+        batch: Option<usize>,
+    ) {
+        c.steps = steps.unwrap_or(c.steps);
+        c.batch = batch.unwrap_or(c.batch);
+        c.lr = self.adapt_lr.unwrap_or(c.lr);
+        c.ptdt.candidates = self.ptdt_candidates.unwrap_or(c.ptdt.candidates);
+        c.ptdt.sigma = self.ptdt_sigma.unwrap_or(c.ptdt.sigma);
+        c.ptdt.step = self.ptdt_step.unwrap_or(c.ptdt.step);
+        c.ptdt.score = self.ptdt_score.unwrap_or(c.ptdt.score);
+        c.lora.rank = self.lora_rank.unwrap_or(c.lora.rank);
+        c.lora.alpha = self.lora_alpha.unwrap_or(c.lora.alpha);
+        c.lora.c_proj |= self.lora_c_proj;
+    }
+}
+
+/// `promptdt serve`'s adaptation flags: the evaluation's, and the budget (`promptdt eval` shares
+/// `--adapt-steps` / `--adapt-batch` with MACAW's adaptation).
+#[derive(Debug, clap::Args)]
+pub struct ServeAdaptFlags {
+    #[command(flatten)]
+    pub flags: AdaptFlags,
+    /// Adaptation iterations per task (gradient steps; ptdt: ranking updates; default 20).
+    #[arg(long)]
+    pub adapt_steps: Option<usize>,
+    /// Demonstration segments per adaptation iteration (default 16).
+    #[arg(long)]
+    pub adapt_batch: Option<usize>,
+}
+
+impl ServeAdaptFlags {
+    /// The server's adaptation: the kind `--adapt` names (none without it; a request's `adapt`
+    /// names one) and the budget these flags set.
+    pub(crate) fn to_config(&self) -> pdt_rundir::config::AdaptConfig {
+        let mut c = pdt_rundir::config::AdaptConfig {
+            kind: self.flags.adapt.unwrap_or_default(),
+            ..Default::default()
+        };
+        self.flags.apply(&mut c, self.adapt_steps, self.adapt_batch);
+        c
+    }
 }

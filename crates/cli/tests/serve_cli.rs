@@ -343,3 +343,34 @@ fn serve_refuses_zero_and_absurd_limits() {
         assert!(!stderr.contains("panicked"), "{stderr}");
     }
 }
+
+#[test]
+fn serve_adapts_task_episodes_with_its_adapt_flags() {
+    // `--adapt lora` with a budget: a `task` episode acts after the task's adaptation, whose log
+    // comes back with the first action; a request may name another adaptation or none.
+    let s = Served::start("", &["--adapt", "lora", "--adapt-steps", "2", "--adapt-batch", "4"]);
+    let obs = "[0.0, 0.0]";
+    let (status, reply) =
+        post(s.addr, "/v1/episodes", &format!(r#"{{"task": 2, "observation": {obs}}}"#));
+    assert_eq!(status, 201, "{reply}");
+    let v: serde_json::Value = serde_json::from_str(&reply).unwrap();
+    assert_eq!(v["adaptation"]["steps"], 2, "{reply}");
+    assert!(v["adaptation"]["trainable"].as_u64().unwrap() > 0, "{reply}");
+    assert!(action_of(&reply).is_some(), "{reply}");
+    let body = format!(r#"{{"task": 2, "adapt": "soft-prompt", "observation": {obs}}}"#);
+    let (status, reply) = post(s.addr, "/v1/episodes", &body);
+    assert_eq!(status, 201, "{reply}");
+    assert!(reply.contains("\"adaptation\""), "{reply}");
+    let body = format!(r#"{{"task": 2, "adapt": "none", "observation": {obs}}}"#);
+    let (status, reply) = post(s.addr, "/v1/episodes", &body);
+    assert_eq!(status, 201, "{reply}");
+    assert!(!reply.contains("\"adaptation\""), "{reply}");
+    // A bad budget is refused at start, naming the setting.
+    let out = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(["serve", "--run", trained_run().to_str().unwrap(), "--listen", "127.0.0.1:0"])
+        .args(["--adapt", "lora", "--lora-rank", "0"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("eval.adapt.lora.rank = 0"), "{stderr}");
+}

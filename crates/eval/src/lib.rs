@@ -236,6 +236,22 @@ pub fn history_batch(eps: &[&History], k: usize, ds: usize, da: usize, device: D
     Segments::from_host(a, k, ds, da, &s, &act, &r, &ts, &m, device)
 }
 
+/// Moves a host segment batch (`[B, L]`) to `device`.
+pub fn to_segments(b: &SegmentBatch, device: Device) -> Segments {
+    Segments::from_host(
+        b.batch,
+        b.steps,
+        b.state_dim,
+        b.act_dim,
+        &b.states,
+        &b.actions,
+        &b.returns_to_go,
+        &b.timesteps,
+        &b.mask,
+        device,
+    )
+}
+
 /// Stacks the prompts of the given episodes' tasks into `[A, J*H]`.
 pub fn prompt_batch(prompts: &[&SegmentBatch], device: Device) -> Segments {
     let p0 = prompts[0];

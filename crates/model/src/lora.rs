@@ -88,6 +88,22 @@ impl LoraAdapters {
         out
     }
 
+    /// The same adapters (tensors shared, not copied): a second holder of a trained set, which
+    /// nothing writes any more.
+    pub fn shallow_clone(&self) -> Self {
+        let pair = |p: &LoraPair| LoraPair {
+            a: p.a.shallow_clone(),
+            b: p.b.shallow_clone(),
+            scale: p.scale,
+        };
+        let layers = self
+            .layers
+            .iter()
+            .map(|l| LoraLayer { c_attn: pair(&l.c_attn), c_proj: l.c_proj.as_ref().map(pair) })
+            .collect();
+        Self { layers }
+    }
+
     /// Number of trainable values.
     pub fn numel(&self) -> usize {
         self.parameters().iter().map(|t| t.numel()).sum()

@@ -249,8 +249,19 @@ impl Policy {
     /// per episode, or none for the methods without a prompt). Each episode then
     /// [`Episode::accept`]s its row.
     pub fn act(&self, episodes: &[&Episode], prefix: Option<&pdt_model::PrefixCache>) -> Vec<f32> {
+        self.act_with(episodes, prefix, None)
+    }
+
+    /// [`Policy::act`] through a task's LoRA adapters (`prefix` made with the same adapters:
+    /// [`crate::TaskAdaptation::prefix`]).
+    pub fn act_with(
+        &self,
+        episodes: &[&Episode],
+        prefix: Option<&pdt_model::PrefixCache>,
+        lora: Option<&pdt_model::LoraAdapters>,
+    ) -> Vec<f32> {
         let hs: Vec<&History> = episodes.iter().map(|e| &e.history).collect();
-        self.forward(&hs, prefix)
+        self.forward_with(&hs, prefix, lora)
     }
 }
 

@@ -14,6 +14,8 @@ pub enum PolicyError {
     #[error(transparent)]
     Strategy(#[from] pdt_prompt::StrategyError),
     #[error(transparent)]
+    Eval(#[from] pdt_eval::EvalError),
+    #[error(transparent)]
     Checkpoint(#[from] pdt_model::checkpoint::CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),

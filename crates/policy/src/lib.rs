@@ -9,6 +9,8 @@
 //!   finite.
 //! - [`strategy`]: test-time prompt strategies for an acting policy ([`Policy::strategy_prompt`],
 //!   the per-task [`TaskBandit`]).
+//! - [`adapt`]: one test task adapted from its demonstrations (soft prompt, Prompt-Tuning DT,
+//!   LoRA), for `promptdt eval --adapt`, serve and Python ([`Policy::adapt`], [`TaskAdaptation`]).
 //! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
 //!   normalisation and the statistics a run records.
 //! - [`video`]: a prompted episode rendered as an animated GIF (`promptdt render`).
@@ -19,6 +21,7 @@
 // Errors carry the offending path or value; they are returned on the cold path only.
 #![allow(clippy::result_large_err)]
 
+pub mod adapt;
 pub mod data;
 pub mod episode;
 mod error;
@@ -28,6 +31,7 @@ pub mod policy;
 pub mod strategy;
 pub mod video;
 
+pub use adapt::{Adapted, TaskAdaptation};
 pub use data::RunData;
 pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};
 pub use error::PolicyError;

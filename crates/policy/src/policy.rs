@@ -288,9 +288,19 @@ impl Policy {
     /// row per history, or none for the methods without a prompt). Not checked: an episode's
     /// [`crate::Episode::accept`] keeps it or refuses it.
     pub fn forward(&self, histories: &[&History], prefix: Option<&PrefixCache>) -> Vec<f32> {
+        self.forward_with(histories, prefix, None)
+    }
+
+    /// [`Policy::forward`] through LoRA adapters (`None`: the model as trained, the same bits).
+    pub fn forward_with(
+        &self,
+        histories: &[&History],
+        prefix: Option<&PrefixCache>,
+        lora: Option<&pdt_model::LoraAdapters>,
+    ) -> Vec<f32> {
         let (ds, da) = (self.stats.obs_dim, self.stats.act_dim);
         let history = pdt_eval::history_batch(histories, self.k, ds, da, self.device);
-        let out = tch::no_grad(|| self.model.act(&history, prefix))
+        let out = tch::no_grad(|| self.model.act_with(&history, prefix, lora))
             .to_kind(tch::Kind::Float)
             .to_device(Device::Cpu); // [A, da]
         let n = histories.len() * da;

@@ -107,8 +107,10 @@ pub(crate) fn array2<'py, T: numpy::Element>(
 mod data;
 /// Environment families and `VecEnv`.
 mod envs;
-/// `Policy`, `Prompt`, `TaskPlan`: a trained run acting through `pdt_policy`.
+/// `Policy`, `PromptBandit`: a trained run acting through `pdt_policy`.
 mod policy;
+/// `Prompt`, `TaskPlan`, `Adaptation`: what a `Policy` acts with.
+mod prompts;
 // The frames of `render_mode="rgb_array"` (issue 34, point 4).
 mod render;
 /// The CLI's library calls: train, evaluate, collect, experiments, benchmark.
@@ -147,8 +149,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(render::render, m)?)?;
     m.add_class::<envs::VecEnv>()?;
     m.add_class::<policy::Policy>()?;
-    m.add_class::<policy::Prompt>()?;
+    m.add_class::<prompts::Prompt>()?;
     m.add_class::<policy::PromptBandit>()?;
-    m.add_class::<policy::TaskPlan>()?;
+    m.add_class::<prompts::Adaptation>()?;
+    m.add_class::<prompts::TaskPlan>()?;
     Ok(())
 }

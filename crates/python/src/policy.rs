@@ -1,8 +1,8 @@
 //! A trained run's prompted policy (`pdt_policy`) and the prompts it acts from.
 
+use crate::prompts::{Adaptation, Prompt, TaskPlan};
 use crate::{array2, existing, lock, uint_arg, usize_arg, usize_list, value_error};
-use numpy::prelude::*;
-use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLike1, PyArrayLike2, PyArrayLikeDyn};
+use numpy::{AllowTypeChange, PyArray2, PyArrayLike1, PyArrayLike2, PyArrayLikeDyn};
 use pdt_model::PrefixCache;
 use pdt_policy::{Episode, Inputs, PolicyError, PromptArrays, Target};
 use pdt_prompt::SegmentBatch;
@@ -10,92 +10,6 @@ use pyo3::prelude::*;
 use std::path::PathBuf;
 use std::sync::Mutex;
 use tch::Tensor;
-
-/// A prompt, as the policy feeds it: states normalised with the run's statistics, returns-to-go
-/// divided by its scale. Made by `Policy.task_prompt`, `Policy.prompt` or `Policy.eval_plan`.
-#[pyclass(module = "promptdt._native", frozen)]
-pub(crate) struct Prompt {
-    inner: SegmentBatch,
-    /// The demonstration segments a prompt strategy chose (empty otherwise).
-    segments: Vec<pdt_prompt::SegmentChoice>,
-}
-
-#[pymethods]
-impl Prompt {
-    /// Steps in the prompt (J x H).
-    #[getter]
-    fn steps(&self) -> usize {
-        self.inner.steps
-    }
-    /// `[steps, obs_dim]` float32, normalised.
-    #[getter]
-    fn states<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let b = &self.inner;
-        array2(py, b.states.clone(), b.steps, b.state_dim)
-    }
-    /// `[steps, act_dim]` float32.
-    #[getter]
-    fn actions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let b = &self.inner;
-        array2(py, b.actions.clone(), b.steps, b.act_dim)
-    }
-    /// `[steps]` float32, divided by the run's return scale.
-    #[getter]
-    fn returns_to_go<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
-        self.inner.returns_to_go.clone().into_pyarray(py)
-    }
-    /// `[steps]` int64.
-    #[getter]
-    fn timesteps<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
-        self.inner.timesteps.clone().into_pyarray(py)
-    }
-    /// `[steps]` float32: 1 for real steps, 0 for padding.
-    #[getter]
-    fn mask<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f32>> {
-        self.inner.mask.clone().into_pyarray(py)
-    }
-    /// The segments a prompt strategy (`task_prompt(prompt_strategy=...)`) made the prompt of,
-    /// in order: `{"demo": index in the task's prompt set, "start": first step}`; empty for the
-    /// reference draw and array prompts.
-    #[getter]
-    fn segments(&self) -> Vec<std::collections::BTreeMap<&'static str, usize>> {
-        self.segments
-            .iter()
-            .map(|c| [("demo", c.demo), ("start", c.start)].into_iter().collect())
-            .collect()
-    }
-    fn __repr__(&self) -> String {
-        format!(
-            "Prompt(steps={}, obs_dim={}, act_dim={})",
-            self.inner.steps, self.inner.state_dim, self.inner.act_dim
-        )
-    }
-}
-
-/// What `promptdt eval` draws for one task: the prompt its episodes share and their reset seeds.
-#[pyclass(module = "promptdt._native", frozen, get_all)]
-pub(crate) struct TaskPlan {
-    /// `cheetah_vel-2`
-    name: String,
-    /// The task's index in its family.
-    index: usize,
-    /// Reset seed of each episode.
-    seeds: Vec<u64>,
-    /// None for the methods without a prompt.
-    prompt: Option<Py<Prompt>>,
-}
-
-#[pymethods]
-impl TaskPlan {
-    fn __repr__(&self) -> String {
-        format!(
-            "TaskPlan(name={:?}, index={}, episodes={})",
-            self.name,
-            self.index,
-            self.seeds.len()
-        )
-    }
-}
 
 /// A `bandit` prompt strategy over one task's candidate segments (docs/prompt-control.md): each
 /// `choose()` gives the next episode's prompt, each `update(episode_return)` teaches it that
@@ -151,6 +65,8 @@ struct PolicyState {
     /// The keys and values of the distinct prompts set (`None`: no prompt set), and the row of
     /// each episode (one row: every episode).
     prefix: Option<(PrefixCache, Vec<i64>)>,
+    /// LoRA adapters every forward goes through (`set_prompt` of a LoRA `Adaptation`).
+    lora: Option<pdt_model::LoraAdapters>,
     /// One per episode (its history, last action and checks); `None` until its first
     /// observation.
     episodes: Vec<Option<Episode>>,
@@ -201,6 +117,29 @@ enum Next {
 }
 
 impl Policy {
+    /// `set_prompt(adaptation)`: the adapted prompt's keys and values for every episode, and
+    /// LoRA's adapters.
+    fn set_adaptation(&self, a: &Adaptation) -> PyResult<()> {
+        if a.policy != self as *const Policy as usize {
+            return Err(value_error(
+                "set_prompt: this Adaptation was made by another Policy; adapt with this one",
+            ));
+        }
+        let mut st = lock(&self.state)?;
+        if !st.run.method.uses_prompt() {
+            return Err(value_error(format!(
+                "this run's method ({}) takes no prompt",
+                self.method
+            )));
+        }
+        let adapted = lock(&a.inner)?;
+        // One prompt's keys and values: milliseconds, so the GIL is kept.
+        let cache = adapted.prefix(&st.run.model);
+        st.lora = adapted.lora().map(pdt_model::LoraAdapters::shallow_clone);
+        st.prefix = Some((cache, vec![0]));
+        Ok(())
+    }
+
     /// The prompt rows of the episodes `active` (indices among `n`).
     fn batch_prefix(st: &PolicyState, n: usize, active: &[usize]) -> PyResult<Option<PrefixCache>> {
         if !st.run.method.uses_prompt() {
@@ -270,6 +209,7 @@ impl Policy {
             state: Mutex::new(PolicyState {
                 run,
                 prefix: None,
+                lora: None,
                 episodes: Vec::new(),
                 ended: Vec::new(),
                 target,
@@ -430,7 +370,12 @@ impl Policy {
 
     /// Sets the prompt: one `Prompt` for every episode, or a list with one per episode. The
     /// distinct prompts' keys and values are computed once, together, as the evaluator does.
+    /// An `Adaptation` (`Policy.adapt`) sets its task's adapted prompt (and LoRA's adapters) for
+    /// every episode.
     fn set_prompt(&self, py: Python<'_>, prompt: &Bound<'_, PyAny>) -> PyResult<()> {
+        if let Ok(a) = prompt.cast::<Adaptation>() {
+            return self.set_adaptation(a.get());
+        }
         let items: Vec<Bound<'_, Prompt>> = match prompt.cast::<Prompt>() {
             Ok(p) => vec![p.clone()],
             Err(_) => prompt.extract().map_err(|_| {
@@ -475,7 +420,59 @@ impl Policy {
             .detach(move || run.prefix(&batches).map_err(|e| e.to_string()))
             .map_err(value_error)?;
         st.prefix = Some((cache, rows));
+        st.lora = None;
         Ok(())
+    }
+
+    /// Adapts to task `task` from its demonstrations, the backbone frozen
+    /// (docs/prompt-control.md): `adapt` is `soft-prompt`, `ptdt` or `lora`; it starts from the
+    /// prompt `prompt_strategy` picks (`reference`, `random-segment` or `best-return`; `seed`
+    /// seeds that draw and the adaptation, None is 0). `steps`, `batch`, `lr`: the budget
+    /// (defaults 20, 16, 1e-3, as `[eval.adapt]`). Returns an `Adaptation`; act with it through
+    /// `set_prompt`.
+    #[pyo3(signature = (task, adapt, seed = None, prompt_strategy = None, steps = None,
+                        batch = None, lr = None))]
+    #[allow(clippy::too_many_arguments)] // the keywords of `Policy.adapt`
+    fn adapt(
+        &self,
+        py: Python<'_>,
+        task: &Bound<'_, PyAny>,
+        adapt: &str,
+        seed: Option<&Bound<'_, PyAny>>,
+        prompt_strategy: Option<&str>,
+        steps: Option<&Bound<'_, PyAny>>,
+        batch: Option<&Bound<'_, PyAny>>,
+        lr: Option<f64>,
+    ) -> PyResult<Adaptation> {
+        let task = usize_arg("task", task, "a task index of the run's family")?;
+        let seed =
+            seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
+        let mut cfg = pdt_eval::adapt::AdaptConfig {
+            kind: adapt.parse().map_err(value_error)?,
+            ..Default::default()
+        };
+        if cfg.kind == pdt_eval::adapt::AdaptKind::None {
+            return Err(value_error("adapt: name an adaptation (soft-prompt, ptdt, lora)"));
+        }
+        if let Some(s) = steps {
+            cfg.steps = usize_arg("steps", s, "adaptation iterations")?;
+        }
+        if let Some(b) = batch {
+            cfg.batch = usize_arg("batch", b, "demonstration segments per iteration")?;
+        }
+        cfg.lr = lr.unwrap_or(cfg.lr);
+        let strategy = pdt_prompt::PromptStrategy {
+            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
+            ..Default::default()
+        };
+        let mut st = lock(&self.state)?;
+        // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
+        let run = &mut st.run;
+        let a = py
+            .detach(move || run.adapt(task, seed, &strategy, &cfg).map_err(|e| e.to_string()))
+            .map_err(value_error)?;
+        let policy = self as *const Policy as usize;
+        Ok(Adaptation { kind: adapt.to_string(), task, inner: Mutex::new(a), policy })
     }
 
     /// Starts `n_episodes` new episodes (the next `act` takes their first observations), aiming
@@ -636,7 +633,7 @@ impl Policy {
             let st: &mut PolicyState = st;
             py.detach(move || {
                 let eps: Vec<&Episode> = st.episodes.iter().flatten().collect();
-                st.run.act(&eps, prefix.as_ref()) // [active * da]
+                st.run.act_with(&eps, prefix.as_ref(), st.lora.as_ref()) // [active * da]
             })
         };
         let da = self.act_dim;

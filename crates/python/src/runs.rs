@@ -100,10 +100,14 @@ pub(crate) fn train<'py>(
 /// `eval_final.json`); returns that file's content as JSON text.
 /// With `prompt_strategy` (or a test-time `prompt_episodes` / `prompt_length`) the evaluation
 /// uses that strategy (docs/prompt-control.md), writes `eval_prompt_<strategy>.json` and returns
-/// its content: the evaluation, `prompt_strategy` and the strategy's `picks`.
+/// its content: the evaluation, `prompt_strategy` and the strategy's `picks`. With `adapt`
+/// (`soft-prompt`, `ptdt`, `lora`; `adapt_steps` / `adapt_batch` its budget) each test task is
+/// adapted first (`promptdt eval --adapt`): `eval_adapt_<kind>.json`, with `adapt` and each
+/// task's `adapt_log`.
 #[pyfunction]
 #[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None,
-                    prompt_strategy = None, prompt_episodes = None, prompt_length = None))]
+                    prompt_strategy = None, prompt_episodes = None, prompt_length = None,
+                    adapt = None, adapt_steps = None, adapt_batch = None))]
 #[allow(clippy::too_many_arguments)] // the keywords of `promptdt.evaluate`
 pub(crate) fn evaluate(
     py: Python<'_>,
@@ -115,8 +119,23 @@ pub(crate) fn evaluate(
     prompt_strategy: Option<&str>,
     prompt_episodes: Option<usize>,
     prompt_length: Option<usize>,
+    adapt: Option<&str>,
+    adapt_steps: Option<usize>,
+    adapt_batch: Option<usize>,
 ) -> PyResult<String> {
     existing(&run_dir, "run directory")?;
+    let adapt = match adapt {
+        None => None,
+        Some(kind) => {
+            let d = pdt_eval::adapt::AdaptConfig::default();
+            Some(pdt_eval::adapt::AdaptConfig {
+                kind: kind.parse().map_err(value_error)?,
+                steps: adapt_steps.unwrap_or(d.steps),
+                batch: adapt_batch.unwrap_or(d.batch),
+                ..d
+            })
+        }
+    };
     let device: Option<pdt_model::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
     let prompt = match (prompt_strategy, prompt_episodes, prompt_length) {
@@ -130,7 +149,7 @@ pub(crate) fn evaluate(
     };
     let r = py
         .detach(|| {
-            pdt_train::run::evaluate_run_prompted(
+            pdt_train::run::evaluate_run_adapted(
                 &run_dir,
                 episodes,
                 split,
@@ -138,12 +157,13 @@ pub(crate) fn evaluate(
                 data.as_deref(),
                 &Default::default(),
                 prompt.as_ref(),
+                adapt.as_ref(),
             )
             .map_err(|e| e.to_string())
         })
         .map_err(value_error)?;
     // The default strategy returns `eval_final.json`'s content, as before strategies.
-    if r.prompt_strategy.is_default() {
+    if r.prompt_strategy.is_default() && r.adapt.is_none() {
         serde_json::to_string(&r.eval).map_err(value_error)
     } else {
         serde_json::to_string(&r).map_err(value_error)

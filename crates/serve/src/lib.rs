@@ -18,13 +18,16 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use pdt_model::PrefixCache;
 use pdt_policy::{Policy, PolicyError};
-use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+mod adapt;
 pub mod conn;
+mod wire;
+
+pub use adapt::MAX_ADAPTATIONS;
 
 /// The longest `batch_wait` (a longer one would only hold every request back).
 pub const MAX_BATCH_WAIT: Duration = Duration::from_secs(10);
@@ -61,6 +64,10 @@ pub struct ServeOptions {
     /// The prompt strategy of episodes opened with a `task` and no `prompt_strategy` of their own
     /// (`promptdt serve --prompt-strategy`; default `reference`).
     pub prompt_strategy: pdt_prompt::PromptStrategy,
+    /// The evaluation-time adaptation of episodes opened with a `task` (docs/prompt-control.md;
+    /// `promptdt serve --adapt`): its kind (a request's `adapt` names another) and budget.
+    /// Default: none.
+    pub adapt: pdt_rundir::config::AdaptConfig,
     /// libtorch intra-op threads of the model thread (0: libtorch's default, all cores). With 1,
     /// an episode gets the same bits alone or batched with others on AVX2 CPUs (within 1e-6 on
     /// AVX-512 ones, whose kernels depend on the batch size).
@@ -81,6 +88,7 @@ impl Default for ServeOptions {
             max_connections: None,
             queue: 4096,
             prompt_strategy: pdt_prompt::PromptStrategy::default(),
+            adapt: pdt_rundir::config::AdaptConfig::default(),
             threads: 0,
         }
     }
@@ -101,82 +109,8 @@ pub enum ServeError {
 // ------------------------------------------------------------------------------------------------
 
 /// A prompt sent by the client (the same arrays a Python `Policy` takes).
-pub use pdt_policy::PromptArrays;
-
-/// The largest return and return-to-go accepted (raw, in reward units).
-pub use pdt_policy::MAX_RETURN;
-
-/// `POST /v1/episodes`.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct OpenRequest {
-    /// The prompt as arrays; or
-    #[serde(default)]
-    pub prompt: Option<PromptArrays>,
-    /// a task of the run, whose prompt the server draws as the evaluation does
-    #[serde(default)]
-    pub task: Option<usize>,
-    /// with this seed (default 0).
-    #[serde(default)]
-    pub prompt_seed: Option<u64>,
-    /// How a `task`'s prompt is chosen (`docs/prompt-control.md`): `reference` (the evaluation's
-    /// draw), `random-segment`, `best-return`, `nearest-start` (nearest this episode's first
-    /// observation) or `bandit` (one per task on the server, learning from the returns of the
-    /// task's closed episodes). Default: the server's `--prompt-strategy`.
-    #[serde(default)]
-    pub prompt_strategy: Option<String>,
-    /// Test-time prompt segments J and steps per segment H (default: the server's, else the
-    /// run's).
-    #[serde(default)]
-    pub prompt_episodes: Option<usize>,
-    #[serde(default)]
-    pub prompt_length: Option<usize>,
-    /// G* (default: the run's).
-    #[serde(default)]
-    pub target_return: Option<f64>,
-    /// The first observation (raw).
-    pub observation: Vec<f64>,
-}
-
-/// `POST /v1/episodes/{id}/step`: the reward of the last action and the observation after it.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct StepRequest {
-    pub reward: f64,
-    pub observation: Vec<f64>,
-}
-
-/// The action to take at step `t` of episode `episode`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ActionReply {
-    pub episode: u64,
-    pub t: usize,
-    pub action: Vec<f32>,
-    /// The opening reply of an episode whose prompt a strategy other than `reference` chose:
-    /// the segments it is made of (demonstration, first step), in prompt order.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub prompt_segments: Option<Vec<pdt_prompt::SegmentChoice>>,
-}
-
-/// `GET /v1/info`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Info {
-    pub method: String,
-    pub obs_dim: usize,
-    pub act_dim: usize,
-    pub k: usize,
-    pub prompt_steps: usize,
-    pub uses_prompt: bool,
-    pub target_return: f32,
-    pub rtg_scale: f32,
-    pub max_ep_len: usize,
-    pub iteration: u64,
-    /// Tasks `task` may name (empty when the run's data were not readable).
-    pub prompt_tasks: Vec<usize>,
-    pub max_episodes: usize,
-    pub max_batch: usize,
-    pub open_episodes: usize,
-}
+pub use wire::PromptArrays;
+pub use wire::{ActionReply, Info, OpenRequest, StepRequest, MAX_RETURN};
 
 /// An error reply: `{"error": "..."}` with its status.
 #[derive(Debug, Clone)]
@@ -242,6 +176,11 @@ struct Episode {
     segments: Option<Vec<pdt_prompt::SegmentChoice>>,
     /// `bandit`: the task and the arms pulled, reported with the return when it closes.
     bandit: Option<(usize, pdt_prompt::bandit::BanditChoice)>,
+    /// The adaptation it acts with (its prefix is the adaptation's; LoRA's adapters are used in
+    /// every forward).
+    adapted: Option<adapt::AdaptKey>,
+    /// The adaptation's log, sent with the first action.
+    adapt_log: Option<pdt_rundir::config::AdaptLog>,
 }
 
 /// What the model thread owns: the policy and every open episode.
@@ -252,6 +191,8 @@ struct Worker {
     next_id: u64,
     /// `bandit` prompts: one bandit per task, across its episodes.
     bandits: HashMap<usize, pdt_policy::TaskBandit>,
+    /// Adapted tasks, kept for their next episodes.
+    adaptations: adapt::Adaptations,
 }
 
 /// An action to compute in this batch, and where its answer goes.
@@ -264,7 +205,14 @@ struct Pending {
 
 impl Worker {
     fn new(run: Policy, opts: ServeOptions) -> Self {
-        Self { run, opts, episodes: HashMap::new(), next_id: 1, bandits: HashMap::new() }
+        Self {
+            run,
+            opts,
+            episodes: HashMap::new(),
+            next_id: 1,
+            bandits: HashMap::new(),
+            adaptations: adapt::Adaptations::default(),
+        }
     }
 
     fn run(mut self, rx: mpsc::Receiver<Msg>) {
@@ -384,6 +332,9 @@ impl Worker {
         }
         let mut obs = self.run.observation(&req.observation)?;
         let strategy = self.strategy(&req)?;
+        if let Some(cfg) = self.adaptation(&req)? {
+            return self.open_adapted(req, obs, strategy, cfg);
+        }
         let (mut segments, mut bandit) = (None, None);
         let prompt = match (self.run.method.uses_prompt(), req.prompt, req.task) {
             (false, None, None) => None,
@@ -440,7 +391,16 @@ impl Worker {
         let id = self.next_id;
         self.next_id += 1;
         let e = self.run.start(obs, target);
-        self.episodes.insert(id, Episode { e, prefix, seen: Instant::now(), segments, bandit });
+        let ep = Episode {
+            e,
+            prefix,
+            seen: Instant::now(),
+            segments,
+            bandit,
+            adapted: None,
+            adapt_log: None,
+        };
+        self.episodes.insert(id, ep);
         Ok(id)
     }
 
@@ -489,20 +449,22 @@ impl Worker {
     /// Answers every pending action: one forward per group of episodes with prompts of the same
     /// length (in practice: all of them).
     fn act(&mut self, pending: Vec<Pending>) {
-        let mut groups: Vec<(i64, Vec<Pending>)> = Vec::new();
+        // Episodes acting through LoRA adapters go with those of the same adaptation only.
+        type Group = (i64, Option<adapt::AdaptKey>, Vec<Pending>);
+        let mut groups: Vec<Group> = Vec::new();
         for p in pending {
-            let len = self
-                .episodes
-                .get(&p.id)
-                .and_then(|e| e.prefix.as_ref())
-                .map_or(-1, PrefixCache::len);
-            match groups.iter_mut().find(|(l, _)| *l == len) {
-                Some((_, g)) => g.push(p),
-                None => groups.push((len, vec![p])),
+            let ep = self.episodes.get(&p.id);
+            let len = ep.and_then(|e| e.prefix.as_ref()).map_or(-1, PrefixCache::len);
+            let lora = ep
+                .and_then(|e| e.adapted.as_ref())
+                .filter(|k| self.adaptations.get(k).is_some_and(|a| a.adaptation.lora().is_some()));
+            match groups.iter_mut().find(|(l, k, _)| *l == len && k.as_ref() == lora) {
+                Some((.., g)) => g.push(p),
+                None => groups.push((len, lora.cloned(), vec![p])),
             }
         }
         let da = self.run.stats.act_dim;
-        for (_, group) in groups {
+        for (_, lora, group) in groups {
             let eps: Vec<&Episode> =
                 group.iter().filter_map(|p| self.episodes.get(&p.id)).collect();
             if eps.len() != group.len() {
@@ -518,17 +480,23 @@ impl Worker {
             let prefixes: Option<Vec<&PrefixCache>> =
                 eps.iter().map(|e| e.prefix.as_ref()).collect();
             let prefix = prefixes.and_then(|p| PrefixCache::cat(&p));
-            let flat = self.run.act(&states, prefix.as_ref()); // [A * da]
+            let adapters = lora
+                .as_ref()
+                .and_then(|k| self.adaptations.get(k))
+                .and_then(|a| a.adaptation.lora());
+            let flat = self.run.act_with(&states, prefix.as_ref(), adapters); // [A * da]
             for (p, a) in group.into_iter().zip(flat.chunks_exact(da)) {
                 let Some(ep) = self.episodes.get_mut(&p.id) else { continue };
                 let why = match ep.e.accept(a) {
                     Ok(()) => {
                         let segments = if p.opening { ep.segments.take() } else { None };
+                        let adaptation = if p.opening { ep.adapt_log.take() } else { None };
                         let reply = ActionReply {
                             episode: p.id,
                             t: ep.e.t(),
                             action: a.to_vec(),
                             prompt_segments: segments,
+                            adaptation,
                         };
                         let _ = p.reply.send(Ok(reply));
                         continue;
@@ -723,6 +691,9 @@ fn check(opts: &ServeOptions) -> Result<usize, ServeError> {
     }
     if let Err(e) = opts.prompt_strategy.validate() {
         return bad(format!("--prompt-strategy: {e}"));
+    }
+    if let Err(e) = opts.adapt.validate() {
+        return bad(format!("--adapt: {e}"));
     }
     if opts.idle_timeout.is_zero() {
         // 0 would close every episode at once.

@@ -4,24 +4,10 @@
 use crate::optim::Optimizer;
 use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, Segments};
-use pdt_prompt::{PromptDtBatch, SegmentBatch};
+use pdt_prompt::PromptDtBatch;
 use tch::{Device, Kind, Tensor};
 
-/// Moves a host segment batch to `device`.
-pub fn to_segments(b: &SegmentBatch, device: Device) -> Segments {
-    Segments::from_host(
-        b.batch,
-        b.steps,
-        b.state_dim,
-        b.act_dim,
-        &b.states,
-        &b.actions,
-        &b.returns_to_go,
-        &b.timesteps,
-        &b.mask,
-        device,
-    )
-}
+pub use pdt_eval::to_segments;
 
 /// What one step measured.
 #[derive(Debug, Clone, Copy, PartialEq)]

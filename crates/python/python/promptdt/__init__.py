@@ -30,7 +30,7 @@ if "torch" in _sys.modules:
         )
 
 from . import _native  # noqa: E402
-from ._native import Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
+from ._native import Adaptation, Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
 
@@ -229,6 +229,9 @@ def evaluate(
     prompt_strategy: Optional[str] = None,
     prompt_episodes: Optional[int] = None,
     prompt_length: Optional[int] = None,
+    adapt: Optional[str] = None,
+    adapt_steps: Optional[int] = None,
+    adapt_batch: Optional[int] = None,
 ) -> dict:
     """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
     run's ``eval_final.json``; returns its content.
@@ -237,8 +240,15 @@ def evaluate(
     ``reference`` (default), ``random-segment``, ``best-return``, ``nearest-start`` or ``bandit``;
     ``prompt_episodes`` / ``prompt_length``: the test-time prompt's J and H. Other than the
     default, the result goes to ``eval_prompt_<strategy>.json`` and carries ``prompt_strategy``
-    and the strategy's ``picks``."""
+    and the strategy's ``picks``.
+
+    ``adapt`` (``promptdt eval --adapt``): ``soft-prompt``, ``ptdt`` or ``lora``, each test task
+    adapted from its demonstrations first, the backbone frozen (``adapt_steps`` / ``adapt_batch``:
+    iterations and demonstration segments per iteration, defaults 20 and 16); the result goes to
+    ``eval_adapt_<kind>.json`` and carries ``adapt`` and each task's ``adapt_log``."""
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
+    adapt_steps = _opt_uint("adapt_steps", adapt_steps, "a number of iterations", low=1)
+    adapt_batch = _opt_uint("adapt_batch", adapt_batch, "a number of segments", low=1)
     prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of segments", low=1)
     prompt_length = _opt_uint("prompt_length", prompt_length, "a number of steps", low=1)
     return _json.loads(
@@ -251,6 +261,9 @@ def evaluate(
             prompt_strategy=prompt_strategy,
             prompt_episodes=prompt_episodes,
             prompt_length=prompt_length,
+            adapt=adapt,
+            adapt_steps=adapt_steps,
+            adapt_batch=adapt_batch,
         )
     )
 
@@ -518,6 +531,7 @@ __all__ = [
     "Policy",
     "Prompt",
     "PromptBandit",
+    "Adaptation",
     "TaskPlan",
     "Trajectory",
     "collect",

@@ -30,6 +30,7 @@ __all__ = [
     "Policy",
     "Prompt",
     "PromptBandit",
+    "Adaptation",
     "TaskPlan",
 ]
 
@@ -62,6 +63,9 @@ def evaluate(
     prompt_strategy: Optional[str] = None,
     prompt_episodes: Optional[int] = None,
     prompt_length: Optional[int] = None,
+    adapt: Optional[str] = None,
+    adapt_steps: Optional[int] = None,
+    adapt_batch: Optional[int] = None,
 ) -> str: ...
 def experiments() -> str: ...
 def is_scripted(family: str) -> bool: ...
@@ -132,6 +136,15 @@ class PromptBandit:
     def update(self, episode_return: float) -> None: ...
 
 @final
+class Adaptation:
+    @property
+    def kind(self) -> str: ...
+    @property
+    def task(self) -> int: ...
+    @property
+    def log(self) -> Dict[str, Any]: ...
+
+@final
 class TaskPlan:
     @property
     def name(self) -> str: ...
@@ -197,8 +210,18 @@ class Policy:
         prompt_length: Optional[int] = None,
         stride: Optional[int] = None,
     ) -> PromptBandit: ...
+    def adapt(
+        self,
+        task: int,
+        adapt: str,
+        seed: Optional[int] = None,
+        prompt_strategy: Optional[str] = None,
+        steps: Optional[int] = None,
+        batch: Optional[int] = None,
+        lr: Optional[float] = None,
+    ) -> Adaptation: ...
     def eval_plan(self, split: str = "test", episodes: Optional[int] = None) -> List[TaskPlan]: ...
-    def set_prompt(self, prompt: Union[Prompt, Sequence[Prompt]]) -> None: ...
+    def set_prompt(self, prompt: Union[Prompt, Sequence[Prompt], Adaptation]) -> None: ...
     def reset(self, n_episodes: int, target_return: Optional[float] = None) -> None: ...
     def restart(self, episodes: Sequence[int]) -> None: ...
     def act(

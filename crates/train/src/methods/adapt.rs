@@ -10,21 +10,18 @@
 
 use crate::error::RunError;
 use crate::setup::Setup;
-use crate::step::to_segments;
 use pdt_data::{MultiTaskDataset, TaskData};
-use pdt_eval::adapt::{
-    self, demo_loss, ActionLossScore, AdaptConfig, AdaptKind, AdaptLog, PromptScore, PtdtScore,
-};
+use pdt_eval::adapt::{AdaptConfig, AdaptKind, AdaptLog, PromptScore};
 use pdt_eval::{
     evaluate, evaluate_given, summarise, EpisodeRecord, EvalError, EvalSettings, EvalTask,
     GivenPrompts, TaskResult,
 };
-use pdt_model::{PrefixCache, PromptDt, PromptTokens, Segments};
-use pdt_policy::{plan_task, TaskPlan};
+use pdt_model::{PrefixCache, PromptDt};
+use pdt_policy::adapt::{adapt_task, check_start_strategy, start_prompt, AdaptTask};
+use pdt_policy::{plan_task, Adapted, TaskPlan};
 use pdt_prompt::strategy::check_fits;
-use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
+use pdt_prompt::{BatchSampler, PromptStrategy, Rng, SegmentBatch};
 use rand::{RngCore, SeedableRng};
-use std::time::Instant;
 
 /// An adapted evaluation's per-task results and what each adaptation did.
 pub(crate) struct AdaptedEval {
@@ -51,13 +48,7 @@ pub(crate) fn evaluate_adapted(
             method.name()
         )));
     }
-    if strategy.strategy.per_episode() || strategy.strategy.learns_from_returns() {
-        return Err(RunError::Invalid(format!(
-            "adaptation `{}` starts from one prompt per task; prompt strategy `{}` picks one per \
-             episode or round (use reference, random-segment or best-return)",
-            cfg.kind, strategy.strategy
-        )));
-    }
+    check_start_strategy(strategy)?;
     cfg.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
     let episodes = setup.cfg.eval.episodes;
     let reference = setup.sampler(data)?;
@@ -72,7 +63,6 @@ pub(crate) fn evaluate_adapted(
     let scfg = check_fits(strategy, &rd.sampler_cfg, rd.model_cfg.n_positions)?;
     let tasks: Vec<&TaskData> = data.tasks.iter().collect();
     let sampler = BatchSampler::new(scfg, &tasks, rd.norm.clone(), rd.model_cfg.n_positions)?;
-    let device = setup.device;
     let make = |plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>| {
         let envs = seeds.iter().map(|_| setup.family.make(plan.index)).collect::<Result<_, _>>()?;
         Ok::<_, RunError>(EvalTask {
@@ -90,61 +80,30 @@ pub(crate) fn evaluate_adapted(
     let mut prefixes: Vec<PrefixCache> = Vec::new();
     let mut tuned: Vec<SegmentBatch> = Vec::new();
     for (i, plan) in plans.iter().enumerate() {
-        let start = match strategy.strategy {
-            PromptStrategyKind::Reference if strategy.is_default() => plan.prompt.clone(),
-            PromptStrategyKind::Reference => Some(sampler.eval_prompt(i, &mut arng)),
-            PromptStrategyKind::RandomSegment => {
-                let c = sampler.random_segments(i, &mut arng);
-                Some(sampler.prompt_from_choices(i, &c)?)
-            }
-            _ => Some(sampler.prompt_from_choices(i, &sampler.best_return_segments(i))?),
-        }
-        .ok_or_else(|| RunError::Invalid(format!("task {}: no prompt to adapt", plan.name)))?;
-        let prompt = to_segments(&start, device);
-        let mut demos =
-            |n: usize, r: &mut Rng| to_segments(&sampler.demo_segments(i, n, r), device);
-        let probe = demos(cfg.batch, &mut Rng::seed_from_u64(probe_seed.wrapping_add(i as u64)));
-        let loss_of = |p: &PromptTokens, lora| {
-            tch::no_grad(|| demo_loss(model, &probe, p, lora).double_value(&[]))
+        let start = start_prompt(&sampler, i, strategy, plan.prompt.clone(), &mut arng)?;
+        let task = AdaptTask {
+            model,
+            sampler: &sampler,
+            index: i,
+            name: &plan.name,
+            cfg,
+            probe_seed: probe_seed.wrapping_add(i as u64),
         };
-        let start_tokens = tch::no_grad(|| model.prompt_tokens(&prompt));
-        let loss_before = loss_of(&start_tokens, None);
-        let clock = Instant::now();
-        let fail = |e: adapt::AdaptError| RunError::Invalid(format!("task {}: {e}", plan.name));
-        let (loss_after, trainable) = match cfg.kind {
-            AdaptKind::SoftPrompt => {
-                let t =
-                    adapt::soft_prompt(model, &prompt, cfg, &mut demos, &mut arng).map_err(fail)?;
-                let after = loss_of(&t, None);
-                prefixes.push(tch::no_grad(|| model.prefix_with(&t, None)));
-                (after, t.tokens.numel())
-            }
-            AdaptKind::Ptdt => {
-                let p = ptdt_for(model, settings, plan, &start, cfg, &mut demos, &make, &mut arng)?;
-                let tokens = tch::no_grad(|| model.prompt_tokens(&to_segments(&p, device)));
-                let after = loss_of(&tokens, None);
-                tuned.push(p);
-                (after, adapt::ptdt_trainable(&start))
-            }
-            AdaptKind::Lora => {
-                let a = adapt::lora(model, &prompt, cfg, &mut demos, &mut arng).map_err(fail)?;
-                let after = loss_of(&start_tokens, Some(&a));
-                let seconds = clock.elapsed().as_secs_f64();
-                let prefix = tch::no_grad(|| model.prefix_with(&start_tokens, Some(&a)));
-                let given = GivenPrompts { prefix, lora: Some(&a) };
+        let episodes = cfg.ptdt.score_episodes;
+        let mut online = ReturnScore { model, settings, plan, make: &make, episodes };
+        let a = adapt_task(&task, &start, Some(&mut online), &mut arng)?;
+        log.push(a.log.clone());
+        match a.adapted {
+            Adapted::Tokens(_) => prefixes.push(a.prefix(model)),
+            Adapted::Prompt(p) => tuned.push(p),
+            Adapted::Lora { .. } => {
+                let given = GivenPrompts { prefix: a.prefix(model), lora: a.lora() };
                 let mut eps =
                     evaluate_given(model, vec![make(plan, &plan.seeds, None)?], settings, given)?;
                 eps.iter_mut().for_each(|e| e.task_index = i);
                 all.extend(eps);
-                log.push(entry(plan, cfg, loss_before, after, a.numel(), seconds));
-                continue;
             }
-            AdaptKind::None => {
-                return Err(RunError::Invalid("no adaptation asked for (internal error)".into()))
-            }
-        };
-        let seconds = clock.elapsed().as_secs_f64();
-        log.push(entry(plan, cfg, loss_before, loss_after, trainable, seconds));
+        }
     }
     match cfg.kind {
         AdaptKind::SoftPrompt => {
@@ -176,52 +135,9 @@ pub(crate) fn evaluate_adapted(
     Ok(AdaptedEval { results, log })
 }
 
-fn entry(
-    plan: &TaskPlan,
-    cfg: &AdaptConfig,
-    loss_before: f64,
-    loss_after: f64,
-    trainable: usize,
-    seconds: f64,
-) -> AdaptLog {
-    AdaptLog {
-        task: plan.name.clone(),
-        loss_before,
-        loss_after,
-        steps: cfg.steps,
-        trainable,
-        seconds,
-    }
-}
-
 /// Builds a task's evaluation from its plan, the episodes' seeds and its prompt.
 type MakeTask<'a> =
     dyn Fn(&TaskPlan, &[u64], Option<SegmentBatch>) -> Result<EvalTask, RunError> + 'a;
-
-/// The Prompt-Tuning DT update of one task's prompt, with the configured score.
-#[allow(clippy::too_many_arguments)] // the evaluation's pieces, from one caller
-fn ptdt_for(
-    model: &PromptDt,
-    settings: &EvalSettings,
-    plan: &TaskPlan,
-    start: &SegmentBatch,
-    cfg: &AdaptConfig,
-    demos: &mut dyn FnMut(usize, &mut Rng) -> Segments,
-    make: &MakeTask<'_>,
-    rng: &mut Rng,
-) -> Result<SegmentBatch, RunError> {
-    match cfg.ptdt.score {
-        PtdtScore::ActionLoss => {
-            let mut score = ActionLossScore { model, batch: cfg.batch, demos };
-            Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
-        }
-        PtdtScore::Return => {
-            let mut score =
-                ReturnScore { model, settings, plan, make, episodes: cfg.ptdt.score_episodes };
-            Ok(adapt::ptdt(start, cfg, &mut score, rng)?)
-        }
-    }
-}
 
 /// The online score: the mean return of `episodes` episodes per candidate in the task's
 /// environment, every candidate on the same reset seeds (drawn per call, apart from the
