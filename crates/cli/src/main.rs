@@ -221,16 +221,16 @@ fn run(cli: Cli) -> Result<()> {
                     pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch }
                 }
             };
-            let prompted = pdt_train::run::evaluate_run_adapted(
-                &a.run,
-                a.episodes,
-                &a.split,
-                a.device,
-                a.data.as_deref(),
-                &macaw,
-                commands::eval_prompt(&a).as_ref(),
-                adapt.as_ref(),
-            )?;
+            let req = pdt_train::run::EvalRequest {
+                episodes: a.episodes,
+                split: a.split.clone(),
+                device: a.device,
+                data: a.data.clone(),
+                macaw,
+                prompt: commands::eval_prompt(&a),
+                adapt,
+            };
+            let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
             let r = &prompted.eval;
             // Families with a success criterion (Meta-World) also show the success rate.
             let rates: Option<Vec<f64>> = r.tasks.iter().map(|t| t.success_rate).collect();

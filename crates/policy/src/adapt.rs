@@ -12,6 +12,7 @@ use pdt_eval::adapt::{
 use pdt_eval::to_segments;
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, PromptTokens};
 use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
+use pdt_rundir::config::Method;
 use rand::{RngCore, SeedableRng};
 use std::time::Instant;
 
@@ -141,8 +142,8 @@ pub fn adapt_task(
     Ok(TaskAdaptation { adapted, log })
 }
 
-/// The prompt an adaptation starts from: one per task, so only the strategies that pick one per
-/// task (`reference`, `random-segment`, `best-return`). `reference` with the run's own prompt
+/// The prompt an adaptation starts from: one per task, by a strategy that picks one per task
+/// (`reference`, `random-segment`, `best-return`; [`check_adaptable`] refuses the others). `reference` with the run's own prompt
 /// settings is the caller's evaluation draw (`default_draw`).
 pub fn start_prompt(
     sampler: &BatchSampler<'_>,
@@ -151,7 +152,6 @@ pub fn start_prompt(
     default_draw: Option<SegmentBatch>,
     rng: &mut Rng,
 ) -> Result<SegmentBatch, PolicyError> {
-    check_start_strategy(strategy)?;
     Ok(match strategy.strategy {
         PromptStrategyKind::Reference if strategy.is_default() => match default_draw {
             Some(p) => p,
@@ -166,9 +166,22 @@ pub fn start_prompt(
     })
 }
 
-/// Refuses the strategies that pick a prompt per episode or learn across episodes: an
-/// adaptation starts from one prompt per task.
-pub fn check_start_strategy(strategy: &PromptStrategy) -> Result<(), PolicyError> {
+/// Refuses what cannot be adapted, naming it: a method without a prompt, a strategy that picks
+/// a prompt per episode or learns across episodes (an adaptation starts from one prompt per
+/// task), settings out of range.
+pub fn check_adaptable(
+    method: Method,
+    strategy: &PromptStrategy,
+    cfg: &AdaptConfig,
+) -> Result<(), PolicyError> {
+    if !method.uses_prompt() {
+        return Err(PolicyError::Input(format!(
+            "adaptation `{}`: {} takes no prompt; the adaptations apply to prompt-dt and \
+             prompt-mt-bc runs",
+            cfg.kind,
+            method.name()
+        )));
+    }
     if strategy.strategy.per_episode() || strategy.strategy.learns_from_returns() {
         return Err(PolicyError::Input(format!(
             "an adaptation starts from one prompt per task; prompt strategy `{}` picks one per \
@@ -176,7 +189,7 @@ pub fn check_start_strategy(strategy: &PromptStrategy) -> Result<(), PolicyError
             strategy.strategy
         )));
     }
-    Ok(())
+    cfg.validate().map_err(|e| PolicyError::Input(e.to_string()))
 }
 
 impl Policy {
@@ -189,15 +202,7 @@ impl Policy {
         strategy: &PromptStrategy,
         cfg: &AdaptConfig,
     ) -> Result<TaskAdaptation, PolicyError> {
-        if !self.method.uses_prompt() {
-            return Err(PolicyError::Input(format!(
-                "adaptation `{}`: {} takes no prompt; the adaptations apply to prompt-dt and \
-                 prompt-mt-bc runs",
-                cfg.kind,
-                self.method.name()
-            )));
-        }
-        cfg.validate().map_err(|e| PolicyError::Input(e.to_string()))?;
+        check_adaptable(self.method, strategy, cfg)?;
         let sampler = self.task_sampler(task, Some(strategy))?;
         let mut rng = Rng::seed_from_u64(seed);
         let start = start_prompt(&sampler, 0, strategy, None, &mut rng)?;

@@ -149,17 +149,16 @@ pub(crate) fn evaluate(
     };
     let r = py
         .detach(|| {
-            pdt_train::run::evaluate_run_adapted(
-                &run_dir,
+            let req = pdt_train::run::EvalRequest {
                 episodes,
-                split,
+                split: split.into(),
                 device,
-                data.as_deref(),
-                &Default::default(),
-                prompt.as_ref(),
-                adapt.as_ref(),
-            )
-            .map_err(|e| e.to_string())
+                data,
+                prompt,
+                adapt,
+                ..Default::default()
+            };
+            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| e.to_string())
         })
         .map_err(value_error)?;
     // The default strategy returns `eval_final.json`'s content, as before strategies.

@@ -11,7 +11,41 @@ use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
 use pdt_prompt::PromptStrategy;
 use pdt_rundir::config::AdaptConfig;
 use pdt_rundir::{FinalEval, PromptEval, RunDir};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// What an evaluation of a run may change of the run's own (`promptdt eval`'s flags; each
+/// `None` or default: the run's).
+#[derive(Debug, Clone)]
+pub struct EvalRequest {
+    /// Episodes per task.
+    pub episodes: Option<usize>,
+    /// `test` (the held-out tasks) or `train`.
+    pub split: String,
+    pub device: Option<pdt_model::device::DeviceSpec>,
+    /// Where the run's data are now, if they moved.
+    pub data: Option<PathBuf>,
+    /// A MACAW run's adaptation (refused for the methods without one).
+    pub macaw: MacawAdaptation,
+    /// A test-time prompt strategy (`None`: the run's `[eval.prompt]`, `reference` unless set).
+    pub prompt: Option<PromptStrategy>,
+    /// An evaluation-time adaptation of the test tasks (`None`: the run's `[eval.adapt]`, none
+    /// unless set; docs/prompt-control.md).
+    pub adapt: Option<AdaptConfig>,
+}
+
+impl Default for EvalRequest {
+    fn default() -> Self {
+        Self {
+            episodes: None,
+            split: "test".into(),
+            device: None,
+            data: None,
+            macaw: MacawAdaptation::default(),
+            prompt: None,
+            adapt: None,
+        }
+    }
+}
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
 pub fn evaluate_run(
@@ -33,39 +67,26 @@ pub fn evaluate_run_with(
     data: Option<&Path>,
     adaptation: &MacawAdaptation,
 ) -> Result<FinalEval, RunError> {
-    evaluate_run_prompted(dir, episodes, split, device, data, adaptation, None).map(|e| e.eval)
+    let req = EvalRequest {
+        episodes,
+        split: split.into(),
+        device,
+        data: data.map(Path::to_path_buf),
+        macaw: adaptation.clone(),
+        ..Default::default()
+    };
+    evaluate_run_as(dir, &req).map(|e| e.eval)
 }
 
-/// [`evaluate_run_with`] with a test-time prompt strategy (`None`: the run's `[eval.prompt]`,
-/// `reference` unless set). The default strategy writes `eval_final.json`, as before strategies;
-/// any other writes `eval_prompt_<strategy>.json` ([`PromptEval`], with its choices), leaving
-/// `eval_final.json` to the reference rule.
-pub fn evaluate_run_prompted(
-    dir: &Path,
-    episodes: Option<usize>,
-    split: &str,
-    device: Option<pdt_model::device::DeviceSpec>,
-    data: Option<&Path>,
-    adaptation: &MacawAdaptation,
-    prompt: Option<&PromptStrategy>,
-) -> Result<PromptEval, RunError> {
-    evaluate_run_adapted(dir, episodes, split, device, data, adaptation, prompt, None)
-}
-
-/// [`evaluate_run_prompted`] with an evaluation-time adaptation of the test tasks (`None`: the
-/// run's `[eval.adapt]`, none unless set; `docs/prompt-control.md`). With one, the results go to
-/// `eval_adapt_<kind>.json` with each task's adaptation log.
-#[allow(clippy::too_many_arguments)] // the flags of `promptdt eval`, each optional
-pub fn evaluate_run_adapted(
-    dir: &Path,
-    episodes: Option<usize>,
-    split: &str,
-    device: Option<pdt_model::device::DeviceSpec>,
-    data: Option<&Path>,
-    adaptation: &MacawAdaptation,
-    prompt: Option<&PromptStrategy>,
-    adapt: Option<&AdaptConfig>,
-) -> Result<PromptEval, RunError> {
+/// The evaluation of the run in `dir` that `req` asks for. The default strategy without an
+/// adaptation writes `eval_final.json`, as before strategies; another strategy writes
+/// `eval_prompt_<strategy>.json` ([`PromptEval`], with its choices), an adaptation
+/// `eval_adapt_<kind>.json` with each task's adaptation log, leaving `eval_final.json` to the
+/// reference rule.
+pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunError> {
+    let EvalRequest { episodes, split, device, data, macaw: adaptation, prompt, adapt } = req;
+    let (episodes, split, device, data) = (*episodes, split.as_str(), *device, data.as_deref());
+    let (prompt, adapt) = (prompt.as_ref(), adapt.as_ref());
     let run = RunDir::at(dir);
     let mut cfg = run_config(&run, device, data)?;
     if let Some(e) = episodes {
@@ -96,7 +117,7 @@ pub fn evaluate_run_adapted(
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;
-    if *adaptation != MacawAdaptation::default() {
+    if adaptation != &MacawAdaptation::default() {
         if learner.adaptation().is_none() {
             return Err(RunError::Invalid(format!(
                 "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",

@@ -8,9 +8,7 @@
 //! would, and evaluation never disturbs training.
 
 pub use crate::error::RunError;
-pub use crate::evaluate::{
-    evaluate_run, evaluate_run_adapted, evaluate_run_prompted, evaluate_run_with,
-};
+pub use crate::evaluate::{evaluate_run, evaluate_run_as, evaluate_run_with, EvalRequest};
 pub use crate::methods::MacawAdaptation;
 pub use crate::run_loop::{train, Progress, ResumeWith, TrainOptions, TrainSummary};
 pub use pdt_policy::TaskPlan;

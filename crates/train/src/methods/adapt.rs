@@ -17,7 +17,7 @@ use pdt_eval::{
     GivenPrompts, TaskResult,
 };
 use pdt_model::{PrefixCache, PromptDt};
-use pdt_policy::adapt::{adapt_task, check_start_strategy, start_prompt, AdaptTask};
+use pdt_policy::adapt::{adapt_task, check_adaptable, start_prompt, AdaptTask};
 use pdt_policy::{plan_task, Adapted, TaskPlan};
 use pdt_prompt::strategy::check_fits;
 use pdt_prompt::{BatchSampler, PromptStrategy, Rng, SegmentBatch};
@@ -40,16 +40,7 @@ pub(crate) fn evaluate_adapted(
     rng: &mut Rng,
 ) -> Result<AdaptedEval, RunError> {
     let method = setup.cfg.run.method;
-    if !method.uses_prompt() {
-        return Err(RunError::Invalid(format!(
-            "adaptation `{}`: {} takes no prompt; the adaptations apply to prompt-dt and \
-             prompt-mt-bc runs",
-            cfg.kind,
-            method.name()
-        )));
-    }
-    check_start_strategy(strategy)?;
-    cfg.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
+    check_adaptable(method, strategy, cfg)?;
     let episodes = setup.cfg.eval.episodes;
     let reference = setup.sampler(data)?;
     let plans: Vec<TaskPlan> = (0..data.tasks.len())
