@@ -168,6 +168,24 @@ impl Policy {
         &self.norm
     }
 
+    /// The settings the evaluator acts with for this policy, one episode at a time (`max_batch`
+    /// 1, one environment thread, prompts through the cached prefix), on its device: what an
+    /// episode acted here is compared with, bit for bit.
+    pub fn eval_settings(&self) -> pdt_eval::EvalSettings {
+        pdt_eval::EvalSettings {
+            k: self.k,
+            horizon: self.stats.horizon,
+            rtg_scale: self.stats.rtg_scale,
+            target_return: self.stats.target_return,
+            returns: self.returns,
+            norm: self.norm.clone(),
+            max_batch: 1,
+            device: self.device,
+            env_threads: 1,
+            inference: pdt_eval::Inference::Cached,
+        }
+    }
+
     /// The model's longest episode (its timestep table).
     pub fn max_ep_len(&self) -> usize {
         self.model.cfg.max_ep_len

@@ -4,7 +4,7 @@
 //! return-to-go overflow), a refused step leaving its episode as it was.
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
-use pdt_eval::{evaluate, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalTask};
 use pdt_policy::{Episode, Policy, PolicyError, PromptArrays};
 
 mod support {
@@ -50,18 +50,7 @@ fn an_episode_takes_the_evaluators_actions() {
     let p = policy();
     for (task, seed, prompt_seed) in [(34usize, 5u64, 0u64), (2, 9, 3)] {
         let stepped = stepped_episode(&p, task, seed, prompt_seed);
-        let settings = EvalSettings {
-            k: p.k,
-            horizon: p.stats.horizon,
-            rtg_scale: p.stats.rtg_scale,
-            target_return: p.stats.target_return,
-            returns: p.returns,
-            norm: p.norm().clone(),
-            max_batch: 1,
-            device: tch::Device::Cpu,
-            env_threads: 1,
-            inference: Inference::Cached,
-        };
+        let settings = p.eval_settings();
         let t = EvalTask {
             name: format!("point_robot-{task}"),
             index: task,

@@ -9,7 +9,6 @@ use pdt_policy::{Policy, TaskAdaptation};
 use pdt_prompt::PromptStrategy;
 use pdt_rundir::config::AdaptConfig;
 use std::collections::{HashMap, HashSet};
-use std::time::Instant;
 
 /// Adaptations kept at most; one more evicts those no open episode acts with.
 pub const MAX_ADAPTATIONS: usize = 64;
@@ -117,19 +116,8 @@ impl Worker {
         let prefix = PrefixCache::cat(&[&kept.prefix]);
         let adapt_log = Some(kept.adaptation.log.clone());
         let target = self.run.target(req.target_return)?;
-        let id = self.next_id;
-        self.next_id += 1;
         let e = self.run.start(obs, target);
-        let ep = Episode {
-            e,
-            prefix,
-            seen: Instant::now(),
-            segments: None,
-            bandit: None,
-            adapted: Some(key),
-            adapt_log,
-        };
-        self.episodes.insert(id, ep);
-        Ok(id)
+        let ep = Episode { adapted: Some(key), adapt_log, ..Episode::new(e, prefix) };
+        Ok(self.insert(ep))
     }
 }

@@ -183,6 +183,14 @@ struct Episode {
     adapt_log: Option<pdt_rundir::config::AdaptLog>,
 }
 
+impl Episode {
+    /// An episode just started, with its prompt's keys and values.
+    fn new(e: pdt_policy::Episode, prefix: Option<PrefixCache>) -> Self {
+        let (segments, bandit, adapted, adapt_log) = (None, None, None, None);
+        Self { e, prefix, seen: Instant::now(), segments, bandit, adapted, adapt_log }
+    }
+}
+
 /// What the model thread owns: the policy and every open episode.
 struct Worker {
     run: Policy,
@@ -388,20 +396,16 @@ impl Worker {
             Some(p) => Some(self.run.prefix(&[p])?),
             None => None,
         };
+        let e = self.run.start(obs, target);
+        Ok(self.insert(Episode { segments, bandit, ..Episode::new(e, prefix) }))
+    }
+
+    /// Opens `ep` under the next id.
+    fn insert(&mut self, ep: Episode) -> u64 {
         let id = self.next_id;
         self.next_id += 1;
-        let e = self.run.start(obs, target);
-        let ep = Episode {
-            e,
-            prefix,
-            seen: Instant::now(),
-            segments,
-            bandit,
-            adapted: None,
-            adapt_log: None,
-        };
         self.episodes.insert(id, ep);
-        Ok(id)
+        id
     }
 
     /// The prompt strategy of an opening request: the server's, with what the request names.

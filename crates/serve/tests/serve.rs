@@ -3,9 +3,8 @@
 //! get a clear error while the server keeps serving.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::{evaluate, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalTask};
 use pdt_policy::Policy;
-use pdt_prompt::StateNorm;
 use pdt_serve::ServeOptions;
 use std::io::Write;
 use std::net::{SocketAddr, TcpStream};
@@ -50,18 +49,7 @@ fn served_episode(addr: SocketAddr, open: serde_json::Value, task: usize, seed: 
 fn evaluated_episode(task: usize, seed: u64, prompt_seed: u64) -> Vec<f32> {
     let run = Policy::load(&tiny_run().1, None, None).unwrap();
     let family = pdt_envs::family("point_robot").unwrap();
-    let settings = EvalSettings {
-        k: run.k,
-        horizon: run.stats.horizon,
-        rtg_scale: run.stats.rtg_scale,
-        target_return: run.stats.target_return,
-        returns: run.returns,
-        norm: StateNorm { mean: run.stats.state_mean.clone(), std: run.stats.state_std.clone() },
-        max_batch: 1,
-        device: tch::Device::Cpu,
-        env_threads: 1,
-        inference: Inference::Cached,
-    };
+    let settings = run.eval_settings();
     let prompt = run.task_prompt(task, prompt_seed).unwrap();
     let t = EvalTask {
         name: format!("point_robot-{task}"),

@@ -6,9 +6,9 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_eval::adapt::{AdaptConfig, AdaptKind};
-use pdt_eval::{evaluate_given, EvalSettings, EvalTask, GivenPrompts, Inference};
+use pdt_eval::{evaluate_given, EvalTask, GivenPrompts};
 use pdt_policy::Policy;
-use pdt_prompt::{PromptStrategy, StateNorm};
+use pdt_prompt::PromptStrategy;
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 
@@ -53,18 +53,7 @@ fn serve_episode(
 
 /// The evaluator's actions for one episode of `task` from `seed` with an adaptation.
 fn evaluated(run: &Policy, task: usize, seed: u64, a: &pdt_policy::TaskAdaptation) -> Vec<f32> {
-    let settings = EvalSettings {
-        k: run.k,
-        horizon: run.stats.horizon,
-        rtg_scale: run.stats.rtg_scale,
-        target_return: run.stats.target_return,
-        returns: run.returns,
-        norm: StateNorm { mean: run.stats.state_mean.clone(), std: run.stats.state_std.clone() },
-        max_batch: 1,
-        device: tch::Device::Cpu,
-        env_threads: 1,
-        inference: Inference::Cached,
-    };
+    let settings = run.eval_settings();
     let t = EvalTask {
         name: format!("point_robot-{task}"),
         index: task,

@@ -4,9 +4,9 @@
 //! and bad strategy requests get clear errors.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::{evaluate, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalTask};
 use pdt_policy::Policy;
-use pdt_prompt::{PromptStrategy, SegmentBatch, SegmentChoice, StateNorm};
+use pdt_prompt::{PromptStrategy, SegmentBatch, SegmentChoice};
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 
@@ -56,18 +56,7 @@ fn serve_episode(addr: SocketAddr, open: serde_json::Value, task: usize, seed: u
 
 /// The evaluator's actions for one episode of `task` from `seed` with `prompt`.
 fn evaluated(run: &Policy, task: usize, seed: u64, prompt: SegmentBatch) -> Vec<f32> {
-    let settings = EvalSettings {
-        k: run.k,
-        horizon: run.stats.horizon,
-        rtg_scale: run.stats.rtg_scale,
-        target_return: run.stats.target_return,
-        returns: run.returns,
-        norm: StateNorm { mean: run.stats.state_mean.clone(), std: run.stats.state_std.clone() },
-        max_batch: 1,
-        device: tch::Device::Cpu,
-        env_threads: 1,
-        inference: Inference::Cached,
-    };
+    let settings = run.eval_settings();
     let t = EvalTask {
         name: format!("point_robot-{task}"),
         index: task,
