@@ -434,7 +434,7 @@ impl Policy {
                         batch = None, lr = None))]
     #[allow(clippy::too_many_arguments)] // the keywords of `Policy.adapt`
     fn adapt(
-        &self,
+        slf: &Bound<'_, Self>,
         py: Python<'_>,
         task: &Bound<'_, PyAny>,
         adapt: &str,
@@ -465,14 +465,22 @@ impl Policy {
             strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
             ..Default::default()
         };
-        let mut st = lock(&self.state)?;
+        let mut st = lock(&slf.get().state)?;
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
         let a = py
             .detach(move || run.adapt(task, seed, &strategy, &cfg).map_err(|e| e.to_string()))
             .map_err(value_error)?;
-        let policy = self as *const Policy as usize;
-        Ok(Adaptation { kind: adapt.to_string(), task, inner: Mutex::new(a), policy })
+        drop(st);
+        let policy = slf.get() as *const Policy as usize;
+        let owner = slf.clone().into_any().unbind();
+        Ok(Adaptation {
+            kind: adapt.to_string(),
+            task,
+            inner: Mutex::new(a),
+            policy,
+            _owner: owner,
+        })
     }
 
     /// Starts `n_episodes` new episodes (the next `act` takes their first observations), aiming

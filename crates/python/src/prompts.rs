@@ -108,6 +108,8 @@ pub(crate) struct Adaptation {
     pub(crate) inner: Mutex<pdt_policy::TaskAdaptation>,
     /// The `Policy` that made it (its address): its tensors fit that model only.
     pub(crate) policy: usize,
+    /// That `Policy`, kept alive while the adaptation is, so no other takes its address.
+    pub(crate) _owner: Py<PyAny>,
 }
 
 #[pymethods]
