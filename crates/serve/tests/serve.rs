@@ -3,7 +3,7 @@
 //! get a clear error while the server keeps serving.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::{evaluate, EvalTask};
+use pdt_eval::evaluate;
 use pdt_policy::Policy;
 use pdt_serve::ServeOptions;
 use std::io::Write;
@@ -11,7 +11,7 @@ use std::net::{SocketAddr, TcpStream};
 use std::time::Duration;
 
 mod support;
-use support::{http, start, tiny_run};
+use support::{http, point_task, start, tiny_run};
 
 fn action(v: &serde_json::Value) -> Vec<f32> {
     v["action"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
@@ -48,16 +48,10 @@ fn served_episode(addr: SocketAddr, open: serde_json::Value, task: usize, seed: 
 /// What `promptdt eval` takes for one episode of `task` with the prompt of `open`.
 fn evaluated_episode(task: usize, seed: u64, prompt_seed: u64) -> Vec<f32> {
     let run = Policy::load(&tiny_run().1, None, None).unwrap();
-    let family = pdt_envs::family("point_robot").unwrap();
+    let _family = pdt_envs::family("point_robot").unwrap();
     let settings = run.eval_settings();
     let prompt = run.task_prompt(task, prompt_seed).unwrap();
-    let t = EvalTask {
-        name: format!("point_robot-{task}"),
-        index: task,
-        envs: vec![family.make(task).unwrap()],
-        seeds: vec![seed],
-        prompt: Some(prompt),
-    };
+    let t = point_task(task, seed, Some(prompt));
     tch::set_num_threads(1);
     evaluate(&run.model, vec![t], &settings).unwrap().remove(0).actions
 }

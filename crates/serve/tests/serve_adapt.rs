@@ -6,14 +6,14 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_eval::adapt::{AdaptConfig, AdaptKind};
-use pdt_eval::{evaluate_given, EvalTask, GivenPrompts};
+use pdt_eval::{evaluate_given, GivenPrompts};
 use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 
 mod support;
-use support::{http, start, tiny_run};
+use support::{http, point_task, start, tiny_run};
 
 fn floats(v: &serde_json::Value) -> Vec<f32> {
     v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
@@ -54,13 +54,7 @@ fn serve_episode(
 /// The evaluator's actions for one episode of `task` from `seed` with an adaptation.
 fn evaluated(run: &Policy, task: usize, seed: u64, a: &pdt_policy::TaskAdaptation) -> Vec<f32> {
     let settings = run.eval_settings();
-    let t = EvalTask {
-        name: format!("point_robot-{task}"),
-        index: task,
-        envs: vec![pdt_envs::family("point_robot").unwrap().make(task).unwrap()],
-        seeds: vec![seed],
-        prompt: None,
-    };
+    let t = point_task(task, seed, None);
     tch::set_num_threads(1);
     let given = GivenPrompts { prefix: a.prefix(&run.model), lora: a.lora() };
     evaluate_given(&run.model, vec![t], &settings, given).unwrap().remove(0).actions

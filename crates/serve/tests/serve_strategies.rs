@@ -4,14 +4,14 @@
 //! and bad strategy requests get clear errors.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::{evaluate, EvalTask};
+use pdt_eval::evaluate;
 use pdt_policy::Policy;
 use pdt_prompt::{PromptStrategy, SegmentBatch, SegmentChoice};
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 
 mod support;
-use support::{http, start, tiny_run};
+use support::{http, point_task, start, tiny_run};
 
 fn floats(v: &serde_json::Value) -> Vec<f32> {
     v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
@@ -57,13 +57,7 @@ fn serve_episode(addr: SocketAddr, open: serde_json::Value, task: usize, seed: u
 /// The evaluator's actions for one episode of `task` from `seed` with `prompt`.
 fn evaluated(run: &Policy, task: usize, seed: u64, prompt: SegmentBatch) -> Vec<f32> {
     let settings = run.eval_settings();
-    let t = EvalTask {
-        name: format!("point_robot-{task}"),
-        index: task,
-        envs: vec![pdt_envs::family("point_robot").unwrap().make(task).unwrap()],
-        seeds: vec![seed],
-        prompt: Some(prompt),
-    };
+    let t = point_task(task, seed, Some(prompt));
     tch::set_num_threads(1);
     evaluate(&run.model, vec![t], &settings).unwrap().remove(0).actions
 }

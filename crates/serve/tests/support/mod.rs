@@ -15,6 +15,21 @@ use std::time::Duration;
 mod tiny;
 pub use tiny::tiny_run;
 
+/// One point-robot episode of `task` from `seed` with `prompt`, as the evaluator takes it.
+pub fn point_task(
+    task: usize,
+    seed: u64,
+    prompt: Option<pdt_prompt::SegmentBatch>,
+) -> pdt_eval::EvalTask {
+    pdt_eval::EvalTask {
+        name: format!("point_robot-{task}"),
+        index: task,
+        envs: vec![pdt_envs::family("point_robot").unwrap().make(task).unwrap()],
+        seeds: vec![seed],
+        prompt,
+    }
+}
+
 pub fn start(opts: ServeOptions) -> Server {
     let run = Policy::load(&tiny_run().1, None, None).unwrap();
     Server::start(run, ServeOptions { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..opts })
