@@ -123,3 +123,38 @@ fn archived_runs_report_from_an_empty_directory_and_bad_runs_are_refused() {
     assert!(!report.contains("What could not be read"), "{report}");
     assert!(!empty.join("runs/repro/data").exists() && !empty.join("runs/repro/runs").exists());
 }
+
+/// A budget planning more seeds than are archived: `--report-only` counts the seeds still to run
+/// (the plan's), not only the archived ones (a registry holding only seed 0 once cut every cell
+/// to 1 seed and called it finished).
+#[test]
+fn report_only_counts_the_planned_seeds_not_only_the_archived_ones() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let m = root.join("reg.toml");
+    std::fs::write(&m, cli::tiny_manifest("reg", "Registry", "the results registry", 2)).unwrap();
+    let tree = root.join("tree");
+    let only = "point_robot/prompt-dt/smoke/seed0,point_robot/mt-orl/smoke/seed0";
+    let run = ["reproduce", s(&m), "--budget", "smoke", "--out", s(&tree), "--only", only];
+    check_ok(&run, promptdt_in(root, &run));
+    let reg = root.join("reg");
+    let runs = tree.join("runs");
+    let mut add: Vec<String> = ["results", "add"].map(String::from).to_vec();
+    for d in ["point_robot/prompt-dt/smoke/seed0", "point_robot/mt-orl/smoke/seed0"] {
+        add.push(s(&runs.join(d)).to_string());
+    }
+    let data = tree.join("data");
+    for x in ["--exp", s(&m), "--budget", "smoke", "--registry", s(&reg), "--data-root", s(&data)] {
+        add.push(x.into());
+    }
+    add.extend(PROVENANCE.iter().map(|x| x.to_string()));
+    check_ok(&add, promptdt_in(root, &add));
+
+    let empty = root.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let only = ["reproduce", s(&m), "--budget", "smoke", "--report-only", "--registry", s(&reg)];
+    check_ok(&only, promptdt_in(&empty, &only));
+    let report =
+        std::fs::read_to_string(empty.join("runs/repro/reports/reg-smoke/report.md")).unwrap();
+    assert_eq!(report.matches("partial: 1 of 2 seeds finished").count(), 2, "{report}");
+}

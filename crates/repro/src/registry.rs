@@ -339,7 +339,13 @@ pub fn plan_with_archive(
     if let (None, Some(max)) = (opts.seeds, max_archived) {
         let planned: std::collections::BTreeSet<String> =
             p.runs.iter().map(|r| r.key.clone()).collect();
-        p = plan::plan(m, &PlanOptions { seeds: Some(max + 1), ..opts.clone() })?;
+        // Seeds per cell differ by group (table1: 3 on Cheetah-Dir, 1 elsewhere): expand to the
+        // most of either, then keep the planned runs and the archived ones, so that an archive
+        // of seed 1 does not cut a group planned with 3 seeds down to 2.
+        let max_planned = p.runs.iter().map(|r| r.seed).max().unwrap_or(0);
+        let seeds = u64::from(max).max(max_planned) + 1;
+        let seeds = u32::try_from(seeds).unwrap_or(u32::MAX);
+        p = plan::plan(m, &PlanOptions { seeds: Some(seeds), ..opts.clone() })?;
         p.runs.retain(|r| {
             planned.contains(&r.key) || registry.join(&r.key).join(PROVENANCE_JSON).is_file()
         });
