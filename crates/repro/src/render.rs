@@ -6,7 +6,7 @@
 use crate::manifest::{Manifest, BUILTIN};
 use crate::plan::{self, PlanOptions};
 use crate::registry;
-use crate::report::{self, CellResult, Report, Stat};
+use crate::report::{self, Report, Stat};
 use crate::ReproError;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -91,20 +91,6 @@ fn stat(s: Option<Stat>, d: usize) -> String {
     })
 }
 
-fn paper(c: &CellResult) -> (String, String) {
-    let raw = match (c.paper, c.paper_std) {
-        (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
-        (Some(p), None) => format!("≈ {p:.1}"),
-        _ => "-".into(),
-    };
-    let norm = match (c.paper_normalised, c.paper_normalised_std) {
-        (Some(p), Some(sd)) => format!("{p:.1} ± {sd:.1}"),
-        (Some(p), None) => format!("≈ {p:.1}"),
-        _ => "-".into(),
-    };
-    (raw, norm)
-}
-
 fn seeds_text(seeds: &[u64]) -> String {
     let list = seeds.iter().map(u64::to_string).collect::<Vec<_>>().join(", ");
     format!("{} ({list})", seeds.len())
@@ -158,7 +144,7 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
                 Some(sr) => format!("{}, success {}", stat(c.ours, 1), stat(Some(sr), 2)),
                 None => stat(c.ours, 1),
             };
-            let (p, pn) = paper(c);
+            let report::PaperText { raw: p, normalised: pn } = report::PaperText::of(c);
             let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
             let devices = devices.map_or("-".into(), |d| d.join(", "));
             let _ = writeln!(
@@ -259,7 +245,7 @@ fn headline(sections: &[Section]) -> String {
                 seeds.len(),
                 c.iteration.map_or("-".into(), |i| i.to_string()),
                 stat(c.ours_normalised, 1),
-                paper(c).1
+                report::PaperText::of(c).normalised
             );
         }
     }

@@ -20,6 +20,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 mod render;
+pub(crate) use render::PaperText;
 use render::{cells_csv, curves_csv, markdown};
 
 /// Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out

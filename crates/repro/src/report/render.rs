@@ -36,16 +36,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
     let align = vec![text, num, num, num, num, num, num, text, text];
     let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
     for c in &r.cells {
-        let paper = match (c.paper, c.paper_std) {
-            (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
-            (Some(p), None) => format!("≈ {p:.1}"),
-            _ => "-".into(),
-        };
-        let pn = match (c.paper_normalised, c.paper_normalised_std) {
-            (Some(p), Some(sd)) => format!("{p:.1} ± {sd:.1}"),
-            (Some(p), None) => format!("≈ {p:.1}"),
-            _ => "-".into(),
-        };
+        let PaperText { raw: paper, normalised: pn } = PaperText::of(c);
         let it = match (c.iteration, c.iterations_planned) {
             (Some(i), Some(n)) => format!("{i} / {n}"),
             (None, Some(n)) => format!("- / {n}"),
@@ -181,4 +172,27 @@ pub(super) fn curves_csv(r: &Report) -> String {
         }
     }
     s
+}
+
+/// A cell's paper value as the report's tables print it: raw (`927.20 ± 18.02`, or `≈ 930.0` read
+/// off a figure) and normalised; `-` where the paper gives none.
+pub(crate) struct PaperText {
+    pub raw: String,
+    pub normalised: String,
+}
+
+impl PaperText {
+    pub(crate) fn of(c: &CellResult) -> Self {
+        let raw = match (c.paper, c.paper_std) {
+            (Some(p), Some(sd)) => format!("{p:.2} ± {sd:.2}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        let normalised = match (c.paper_normalised, c.paper_normalised_std) {
+            (Some(p), Some(sd)) => format!("{p:.1} ± {sd:.1}"),
+            (Some(p), None) => format!("≈ {p:.1}"),
+            _ => "-".into(),
+        };
+        PaperText { raw, normalised }
+    }
 }
