@@ -290,7 +290,11 @@ pub struct ReproduceArgs {
     /// directory is absent, its archive in --registry).
     #[arg(long)]
     pub report_only: bool,
-    /// The results registry `--report-only` reads absent runs from.
+    /// Print where each run stands (finished, archived, part-way, not started) and the command
+    /// that goes on; runs and writes nothing.
+    #[arg(long, conflicts_with_all = ["report_only", "emit", "only", "list"])]
+    pub status: bool,
+    /// The results registry `--report-only` and `--status` read archived runs from.
     #[arg(long, default_value = "results")]
     pub registry: PathBuf,
     /// Run only this run (`<cell>/<budget>/seed<N>`, as jobs.txt names it), or these runs

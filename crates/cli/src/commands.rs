@@ -499,6 +499,9 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     } else {
         plan::plan(&m, &opts)?
     };
+    if a.status {
+        return print_status(&p, a, name);
+    }
     let exe = std::env::current_exe().context("the promptdt binary's path")?;
     match a.emit.as_deref() {
         Some("jobs") => {
@@ -684,4 +687,37 @@ pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::Promp
             ..d
         },
     })
+}
+
+/// `reproduce --status`: the plan's runs and where each stands, then the command that goes on.
+fn print_status(p: &pdt_repro::plan::Plan, a: &ReproduceArgs, name: &str) -> Result<()> {
+    use pdt_repro::status;
+    let runs = status::runs(p, &a.registry);
+    out!("{}", status::table(&runs).trim_end());
+    let t = status::Tally::of(&runs);
+    out!(
+        "{} runs of {} at the {} budget: {} done ({} archived in {}), {} part-way, {} not started{}",
+        t.runs,
+        p.experiment,
+        p.budget,
+        t.done,
+        t.archived,
+        a.registry.display(),
+        t.partial,
+        t.not_started,
+        if t.problems > 0 { format!(", {} cannot be resumed as they are", t.problems) } else { String::new() }
+    );
+    if t.partial + t.not_started + t.problems > 0 {
+        // The same command without --status: it resumes the part-way runs and starts the rest.
+        let mut cmd = format!("promptdt reproduce {name} --budget {}", p.budget);
+        cmd.push_str(&format!(" --out {}", a.out.display()));
+        if let Some(d) = &a.data_root {
+            cmd.push_str(&format!(" --data-root {}", d.display()));
+        }
+        if let Some(n) = a.seeds {
+            cmd.push_str(&format!(" --seeds {n}"));
+        }
+        out!("to go on (resumes the part-way runs, starts the rest): {cmd}");
+    }
+    Ok(())
 }

@@ -157,4 +157,33 @@ fn report_only_counts_the_planned_seeds_not_only_the_archived_ones() {
     let report =
         std::fs::read_to_string(empty.join("runs/repro/reports/reg-smoke/report.md")).unwrap();
     assert_eq!(report.matches("partial: 1 of 2 seeds finished").count(), 2, "{report}");
+
+    // `--status`: each run's state and the command that goes on, nothing written.
+    let latest = runs.join("point_robot/mt-orl/smoke/seed0/checkpoints/latest.json");
+    let text = std::fs::read_to_string(&latest).unwrap();
+    std::fs::write(&latest, text.replace("\"iteration\": 2", "\"iteration\": 1")).unwrap();
+    let status = ["reproduce", s(&m), "--budget", "smoke", "--status", "--out", s(&tree)];
+    let status = [&status[..], &["--registry", s(&reg)]].concat();
+    let before = std::fs::read_dir(&tree).unwrap().count();
+    let stdout = check_ok(&status, promptdt_in(root, &status));
+    let line = |key: &str| stdout.lines().find(|l| l.starts_with(key)).unwrap_or("").to_string();
+    assert!(line("point_robot/prompt-dt/smoke/seed0").ends_with("finished, archived"), "{stdout}");
+    assert!(line("point_robot/prompt-dt/smoke/seed1").ends_with("not started"), "{stdout}");
+    let partial = line("point_robot/mt-orl/smoke/seed0");
+    assert!(partial.contains("at iteration 2 of 2 (resumes from 1); an archived copy"), "{stdout}");
+    assert!(
+        stdout.contains("4 runs of reg at the smoke budget: 2 done (2 archived in")
+            && stdout.contains("0 part-way, 2 not started"),
+        "{stdout}"
+    );
+    assert!(stdout.contains(&format!("--budget smoke --out {}", s(&tree))), "{stdout}");
+    assert_eq!(std::fs::read_dir(&tree).unwrap().count(), before);
+    // From a fresh clone: the archived runs, nothing else.
+    let fresh = ["reproduce", s(&m), "--budget", "smoke", "--status", "--registry", s(&reg)];
+    let stdout = check_ok(&fresh, promptdt_in(&empty, &fresh));
+    let line = |key: &str| stdout.lines().find(|l| l.starts_with(key)).unwrap_or("").to_string();
+    assert!(line("point_robot/mt-orl/smoke/seed0").ends_with("archived (no run directory here)"));
+    assert!(stdout.contains("2 done (2 archived"), "{stdout}");
+    let bad = [&fresh[..], &["--report-only"]].concat();
+    cli::check_fails(&bad, promptdt_in(&empty, &bad));
 }

@@ -11,6 +11,7 @@
 //! - [`registry`]: finished runs' small files committed in `results/` (`promptdt results add`),
 //!   read by the report where a run directory is absent.
 //! - [`render`]: `RESULTS.md` and the README's headline block from the registry.
+//! - [`status`]: `--status`, where each run of a plan stands (finished, archived, part-way).
 //!
 //! The library prints nothing; progress goes through a callback.
 
@@ -23,6 +24,7 @@ pub mod plan;
 pub mod registry;
 pub mod render;
 pub mod report;
+pub mod status;
 pub mod task_blind;
 pub mod variant;
 pub mod variant_spec;
