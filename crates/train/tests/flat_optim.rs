@@ -340,40 +340,10 @@ fn a_second_flat_optimiser_on_the_same_variables_hands_them_back() {
     assert!(bitwise(&weights(&t.vs), &weights(&reference.vs)));
 }
 
-fn run_config(data: &Path, method: Method) -> TrainConfig {
-    let mut c: TrainConfig = toml::from_str(
-        r#"
-        [env]
-        name = "point_robot"
-        [sampler]
-        k = 4
-        batch_size_per_task = 1
-        [model]
-        hidden_size = 16
-        n_layer = 1
-        n_inner = 32
-        [optim]
-        learning_rate = 1e-3
-        warmup_steps = 3
-        flat = "on"
-        [train]
-        iterations = 6
-        steps_per_iteration = 2
-        test_eval_interval = 2
-        train_eval_interval = 5
-        save_interval = 2
-        [eval]
-        episodes = 2
-        finetune_steps = 2
-        finetune_batch = 4
-        [run]
-        threads = 1
-        device = "cpu"
-        "#,
-    )
-    .unwrap();
-    c.data.dir = data.to_path_buf();
-    c.run.method = method;
+/// The tiny run of `support/runs.rs` on the flat optimiser.
+fn flat_config(data: &Path, method: Method) -> TrainConfig {
+    let mut c = runs::tiny_config(data, method);
+    c.optim.flat = FlatOptim::On;
     c
 }
 
@@ -385,7 +355,7 @@ fn flat_runs_resume_exactly_and_resume_on_the_per_tensor_optimiser() {
     let _turn = rng_lock();
     let (tmp, data) = runs::tiny_data();
     for method in [Method::PromptDt, Method::MtBcFinetune] {
-        let cfg = run_config(&data, method);
+        let cfg = flat_config(&data, method);
         let dir = |n: &str| tmp.path().join(format!("{n}-{method:?}"));
         let (full, cut, cross) = (dir("full"), dir("cut"), dir("cross"));
         assert!(runs::run(Some(cfg.clone()), &full, false, None).unwrap().finished);

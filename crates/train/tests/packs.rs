@@ -17,36 +17,12 @@ use std::path::Path;
 /// A tiny point-robot run: 50 iterations of one gradient step each, so `metrics.jsonl` logs the
 /// loss of every one of its first 50 steps.
 fn config(data: &Path, method: Method, seed: u64) -> TrainConfig {
-    let mut c: TrainConfig = toml::from_str(
-        r#"
-        [env]
-        name = "point_robot"
-        [sampler]
-        k = 4
-        batch_size_per_task = 1
-        [model]
-        hidden_size = 16
-        n_layer = 1
-        n_inner = 32
-        [optim]
-        learning_rate = 1e-3
-        warmup_steps = 3
-        [train]
-        iterations = 50
-        steps_per_iteration = 1
-        test_eval_interval = 25
-        train_eval_interval = 0
-        save_interval = 25
-        [eval]
-        episodes = 2
-        [run]
-        threads = 1
-        device = "cpu"
-        "#,
-    )
-    .unwrap();
-    c.data.dir = data.to_path_buf();
-    c.run.method = method;
+    let mut c = runs::tiny_config(data, method);
+    c.train.iterations = 50;
+    c.train.steps_per_iteration = 1;
+    c.train.test_eval_interval = 25;
+    c.train.train_eval_interval = 0;
+    c.train.save_interval = 25;
     c.run.seed = seed;
     c
 }

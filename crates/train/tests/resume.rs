@@ -14,42 +14,6 @@ fn run(cfg: Option<TrainConfig>, dir: &Path, resume: bool, stop: Option<u64>) ->
     runs::run(cfg, dir, resume, stop).unwrap()
 }
 
-fn config(data: &Path, method: Method) -> TrainConfig {
-    let mut c: TrainConfig = toml::from_str(
-        r#"
-        [env]
-        name = "point_robot"
-        [sampler]
-        k = 4
-        batch_size_per_task = 1
-        [model]
-        hidden_size = 16
-        n_layer = 1
-        n_inner = 32
-        [optim]
-        learning_rate = 1e-3
-        warmup_steps = 3
-        [train]
-        iterations = 6
-        steps_per_iteration = 2
-        test_eval_interval = 2
-        train_eval_interval = 5
-        save_interval = 2
-        [eval]
-        episodes = 2
-        finetune_steps = 2
-        finetune_batch = 4
-        [run]
-        threads = 1
-        device = "cpu"
-        "#,
-    )
-    .unwrap();
-    c.data.dir = data.to_path_buf();
-    c.run.method = method;
-    c
-}
-
 #[test]
 fn killed_and_resumed_run_equals_uninterrupted_run() {
     let (tmp, data) = tiny_data();
@@ -58,10 +22,10 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
             tmp.path().join(format!("full-{method:?}")),
             tmp.path().join(format!("cut-{method:?}")),
         );
-        assert!(run(Some(config(&data, method)), &full, false, None).finished);
+        assert!(run(Some(runs::tiny_config(&data, method)), &full, false, None).finished);
         // Interrupted after iteration 3: the last checkpoint is iteration 2, and iteration 3's
         // metrics line (written after the checkpoint) must be discarded on resume.
-        let stopped = run(Some(config(&data, method)), &cut, false, Some(3));
+        let stopped = run(Some(runs::tiny_config(&data, method)), &cut, false, Some(3));
         assert!(!stopped.finished);
         assert_eq!(lines(&cut.join("metrics.jsonl")).len(), 3);
         let resumed = run(None, &cut, true, None);
@@ -100,7 +64,7 @@ fn killed_and_resumed_run_equals_uninterrupted_run() {
 #[test]
 fn starting_over_an_existing_run_is_refused() {
     let (tmp, data) = tiny_data();
-    let mut cfg = config(&data, Method::MtOrl);
+    let mut cfg = runs::tiny_config(&data, Method::MtOrl);
     cfg.train.iterations = 2;
     let dir = tmp.path().join("run");
     run(Some(cfg.clone()), &dir, false, None);
@@ -126,7 +90,7 @@ fn starting_over_an_existing_run_is_refused() {
 #[test]
 fn resume_points_between_checkpoints_lose_nothing_and_leave_no_files() {
     let (tmp, data) = tiny_data();
-    let mut plain = config(&data, Method::PromptDt);
+    let mut plain = runs::tiny_config(&data, Method::PromptDt);
     plain.train.save_interval = 3;
     let mut frequent = plain.clone();
     frequent.train.resume_interval = 1;
@@ -162,7 +126,7 @@ fn resume_points_between_checkpoints_lose_nothing_and_leave_no_files() {
 #[test]
 fn interrupted_run_writes_nothing_more_and_resumes_to_the_same_run() {
     let (tmp, data) = tiny_data();
-    let mut cfg = config(&data, Method::PromptDt);
+    let mut cfg = runs::tiny_config(&data, Method::PromptDt);
     cfg.train.resume_interval = 1;
     let (full, cut) = (tmp.path().join("full"), tmp.path().join("cut"));
     assert!(run(Some(cfg.clone()), &full, false, None).finished);
