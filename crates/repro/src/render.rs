@@ -189,9 +189,14 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
                 "above the paper"
             };
             let at = c.iteration.map_or(String::new(), |i| format!(" at iteration {i}"));
+            // Below the paper: whether the run was still improving when its budget ended.
+            let trend = match gap < -10.0 {
+                true => trend(&c.curve).map_or(String::new(), |t| format!("; {t}")),
+                false => String::new(),
+            };
             let _ = writeln!(
                 s,
-                "  - {how}: {} `{}`, {:.1} vs the paper's {p:.1}{at} ({} seed{})",
+                "  - {how}: {} `{}`, {:.1} vs the paper's {p:.1}{at} ({} seed{}){trend}",
                 c.label,
                 c.id,
                 o.mean,
@@ -218,6 +223,26 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
          not archived are in this file's and README.md's git history."
     );
     Ok(Rendered { results_md: s, readme_block: headline(&sections) })
+}
+
+/// The last three evaluations of a cell's curve (mean test return over seeds) and which way they
+/// go: a cell below the paper that is still rising when its budget ends was cut short, one that
+/// is flat or falling was not.
+fn trend(curve: &[(u64, f64, f64)]) -> Option<String> {
+    let last = &curve[curve.len().saturating_sub(3)..];
+    if last.len() < 2 {
+        return None;
+    }
+    let steps: Vec<f64> = last.windows(2).map(|w| w[1].1 - w[0].1).collect();
+    let way = if steps.iter().all(|d| *d > 0.0) {
+        "still rising when the budget ends"
+    } else if steps.iter().all(|d| *d < 0.0) {
+        "falling"
+    } else {
+        "neither rising nor falling"
+    };
+    let points: Vec<String> = last.iter().map(|(i, m, _)| format!("{m:.1} at {i}")).collect();
+    Some(format!("mean test return over its last evaluations {}: {way}", points.join(", ")))
 }
 
 /// The README's few headline numbers: Figure 2's archived cells, normalised.
@@ -287,4 +312,25 @@ pub fn write(o: &RenderOptions) -> Result<Vec<PathBuf>, ReproError> {
         files.push(readme.clone());
     }
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::trend;
+
+    #[test]
+    fn trend_names_the_way_the_last_three_evaluations_go() {
+        let c = |v: &[f64]| -> Vec<(u64, f64, f64)> {
+            v.iter().enumerate().map(|(i, m)| (100 * i as u64 + 1, *m, 0.0)).collect()
+        };
+        assert_eq!(trend(&c(&[1.0])), None);
+        let rising = trend(&c(&[0.0, -9.0, -5.0, -1.0])).unwrap();
+        assert_eq!(
+            rising,
+            "mean test return over its last evaluations -9.0 at 101, -5.0 at 201, -1.0 at 301: \
+             still rising when the budget ends"
+        );
+        assert!(trend(&c(&[3.0, 2.0, 1.0])).unwrap().ends_with(": falling"));
+        assert!(trend(&c(&[1.0, 3.0, 2.0])).unwrap().ends_with("neither rising nor falling"));
+    }
 }
