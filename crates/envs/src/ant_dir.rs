@@ -181,14 +181,6 @@ impl MujocoTask for AntDirTask {
     }
 }
 
-fn check_task(task: usize) -> Result<(), EnvError> {
-    if task < NUM_TASKS {
-        Ok(())
-    } else {
-        Err(EnvError::UnknownTask { env: ENV_NAME.into(), task, n: NUM_TASKS })
-    }
-}
-
 /// The 50-task Ant-Dir family. `default()` uses [`ContactCost::Reference`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct AntDirFamily {
@@ -202,7 +194,7 @@ impl AntDirFamily {
 
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
-        check_task(task)?;
+        EnvError::check_task(ENV_NAME, task, NUM_TASKS)?;
         MujocoEnv::new(Box::new(AntDirTask { goal: GOALS[task], contact_cost: self.contact_cost }))
     }
 }
@@ -244,16 +236,12 @@ impl EnvFamily for AntDirFamily {
             }
             "ood" => Ok((OOD_TRAIN_TASKS.to_vec(), OOD_TEST_TASKS.to_vec())),
             "ood-paper" => Ok(ood_paper_split()),
-            other => Err(EnvError::UnknownSplit {
-                env: ENV_NAME.into(),
-                split: other.into(),
-                known: SPLIT_NAMES.join(", "),
-            }),
+            other => Err(EnvError::unknown_split(ENV_NAME, other, &SPLIT_NAMES)),
         }
     }
 
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
-        check_task(task)?;
+        EnvError::check_task(ENV_NAME, task, NUM_TASKS)?;
         let contact = match self.contact_cost {
             ContactCost::Reference => "reference",
             ContactCost::Computed => "computed",

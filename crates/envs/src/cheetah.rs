@@ -147,18 +147,6 @@ pub fn root_x_from_obs(obs: &[f32], first: bool) -> f64 {
     }
 }
 
-fn check_task(env: &str, task: usize, n: usize) -> Result<(), EnvError> {
-    if task < n {
-        Ok(())
-    } else {
-        Err(EnvError::UnknownTask { env: env.into(), task, n })
-    }
-}
-
-fn unknown_split(env: &str, split: &str) -> EnvError {
-    EnvError::UnknownSplit { env: env.into(), split: split.into(), known: "default".into() }
-}
-
 /// HalfCheetah-Dir: 2 tasks (forward, backward). Build it with `default()`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct CheetahDirFamily {
@@ -168,7 +156,7 @@ pub struct CheetahDirFamily {
 impl CheetahDirFamily {
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
-        check_task(DIR_ENV_NAME, task, DIRECTIONS.len())?;
+        EnvError::check_task(DIR_ENV_NAME, task, DIRECTIONS.len())?;
         MujocoEnv::new(Box::new(CheetahDirTask { direction: DIRECTIONS[task] }))
     }
 }
@@ -203,12 +191,12 @@ impl EnvFamily for CheetahDirFamily {
     fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
         match name {
             "default" => Ok((vec![0, 1], vec![0, 1])),
-            other => Err(unknown_split(DIR_ENV_NAME, other)),
+            other => Err(EnvError::unknown_split(DIR_ENV_NAME, other, &["default"])),
         }
     }
 
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
-        check_task(DIR_ENV_NAME, task, DIRECTIONS.len())?;
+        EnvError::check_task(DIR_ENV_NAME, task, DIRECTIONS.len())?;
         Ok(serde_json::json!({ "direction": DIRECTIONS[task] }))
     }
 
@@ -256,7 +244,7 @@ pub struct CheetahVelFamily {
 impl CheetahVelFamily {
     /// The environment of `task`, as a concrete type (for state access and replay).
     pub fn make_env(&self, task: usize) -> Result<MujocoEnv, EnvError> {
-        check_task(VEL_ENV_NAME, task, NUM_VEL_TASKS)?;
+        EnvError::check_task(VEL_ENV_NAME, task, NUM_VEL_TASKS)?;
         MujocoEnv::new(Box::new(CheetahVelTask { velocity: VELOCITIES[task] }))
     }
 }
@@ -294,12 +282,12 @@ impl EnvFamily for CheetahVelFamily {
                 let train = (0..NUM_VEL_TASKS).filter(|t| !test.contains(t)).collect();
                 Ok((train, test))
             }
-            other => Err(unknown_split(VEL_ENV_NAME, other)),
+            other => Err(EnvError::unknown_split(VEL_ENV_NAME, other, &["default"])),
         }
     }
 
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
-        check_task(VEL_ENV_NAME, task, NUM_VEL_TASKS)?;
+        EnvError::check_task(VEL_ENV_NAME, task, NUM_VEL_TASKS)?;
         Ok(serde_json::json!({ "velocity": VELOCITIES[task] }))
     }
 

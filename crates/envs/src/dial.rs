@@ -510,18 +510,12 @@ impl EnvFamily for DialFamily {
     fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
         match name {
             "default" => Ok((TRAIN_TASKS.to_vec(), TEST_TASKS.to_vec())),
-            other => Err(EnvError::UnknownSplit {
-                env: ENV_NAME.into(),
-                split: other.into(),
-                known: "default".into(),
-            }),
+            other => Err(EnvError::unknown_split(ENV_NAME, other, &["default"])),
         }
     }
 
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
-        if task >= NUM_TASKS {
-            return Err(EnvError::UnknownTask { env: ENV_NAME.into(), task, n: NUM_TASKS });
-        }
+        EnvError::check_task(ENV_NAME, task, NUM_TASKS)?;
         let t = targets()?;
         Ok(serde_json::json!({ "digit": task, "press_xyz": t.press_xyz[task] }))
     }

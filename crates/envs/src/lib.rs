@@ -86,6 +86,21 @@ pub enum EnvError {
     ReplayInit { message: String },
 }
 
+impl EnvError {
+    /// `Ok` for a task index of a family of `n` tasks, else [`EnvError::UnknownTask`].
+    pub fn check_task(env: &str, task: usize, n: usize) -> Result<(), EnvError> {
+        match task < n {
+            true => Ok(()),
+            false => Err(EnvError::UnknownTask { env: env.into(), task, n }),
+        }
+    }
+
+    /// [`EnvError::UnknownSplit`] for `split` of `env`, naming its `known` splits.
+    pub fn unknown_split(env: &str, split: &str, known: &[&str]) -> EnvError {
+        EnvError::UnknownSplit { env: env.into(), split: split.into(), known: known.join(", ") }
+    }
+}
+
 /// One task instance of an environment family.
 ///
 /// `reset` draws any start-state noise from an RNG seeded by `seed`, so an episode is fully

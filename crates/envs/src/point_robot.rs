@@ -43,7 +43,7 @@ pub const SPLIT_NAMES: [&str; 2] = ["default", "ood"];
 /// Computed like numpy's `linspace` (`start + i * step`, last point exactly `stop`) so the goals
 /// match a Python re-implementation bit for bit in f64.
 pub fn goal_angle(task: usize) -> Result<f64, EnvError> {
-    check_task(task)?;
+    EnvError::check_task(ENV_NAME, task, NUM_TASKS)?;
     if task == NUM_TASKS - 1 {
         return Ok(std::f64::consts::PI);
     }
@@ -62,14 +62,6 @@ pub fn goal_f64(task: usize) -> Result<[f64; 2], EnvError> {
 pub fn goal(task: usize) -> Result<[f32; 2], EnvError> {
     let [x, y] = goal_f64(task)?;
     Ok([x as f32, y as f32])
-}
-
-fn check_task(task: usize) -> Result<(), EnvError> {
-    if task < NUM_TASKS {
-        Ok(())
-    } else {
-        Err(EnvError::UnknownTask { env: ENV_NAME.into(), task, n: NUM_TASKS })
-    }
 }
 
 /// Reward at position `pos` for goal `goal`: minus the Euclidean distance.
@@ -234,11 +226,7 @@ impl EnvFamily for PointRobotFamily {
     }
 
     fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
-        Self::split_tasks(name).ok_or_else(|| EnvError::UnknownSplit {
-            env: ENV_NAME.into(),
-            split: name.to_owned(),
-            known: SPLIT_NAMES.join(", "),
-        })
+        Self::split_tasks(name).ok_or_else(|| EnvError::unknown_split(ENV_NAME, name, &SPLIT_NAMES))
     }
 
     /// `{"goal": [x, y], "angle": a}` in f64 (the environment rounds the goal to f32).

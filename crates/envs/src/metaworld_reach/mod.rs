@@ -609,11 +609,7 @@ impl EnvFamily for MetaWorldReachFamily {
     fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
         match name {
             "default" => Ok((TRAIN_TASKS.to_vec(), TEST_TASKS.to_vec())),
-            other => Err(EnvError::UnknownSplit {
-                env: ENV_NAME.into(),
-                split: other.into(),
-                known: "default".into(),
-            }),
+            other => Err(EnvError::unknown_split(ENV_NAME, other, &["default"])),
         }
     }
 
