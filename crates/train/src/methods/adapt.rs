@@ -8,19 +8,19 @@
 //! do), so an adapted evaluation meets the same start states as Prompt-DT. The adaptation draws
 //! from its own generator, seeded from the same evaluation stream after the plans.
 
+use super::planned::{eval_task, plan_tasks, strategy_sampler, summarise_plans};
 use crate::error::RunError;
 use crate::setup::Setup;
-use pdt_data::{MultiTaskDataset, TaskData};
+use pdt_data::MultiTaskDataset;
 use pdt_eval::adapt::{AdaptConfig, AdaptKind, AdaptLog, PromptScore};
 use pdt_eval::{
-    evaluate, evaluate_given, summarise, EpisodeRecord, EvalError, EvalSettings, EvalTask,
-    GivenPrompts, TaskResult,
+    evaluate, evaluate_given, EpisodeRecord, EvalError, EvalSettings, EvalTask, GivenPrompts,
+    TaskResult,
 };
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_policy::adapt::{adapt_task, check_adaptable, start_prompt, AdaptTask};
-use pdt_policy::{plan_task, Adapted, TaskPlan};
-use pdt_prompt::strategy::check_fits;
-use pdt_prompt::{BatchSampler, PromptStrategy, Rng, SegmentBatch};
+use pdt_policy::{Adapted, TaskPlan};
+use pdt_prompt::{PromptStrategy, Rng, SegmentBatch};
 use rand::{RngCore, SeedableRng};
 
 /// An adapted evaluation's per-task results and what each adaptation did.
@@ -41,28 +41,14 @@ pub(crate) fn evaluate_adapted(
 ) -> Result<AdaptedEval, RunError> {
     let method = setup.cfg.run.method;
     check_adaptable(method, strategy, cfg)?;
-    let episodes = setup.cfg.eval.episodes;
-    let reference = setup.sampler(data)?;
-    let plans: Vec<TaskPlan> = (0..data.tasks.len())
-        .map(|i| plan_task(method, &reference, data, i, episodes, rng))
-        .collect();
+    let plans = plan_tasks(setup, data, rng)?;
     let mut arng = Rng::seed_from_u64(rng.next_u64());
     // The probe batches (loss before/after) come from a generator of their own, so they are the
     // same whichever adaptation runs: the logs of two adaptations compare task by task.
     let probe_seed = rng.next_u64();
-    let rd = &setup.run_data;
-    let scfg = check_fits(strategy, &rd.sampler_cfg, rd.model_cfg.n_positions)?;
-    let tasks: Vec<&TaskData> = data.tasks.iter().collect();
-    let sampler = BatchSampler::new(scfg, &tasks, rd.norm.clone(), rd.model_cfg.n_positions)?;
+    let sampler = strategy_sampler(setup, data, strategy)?;
     let make = |plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>| {
-        let envs = seeds.iter().map(|_| setup.family.make(plan.index)).collect::<Result<_, _>>()?;
-        Ok::<_, RunError>(EvalTask {
-            name: plan.name.clone(),
-            index: plan.index,
-            envs,
-            seeds: seeds.to_vec(),
-            prompt,
-        })
+        eval_task(setup, plan, seeds, prompt)
     };
     let mut log = Vec::with_capacity(plans.len());
     let mut all: Vec<EpisodeRecord> = Vec::new();
@@ -115,15 +101,7 @@ pub(crate) fn evaluate_adapted(
         }
         _ => {}
     }
-    let results = plans
-        .iter()
-        .enumerate()
-        .map(|(k, p)| {
-            let mine: Vec<&EpisodeRecord> = all.iter().filter(|e| e.task_index == k).collect();
-            summarise(&p.name, p.index, &mine)
-        })
-        .collect();
-    Ok(AdaptedEval { results, log })
+    Ok(AdaptedEval { results: summarise_plans(&plans, &all), log })
 }
 
 /// Builds a task's evaluation from its plan, the episodes' seeds and its prompt.

@@ -9,6 +9,7 @@
 mod adapt;
 mod learner;
 pub(crate) mod macaw;
+mod planned;
 pub(crate) mod prompt_dt;
 mod prompt_strategy;
 

@@ -6,17 +6,17 @@
 //! evaluation stream after the plans. So a strategy and the reference rule meet the same start
 //! states, and their returns compare episode by episode.
 
+use super::planned::{eval_task, plan_tasks, strategy_sampler, summarise_plans};
 use crate::error::RunError;
 use crate::setup::Setup;
-use pdt_data::{MultiTaskDataset, TaskData};
+use pdt_data::MultiTaskDataset;
 use pdt_eval::{
-    evaluate, evaluate_with, summarise, EpisodePrompts, EpisodeRecord, EvalError, EvalSettings,
-    EvalTask, TaskResult,
+    evaluate, evaluate_with, EpisodePrompts, EpisodeRecord, EvalError, EvalSettings, EvalTask,
+    TaskResult,
 };
 use pdt_model::PromptDt;
-use pdt_policy::{plan_task, TaskPlan};
+use pdt_policy::TaskPlan;
 use pdt_prompt::bandit::SegmentBandit;
-use pdt_prompt::strategy::check_fits;
 use pdt_prompt::{
     BatchSampler, PromptPick, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch, SegmentChoice,
 };
@@ -46,37 +46,14 @@ pub(crate) fn evaluate_strategy(
             method.name()
         )));
     }
-    let episodes = setup.cfg.eval.episodes;
-    let reference = setup.sampler(data)?;
-    let plans: Vec<TaskPlan> = (0..data.tasks.len())
-        .map(|i| plan_task(method, &reference, data, i, episodes, rng))
-        .collect();
+    let plans = plan_tasks(setup, data, rng)?;
     let mut srng = Rng::seed_from_u64(rng.next_u64());
-    let rd = &setup.run_data;
-    let cfg = check_fits(strategy, &rd.sampler_cfg, rd.model_cfg.n_positions)?;
-    let tasks: Vec<&TaskData> = data.tasks.iter().collect();
-    let sampler = BatchSampler::new(cfg, &tasks, rd.norm.clone(), rd.model_cfg.n_positions)?;
+    let sampler = strategy_sampler(setup, data, strategy)?;
     let stride = strategy.stride_for(sampler.config().prompt_length);
     let envs_of = |plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>| {
-        let envs = seeds.iter().map(|_| setup.family.make(plan.index)).collect::<Result<_, _>>()?;
-        Ok::<_, RunError>(EvalTask {
-            name: plan.name.clone(),
-            index: plan.index,
-            envs,
-            seeds: seeds.to_vec(),
-            prompt,
-        })
+        eval_task(setup, plan, seeds, prompt)
     };
-    let summarise_all = |eps: &[EpisodeRecord]| -> Vec<TaskResult> {
-        plans
-            .iter()
-            .enumerate()
-            .map(|(k, p)| {
-                let mine: Vec<&EpisodeRecord> = eps.iter().filter(|e| e.task_index == k).collect();
-                summarise(&p.name, p.index, &mine)
-            })
-            .collect()
-    };
+    let summarise_all = |eps: &[EpisodeRecord]| summarise_plans(&plans, eps);
     match strategy.strategy {
         PromptStrategyKind::Reference
         | PromptStrategyKind::RandomSegment
