@@ -695,8 +695,12 @@ fn print_status(p: &pdt_repro::plan::Plan, a: &ReproduceArgs, name: &str) -> Res
     let runs = status::runs(p, &a.registry);
     out!("{}", status::table(&runs).trim_end());
     let t = status::Tally::of(&runs);
+    let problems = match t.problems {
+        0 => String::new(),
+        n => format!(", {n} cannot be resumed as they are"),
+    };
     out!(
-        "{} runs of {} at the {} budget: {} done ({} archived in {}), {} part-way, {} not started{}",
+        "{} runs of {} at the {} budget: {} done ({} archived in {}), {} part-way, {} not started{problems}",
         t.runs,
         p.experiment,
         p.budget,
@@ -705,7 +709,6 @@ fn print_status(p: &pdt_repro::plan::Plan, a: &ReproduceArgs, name: &str) -> Res
         a.registry.display(),
         t.partial,
         t.not_started,
-        if t.problems > 0 { format!(", {} cannot be resumed as they are", t.problems) } else { String::new() }
     );
     if t.partial + t.not_started + t.problems > 0 {
         // The same command without --status: it resumes the part-way runs and starts the rest.
