@@ -39,6 +39,18 @@ const PROVENANCE: [&str; 10] = [
     "2",
 ];
 
+/// `promptdt results add DIRS...` of manifest `m`'s smoke budget into `reg`, with the datasets'
+/// cards under `data` and the fixed provenance.
+fn add_args(m: &Path, reg: &Path, data: &Path, dirs: &[&Path]) -> Vec<String> {
+    let mut a: Vec<String> = vec!["results".into(), "add".into()];
+    a.extend(dirs.iter().map(|d| s(d).to_string()));
+    for x in ["--exp", s(m), "--budget", "smoke", "--registry", s(reg), "--data-root", s(data)] {
+        a.push(x.into());
+    }
+    a.extend(PROVENANCE.iter().map(|x| x.to_string()));
+    a
+}
+
 #[test]
 fn archived_runs_report_from_an_empty_directory_and_bad_runs_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
@@ -52,14 +64,7 @@ fn archived_runs_report_from_an_empty_directory_and_bad_runs_are_refused() {
     let runs = tree.join("runs");
     let data = tree.join("data");
     let add = |dirs: &[&Path]| {
-        let mut a: Vec<String> = vec!["results".into(), "add".into()];
-        a.extend(dirs.iter().map(|d| s(d).to_string()));
-        for x in
-            ["--exp", s(&m), "--budget", "smoke", "--registry", s(&reg), "--data-root", s(&data)]
-        {
-            a.push(x.into());
-        }
-        a.extend(PROVENANCE.iter().map(|x| x.to_string()));
+        let a = add_args(&m, &reg, &data, dirs);
         let out = promptdt_in(root, &a);
         (a, out)
     };
@@ -139,15 +144,9 @@ fn report_only_counts_the_planned_seeds_not_only_the_archived_ones() {
     check_ok(&run, promptdt_in(root, &run));
     let reg = root.join("reg");
     let runs = tree.join("runs");
-    let mut add: Vec<String> = ["results", "add"].map(String::from).to_vec();
-    for d in ["point_robot/prompt-dt/smoke/seed0", "point_robot/mt-orl/smoke/seed0"] {
-        add.push(s(&runs.join(d)).to_string());
-    }
-    let data = tree.join("data");
-    for x in ["--exp", s(&m), "--budget", "smoke", "--registry", s(&reg), "--data-root", s(&data)] {
-        add.push(x.into());
-    }
-    add.extend(PROVENANCE.iter().map(|x| x.to_string()));
+    let dirs = ["point_robot/prompt-dt/smoke/seed0", "point_robot/mt-orl/smoke/seed0"]
+        .map(|d| runs.join(d));
+    let add = add_args(&m, &reg, &tree.join("data"), &[&dirs[0], &dirs[1]]);
     check_ok(&add, promptdt_in(root, &add));
 
     let empty = root.join("empty");
