@@ -331,11 +331,7 @@ pub fn plan_with_archive(
     registry: &Path,
 ) -> Result<(Plan, Vec<String>), ReproError> {
     let mut p = plan::plan(m, opts)?;
-    let max_archived = keys(registry)
-        .iter()
-        .filter(|k| k.contains(&format!("/{}/seed", opts.budget)))
-        .filter_map(|k| k.rsplit_once("/seed").and_then(|(_, s)| s.parse::<u32>().ok()))
-        .max();
+    let max_archived = max_seed(&keys(registry), &opts.budget);
     if let (None, Some(max)) = (opts.seeds, max_archived) {
         let planned: std::collections::BTreeSet<String> =
             p.runs.iter().map(|r| r.key.clone()).collect();
@@ -352,6 +348,15 @@ pub fn plan_with_archive(
     }
     let used = use_archived(&mut p, registry);
     Ok((p, used))
+}
+
+/// The highest seed among `keys` (`<cell id>/<budget>/seed<N>`) at `budget`.
+pub fn max_seed<'a>(keys: impl IntoIterator<Item = &'a String>, budget: &str) -> Option<u32> {
+    let at = format!("/{budget}/seed");
+    keys.into_iter()
+        .filter(|k| k.contains(&at))
+        .filter_map(|k| k.rsplit_once("/seed").and_then(|(_, s)| s.parse::<u32>().ok()))
+        .max()
 }
 
 /// Every archived run's key (`<cell id>/<budget>/seed<N>`) under `registry`, sorted.

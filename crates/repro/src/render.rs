@@ -53,12 +53,7 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
                 seeds: None,
             };
             // Every archived seed, however many the budget plans: the registry's runs only.
-            let max_seed = archived
-                .iter()
-                .filter(|k| k.contains(&format!("/{b}/seed")))
-                .filter_map(|k| k.rsplit_once("/seed").and_then(|(_, s)| s.parse::<u32>().ok()))
-                .max();
-            let Some(max_seed) = max_seed else { continue };
+            let Some(max_seed) = registry::max_seed(&archived, b) else { continue };
             let mut p = plan::plan(&m, &PlanOptions { seeds: Some(max_seed + 1), ..opts })?;
             p.runs.retain(|r| archived.contains(&r.key));
             let used = registry::use_archived(&mut p, registry);
