@@ -57,16 +57,6 @@ pub fn parse_case(name: &str) -> Option<PackCase> {
 const K: usize = 20;
 const PROMPT: usize = 5;
 
-fn shallow(s: &Segments) -> Segments {
-    Segments {
-        states: s.states.shallow_clone(),
-        actions: s.actions.shallow_clone(),
-        returns_to_go: s.returns_to_go.shallow_clone(),
-        timesteps: s.timesteps.shallow_clone(),
-        mask: s.mask.shallow_clone(),
-    }
-}
-
 /// Milliseconds per iteration (one step of every run), `iters` timed after `warmup`.
 pub fn time_pack(
     case: PackCase,
@@ -86,8 +76,8 @@ pub fn time_pack(
         })
         .collect();
     let batch_of = |i: usize| DeviceBatch {
-        history: shallow(&batches[i].0),
-        prompt: Some(shallow(&batches[i].1)),
+        history: batches[i].0.shallow_clone(),
+        prompt: Some(batches[i].1.shallow_clone()),
     };
     let sync = || {
         if let Device::Cuda(i) = device {

@@ -96,6 +96,17 @@ impl Segments {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+
+    /// A second handle on the same tensors (nothing writes to a batch once it is built).
+    pub fn shallow_clone(&self) -> Self {
+        Self {
+            states: self.states.shallow_clone(),
+            actions: self.actions.shallow_clone(),
+            returns_to_go: self.returns_to_go.shallow_clone(),
+            timesteps: self.timesteps.shallow_clone(),
+            mask: self.mask.shallow_clone(),
+        }
+    }
 }
 
 /// Embedding layers of one branch (history, or prompt with the `prompt_` prefix).

@@ -30,6 +30,14 @@ pub struct DeviceBatch {
 }
 
 impl DeviceBatch {
+    /// A second handle on the same tensors.
+    pub fn shallow_clone(&self) -> Self {
+        Self {
+            history: self.history.shallow_clone(),
+            prompt: self.prompt.as_ref().map(Segments::shallow_clone),
+        }
+    }
+
     /// `use_prompt = false` drops the prompt (MT-ORL, MT-BC: the reference's `--no-prompt`).
     pub fn new(batch: &PromptDtBatch, use_prompt: bool, device: Device) -> Self {
         Self {

@@ -452,6 +452,13 @@ impl PackedPromptDt {
         actions.view([n, b, batch.p + batch.k, -1])
     }
 
+    /// Every run's action at the last history step of each sample, in eval mode (no dropout, no
+    /// gradient): `[N, B, da]`.
+    pub fn act_all(&self, batch: &PackedBatch) -> Tensor {
+        let preds = tch::no_grad(|| self.forward_all_steps(batch, None)); // [N, B, P+K, da]
+        preds.select(2, batch.p + batch.k - 1)
+    }
+
     /// The masked action MSE of each run (`PromptDt::action_loss` per run): `[N]`. Padded steps
     /// are selected out (`where`), so a non-finite prediction there cannot reach the loss.
     ///

@@ -15,7 +15,9 @@ use crate::setup::{Setup, Split};
 use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
-use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
+use pdt_eval::{
+    evaluate, evaluate_through, summarise, ActRows, EvalSettings, EvalTask, TaskResult,
+};
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
@@ -139,6 +141,32 @@ impl PromptDtLearner<'_> {
         Ok(())
     }
 
+    /// Whether an evaluation of `split` is the plain one (each task's reference prompt, the
+    /// learner's weights as they are), whose forwards another model may compute
+    /// ([`Self::evaluate_through`]): not with a prompt strategy, an adaptation of the test tasks,
+    /// or MT-BC-Finetune's fine-tuning before each test task.
+    pub(crate) fn evaluates_plainly(&self, split: Split) -> bool {
+        let e = &self.setup.cfg.eval;
+        let adapts = !e.adapt.is_none() && split == Split::Test;
+        let tunes = self.variant.finetune && split == Split::Test;
+        e.prompt.is_default() && !adapts && !tunes
+    }
+
+    /// [`Learner::evaluate`] with the plain evaluation's forwards computed by `actor` (a pack's
+    /// batched model) instead of the learner's model; any other evaluation
+    /// ([`Self::evaluates_plainly`]) is the learner's own.
+    pub(crate) fn evaluate_through(
+        &mut self,
+        split: Split,
+        rng: &mut Rng,
+        actor: &dyn ActRows,
+    ) -> Result<Vec<TaskEval>, RunError> {
+        self.picks.clear();
+        self.adapt_log.clear();
+        let results = eval_tasks(self, split, rng, Some(actor))?;
+        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+    }
+
     /// Leaves libtorch's generator where the solo run's gradient step `step` on `batch` leaves
     /// it: re-seeded, then the step's dropout masks drawn again by the same forward pass in
     /// training mode (its result dropped). The masks' draws depend on the shapes alone, not on
@@ -211,7 +239,7 @@ impl Learner for PromptDtLearner<'_> {
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
         self.picks.clear();
         self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng)?;
+        let results = eval_tasks(self, split, rng, None)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
 
@@ -279,12 +307,15 @@ impl Learner for PromptDtLearner<'_> {
 }
 
 /// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
-/// `variant.finetune`, each test task after fine-tuning a copy of the weights on its data.
+/// `variant.finetune`, each test task after fine-tuning a copy of the weights on its data. The
+/// plain evaluation's forwards are `actor`'s when given (`PromptDtLearner::evaluate_through`).
 fn eval_tasks(
     learner: &mut PromptDtLearner<'_>,
     split: Split,
     rng: &mut Rng,
+    actor: Option<&dyn ActRows>,
 ) -> Result<Vec<TaskResult>, RunError> {
+    let actor = actor.filter(|_| learner.evaluates_plainly(split));
     let setup = learner.setup;
     let data = setup.data(split);
     let sampler = setup.sampler(data)?;
@@ -352,7 +383,10 @@ fn eval_tasks(
     // The reference fine-tunes before test-task evaluations only; training tasks are evaluated as is.
     if !learner.variant.finetune || split == Split::Train {
         let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
-        let eps = evaluate(&learner.model, tasks, &settings)?;
+        let eps = match actor {
+            Some(actor) => evaluate_through(&learner.model, tasks, &settings, actor)?,
+            None => evaluate(&learner.model, tasks, &settings)?,
+        };
         let positions: Vec<usize> = (0..data.tasks.len()).collect();
         return Ok(summarise_all(&positions, &eps));
     }

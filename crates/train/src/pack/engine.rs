@@ -14,7 +14,7 @@
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, ParamState};
 use crate::step::{DeviceBatch, LossOn, StepStats};
-use pdt_model::PromptDtConfig;
+use pdt_model::{PromptDtConfig, Segments};
 use std::collections::BTreeMap;
 use tch::Tensor;
 
@@ -40,6 +40,18 @@ pub struct SlotStep {
     pub step: u64,
     /// The run's sampled batch on the pack's device (its prompt `None` when the run uses none).
     pub batch: DeviceBatch,
+}
+
+/// One run's forward in an evaluation (`pdt_eval::ActRows`): its running episodes' histories
+/// `[A, K]` and their tasks' prompts `[A, J*H]` (`None` for a run without prompts), computed padded
+/// to `rows` samples. `rows` is fixed for the pack and the evaluation's split
+/// (the hub's `ActShape`), never by which other runs act in the same call, so that a run's
+/// actions depend on its own inputs alone (a matrix product's kernel may depend on its sizes).
+#[derive(Debug)]
+pub struct SlotAct {
+    pub history: Segments,
+    pub prompt: Option<Segments>,
+    pub rows: i64,
 }
 
 /// One run's weights and optimiser state in the solo format: the reference `state_dict` names
@@ -116,5 +128,16 @@ pub trait PackEngine {
         Err(RunError::Invalid(format!(
             "pack engine: slot {slot}: this engine steps the runs of a pack together"
         )))
+    }
+    /// Whether the engine computes its runs' evaluation forwards together ([`Self::act`]); an
+    /// engine that does not leaves each run to evaluate with its own solo model.
+    fn acts_together(&self) -> bool {
+        false
+    }
+    /// The evaluation actions `[A, da]` of every slot given `Some` (eval mode: no dropout), the
+    /// last history step's of each row; `acts.len() == self.slots()`.
+    fn act(&mut self, acts: Vec<Option<SlotAct>>) -> Result<Vec<Option<Tensor>>, RunError> {
+        let _ = acts;
+        Err(RunError::Invalid("pack engine: this engine does not act for its runs".into()))
     }
 }

@@ -3,7 +3,7 @@
 //! [`PromptDtLearner`] holding a copy of the run's slot. So everything but the step (sampling,
 //! evaluation, MT-BC-Finetune's fine-tuning, checkpoint files, resume) is the solo code.
 
-use super::engine::SlotStep;
+use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;
 use crate::error::RunError;
 use crate::methods::prompt_dt::{checked, iteration_metrics, PromptDtLearner, Variant};
@@ -13,10 +13,48 @@ use crate::methods::{
 use crate::setup::{Setup, Split};
 use crate::step::DeviceBatch;
 use crate::streams::torch_rng_lock;
+use pdt_eval::{ActRows, EvalError};
 use pdt_model::Segments;
 use pdt_prompt::Rng;
 use std::cell::{Cell, RefCell};
 use std::path::Path;
+use tch::Tensor;
+
+/// The sample counts of a pack's evaluation forwards, one per split: the most episodes any run of
+/// the pack has running in one forward (its tasks x `eval.episodes`, at most `eval.max_batch`).
+/// Fixed for the pack, so that a run's actions never depend on which other runs act with it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct ActShape {
+    pub(crate) test_rows: i64,
+    pub(crate) train_rows: i64,
+}
+
+impl ActShape {
+    fn rows(self, split: Split) -> i64 {
+        match split {
+            Split::Test => self.test_rows,
+            Split::Train => self.train_rows,
+        }
+    }
+}
+
+/// A run's evaluation forwards, computed by the pack's engine with the other runs' ([`Hub::act`]).
+struct PackActor<'h> {
+    hub: &'h Hub,
+    slot: usize,
+    rows: i64,
+}
+
+impl ActRows for PackActor<'_> {
+    fn act_rows(&self, history: &Segments, prompt: Option<&Segments>) -> Result<Tensor, EvalError> {
+        let act = SlotAct {
+            history: history.shallow_clone(),
+            prompt: prompt.map(Segments::shallow_clone),
+            rows: self.rows,
+        };
+        self.hub.act(self.slot, act).map_err(|e| EvalError::Acting(e.to_string()))
+    }
+}
 
 /// A run of a pack (slot `slot` of `hub`'s engine).
 pub(crate) struct PackMember<'s> {
@@ -31,12 +69,19 @@ pub(crate) struct PackMember<'s> {
     /// MT-BC-Finetune: the last gradient step and its batch, to put libtorch's generator where
     /// the solo run leaves it before fine-tuning (`PromptDtLearner::redraw_step_dropout`).
     last_step: Option<(u64, DeviceBatch)>,
+    /// The engine's evaluation forwards' shape, when it acts for the pack's runs.
+    act: Option<ActShape>,
 }
 
 impl<'s> PackMember<'s> {
     /// The run's learner initialised from its seed, as a solo run's, and its weights given to the
     /// engine's slot.
-    pub(crate) fn new(setup: &'s Setup, slot: usize, hub: &'s Hub) -> Result<Self, RunError> {
+    pub(crate) fn new(
+        setup: &'s Setup,
+        slot: usize,
+        hub: &'s Hub,
+        act: Option<ActShape>,
+    ) -> Result<Self, RunError> {
         let variant = Variant::of(setup.cfg.run.method);
         let solo = {
             let _rng = torch_rng_lock();
@@ -44,7 +89,7 @@ impl<'s> PackMember<'s> {
         };
         hub.import(slot, solo.state())?;
         let (solo, synced) = (RefCell::new(solo), Cell::new(true));
-        Ok(Self { setup, slot, hub, solo, synced, last_step: None })
+        Ok(Self { setup, slot, hub, solo, synced, last_step: None, act })
     }
 
     /// The solo learner given the slot's current weights and optimiser state.
@@ -55,18 +100,6 @@ impl<'s> PackMember<'s> {
         }
         Ok(())
     }
-}
-
-/// A second handle on `b`'s tensors (nothing writes to a batch once it is built).
-fn alias(b: &DeviceBatch) -> DeviceBatch {
-    let seg = |s: &Segments| Segments {
-        states: s.states.shallow_clone(),
-        actions: s.actions.shallow_clone(),
-        returns_to_go: s.returns_to_go.shallow_clone(),
-        timesteps: s.timesteps.shallow_clone(),
-        mask: s.mask.shallow_clone(),
-    };
-    DeviceBatch { history: seg(&b.history), prompt: b.prompt.as_ref().map(seg) }
 }
 
 impl Learner for PackMember<'_> {
@@ -104,7 +137,7 @@ impl Learner for PackMember<'_> {
                 RunError::Invalid(format!("pack slot {slot}: no batch for step {step}"))
             })?;
             if finetune {
-                last = Some((step, alias(&batch)));
+                last = Some((step, batch.shallow_clone()));
             }
             hub.submit(slot, SlotStep { step, batch })?;
             if step + 1 < end {
@@ -121,6 +154,15 @@ impl Learner for PackMember<'_> {
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
         self.sync()?;
         let mut solo = self.solo.borrow_mut();
+        // The engine acts for the pack's runs (the batched one): the plain evaluation's forwards
+        // are computed with those of the other runs evaluating at the same time. (Not bit for
+        // bit the solo model's: the pack's weights are within its tolerance of the solo run's,
+        // and its forward is the full one, not `eval.inference = "cached"`.)
+        if let Some(shape) = self.act.filter(|_| solo.evaluates_plainly(split)) {
+            let _acting = self.hub.acting(self.slot);
+            let actor = PackActor { hub: self.hub, slot: self.slot, rows: shape.rows(split) };
+            return solo.evaluate_through(split, rng, &actor);
+        }
         if solo.variant().finetune && split == Split::Test {
             // Fine-tuning draws its dropout from libtorch's generator where the run's last step
             // left it: that state restored, and no other run's draw between it and the tuning.

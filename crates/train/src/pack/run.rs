@@ -5,7 +5,7 @@
 use super::batched::{BatchedEngine, PackLayout};
 use super::engine::{PackEngine, SlotSpec};
 use super::hub::Hub;
-use super::member::PackMember;
+use super::member::{ActShape, PackMember};
 use super::solo::{SoloEngine, SoloThreads};
 use crate::config::{Method, TrainConfig};
 use crate::error::RunError;
@@ -123,6 +123,8 @@ pub(crate) struct ReadyPack {
     /// workers: the first run's `run.threads`): one count for all, since a thread's first parallel
     /// op takes the process's count as its own.
     libtorch_threads: usize,
+    /// The shape of the engine's evaluation forwards, when it acts for the runs.
+    act: Option<ActShape>,
 }
 
 /// Everything [`train_pack`] checks and builds before it writes anything.
@@ -165,7 +167,32 @@ pub(crate) fn prepare_pack(
         let _rng = torch_rng_lock();
         make_engine(engine_kind, specs, layout, device, solo_threads)?
     };
-    Ok(ReadyPack { members, engine, engine_kind, libtorch_threads })
+    let act = act_shape(&members, &layout, engine.as_ref());
+    Ok(ReadyPack { members, engine, engine_kind, libtorch_threads, act })
+}
+
+/// The fixed shape of the engine's evaluation forwards ([`ActShape`]), when it acts for its runs
+/// and their histories are one length (the engine's inputs hold one history length).
+fn act_shape(
+    members: &[Member],
+    layout: &PackLayout,
+    engine: &(dyn PackEngine + Send),
+) -> Option<ActShape> {
+    let one_k = members.iter().all(|m| m.data.sampler_cfg.k == layout.history_len);
+    if !engine.acts_together() || !one_k {
+        return None;
+    }
+    let rows = |tasks: fn(&RunData) -> usize| {
+        let most = members.iter().map(|m| {
+            let e = &m.cfg.eval;
+            (tasks(&m.data) * e.episodes).min(e.max_batch).max(1)
+        });
+        most.max().unwrap_or(1) as i64
+    };
+    Some(ActShape {
+        test_rows: rows(|d| d.test_data.tasks.len()),
+        train_rows: rows(|d| d.train_data.tasks.len()),
+    })
 }
 
 /// Trains a prepared pack: each run's loop in its own thread, the gradient steps in the hub.
@@ -173,7 +200,7 @@ pub(crate) fn run_pack(
     ready: ReadyPack,
     opts: PackOptions<'_>,
 ) -> Vec<Result<TrainSummary, RunError>> {
-    let ReadyPack { members, engine, engine_kind, libtorch_threads } = ready;
+    let ReadyPack { members, engine, engine_kind, libtorch_threads, act } = ready;
     let libtorch_threads = i32::try_from(libtorch_threads).unwrap_or(i32::MAX);
     tch::set_num_threads(libtorch_threads);
     let hub = Hub::new(engine);
@@ -199,7 +226,7 @@ pub(crate) fn run_pack(
                         // A pack is the CLI's (`promptdt pack`), which Ctrl-C ends outright.
                         interrupt: Default::default(),
                     };
-                    train_member(m, slot, hub, opts, &info)
+                    train_member(m, slot, hub, act, opts, &info)
                 })
             })
             .collect();
@@ -219,6 +246,7 @@ fn train_member(
     m: Member,
     slot: usize,
     hub: &Hub,
+    act: Option<ActShape>,
     opts: TrainOptions<'_>,
     info: &PackInfo,
 ) -> Result<TrainSummary, RunError> {
@@ -227,7 +255,7 @@ fn train_member(
     let _leave = Leave { hub, slot };
     let toml = m.cfg.to_toml()?;
     let setup = Setup::with_data(m.cfg, m.data)?;
-    let mut learner = PackMember::new(&setup, slot, hub)?;
+    let mut learner = PackMember::new(&setup, slot, hub, act)?;
     learner.check_can_train()?;
     train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
 }
