@@ -5,6 +5,8 @@
 #   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
 #      pack `_pt`, one solo run's step with the flat optimiser);
+#   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
+#      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
 #      (4 methods x 3 seeds), one solo run, then the 12 runs as 12 processes at once; memory and
 #      utilisation sampled by nvidia-smi every 0.5 s;
@@ -48,6 +50,11 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
+if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-300} ]; then
+  log "C. a pack's evaluations, together vs each run alone"
+  timeout ${C_S:-120} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE=cuda RUNS=12 \
+    EPISODES=50 N=${C_N:-2} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
+fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done
 CELLS=${CELLS#,}

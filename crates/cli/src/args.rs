@@ -642,6 +642,11 @@ pub struct TrainArgs {
     /// on the CPU, batched on a GPU; a resumed pack keeps its engine.
     #[arg(long, value_parser = ["batched", "solo"])]
     pub engine: Option<String>,
+    /// How a pack's evaluations compute their forwards: `together` (one batched forward of the
+    /// batched engine for every run evaluating) or `apart` (each run's own model). Default:
+    /// together on a GPU with the batched engine, apart otherwise; a resumed pack keeps its own.
+    #[arg(long, value_parser = ["together", "apart"])]
+    pub pack_eval: Option<String>,
     /// Stop after this many iterations of this invocation, leaving a resumable run (to test
     /// interruption).
     #[arg(long, hide = true)]

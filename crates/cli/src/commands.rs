@@ -83,8 +83,8 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 pub fn train(a: &TrainArgs) -> Result<()> {
     use pdt_train::config::{Overrides, TrainConfig};
     // (A pack, `--pack` or `--resume` of a pack directory, goes to `crate::packs` from `main`.)
-    if a.engine.is_some() {
-        bail!("--engine is for packs (--pack, or --resume of a pack directory)");
+    if a.engine.is_some() || a.pack_eval.is_some() {
+        bail!("--engine and --pack-eval are for packs (--pack, or --resume of a pack directory)");
     }
     let (cfg, dir) = match (&a.resume, &a.config) {
         (Some(dir), _) => (None, dir.clone()),

@@ -11,7 +11,7 @@ pub fn is_pack(a: &TrainArgs) -> bool {
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
 use pdt_train::config::{Overrides, TrainConfig};
-use pdt_train::pack::{Engine, PackOptions};
+use pdt_train::pack::{Engine, PackEval, PackOptions};
 use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,
@@ -19,6 +19,12 @@ use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 pub fn train_pack(a: &TrainArgs) -> Result<()> {
     let engine =
         a.engine.as_deref().map(str::parse::<Engine>).transpose().map_err(anyhow::Error::msg)?;
+    let eval = a
+        .pack_eval
+        .as_deref()
+        .map(str::parse::<PackEval>)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
     let multi = MultiProgress::new();
     if a.quiet {
         multi.set_draw_target(indicatif::ProgressDrawTarget::hidden());
@@ -45,6 +51,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
         resume_with: ResumeWith::default(),
         stop_after_iterations: a.stop_after_iterations,
         engine,
+        eval,
         progress: &progress,
     };
     let (results, out) = match (&a.resume, &a.out) {

@@ -161,7 +161,12 @@ fn pack_args<'a>(configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
 }
 
 fn engine_pack_args<'a>(engine: &'a str, configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
-    let mut args = vec!["train", "--quiet", "--engine", engine, "--out", s(out), "--pack"];
+    let mut args = vec!["train", "--quiet", "--engine", engine, "--out", s(out)];
+    if engine == "batched" {
+        // Its evaluations acting together (the default on a GPU; apart on the CPU).
+        args.extend(["--pack-eval", "together"]);
+    }
+    args.push("--pack");
     args.extend(configs.iter().map(|c| s(c)));
     args
 }
@@ -275,7 +280,16 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
     let e = fails(&["train", "--pack", s(&a)]);
     assert!(e.contains("--out"), "{e}");
     let e = fails(&["train", "--config", s(&a), "--engine", "solo", "--out", s(&out)]);
-    assert!(e.contains("--engine is for packs"), "{e}");
+    assert!(e.contains("--engine and --pack-eval are for packs"), "{e}");
+    let e = fails(&["train", "--config", s(&a), "--pack-eval", "apart", "--out", s(&out)]);
+    assert!(e.contains("--engine and --pack-eval are for packs"), "{e}");
+    // Evaluations acting together need an engine that acts for its runs.
+    let b = member(&cfg, "b", &[("run", "seed", "1")]);
+    let mut args = vec!["train", "--engine", "solo", "--pack-eval", "together", "--out", s(&out)];
+    args.extend(["--pack", s(&a), s(&b)]);
+    let e = fails(&args);
+    assert!(e.contains("acting together need the batched engine (this pack's is solo)"), "{e}");
+    assert!(!out.join("pack.json").exists(), "nothing written");
 }
 
 #[test]

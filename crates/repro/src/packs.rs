@@ -63,7 +63,8 @@ pub fn write_pack_dir(
             .map_err(|e| ReproError::Io { path: r.dir.clone(), source: e })?;
         members.push(PackRecordRun { dir: abs.to_string_lossy().into_owned(), config });
     }
-    let record = PackRecord { engine: engine.name().into(), runs: members };
+    // Evaluations: the default for the device and engine (reproduce asks for none).
+    let record = PackRecord { engine: engine.name().into(), eval: None, runs: members };
     let text = serde_json::to_string_pretty(&record)
         .map_err(|e| ReproError::Invalid(format!("pack record: {e}")))?;
     let path = dir.join(PACK_JSON);

@@ -9,7 +9,7 @@
 mod runs;
 
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::pack::{train_pack, Engine, PackOptions, PackRun, SoloThreads};
+use pdt_train::pack::{train_pack, Engine, PackEval, PackOptions, PackRun, SoloThreads};
 use pdt_train::run::{RunError, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;
@@ -39,6 +39,8 @@ fn pack(
             resume_with: Default::default(),
             stop_after_iterations: None,
             engine: Some(engine),
+            // The batched engine's evaluations acting together (its default on a GPU).
+            eval: (engine == Engine::Batched).then_some(PackEval::Together),
             progress: &progress,
         },
     )

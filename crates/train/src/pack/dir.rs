@@ -1,9 +1,9 @@
 //! A pack directory (`promptdt train --pack`): `pack.json`, the pack's record (each run's
-//! directory and configuration, the engine), written before any run is created, and one ordinary
+//! directory and configuration, the engine, how its evaluations act), written before any run is created, and one ordinary
 //! run directory per run beside it. With the record, a pack killed at any moment (even before some
 //! of its runs had a directory) resumes from its directory alone.
 
-use super::run::{prepare_pack, run_pack, train_pack, Engine, PackOptions, PackRun};
+use super::run::{prepare_pack, run_pack, train_pack, Engine, PackEval, PackOptions, PackRun};
 use crate::config::TrainConfig;
 use crate::error::{io_err, RunError};
 use crate::run_loop::TrainSummary;
@@ -20,6 +20,11 @@ pub struct PackRecord {
     /// The engine the pack was started with (`batched` or `solo`); a resumed pack keeps it unless
     /// told otherwise, so its runs go on with the same arithmetic.
     pub engine: String,
+    /// How the pack's evaluations compute their forwards (`together` or `apart`), when it was
+    /// started with one: a resumed pack keeps it unless told otherwise. Absent: the default for
+    /// the device and engine (`PackEval::default_for`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eval: Option<String>,
     pub runs: Vec<PackRecordRun>,
 }
 
@@ -79,7 +84,8 @@ pub fn train_pack_dir(
     let opts = PackOptions { resume: false, engine: Some(engine), ..opts };
     // Checked and built before anything is written: a refused pack leaves no record behind.
     let ready = prepare_pack(members, &opts)?;
-    let record = PackRecord { engine: engine.name().into(), runs };
+    let record =
+        PackRecord { engine: engine.name().into(), eval: opts.eval.map(|e| e.name().into()), runs };
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let path = out.join(PACK_JSON);
     let text = serde_json::to_string_pretty(&record)
@@ -125,5 +131,12 @@ pub fn resume_pack_dir(
         runs.push(PackRun { config, dir: dir.join(given) });
     }
     let engine = Some(opts.engine.unwrap_or(recorded));
-    train_pack(runs, PackOptions { resume: true, engine, ..opts })
+    let recorded_eval: Option<PackEval> = record
+        .eval
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .map_err(|e: String| RunError::Corrupt { path: path.clone(), message: e })?;
+    let eval = opts.eval.or(recorded_eval);
+    train_pack(runs, PackOptions { resume: true, engine, eval, ..opts })
 }

@@ -1,7 +1,10 @@
 //! One run of a pack, as the run loop sees it: a [`Learner`] whose gradient steps go through the
 //! pack's [`Hub`], and whose evaluations and files go through an ordinary solo
 //! [`PromptDtLearner`] holding a copy of the run's slot. So everything but the step (sampling,
-//! evaluation, MT-BC-Finetune's fine-tuning, checkpoint files, resume) is the solo code.
+//! evaluation, MT-BC-Finetune's fine-tuning, checkpoint files, resume) is the solo code. With an
+//! engine that acts for its runs (the batched one), a plain evaluation's forwards are the engine's,
+//! computed with the other evaluating runs' through the hub (`PackActor`); the episodes around them
+//! are still the solo evaluation's.
 
 use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;

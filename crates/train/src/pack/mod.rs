@@ -26,5 +26,5 @@ pub mod solo;
 pub use batched::{BatchedEngine, PackLayout};
 pub use dir::{is_pack_dir, resume_pack_dir, train_pack_dir, PackRecord, PackRecordRun, PACK_JSON};
 pub use engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
-pub use run::{train_pack, Engine, PackOptions, PackRun};
+pub use run::{train_pack, Engine, PackEval, PackOptions, PackRun};
 pub use solo::{SoloEngine, SoloThreads};

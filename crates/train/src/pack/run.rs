@@ -68,6 +68,48 @@ impl std::str::FromStr for Engine {
     }
 }
 
+/// How a pack's evaluations compute their forwards (docs/packs.md, "Evaluations in a batched
+/// pack").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PackEval {
+    /// One batched forward of the engine for every run then evaluating (the batched engine
+    /// only): few kernel launches on a GPU.
+    Together,
+    /// Each run with its own solo model in its own thread: on the CPU, where a forward is bound
+    /// by arithmetic, the runs' forwards then spread over the cores.
+    Apart,
+}
+
+impl PackEval {
+    pub fn name(self) -> &'static str {
+        match self {
+            PackEval::Together => "together",
+            PackEval::Apart => "apart",
+        }
+    }
+
+    /// Unless asked: together on a GPU with an engine that can act for its runs (the batched
+    /// one), apart otherwise (BENCHMARKS.md, "A batched pack's evaluations").
+    pub fn default_for(device: tch::Device, engine: Engine) -> Self {
+        if device != tch::Device::Cpu && engine == Engine::Batched {
+            PackEval::Together
+        } else {
+            PackEval::Apart
+        }
+    }
+}
+
+impl std::str::FromStr for PackEval {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "together" => Ok(PackEval::Together),
+            "apart" => Ok(PackEval::Apart),
+            _ => Err(format!("unknown pack evaluation `{s}` (together or apart)")),
+        }
+    }
+}
+
 /// One run of a pack: its configuration (used to start it; a run being resumed reads its
 /// `config.toml`, which is authoritative) and its run directory.
 #[derive(Debug, Clone)]
@@ -88,6 +130,8 @@ pub struct PackOptions<'a> {
     pub stop_after_iterations: Option<u64>,
     /// `None`: [`Engine::default_for`] the runs' device.
     pub engine: Option<Engine>,
+    /// `None`: [`PackEval::default_for`] the runs' device and the engine.
+    pub eval: Option<PackEval>,
     /// Progress of the run in the given slot, after each of its iterations (called from the
     /// run's thread).
     pub progress: &'a (dyn Fn(usize, &Progress) + Sync),
@@ -167,19 +211,21 @@ pub(crate) fn prepare_pack(
         let _rng = torch_rng_lock();
         make_engine(engine_kind, specs, layout, device, solo_threads)?
     };
-    let act = act_shape(&members, &layout, engine.as_ref());
+    let eval = opts.eval.unwrap_or_else(|| PackEval::default_for(device, engine_kind));
+    if eval == PackEval::Together && !engine.acts_together() {
+        return Err(RunError::Invalid(format!(
+            "a pack's evaluations acting together need the batched engine (this pack's is {})",
+            engine_kind.name()
+        )));
+    }
+    let act = (eval == PackEval::Together).then(|| act_shape(&members, &layout)).flatten();
     Ok(ReadyPack { members, engine, engine_kind, libtorch_threads, act })
 }
 
-/// The fixed shape of the engine's evaluation forwards ([`ActShape`]), when it acts for its runs
-/// and their histories are one length (the engine's inputs hold one history length).
-fn act_shape(
-    members: &[Member],
-    layout: &PackLayout,
-    engine: &(dyn PackEngine + Send),
-) -> Option<ActShape> {
-    let one_k = members.iter().all(|m| m.data.sampler_cfg.k == layout.history_len);
-    if !engine.acts_together() || !one_k {
+/// The fixed shape of the engine's evaluation forwards ([`ActShape`]), when the runs' histories
+/// are one length (the engine's inputs hold one history length; otherwise each run acts apart).
+fn act_shape(members: &[Member], layout: &PackLayout) -> Option<ActShape> {
+    if members.iter().any(|m| m.data.sampler_cfg.k != layout.history_len) {
         return None;
     }
     let rows = |tasks: fn(&RunData) -> usize| {
