@@ -51,4 +51,16 @@ d=\$(mktemp -d -p "$W")
 rm -rf "\$d"
 SH
 echo "== A (evaluations acting together) vs B (apart: each run's own forwards), $RUNS runs on $DEVICE"
-farm-bench -n "${N:-3}" --timeout 3000 --vs "bash $W/pack.sh apart" -- bash "$W/pack.sh" together
+if command -v farm-bench >/dev/null; then
+  farm-bench -n "${N:-3}" --timeout 3000 --vs "bash $W/pack.sh apart" -- bash "$W/pack.sh" together
+else
+  # (A machine without farm-bench, e.g. the device machine: the same pairs timed here, the
+  # wall seconds of each side's process per trial, A B A B ...)
+  bash "$W/pack.sh" together && bash "$W/pack.sh" apart # warm-up, not counted
+  for i in $(seq "${N:-3}"); do
+    for m in together apart; do
+      t0=$(date +%s.%N); bash "$W/pack.sh" "$m"; t1=$(date +%s.%N)
+      awk -v m="$m" -v i="$i" -v a="$t0" -v b="$t1" 'BEGIN { printf "trial %d %s wall_s %.3f\n", i, m, b - a }'
+    done
+  done
+fi
