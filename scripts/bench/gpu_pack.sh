@@ -4,7 +4,8 @@
 # 13); promptdt built anywhere (CPU-only link) takes libtorch's CUDA part from that PyTorch.
 #   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
-#      pack `_pt`, one solo run's step with the flat optimiser);
+#      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
+#      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
 #   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
 #      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
@@ -42,7 +43,7 @@ bench() { # timeout out-name args...
 
 log "0. link check"
 timeout 120 "$BIN" bench --device cuda --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
-PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt}
+PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt,pack12_b100_act,solo12_b100_act}
 if [ -z "${SKIP_A:-}" ]; then
   log "A. training step vs PyTorch"
   bench 90 bench_train --python "$PY" --iters 15 --warmup 5 --cases train_b64_flat,train_b560_flat

@@ -6,16 +6,21 @@
 //! "auto"`: the flat optimisers and per-run mask draws on CUDA, the per-tensor ones on the CPU);
 //! the suffix `_flat` asks for the CUDA configuration on any device (`optim.flat = "on"`, the
 //! pack's masks drawn per run), `_pt` for the CPU one (`optim.flat = "off"`, masks in solo order).
+//!
+//! With `_act` a case times one environment step of N runs evaluating with B episodes each: the
+//! pack's forward for all runs (`pack<N>_b<B>_act`: `PackEngine::act`, as `--pack-eval together`)
+//! against each run's own cached forward in turn (`solo<N>_b<B>_act`: `PromptDt::act` with its
+//! tasks' prompt prefix, as `--pack-eval apart`), the actions copied to the host in both.
 
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
 use pdt_model::packed::MaskDraw;
-use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_model::{PrefixCache, PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
-use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
+use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotAct, SlotSpec, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn};
 use std::time::Instant;
-use tch::{nn::VarStore, Device};
+use tch::{nn::VarStore, Device, Kind, Tensor};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PackMode {
@@ -32,10 +37,16 @@ pub struct PackCase {
     pub batch: usize,
     /// `optim.flat` (`_flat`: on, `_pt`: off, no suffix: auto).
     pub flat: FlatOptim,
+    /// `_act`: an evaluation's forward, not a gradient step.
+    pub act: bool,
 }
 
-/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1), then `_flat` or `_pt` if wanted.
+/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1), then `_flat`, `_pt` or `_act` if wanted.
 pub fn parse_case(name: &str) -> Option<PackCase> {
+    let (name, act) = match name.strip_suffix("_act") {
+        Some(r) => (r, true),
+        None => (name, false),
+    };
     let (mode, rest) = if let Some(r) = name.strip_prefix("pack") {
         (PackMode::Packed, r)
     } else {
@@ -51,7 +62,10 @@ pub fn parse_case(name: &str) -> Option<PackCase> {
     let (runs, batch) = rest.split_once("_b")?;
     let runs = runs.parse().ok().filter(|&n: &usize| n > 0)?;
     let batch = batch.parse().ok().filter(|&b: &usize| b > 0)?;
-    Some(PackCase { mode, runs, batch, flat })
+    if act && flat != FlatOptim::Auto {
+        return None; // an evaluation's forward has no optimiser
+    }
+    Some(PackCase { mode, runs, batch, flat, act })
 }
 
 const K: usize = 20;
@@ -64,6 +78,9 @@ pub fn time_pack(
     iters: usize,
     device: Device,
 ) -> Result<Vec<f64>, String> {
+    if case.act {
+        return time_act(case, warmup, iters, device);
+    }
     let cfg = PromptDtConfig::reference(20, 6);
     let (b, k, p) = (case.batch as i64, K as i64, PROMPT as i64);
     tch::manual_seed(0);
@@ -144,22 +161,134 @@ pub fn time_pack(
         .collect()
 }
 
+/// Milliseconds per environment step of `case.runs` runs evaluating `case.batch` episodes each
+/// (their actions on the host), `iters` timed after `warmup`.
+fn time_act(
+    case: PackCase,
+    warmup: usize,
+    iters: usize,
+    device: Device,
+) -> Result<Vec<f64>, String> {
+    let cfg = PromptDtConfig::reference(20, 6);
+    let (b, k, p) = (case.batch as i64, K as i64, PROMPT as i64);
+    tch::manual_seed(0);
+    // Each run's histories and its episodes' task prompts (2 tasks, as Cheetah-Dir's test split).
+    let histories: Vec<Segments> =
+        (0..case.runs).map(|_| random_segments(b, k, 20, 6, false, device)).collect();
+    let tasks: Vec<Segments> =
+        (0..case.runs).map(|_| random_segments(2, p, 20, 6, true, device)).collect();
+    let rows = Tensor::arange(b, (Kind::Int64, device)).remainder(2);
+    let prompt_of = |i: usize| -> Segments {
+        let t = &tasks[i];
+        Segments {
+            states: t.states.index_select(0, &rows),
+            actions: t.actions.index_select(0, &rows),
+            returns_to_go: t.returns_to_go.index_select(0, &rows),
+            timesteps: t.timesteps.index_select(0, &rows),
+            mask: t.mask.index_select(0, &rows),
+        }
+    };
+    let prompts: Vec<Segments> = (0..case.runs).map(prompt_of).collect();
+    type ActFn<'a> = Box<dyn FnMut() -> Result<(), String> + 'a>;
+    let mut act_fn: ActFn<'_> = match case.mode {
+        PackMode::Packed => {
+            let specs = (0..case.runs as u64)
+                .map(|seed| SlotSpec {
+                    model: cfg.clone(),
+                    uses_prompt: true,
+                    loss_on: LossOn::History,
+                    optim: AdamWConfig::default(),
+                    seed,
+                })
+                .collect();
+            let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
+            let mut engine =
+                BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
+            Box::new(move || {
+                let acts = (0..case.runs)
+                    .map(|i| {
+                        Some(SlotAct {
+                            history: histories[i].shallow_clone(),
+                            prompt: Some(prompts[i].shallow_clone()),
+                            rows: b,
+                        })
+                    })
+                    .collect();
+                let out = engine.act(acts).map_err(|e| e.to_string())?;
+                // Each run's evaluation copies its own actions to the host.
+                for a in out.into_iter().flatten() {
+                    let _ = a.to_device(Device::Cpu);
+                }
+                Ok(())
+            })
+        }
+        PackMode::Solo => {
+            let runs: Vec<(VarStore, PromptDt, PrefixCache)> = (0..case.runs)
+                .map(|i| {
+                    tch::manual_seed(derive_seed(i as u64, 1, 0) as i64);
+                    let vs = VarStore::new(device);
+                    let model = PromptDt::new(&vs.root(), &cfg);
+                    // As in an evaluation: the tasks' prompt keys and values once.
+                    let cache = tch::no_grad(|| model.prefix(&tasks[i]));
+                    (vs, model, cache)
+                })
+                .collect();
+            Box::new(move || {
+                for (i, (_, model, cache)) in runs.iter().enumerate() {
+                    let a = tch::no_grad(|| model.act(&histories[i], Some(&cache.select(&rows))));
+                    let _ = a.to_device(Device::Cpu);
+                }
+                Ok(())
+            })
+        }
+    };
+    let sync = || {
+        if let Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+    };
+    for _ in 0..warmup {
+        act_fn()?;
+    }
+    sync();
+    (0..iters)
+        .map(|_| {
+            let t0 = Instant::now();
+            act_fn()?;
+            sync();
+            Ok(t0.elapsed().as_secs_f64() * 1e3)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn pack_case_names() {
-        let c = |m, runs, batch| PackCase { mode: m, runs, batch, flat: FlatOptim::Auto };
+        let c =
+            |m, runs, batch| PackCase { mode: m, runs, batch, flat: FlatOptim::Auto, act: false };
         assert_eq!(parse_case("pack3_b64"), Some(c(PackMode::Packed, 3, 64)));
         assert_eq!(parse_case("solo12_b16"), Some(c(PackMode::Solo, 12, 16)));
         let flat = PackCase { flat: FlatOptim::On, ..c(PackMode::Packed, 12, 32) };
         assert_eq!(parse_case("pack12_b32_flat"), Some(flat));
         let pt = PackCase { flat: FlatOptim::Off, ..c(PackMode::Solo, 1, 8) };
         assert_eq!(parse_case("solo1_b8_pt"), Some(pt));
-        for bad in
-            ["pack0_b64", "pack3_b0", "pack3", "solo_b4", "packx_b2", "train_b64", "pack3_b2_x"]
-        {
+        let act = PackCase { act: true, ..c(PackMode::Packed, 12, 100) };
+        assert_eq!(parse_case("pack12_b100_act"), Some(act));
+        assert_eq!(parse_case("solo12_b100_act"), Some(PackCase { mode: PackMode::Solo, ..act }));
+        for bad in [
+            "pack0_b64",
+            "pack3_b0",
+            "pack3",
+            "solo_b4",
+            "packx_b2",
+            "train_b64",
+            "pack3_b2_x",
+            "pack3_b2_flat_act",
+            "pack3_b2_act_flat",
+        ] {
             assert_eq!(parse_case(bad), None, "{bad}");
         }
     }
