@@ -96,24 +96,11 @@ pub fn time_pack(
         history: batches[i].0.shallow_clone(),
         prompt: Some(batches[i].1.shallow_clone()),
     };
-    let sync = || {
-        if let Device::Cuda(i) = device {
-            tch::Cuda::synchronize(i as i64);
-        }
-    };
     type StepFn<'a> = Box<dyn FnMut(u64) -> Result<(), String> + 'a>;
     let optim = AdamWConfig { flat: case.flat, ..AdamWConfig::default() };
-    let mut step_fn: StepFn<'_> = match case.mode {
+    let step_fn: StepFn<'_> = match case.mode {
         PackMode::Packed => {
-            let specs = (0..case.runs as u64)
-                .map(|seed| SlotSpec {
-                    model: cfg.clone(),
-                    uses_prompt: true,
-                    loss_on: LossOn::History,
-                    optim: optim.clone(),
-                    seed,
-                })
-                .collect();
+            let specs = specs(case.runs, &cfg, &optim);
             let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
             let mut engine =
                 BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
@@ -147,18 +134,7 @@ pub fn time_pack(
             })
         }
     };
-    for s in 0..warmup {
-        step_fn(s as u64)?;
-    }
-    sync();
-    (0..iters)
-        .map(|s| {
-            let t0 = Instant::now();
-            step_fn((warmup + s) as u64)?;
-            sync();
-            Ok(t0.elapsed().as_secs_f64() * 1e3)
-        })
-        .collect()
+    timed(warmup, iters, device, step_fn)
 }
 
 /// Milliseconds per environment step of `case.runs` runs evaluating `case.batch` episodes each
@@ -192,15 +168,7 @@ fn time_act(
     type ActFn<'a> = Box<dyn FnMut() -> Result<(), String> + 'a>;
     let mut act_fn: ActFn<'_> = match case.mode {
         PackMode::Packed => {
-            let specs = (0..case.runs as u64)
-                .map(|seed| SlotSpec {
-                    model: cfg.clone(),
-                    uses_prompt: true,
-                    loss_on: LossOn::History,
-                    optim: AdamWConfig::default(),
-                    seed,
-                })
-                .collect();
+            let specs = specs(case.runs, &cfg, &AdamWConfig::default());
             let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
             let mut engine =
                 BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
@@ -242,19 +210,43 @@ fn time_act(
             })
         }
     };
+    timed(warmup, iters, device, |_| act_fn())
+}
+
+/// The reference-shaped runs of a pack case, seeds 0.., each with a prompt.
+fn specs(runs: usize, cfg: &PromptDtConfig, optim: &AdamWConfig) -> Vec<SlotSpec> {
+    (0..runs as u64)
+        .map(|seed| SlotSpec {
+            model: cfg.clone(),
+            uses_prompt: true,
+            loss_on: LossOn::History,
+            optim: optim.clone(),
+            seed,
+        })
+        .collect()
+}
+
+/// Milliseconds of each of `iters` calls of `f` (given its call index) after `warmup` untimed
+/// ones, the device's queue drained before each time is read.
+fn timed(
+    warmup: usize,
+    iters: usize,
+    device: Device,
+    mut f: impl FnMut(u64) -> Result<(), String>,
+) -> Result<Vec<f64>, String> {
     let sync = || {
         if let Device::Cuda(i) = device {
             tch::Cuda::synchronize(i as i64);
         }
     };
-    for _ in 0..warmup {
-        act_fn()?;
+    for s in 0..warmup {
+        f(s as u64)?;
     }
     sync();
     (0..iters)
-        .map(|_| {
+        .map(|s| {
             let t0 = Instant::now();
-            act_fn()?;
+            f((warmup + s) as u64)?;
             sync();
             Ok(t0.elapsed().as_secs_f64() * 1e3)
         })
