@@ -214,7 +214,8 @@ pub(crate) fn prepare_pack(
     let eval = opts.eval.unwrap_or_else(|| PackEval::default_for(device, engine_kind));
     if eval == PackEval::Together && !engine.acts_together() {
         return Err(RunError::Invalid(format!(
-            "a pack's evaluations acting together need the batched engine (this pack's is {})",
+            "a pack's evaluations acting together need the batched engine (this pack's is {}): \
+             evaluate apart (`--pack-eval apart`) or use `--engine batched`",
             engine_kind.name()
         )));
     }
