@@ -51,10 +51,11 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
-if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-300} ]; then
+# Each side is a whole process (CUDA start-up included): a warm-up pair, then C_N timed pairs.
+if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-360} ]; then
   log "C. a pack's evaluations, together vs each run alone"
-  timeout ${C_S:-120} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE=cuda RUNS=12 \
-    EPISODES=50 N=${C_N:-2} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
+  timeout ${C_S:-150} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE=cuda RUNS=12 \
+    EPISODES=50 N=${C_N:-1} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
 fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done
