@@ -403,21 +403,17 @@ impl PackedPromptDt {
         drop(self.conv1d(&a, blk.attn_proj), masks.and_then(|m| m[1].as_ref()))
     }
 
-    /// Predicted actions of every run at every step of its packed sequence, prompt steps first:
-    /// `[N, B, P+K, da]` (run n's own steps are the last `prompt_lens[n] + K`). `dropout = None`
-    /// is eval mode.
-    pub fn forward_all_steps(&self, batch: &PackedBatch, dropout: Option<&DropoutSeeds>) -> Tensor {
-        let cfg = &self.cfg;
-        let hidden = cfg.hidden_size as i64;
+    /// Every run's tokens, prompt first, and their mask: `[N*B, 3(P+K), H]`, `[N*B, 3(P+K)]`.
+    fn embed(&self, batch: &PackedBatch) -> (Tensor, Tensor) {
         let (n, b) = (self.slots as i64, batch.batch);
         let rows = n * b;
         let (tokens, mask) = self.tokens(&self.idx.history, &batch.history, b);
         let tokens = self.layer_norm(&tokens, self.idx.embed_ln, 1e-5); // [N*B, 3K, H]
-        let (tokens, mask) = match &batch.prompt {
+        match &batch.prompt {
             Some(p) => {
-                let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b); // [N*B, 3P, H], no LayerNorm
-                                                                              // A run without prompt gets zero prompt tokens (all masked): none of its prompt
-                                                                              // layers' values or gradients enter.
+                // [N*B, 3P, H], no LayerNorm. A run without prompt gets zero prompt tokens (all
+                // masked): none of its prompt layers' values or gradients enter.
+                let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b);
                 let keep: Vec<bool> = batch
                     .prompt_lens
                     .iter()
@@ -428,7 +424,18 @@ impl PackedPromptDt {
                 (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
             }
             None => (tokens, mask),
-        };
+        }
+    }
+
+    /// Predicted actions of every run at every step of its packed sequence, prompt steps first:
+    /// `[N, B, P+K, da]` (run n's own steps are the last `prompt_lens[n] + K`). `dropout = None`
+    /// is eval mode.
+    pub fn forward_all_steps(&self, batch: &PackedBatch, dropout: Option<&DropoutSeeds>) -> Tensor {
+        let cfg = &self.cfg;
+        let hidden = cfg.hidden_size as i64;
+        let (n, b) = (self.slots as i64, batch.batch);
+        let rows = n * b;
+        let (tokens, mask) = self.embed(batch); // [N*B, 3(P+K), H], [N*B, 3(P+K)]
         let l = tokens.size()[1]; // 3(P+K)
         let masks = dropout.map(|s| self.dropout_masks(batch, s, l));
         let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
@@ -437,12 +444,7 @@ impl PackedPromptDt {
         let mut x = drop(tokens, masks.as_ref().and_then(|m| m.embd.as_ref()));
         for (i, blk) in self.idx.blocks.iter().enumerate() {
             let site = masks.as_ref().map(|m| &m.layers[i]);
-            let a =
-                self.attention(&self.layer_norm(&x, blk.ln_1, eps), blk, &causal, &pad_bias, site);
-            let h = &x + a;
-            let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
-            let m = drop(self.conv1d(&inner, blk.mlp_proj), site.and_then(|s| s[2].as_ref()));
-            x = &h + m;
+            x = self.block(&x, blk, &causal, &pad_bias, site);
         }
         let x = self.layer_norm(&x, self.idx.ln_f, eps);
         let x = x.reshape([rows, -1, 3, hidden]).permute([0, 2, 1, 3]); // [N*B, 3, P+K, H]
@@ -452,11 +454,70 @@ impl PackedPromptDt {
         actions.view([n, b, batch.p + batch.k, -1])
     }
 
+    /// One transformer block (attention, then MLP, each residual) on every position.
+    fn block(
+        &self,
+        x: &Tensor,
+        blk: &BlockIdx,
+        causal: &Tensor,
+        pad_bias: &Tensor,
+        site: Option<&[Option<Tensor>; 3]>,
+    ) -> Tensor {
+        let eps = self.cfg.layer_norm_epsilon;
+        let a = self.attention(&self.layer_norm(x, blk.ln_1, eps), blk, causal, pad_bias, site);
+        let h = x + a;
+        let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
+        let m = drop(self.conv1d(&inner, blk.mlp_proj), site.and_then(|s| s[2].as_ref()));
+        &h + m
+    }
+
     /// Every run's action at the last history step of each sample, in eval mode (no dropout, no
-    /// gradient): `[N, B, da]`.
+    /// gradient): `[N, B, da]`, `forward_all_steps(batch, None)[:, :, P+K-1]` with the solo
+    /// `PromptDt::act`'s savings: the last action token, which no state token attends to, is not
+    /// fed, and the last block runs for the last state token only (its keys and values from every
+    /// position).
     pub fn act_all(&self, batch: &PackedBatch) -> Tensor {
-        let preds = tch::no_grad(|| self.forward_all_steps(batch, None)); // [N, B, P+K, da]
-        preds.select(2, batch.p + batch.k - 1)
+        tch::no_grad(|| {
+            let (n, b) = (self.slots as i64, batch.batch);
+            let eps = self.cfg.layer_norm_epsilon;
+            let (tokens, mask) = self.embed(batch);
+            let l = tokens.size()[1] - 1; // 3(P+K) - 1: the last position is the last state token
+            let (mut x, mask) = (tokens.narrow(1, 0, l).contiguous(), mask.narrow(1, 0, l));
+            let causal =
+                self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+            let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
+            let Some((last, blocks)) = self.idx.blocks.split_last() else {
+                return Tensor::zeros([n, b, 0], (Kind::Float, self.device)); // (no layers: refused by `new`)
+            };
+            for blk in blocks {
+                x = self.block(&x, blk, &causal, &pad_bias, None);
+            }
+            let a = self.attention_last(&self.layer_norm(&x, last.ln_1, eps), last, &pad_bias); // [N*B, 1, H]
+            let h = x.narrow(1, l - 1, 1).contiguous() + a; // [N*B, 1, H]
+            let inner = self.conv1d(&self.layer_norm(&h, last.ln_2, eps), last.c_fc).relu();
+            let x = &h + self.conv1d(&inner, last.mlp_proj);
+            let x = self.layer_norm(&x, self.idx.ln_f, eps); // [N*B, 1, H]
+            let actions = self.linear(&x, self.idx.predict_action); // [N*B, 1, da]
+            let actions = if self.cfg.action_tanh { actions.tanh() } else { actions };
+            actions.view([n, b, -1])
+        })
+    }
+
+    /// [`Self::attention`] (eval mode) for the query of the last position only, which the causal
+    /// mask lets attend to every position: `[N*B, 1, H]`.
+    fn attention_last(&self, x: &Tensor, blk: &BlockIdx, pad_bias: &Tensor) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let nh = self.cfg.n_head as i64;
+        let hd = hidden / nh;
+        let (rows, l) = (x.size()[0], x.size()[1]);
+        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
+        let q = qkv[0].narrow(1, l - 1, 1).view([rows, 1, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, 1, hd]
+        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
+        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
+        let w = q.matmul(&k) / (hd as f64).powf(0.5) + pad_bias; // [N*B, nh, 1, L]
+        let a = w.softmax(-1, None::<Kind>).matmul(&v); // [N*B, nh, 1, hd]
+        let a = a.permute([0, 2, 1, 3]).contiguous().view([rows, 1, hidden]);
+        self.conv1d(&a, blk.attn_proj)
     }
 
     /// The masked action MSE of each run (`PromptDt::action_loss` per run): `[N]`. Padded steps
