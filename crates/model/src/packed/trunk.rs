@@ -487,7 +487,8 @@ impl PackedPromptDt {
                 self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
             let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
             let Some((last, blocks)) = self.idx.blocks.split_last() else {
-                return Tensor::zeros([n, b, 0], (Kind::Float, self.device)); // (no layers: `PromptDtConfig::validate` refuses)
+                // (A model of no layers: `PromptDtConfig::validate` refuses it.)
+                return Tensor::zeros([n, b, 0], (Kind::Float, self.device));
             };
             for blk in blocks {
                 x = self.block(&x, blk, &causal, &pad_bias, None);

@@ -1,7 +1,7 @@
 //! A pack directory (`promptdt train --pack`): `pack.json`, the pack's record (each run's
-//! directory and configuration, the engine, how its evaluations act), written before any run is created, and one ordinary
-//! run directory per run beside it. With the record, a pack killed at any moment (even before some
-//! of its runs had a directory) resumes from its directory alone.
+//! directory and configuration, the engine, how its evaluations act), written before any run is
+//! created, and one ordinary run directory per run beside it. With the record, a pack killed at
+//! any moment (even before some of its runs had a directory) resumes from its directory alone.
 
 use super::run::{prepare_pack, run_pack, train_pack, Engine, PackEval, PackOptions, PackRun};
 use crate::config::TrainConfig;
