@@ -316,6 +316,14 @@ impl Batch<'_> {
         })
     }
 
+    /// The prompts of the episodes' tasks, one row per episode (`[A, J*H]`), or `None` for tasks
+    /// without prompts.
+    fn task_prompts(&self, eps: &[&Running]) -> Option<Segments> {
+        let rows: Option<Vec<&SegmentBatch>> =
+            eps.iter().map(|e| self.prompts[e.task].as_ref()).collect();
+        rows.map(|p| prompt_batch(&p, self.cfg.device))
+    }
+
     /// The evaluator's own model's actions `[A, da]` for the running episodes `eps`.
     fn forward_own(&self, eps: &[&Running], history: &Segments) -> Tensor {
         let (cfg, model) = (self.cfg, self.model);
@@ -344,9 +352,7 @@ impl Batch<'_> {
                 tch::no_grad(|| model.act(history, None)) // [A, da]
             }
             _ => {
-                let task_prompts: Option<Vec<&SegmentBatch>> =
-                    eps.iter().map(|e| self.prompts[e.task].as_ref()).collect();
-                let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
+                let prompt = self.task_prompts(eps);
                 let preds = tch::no_grad(|| model.forward(history, prompt.as_ref(), false)); // [A, K, da]
                 preds.select(1, cfg.k as i64 - 1) // [A, da]
             }
@@ -366,9 +372,7 @@ impl BatchPolicy for Batch<'_> {
         let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
         let last = match self.actor {
             Some(actor) => {
-                let task_prompts: Option<Vec<&SegmentBatch>> =
-                    eps.iter().map(|e| self.prompts[e.task].as_ref()).collect();
-                let prompt = task_prompts.map(|p| prompt_batch(&p, cfg.device));
+                let prompt = self.task_prompts(&eps);
                 let acts = actor.act_rows(&history, prompt.as_ref())?; // [A, da]
                 if acts.size() != [eps.len() as i64, da as i64] {
                     let what =
