@@ -73,7 +73,12 @@ def main():
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--cases", default="train_b560,train_b64,infer_b1,infer_b50")
+    # promptdt's --matmul: fp32 (PyTorch's default since 1.12) or tf32 (cuBLAS on tensor cores).
+    ap.add_argument("--matmul", default="fp32", choices=["fp32", "tf32"])
     args = ap.parse_args()
+    # The legacy switch, as promptdt sets it (crates/model/csrc/matmul.cpp): it keeps PyTorch's two
+    # records of the setting in agreement. CUDA matmuls only.
+    torch.backends.cuda.matmul.allow_tf32 = args.matmul == "tf32"
 
     load_before = os.getloadavg()[0]
     torch.set_num_threads(args.threads)

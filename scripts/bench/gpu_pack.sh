@@ -6,6 +6,9 @@
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
 #      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
 #      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
+#   T. TF32 against fp32 matmuls (--matmul, same call): the arithmetic-bound step (Cheetah-Vel's batch,
+#      solo and a pack of 12) and the launch-bound one (pack12_b32); the solo step against PyTorch
+#      with TF32 too (T_S seconds; SKIP_T=1 skips it);
 #   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
 #      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
@@ -51,6 +54,13 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
+if [ -z "${SKIP_T:-}" ]; then
+  T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32}
+  log "T. fp32 vs tf32 matmuls"
+  bench ${T_S:-80} bench_fp32 --iters 8 --warmup 3 --cases "$T_CASES"
+  bench ${T_S:-80} bench_tf32 --iters 8 --warmup 3 --cases "$T_CASES" --matmul tf32
+  bench ${T_S:-80} bench_tf32_torch --iters 10 --warmup 3 --cases train_b560_flat --python "$PY" --matmul tf32
+fi
 # Each side is a whole process (CUDA start-up included): a warm-up pair, then C_N timed pairs.
 if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-360} ]; then
   log "C. a pack's evaluations, together vs each run alone"

@@ -35,3 +35,50 @@ impl DeviceSpec {
         }
     }
 }
+
+/// How float32 matrix products are computed on a CUDA device (a run's `run.matmul`, the
+/// `--matmul` flag). On the CPU only `fp32` exists.
+///
+/// - `fp32` (the default): IEEE float32, as PyTorch >= 1.12 computes them by default; promptdt's
+///   CUDA step matches PyTorch's within the measured tolerances of docs/reproducibility.md.
+/// - `tf32`: cuBLAS may use TF32 tensor cores (10-bit mantissa inputs, float32 accumulation) on
+///   Ampere and later GPUs: PyTorch's `torch.backends.cuda.matmul.allow_tf32 = True`. This is what
+///   the reference code computed on such GPUs: its pinned `torch==1.10.0` had TF32 matmuls on by
+///   default (the default became off in PyTorch 1.12). Results differ from `fp32` in about the
+///   third significant digit of a product.
+///
+/// It is one setting of the whole process (libtorch keeps it globally), so every run of a pack
+/// shares it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Matmul {
+    #[default]
+    Fp32,
+    Tf32,
+}
+
+impl std::str::FromStr for Matmul {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "fp32" => Ok(Self::Fp32),
+            "tf32" => Ok(Self::Tf32),
+            other => Err(format!("unknown matmul precision `{other}` (expected fp32 or tf32)")),
+        }
+    }
+}
+
+impl Matmul {
+    /// The name `from_str` takes back (`fp32` or `tf32`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Fp32 => "fp32",
+            Self::Tf32 => "tf32",
+        }
+    }
+
+    /// Whether this is the default (`fp32`): configurations at the default do not write it.
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}

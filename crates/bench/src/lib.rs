@@ -9,6 +9,7 @@
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
 use pdt_base::table::{Rule, Table};
+use pdt_model::device::Matmul;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 pub mod pack;
 pub mod render;
@@ -30,6 +31,8 @@ pub struct BenchConfig {
     pub iters: usize,
     pub warmup: usize,
     pub device: Device,
+    /// How a CUDA device computes float32 products (`--matmul`; PyTorch's baseline gets the same).
+    pub matmul: Matmul,
     /// Cases to run: any of `train_b560`, `train_b64`, `train_b560_flat`, `train_b64_flat`,
     /// `infer_b1`, `infer_b50` (and the other kinds `BenchError::UnknownCase` lists).
     pub cases: Vec<String>,
@@ -90,6 +93,9 @@ pub struct EngineReport {
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchReport {
     pub device: String,
+    /// With `--matmul tf32` on a CUDA device: how far a product computed with TF32 lies from the
+    /// same product in fp32 (`tf32_effect`), which shows that cuBLAS took the switch.
+    pub tf32_effect: Option<f64>,
     pub serve: Vec<ServeCase>,
     pub promptdt: EngineReport,
     pub pytorch: Option<EngineReport>,
@@ -106,6 +112,8 @@ pub enum BenchError {
     Pack { case: String, why: String },
     #[error("render case `{case}`: {why}")]
     Render { case: String, why: String },
+    #[error(transparent)]
+    Matmul(#[from] pdt_model::device::MatmulError),
 }
 
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
@@ -321,6 +329,8 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
             &cfg.warmup.to_string(),
             "--device",
             device,
+            "--matmul",
+            cfg.matmul.as_str(),
             "--cases",
             &cfg.cases.join(","),
         ]);
@@ -506,6 +516,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         });
     }
     tch::set_num_threads(cfg.threads as i32);
+    pdt_model::device::set_matmul(cfg.device, cfg.matmul)?;
     tch::manual_seed(0);
     let mcfg = PromptDtConfig::reference(20, 6);
     let vs = VarStore::new(cfg.device);
@@ -604,7 +615,32 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
             .collect(),
         None => Vec::new(),
     };
-    Ok(BenchReport { device: format!("{:?}", cfg.device), serve, promptdt, pytorch, speedup })
+    let device = match cfg.matmul {
+        Matmul::Fp32 => format!("{:?}", cfg.device),
+        m => format!("{:?} ({} matmuls)", cfg.device, m.as_str()),
+    };
+    let tf32_effect = match cfg.matmul {
+        Matmul::Tf32 if cfg.device.is_cuda() => Some(tf32_effect(cfg.device)?),
+        _ => None,
+    };
+    Ok(BenchReport { device, tf32_effect, serve, promptdt, pytorch, speedup })
+}
+
+/// The largest difference between a `[512, 1024] x [1024, 512]` product computed with cuBLAS's TF32
+/// switch on and off, relative to the product's largest magnitude: about 1e-3 where TF32 is used
+/// (its 10-bit mantissa), 0 where the switch changes nothing (the CPU). Leaves the switch on.
+pub fn tf32_effect(device: Device) -> Result<f64, BenchError> {
+    let gen = |n: i64, m: i64, seed: i64| {
+        tch::manual_seed(seed);
+        Tensor::randn([n, m], (Kind::Float, Device::Cpu)).to_device(device)
+    };
+    let (a, b) = (gen(512, 1024, 1), gen(1024, 512, 2));
+    pdt_model::device::set_cublas_tf32(false)?;
+    let exact = a.mm(&b);
+    pdt_model::device::set_cublas_tf32(true)?;
+    let tf32 = a.mm(&b);
+    let diff = (&tf32 - &exact).abs().max().double_value(&[]);
+    Ok(diff / exact.abs().max().double_value(&[]))
 }
 
 /// A Markdown table of the report.
@@ -627,6 +663,12 @@ pub fn render_markdown(r: &BenchReport) -> String {
         cases.push(vec![c.name.clone(), fmt(c), theirs.map_or("not run".into(), fmt), ratio]);
     }
     let mut s = cases.markdown(Rule::Tight);
+    if let Some(e) = r.tf32_effect {
+        s.push_str(&format!(
+            "\nTF32 check: a product computed with TF32 differs from fp32 by {e:.2e} of its \
+             largest magnitude (about 1e-3 when cuBLAS uses TF32, 0 when it does not).\n"
+        ));
+    }
     if !r.serve.is_empty() {
         let header = [
             "serve case",
@@ -656,6 +698,14 @@ pub fn render_markdown(r: &BenchReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tf32_check_sees_no_effect_on_the_cpu() {
+        // cuBLAS's switch leaves CPU products alone (crates/model/tests/matmul.rs checks more).
+        let e = tf32_effect(Device::Cpu).unwrap();
+        pdt_model::device::set_cublas_tf32(false).unwrap();
+        assert_eq!(e, 0.0);
+    }
 
     #[test]
     fn train_cases_name_the_optimiser() {

@@ -1,7 +1,7 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
 use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags, ServeAdaptFlags};
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use pdt_model::device::DeviceSpec;
 use std::path::PathBuf;
@@ -44,7 +44,7 @@ pub enum Command {
     #[command(subcommand)]
     Env(EnvCommand),
     /// Time training steps and inference against PyTorch.
-    Bench(BenchArgs),
+    Bench(crate::bench_args::BenchArgs),
     /// A quick end-to-end run.
     Demo(DemoArgs),
     /// Reproduce a table or figure of the paper: run what is not finished, then report it next to
@@ -269,6 +269,10 @@ pub struct ReproduceArgs {
     pub threads: Option<usize>,
     #[arg(long, default_value = "auto")]
     pub device: pdt_model::device::DeviceSpec,
+    /// Each run's run.matmul: float32 products on CUDA in `fp32` or `tf32` (part of a run's
+    /// identity; docs/implementation-details.md, C.8).
+    #[arg(long, default_value = "fp32")]
+    pub matmul: pdt_model::device::Matmul,
     /// Output directory: data/, runs/, configs/, logs/, reports/.
     #[arg(long, default_value = "runs/repro")]
     pub out: PathBuf,
@@ -422,90 +426,6 @@ pub struct ForwardArgs {
     /// reference model has 1). promptdt's checkpoints record it.
     #[arg(long)]
     pub n_head: Option<usize>,
-}
-
-#[derive(Debug, Args)]
-pub struct BenchArgs {
-    /// Intra-op threads for both engines (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
-    #[arg(long, default_value_t = 30)]
-    pub iters: usize,
-    #[arg(long, default_value_t = 5)]
-    pub warmup: usize,
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
-    /// Comma-separated cases.
-    #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50,eval_point_robot")]
-    pub cases: String,
-    /// Python with PyTorch 2.11 for the side-by-side baseline (omit to time promptdt alone).
-    #[arg(long)]
-    pub python: Option<PathBuf>,
-    /// The PyTorch benchmark script.
-    #[arg(long, default_value = "scripts/bench/bench_torch.py")]
-    pub script: PathBuf,
-    /// The PyTorch reference evaluation loop (for the `eval_point_robot` case).
-    #[arg(long, default_value = "scripts/bench/bench_eval_torch.py")]
-    pub eval_script: PathBuf,
-    /// Episodes per task in `eval_point_robot`.
-    #[arg(long, default_value_t = 50)]
-    pub eval_episodes: usize,
-    /// The PyTorch SAC / TD3 script (for `sac_h<H>_b<B>` and `td3_h<H>_b<B>` cases).
-    #[arg(long, default_value = "scripts/bench/bench_rl_torch.py")]
-    pub rl_script: PathBuf,
-    /// The PyTorch MACAW script (for `macaw_w<W>_t<T>` cases: one meta-step of T tasks, width W).
-    #[arg(long, default_value = "scripts/bench/bench_macaw_torch.py")]
-    pub macaw_script: PathBuf,
-    /// A trained run, served by the `serve_c<N>` cases (N concurrent episodes on loopback).
-    #[arg(long)]
-    pub serve_run: Option<PathBuf>,
-    /// Steps per served episode in `serve_c<N>`.
-    #[arg(long, default_value_t = 100)]
-    pub serve_steps: usize,
-    /// Episodes per client in `serve_c<N>`.
-    #[arg(long, default_value_t = 2)]
-    pub serve_episodes: usize,
-    /// Directory for bench.json and bench.md.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-}
-
-impl BenchArgs {
-    pub fn to_config(&self) -> Result<pdt_bench::BenchConfig> {
-        let threads = self.threads.unwrap_or_else(pdt_base::threads::available_cores);
-        if threads == 0 || self.iters == 0 {
-            bail!("--threads and --iters must be at least 1");
-        }
-        let pytorch = self.python.as_ref().map(|python| pdt_bench::PyTorchBaseline {
-            python: python.clone(),
-            script: self.script.clone(),
-        });
-        if let Some(p) = &pytorch {
-            if !p.script.is_file() {
-                bail!("PyTorch benchmark script {} not found (run from the repository root or pass --script)", p.script.display());
-            }
-        }
-        Ok(pdt_bench::BenchConfig {
-            threads,
-            iters: self.iters,
-            warmup: self.warmup,
-            device: pdt_model::device::resolve(self.device)?,
-            cases: self
-                .cases
-                .split(',')
-                .map(|s| s.trim().to_string())
-                .filter(|s| !s.is_empty())
-                .collect(),
-            pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
-            pytorch_rl_script: pytorch.as_ref().map(|_| self.rl_script.clone()),
-            pytorch_macaw_script: pytorch.as_ref().map(|_| self.macaw_script.clone()),
-            serve_run: self.serve_run.clone(),
-            serve_steps: self.serve_steps,
-            serve_episodes: self.serve_episodes,
-            pytorch,
-            eval_episodes: self.eval_episodes.max(1),
-        })
-    }
 }
 
 #[derive(Debug, Args)]
@@ -668,6 +588,10 @@ pub struct TrainArgs {
     /// Override run.device (with --resume: for this invocation).
     #[arg(long)]
     pub device: Option<DeviceSpec>,
+    /// Override run.matmul: float32 products on CUDA in `fp32` or `tf32` (docs/
+    /// implementation-details.md, C.8). Not with --resume: a run keeps its own.
+    #[arg(long, conflicts_with = "resume")]
+    pub matmul: Option<pdt_model::device::Matmul>,
     /// Override data.dir; with --resume, where the run's data moved (their content must be the
     /// same: the run recorded a fingerprint).
     #[arg(long)]

@@ -106,6 +106,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 method,
                 macaw_preset,
                 device: a.device,
+                matmul: a.matmul,
                 data: a.data.clone(),
             };
             cfg.apply(&overrides, |env| pdt_envs::family(env).map(|f| f.preset().prompt_length))?;
@@ -449,6 +450,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     // of runs 1.36x sooner than 1 run of 2 threads. On an H200 (BENCHMARKS.md, "GPU"), two
     // Cheetah-Dir runs at once made 1.7x the iterations per hour of one alone, and four no more.
     let on_gpu = matches!(pdt_model::device::resolve(a.device), Ok(d) if d.is_cuda());
+    // Refused here rather than by each run after its data are collected. Emitted jobs and reports
+    // may be made on a machine without the GPU that will run them.
+    let trains_here = !(a.report_only || a.status || a.emit.is_some());
+    if a.matmul == pdt_model::device::Matmul::Tf32 && trains_here && !on_gpu {
+        bail!(
+            "--matmul tf32 needs a CUDA device, and --device {} is the CPU here (the CPU computes \
+             float32 products in fp32 only)",
+            a.device.as_str()
+        );
+    }
     let jobs = match a.jobs {
         Some(j) => j,
         None if on_gpu => 2,
@@ -487,6 +498,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         data_root,
         threads,
         device: a.device,
+        matmul: a.matmul,
         seeds: a.seeds,
     };
     let p = if a.report_only {
@@ -517,6 +529,9 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 "--omp-wait-policy".into(),
                 a.omp_wait_policy.clone(),
             ];
+            if a.matmul != pdt_model::device::Matmul::default() {
+                extra.extend(["--matmul".into(), a.matmul.as_str().into()]);
+            }
             if a.data_root.is_some() {
                 extra.push("--data-root".into());
                 extra.push(opts.data_root.to_string_lossy().into_owned());

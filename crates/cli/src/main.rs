@@ -19,6 +19,7 @@ macro_rules! out_inline {
 }
 
 mod args;
+mod bench_args;
 mod commands;
 mod packs;
 mod prompt_args;

@@ -66,6 +66,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
                 method: None,
                 macaw_preset: None,
                 device: a.device,
+                matmul: a.matmul,
                 data: a.data.clone(),
             };
             let mut configs = Vec::with_capacity(a.pack.len());

@@ -277,6 +277,26 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
         assert!(!out.join("pack.json").exists(), "{expect}: nothing written");
         let _ = std::fs::remove_dir_all(&out);
     }
+    // One matmul precision for the process: the runs must agree, and tf32 needs a GPU (device
+    // `auto` on this machine is the CPU), refused before anything is written.
+    let auto = member(&cfg, "auto", &[("run", "device", "\"auto\"")]);
+    let tf32 = |name: &str, seed: &str| {
+        let sets =
+            [("run", "device", "\"auto\""), ("run", "matmul", "\"tf32\""), ("run", "seed", seed)];
+        member(&cfg, name, &sets)
+    };
+    for (configs, expect) in [
+        (vec![auto.clone(), tf32("t1", "1")], "must agree on run.matmul"),
+        (vec![tf32("t0", "0"), tf32("t1", "1")], "matmul = tf32 needs a CUDA device"),
+    ] {
+        let e = fails(&pack_args(&configs, &out));
+        assert!(e.contains(expect), "{expect}: {e}");
+        assert!(!out.join("pack.json").exists(), "{expect}: nothing written");
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let e = fails(&["train", "--config", s(&a), "--matmul", "tf32", "--out", s(&out)]);
+    assert!(e.contains("run.matmul = \"tf32\" needs a CUDA device"), "{e}");
+    assert!(!out.exists(), "nothing written");
     let e = fails(&["train", "--pack", s(&a)]);
     assert!(e.contains("--out"), "{e}");
     let e = fails(&["train", "--config", s(&a), "--engine", "solo", "--out", s(&out)]);

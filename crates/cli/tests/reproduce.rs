@@ -82,6 +82,17 @@ fn bad_input_is_refused_by_name() {
     assert!(!ok2 && err.contains("huge") && err.contains("smoke"), "{err}");
     let (ok3, _, err) = promptdt(&["reproduce", "fig2", "--budget", "smoke", "--emit", "slurm"]);
     assert!(!ok3 && err.contains("--emit slurm"), "{err}");
+    // TF32 matmuls need a GPU to train on; jobs for one can be emitted anywhere, and carry it.
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("r");
+    let out_s = out.to_str().unwrap();
+    let tf32 = ["reproduce", "fig4", "--budget", "smoke", "--matmul", "tf32", "--out", out_s];
+    let (ok4, _, err) = promptdt(&[&tf32[..], &["--device", "cpu"]].concat());
+    assert!(!ok4 && err.contains("--matmul tf32 needs a CUDA device"), "{err}");
+    assert!(!out.exists(), "nothing written");
+    ok(&[&tf32[..], &["--device", "cuda", "--emit", "jobs"]].concat());
+    let jobs = std::fs::read_to_string(out.join("jobs/fig4-smoke/jobs.txt")).unwrap();
+    assert!(jobs.lines().all(|l| l.contains("'--matmul' 'tf32'")), "{jobs}");
 }
 
 /// Every experiment at the smoke budget, in one output directory (datasets collected once, shared

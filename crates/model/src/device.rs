@@ -5,8 +5,8 @@
 //! time registers the CUDA backend with the already-loaded `libtorch_cpu`, so the same binary runs
 //! on either.
 
-// The request type is tch-free, so a run's configuration can name it without libtorch.
-pub use pdt_base::device::DeviceSpec;
+// The request types are tch-free, so a run's configuration can name them without libtorch.
+pub use pdt_base::device::{DeviceSpec, Matmul};
 use tch::Device;
 
 #[derive(Debug, thiserror::Error)]
@@ -49,6 +49,78 @@ pub fn resolve(spec: DeviceSpec) -> Result<Device, DeviceError> {
         DeviceSpec::Auto => {
             Ok(if load_cuda_backend().is_ok() { Device::Cuda(0) } else { Device::Cpu })
         }
+    }
+}
+
+/// A [`Matmul`] setting libtorch could not take.
+#[derive(Debug, thiserror::Error)]
+pub enum MatmulError {
+    #[error(
+        "matmul = tf32 needs a CUDA device, and the device is the CPU (the CPU computes \
+         float32 products in fp32 only)"
+    )]
+    NeedsCuda,
+    #[error("libtorch refused the matmul precision setting: {0}")]
+    Refused(String),
+}
+
+#[allow(unsafe_code)]
+mod ffi {
+    // csrc/matmul.cpp, compiled by build.rs against the linked libtorch's headers.
+    unsafe extern "C" {
+        pub fn pdt_set_cublas_tf32(on: i32, err: *mut u8, err_len: usize) -> i32;
+        pub fn pdt_cublas_tf32(err: *mut u8, err_len: usize) -> i32;
+    }
+}
+
+/// The C++ side's message buffer as text (up to its first NUL).
+fn message(buf: &[u8]) -> String {
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    String::from_utf8_lossy(&buf[..end]).into_owned()
+}
+
+/// Sets how float32 matrix products are computed for a run on `device` ([`Matmul`]). libtorch keeps
+/// the setting for the whole process, so every run of a process must ask for the same one (a pack
+/// checks that its runs agree). On a CUDA device it is always set, so a `fp32` run is fp32 even
+/// where the environment asked libtorch for TF32 (`TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1`, set in
+/// NVIDIA's containers). On the CPU `fp32` changes nothing and `tf32` is refused.
+pub fn set_matmul(device: Device, matmul: Matmul) -> Result<(), MatmulError> {
+    if !device.is_cuda() {
+        return match matmul {
+            Matmul::Fp32 => Ok(()),
+            Matmul::Tf32 => Err(MatmulError::NeedsCuda),
+        };
+    }
+    set_cublas_tf32(matmul == Matmul::Tf32)
+}
+
+/// libtorch's cuBLAS TF32 switch itself (the process-wide flag; it only changes CUDA matmuls).
+/// Public for the test that checks it leaves CPU products alone; runs go through [`set_matmul`].
+#[doc(hidden)]
+pub fn set_cublas_tf32(on: bool) -> Result<(), MatmulError> {
+    let mut err = [0u8; 512];
+    // SAFETY: the C++ function catches every exception (none unwinds into Rust) and writes at most
+    // `err.len()` bytes, NUL included, into the buffer it is given.
+    #[allow(unsafe_code)]
+    let rc = unsafe { ffi::pdt_set_cublas_tf32(i32::from(on), err.as_mut_ptr(), err.len()) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(MatmulError::Refused(message(&err)))
+    }
+}
+
+/// What libtorch will use for float32 matrix products on CUDA devices now (its cuBLAS TF32
+/// switch; on the CPU products are fp32 whatever it says).
+pub fn cuda_matmul() -> Result<Matmul, MatmulError> {
+    let mut err = [0u8; 512];
+    // SAFETY: as in `set_cublas_tf32`.
+    #[allow(unsafe_code)]
+    let rc = unsafe { ffi::pdt_cublas_tf32(err.as_mut_ptr(), err.len()) };
+    match rc {
+        0 => Ok(Matmul::Fp32),
+        1 => Ok(Matmul::Tf32),
+        _ => Err(MatmulError::Refused(message(&err))),
     }
 }
 

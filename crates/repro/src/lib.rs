@@ -97,6 +97,7 @@ pub fn list() -> Result<Vec<ListEntry>, ReproError> {
                 data_root: ".".into(),
                 threads: 1,
                 device: Default::default(),
+                matmul: Default::default(),
                 seeds: None,
             };
             let p = plan::plan(&m, &o)?;

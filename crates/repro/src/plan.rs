@@ -17,7 +17,7 @@
 
 use crate::manifest::{Cell, Manifest};
 use crate::ReproError;
-use pdt_model::device::DeviceSpec;
+use pdt_model::device::{DeviceSpec, Matmul};
 use pdt_rundir::config::TrainConfig;
 use pdt_rundir::RunDir;
 use std::path::{Path, PathBuf};
@@ -101,6 +101,9 @@ pub struct PlanOptions {
     /// of a run's identity, so a run may be resumed with others).
     pub threads: usize,
     pub device: DeviceSpec,
+    /// Each run's `run.matmul` (part of a run's identity: a run recorded with another is refused
+    /// by name rather than resumed with products computed another way).
+    pub matmul: Matmul,
     /// Overrides every cell's seed count.
     pub seeds: Option<u32>,
 }
@@ -148,6 +151,7 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
             let flat = key.replace('/', "__");
             let mut config = config_for(trained, &s, seed, o.threads, &data.dir)?;
             config.run.device = o.device;
+            config.run.matmul = o.matmul;
             let mut variant = None;
             if let (Some(_), Some(eval)) = (base, &cell.eval) {
                 let base_key = format!("{}/{budget}/seed{seed}", trained.id());

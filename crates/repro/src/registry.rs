@@ -125,6 +125,7 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
         data_root: o.data_root.clone().unwrap_or_default(),
         threads: 1,
         device: Default::default(),
+        matmul: Default::default(),
         seeds: Some(seed + 1),
     };
     let p = plan::plan(m, &opts)?;

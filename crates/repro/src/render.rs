@@ -50,6 +50,7 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
                 data_root: nowhere.join("data"),
                 threads: 1,
                 device: Default::default(),
+                matmul: Default::default(),
                 seeds: None,
             };
             // Every archived seed, however many the budget plans: the registry's runs only.

@@ -353,6 +353,7 @@ mod tests {
             data_root: "/o/data".into(),
             threads: 1,
             device: Default::default(),
+            matmul: Default::default(),
             seeds: None,
         };
         plan::plan(m, &o).expect("plan")

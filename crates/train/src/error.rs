@@ -26,6 +26,8 @@ pub enum RunError {
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
     Device(#[from] pdt_model::device::DeviceError),
+    #[error(transparent)]
+    Matmul(#[from] pdt_model::device::MatmulError),
     /// A run-directory file unreadable, malformed or unwritable (the error names it).
     #[error(transparent)]
     RunDir(#[from] pdt_rundir::RunDirError),

@@ -10,7 +10,7 @@ mod overrides;
 pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore};
 pub use options::{AdamWConfig, FlatOptim, Inference, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
-pub use pdt_base::device::DeviceSpec;
+pub use pdt_base::device::{DeviceSpec, Matmul};
 pub use pdt_base::num::compact;
 use pdt_data::multitask::DataFormat;
 use pdt_prompt::{NormalizationScope, PromptPosition, PromptStrategy, TrajectoryRanking};
@@ -129,11 +129,21 @@ pub struct RunSection {
     pub device: DeviceSpec,
     /// libtorch intra-op threads; 0 = all cores.
     pub threads: usize,
+    /// Float32 matrix products on a CUDA device: `fp32` (default) or `tf32` (the reference's
+    /// torch 1.10 default on Ampere and later GPUs; [`Matmul`]). Written only when not the default.
+    #[serde(skip_serializing_if = "Matmul::is_default")]
+    pub matmul: Matmul,
 }
 
 impl Default for RunSection {
     fn default() -> Self {
-        Self { method: Method::PromptDt, seed: 0, device: DeviceSpec::Auto, threads: 0 }
+        Self {
+            method: Method::PromptDt,
+            seed: 0,
+            device: DeviceSpec::Auto,
+            threads: 0,
+            matmul: Matmul::Fp32,
+        }
     }
 }
 
@@ -392,6 +402,13 @@ impl TrainConfig {
         let mut v = Checks::default();
         v.at_most("run.seed", self.run.seed, TOML_INT, "TOML integers are signed 64-bit");
         v.at_most("run.threads", self.run.threads as u64, 1024, "0 = all cores");
+        if self.run.matmul == Matmul::Tf32 && self.run.device == DeviceSpec::Cpu {
+            v.fail(
+                "run.matmul = \"tf32\" needs a CUDA device (run.device = \"cuda\" or \"auto\"): \
+                 the CPU computes float32 products in fp32 only"
+                    .into(),
+            );
+        }
         let t = &self.train;
         v.range("train.iterations", t.iterations, 1, 100_000_000);
         v.range("train.steps_per_iteration", t.steps_per_iteration, 1, 100_000_000);
@@ -586,6 +603,28 @@ mod tests {
         assert_eq!(c.eval.episodes, 50);
         let back: TrainConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
         assert_eq!(back, c);
+    }
+
+    #[test]
+    fn run_matmul_defaults_to_fp32_is_written_only_when_set_and_tf32_needs_cuda() {
+        let c: TrainConfig = toml::from_str("[run]\nseed = 1\n").unwrap();
+        assert_eq!(c.run.matmul, Matmul::Fp32);
+        assert!(!c.to_toml().unwrap().contains("matmul"), "files at the default stay as they were");
+        let t: TrainConfig =
+            toml::from_str("[run]\ndevice = \"cuda\"\nmatmul = \"tf32\"\n").unwrap();
+        assert_eq!(t.run.matmul, Matmul::Tf32);
+        assert!(t.to_toml().unwrap().contains("matmul = \"tf32\""));
+        t.validate().unwrap();
+        let auto: TrainConfig = toml::from_str("[run]\nmatmul = \"tf32\"\n").unwrap();
+        auto.validate().unwrap();
+        let cpu: TrainConfig =
+            toml::from_str("[run]\ndevice = \"cpu\"\nmatmul = \"tf32\"\n").unwrap();
+        let e = cpu.validate().unwrap_err().to_string();
+        assert!(e.contains("run.matmul = \"tf32\" needs a CUDA device"), "{e}");
+        assert!(toml::from_str::<TrainConfig>("[run]\nmatmul = \"bf16\"\n").is_err());
+        for m in [Matmul::Fp32, Matmul::Tf32] {
+            assert_eq!(m.as_str().parse::<Matmul>(), Ok(m));
+        }
     }
 
     #[test]

@@ -4,7 +4,7 @@
 
 use super::macaw::{MacawConfig, Preset};
 use super::{Method, TrainConfig};
-use pdt_base::device::DeviceSpec;
+use pdt_base::device::{DeviceSpec, Matmul};
 use std::path::PathBuf;
 
 /// The settings a front end overrides; `None` keeps the file's.
@@ -16,6 +16,7 @@ pub struct Overrides {
     /// Replaces the `[macaw]` section by a preset (its adaptation batch is the run's K*).
     pub macaw_preset: Option<Preset>,
     pub device: Option<DeviceSpec>,
+    pub matmul: Option<Matmul>,
     pub data: Option<PathBuf>,
 }
 
@@ -68,6 +69,9 @@ impl TrainConfig {
         if let Some(d) = o.device {
             self.run.device = d;
         }
+        if let Some(m) = o.matmul {
+            self.run.matmul = m;
+        }
         if let Some(d) = &o.data {
             self.data.dir.clone_from(d);
         }
@@ -119,7 +123,8 @@ mod tests {
             iterations: Some(3),
             method: Some("macaw".parse().unwrap()),
             macaw_preset: Some(Preset::Promptdt),
-            device: Some(DeviceSpec::Cpu),
+            device: Some(DeviceSpec::Cuda),
+            matmul: Some(Matmul::Tf32),
             data: Some(PathBuf::from("/d")),
         };
         let mut asked = None;
@@ -130,7 +135,8 @@ mod tests {
         .unwrap();
         assert_eq!(asked.as_deref(), Some("point_robot"));
         assert_eq!((c.run.seed, c.train.iterations, c.run.method), (7, 3, Method::Macaw));
-        assert_eq!((c.run.device, c.data.dir.clone()), (DeviceSpec::Cpu, PathBuf::from("/d")));
+        assert_eq!((c.run.device, c.data.dir.clone()), (DeviceSpec::Cuda, PathBuf::from("/d")));
+        assert_eq!(c.run.matmul, Matmul::Tf32);
         assert_eq!(c.macaw, MacawConfig::preset(Preset::Promptdt, 10));
         assert_eq!(c.macaw.adapt_batch, 10);
         assert_eq!(c.default_run_dir(), PathBuf::from("runs/macaw-point_robot-seed7"));

@@ -178,6 +178,8 @@ pub(crate) fn prepare_pack(
 ) -> Result<ReadyPack, RunError> {
     let members = members(runs, opts)?;
     let device = pdt_model::device::resolve(members[0].cfg.run.device)?;
+    // One setting for the process: the runs agree on it (checked where their configurations are).
+    pdt_model::device::set_matmul(device, members[0].cfg.run.matmul)?;
     let engine_kind = opts.engine.unwrap_or_else(|| Engine::default_for(device));
     let specs: Vec<SlotSpec> = members
         .iter()
@@ -406,7 +408,7 @@ fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
 }
 
 /// Refuses runs that cannot share a pack, naming the setting: one environment family, one model
-/// shape (`[model]`), one device; the Prompt-DT variants only.
+/// shape (`[model]`), one device and matmul precision; the Prompt-DT variants only.
 fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
     for (cfg, dir, _) in runs {
         if cfg.run.method == Method::Macaw {
@@ -435,6 +437,13 @@ fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
                 "run.device",
                 format!("{:?}", first.run.device),
                 format!("{:?}", cfg.run.device),
+            ));
+        }
+        if cfg.run.matmul != first.run.matmul {
+            return Err(differ(
+                "run.matmul",
+                first.run.matmul.as_str().into(),
+                cfg.run.matmul.as_str().into(),
             ));
         }
         let other = section(&cfg.model)?;

@@ -1,0 +1,94 @@
+//! `promptdt bench`'s arguments, and the benchmark configuration they become.
+
+use anyhow::{bail, Result};
+use clap::Args;
+use pdt_model::device::DeviceSpec;
+use std::path::PathBuf;
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Intra-op threads for both engines (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value_t = 30)]
+    pub iters: usize,
+    #[arg(long, default_value_t = 5)]
+    pub warmup: usize,
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Float32 products on CUDA in `fp32` or `tf32` (PyTorch's baseline gets the same).
+    #[arg(long, default_value = "fp32")]
+    pub matmul: pdt_model::device::Matmul,
+    /// Comma-separated cases.
+    #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50,eval_point_robot")]
+    pub cases: String,
+    /// Python with PyTorch 2.11 for the side-by-side baseline (omit to time promptdt alone).
+    #[arg(long)]
+    pub python: Option<PathBuf>,
+    /// The PyTorch benchmark script.
+    #[arg(long, default_value = "scripts/bench/bench_torch.py")]
+    pub script: PathBuf,
+    /// The PyTorch reference evaluation loop (for the `eval_point_robot` case).
+    #[arg(long, default_value = "scripts/bench/bench_eval_torch.py")]
+    pub eval_script: PathBuf,
+    /// Episodes per task in `eval_point_robot`.
+    #[arg(long, default_value_t = 50)]
+    pub eval_episodes: usize,
+    /// The PyTorch SAC / TD3 script (for `sac_h<H>_b<B>` and `td3_h<H>_b<B>` cases).
+    #[arg(long, default_value = "scripts/bench/bench_rl_torch.py")]
+    pub rl_script: PathBuf,
+    /// The PyTorch MACAW script (for `macaw_w<W>_t<T>` cases: one meta-step of T tasks, width W).
+    #[arg(long, default_value = "scripts/bench/bench_macaw_torch.py")]
+    pub macaw_script: PathBuf,
+    /// A trained run, served by the `serve_c<N>` cases (N concurrent episodes on loopback).
+    #[arg(long)]
+    pub serve_run: Option<PathBuf>,
+    /// Steps per served episode in `serve_c<N>`.
+    #[arg(long, default_value_t = 100)]
+    pub serve_steps: usize,
+    /// Episodes per client in `serve_c<N>`.
+    #[arg(long, default_value_t = 2)]
+    pub serve_episodes: usize,
+    /// Directory for bench.json and bench.md.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl BenchArgs {
+    pub fn to_config(&self) -> Result<pdt_bench::BenchConfig> {
+        let threads = self.threads.unwrap_or_else(pdt_base::threads::available_cores);
+        if threads == 0 || self.iters == 0 {
+            bail!("--threads and --iters must be at least 1");
+        }
+        let pytorch = self.python.as_ref().map(|python| pdt_bench::PyTorchBaseline {
+            python: python.clone(),
+            script: self.script.clone(),
+        });
+        if let Some(p) = &pytorch {
+            if !p.script.is_file() {
+                bail!("PyTorch benchmark script {} not found (run from the repository root or pass --script)", p.script.display());
+            }
+        }
+        Ok(pdt_bench::BenchConfig {
+            threads,
+            iters: self.iters,
+            warmup: self.warmup,
+            device: pdt_model::device::resolve(self.device)?,
+            matmul: self.matmul,
+            cases: self
+                .cases
+                .split(',')
+                .map(|s| s.trim().to_string())
+                .filter(|s| !s.is_empty())
+                .collect(),
+            pytorch_eval_script: pytorch.as_ref().map(|_| self.eval_script.clone()),
+            pytorch_rl_script: pytorch.as_ref().map(|_| self.rl_script.clone()),
+            pytorch_macaw_script: pytorch.as_ref().map(|_| self.macaw_script.clone()),
+            serve_run: self.serve_run.clone(),
+            serve_steps: self.serve_steps,
+            serve_episodes: self.serve_episodes,
+            pytorch,
+            eval_episodes: self.eval_episodes.max(1),
+        })
+    }
+}
