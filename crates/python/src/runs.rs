@@ -19,7 +19,7 @@ fn stopped_or(progress: &Progress, e: impl std::fmt::Display) -> PyErr {
 /// "test_return", "elapsed_s"}`. Ctrl-C (or an exception of `progress`) stops it before the next
 /// gradient step and raises; the run resumes from its last checkpoint or resume point.
 #[pyfunction]
-#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, data = None, progress = None))]
+#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, matmul = None, data = None, progress = None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn train<'py>(
     py: Python<'py>,
@@ -30,12 +30,18 @@ pub(crate) fn train<'py>(
     iterations: Option<u64>,
     method: Option<String>,
     device: Option<&str>,
+    matmul: Option<&str>,
     data: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     use pdt_train::config::{Method, Overrides, TrainConfig};
     let device: Option<pdt_model::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
+    let matmul: Option<pdt_model::device::Matmul> =
+        matmul.map(str::parse).transpose().map_err(|e| value_error(format!("matmul: {e}")))?;
+    if resume && matmul.is_some() {
+        return Err(value_error("matmul: not with resume=True (a run keeps its own)"));
+    }
     let cfg = match (resume, &config) {
         (true, Some(_)) => return Err(value_error("give config or resume=True, not both")),
         (true, None) => None,
@@ -53,6 +59,7 @@ pub(crate) fn train<'py>(
                 iterations,
                 method,
                 device,
+                matmul,
                 data: data.clone(),
                 ..Overrides::default()
             };

@@ -191,12 +191,16 @@ def train(
     iterations: Optional[int] = None,
     method: Optional[str] = None,
     device: Optional[str] = None,
+    matmul: Optional[str] = None,
     data: Optional[PathLike] = None,
     progress: ProgressArg = True,
 ) -> dict:
     """``promptdt train``: trains from ``config`` (TOML) into ``out``, or continues the run in
     ``out`` exactly where it stopped (``resume=True``; ``iterations`` then sets the run's length).
     Returns ``{"dir", "iterations_done", "finished", "last_test_mean"}``.
+
+    ``matmul``: ``"fp32"`` or ``"tf32"``, how a CUDA device computes float32 products (the run's
+    ``run.matmul``; docs/implementation-details.md, C.8). Not with ``resume=True``.
 
     ``progress``: True (default) shows a line on stderr (iteration, loss, time left), False shows
     nothing, a callable is called after every iteration with ``{"iteration", "iterations",
@@ -213,6 +217,7 @@ def train(
         seed=seed,
         iterations=iterations,
         method=method,
+        matmul=matmul,
         device=device,
         data=None if data is None else _os.fspath(data),
         progress=report,

@@ -51,6 +51,7 @@ def train(
     iterations: Optional[int] = None,
     method: Optional[str] = None,
     device: Optional[str] = None,
+    matmul: Optional[str] = None,
     data: Optional[_Path] = None,
     progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> Dict[str, Any]: ...
