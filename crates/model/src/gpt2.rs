@@ -94,8 +94,9 @@ impl Attention {
         let hd = self.hidden / self.n_head;
         let (q, k, v) = self.qkv(x, l, lora); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
-                                                      // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
-                                                      // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
+
+        // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
+        // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
         let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
         let w = drop.apply(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
         let a = w.matmul(&v); // [B, nh, L, hd]

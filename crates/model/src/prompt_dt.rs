@@ -404,8 +404,9 @@ impl PromptDt {
         let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
         let tail =
             self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, R, H]
-                                                                                                   // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
-                                                                                                   // the last, the state token of the last step.
+
+        // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
+        // the last, the state token of the last step.
         let rows = tail.size()[1];
         let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
         if self.cfg.action_tanh {

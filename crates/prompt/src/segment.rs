@@ -138,7 +138,8 @@ mod tests {
         assert_eq!(b.t, vec![0, 0, 4, 5]);
         assert_eq!(b.a, vec![ACTION_PAD, ACTION_PAD, 0.04, 0.05]);
         assert_eq!(b.r, vec![0.0, 0.0, 1.1, 0.6]); // (5 + 6, 6) / 10
-                                                   // pads are normalised zeros: -mean/std
+
+        // pads are normalised zeros: -mean/std
         assert_eq!(&b.s[..4], &[-0.5, -0.5, -0.5, -0.5]);
         assert_eq!(&b.s[4..6], &[(8.0 - 1.0) / 2.0, (9.0 - 2.0) / 4.0]);
     }

@@ -145,7 +145,8 @@ impl Sac {
             &b.rewards + &b.not_done * q_next * self.cfg.gamma
         });
         let q = self.critic.forward(&Tensor::cat(&[&b.obs, &b.actions], 1)); // [2, B, 1]
-                                                                             // Sum of the two critics' MSE losses.
+
+        // Sum of the two critics' MSE losses.
         let critic_loss = (q - target.unsqueeze(0))
             .square()
             .mean_dim(&[1i64, 2][..], false, Kind::Float)

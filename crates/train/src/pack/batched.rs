@@ -176,8 +176,9 @@ impl PackEngine for BatchedEngine {
                 .collect(),
         );
         let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
-                                                                        // As `crate::step::train_step`: the prompt's steps are supervised only with
-                                                                        // `LossOn::PromptAndHistory` and a prompt.
+
+        // As `crate::step::train_step`: the prompt's steps are supervised only with
+        // `LossOn::PromptAndHistory` and a prompt.
         let supervise: Vec<bool> = self
             .specs
             .iter()
@@ -200,7 +201,8 @@ impl PackEngine for BatchedEngine {
             .map(|(s, spec)| s.as_ref().map_or(0.0, |s| spec.optim.lr_at(s.step)))
             .collect();
         let norms = self.opt.step(self.model.weights(), &grads, &active, &lrs); // [N]
-                                                                                // One copy to the host for every run's loss and norm.
+
+        // One copy to the host for every run's loss and norm.
         let host = Tensor::stack(&[loss.detach(), norms], 0)
             .to_kind(Kind::Double)
             .to_device(Device::Cpu)
