@@ -315,3 +315,27 @@ fn run_04_a_run_killed_again_and_again_ends_as_if_never_killed() {
     };
     assert_eq!(files(&run), files(&straight));
 }
+
+/// A run trained with TF32 matmuls on a GPU (`run.matmul = "tf32"`, set here by hand: this machine
+/// has none) is evaluated on the CPU in fp32, as the same run recorded with fp32 is, but is not
+/// trained further there (refused by name, nothing changed); `--matmul` does not go with --resume.
+#[test]
+fn a_tf32_run_evaluates_on_the_cpu_and_is_not_trained_there() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let out = tmp.path().join("r");
+    train(&cfg, &out, &["--iterations", "1"]);
+    let eval = ["eval", "--run", s(&out), "--episodes", "1"];
+    ok(&eval);
+    let fp32 = std::fs::read(out.join("eval_final.json")).unwrap();
+    edit_run_config(&out, "run", "matmul", "\"tf32\"");
+    ok(&eval);
+    assert_eq!(std::fs::read(out.join("eval_final.json")).unwrap(), fp32, "fp32 on the CPU");
+    let before = names_in(&out);
+    let e = clean(fails(&["train", "--resume", s(&out), "--iterations", "2"]));
+    assert!(e.contains("matmul = tf32 needs a CUDA device, and the device is the CPU"), "{e}");
+    assert_eq!(names_in(&out), before, "nothing written");
+    assert_eq!(latest(&out)["iteration"], 1);
+    let e = fails(&["train", "--resume", s(&out), "--matmul", "fp32"]);
+    assert!(e.contains("--matmul") && e.contains("--resume"), "{e}");
+}

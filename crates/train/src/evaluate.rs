@@ -100,6 +100,11 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
         cfg.eval.adapt = a.clone();
     }
     let setup = Setup::new(cfg)?;
+    // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
+    // run trained with (its checkpoints stay usable there).
+    if setup.device.is_cuda() {
+        pdt_model::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
+    }
     let stats_path = run.stats_path();
     let recorded = read_stats(&run)?;
     setup.run_data.stats.check_same_as(&recorded).map_err(|m| {

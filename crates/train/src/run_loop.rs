@@ -106,6 +106,8 @@ pub fn train(
     cfg.validate()?;
     let toml = cfg.to_toml()?;
     let setup = Setup::new(cfg)?;
+    // Training computes as the run says, or not at all (`tf32` on the CPU is refused).
+    pdt_model::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
     let _rng = torch_rng_lock();
     let threads = pdt_base::threads(setup.cfg.run.threads);
     tch::set_num_threads(threads as i32);

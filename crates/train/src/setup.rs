@@ -40,7 +40,6 @@ impl Setup {
         let preset = family.preset();
         let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
         let device = pdt_model::device::resolve(cfg.run.device)?;
-        pdt_model::device::set_matmul(device, cfg.run.matmul)?;
         Ok(Self { cfg, family, preset, run_data, device })
     }
 
@@ -51,7 +50,6 @@ impl Setup {
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
         let device = pdt_model::device::resolve(cfg.run.device)?;
-        pdt_model::device::set_matmul(device, cfg.run.matmul)?;
         Ok(Self { cfg, family, preset, run_data, device })
     }
 
