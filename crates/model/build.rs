@@ -1,13 +1,15 @@
-//! Compiles `csrc/matmul.cpp`, the binding of the one libtorch setting tch 0.24 lacks (cuBLAS's
-//! TF32 switch; `pdt_model::device::Matmul`), against the headers of the libtorch that torch-sys
-//! links: `LIBTORCH` (set by `.cargo/config.toml` to `third_party/libtorch/torch`, installed by
-//! `scripts/fetch_libtorch.py`), with torch-sys's own flags.
+//! Compiles what promptdt needs of libtorch that tch 0.24 does not bind, against the headers of the
+//! libtorch that torch-sys links: `LIBTORCH` (set by `.cargo/config.toml` to
+//! `third_party/libtorch/torch`, installed by `scripts/fetch_libtorch.py`), with torch-sys's own
+//! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_model::device::Matmul`);
+//! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`).
 
 use std::path::PathBuf;
 
 fn main() {
     println!("cargo::rerun-if-changed=build.rs");
     println!("cargo::rerun-if-changed=csrc/matmul.cpp");
+    println!("cargo::rerun-if-changed=csrc/profiler.cpp");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
     let Some(libtorch) = std::env::var_os("LIBTORCH").map(PathBuf::from) else {
@@ -28,10 +30,13 @@ fn main() {
     cc::Build::new()
         .cpp(true)
         .file("csrc/matmul.cpp")
+        .file("csrc/profiler.cpp")
         .include(&include)
+        .include(include.join("torch").join("csrc").join("api").join("include"))
+        .include(include.join("kineto"))
         .flag("-std=c++17")
         .flag(format!("-D_GLIBCXX_USE_CXX11_ABI={abi}"))
         .flag("-DGLOG_USE_GLOG_EXPORT")
         .warnings(false)
-        .compile("pdt_matmul");
+        .compile("pdt_libtorch_extra");
 }

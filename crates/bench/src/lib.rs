@@ -12,6 +12,7 @@ use pdt_base::table::{Rule, Table};
 use pdt_model::device::Matmul;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 pub mod pack;
+pub mod profile;
 pub mod render;
 pub mod serve;
 
@@ -33,6 +34,8 @@ pub struct BenchConfig {
     pub device: Device,
     /// How a CUDA device computes float32 products (`--matmul`; PyTorch's baseline gets the same).
     pub matmul: Matmul,
+    /// Also count what one iteration of each model, pack, RL and MACAW case runs (`profile`).
+    pub profile: bool,
     /// Cases to run: any of `train_b560`, `train_b64`, `train_b560_flat`, `train_b64_flat`,
     /// `infer_b1`, `infer_b50` (and the other kinds `BenchError::UnknownCase` lists).
     pub cases: Vec<String>,
@@ -96,6 +99,8 @@ pub struct BenchReport {
     /// With `--matmul tf32` on a CUDA device: how far a product computed with TF32 lies from the
     /// same product in fp32 (`tf32_effect`), which shows that cuBLAS took the switch.
     pub tf32_effect: Option<f64>,
+    /// With `--profile`: what one iteration of each profiled case runs.
+    pub profiles: Vec<profile::CaseProfile>,
     pub serve: Vec<ServeCase>,
     pub promptdt: EngineReport,
     pub pytorch: Option<EngineReport>,
@@ -114,6 +119,8 @@ pub enum BenchError {
     Render { case: String, why: String },
     #[error(transparent)]
     Matmul(#[from] pdt_model::device::MatmulError),
+    #[error(transparent)]
+    Profiler(#[from] pdt_model::profiler::ProfilerError),
 }
 
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
@@ -525,25 +532,16 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         Optimizers { vs: &vs, names: mcfg.parameter_names(), per_tensor: None, flat: None };
     let mut results = Vec::new();
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
-        results.push(if let Some(case) = parse_eval_case(c) {
-            time_eval(c, case, cfg)?
-        } else if let Some((family, w, h)) = render::parse_case(c) {
-            let ms = render::time_frames(family, w, h, cfg.warmup, cfg.iters)
-                .map_err(|why| BenchError::Render { case: c.clone(), why })?;
-            timing(c, ms)
-        } else if let Some(case) = pack::parse_case(c) {
-            let ms = pack::time_pack(case, cfg.warmup, cfg.iters, cfg.device)
-                .map_err(|why| BenchError::Pack { case: c.clone(), why })?;
-            timing(c, ms)
-        } else if let Some((w, t)) = pdt_macaw::bench::parse_case(c) {
-            let ms = pdt_macaw::bench::time_meta_steps(w, t, cfg.warmup, cfg.iters, cfg.device);
-            timing(c, ms)
-        } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
-            let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
-            timing(c, ms)
-        } else {
-            time_case(&model, &mut opts, c, cfg)?
-        });
+        results.push(time_one(c, cfg, &model, &mut opts)?);
+    }
+    // After the timings, so each case's lazily built parts (its optimiser) exist in both profiled
+    // runs alike. The evaluation and rendering cases are whole protocols or no libtorch at all.
+    let mut profiles = Vec::new();
+    for c in
+        cfg.cases.iter().filter(|c| cfg.profile && !is_serve(c) && !is_eval(c) && !is_render(c))
+    {
+        profiles
+            .push(profile::profile_case(c, cfg, |short| time_one(c, short, &model, &mut opts))?);
     }
     let promptdt = EngineReport {
         engine: "promptdt".into(),
@@ -623,7 +621,35 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         Matmul::Tf32 if cfg.device.is_cuda() => Some(tf32_effect(cfg.device)?),
         _ => None,
     };
-    Ok(BenchReport { device, tf32_effect, serve, promptdt, pytorch, speedup })
+    Ok(BenchReport { device, tf32_effect, profiles, serve, promptdt, pytorch, speedup })
+}
+
+/// Times case `c` with `cfg`'s warm-up and iterations.
+fn time_one(
+    c: &str,
+    cfg: &BenchConfig,
+    model: &PromptDt,
+    opts: &mut Optimizers<'_>,
+) -> Result<CaseTiming, BenchError> {
+    Ok(if let Some(case) = parse_eval_case(c) {
+        time_eval(c, case, cfg)?
+    } else if let Some((family, w, h)) = render::parse_case(c) {
+        let ms = render::time_frames(family, w, h, cfg.warmup, cfg.iters)
+            .map_err(|why| BenchError::Render { case: c.to_string(), why })?;
+        timing(c, ms)
+    } else if let Some(case) = pack::parse_case(c) {
+        let ms = pack::time_pack(case, cfg.warmup, cfg.iters, cfg.device)
+            .map_err(|why| BenchError::Pack { case: c.to_string(), why })?;
+        timing(c, ms)
+    } else if let Some((w, t)) = pdt_macaw::bench::parse_case(c) {
+        let ms = pdt_macaw::bench::time_meta_steps(w, t, cfg.warmup, cfg.iters, cfg.device);
+        timing(c, ms)
+    } else if let Some((alg, h, b)) = pdt_rl::bench::parse_case(c) {
+        let ms = pdt_rl::bench::time_updates(alg, h, b, cfg.warmup, cfg.iters, cfg.device);
+        timing(c, ms)
+    } else {
+        time_case(model, opts, c, cfg)?
+    })
 }
 
 /// The largest difference between a `[512, 1024] x [1024, 512]` product computed with cuBLAS's TF32
@@ -663,6 +689,7 @@ pub fn render_markdown(r: &BenchReport) -> String {
         cases.push(vec![c.name.clone(), fmt(c), theirs.map_or("not run".into(), fmt), ratio]);
     }
     let mut s = cases.markdown(Rule::Tight);
+    s.push_str(&profile::render(&r.profiles));
     if let Some(e) = r.tf32_effect {
         s.push_str(&format!(
             "\nTF32 check: a product computed with TF32 differs from fp32 by {e:.2e} of its \

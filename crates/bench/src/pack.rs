@@ -5,7 +5,8 @@
 //! random batch, left-padded histories. Both use what a run uses on the device (`optim.flat =
 //! "auto"`: the flat optimisers and per-run mask draws on CUDA, the per-tensor ones on the CPU);
 //! the suffix `_flat` asks for the CUDA configuration on any device (`optim.flat = "on"`, the
-//! pack's masks drawn per run), `_pt` for the CPU one (`optim.flat = "off"`, masks in solo order).
+//! pack's masks drawn per run, one LayerNorm for the pack), `_pt` for the CPU one (`optim.flat =
+//! "off"`, masks in solo order, a LayerNorm per run).
 //!
 //! With `_act` a case times one environment step of N runs evaluating with B episodes each: the
 //! pack's forward for all runs (`pack<N>_b<B>_act`: `PackEngine::act`, as `--pack-eval together`)
@@ -14,7 +15,7 @@
 
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
-use pdt_model::packed::MaskDraw;
+use pdt_model::packed::{LayerNormPlan, MaskDraw};
 use pdt_model::{PrefixCache, PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotAct, SlotSpec, SlotStep};
@@ -104,9 +105,15 @@ pub fn time_pack(
             let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
             let mut engine =
                 BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
-            // The mask draw goes with the optimiser's configuration (`_flat`: CUDA's).
+            // The mask draw and the LayerNorms go with the optimiser's configuration (`_flat`:
+            // CUDA's, so that `--profile` counts on a CPU what a GPU step launches).
             let cuda_like = case.flat.use_flat(device.is_cuda());
             engine.set_mask_draw(if cuda_like { MaskDraw::PerRun } else { MaskDraw::SoloOrder });
+            engine.set_layer_norm(if cuda_like {
+                LayerNormPlan::Batched
+            } else {
+                LayerNormPlan::PerRun
+            });
             Box::new(move |step| {
                 let steps =
                     (0..case.runs).map(|i| Some(SlotStep { step, batch: batch_of(i) })).collect();

@@ -19,6 +19,10 @@ pub struct BenchArgs {
     /// Float32 products on CUDA in `fp32` or `tf32` (PyTorch's baseline gets the same).
     #[arg(long, default_value = "fp32")]
     pub matmul: pdt_model::device::Matmul,
+    /// Also count what one iteration of each case runs with libtorch's profiler: host operators
+    /// and, on CUDA, kernels and copies, and where their time goes (not the evaluation cases).
+    #[arg(long)]
+    pub profile: bool,
     /// Comma-separated cases.
     #[arg(long, default_value = "train_b560,train_b64,infer_b1,infer_b50,eval_point_robot")]
     pub cases: String,
@@ -75,6 +79,7 @@ impl BenchArgs {
             warmup: self.warmup,
             device: pdt_model::device::resolve(self.device)?,
             matmul: self.matmul,
+            profile: self.profile,
             cases: self
                 .cases
                 .split(',')

@@ -26,6 +26,7 @@ pub mod gpt2;
 pub mod host_memory;
 pub mod lora;
 pub mod packed;
+pub mod profiler;
 pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;

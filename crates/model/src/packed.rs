@@ -389,4 +389,4 @@ fn check_segments(s: &Segments, b: i64, t: i64, ds: i64, da: i64) -> Result<(), 
 
 mod trunk;
 
-pub use trunk::{DropoutSeeds, MaskDraw, PackedPromptDt};
+pub use trunk::{DropoutSeeds, LayerNormPlan, MaskDraw, PackedPromptDt};

@@ -7,6 +7,29 @@ use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
 use crate::prompt_dt::Segments;
 use tch::{Device, Kind, Tensor};
 
+/// How a pack computes its LayerNorms (each run has its own weight and bias).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LayerNormPlan {
+    /// libtorch's fused LayerNorm once per run: the solo kernel's bits, and on the CPU faster than
+    /// one normalisation followed by a broadcast affine (which adds passes over the activations,
+    /// forward and backward). About 20 operators per LayerNorm and run, forward and backward.
+    PerRun,
+    /// One normalisation for the pack, then each run's affine: a fixed number of kernels whatever
+    /// the pack's size, which is what counts on a GPU, where each costs a launch.
+    Batched,
+}
+
+impl LayerNormPlan {
+    /// `Batched` on CUDA, `PerRun` elsewhere.
+    pub fn default_for(device: Device) -> Self {
+        if device.is_cuda() {
+            LayerNormPlan::Batched
+        } else {
+            LayerNormPlan::PerRun
+        }
+    }
+}
+
 /// Per run, the seed libtorch's generator is set to before that run's dropout masks are drawn;
 /// `None` for a run that gets no dropout this step (a run without inputs).
 #[derive(Debug, Clone)]
@@ -58,6 +81,7 @@ pub struct PackedPromptDt {
     masked_bias: Tensor,
     device: Device,
     mask_draw: MaskDraw,
+    layer_norm: LayerNormPlan,
 }
 
 /// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
@@ -99,6 +123,7 @@ impl PackedPromptDt {
             masked_bias: Tensor::from(-1e4f32).to_device(device),
             device,
             mask_draw: MaskDraw::default_for(device),
+            layer_norm: LayerNormPlan::default_for(device),
         })
     }
 
@@ -113,6 +138,11 @@ impl PackedPromptDt {
     /// How the dropout masks are drawn (default [`MaskDraw::default_for`] the device).
     pub fn set_mask_draw(&mut self, draw: MaskDraw) {
         self.mask_draw = draw;
+    }
+
+    /// How the LayerNorms are computed (default [`LayerNormPlan::default_for`] the device).
+    pub fn set_layer_norm(&mut self, plan: LayerNormPlan) {
+        self.layer_norm = plan;
     }
 
     /// Solo parameter names, in the order of [`Self::weights`].
@@ -213,10 +243,7 @@ impl PackedPromptDt {
         let h = s[2];
         let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
         let xs = x.view([n, -1, h]); // [N, B*L, H]: run n's rows are contiguous
-        if self.device == Device::Cpu {
-            // On the CPU, libtorch's fused LayerNorm once per run (its own weight and bias): the
-            // solo kernel's bits, and measured faster than one normalisation followed by a
-            // broadcast affine (which adds passes over the activations, forward and backward).
+        if self.layer_norm == LayerNormPlan::PerRun {
             // `unbind`, not `get(i)` per run: its backward is one `stack`, where each `select`'s
             // would allocate and fill a gradient of the whole input.
             let (xs, ws, bs) = (xs.unbind(0), weight.unbind(0), bias.unbind(0));
@@ -227,8 +254,6 @@ impl PackedPromptDt {
                 .collect();
             return Tensor::stack(&parts, 0).view([s[0], s[1], h]);
         }
-        // On a GPU, where each kernel costs a launch: one normalisation for the pack, then each
-        // run's affine.
         let normed = xs.layer_norm([h], None::<&Tensor>, None::<&Tensor>, eps, false); // [N, B*L, H]
         let y = normed * weight.unsqueeze(1) + bias.unsqueeze(1);
         y.view([s[0], s[1], h])

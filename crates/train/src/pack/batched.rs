@@ -17,7 +17,7 @@ use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
 use pdt_model::packed::{
-    DropoutSeeds, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
+    DropoutSeeds, LayerNormPlan, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
 };
 use pdt_model::PromptDt;
 use tch::{nn::VarStore, Device, Kind, Tensor};
@@ -110,6 +110,11 @@ impl BatchedEngine {
     /// How dropout masks are drawn (default: [`MaskDraw::default_for`] the pack's device).
     pub fn set_mask_draw(&mut self, draw: MaskDraw) {
         self.model.set_mask_draw(draw);
+    }
+
+    /// How the batched model computes its LayerNorms (default: by the device; for measurements).
+    pub fn set_layer_norm(&mut self, plan: LayerNormPlan) {
+        self.model.set_layer_norm(plan);
     }
 
     fn check_slot(&self, slot: usize) -> Result<(), RunError> {
