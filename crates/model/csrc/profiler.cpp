@@ -2,24 +2,17 @@
 // the operators a step runs and, on CUDA, the kernels it launches (and where their time goes).
 // Compiled by crates/model/build.rs; called only through `pdt_model::profiler`.
 //
-// Every function catches all C++ exceptions (none may unwind into Rust): 0 is success, -1 a
-// failure with libtorch's message in `err` (NUL-terminated, cut to `err_len`).
+// 0 is success, -1 a failure with libtorch's message in `err` (guard.h).
 
 #include <ActivityType.h>
 #include <torch/csrc/autograd/profiler_kineto.h>
 
 #include <cstdint>
-#include <cstring>
-#include <exception>
 #include <set>
 
-namespace {
-void copy_message(const char* what, char* err, size_t err_len) {
-  if (err == nullptr || err_len == 0) return;
-  std::strncpy(err, what, err_len - 1);
-  err[err_len - 1] = '\0';
-}
+#include "guard.h"
 
+namespace {
 using torch::profiler::impl::ActivityType;
 using torch::profiler::impl::ProfilerConfig;
 using torch::profiler::impl::ProfilerState;
@@ -45,19 +38,14 @@ int kind_of(uint8_t activity) {
 }  // namespace
 
 extern "C" int pdt_profiler_start(int with_cuda, char* err, size_t err_len) noexcept {
-  try {
+  return pdt::guarded(err, err_len, [&] {
     const ProfilerConfig config(ProfilerState::KINETO);
     std::set<ActivityType> activities{ActivityType::CPU};
     if (with_cuda != 0) activities.insert(ActivityType::CUDA);
     torch::autograd::profiler::prepareProfiler(config, activities);
     torch::autograd::profiler::enableProfiler(config, activities);
     return 0;
-  } catch (const std::exception& e) {
-    copy_message(e.what(), err, err_len);
-  } catch (...) {
-    copy_message("unknown C++ exception", err, err_len);
-  }
-  return -1;
+  });
 }
 
 // Stops the profiler and hands each event to `sink` (name, kind, duration in ns). `sink` must not
@@ -65,7 +53,7 @@ extern "C" int pdt_profiler_start(int with_cuda, char* err, size_t err_len) noex
 extern "C" int pdt_profiler_stop(void* ctx,
                                  void (*sink)(void*, const char*, int, uint64_t),
                                  char* err, size_t err_len) noexcept {
-  try {
+  return pdt::guarded(err, err_len, [&] {
     auto result = torch::autograd::profiler::disableProfiler();
     if (result) {
       for (const auto& e : result->events()) {
@@ -74,10 +62,5 @@ extern "C" int pdt_profiler_stop(void* ctx,
       }
     }
     return 0;
-  } catch (const std::exception& e) {
-    copy_message(e.what(), err, err_len);
-  } catch (...) {
-    copy_message("unknown C++ exception", err, err_len);
-  }
-  return -1;
+  });
 }

@@ -64,21 +64,6 @@ pub enum MatmulError {
     Refused(String),
 }
 
-#[allow(unsafe_code)]
-mod ffi {
-    // csrc/matmul.cpp, compiled by build.rs against the linked libtorch's headers.
-    unsafe extern "C" {
-        pub fn pdt_set_cublas_tf32(on: i32, err: *mut u8, err_len: usize) -> i32;
-        pub fn pdt_cublas_tf32(err: *mut u8, err_len: usize) -> i32;
-    }
-}
-
-/// The C++ side's message buffer as text (up to its first NUL).
-fn message(buf: &[u8]) -> String {
-    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
-    String::from_utf8_lossy(&buf[..end]).into_owned()
-}
-
 /// Sets how float32 matrix products are computed for a run on `device` ([`Matmul`]). libtorch keeps
 /// the setting for the whole process, so every run of a process must ask for the same one (a pack
 /// checks that its runs agree). On a CUDA device it is always set, so a `fp32` run is fp32 even
@@ -98,29 +83,22 @@ pub fn set_matmul(device: Device, matmul: Matmul) -> Result<(), MatmulError> {
 /// Public for the test that checks it leaves CPU products alone; runs go through [`set_matmul`].
 #[doc(hidden)]
 pub fn set_cublas_tf32(on: bool) -> Result<(), MatmulError> {
-    let mut err = [0u8; 512];
     // SAFETY: the C++ function catches every exception (none unwinds into Rust) and writes at most
-    // `err.len()` bytes, NUL included, into the buffer it is given.
+    // `len` bytes, NUL included, into the buffer `call` gives it.
     #[allow(unsafe_code)]
-    let rc = unsafe { ffi::pdt_set_cublas_tf32(i32::from(on), err.as_mut_ptr(), err.len()) };
-    if rc == 0 {
-        Ok(())
-    } else {
-        Err(MatmulError::Refused(message(&err)))
-    }
+    let set = |err, len| unsafe { crate::ffi::pdt_set_cublas_tf32(i32::from(on), err, len) };
+    crate::ffi::call(set).map(|_| ()).map_err(MatmulError::Refused)
 }
 
 /// What libtorch will use for float32 matrix products on CUDA devices now (its cuBLAS TF32
 /// switch; on the CPU products are fp32 whatever it says).
 pub fn cuda_matmul() -> Result<Matmul, MatmulError> {
-    let mut err = [0u8; 512];
     // SAFETY: as in `set_cublas_tf32`.
     #[allow(unsafe_code)]
-    let rc = unsafe { ffi::pdt_cublas_tf32(err.as_mut_ptr(), err.len()) };
-    match rc {
+    let get = |err, len| unsafe { crate::ffi::pdt_cublas_tf32(err, len) };
+    match crate::ffi::call(get).map_err(MatmulError::Refused)? {
         0 => Ok(Matmul::Fp32),
-        1 => Ok(Matmul::Tf32),
-        _ => Err(MatmulError::Refused(message(&err))),
+        _ => Ok(Matmul::Tf32),
     }
 }
 

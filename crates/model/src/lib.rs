@@ -21,6 +21,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod device;
 pub mod dropout;
+mod ffi;
 pub mod forward_file;
 pub mod gpt2;
 pub mod host_memory;

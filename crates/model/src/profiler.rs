@@ -52,27 +52,6 @@ pub struct Event {
 #[error("libtorch's profiler: {0}")]
 pub struct ProfilerError(String);
 
-#[allow(unsafe_code)]
-mod ffi {
-    use std::ffi::{c_char, c_int, c_void};
-    pub type Sink = extern "C" fn(*mut c_void, *const c_char, c_int, u64);
-    // csrc/profiler.cpp, compiled by build.rs against the linked libtorch's headers.
-    unsafe extern "C" {
-        pub fn pdt_profiler_start(with_cuda: c_int, err: *mut u8, err_len: usize) -> c_int;
-        pub fn pdt_profiler_stop(
-            ctx: *mut c_void,
-            sink: Sink,
-            err: *mut u8,
-            err_len: usize,
-        ) -> c_int;
-    }
-}
-
-fn message(buf: &[u8]) -> String {
-    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
-    String::from_utf8_lossy(&buf[..end]).into_owned()
-}
-
 /// A running profiler; [`Profiling::stop`] gives its events. Dropped without `stop`, it stops and
 /// discards them.
 #[derive(Debug)]
@@ -86,15 +65,15 @@ pub fn start(cuda: bool) -> Result<Profiling, ProfilerError> {
     if ACTIVE.swap(true, Ordering::SeqCst) {
         return Err(ProfilerError("one is running in this process already".into()));
     }
-    let mut err = [0u8; 1024];
-    // SAFETY: the C++ function catches every exception and writes at most `err.len()` bytes.
+    // SAFETY: the C++ function catches every exception and writes at most `len` bytes.
     #[allow(unsafe_code)]
-    let rc = unsafe { ffi::pdt_profiler_start(c_int::from(cuda), err.as_mut_ptr(), err.len()) };
-    if rc == 0 {
-        Ok(Profiling { stopped: false })
-    } else {
-        ACTIVE.store(false, Ordering::SeqCst);
-        Err(ProfilerError(message(&err)))
+    let start = |err, len| unsafe { crate::ffi::pdt_profiler_start(c_int::from(cuda), err, len) };
+    match crate::ffi::call(start) {
+        Ok(_) => Ok(Profiling { stopped: false }),
+        Err(m) => {
+            ACTIVE.store(false, Ordering::SeqCst);
+            Err(ProfilerError(m))
+        }
     }
 }
 
@@ -128,18 +107,14 @@ impl Profiling {
 
 fn stop_into() -> Result<Vec<Event>, ProfilerError> {
     let mut events: Vec<Event> = Vec::new();
-    let mut err = [0u8; 1024];
     let ctx = (&mut events as *mut Vec<Event>).cast::<c_void>();
     // SAFETY: `ctx` points at `events`, which outlives the call; `sink` matches the C signature and
-    // never unwinds; the C++ function catches every exception and writes at most `err.len()` bytes.
+    // never unwinds; the C++ function catches every exception and writes at most `len` bytes.
     #[allow(unsafe_code)]
-    let rc = unsafe { ffi::pdt_profiler_stop(ctx, sink, err.as_mut_ptr(), err.len()) };
+    let stop = |err, len| unsafe { crate::ffi::pdt_profiler_stop(ctx, sink, err, len) };
+    let rc = crate::ffi::call(stop);
     ACTIVE.store(false, Ordering::SeqCst);
-    if rc == 0 {
-        Ok(events)
-    } else {
-        Err(ProfilerError(message(&err)))
-    }
+    rc.map(|_| events).map_err(ProfilerError)
 }
 
 impl Drop for Profiling {
