@@ -14,6 +14,9 @@ Cases:
 Inputs are random but shaped like get_batch: left-padded histories (mask 0 = pad), prompt of 5 steps.
 Each case: `--warmup` untimed iterations, then `--iters` timed ones; reports median, p10, p90 in ms.
 On CUDA the device is synchronised before reading the clock at both ends of every iteration.
+With --profile, also what one iteration runs, as promptdt's `bench --profile` counts it (torch's
+profiler over 2 and 4 iterations after one warm-up, the difference over 2): host operators, CUDA
+kernels, CUDA copies.
 Prints one JSON object on stdout.
 """
 from __future__ import annotations
@@ -66,6 +69,33 @@ def timed(fn, warmup, iters, sync):
             "p90_ms": round(q[-1], 4), "iters": iters}
 
 
+def profile_counts(step, device, sync):
+    """One iteration's host operators, CUDA kernels and CUDA copies (see the module docs)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+
+    def counts(iters):
+        with profile(activities=activities) as prof:
+            for _ in range(1 + iters):
+                step()
+            sync()
+        ops = kernels = copies = 0
+        for e in prof.profiler.kineto_results.events():
+            name = e.name()
+            if e.device_type() == torch.autograd.DeviceType.CUDA:
+                if name.startswith("Memcpy") or name.startswith("Memset"):
+                    copies += 1
+                else:
+                    kernels += 1
+            elif not name.startswith("cuda"):  # not a CUDA runtime or driver call
+                ops += 1
+        return ops, kernels, copies
+
+    (a, b) = counts(2), counts(4)
+    return {k: (y - x) / 2 for k, x, y in zip(("ops", "kernels", "copies"), a, b)}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=os.cpu_count())
@@ -75,6 +105,7 @@ def main():
     ap.add_argument("--cases", default="train_b560,train_b64,infer_b1,infer_b50")
     # promptdt's --matmul: fp32 (PyTorch's default since 1.12) or tf32 (cuBLAS on tensor cores).
     ap.add_argument("--matmul", default="fp32", choices=["fp32", "tf32"])
+    ap.add_argument("--profile", action="store_true")
     args = ap.parse_args()
     # The legacy switch, as promptdt sets it (crates/model/csrc/matmul.cpp): it keeps PyTorch's two
     # records of the setting in agreement. CUDA matmuls only.
@@ -120,6 +151,8 @@ def main():
         step, set_mode = make(name)
         set_mode()
         results.append({"name": name, **timed(step, args.warmup, args.iters, sync)})
+        if args.profile:
+            results[-1]["profile"] = profile_counts(step, device, sync)
 
     out = {"engine": "pytorch", "torch_version": torch.__version__, "threads": torch.get_num_threads(),
            "device": args.device, "results": results,

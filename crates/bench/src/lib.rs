@@ -81,6 +81,9 @@ pub struct CaseTiming {
     pub p10_ms: f64,
     pub p90_ms: f64,
     pub iters: usize,
+    /// The PyTorch baseline's count of what one iteration runs, with `--profile`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile: Option<profile::OpCounts>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -229,6 +232,7 @@ fn timing(name: &str, mut ms: Vec<f64>) -> CaseTiming {
         p10_ms: percentile(&ms, 0.1),
         p90_ms: percentile(&ms, 0.9),
         iters,
+        profile: None,
     }
 }
 
@@ -288,6 +292,7 @@ fn time_case(
         p10_ms: percentile(&ms, 0.1),
         p90_ms: percentile(&ms, 0.9),
         iters: cfg.iters,
+        profile: None,
     })
 }
 
@@ -341,6 +346,9 @@ fn run_pytorch(base: &PyTorchBaseline, cfg: &BenchConfig) -> Result<EngineReport
             "--cases",
             &cfg.cases.join(","),
         ]);
+    if cfg.profile {
+        cmd.arg("--profile");
+    }
     let shown = format!("{cmd:?}");
     let out = cmd
         .output()
@@ -442,6 +450,7 @@ fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming
         p10_ms: percentile(&secs, 0.1),
         p90_ms: percentile(&secs, 0.9),
         iters: secs.len(),
+        profile: None,
     })
 }
 
@@ -484,6 +493,7 @@ fn run_pytorch_eval(
         p10_ms: f("p10_s"),
         p90_ms: f("p90_s"),
         iters: 3,
+        profile: None,
     })
 }
 
@@ -689,7 +699,7 @@ pub fn render_markdown(r: &BenchReport) -> String {
         cases.push(vec![c.name.clone(), fmt(c), theirs.map_or("not run".into(), fmt), ratio]);
     }
     let mut s = cases.markdown(Rule::Tight);
-    s.push_str(&profile::render(&r.profiles));
+    s.push_str(&profile::render(&r.profiles, r.pytorch.as_ref()));
     if let Some(e) = r.tf32_effect {
         s.push_str(&format!(
             "\nTF32 check: a product computed with TF32 differs from fp32 by {e:.2e} of its \

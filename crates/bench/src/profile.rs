@@ -10,7 +10,7 @@
 //! iteration runs the same operators; durations are the profiled runs' own, slower than unprofiled
 //! ones).
 
-use crate::{BenchConfig, BenchError, CaseTiming};
+use crate::{BenchConfig, BenchError, CaseTiming, EngineReport};
 use pdt_model::profiler::{self, Event, EventKind};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -32,6 +32,15 @@ pub struct CaseProfile {
     pub copies: f64,
     /// The operators and kernels that take the most time per iteration, by kind.
     pub top: Vec<ProfiledName>,
+}
+
+/// What one iteration runs, as counted for the PyTorch baseline (`bench_torch.py --profile`, the
+/// same difference of 4 and 2 iterations).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct OpCounts {
+    pub ops: f64,
+    pub kernels: f64,
+    pub copies: f64,
 }
 
 /// One operator or kernel name's share of an iteration.
@@ -94,20 +103,32 @@ pub fn profile_case(
     Ok(CaseProfile { case: case.to_string(), ops, kernels, copies, top })
 }
 
-/// The profiles as Markdown: a line per case, then each case's costliest names.
-pub fn render(profiles: &[CaseProfile]) -> String {
+/// The profiles as Markdown: a line per case (with PyTorch's counts where its baseline ran the
+/// case with `--profile`), then each case's costliest names.
+pub fn render(profiles: &[CaseProfile], pytorch: Option<&EngineReport>) -> String {
     use pdt_base::table::{Rule, Table};
     if profiles.is_empty() {
         return String::new();
     }
-    let header = ["case", "host ops per iteration", "CUDA kernels per iteration", "CUDA copies"];
+    let header = [
+        "case",
+        "host ops per iteration",
+        "CUDA kernels per iteration",
+        "CUDA copies",
+        "PyTorch: ops / kernels / copies",
+    ];
     let mut t = Table::new(header.map(String::from).to_vec());
     for p in profiles {
+        let theirs = pytorch
+            .and_then(|r| r.results.iter().find(|c| c.name == p.case))
+            .and_then(|c| c.profile)
+            .map_or("-".into(), |c| format!("{:.0} / {:.0} / {:.0}", c.ops, c.kernels, c.copies));
         t.push(vec![
             p.case.clone(),
             format!("{:.0}", p.ops),
             format!("{:.0}", p.kernels),
             format!("{:.0}", p.copies),
+            theirs,
         ]);
     }
     let mut s = format!(
