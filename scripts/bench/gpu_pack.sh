@@ -6,8 +6,9 @@
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
 #      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
 #      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
-#   P. where a step's time goes: libtorch's profiler over one solo run's step and a pack of 12's, at
-#      Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step, the costliest);
+#   P. where a step's time goes: libtorch's profiler over one solo run's step (beside PyTorch's) and a
+#      pack of 12's, at Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step,
+#      the costliest);
 #   T. TF32 against fp32 matmuls (--matmul, same call): the arithmetic-bound step (Cheetah-Vel's batch,
 #      solo and a pack of 12) and the launch-bound one (pack12_b32); the solo step against PyTorch
 #      with TF32 too (T_S seconds; SKIP_T=1 skips it);
@@ -58,7 +59,8 @@ bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
 if [ -z "${SKIP_P:-}" ]; then
   log "P. profile: kernels per step"
-  bench ${P_S:-90} bench_profile --iters 3 --warmup 2 --profile --cases "${P_CASES:-solo1_b32,pack12_b32,solo1_b560,pack12_b560}"
+  bench ${P_S:-100} bench_profile --iters 3 --warmup 2 --profile --python "$PY" \
+    --cases "${P_CASES:-train_b64_flat,train_b560_flat,solo1_b32,pack12_b32,solo1_b560,pack12_b560}"
 fi
 if [ -z "${SKIP_T:-}" ]; then
   T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32}
