@@ -104,10 +104,11 @@ pub fn train(
     let cfg = run_config_for(cfg, dir, opts.resume, &opts.resume_with)?;
     // Refuse before anything is written, each bad setting by name.
     cfg.validate()?;
+    // Training computes as the run says, or not at all (`tf32` on the CPU is refused), before the
+    // data are read.
+    pdt_model::device::set_matmul(pdt_model::device::resolve(cfg.run.device)?, cfg.run.matmul)?;
     let toml = cfg.to_toml()?;
     let setup = Setup::new(cfg)?;
-    // Training computes as the run says, or not at all (`tf32` on the CPU is refused).
-    pdt_model::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
     let _rng = torch_rng_lock();
     let threads = pdt_base::threads(setup.cfg.run.threads);
     tch::set_num_threads(threads as i32);
