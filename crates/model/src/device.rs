@@ -80,7 +80,8 @@ pub fn set_matmul(device: Device, matmul: Matmul) -> Result<(), MatmulError> {
 }
 
 /// libtorch's cuBLAS TF32 switch itself (the process-wide flag; it only changes CUDA matmuls).
-/// Public for the test that checks it leaves CPU products alone; runs go through [`set_matmul`].
+/// Public for measurements (`bench`'s TF32 check) and the test that checks it leaves CPU products
+/// alone; runs go through [`set_matmul`].
 #[doc(hidden)]
 pub fn set_cublas_tf32(on: bool) -> Result<(), MatmulError> {
     // SAFETY: the C++ function catches every exception (none unwinds into Rust) and writes at most
