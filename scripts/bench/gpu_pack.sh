@@ -57,12 +57,12 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
 smi_stop
-if [ -z "${SKIP_P:-}" ]; then
+if [ -z "${SKIP_P:-}" ] && [ "$(left)" -gt ${P_S:-100} ]; then
   log "P. profile: kernels per step"
   bench ${P_S:-100} bench_profile --iters 3 --warmup 2 --profile --python "$PY" \
     --cases "${P_CASES:-train_b64_flat,train_b560_flat,solo1_b32,pack12_b32,solo1_b560,pack12_b560}"
 fi
-if [ -z "${SKIP_T:-}" ]; then
+if [ -z "${SKIP_T:-}" ] && [ "$(left)" -gt $((3 * ${T_S:-80})) ]; then
   T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32}
   log "T. fp32 vs tf32 matmuls"
   bench ${T_S:-80} bench_fp32 --iters 8 --warmup 3 --cases "$T_CASES"
