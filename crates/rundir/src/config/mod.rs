@@ -600,7 +600,7 @@ mod tests {
     }
 
     #[test]
-    fn run_matmul_defaults_to_fp32_is_written_only_when_set_and_tf32_needs_cuda() {
+    fn run_matmul_defaults_to_fp32_is_written_only_when_set_and_is_valid_on_any_device() {
         let c: TrainConfig = toml::from_str("[run]\nseed = 1\n").unwrap();
         assert_eq!(c.run.matmul, Matmul::Fp32);
         assert!(!c.to_toml().unwrap().contains("matmul"), "files at the default stay as they were");
