@@ -20,11 +20,19 @@
 #   E. FAMILY's cells of EXP at the cpu budget as one pack (collecting its data first), until the
 #      deadline.
 # Usage (repository root): BIN=... DATA=... OUT=... [DEADLINE=570] bash scripts/bench/gpu_pack.sh
+# A rehearsal on a machine without a GPU (every phase's flags and the library path, before device time
+# is spent on them): DEVICE=cpu PYTHON=.venv/bin/python with small case lists and short timings, e.g.
+#   DEVICE=cpu PYTHON=.venv/bin/python SKIP_C=1 D_MIN_S=9999 PACKS=pack3_b32,solo1_b32 \
+#   P_CASES=train_b64_flat,pack3_b32 T_CASES=pack3_b32 ITERS=1 BIN=target/release/promptdt DATA=x OUT=o \
+#   bash scripts/bench/gpu_pack.sh
 set -u
 start=$(date +%s)
 BIN=${BIN:?}; OUT=${OUT:?}; DATA=${DATA:?}
 PY=${PYTHON:-/opt/torch/.venv/bin/python}
 DEADLINE=${DEADLINE:-570}
+DEVICE=${DEVICE:-cuda}
+# ITERS=1: one warm-up and one timed iteration per bench (a rehearsal's), instead of each phase's own.
+its() { if [ -n "${ITERS:-}" ]; then echo "--iters $ITERS --warmup 1"; else echo "--iters $1 --warmup $2"; fi; }
 WORK=${WORK:-/tmp/pdt-pack}
 # At most 8 files come back from a device call: the samples and logs go to $WORK/o, packed at the end.
 O=$WORK/o
@@ -32,6 +40,8 @@ mkdir -p "$OUT" "$WORK" "$O"
 log() { echo "[$(($(date +%s) - start)) s] $*" | tee -a "$OUT/session.log"; }
 left() { echo $((start + DEADLINE - $(date +%s))); }
 . "$(dirname "$0")/gpu_env.sh"
+# Without nvidia-smi (a CPU rehearsal) no samples are taken.
+command -v nvidia-smi >/dev/null || nvidia-smi() { return 0; }
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee -a "$OUT/session.log"
 (nproc; grep -m1 "model name" /proc/cpuinfo; sha256sum "$BIN"; cat "$BIN.commit" 2>/dev/null) | tee -a "$OUT/session.log"
 smi() { # file: GPU utilisation and memory, and each process's memory, every 0.5 s
@@ -43,36 +53,36 @@ smi() { # file: GPU utilisation and memory, and each process's memory, every 0.5
 smi_stop() { kill "$(cat "$WORK/smi1")" "$(cat "$WORK/smi2")" 2>/dev/null; }
 bench() { # timeout out-name args...
   local t=$1 name=$2; shift 2
-  timeout "$t" "$BIN" bench --device cuda --threads 4 --out "$WORK/$name" "$@" >>"$OUT/session.log" 2>&1 || log "bench $name: rc $?"
+  timeout "$t" "$BIN" bench --device "$DEVICE" --threads 4 --out "$WORK/$name" "$@" >>"$OUT/session.log" 2>&1 || log "bench $name: rc $?"
   cp "$WORK/$name/bench.md" "$OUT/$name.md" 2>/dev/null
 }
 
 log "0. link check"
-timeout 120 "$BIN" bench --device cuda --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
+timeout 120 "$BIN" bench --device "$DEVICE" --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
 PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt,pack12_b100_act,solo12_b100_act}
 if [ -z "${SKIP_A:-}" ]; then
   log "A. training step vs PyTorch"
-  bench 90 bench_train --python "$PY" --iters 15 --warmup 5 --cases train_b64_flat,train_b560_flat
+  bench 90 bench_train --python "$PY" $(its 15 5) --cases train_b64_flat,train_b560_flat
 fi
 log "B. packs"; smi "$O/packs"
-bench 120 bench_packs --iters 10 --warmup 3 --cases "$PACKS"
+bench 120 bench_packs $(its 10 3) --cases "$PACKS"
 smi_stop
 if [ -z "${SKIP_P:-}" ] && [ "$(left)" -gt ${P_S:-100} ]; then
   log "P. profile: kernels per step"
-  bench ${P_S:-100} bench_profile --iters 3 --warmup 2 --profile --python "$PY" \
+  bench ${P_S:-100} bench_profile $(its 3 2) --profile --python "$PY" \
     --cases "${P_CASES:-train_b64_flat,train_b560_flat,solo1_b32,pack12_b32,solo1_b560,pack12_b560}"
 fi
 if [ -z "${SKIP_T:-}" ] && [ "$(left)" -gt $((3 * ${T_S:-80})) ]; then
   T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32}
   log "T. fp32 vs tf32 matmuls"
-  bench ${T_S:-80} bench_fp32 --iters 8 --warmup 3 --cases "$T_CASES"
-  bench ${T_S:-80} bench_tf32 --iters 8 --warmup 3 --cases "$T_CASES" --matmul tf32
-  bench ${T_S:-80} bench_tf32_torch --iters 10 --warmup 3 --cases train_b560_flat --python "$PY" --matmul tf32
+  bench ${T_S:-80} bench_fp32 $(its 8 3) --cases "$T_CASES"
+  bench ${T_S:-80} bench_tf32 $(its 8 3) --cases "$T_CASES" --matmul tf32
+  bench ${T_S:-80} bench_tf32_torch $(its 10 3) --cases train_b560_flat --python "$PY" --matmul tf32
 fi
 # Each side is a whole process (CUDA start-up included): a warm-up pair, then C_N timed pairs.
 if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-360} ]; then
   log "C. a pack's evaluations, together vs each run alone"
-  timeout ${C_S:-150} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE=cuda RUNS=12 \
+  timeout ${C_S:-150} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE="$DEVICE" RUNS=12 \
     EPISODES=50 N=${C_N:-1} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
 fi
 CELLS=""
@@ -80,7 +90,7 @@ for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CEL
 CELLS=${CELLS#,}
 repro() { # timeout out-dir args...
   local t=$1 d=$2; shift 2
-  timeout "$t" "$BIN" reproduce fig2 --budget paper --device cuda --out "$WORK/$d" --data-root "$DATA" \
+  timeout "$t" "$BIN" reproduce fig2 --budget paper --device "$DEVICE" --out "$WORK/$d" --data-root "$DATA" \
     --pretrained-root pretrained "$@" >"$O/$d.log" 2>&1; log "$d: rc $?"
   find "$WORK/$d" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
 }
@@ -102,7 +112,7 @@ fi
 (cd "$WORK" && find pk12 solo1 proc12 -name metrics.csv -o -name 'run.json' -o -name pack.json 2>/dev/null | tar czf "$O/realloop.tar.gz" -T -)
 if [ -n "${FAMILY:-}" ] && [ "$(left)" -gt 120 ]; then
   log "E. $FAMILY cpu-budget cells of ${EXP:-fig2}, one pack, $(left) s left"; smi "$O/fam"
-  timeout $(( $(left) - 25 )) "$BIN" reproduce "${EXP:-fig2}" --budget cpu --device cuda --out "$WORK/fam" --data-root "$WORK/famdata" \
+  timeout $(( $(left) - 25 )) "$BIN" reproduce "${EXP:-fig2}" --budget cpu --device "$DEVICE" --out "$WORK/fam" --data-root "$WORK/famdata" \
     --pretrained-root pretrained --pack 12 --jobs 1 --threads 4 --only "$FAMILY_CELLS" >"$O/fam.log" 2>&1; log "E: rc $?"
   smi_stop
   (cd "$WORK" && find fam famdata -type f ! -name '*.safetensors' | tar czf "$OUT/fam_small.tar.gz" -T -)
