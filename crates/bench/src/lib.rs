@@ -4,13 +4,14 @@
 //! Cases (state 20, action 6, K = 20, prompt 5 steps, the reference architecture):
 //! `train_b560` / `train_b64` (forward in train mode, masked MSE, backward, clipping, AdamW; the
 //! per-tensor AdamW, PyTorch's single-tensor path), `train_b560_flat` / `train_b64_flat` (the same
-//! step with the flat-buffer AdamW, `optim.flat = "on"`; PyTorch's side is its default AdamW) and
+//! step as a run on CUDA takes it: the flat-buffer AdamW, `optim.flat = "on"`, and the last block
+//! for the state tokens only, `LastBlock::StateTokens`; PyTorch's side is its default AdamW) and
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
 use pdt_base::table::{Rule, Table};
 use pdt_model::device::Matmul;
-use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 pub mod pack;
 pub mod profile;
 pub mod render;
@@ -134,7 +135,8 @@ pub const EVAL_CASE: &str = "eval_point_robot";
 enum Mode {
     /// `train_b<N>`: one training step (per-tensor AdamW).
     Train,
-    /// `train_b<N>_flat`: one training step with the flat-buffer AdamW.
+    /// `train_b<N>_flat`: one training step in the CUDA configuration (the flat-buffer AdamW, the
+    /// last block for the state tokens only).
     TrainFlat,
     /// `infer_b<N>`: one rollout step by the reference's path, the full forward.
     Infer,
@@ -242,13 +244,20 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn time_case(
-    model: &PromptDt,
+    model: &mut PromptDt,
     opts: &mut Optimizers<'_>,
     name: &str,
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
     let (mode, b) = parse_case(name)?;
     let opt = opts.get(mode == Mode::TrainFlat);
+    // The other cases keep the reference's ops, as PyTorch's side runs them.
+    model.set_last_block(if mode == Mode::TrainFlat {
+        LastBlock::StateTokens
+    } else {
+        LastBlock::AllTokens
+    });
+    let model = &*model;
     let dev = cfg.device;
     let history = random_segments(b, 20, 20, 6, false, dev);
     let prompt = random_segments(b, 5, 20, 6, true, dev);
@@ -537,12 +546,12 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     tch::manual_seed(0);
     let mcfg = PromptDtConfig::reference(20, 6);
     let vs = VarStore::new(cfg.device);
-    let model = PromptDt::new(&vs.root(), &mcfg);
+    let mut model = PromptDt::new(&vs.root(), &mcfg);
     let mut opts =
         Optimizers { vs: &vs, names: mcfg.parameter_names(), per_tensor: None, flat: None };
     let mut results = Vec::new();
     for c in cfg.cases.iter().filter(|c| !is_serve(c)) {
-        results.push(time_one(c, cfg, &model, &mut opts)?);
+        results.push(time_one(c, cfg, &mut model, &mut opts)?);
     }
     // After the timings, so each case's lazily built parts (its optimiser) exist in both profiled
     // runs alike. The evaluation and rendering cases are whole protocols or no libtorch at all.
@@ -550,8 +559,9 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     for c in
         cfg.cases.iter().filter(|c| cfg.profile && !is_serve(c) && !is_eval(c) && !is_render(c))
     {
-        profiles
-            .push(profile::profile_case(c, cfg, |short| time_one(c, short, &model, &mut opts))?);
+        profiles.push(profile::profile_case(c, cfg, |short| {
+            time_one(c, short, &mut model, &mut opts)
+        })?);
     }
     let promptdt = EngineReport {
         engine: "promptdt".into(),
@@ -638,7 +648,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
 fn time_one(
     c: &str,
     cfg: &BenchConfig,
-    model: &PromptDt,
+    model: &mut PromptDt,
     opts: &mut Optimizers<'_>,
 ) -> Result<CaseTiming, BenchError> {
     Ok(if let Some(case) = parse_eval_case(c) {

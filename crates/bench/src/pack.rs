@@ -5,8 +5,10 @@
 //! random batch, left-padded histories. Both use what a run uses on the device (`optim.flat =
 //! "auto"`: the flat optimisers and per-run mask draws on CUDA, the per-tensor ones on the CPU);
 //! the suffix `_flat` asks for the CUDA configuration on any device (`optim.flat = "on"`, the
-//! pack's masks drawn per run, one LayerNorm for the pack), `_pt` for the CPU one (`optim.flat =
-//! "off"`, masks in solo order, a LayerNorm per run).
+//! pack's masks drawn per run, one LayerNorm for the pack, a solo run's last block for the state
+//! tokens only), `_pt` for the CPU one (`optim.flat = "off"`, masks in solo order, a LayerNorm per
+//! run, a solo run's last block on every token). A pack's last block always runs for the state
+//! tokens only.
 //!
 //! With `_act` a case times one environment step of N runs evaluating with B episodes each: the
 //! pack's forward for all runs (`pack<N>_b<B>_act`: `PackEngine::act`, as `--pack-eval together`)
@@ -16,7 +18,7 @@
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
 use pdt_model::packed::{LayerNormPlan, MaskDraw};
-use pdt_model::{PrefixCache, PromptDt, PromptDtConfig, Segments};
+use pdt_model::{LastBlock, PrefixCache, PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotAct, SlotSpec, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn};
@@ -125,7 +127,13 @@ pub fn time_pack(
                 .map(|seed| {
                     tch::manual_seed(derive_seed(seed, 1, 0) as i64);
                     let vs = VarStore::new(device);
-                    let model = PromptDt::new(&vs.root(), &cfg);
+                    let mut model = PromptDt::new(&vs.root(), &cfg);
+                    // The last block as the optimiser's configuration has it (`_flat`: CUDA's).
+                    model.set_last_block(if case.flat.use_flat(device.is_cuda()) {
+                        LastBlock::StateTokens
+                    } else {
+                        LastBlock::AllTokens
+                    });
                     // The optimiser a solo run uses here (flat on CUDA).
                     let opt = Optimizer::new(&vs, &cfg.parameter_names(), optim.clone());
                     (vs, model, opt)

@@ -55,6 +55,14 @@ pub struct DropoutMasks {
 }
 
 impl DropoutMasks {
+    /// The mask of site `at` (`None`: no dropout there).
+    fn at(&self, at: At) -> Option<&Tensor> {
+        match at {
+            At::Embeddings => self.embd.as_ref(),
+            At::Layer(i, j) => self.layers.get(i).and_then(|l| l[j].as_ref()),
+        }
+    }
+
     /// The masks in the order of [`dropout_sites`] (one per site), grouped per layer.
     pub(crate) fn from_sites(sites: Vec<Option<Tensor>>) -> Self {
         let mut it = sites.into_iter();
@@ -122,17 +130,24 @@ impl Dropout<'_> {
         match self {
             Dropout::Off => x,
             Dropout::Draw => x.dropout(p, true),
-            Dropout::Given(m) => {
-                let mask = match at {
-                    At::Embeddings => m.embd.as_ref(),
-                    At::Layer(i, j) => m.layers.get(i).and_then(|l| l[j].as_ref()),
-                };
-                match mask {
-                    // `at::dropout` returns `input * noise`.
-                    Some(mask) => x * mask,
-                    None => x,
-                }
-            }
+            Dropout::Given(m) => match m.at(at) {
+                // `at::dropout` returns `input * noise`.
+                Some(mask) => x * mask,
+                None => x,
+            },
+        }
+    }
+
+    /// [`Self::apply`] to the state tokens' rows of a site (`crate::gpt2::LastBlock::StateTokens`):
+    /// given masks are read at those rows, so each row gets the full forward's mask; drawn ones
+    /// are drawn at the smaller shape.
+    pub(crate) fn apply_states(&self, x: Tensor, p: f64, at: At) -> Tensor {
+        match self {
+            Dropout::Given(m) => match m.at(at) {
+                Some(mask) => x * crate::gpt2::state_rows(mask),
+                None => x,
+            },
+            _ => self.apply(x, p, at),
         }
     }
 }

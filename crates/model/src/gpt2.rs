@@ -105,6 +105,31 @@ impl Attention {
         drop.apply(self.c_proj.forward_lora(&a, proj), self.resid_pdrop, At::Layer(layer, 1))
     }
 
+    /// [`Self::forward`] for the queries of the state tokens only ([`state_rows`]): `[B, L/3, H]`.
+    /// `masks.causal` holds those rows (`[1, 1, L/3, L]`).
+    fn forward_states(
+        &self,
+        x: &Tensor,
+        masks: &Masks<'_>,
+        drop: &Dropout<'_>,
+        layer: usize,
+        lora: Option<&LoraLayer>,
+    ) -> Tensor {
+        let b = x.size()[0];
+        let hd = self.hidden / self.n_head;
+        let (q, k, v) = self.qkv(x, x.size()[1], lora);
+        let q = state_rows(&q); // [B, nh, S, hd], S = L/3
+        let s = q.size()[2];
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, S, L]
+        let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
+        let w =
+            drop.apply_states(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
+        let a = w.matmul(&v); // [B, nh, S, hd]
+        let a = a.permute([0, 2, 1, 3]).contiguous().view([b, s, self.hidden]); // [B, S, H]
+        let proj = lora.and_then(|l| l.c_proj.as_ref());
+        drop.apply_states(self.c_proj.forward_lora(&a, proj), self.resid_pdrop, At::Layer(layer, 1))
+    }
+
     /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
     fn keys_values(&self, x: &Tensor, lora: Option<&LoraLayer>) -> (Tensor, Tensor) {
         let (_, k, v) = self.qkv(x, 0, lora);
@@ -156,6 +181,12 @@ impl Mlp {
         let y = self.c_proj.forward(&self.c_fc.forward(x).relu());
         drop.apply(y, self.resid_pdrop, At::Layer(layer, 2))
     }
+
+    /// [`Self::forward`] on the state tokens' rows of the block (its dropout mask read there).
+    fn forward_states(&self, x: &Tensor, drop: &Dropout<'_>, layer: usize) -> Tensor {
+        let y = self.c_proj.forward(&self.c_fc.forward(x).relu());
+        drop.apply_states(y, self.resid_pdrop, At::Layer(layer, 2))
+    }
 }
 
 #[derive(Debug)]
@@ -202,6 +233,21 @@ impl Block {
         &h + self.mlp.forward(&self.ln_2.forward(&h), drop, layer)
     }
 
+    /// [`Self::forward`] for the state tokens only: `[B, L/3, H]` from `x` `[B, L, H]`, each row
+    /// the full block's output at its position (keys and values still come from every position).
+    fn forward_states(
+        &self,
+        x: &Tensor,
+        masks: &Masks<'_>,
+        drop: &Dropout<'_>,
+        layer: usize,
+        lora: Option<&LoraLayer>,
+    ) -> Tensor {
+        let a = self.attn.forward_states(&self.ln_1.forward(x), masks, drop, layer, lora);
+        let h = state_rows(x) + a; // [B, S, H]
+        &h + self.mlp.forward_states(&self.ln_2.forward(&h), drop, layer)
+    }
+
     /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
     /// returns `[B, rows, H]`. Keys and values still come from every position of `x`.
     #[allow(clippy::too_many_arguments)] // the masks and rows of one cached pass, from one caller
@@ -232,6 +278,42 @@ impl Block {
 
 /// Positions the last layer of [`Gpt2::forward_last`] runs for (see there).
 pub const LAST_ROWS: i64 = 8;
+
+/// Which positions the last block of a full forward pass computes outputs for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LastBlock {
+    /// Every position: the reference's ops, on the CPU bit for bit PyTorch's.
+    AllTokens,
+    /// The state tokens only (positions 1, 4, 7, ... of Prompt-DT's `(R, s, a)` interleaving), the
+    /// only outputs its action head reads. Nothing after the last block mixes positions, so these
+    /// are the same values in exact arithmetic, for a third of the last block's queries,
+    /// attention output and MLP rows (its keys and values still come from every position).
+    /// Differs from the reference code, which runs the block on every token; not bit for bit
+    /// `AllTokens` (BLAS sums a product of fewer rows in its own order).
+    StateTokens,
+}
+
+impl LastBlock {
+    /// `StateTokens` on CUDA (no path there is bitwise, and the step is bound by arithmetic at
+    /// large batches), `AllTokens` elsewhere (the CPU's parity with PyTorch).
+    pub fn default_for(device: tch::Device) -> Self {
+        if device.is_cuda() {
+            LastBlock::StateTokens
+        } else {
+            LastBlock::AllTokens
+        }
+    }
+}
+
+/// The state tokens' rows (positions 1, 4, 7, ... of the `(R, s, a)` interleaving) along the
+/// second-to-last dimension, as a view: `[..., L, D]` -> `[..., L/3, D]` (`L` a multiple of 3).
+pub fn state_rows(t: &Tensor) -> Tensor {
+    let mut shape = t.size();
+    let d = shape.len().saturating_sub(2);
+    let l = shape.get(d).copied().unwrap_or(0);
+    shape.splice(d..=d, [l / 3, 3]);
+    t.view(shape.as_slice()).select(d as i64 + 1, 1) // splitting a dimension is always a view
+}
 
 /// The keys and values of a prefix at one layer.
 #[derive(Debug)]
@@ -373,12 +455,34 @@ impl Gpt2 {
         self.forward_impl(inputs_embeds, token_mask, Dropout::train(train), lora)
     }
 
+    /// [`Self::forward_with`] with the last block as [`LastBlock::StateTokens`]: the outputs at
+    /// the state tokens only, `[B, L/3, H]` (`L` a multiple of 3).
+    pub fn forward_states_with(
+        &self,
+        inputs_embeds: &Tensor,
+        token_mask: &Tensor,
+        drop: Dropout<'_>,
+    ) -> Tensor {
+        self.forward_impl_last(inputs_embeds, token_mask, drop, None, LastBlock::StateTokens)
+    }
+
     fn forward_impl(
         &self,
         inputs_embeds: &Tensor,
         token_mask: &Tensor,
         drop: Dropout<'_>,
         lora: Option<&[LoraLayer]>,
+    ) -> Tensor {
+        self.forward_impl_last(inputs_embeds, token_mask, drop, lora, LastBlock::AllTokens)
+    }
+
+    fn forward_impl_last(
+        &self,
+        inputs_embeds: &Tensor,
+        token_mask: &Tensor,
+        drop: Dropout<'_>,
+        lora: Option<&[LoraLayer]>,
+        last: LastBlock,
     ) -> Tensor {
         let l = inputs_embeds.size()[1];
         debug_assert!(l <= self.n_positions, "caller checks the sequence length");
@@ -388,8 +492,16 @@ impl Gpt2 {
         let pad_bias = (1.0 - token_mask.unsqueeze(1).unsqueeze(1)) * -10000.0;
         let masks = Masks { causal: &causal, masked_bias: &self.masked_bias, pad_bias: &pad_bias };
         let mut x = drop.apply(inputs_embeds.shallow_clone(), self.embd_pdrop, At::Embeddings);
+        let n = self.h.len();
         for (i, block) in self.h.iter().enumerate() {
-            x = block.forward(&x, &masks, &drop, i, lora.and_then(|a| a.get(i)));
+            let adapter = lora.and_then(|a| a.get(i));
+            x = if i + 1 == n && last == LastBlock::StateTokens {
+                let causal = state_rows(&causal); // [1, 1, L/3, L]
+                let rows = Masks { causal: &causal, ..masks };
+                block.forward_states(&x, &rows, &drop, i, adapter) // [B, L/3, H]
+            } else {
+                block.forward(&x, &masks, &drop, i, adapter)
+            };
         }
         self.ln_f.forward(&x)
     }

@@ -32,6 +32,6 @@ pub mod prompt_dt;
 
 pub use checkpoint::CheckpointError;
 pub use config::PromptDtConfig;
-pub use gpt2::PrefixCache;
+pub use gpt2::{LastBlock, PrefixCache};
 pub use lora::{LoraAdapters, LoraLayer, LoraPair, LoraShape};
 pub use prompt_dt::{PromptDt, PromptTokens, Segments};

@@ -6,7 +6,7 @@
 
 use crate::config::PromptDtConfig;
 use crate::dropout::{Dropout, DropoutMasks};
-use crate::gpt2::{Gpt2, PrefixCache};
+use crate::gpt2::{Gpt2, LastBlock, PrefixCache};
 use crate::lora::LoraAdapters;
 use tch::nn::{self, Init, Module};
 use tch::{Device, Kind, Tensor};
@@ -210,6 +210,8 @@ pub struct PromptDt {
     predict_action: nn::Linear,
     /// Unused, kept for the same reason.
     _predict_return: nn::Linear,
+    /// What the last block of a full forward computes ([`LastBlock::default_for`] the device).
+    last_block: LastBlock,
 }
 
 impl PromptDt {
@@ -227,7 +229,18 @@ impl PromptDt {
             _predict_state: torch_linear(p / "predict_state", h, cfg.state_dim),
             predict_action: torch_linear(p / "predict_action" / 0, h, cfg.act_dim),
             _predict_return: torch_linear(p / "predict_return", h, 1),
+            last_block: LastBlock::default_for(p.device()),
         }
+    }
+
+    /// What the last block of [`Self::forward_all_steps`] computes (by default
+    /// [`LastBlock::default_for`] the device the model was built on).
+    pub fn set_last_block(&mut self, last: LastBlock) {
+        self.last_block = last;
+    }
+
+    pub fn last_block(&self) -> LastBlock {
+        self.last_block
     }
 
     /// Checks the inputs' shapes, sequence length and timestep range, so that the forward pass
@@ -362,9 +375,14 @@ impl PromptDt {
             }
             None => (tokens, mask),
         };
-        let x = self.transformer.forward_with(&tokens, &mask, dropout); // [B, 3(Lp+K), H]
-        let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
-        let state_hidden = x.select(1, 1); // [B, Lp+K, H]: hidden state at each state token
+        let state_hidden = match self.last_block {
+            LastBlock::AllTokens => {
+                let x = self.transformer.forward_with(&tokens, &mask, dropout); // [B, 3(Lp+K), H]
+                let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
+                x.select(1, 1) // [B, Lp+K, H]: hidden state at each state token
+            }
+            LastBlock::StateTokens => self.transformer.forward_states_with(&tokens, &mask, dropout), // [B, Lp+K, H]
+        };
         let actions = self.predict_action.forward(&state_hidden); // [B, Lp+K, da]
         if self.cfg.action_tanh {
             actions.tanh()

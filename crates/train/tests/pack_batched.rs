@@ -106,6 +106,7 @@ fn each_run_of_a_pack_predicts_as_solo() {
             worst = worst.max(d);
         }
     }
+    // (The pack's last block runs for the state tokens only, the solo model's on every token.)
     // Measured (AVX-512 CPU, libtorch 2.11): 0 for runs 0 and 2, 6e-8 for run 1 (no prompt:
     // 3P extra padded keys change the softmax's summation order), in eval and train mode (so the
     // dropout masks are solo's: a different mask would differ by O(0.1)). Bound ~15x that.

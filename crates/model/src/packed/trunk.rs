@@ -4,6 +4,7 @@
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
 use crate::config::PromptDtConfig;
 use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
+use crate::gpt2::state_rows;
 use crate::prompt_dt::Segments;
 use tch::{Device, Kind, Tensor};
 
@@ -457,9 +458,7 @@ impl PackedPromptDt {
     /// is eval mode.
     pub fn forward_all_steps(&self, batch: &PackedBatch, dropout: Option<&DropoutSeeds>) -> Tensor {
         let cfg = &self.cfg;
-        let hidden = cfg.hidden_size as i64;
         let (n, b) = (self.slots as i64, batch.batch);
-        let rows = n * b;
         let (tokens, mask) = self.embed(batch); // [N*B, 3(P+K), H], [N*B, 3(P+K)]
         let l = tokens.size()[1]; // 3(P+K)
         let masks = dropout.map(|s| self.dropout_masks(batch, s, l));
@@ -467,16 +466,62 @@ impl PackedPromptDt {
         let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
         let eps = cfg.layer_norm_epsilon;
         let mut x = drop(tokens, masks.as_ref().and_then(|m| m.embd.as_ref()));
-        for (i, blk) in self.idx.blocks.iter().enumerate() {
+        let Some((last, blocks)) = self.idx.blocks.split_last() else {
+            // (A model of no layers: `PromptDtConfig::validate` refuses it.)
+            return Tensor::zeros([n, b, batch.p + batch.k, 0], (Kind::Float, self.device));
+        };
+        for (i, blk) in blocks.iter().enumerate() {
             let site = masks.as_ref().map(|m| &m.layers[i]);
             x = self.block(&x, blk, &causal, &pad_bias, site);
         }
+        // Differs from the reference code (which runs the last block on every token, then reads
+        // the state tokens' outputs): only the state tokens' outputs are read (the action head),
+        // and nothing after the last block mixes positions, so its queries, attention output and
+        // MLP run for the state tokens only (its keys and values still come from every token).
+        // The same values in exact arithmetic, a third of the last block's rows: the pack is a
+        // tolerance path, never bitwise.
+        let site = masks.as_ref().map(|m| &m.layers[blocks.len()]);
+        let x = self.block_states(&x, last, &state_rows(&causal), &pad_bias, site); // [N*B, P+K, H]
         let x = self.layer_norm(&x, self.idx.ln_f, eps);
-        let x = x.reshape([rows, -1, 3, hidden]).permute([0, 2, 1, 3]); // [N*B, 3, P+K, H]
-        let state_hidden = x.select(1, 1); // [N*B, P+K, H]
-        let actions = self.linear(&state_hidden, self.idx.predict_action); // [N*B, P+K, da]
+        debug_assert_eq!(x.size()[1], batch.p + batch.k);
+        let actions = self.linear(&x, self.idx.predict_action); // [N*B, P+K, da]
         let actions = if cfg.action_tanh { actions.tanh() } else { actions };
         actions.view([n, b, batch.p + batch.k, -1])
+    }
+
+    /// [`Self::block`] with the queries, the attention output and the MLP of the state tokens
+    /// only (positions 1, 4, 7, ...): `[N*B, L/3, H]` from `x` `[N*B, L, H]`. `causal` holds the
+    /// state tokens' rows (`[1, 1, L/3, L]`); the masks of `site` are the full forward's, read at
+    /// the state tokens' rows, so a state token's output is the full block's at its position.
+    fn block_states(
+        &self,
+        x: &Tensor,
+        blk: &BlockIdx,
+        causal: &Tensor,
+        pad_bias: &Tensor,
+        site: Option<&[Option<Tensor>; 3]>,
+    ) -> Tensor {
+        let eps = self.cfg.layer_norm_epsilon;
+        let hidden = self.cfg.hidden_size as i64;
+        let nh = self.cfg.n_head as i64;
+        let hd = hidden / nh;
+        let (rows, l) = (x.size()[0], x.size()[1]);
+        let mask = |i: usize| site.and_then(|s| s[i].as_ref()).map(state_rows);
+        let qkv = self.conv1d(&self.layer_norm(x, blk.ln_1, eps), blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
+        let q = state_rows(&qkv[0]); // [N*B, S, H], S = L/3
+        let s = q.size()[1];
+        let q = q.view([rows, s, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, S, hd]
+        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
+        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, S, L]
+        let w = w.where_self(causal, &self.masked_bias) + pad_bias;
+        let w = drop(w.softmax(-1, None::<Kind>), mask(0).as_ref());
+        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([rows, s, hidden]); // [N*B, S, H]
+        let a = drop(self.conv1d(&a, blk.attn_proj), mask(1).as_ref());
+        let h = state_rows(x) + a; // [N*B, S, H]
+        let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
+        let m = drop(self.conv1d(&inner, blk.mlp_proj), mask(2).as_ref());
+        &h + m
     }
 
     /// One transformer block (attention, then MLP, each residual) on every position.
