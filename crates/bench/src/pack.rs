@@ -236,6 +236,7 @@ fn specs(runs: usize, cfg: &PromptDtConfig, optim: &AdamWConfig) -> Vec<SlotSpec
             uses_prompt: true,
             loss_on: LossOn::History,
             optim: optim.clone(),
+            last_block: pdt_train::step::LastBlockChoice::Auto,
             seed,
         })
         .collect()

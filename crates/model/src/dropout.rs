@@ -139,14 +139,28 @@ impl Dropout<'_> {
     }
 
     /// [`Self::apply`] to the state tokens' rows of a site (`crate::gpt2::LastBlock::StateTokens`):
-    /// given masks are read at those rows, so each row gets the full forward's mask; drawn ones
-    /// are drawn at the smaller shape.
+    /// `x` is `[..., L/3, D]` where the full forward's site is `[..., L, D]`. Given masks are read
+    /// at those rows. Drawn ones, on the CPU, are drawn at the full site's shape as `at::dropout`
+    /// draws them and read there too, so each row gets the full forward's mask and the generator
+    /// ends where the full forward leaves it. On CUDA (whose fused dropout kernel no draw of ours
+    /// reproduces anyway) they are drawn at the smaller shape.
     pub(crate) fn apply_states(&self, x: Tensor, p: f64, at: At) -> Tensor {
         match self {
             Dropout::Given(m) => match m.at(at) {
                 Some(mask) => x * crate::gpt2::state_rows(mask),
                 None => x,
             },
+            // `at::dropout` draws nothing at p = 0.
+            Dropout::Draw if p > 0.0 && !x.device().is_cuda() => {
+                let mut full = x.size();
+                let d = full.len().saturating_sub(2);
+                if let Some(rows) = full.get_mut(d) {
+                    *rows *= 3;
+                }
+                let mut noise = Tensor::empty(full.as_slice(), (x.kind(), x.device()));
+                draw_noise(&mut noise, p);
+                x * crate::gpt2::state_rows(&noise)
+            }
             _ => self.apply(x, p, at),
         }
     }

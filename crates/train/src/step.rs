@@ -20,7 +20,17 @@ pub struct StepStats {
     pub lr: f64,
 }
 
-pub use pdt_rundir::config::LossOn;
+pub use pdt_rundir::config::{LastBlockChoice, LossOn};
+
+/// The model's last block for a run's `train.last_block` on `device` (`batched`: in a batched
+/// pack, where `auto` means the state tokens on any device; docs/implementation-details.md, C.9).
+pub fn last_block(choice: LastBlockChoice, device: Device, batched: bool) -> pdt_model::LastBlock {
+    if choice.state_tokens(device.is_cuda(), batched) {
+        pdt_model::LastBlock::StateTokens
+    } else {
+        pdt_model::LastBlock::AllTokens
+    }
+}
 
 /// Tensors of a batch on the device, ready for [`train_step`].
 #[derive(Debug)]

@@ -256,6 +256,15 @@ fn mismatched_inputs_are_refused() {
     let mut mixed = specs();
     mixed[2].model.hidden_size = 16;
     assert!(BatchedEngine::new(mixed, layout(), Device::Cpu).is_err());
+    // One computation for the pack: its runs' `train.last_block` must resolve alike (`auto`
+    // resolves to the state tokens in a batched pack, so it goes with `state_tokens`).
+    let mut mixed = specs();
+    mixed[1].last_block = pdt_train::step::LastBlockChoice::AllTokens;
+    let e = BatchedEngine::new(mixed, layout(), Device::Cpu).err().unwrap().to_string();
+    assert!(e.contains("run 1's train.last_block (all_tokens) differs from run 0's (auto)"), "{e}");
+    let mut alike = specs();
+    alike[1].last_block = pdt_train::step::LastBlockChoice::StateTokens;
+    assert!(BatchedEngine::new(alike, layout(), Device::Cpu).is_ok());
 }
 
 /// This thread's time on a CPU, in milliseconds (`/proc/thread-self/schedstat`, Linux): unlike
@@ -304,6 +313,7 @@ fn time_pack_of_three_against_three_solo_steps() {
                 uses_prompt: true,
                 loss_on: LossOn::History,
                 optim: AdamWConfig::default(),
+                last_block: pdt_train::step::LastBlockChoice::Auto,
                 seed,
             })
             .collect();

@@ -54,6 +54,7 @@ fn specs() -> Vec<SlotSpec> {
             uses_prompt: prompt > 0,
             loss_on,
             optim: AdamWConfig { learning_rate: 1e-3, warmup_steps: 10, ..AdamWConfig::default() },
+            last_block: pdt_train::step::LastBlockChoice::Auto,
             seed,
         })
         .collect()

@@ -4,7 +4,7 @@
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
 use crate::config::PromptDtConfig;
 use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
-use crate::gpt2::state_rows;
+use crate::gpt2::{state_rows, LastBlock};
 use crate::prompt_dt::Segments;
 use tch::{Device, Kind, Tensor};
 
@@ -83,6 +83,8 @@ pub struct PackedPromptDt {
     device: Device,
     mask_draw: MaskDraw,
     layer_norm: LayerNormPlan,
+    /// `StateTokens` unless set otherwise: the pack is a tolerance path on every device.
+    last_block: LastBlock,
 }
 
 /// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
@@ -125,6 +127,7 @@ impl PackedPromptDt {
             device,
             mask_draw: MaskDraw::default_for(device),
             layer_norm: LayerNormPlan::default_for(device),
+            last_block: LastBlock::StateTokens,
         })
     }
 
@@ -139,6 +142,12 @@ impl PackedPromptDt {
     /// How the dropout masks are drawn (default [`MaskDraw::default_for`] the device).
     pub fn set_mask_draw(&mut self, draw: MaskDraw) {
         self.mask_draw = draw;
+    }
+
+    /// What the last block of [`Self::forward_all_steps`] computes (by default the state tokens
+    /// only; `AllTokens` is the reference's ops, as the solo CPU model runs them).
+    pub fn set_last_block(&mut self, last: LastBlock) {
+        self.last_block = last;
     }
 
     /// How the LayerNorms are computed (default [`LayerNormPlan::default_for`] the device).
@@ -474,15 +483,21 @@ impl PackedPromptDt {
             let site = masks.as_ref().map(|m| &m.layers[i]);
             x = self.block(&x, blk, &causal, &pad_bias, site);
         }
-        // Differs from the reference code (which runs the last block on every token, then reads
-        // the state tokens' outputs): only the state tokens' outputs are read (the action head),
-        // and nothing after the last block mixes positions, so its queries, attention output and
-        // MLP run for the state tokens only (its keys and values still come from every token).
-        // The same values in exact arithmetic, a third of the last block's rows: the pack is a
-        // tolerance path, never bitwise.
+        // By default differs from the reference code (which runs the last block on every token,
+        // then reads the state tokens' outputs): only the state tokens' outputs are read (the
+        // action head), and nothing after the last block mixes positions, so its queries,
+        // attention output and MLP run for the state tokens only (its keys and values still come
+        // from every token). The same values in exact arithmetic, a third of the last block's
+        // rows: the pack is a tolerance path, never bitwise (docs/implementation-details.md, C.9).
         let site = masks.as_ref().map(|m| &m.layers[blocks.len()]);
-        let x = self.block_states(&x, last, &state_rows(&causal), &pad_bias, site); // [N*B, P+K, H]
-        let x = self.layer_norm(&x, self.idx.ln_f, eps);
+        let x = match self.last_block {
+            LastBlock::StateTokens => {
+                self.block_states(&x, last, &state_rows(&causal), &pad_bias, site)
+                // [N*B, P+K, H]
+            }
+            LastBlock::AllTokens => state_rows(&self.block(&x, last, &causal, &pad_bias, site)),
+        };
+        let x = self.layer_norm(&x.contiguous(), self.idx.ln_f, eps);
         debug_assert_eq!(x.size()[1], batch.p + batch.k);
         let actions = self.linear(&x, self.idx.predict_action); // [N*B, P+K, da]
         let actions = if cfg.action_tanh { actions.tanh() } else { actions };

@@ -8,7 +8,7 @@ mod options;
 mod overrides;
 
 pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore};
-pub use options::{AdamWConfig, FlatOptim, Inference, LossOn};
+pub use options::{AdamWConfig, FlatOptim, Inference, LastBlockChoice, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::{DeviceSpec, Matmul};
 pub use pdt_base::num::compact;
@@ -268,6 +268,11 @@ pub struct TrainSection {
     /// that is not a checkpoint is removed when the next one is written, so it costs one extra
     /// weights file; results do not depend on it (a resumed run is byte-identical).
     pub resume_interval: u64,
+    /// Which positions the last transformer block computes in training (`auto`: the state tokens
+    /// only on CUDA and in batched packs, every token in a solo CPU run). Left out of
+    /// `config.toml` at its default.
+    #[serde(skip_serializing_if = "LastBlockChoice::is_auto")]
+    pub last_block: LastBlockChoice,
 }
 
 impl Default for TrainSection {
@@ -280,6 +285,7 @@ impl Default for TrainSection {
             train_eval_interval: 500,
             save_interval: 500,
             resume_interval: 0,
+            last_block: LastBlockChoice::Auto,
         }
     }
 }
@@ -618,6 +624,26 @@ mod tests {
         for m in [Matmul::Fp32, Matmul::Tf32] {
             assert_eq!(m.as_str().parse::<Matmul>(), Ok(m));
         }
+    }
+
+    #[test]
+    fn train_last_block_defaults_to_auto_and_is_written_only_when_set() {
+        let c: TrainConfig = toml::from_str("[run]\nseed = 1\n").unwrap();
+        assert_eq!(c.train.last_block, LastBlockChoice::Auto);
+        assert!(
+            !c.to_toml().unwrap().contains("last_block"),
+            "files at the default stay as they were"
+        );
+        let t: TrainConfig = toml::from_str("[train]\nlast_block = \"state_tokens\"\n").unwrap();
+        assert_eq!(t.train.last_block, LastBlockChoice::StateTokens);
+        assert!(t.to_toml().unwrap().contains("last_block = \"state_tokens\""));
+        assert!(toml::from_str::<TrainConfig>("[train]\nlast_block = \"some\"\n").is_err());
+        // `auto`: the state tokens on CUDA and in batched packs, every token in a solo CPU run.
+        let auto = LastBlockChoice::Auto;
+        assert!(auto.state_tokens(true, false) && auto.state_tokens(false, true));
+        assert!(!auto.state_tokens(false, false));
+        assert!(!LastBlockChoice::AllTokens.state_tokens(true, true));
+        assert!(LastBlockChoice::StateTokens.state_tokens(false, false));
     }
 
     #[test]

@@ -57,6 +57,46 @@ impl FlatOptim {
     }
 }
 
+/// `train.last_block`: which positions the last transformer block of a training forward computes
+/// (`pdt_model::LastBlock`; docs/implementation-details.md, C.9).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LastBlockChoice {
+    /// A solo model: the state tokens only on CUDA, every token on the CPU (the bitwise parity
+    /// with PyTorch). A batched pack: the state tokens only (no batched path is bitwise).
+    #[default]
+    Auto,
+    /// Every token: the reference's ops.
+    AllTokens,
+    /// The state tokens only, the only outputs the action head reads: the same values in exact
+    /// arithmetic for a third of the last block's rows (within a tolerance of `all_tokens`).
+    StateTokens,
+}
+
+impl LastBlockChoice {
+    pub fn is_auto(&self) -> bool {
+        *self == LastBlockChoice::Auto
+    }
+
+    /// Whether the last block runs for the state tokens only: for a solo model on a device that is
+    /// (`cuda = true`) or is not CUDA, or (`batched = true`) for a batched pack.
+    pub fn state_tokens(self, cuda: bool, batched: bool) -> bool {
+        match self {
+            LastBlockChoice::Auto => cuda || batched,
+            LastBlockChoice::AllTokens => false,
+            LastBlockChoice::StateTokens => true,
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LastBlockChoice::Auto => "auto",
+            LastBlockChoice::AllTokens => "all_tokens",
+            LastBlockChoice::StateTokens => "state_tokens",
+        }
+    }
+}
+
 impl Default for AdamWConfig {
     fn default() -> Self {
         Self {

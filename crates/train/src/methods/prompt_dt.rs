@@ -70,7 +70,14 @@ impl<'s> PromptDtLearner<'s> {
         let sampler = setup.sampler(&setup.run_data.train_data)?;
         tch::manual_seed(derive_seed(setup.cfg.run.seed, STREAM_INIT, 0) as i64);
         let vs = VarStore::new(setup.device);
-        let model = PromptDt::new(&vs.root(), &setup.run_data.model_cfg);
+        let mut model = PromptDt::new(&vs.root(), &setup.run_data.model_cfg);
+        // `train.last_block` (default `auto`): the state tokens only on CUDA, every token (the
+        // reference's ops, bit for bit PyTorch's) on the CPU.
+        model.set_last_block(crate::step::last_block(
+            setup.cfg.train.last_block,
+            setup.device,
+            false,
+        ));
         // `optim.flat` (default `auto`): the flat-buffer AdamW on CUDA, PyTorch's per-tensor one
         // on CPU. Both save the same per-parameter state, so a run resumes on either.
         let opt = Optimizer::new(

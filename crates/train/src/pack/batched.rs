@@ -73,6 +73,20 @@ impl BatchedEngine {
             )));
         }
         let mut model = PackedPromptDt::new(&cfg, specs.len(), device).map_err(invalid)?;
+        // `train.last_block` (`auto`: the state tokens), one for the pack's computation.
+        let last = crate::step::last_block(first.last_block, device, true);
+        if let Some((i, s)) = specs
+            .iter()
+            .enumerate()
+            .find(|(_, s)| crate::step::last_block(s.last_block, device, true) != last)
+        {
+            return Err(RunError::Invalid(format!(
+                "pack: run {i}'s train.last_block ({}) differs from run 0's ({})",
+                s.last_block.as_str(),
+                first.last_block.as_str()
+            )));
+        }
+        model.set_last_block(last);
         for (slot, spec) in specs.iter().enumerate() {
             tch::manual_seed(derive_seed(spec.seed, STREAM_INIT, 0) as i64);
             let vs = VarStore::new(device);

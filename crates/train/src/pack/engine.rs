@@ -13,7 +13,7 @@
 
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, ParamState};
-use crate::step::{DeviceBatch, LossOn, StepStats};
+use crate::step::{DeviceBatch, LastBlockChoice, LossOn, StepStats};
 use pdt_model::{PromptDtConfig, Segments};
 use std::collections::BTreeMap;
 use tch::Tensor;
@@ -29,6 +29,8 @@ pub struct SlotSpec {
     pub uses_prompt: bool,
     pub loss_on: LossOn,
     pub optim: AdamWConfig,
+    /// The run's `train.last_block` (the runs of a batched pack agree on what it resolves to).
+    pub last_block: LastBlockChoice,
     /// The run seed (its dropout stream; see the module contract).
     pub seed: u64,
 }

@@ -324,6 +324,7 @@ mod tests {
                 uses_prompt: false,
                 loss_on: LossOn::History,
                 optim: AdamWConfig::default(),
+                last_block: crate::step::LastBlockChoice::Auto,
                 seed,
             })
             .collect();

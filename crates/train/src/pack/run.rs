@@ -188,6 +188,7 @@ pub(crate) fn prepare_pack(
             uses_prompt: m.cfg.run.method.uses_prompt(),
             loss_on: m.cfg.train.loss_on,
             optim: m.cfg.optim.clone(),
+            last_block: m.cfg.train.last_block,
             seed: m.cfg.run.seed,
         })
         .collect();

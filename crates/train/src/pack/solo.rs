@@ -194,7 +194,8 @@ impl SoloEngine {
 
 fn new_slot(spec: &SlotSpec, device: Device) -> Slot {
     let vs = VarStore::new(device);
-    let model = PromptDt::new(&vs.root(), &spec.model);
+    let mut model = PromptDt::new(&vs.root(), &spec.model);
+    model.set_last_block(crate::step::last_block(spec.last_block, device, false));
     let opt = Optimizer::new(&vs, &spec.model.parameter_names(), spec.optim.clone());
     Slot { spec: spec.clone(), vs, model, opt }
 }

@@ -68,6 +68,7 @@ pub fn specs() -> Vec<SlotSpec> {
             uses_prompt: r.prompt > 0,
             loss_on: r.loss_on,
             optim: optim(),
+            last_block: pdt_train::step::LastBlockChoice::Auto,
             seed: r.seed,
         })
         .collect()
