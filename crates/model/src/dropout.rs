@@ -138,6 +138,15 @@ impl Dropout<'_> {
         }
     }
 
+    /// [`Self::apply_states`] when `states`, else [`Self::apply`].
+    pub(crate) fn apply_rows(&self, x: Tensor, p: f64, at: At, states: bool) -> Tensor {
+        if states {
+            self.apply_states(x, p, at)
+        } else {
+            self.apply(x, p, at)
+        }
+    }
+
     /// [`Self::apply`] to the state tokens' rows of a site (`crate::gpt2::LastBlock::StateTokens`):
     /// `x` is `[..., L/3, D]` where the full forward's site is `[..., L, D]`. Given masks are read
     /// at those rows. Drawn ones, on the CPU, are drawn at the full site's shape as `at::dropout`

@@ -82,6 +82,9 @@ impl Attention {
         (q.permute([0, 2, 1, 3]), k, v)
     }
 
+    /// `states`: the queries of the state tokens only ([`LastBlock::StateTokens`]), `[B, L/3, H]`
+    /// out, `masks.causal` holding their rows (`[1, 1, L/3, L]`); otherwise every position's (the
+    /// reference's ops, none added).
     fn forward(
         &self,
         x: &Tensor,
@@ -89,45 +92,29 @@ impl Attention {
         drop: &Dropout<'_>,
         layer: usize,
         lora: Option<&LoraLayer>,
+        states: bool,
     ) -> Tensor {
         let (b, l) = (x.size()[0], x.size()[1]);
         let hd = self.hidden / self.n_head;
         let (q, k, v) = self.qkv(x, l, lora); // [B, nh, L, hd], [B, nh, hd, L], [B, nh, L, hd]
-        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, L, L]
+        let q = if states { state_rows(&q) } else { q }; // [B, nh, R, hd]: R = L/3 or L
+        let rows = q.size()[2];
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, R, L]
 
         // Reference quirk (HF 4.5.1): masked scores are *replaced* by -1e4 (not -inf), then the
         // padding bias is *added*; a fully padded row therefore still softmaxes to finite values.
         let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
-        let w = drop.apply(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
-        let a = w.matmul(&v); // [B, nh, L, hd]
-        let a = a.permute([0, 2, 1, 3]).contiguous().view([b, l, self.hidden]); // [B, L, H]
+        let w = drop.apply_rows(
+            w.softmax(-1, None::<Kind>),
+            self.attn_pdrop,
+            At::Layer(layer, 0),
+            states,
+        );
+        let a = w.matmul(&v); // [B, nh, R, hd]
+        let a = a.permute([0, 2, 1, 3]).contiguous().view([b, rows, self.hidden]); // [B, R, H]
         let proj = lora.and_then(|l| l.c_proj.as_ref());
-        drop.apply(self.c_proj.forward_lora(&a, proj), self.resid_pdrop, At::Layer(layer, 1))
-    }
-
-    /// [`Self::forward`] for the queries of the state tokens only ([`state_rows`]): `[B, L/3, H]`.
-    /// `masks.causal` holds those rows (`[1, 1, L/3, L]`).
-    fn forward_states(
-        &self,
-        x: &Tensor,
-        masks: &Masks<'_>,
-        drop: &Dropout<'_>,
-        layer: usize,
-        lora: Option<&LoraLayer>,
-    ) -> Tensor {
-        let b = x.size()[0];
-        let hd = self.hidden / self.n_head;
-        let (q, k, v) = self.qkv(x, x.size()[1], lora);
-        let q = state_rows(&q); // [B, nh, S, hd], S = L/3
-        let s = q.size()[2];
-        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [B, nh, S, L]
-        let w = w.where_self(masks.causal, masks.masked_bias) + masks.pad_bias;
-        let w =
-            drop.apply_states(w.softmax(-1, None::<Kind>), self.attn_pdrop, At::Layer(layer, 0));
-        let a = w.matmul(&v); // [B, nh, S, hd]
-        let a = a.permute([0, 2, 1, 3]).contiguous().view([b, s, self.hidden]); // [B, S, H]
-        let proj = lora.and_then(|l| l.c_proj.as_ref());
-        drop.apply_states(self.c_proj.forward_lora(&a, proj), self.resid_pdrop, At::Layer(layer, 1))
+        let y = self.c_proj.forward_lora(&a, proj);
+        drop.apply_rows(y, self.resid_pdrop, At::Layer(layer, 1), states)
     }
 
     /// Keys `[B, nh, hd, L]` and values `[B, nh, L, hd]` of `x` (`[B, L, H]`, after `ln_1`).
@@ -177,15 +164,10 @@ struct Mlp {
 }
 
 impl Mlp {
-    fn forward(&self, x: &Tensor, drop: &Dropout<'_>, layer: usize) -> Tensor {
+    /// `states`: `x` holds the state tokens' rows of the block (its dropout mask read there).
+    fn forward(&self, x: &Tensor, drop: &Dropout<'_>, layer: usize, states: bool) -> Tensor {
         let y = self.c_proj.forward(&self.c_fc.forward(x).relu());
-        drop.apply(y, self.resid_pdrop, At::Layer(layer, 2))
-    }
-
-    /// [`Self::forward`] on the state tokens' rows of the block (its dropout mask read there).
-    fn forward_states(&self, x: &Tensor, drop: &Dropout<'_>, layer: usize) -> Tensor {
-        let y = self.c_proj.forward(&self.c_fc.forward(x).relu());
-        drop.apply_states(y, self.resid_pdrop, At::Layer(layer, 2))
+        drop.apply_rows(y, self.resid_pdrop, At::Layer(layer, 2), states)
     }
 }
 
@@ -221,6 +203,8 @@ impl Block {
         }
     }
 
+    /// `states`: the outputs at the state tokens only, `[B, L/3, H]` from `x` `[B, L, H]`, each
+    /// row the full block's output at its position (keys and values still from every position).
     fn forward(
         &self,
         x: &Tensor,
@@ -228,24 +212,11 @@ impl Block {
         drop: &Dropout<'_>,
         layer: usize,
         lora: Option<&LoraLayer>,
+        states: bool,
     ) -> Tensor {
-        let h = x + self.attn.forward(&self.ln_1.forward(x), masks, drop, layer, lora);
-        &h + self.mlp.forward(&self.ln_2.forward(&h), drop, layer)
-    }
-
-    /// [`Self::forward`] for the state tokens only: `[B, L/3, H]` from `x` `[B, L, H]`, each row
-    /// the full block's output at its position (keys and values still come from every position).
-    fn forward_states(
-        &self,
-        x: &Tensor,
-        masks: &Masks<'_>,
-        drop: &Dropout<'_>,
-        layer: usize,
-        lora: Option<&LoraLayer>,
-    ) -> Tensor {
-        let a = self.attn.forward_states(&self.ln_1.forward(x), masks, drop, layer, lora);
-        let h = state_rows(x) + a; // [B, S, H]
-        &h + self.mlp.forward_states(&self.ln_2.forward(&h), drop, layer)
+        let a = self.attn.forward(&self.ln_1.forward(x), masks, drop, layer, lora, states);
+        let h = if states { state_rows(x) + a } else { x + a }; // [B, R, H]
+        &h + self.mlp.forward(&self.ln_2.forward(&h), drop, layer, states)
     }
 
     /// Eval mode, over a cached prefix, for the last `rows` positions of `x` (`[B, L, H]`):
@@ -272,7 +243,7 @@ impl Block {
             lora,
         );
         let h = x.narrow(1, l - rows, rows) + a; // [B, rows, H]
-        &h + self.mlp.forward(&self.ln_2.forward(&h), &Dropout::Off, 0)
+        &h + self.mlp.forward(&self.ln_2.forward(&h), &Dropout::Off, 0, false)
     }
 }
 
@@ -430,7 +401,13 @@ impl Gpt2 {
     /// `inputs_embeds`: `[B, L, H]`; `token_mask`: `[B, L]` (1 = real token, 0 = padding), float.
     /// Returns `[B, L, H]`.
     pub fn forward(&self, inputs_embeds: &Tensor, token_mask: &Tensor, train: bool) -> Tensor {
-        self.forward_impl(inputs_embeds, token_mask, Dropout::train(train), None)
+        self.forward_impl(
+            inputs_embeds,
+            token_mask,
+            Dropout::train(train),
+            None,
+            LastBlock::AllTokens,
+        )
     }
 
     /// [`Self::forward`] with its dropout as given (masks drawn beforehand, see
@@ -441,7 +418,7 @@ impl Gpt2 {
         token_mask: &Tensor,
         drop: Dropout<'_>,
     ) -> Tensor {
-        self.forward_impl(inputs_embeds, token_mask, drop, None)
+        self.forward_impl(inputs_embeds, token_mask, drop, None, LastBlock::AllTokens)
     }
 
     /// [`Self::forward`] with LoRA adapters on the attention projections (one per layer).
@@ -452,7 +429,13 @@ impl Gpt2 {
         train: bool,
         lora: Option<&[LoraLayer]>,
     ) -> Tensor {
-        self.forward_impl(inputs_embeds, token_mask, Dropout::train(train), lora)
+        self.forward_impl(
+            inputs_embeds,
+            token_mask,
+            Dropout::train(train),
+            lora,
+            LastBlock::AllTokens,
+        )
     }
 
     /// [`Self::forward_with`] with the last block as [`LastBlock::StateTokens`]: the outputs at
@@ -463,20 +446,10 @@ impl Gpt2 {
         token_mask: &Tensor,
         drop: Dropout<'_>,
     ) -> Tensor {
-        self.forward_impl_last(inputs_embeds, token_mask, drop, None, LastBlock::StateTokens)
+        self.forward_impl(inputs_embeds, token_mask, drop, None, LastBlock::StateTokens)
     }
 
     fn forward_impl(
-        &self,
-        inputs_embeds: &Tensor,
-        token_mask: &Tensor,
-        drop: Dropout<'_>,
-        lora: Option<&[LoraLayer]>,
-    ) -> Tensor {
-        self.forward_impl_last(inputs_embeds, token_mask, drop, lora, LastBlock::AllTokens)
-    }
-
-    fn forward_impl_last(
         &self,
         inputs_embeds: &Tensor,
         token_mask: &Tensor,
@@ -498,9 +471,9 @@ impl Gpt2 {
             x = if i + 1 == n && last == LastBlock::StateTokens {
                 let causal = state_rows(&causal); // [1, 1, L/3, L]
                 let rows = Masks { causal: &causal, ..masks };
-                block.forward_states(&x, &rows, &drop, i, adapter) // [B, L/3, H]
+                block.forward(&x, &rows, &drop, i, adapter, true) // [B, L/3, H]
             } else {
-                block.forward(&x, &masks, &drop, i, adapter)
+                block.forward(&x, &masks, &drop, i, adapter, false)
             };
         }
         self.ln_f.forward(&x)
@@ -531,7 +504,7 @@ impl Gpt2 {
             let adapter = lora.and_then(|a| a.get(i));
             let (keys, values) = block.attn.keys_values(&block.ln_1.forward(&x), adapter);
             layers.push(LayerCache { keys, values });
-            x = block.forward(&x, &masks, &Dropout::Off, 0, adapter);
+            x = block.forward(&x, &masks, &Dropout::Off, 0, adapter, false);
         }
         PrefixCache { layers, pad_bias }
     }

@@ -415,6 +415,8 @@ impl PackedPromptDt {
         )
     }
 
+    /// `states`: the queries of the state tokens only ([`Self::block`]); `masks` are read at
+    /// the rows computed.
     fn attention(
         &self,
         x: &Tensor,
@@ -422,19 +424,22 @@ impl PackedPromptDt {
         causal: &Tensor,
         pad_bias: &Tensor,
         masks: Option<&[Option<Tensor>; 3]>,
+        states: bool,
     ) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
         let nh = self.cfg.n_head as i64;
         let hd = hidden / nh;
-        let (rows, l) = (x.size()[0], x.size()[1]);
+        let (n_rows, l) = (x.size()[0], x.size()[1]);
         let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
-        let q = qkv[0].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
-        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
-        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
-        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, L, L]
+        let q = if states { state_rows(&qkv[0]) } else { qkv[0].shallow_clone() }; // [N*B, R, H]
+        let r = q.size()[1];
+        let q = q.view([n_rows, r, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, R, hd]
+        let k = qkv[1].view([n_rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
+        let v = qkv[2].view([n_rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
+        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, R, L]
         let w = w.where_self(causal, &self.masked_bias) + pad_bias;
         let w = drop(w.softmax(-1, None::<Kind>), masks.and_then(|m| m[0].as_ref()));
-        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([rows, l, hidden]);
+        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([n_rows, r, hidden]);
         drop(self.conv1d(&a, blk.attn_proj), masks.and_then(|m| m[1].as_ref()))
     }
 
@@ -481,7 +486,7 @@ impl PackedPromptDt {
         };
         for (i, blk) in blocks.iter().enumerate() {
             let site = masks.as_ref().map(|m| &m.layers[i]);
-            x = self.block(&x, blk, &causal, &pad_bias, site);
+            x = self.block(&x, blk, &causal, &pad_bias, site, false);
         }
         // By default differs from the reference code (which runs the last block on every token,
         // then reads the state tokens' outputs): only the state tokens' outputs are read (the
@@ -491,11 +496,13 @@ impl PackedPromptDt {
         // rows: the pack is a tolerance path, never bitwise (docs/implementation-details.md, C.9).
         let site = masks.as_ref().map(|m| &m.layers[blocks.len()]);
         let x = match self.last_block {
+            // [N*B, P+K, H]
             LastBlock::StateTokens => {
-                self.block_states(&x, last, &state_rows(&causal), &pad_bias, site)
-                // [N*B, P+K, H]
+                self.block(&x, last, &state_rows(&causal), &pad_bias, site, true)
             }
-            LastBlock::AllTokens => state_rows(&self.block(&x, last, &causal, &pad_bias, site)),
+            LastBlock::AllTokens => {
+                state_rows(&self.block(&x, last, &causal, &pad_bias, site, false))
+            }
         };
         let x = self.layer_norm(&x.contiguous(), self.idx.ln_f, eps);
         debug_assert_eq!(x.size()[1], batch.p + batch.k);
@@ -504,42 +511,11 @@ impl PackedPromptDt {
         actions.view([n, b, batch.p + batch.k, -1])
     }
 
-    /// [`Self::block`] with the queries, the attention output and the MLP of the state tokens
-    /// only (positions 1, 4, 7, ...): `[N*B, L/3, H]` from `x` `[N*B, L, H]`. `causal` holds the
-    /// state tokens' rows (`[1, 1, L/3, L]`); the masks of `site` are the full forward's, read at
-    /// the state tokens' rows, so a state token's output is the full block's at its position.
-    fn block_states(
-        &self,
-        x: &Tensor,
-        blk: &BlockIdx,
-        causal: &Tensor,
-        pad_bias: &Tensor,
-        site: Option<&[Option<Tensor>; 3]>,
-    ) -> Tensor {
-        let eps = self.cfg.layer_norm_epsilon;
-        let hidden = self.cfg.hidden_size as i64;
-        let nh = self.cfg.n_head as i64;
-        let hd = hidden / nh;
-        let (rows, l) = (x.size()[0], x.size()[1]);
-        let mask = |i: usize| site.and_then(|s| s[i].as_ref()).map(state_rows);
-        let qkv = self.conv1d(&self.layer_norm(x, blk.ln_1, eps), blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
-        let q = state_rows(&qkv[0]); // [N*B, S, H], S = L/3
-        let s = q.size()[1];
-        let q = q.view([rows, s, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, S, hd]
-        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
-        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
-        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, S, L]
-        let w = w.where_self(causal, &self.masked_bias) + pad_bias;
-        let w = drop(w.softmax(-1, None::<Kind>), mask(0).as_ref());
-        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([rows, s, hidden]); // [N*B, S, H]
-        let a = drop(self.conv1d(&a, blk.attn_proj), mask(1).as_ref());
-        let h = state_rows(x) + a; // [N*B, S, H]
-        let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
-        let m = drop(self.conv1d(&inner, blk.mlp_proj), mask(2).as_ref());
-        &h + m
-    }
-
-    /// One transformer block (attention, then MLP, each residual) on every position.
+    /// One transformer block (attention, then MLP, each residual) on every position, or with
+    /// `states` its queries, attention output and MLP for the state tokens only (positions 1, 4,
+    /// 7, ...): `[N*B, L/3, H]` from `x` `[N*B, L, H]`, `causal` holding their rows
+    /// (`[1, 1, L/3, L]`), the masks of `site` (the full forward's) read at their rows, so a state
+    /// token's output is the full block's at its position.
     fn block(
         &self,
         x: &Tensor,
@@ -547,12 +523,17 @@ impl PackedPromptDt {
         causal: &Tensor,
         pad_bias: &Tensor,
         site: Option<&[Option<Tensor>; 3]>,
+        states: bool,
     ) -> Tensor {
         let eps = self.cfg.layer_norm_epsilon;
-        let a = self.attention(&self.layer_norm(x, blk.ln_1, eps), blk, causal, pad_bias, site);
-        let h = x + a;
+        let rows = |t: &Tensor| if states { state_rows(t) } else { t.shallow_clone() };
+        let masks = site.map(|s| s.each_ref().map(|m| m.as_ref().map(rows)));
+        let masks = masks.as_ref();
+        let ln_1 = self.layer_norm(x, blk.ln_1, eps);
+        let a = self.attention(&ln_1, blk, causal, pad_bias, masks, states);
+        let h = rows(x) + a; // [N*B, R, H]: R = L/3 or L
         let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
-        let m = drop(self.conv1d(&inner, blk.mlp_proj), site.and_then(|s| s[2].as_ref()));
+        let m = drop(self.conv1d(&inner, blk.mlp_proj), masks.and_then(|s| s[2].as_ref()));
         &h + m
     }
 
@@ -576,7 +557,7 @@ impl PackedPromptDt {
                 return Tensor::zeros([n, b, 0], (Kind::Float, self.device));
             };
             for blk in blocks {
-                x = self.block(&x, blk, &causal, &pad_bias, None);
+                x = self.block(&x, blk, &causal, &pad_bias, None, false);
             }
             let a = self.attention_last(&self.layer_norm(&x, last.ln_1, eps), last, &pad_bias); // [N*B, 1, H]
             let h = x.narrow(1, l - 1, 1).contiguous() + a; // [N*B, 1, H]
