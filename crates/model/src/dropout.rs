@@ -156,7 +156,7 @@ impl Dropout<'_> {
     pub(crate) fn apply_states(&self, x: Tensor, p: f64, at: At) -> Tensor {
         match self {
             Dropout::Given(m) => match m.at(at) {
-                Some(mask) => x * crate::gpt2::state_rows(mask),
+                Some(mask) => x * crate::tokens::state_rows(mask),
                 None => x,
             },
             // `at::dropout` draws nothing at p = 0.
@@ -168,7 +168,7 @@ impl Dropout<'_> {
                 }
                 let mut noise = Tensor::empty(full.as_slice(), (x.kind(), x.device()));
                 draw_noise(&mut noise, p);
-                x * crate::gpt2::state_rows(&noise)
+                x * crate::tokens::state_rows(&noise)
             }
             _ => self.apply(x, p, at),
         }

@@ -8,6 +8,7 @@
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
 //! - [`dropout`]: the trunk's dropout sites and masks (drawn in the forward or beforehand).
+//! - [`tokens`]: the `(R, s, a)` token layout (the state tokens' rows).
 //! - [`host_memory`]: keeps the memory libtorch frees on the CPU for reuse (no page-fault churn).
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
@@ -29,6 +30,7 @@ pub mod lora;
 pub mod packed;
 pub mod profiler;
 pub mod prompt_dt;
+pub mod tokens;
 
 pub use checkpoint::CheckpointError;
 pub use config::PromptDtConfig;

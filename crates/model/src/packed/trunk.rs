@@ -4,8 +4,9 @@
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
 use crate::config::PromptDtConfig;
 use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
-use crate::gpt2::{state_rows, LastBlock};
+use crate::gpt2::LastBlock;
 use crate::prompt_dt::Segments;
+use crate::tokens::state_rows;
 use tch::{Device, Kind, Tensor};
 
 /// How a pack computes its LayerNorms (each run has its own weight and bias).
