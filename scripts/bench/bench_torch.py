@@ -138,9 +138,10 @@ def main():
         return step, lambda: model.eval()
 
     def make(name):
-        # train_b<N> / infer_b<N>, any batch size N. train_b<N>_flat is promptdt's flat-buffer AdamW;
-        # PyTorch's side of it is the same default AdamW step (foreach on CUDA).
-        kind, _, batch = name.removesuffix("_flat").partition("_b")
+        # train_b<N> / infer_b<N>, any batch size N. train_b<N>_flat is promptdt's flat-buffer AdamW
+        # (and, with _all, its last block on every token); PyTorch's side of both is the same
+        # default AdamW step (foreach on CUDA), the reference's forward.
+        kind, _, batch = name.removesuffix("_all").removesuffix("_flat").partition("_b")
         makers = {"train": train_case, "infer": infer_case}
         if kind not in makers or not batch.isdigit() or int(batch) < 1:
             raise SystemExit(f"unknown case {name!r} (train_b<N> or infer_b<N>)")

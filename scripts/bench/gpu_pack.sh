@@ -10,8 +10,9 @@
 #      pack of 12's, at Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step,
 #      the costliest);
 #   T. TF32 against fp32 matmuls (--matmul, same call): the arithmetic-bound step (Cheetah-Vel's batch,
-#      solo and a pack of 12) and the launch-bound one (pack12_b32); the solo step against PyTorch
-#      with TF32 too (T_S seconds; SKIP_T=1 skips it);
+#      solo and a pack of 12) and the launch-bound one (pack12_b32), and a solo step with the last
+#      block for the state tokens only against every token (train_b560_flat, _flat_all); the solo
+#      step against PyTorch with TF32 too (T_S seconds; SKIP_T=1 skips it);
 #   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
 #      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
@@ -73,7 +74,7 @@ if [ -z "${SKIP_P:-}" ] && [ "$(left)" -gt ${P_S:-100} ]; then
     --cases "${P_CASES:-train_b64_flat,train_b560_flat,solo1_b32,pack12_b32,solo1_b560,pack12_b560}"
 fi
 if [ -z "${SKIP_T:-}" ] && [ "$(left)" -gt $((3 * ${T_S:-80})) ]; then
-  T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32}
+  T_CASES=${T_CASES:-solo1_b560,pack12_b560,pack12_b32,train_b560_flat,train_b560_flat_all}
   log "T. fp32 vs tf32 matmuls"
   bench ${T_S:-80} bench_fp32 $(its 8 3) --cases "$T_CASES"
   bench ${T_S:-80} bench_tf32 $(its 8 3) --cases "$T_CASES" --matmul tf32

@@ -5,7 +5,9 @@
 //! `train_b560` / `train_b64` (forward in train mode, masked MSE, backward, clipping, AdamW; the
 //! per-tensor AdamW, PyTorch's single-tensor path), `train_b560_flat` / `train_b64_flat` (the same
 //! step as a run on CUDA takes it: the flat-buffer AdamW, `optim.flat = "on"`, and the last block
-//! for the state tokens only, `LastBlock::StateTokens`; PyTorch's side is its default AdamW) and
+//! for the state tokens only, `LastBlock::StateTokens`; PyTorch's side is its default AdamW),
+//! `train_b560_flat_all` (the same with the last block on every token, as before
+//! `train.last_block`) and
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
@@ -113,7 +115,7 @@ pub struct BenchReport {
 
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown benchmark case `{0}` (expected train_b<N>[_flat], infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B>[_flat|_pt] or solo<N>_b<B>[_flat|_pt])")]
+    #[error("unknown benchmark case `{0}` (expected train_b<N>[_flat|_flat_all], infer_b<N>, act_b<N>, eval_<family>[_full][_b<N>], sac_h<H>_b<B>, td3_h<H>_b<B>, macaw_w<W>_t<T>, pack<N>_b<B>[_flat|_pt] or solo<N>_b<B>[_flat|_pt])")]
     UnknownCase(String),
     #[error("running the PyTorch baseline `{cmd}` failed: {why}")]
     Baseline { cmd: String, why: String },
@@ -138,6 +140,9 @@ enum Mode {
     /// `train_b<N>_flat`: one training step in the CUDA configuration (the flat-buffer AdamW, the
     /// last block for the state tokens only).
     TrainFlat,
+    /// `train_b<N>_flat_all`: the same with the last block on every token (the CUDA
+    /// configuration before `train.last_block`), to time what the state tokens save.
+    TrainFlatAll,
     /// `infer_b<N>`: one rollout step by the reference's path, the full forward.
     Infer,
     /// `act_b<N>`: one rollout step by `PromptDt::act` with the prompt's keys and values cached
@@ -148,9 +153,12 @@ enum Mode {
 fn parse_case(name: &str) -> Result<(Mode, i64), BenchError> {
     let bad = || BenchError::UnknownCase(name.to_string());
     let (mode, b) = if let Some(b) = name.strip_prefix("train_b") {
-        match b.strip_suffix("_flat") {
-            Some(b) => (Mode::TrainFlat, b),
-            None => (Mode::Train, b),
+        if let Some(b) = b.strip_suffix("_flat_all") {
+            (Mode::TrainFlatAll, b)
+        } else if let Some(b) = b.strip_suffix("_flat") {
+            (Mode::TrainFlat, b)
+        } else {
+            (Mode::Train, b)
         }
     } else if let Some(b) = name.strip_prefix("infer_b") {
         (Mode::Infer, b)
@@ -250,7 +258,7 @@ fn time_case(
     cfg: &BenchConfig,
 ) -> Result<CaseTiming, BenchError> {
     let (mode, b) = parse_case(name)?;
-    let opt = opts.get(mode == Mode::TrainFlat);
+    let opt = opts.get(matches!(mode, Mode::TrainFlat | Mode::TrainFlatAll));
     // The other cases keep the reference's ops, as PyTorch's side runs them.
     model.set_last_block(if mode == Mode::TrainFlat {
         LastBlock::StateTokens
@@ -269,7 +277,7 @@ fn time_case(
         if mode == Mode::Act {
             let a = tch::no_grad(|| model.act(&history, Some(&cache.select(&rows))));
             let _ = a.to_device(Device::Cpu);
-        } else if matches!(mode, Mode::Train | Mode::TrainFlat) {
+        } else if matches!(mode, Mode::Train | Mode::TrainFlat | Mode::TrainFlatAll) {
             let preds = model.forward(&history, Some(&prompt), true);
             let loss = PromptDt::action_loss(&preds, &history.actions, &history.mask);
             let mut grads = opt.backward(&loss);
@@ -758,6 +766,7 @@ mod tests {
     fn train_cases_name_the_optimiser() {
         assert_eq!(parse_case("train_b560").ok(), Some((Mode::Train, 560)));
         assert_eq!(parse_case("train_b64_flat").ok(), Some((Mode::TrainFlat, 64)));
+        assert_eq!(parse_case("train_b560_flat_all").ok(), Some((Mode::TrainFlatAll, 560)));
         for bad in ["train_b64_flatx", "train_b_flat", "infer_b1_flat", "train_b0_flat"] {
             assert!(parse_case(bad).is_err(), "{bad}");
         }
