@@ -6,21 +6,7 @@
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{losses, ok, s, tiny_setup, train, variant};
-use std::path::Path;
-
-/// Every `train/action_loss` of a run's metrics.
-fn action_losses(run: &Path) -> Vec<f64> {
-    std::fs::read_to_string(run.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["train/action_loss"]
-                .as_f64()
-                .unwrap()
-        })
-        .collect()
-}
+use cli::{action_losses, losses, ok, s, tiny_setup, train, variant};
 
 #[test]
 fn state_tokens_train_as_all_tokens_within_rounding_and_resume_byte_for_byte() {

@@ -7,7 +7,7 @@
 #[path = "support/cli.rs"]
 mod cli;
 
-use cli::{fails, ok, s, tiny_setup};
+use cli::{action_losses, fails, ok, s, tiny_setup};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -337,14 +337,7 @@ fn reproduce_packs_its_runs_and_they_are_the_runs_it_trains_alone() {
     .unwrap();
     assert!(record.contains("\"engine\": \"batched\""), "{record}");
     for k in ["point_robot/prompt-dt/smoke/seed0", "point_robot/mt-orl/smoke/seed1"] {
-        let losses = |root: &Path| -> Vec<f64> {
-            std::fs::read_to_string(root.join("runs").join(k).join("metrics.jsonl"))
-                .unwrap()
-                .lines()
-                .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-                .map(|v| v["train/action_loss"].as_f64().unwrap())
-                .collect()
-        };
+        let losses = |root: &Path| action_losses(&root.join("runs").join(k));
         let (a, b) = (losses(&alone), losses(&batched));
         assert_eq!(a.len(), b.len(), "{k}");
         for (x, y) in a.iter().zip(&b) {

@@ -115,6 +115,16 @@ pub fn edit_task0(data: &Path, f: impl Fn(&mut pdt_data::Trajectory)) {
     }
 }
 
+/// Every `train/action_loss` of a run's metrics (one per iteration).
+pub fn action_losses(run: &Path) -> Vec<f64> {
+    std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|v| v["train/action_loss"].as_f64().unwrap())
+        .collect()
+}
+
 /// The training losses of a run (its metrics lines without the wall-clock field).
 pub fn losses(run: &Path) -> Vec<String> {
     std::fs::read_to_string(run.join("metrics.jsonl"))
