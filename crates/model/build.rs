@@ -2,7 +2,8 @@
 //! libtorch that torch-sys links: `LIBTORCH` (set by `.cargo/config.toml` to
 //! `third_party/libtorch/torch`, installed by `scripts/fetch_libtorch.py`), with torch-sys's own
 //! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_model::device::Matmul`);
-//! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`).
+//! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`);
+//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`).
 
 use std::path::PathBuf;
 
@@ -10,6 +11,7 @@ fn main() {
     println!("cargo::rerun-if-changed=build.rs");
     println!("cargo::rerun-if-changed=csrc/matmul.cpp");
     println!("cargo::rerun-if-changed=csrc/profiler.cpp");
+    println!("cargo::rerun-if-changed=csrc/memory.cpp");
     println!("cargo::rerun-if-changed=csrc/guard.h");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
@@ -32,6 +34,7 @@ fn main() {
         .cpp(true)
         .file("csrc/matmul.cpp")
         .file("csrc/profiler.cpp")
+        .file("csrc/memory.cpp")
         .include(&include)
         .include(include.join("torch").join("csrc").join("api").join("include"))
         .include(include.join("kineto"))

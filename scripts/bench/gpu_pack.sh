@@ -6,6 +6,7 @@
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
 #      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
 #      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
+#   R. (R_ROUNDS=N) one solo run's step and the packs of 12 and 36, alternated N times in one process;
 #   P. where a step's time goes: libtorch's profiler over one solo run's step (beside PyTorch's) and a
 #      pack of 12's, at Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step,
 #      the costliest);
@@ -68,6 +69,14 @@ fi
 log "B. packs"; smi "$O/packs"
 bench 120 bench_packs $(its 10 3) --cases "$PACKS"
 smi_stop
+# One call's cases can read differently by their place in it (the first one timed in a process ran
+# 9.3 ms where the same case later ran 6.1 ms, 2026-11-27): the ratio is timed with the cases
+# alternated, R_ROUNDS times each, in one process.
+if [ -n "${R_ROUNDS:-}" ]; then
+  log "R. solo and packs alternated, $R_ROUNDS rounds"
+  R=""; for i in $(seq "$R_ROUNDS"); do R="$R,${R_CASES:-solo1_b32,pack12_b32,pack36_b32}"; done
+  bench 120 bench_alt $(its 20 5) --cases "${R#,}"
+fi
 if [ -z "${SKIP_P:-}" ] && [ "$(left)" -gt ${P_S:-100} ]; then
   log "P. profile: kernels per step"
   bench ${P_S:-100} bench_profile $(its 3 2) --profile --python "$PY" \

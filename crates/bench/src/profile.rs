@@ -32,6 +32,9 @@ pub struct CaseProfile {
     pub copies: f64,
     /// The operators and kernels that take the most time per iteration, by kind.
     pub top: Vec<ProfiledName>,
+    /// Every operator and kernel name of an iteration, the costliest first (in `bench.json` only:
+    /// where a step's operators come from, to compare one case's mix with another's).
+    pub names: Vec<ProfiledName>,
 }
 
 /// What one iteration runs, as counted for the PyTorch baseline (`bench_torch.py --profile`, the
@@ -100,7 +103,7 @@ pub fn profile_case(
     for kind in [EventKind::Kernel, EventKind::Op] {
         top.extend(names.iter().filter(|p| p.kind == kind).take(TOP).cloned());
     }
-    Ok(CaseProfile { case: case.to_string(), ops, kernels, copies, top })
+    Ok(CaseProfile { case: case.to_string(), ops, kernels, copies, top, names })
 }
 
 /// The profiles as Markdown: a line per case (with PyTorch's counts where its baseline ran the

@@ -112,15 +112,64 @@ pub fn cuda_matmul() -> Result<Matmul, MatmulError> {
 pub fn upload<T: tch::kind::Element>(values: &[T], device: Device) -> tch::Tensor {
     let host = tch::Tensor::from_slice(values);
     if device.is_cuda() {
-        host.pin_memory(device).to_device_(device, host.kind(), true, false)
+        // Should pinning fail (no pinned-memory allocator), the plain copy is still correct.
+        match pinned(&host) {
+            Ok(p) => p.to_device_(device, host.kind(), true, false),
+            Err(_) => host.to_device(device),
+        }
     } else {
         host.to_device(device)
     }
 }
 
+/// `host` copied into page-locked memory. Not tch's `pin_memory(device)`: libtorch 2.11 warns on
+/// every call that passes a device (deprecated), two lines per upload of a CUDA run
+/// (`csrc/memory.cpp`). Fails where libtorch has no pinned-memory allocator (no CUDA).
+pub fn pinned(host: &tch::Tensor) -> Result<tch::Tensor, String> {
+    let mut out: *mut std::ffi::c_void = std::ptr::null_mut();
+    // SAFETY: `host.as_ptr()` is a live tch tensor handle (`at::Tensor*`) for the call; on success
+    // the C++ side stores a new `at::Tensor*` allocated with `new`, as tch's own generated
+    // functions return theirs, so `from_ptr` takes ownership of it (and frees it on drop).
+    #[allow(unsafe_code)]
+    let pin = |err, len| unsafe {
+        crate::ffi::pdt_pin_memory(host.as_ptr().cast(), &mut out, err, len)
+    };
+    crate::ffi::call(pin)?;
+    if out.is_null() {
+        return Err("pin_memory returned no tensor".into());
+    }
+    // SAFETY: see above; `out` is non-null and owned by nobody else.
+    #[allow(unsafe_code)]
+    Ok(unsafe { tch::Tensor::from_ptr(out.cast()) })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pinned_copies_or_says_why() {
+        let host = tch::Tensor::from_slice(&[1.0f32, 2.0, 3.0]);
+        match resolve(DeviceSpec::Cuda) {
+            // A GPU machine: the same values, page-locked on the host, and an upload through them.
+            Ok(cuda) => {
+                let p = pinned(&host).expect("pinned memory on a CUDA machine");
+                assert_eq!(Vec::<f32>::try_from(&p).unwrap(), vec![1.0, 2.0, 3.0]);
+                assert_eq!(p.device(), Device::Cpu);
+                let up = upload(&[4i64, 5], cuda);
+                assert_eq!(up.device(), cuda);
+                assert_eq!(Vec::<i64>::try_from(&up.to_device(Device::Cpu)).unwrap(), vec![4, 5]);
+            }
+            // Without CUDA libtorch has no pinned allocator: libtorch's message, no panic.
+            Err(_) => {
+                let e = pinned(&host).expect_err("pinned memory without CUDA");
+                assert!(e.contains("accelerator"), "{e}");
+            }
+        }
+        // An upload to the CPU never pins.
+        let up = upload(&[4i64, 5], Device::Cpu);
+        assert_eq!(Vec::<i64>::try_from(&up).unwrap(), vec![4, 5]);
+    }
 
     #[test]
     fn device_names_round_trip() {

@@ -18,6 +18,13 @@ unsafe extern "C" {
         err: *mut u8,
         err_len: usize,
     ) -> c_int;
+    /// `self` and `out` are tch's tensor handles (`at::Tensor*`); `*out` is a new one the caller owns.
+    pub(crate) fn pdt_pin_memory(
+        tensor: *const c_void,
+        out: *mut *mut c_void,
+        err: *mut u8,
+        err_len: usize,
+    ) -> c_int;
 }
 
 /// Calls `f` with a message buffer (pointer, length) for a `csrc/` function: its answer (>= 0), or
