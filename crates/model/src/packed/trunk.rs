@@ -97,12 +97,9 @@ fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
     match mask {
         // `at::dropout` returns `input * noise`.
         Some(m) if m.size() == x.size() => x * m,
-        // A `PerRun` mask, `[N, B, ...]` over `x`'s `[N*B, ...]`: the mask is reshaped, not `x`,
-        // so the graph gets no two reshapes (and their backward nodes) per site; same products.
-        Some(m) => {
-            let m = m.reshape(x.size());
-            x * m
-        }
+        // A `PerRun` mask, `[N, B, ...]` over `x`'s `[N*B, ...]` (strided: a run's sites are cut
+        // from one draw, so it is `x` that is viewed at the mask's shape, not the mask copied).
+        Some(m) => (x.reshape(m.size()) * m).reshape(x.size()),
         None => x,
     }
 }
