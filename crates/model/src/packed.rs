@@ -387,8 +387,6 @@ fn check_segments(s: &Segments, b: i64, t: i64, ds: i64, da: i64) -> Result<(), 
     Ok(())
 }
 
-mod host;
 mod trunk;
 
-pub use host::{HostRow, HostSegments};
 pub use trunk::{DropoutSeeds, LayerNormPlan, MaskDraw, PackedPromptDt};

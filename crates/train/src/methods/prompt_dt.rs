@@ -21,7 +21,7 @@ use pdt_eval::{
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
-use pdt_prompt::{BatchSampler, PromptDtBatch, PromptPick, Rng};
+use pdt_prompt::{BatchSampler, PromptPick, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -106,19 +106,7 @@ impl PromptDtLearner<'_> {
 
     /// The next training batch from the run's batch stream, on the run's device.
     pub(crate) fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch {
-        self.upload(&self.sample_host_batch(rng))
-    }
-
-    /// The next training batch from the run's batch stream, on the host (the same draw as
-    /// [`Self::sample_batch`]'s).
-    pub(crate) fn sample_host_batch(&self, rng: &mut Rng) -> PromptDtBatch {
-        self.sampler.sample(rng)
-    }
-
-    /// A host batch on the run's device, as [`Self::sample_batch`] gives it (the prompt dropped
-    /// for a run without one).
-    pub(crate) fn upload(&self, batch: &PromptDtBatch) -> DeviceBatch {
-        DeviceBatch::new(batch, self.variant.prompt, self.setup.device)
+        DeviceBatch::new(&self.sampler.sample(rng), self.variant.prompt, self.setup.device)
     }
 
     /// The weights and optimiser state, copied (the learner's own are never shared).

@@ -10,18 +10,16 @@
 
 mod optim;
 
-use super::engine::{HostStep, PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
+use super::engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::step::{LossOn, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
 use pdt_model::packed::{
-    DropoutSeeds, HostRow, HostSegments, LayerNormPlan, MaskDraw, PackedBatch, PackedError,
-    PackedPromptDt, PackedRow,
+    DropoutSeeds, LayerNormPlan, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
 };
 use pdt_model::PromptDt;
-use pdt_prompt::SegmentBatch;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
 /// The shapes of every step's batches, fixed for the pack's life.
@@ -133,91 +131,6 @@ impl BatchedEngine {
         self.model.set_layer_norm(plan);
     }
 
-    /// Each given run's batch has a prompt exactly when the run uses one; `present[i]` is `None`
-    /// for a run not stepped, else whether its batch has a prompt.
-    fn check_steps(
-        &self,
-        present: impl ExactSizeIterator<Item = Option<bool>>,
-    ) -> Result<(), RunError> {
-        let n = self.specs.len();
-        if present.len() != n {
-            return Err(RunError::Invalid(format!(
-                "pack: {} slot steps for a pack of {n} runs",
-                present.len()
-            )));
-        }
-        for (slot, (has, spec)) in present.zip(&self.specs).enumerate() {
-            let Some(has) = has else { continue };
-            if has != spec.uses_prompt {
-                return Err(RunError::Invalid(format!(
-                    "pack: run {slot} {}, its batch {}",
-                    if spec.uses_prompt { "uses a prompt" } else { "uses no prompt" },
-                    if has { "has one" } else { "has none" }
-                )));
-            }
-        }
-        Ok(())
-    }
-
-    /// One step of the runs given a step index (`None`: not stepped) on their stacked `batch`.
-    fn step_packed(
-        &mut self,
-        batch: &PackedBatch,
-        step_ids: Vec<Option<u64>>,
-    ) -> Result<Vec<Option<StepStats>>, RunError> {
-        let n = self.specs.len();
-        let active: Vec<bool> = step_ids.iter().map(Option::is_some).collect();
-        if !active.iter().any(|&a| a) {
-            return Ok((0..n).map(|_| None).collect());
-        }
-        let seeds = DropoutSeeds(
-            step_ids
-                .iter()
-                .zip(&self.specs)
-                .map(|(s, spec)| s.map(|s| derive_seed(spec.seed, STREAM_DROPOUT, s) as i64))
-                .collect(),
-        );
-        let preds = self.model.forward_all_steps(batch, Some(&seeds)); // [N, B, P+K, da]
-
-        // As `crate::step::train_step`: the prompt's steps are supervised only with
-        // `LossOn::PromptAndHistory` and a prompt.
-        let supervise: Vec<bool> = self
-            .specs
-            .iter()
-            .map(|s| s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)
-            .collect();
-        let (targets, mask) = batch.targets(&supervise);
-        let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
-        let device = self.model.device();
-        let active_t = pdt_model::device::upload(&active, device);
-        // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
-        let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
-        let inputs: Vec<&Tensor> = self.model.weights().iter().collect();
-        let grads: Vec<Option<Tensor>> = Tensor::run_backward(&[total], &inputs, false, false)
-            .into_iter()
-            .map(|g| g.defined().then_some(g))
-            .collect();
-        let lrs: Vec<f64> = step_ids
-            .iter()
-            .zip(&self.specs)
-            .map(|(s, spec)| s.map_or(0.0, |s| spec.optim.lr_at(s)))
-            .collect();
-        let norms = self.opt.step(self.model.weights(), &grads, &active, &lrs); // [N]
-
-        // One copy to the host for every run's loss and norm.
-        let host = Tensor::stack(&[loss.detach(), norms], 0)
-            .to_kind(Kind::Double)
-            .to_device(Device::Cpu)
-            .view([-1]);
-        let host: Vec<f64> = Vec::<f64>::try_from(&host)
-            .map_err(|e| RunError::Invalid(format!("pack: reading the step's losses: {e}")))?;
-        Ok((0..n)
-            .map(|s| {
-                active[s].then(|| StepStats { loss: host[s], grad_norm: host[n + s], lr: lrs[s] })
-            })
-            .collect())
-    }
-
     fn check_slot(&self, slot: usize) -> Result<(), RunError> {
         if slot >= self.specs.len() {
             return Err(invalid(PackedError::Slot { slot, slots: self.specs.len() }));
@@ -232,9 +145,26 @@ impl PackEngine for BatchedEngine {
     }
 
     fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
-        self.check_steps(steps.iter().map(|s| s.as_ref().map(|s| s.batch.prompt.is_some())))?;
-        if steps.iter().all(Option::is_none) {
-            return Ok(steps.iter().map(|_| None).collect());
+        let n = self.specs.len();
+        if steps.len() != n {
+            return Err(RunError::Invalid(format!(
+                "pack: {} slot steps for a pack of {n} runs",
+                steps.len()
+            )));
+        }
+        let active: Vec<bool> = steps.iter().map(Option::is_some).collect();
+        if !active.iter().any(|&a| a) {
+            return Ok((0..n).map(|_| None).collect());
+        }
+        for (slot, (st, spec)) in steps.iter().zip(&self.specs).enumerate() {
+            let Some(st) = st else { continue };
+            if st.batch.prompt.is_some() != spec.uses_prompt {
+                return Err(RunError::Invalid(format!(
+                    "pack: run {slot} {}, its batch {}",
+                    if spec.uses_prompt { "uses a prompt" } else { "uses no prompt" },
+                    if st.batch.prompt.is_some() { "has one" } else { "has none" }
+                )));
+            }
         }
         let rows: Vec<Option<PackedRow<'_>>> = steps
             .iter()
@@ -255,42 +185,54 @@ impl PackEngine for BatchedEngine {
             self.model.device(),
         )
         .map_err(invalid)?;
-        drop(rows);
-        self.step_packed(&batch, steps.iter().map(|s| s.as_ref().map(|s| s.step)).collect())
-    }
-
-    fn takes_host_batches(&self) -> bool {
-        true
-    }
-
-    fn step_host(
-        &mut self,
-        steps: Vec<Option<HostStep>>,
-    ) -> Result<Vec<Option<StepStats>>, RunError> {
-        self.check_steps(steps.iter().map(|s| s.as_ref().map(|s| s.use_prompt)))?;
-        if steps.iter().all(Option::is_none) {
-            return Ok(steps.iter().map(|_| None).collect());
-        }
-        let rows: Vec<Option<HostRow<'_>>> = steps
-            .iter()
-            .map(|s| {
-                s.as_ref().map(|s| HostRow {
-                    history: host_segments(&s.batch.history),
-                    prompt: s.use_prompt.then(|| host_segments(&s.batch.prompt)),
+        let seeds = DropoutSeeds(
+            steps
+                .iter()
+                .zip(&self.specs)
+                .map(|(s, spec)| {
+                    s.as_ref().map(|s| derive_seed(spec.seed, STREAM_DROPOUT, s.step) as i64)
                 })
-            })
+                .collect(),
+        );
+        let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
+
+        // As `crate::step::train_step`: the prompt's steps are supervised only with
+        // `LossOn::PromptAndHistory` and a prompt.
+        let supervise: Vec<bool> = self
+            .specs
+            .iter()
+            .map(|s| s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)
             .collect();
-        let l = &self.layout;
-        let batch = PackedBatch::from_host(
-            &rows,
-            l.batch_size as i64,
-            l.history_len as i64,
-            l.prompt_len as i64,
-            &self.model.cfg,
-            self.model.device(),
-        )
-        .map_err(invalid)?;
-        self.step_packed(&batch, steps.iter().map(|s| s.as_ref().map(|s| s.step)).collect())
+        let (targets, mask) = batch.targets(&supervise);
+        let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
+        let device = self.model.device();
+        let active_t = pdt_model::device::upload(&active, device);
+        // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
+        let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
+        let inputs: Vec<&Tensor> = self.model.weights().iter().collect();
+        let grads: Vec<Option<Tensor>> = Tensor::run_backward(&[total], &inputs, false, false)
+            .into_iter()
+            .map(|g| g.defined().then_some(g))
+            .collect();
+        let lrs: Vec<f64> = steps
+            .iter()
+            .zip(&self.specs)
+            .map(|(s, spec)| s.as_ref().map_or(0.0, |s| spec.optim.lr_at(s.step)))
+            .collect();
+        let norms = self.opt.step(self.model.weights(), &grads, &active, &lrs); // [N]
+
+        // One copy to the host for every run's loss and norm.
+        let host = Tensor::stack(&[loss.detach(), norms], 0)
+            .to_kind(Kind::Double)
+            .to_device(Device::Cpu)
+            .view([-1]);
+        let host: Vec<f64> = Vec::<f64>::try_from(&host)
+            .map_err(|e| RunError::Invalid(format!("pack: reading the step's losses: {e}")))?;
+        Ok((0..n)
+            .map(|s| {
+                active[s].then(|| StepStats { loss: host[s], grad_norm: host[n + s], lr: lrs[s] })
+            })
+            .collect())
     }
 
     fn acts_together(&self) -> bool {
@@ -356,18 +298,5 @@ impl PackEngine for BatchedEngine {
         self.opt
             .import(slot, &state.moments)
             .map_err(|e| RunError::Invalid(format!("pack: run {slot}: {e}")))
-    }
-}
-
-/// A sampled segment batch as the pack's host stacking reads it.
-fn host_segments(b: &SegmentBatch) -> HostSegments<'_> {
-    HostSegments {
-        batch: b.batch,
-        steps: b.steps,
-        states: &b.states,
-        actions: &b.actions,
-        returns_to_go: &b.returns_to_go,
-        timesteps: &b.timesteps,
-        mask: &b.mask,
     }
 }

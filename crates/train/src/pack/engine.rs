@@ -15,9 +15,8 @@ use crate::error::RunError;
 use crate::optim::{AdamWConfig, ParamState};
 use crate::step::{DeviceBatch, LastBlockChoice, LossOn, StepStats};
 use pdt_model::{PromptDtConfig, Segments};
-use pdt_prompt::PromptDtBatch;
 use std::collections::BTreeMap;
-use tch::{Device, Tensor};
+use tch::Tensor;
 
 /// What an engine knows about one run of the pack, fixed for the pack's life.
 #[derive(Debug, Clone)]
@@ -43,25 +42,6 @@ pub struct SlotStep {
     pub step: u64,
     /// The run's sampled batch on the pack's device (its prompt `None` when the run uses none).
     pub batch: DeviceBatch,
-}
-
-/// One run's input to a pack step with its batch still on the host, for an engine that stacks its
-/// runs' batches itself ([`PackEngine::takes_host_batches`]: one upload for the pack, not each run's).
-#[derive(Debug)]
-pub struct HostStep {
-    /// The run's gradient step index (0-based), as [`SlotStep::step`].
-    pub step: u64,
-    /// The run's sampled batch, as the sampler gave it.
-    pub batch: PromptDtBatch,
-    /// Whether the run reads the batch's prompt (`false`: MT-ORL and the MT-BC variants).
-    pub use_prompt: bool,
-}
-
-impl HostStep {
-    /// The run's batch on `device`, as a solo run's step would upload it.
-    pub fn to_device(&self, device: Device) -> DeviceBatch {
-        DeviceBatch::new(&self.batch, self.use_prompt, device)
-    }
 }
 
 /// One run's forward in an evaluation (`pdt_eval::ActRows`): its running episodes' histories
@@ -150,22 +130,6 @@ pub trait PackEngine {
         Err(RunError::Invalid(format!(
             "pack engine: slot {slot}: this engine steps the runs of a pack together"
         )))
-    }
-    /// Whether the engine takes its runs' batches on the host ([`Self::step_host`]) rather than
-    /// each run's own upload ([`Self::step`]).
-    fn takes_host_batches(&self) -> bool {
-        false
-    }
-    /// [`Self::step`] with the runs' batches on the host (an engine that
-    /// [`Self::takes_host_batches`]); the same results as `step` given the same batches uploaded.
-    fn step_host(
-        &mut self,
-        steps: Vec<Option<HostStep>>,
-    ) -> Result<Vec<Option<StepStats>>, RunError> {
-        let _ = steps;
-        Err(RunError::Invalid(
-            "pack engine: this engine takes its runs' batches on the device".into(),
-        ))
     }
     /// Whether the engine computes its runs' evaluation forwards together ([`Self::act`]); an
     /// engine that does not leaves each run to evaluate with its own solo model.

@@ -11,35 +11,12 @@
 //! one engine call computes them all. Only the runs in an evaluation are waited for: a run that
 //! trains meanwhile waits (at its next step) for those that evaluate, never the other way round.
 
-use super::engine::{HostStep, PackEngine, PendingStep, SlotAct, SlotState, SlotStep};
+use super::engine::{PackEngine, PendingStep, SlotAct, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::step::StepStats;
 use crate::streams::torch_rng_lock;
 use std::sync::{Condvar, Mutex, MutexGuard};
 use tch::Tensor;
-
-/// A run's submitted step: its batch on the device, or on the host for an engine that
-/// [`PackEngine::takes_host_batches`].
-enum Submitted {
-    Device(SlotStep),
-    Host(Box<HostStep>),
-}
-
-impl Submitted {
-    fn host(self) -> Option<HostStep> {
-        match self {
-            Submitted::Host(h) => Some(*h),
-            Submitted::Device(_) => None,
-        }
-    }
-
-    fn device(self) -> Option<SlotStep> {
-        match self {
-            Submitted::Device(d) => Some(d),
-            Submitted::Host(_) => None,
-        }
-    }
-}
 
 /// The engine and the runs' submissions, behind one lock.
 struct Table {
@@ -47,7 +24,7 @@ struct Table {
     /// The runs still training (a run that finished, stopped or failed has left).
     active: Vec<bool>,
     /// The steps submitted and not yet taken.
-    pending: Vec<Option<Submitted>>,
+    pending: Vec<Option<SlotStep>>,
     /// Each submitted run's result, until it takes it (an engine error as its message, shared by
     /// every run of the failed step).
     results: Vec<Option<Result<StepStats, String>>>,
@@ -94,10 +71,8 @@ impl Table {
 
     /// One engine step for the submitted runs; their results filed.
     fn step(&mut self) {
-        let steps: Vec<Option<Submitted>> = self.pending.iter_mut().map(Option::take).collect();
+        let steps: Vec<Option<SlotStep>> = self.pending.iter_mut().map(Option::take).collect();
         let submitted: Vec<bool> = steps.iter().map(Option::is_some).collect();
-        // Every run of a pack submits as the engine takes its batches (`Hub::takes_host_batches`).
-        let host = steps.iter().flatten().all(|s| matches!(s, Submitted::Host(_)));
         // libtorch's generator (the dropout masks) is the process's: no other run may draw from
         // it while the engine does.
         let out = {
@@ -105,16 +80,8 @@ impl Table {
             // A panic in the engine (a libtorch error) fails this step for every run in it,
             // rather than leaving the others waiting for results that never come.
             let engine = &mut self.engine;
-            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                if host {
-                    let steps = steps.into_iter().map(|s| s.and_then(Submitted::host)).collect();
-                    engine.step_host(steps)
-                } else {
-                    let steps = steps.into_iter().map(|s| s.and_then(Submitted::device)).collect();
-                    engine.step(steps)
-                }
-            }))
-            .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
+                .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
         };
         for i in (0..submitted.len()).filter(|&i| submitted[i]) {
             self.results[i] = Some(match &out {
@@ -161,29 +128,7 @@ impl Hub {
     /// batch while the pack is stepped; [`Self::wait`] takes the result. Once every run still
     /// training has submitted, a run waiting in [`Self::wait`] takes the engine step.
     pub(crate) fn submit(&self, slot: usize, step: SlotStep) -> Result<(), RunError> {
-        self.submit_any(slot, Submitted::Device(step))
-    }
-
-    /// [`Self::submit`] with the run's batch on the host, for an engine that
-    /// [`Self::takes_host_batches`] (every run of the pack submits so).
-    pub(crate) fn submit_host(&self, slot: usize, step: HostStep) -> Result<(), RunError> {
-        self.submit_any(slot, Submitted::Host(Box::new(step)))
-    }
-
-    /// Whether the engine takes the runs' batches on the host ([`Self::submit_host`]).
-    pub(crate) fn takes_host_batches(&self) -> bool {
-        self.lock().engine.takes_host_batches()
-    }
-
-    fn submit_any(&self, slot: usize, step: Submitted) -> Result<(), RunError> {
         let mut t = self.lock();
-        if matches!(step, Submitted::Host(_)) != t.engine.takes_host_batches() {
-            return Err(RunError::Invalid(format!(
-                "slot {slot} submitted its batch on the {}, and the engine takes them on the {}",
-                if matches!(step, Submitted::Host(_)) { "host" } else { "device" },
-                if t.engine.takes_host_batches() { "host" } else { "device" }
-            )));
-        }
         if !t.active.get(slot).copied().unwrap_or(false) {
             return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
         }
@@ -193,11 +138,6 @@ impl Hub {
             )));
         }
         if t.engine.steps_alone() {
-            let Submitted::Device(step) = step else {
-                return Err(RunError::Invalid(format!(
-                    "slot {slot}: a host batch for an engine whose slots step alone"
-                )));
-            };
             let started = {
                 // The step's dropout masks are drawn as it starts.
                 let _rng = torch_rng_lock();

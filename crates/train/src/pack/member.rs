@@ -6,7 +6,7 @@
 //! computed with the other evaluating runs' through the hub (`PackActor`); the episodes around them
 //! are still the solo evaluation's.
 
-use super::engine::{HostStep, SlotAct, SlotStep};
+use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;
 use crate::error::RunError;
 use crate::methods::prompt_dt::{checked, iteration_metrics, PromptDtLearner, Variant};
@@ -18,7 +18,7 @@ use crate::step::DeviceBatch;
 use crate::streams::torch_rng_lock;
 use pdt_eval::{ActRows, EvalError};
 use pdt_model::Segments;
-use pdt_prompt::{PromptDtBatch, Rng};
+use pdt_prompt::Rng;
 use std::cell::{Cell, RefCell};
 use std::path::Path;
 use tch::Tensor;
@@ -59,12 +59,6 @@ impl ActRows for PackActor<'_> {
     }
 }
 
-/// A run's batch for a pack step, as the engine takes it ([`Hub::takes_host_batches`]).
-enum StepBatch {
-    Device(DeviceBatch),
-    Host(Box<PromptDtBatch>),
-}
-
 /// A run of a pack (slot `slot` of `hub`'s engine).
 pub(crate) struct PackMember<'s> {
     setup: &'s Setup,
@@ -77,7 +71,7 @@ pub(crate) struct PackMember<'s> {
     synced: Cell<bool>,
     /// MT-BC-Finetune: the last gradient step and its batch, to put libtorch's generator where
     /// the solo run leaves it before fine-tuning (`PromptDtLearner::redraw_step_dropout`).
-    last_step: Option<(u64, StepBatch)>,
+    last_step: Option<(u64, DeviceBatch)>,
     /// The engine's evaluation forwards' shape, when it acts for the pack's runs.
     act: Option<ActShape>,
 }
@@ -140,38 +134,17 @@ impl Learner for PackMember<'_> {
         // the solo loop, and none beyond the iteration's last step, so its stream stands where
         // the solo run's does at every checkpoint.
         let end = at.first_step + at.steps;
-        // An engine that stacks the runs' batches itself (the batched one) takes them on the host:
-        // one upload for the pack instead of each run's.
-        let host = hub.takes_host_batches();
-        let sample = |rng: &mut Rng| {
-            if host {
-                StepBatch::Host(Box::new(solo.sample_host_batch(rng)))
-            } else {
-                StepBatch::Device(solo.sample_batch(rng))
-            }
-        };
-        let mut next = (at.steps > 0).then(|| sample(rng));
+        let mut next = (at.steps > 0).then(|| solo.sample_batch(rng));
         let stats = at.each_step(|step| {
             let batch = next.take().ok_or_else(|| {
                 RunError::Invalid(format!("pack slot {slot}: no batch for step {step}"))
             })?;
-            match batch {
-                StepBatch::Device(batch) => {
-                    if finetune {
-                        last = Some((step, StepBatch::Device(batch.shallow_clone())));
-                    }
-                    hub.submit(slot, SlotStep { step, batch })?;
-                }
-                StepBatch::Host(batch) => {
-                    if finetune {
-                        last = Some((step, StepBatch::Host(batch.clone())));
-                    }
-                    let use_prompt = solo.variant().prompt;
-                    hub.submit_host(slot, HostStep { step, batch: *batch, use_prompt })?;
-                }
+            if finetune {
+                last = Some((step, batch.shallow_clone()));
             }
+            hub.submit(slot, SlotStep { step, batch })?;
             if step + 1 < end {
-                next = Some(sample(rng));
+                next = Some(solo.sample_batch(rng));
             }
             let st = hub.wait(slot)?;
             checked(at, cfg, step, st)
@@ -198,11 +171,7 @@ impl Learner for PackMember<'_> {
             // left it: that state restored, and no other run's draw between it and the tuning.
             let _rng = torch_rng_lock();
             if let Some((step, batch)) = &self.last_step {
-                let batch = match batch {
-                    StepBatch::Device(b) => b.shallow_clone(),
-                    StepBatch::Host(b) => solo.upload(b),
-                };
-                solo.redraw_step_dropout(*step, &batch);
+                solo.redraw_step_dropout(*step, batch);
             }
             return solo.evaluate(split, rng);
         }
