@@ -131,9 +131,8 @@ pub fn pinned(host: &tch::Tensor) -> Result<tch::Tensor, String> {
     // the C++ side stores a new `at::Tensor*` allocated with `new`, as tch's own generated
     // functions return theirs, so `from_ptr` takes ownership of it (and frees it on drop).
     #[allow(unsafe_code)]
-    let pin = |err, len| unsafe {
-        crate::ffi::pdt_pin_memory(host.as_ptr().cast(), &mut out, err, len)
-    };
+    let pin =
+        |err, len| unsafe { crate::ffi::pdt_pin_memory(host.as_ptr().cast(), &mut out, err, len) };
     crate::ffi::call(pin)?;
     if out.is_null() {
         return Err("pin_memory returned no tensor".into());
