@@ -86,6 +86,17 @@ pub struct PackedPromptDt {
     layer_norm: LayerNormPlan,
     /// `StateTokens` unless set otherwise: the pack is a tolerance path on every device.
     last_block: LastBlock,
+    /// Per weight, its bound broadcast view if it has one ([`Self::bind_broadcast`]).
+    bcast: Vec<Option<Broadcast>>,
+}
+
+/// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
+/// made when the weight had this address and these strides.
+#[derive(Debug)]
+struct Broadcast {
+    view: Tensor,
+    ptr: usize,
+    strides: Vec<i64>,
 }
 
 /// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
@@ -130,6 +141,7 @@ impl PackedPromptDt {
             mask_draw: MaskDraw::default_for(device),
             layer_norm: LayerNormPlan::default_for(device),
             last_block: LastBlock::StateTokens,
+            bcast: (0..shapes.len()).map(|_| None).collect(),
         })
     }
 
@@ -165,6 +177,49 @@ impl PackedPromptDt {
     /// The stacked weights `[N, solo shape]`, in the order of [`Self::names`].
     pub fn weights(&self) -> &[Tensor] {
         &self.weights
+    }
+
+    /// Binds each one-dimensional parameter (biases, LayerNorm weights) to a leaf view `[N, 1, d]`
+    /// of its stacked weight, sharing its storage; a view whose weight was re-pointed since (the
+    /// flat optimiser's `set_data`) is made again. Why: the forward reads such a parameter broadcast
+    /// over a run's rows, and an `unsqueeze` per use costs two operators and a backward node of
+    /// four more, 35 uses a step: about 210 of the 2320 host operators a pack of 12's step
+    /// dispatches on CUDA, where the step is bound by the host's dispatch. Once bound, the forward
+    /// reads the views: take gradients with respect to [`Self::grad_inputs`] (a bound view's
+    /// gradient is `[N, 1, d]`). Unbound or stale views are not read (the forward unsqueezes).
+    pub fn bind_broadcast(&mut self) {
+        for i in 0..self.weights.len() {
+            if self.weights[i].dim() != 2 || self.bound(i).is_some() {
+                continue;
+            }
+            let w = &self.weights[i];
+            let view = tch::no_grad(|| w.detach().unsqueeze(1)).set_requires_grad(true);
+            let (ptr, strides) = (w.data_ptr() as usize, w.stride());
+            self.bcast[i] = Some(Broadcast { view, ptr, strides });
+        }
+    }
+
+    /// Parameter `i`'s bound view, while its weight still has the storage it was made on.
+    fn bound(&self, i: usize) -> Option<&Tensor> {
+        let b = self.bcast.get(i)?.as_ref()?;
+        let w = &self.weights[i];
+        (b.ptr == w.data_ptr() as usize && b.strides == w.stride()).then_some(&b.view)
+    }
+
+    /// A one-dimensional parameter broadcast over a run's rows, `[N, 1, d]`.
+    fn rows_of(&self, w: usize) -> Tensor {
+        match self.bound(w) {
+            Some(v) => v.shallow_clone(),
+            None => self.weights[w].unsqueeze(1),
+        }
+    }
+
+    /// What the forward reads each parameter through, in the order of [`Self::weights`]: its bound
+    /// view ([`Self::bind_broadcast`]) or the weight itself. Differentiate with respect to these.
+    pub fn grad_inputs(&self) -> Vec<Tensor> {
+        (0..self.weights.len())
+            .map(|i| self.bound(i).unwrap_or(&self.weights[i]).shallow_clone())
+            .collect()
     }
 
     fn check_slot(&self, slot: usize) -> Result<(), PackedError> {
@@ -232,19 +287,19 @@ impl PackedPromptDt {
 
     /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N*B, T, in]` -> `[N*B, T, out]`.
     fn linear(&self, x: &Tensor, w: usize) -> Tensor {
-        let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
+        let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
         let s = x.size();
         let n = self.slots as i64;
-        let y = bias.unsqueeze(1).baddbmm(&x.reshape([n, -1, s[2]]), &weight.transpose(1, 2), 1, 1); // [N, B*T, out]
+        let y = bias.baddbmm(&x.reshape([n, -1, s[2]]), &weight.transpose(1, 2), 1, 1); // [N, B*T, out]
         y.view([s[0], s[1], -1])
     }
 
     /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`.
     fn conv1d(&self, x: &Tensor, w: usize) -> Tensor {
-        let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
+        let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
         let s = x.size();
         let n = self.slots as i64;
-        let y = bias.unsqueeze(1).baddbmm(&x.reshape([n, -1, s[2]]), weight, 1, 1); // [N, B*L, out]
+        let y = bias.baddbmm(&x.reshape([n, -1, s[2]]), weight, 1, 1); // [N, B*L, out]
         y.view([s[0], s[1], -1])
     }
 
@@ -253,9 +308,14 @@ impl PackedPromptDt {
         let s = x.size();
         let n = self.slots as i64;
         let h = s[2];
-        let (weight, bias) = (&self.weights[w], &self.weights[w + 1]);
         let xs = x.view([n, -1, h]); // [N, B*L, H]: run n's rows are contiguous
         if self.layer_norm == LayerNormPlan::PerRun {
+            // [N, H] each, through the bound views if any (what the gradients are taken of).
+            let per_run = |i: usize| match self.bound(i) {
+                Some(v) => v.squeeze_dim(1),
+                None => self.weights[i].shallow_clone(),
+            };
+            let (weight, bias) = (per_run(w), per_run(w + 1));
             // `unbind`, not `get(i)` per run: its backward is one `stack`, where each `select`'s
             // would allocate and fill a gradient of the whole input.
             let (xs, ws, bs) = (xs.unbind(0), weight.unbind(0), bias.unbind(0));
@@ -267,7 +327,7 @@ impl PackedPromptDt {
             return Tensor::stack(&parts, 0).view([s[0], s[1], h]);
         }
         let normed = xs.layer_norm([h], None::<&Tensor>, None::<&Tensor>, eps, false); // [N, B*L, H]
-        let y = normed * weight.unsqueeze(1) + bias.unsqueeze(1);
+        let y = normed * self.rows_of(w) + self.rows_of(w + 1);
         y.view([s[0], s[1], h])
     }
 

@@ -194,6 +194,9 @@ impl PackEngine for BatchedEngine {
                 })
                 .collect(),
         );
+        // The one-dimensional parameters read through views bound once per weight storage (made
+        // again only after the optimiser re-points a weight): fewer operators per step.
+        self.model.bind_broadcast();
         let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
 
         // As `crate::step::train_step`: the prompt's steps are supervised only with
@@ -209,7 +212,9 @@ impl PackEngine for BatchedEngine {
         let active_t = pdt_model::device::upload(&active, device);
         // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
         let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
-        let inputs: Vec<&Tensor> = self.model.weights().iter().collect();
+        // (A bound view's gradient is `[N, 1, d]`, its weight's shape with a unit dimension: the
+        // optimiser reads it at the weight's shape.)
+        let inputs = self.model.grad_inputs();
         let grads: Vec<Option<Tensor>> = Tensor::run_backward(&[total], &inputs, false, false)
             .into_iter()
             .map(|g| g.defined().then_some(g))

@@ -224,11 +224,18 @@ impl PackedAdamW {
                 };
                 let keep = masks.entry(u.clone()).or_insert_with(|| self.bools(u)).shallow_clone();
                 let st = &mut self.moments[i];
+                // A fresh gradient of this step: scaled in place. At the weight's shape (a bound
+                // broadcast view's gradient, `PackedPromptDt::bind_broadcast`, has a unit
+                // dimension more).
+                let mut g = if g.dim() == params[i].dim() {
+                    g.shallow_clone()
+                } else {
+                    g.view(params[i].size().as_slice())
+                };
                 // [N, 1, ...]: a run's scalar over its row.
                 let mut bshape = vec![n as i64];
                 bshape.resize(g.dim(), 1);
                 let c = |row: i64| f.get(row).view(bshape.as_slice());
-                let mut g = g.shallow_clone(); // a fresh gradient of this step: scaled in place
                 let _ = g.g_mul_(&coef.view(bshape.as_slice()));
                 let mut p = params[i].shallow_clone();
                 if u.iter().all(|&x| x) {
