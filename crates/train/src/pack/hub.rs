@@ -36,6 +36,8 @@ struct Table {
     /// Their submitted forwards not yet computed, and their results until taken.
     act_pending: Vec<Option<SlotAct>>,
     act_results: Vec<Option<Result<Tensor, String>>>,
+    /// The pack's runs have all returned: [`Hub::stepper`] ends.
+    closed: bool,
 }
 
 impl Table {
@@ -113,6 +115,7 @@ impl Hub {
                 acting: vec![false; n],
                 act_pending: (0..n).map(|_| None).collect(),
                 act_results: (0..n).map(|_| None).collect(),
+                closed: false,
             }),
             stepped: Condvar::new(),
         }
@@ -180,6 +183,37 @@ impl Hub {
             }
             t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
         }
+    }
+
+    /// Takes each pack step as soon as every run still training has submitted, until [`Self::close`]
+    /// (run on a thread of its own beside the runs'). Why: a run submits its step, then samples its
+    /// next batch, then waits. Without this thread a step is taken by a run that waits, so once the
+    /// last run submitted, the step started only when the first run had sampled its next batch
+    /// (each run samples at once, after its own submission): the device idled for a sampling
+    /// between steps. A run that waits still takes a ready step itself if it gets there first; an
+    /// engine whose slots step alone needs no stepper (this returns at once).
+    pub(crate) fn stepper(&self) {
+        let mut t = self.lock();
+        if t.engine.steps_alone() {
+            return;
+        }
+        loop {
+            if t.closed {
+                return;
+            }
+            if t.ready() {
+                t.step();
+                self.stepped.notify_all();
+                continue;
+            }
+            t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+
+    /// Ends [`Self::stepper`] (every run of the pack has returned).
+    pub(crate) fn close(&self) {
+        self.lock().closed = true;
+        self.stepped.notify_all();
     }
 
     /// `slot`'s run stops training (finished, stopped or failed): the others no longer wait for it.
@@ -340,6 +374,53 @@ mod tests {
         let mask = vec![1f32; 2 * K];
         let history = Segments::from_host(2, K, 2, 2, &v, &v, &rtg, &ts, &mask, Device::Cpu);
         SlotAct { history, prompt: None, rows: 4 }
+    }
+
+    /// The batched engine, saying when it has taken a step.
+    struct Signalling {
+        inner: BatchedEngine,
+        stepped: std::sync::mpsc::Sender<usize>,
+    }
+
+    impl PackEngine for Signalling {
+        fn slots(&self) -> usize {
+            self.inner.slots()
+        }
+        fn step(&mut self, s: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+            let n = s.iter().flatten().count();
+            let out = self.inner.step(s);
+            let _ = self.stepped.send(n);
+            out
+        }
+        fn export(&self, slot: usize) -> Result<SlotState, RunError> {
+            self.inner.export(slot)
+        }
+        fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
+            self.inner.import(slot, state)
+        }
+    }
+
+    #[test]
+    fn the_stepper_takes_a_ready_step_while_no_run_waits() {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let hub = Hub::new(Box::new(Signalling { inner: engine(), stepped: tx }));
+        std::thread::scope(|scope| {
+            let stepper = scope.spawn(|| hub.stepper());
+            for slot in 0..3 {
+                let batch =
+                    crate::step::DeviceBatch { history: act_at(slot, 0).history, prompt: None };
+                hub.submit(slot, SlotStep { step: 0, batch }).unwrap();
+            }
+            // No run has called `wait`: only the stepper can have taken the step (without it, this
+            // would time out).
+            let n = rx.recv_timeout(std::time::Duration::from_secs(120)).unwrap();
+            assert_eq!(n, 3);
+            for slot in 0..3 {
+                assert!(hub.wait(slot).unwrap().loss.is_finite());
+            }
+            hub.close();
+            stepper.join().unwrap();
+        });
     }
 
     #[test]

@@ -257,6 +257,11 @@ pub(crate) fn run_pack(
     let size = members.len();
     let (with, stop, progress) = (&opts.resume_with, opts.stop_after_iterations, opts.progress);
     std::thread::scope(|scope| {
+        let stepper = scope.spawn(|| {
+            // The pack's steps compute on this thread: the runs' libtorch thread count.
+            tch::set_num_threads(libtorch_threads);
+            hub.stepper();
+        });
         let handles: Vec<_> = members
             .into_iter()
             .enumerate()
@@ -280,14 +285,18 @@ pub(crate) fn run_pack(
                 })
             })
             .collect();
-        handles
+        let results = handles
             .into_iter()
             .map(|h| {
                 h.join().unwrap_or_else(|_| {
                     Err(RunError::Invalid("a run of the pack panicked (see above)".into()))
                 })
             })
-            .collect()
+            .collect();
+        hub.close();
+        // (A panic in the stepper's engine step is caught there and fails that step's runs.)
+        let _ = stepper.join();
+        results
     })
 }
 
