@@ -1,6 +1,7 @@
 //! The meeting point of a pack's runs: each run's thread submits its gradient step, prepares its
 //! next batch and waits; when every run still training has submitted (or left), one call of the
-//! engine, by a waiting run, steps them all and each run gets its own result. An engine whose slots
+//! engine steps them all (by the pack's stepper thread, [`Hub::stepper`], or a waiting run if it
+//! gets there first) and each run gets its own result. An engine whose slots
 //! step alone (`PackEngine::steps_alone`: the solo engine on its threads) starts each run's step as
 //! soon as it is submitted, and the run waits for its own result only: its runs are not in
 //! lockstep, as separate processes would not be.
@@ -129,7 +130,8 @@ impl Hub {
 
     /// Submits `slot`'s gradient step without waiting for it, so that the run can prepare its next
     /// batch while the pack is stepped; [`Self::wait`] takes the result. Once every run still
-    /// training has submitted, a run waiting in [`Self::wait`] takes the engine step.
+    /// training has submitted, the stepper ([`Self::stepper`]) or a run waiting in [`Self::wait`]
+    /// takes the engine step.
     pub(crate) fn submit(&self, slot: usize, step: SlotStep) -> Result<(), RunError> {
         let mut t = self.lock();
         if !t.active.get(slot).copied().unwrap_or(false) {

@@ -129,8 +129,8 @@ impl Learner for PackMember<'_> {
         self.synced.set(false);
         let (hub, slot) = (self.hub, self.slot);
         let mut last = None;
-        // Each step's batch is sampled while the pack takes the previous step (the engine runs
-        // on whichever run waits first): the sampler draws the same batches in the same order as
+        // Each step's batch is sampled while the pack takes the previous step (on the pack's
+        // stepper thread, `Hub::stepper`): the sampler draws the same batches in the same order as
         // the solo loop, and none beyond the iteration's last step, so its stream stands where
         // the solo run's does at every checkpoint.
         let end = at.first_step + at.steps;
