@@ -365,6 +365,9 @@ mod tests {
             })
             .collect();
         let layout = PackLayout { batch_size: 2, history_len: K, prompt_len: 0 };
+        // Its initial weights come from libtorch's generator, which another test of this process
+        // may be drawing from (a pack step's dropout): held, as the pack's own callers hold it.
+        let _rng = torch_rng_lock();
         BatchedEngine::new(specs, layout, Device::Cpu).unwrap()
     }
 
