@@ -175,9 +175,7 @@ impl Hub {
             if let Some(r) = t.results.get_mut(slot).and_then(Option::take) {
                 return r.map_err(RunError::Invalid);
             }
-            if t.ready() {
-                t.step();
-                self.stepped.notify_all();
+            if self.step_if_ready(&mut t) {
                 continue;
             }
             if t.pending.get(slot).is_none_or(Option::is_none) {
@@ -203,9 +201,7 @@ impl Hub {
             if t.closed {
                 return;
             }
-            if t.ready() {
-                t.step();
-                self.stepped.notify_all();
+            if self.step_if_ready(&mut t) {
                 continue;
             }
             t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
@@ -226,10 +222,18 @@ impl Hub {
             t.pending[slot] = None;
             t.started[slot] = None;
         }
-        if t.ready() {
-            t.step();
-            self.stepped.notify_all();
+        self.step_if_ready(&mut t);
+    }
+
+    /// One engine step if every run still training has submitted (the runs waiting told): whether
+    /// it took one.
+    fn step_if_ready(&self, t: &mut Table) -> bool {
+        if !t.ready() {
+            return false;
         }
+        t.step();
+        self.stepped.notify_all();
+        true
     }
 
     /// `slot`'s run is in an evaluation until the guard is dropped: the others' forwards wait for
