@@ -100,16 +100,17 @@ struct Broadcast {
 }
 
 /// The dropout masks of one forward pass, stacked over the runs (`None`: no dropout at that site):
-/// embeddings `[N*B, L, H]`; per layer attention weights `[N*B, nh, L, L]`, attention output and
-/// MLP output `[N*B, L, H]`.
+/// embeddings, attention output and MLP output `[N, B*L, H]`, the activations' layout; per layer
+/// attention weights `[N*B, nh, L, L]` (`MaskDraw::SoloOrder`) or `[N, B, nh, L, L]` (`PerRun`).
 type Masks = DropoutMasks;
 
 fn drop(x: Tensor, mask: Option<&Tensor>) -> Tensor {
     match mask {
         // `at::dropout` returns `input * noise`.
         Some(m) if m.size() == x.size() => x * m,
-        // A `PerRun` mask, `[N, B, ...]` over `x`'s `[N*B, ...]` (strided: a run's sites are cut
-        // from one draw, so it is `x` that is viewed at the mask's shape, not the mask copied).
+        // A `PerRun` attention mask, `[N, B, ...]` over the weights' `[N*B, ...]` (strided: a
+        // run's sites are cut from one draw, so it is `x` that is viewed at the mask's shape, not
+        // the mask copied).
         Some(m) => (x.reshape(m.size()) * m).reshape(x.size()),
         None => x,
     }
@@ -285,30 +286,23 @@ impl PackedPromptDt {
         }))
     }
 
-    /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N*B, T, in]` -> `[N*B, T, out]`.
+    /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N, R, in]` -> `[N, R, out]`
+    /// (R: a run's rows, B*T).
     fn linear(&self, x: &Tensor, w: usize) -> Tensor {
         let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
-        let s = x.size();
-        let n = self.slots as i64;
-        let y = bias.baddbmm(&x.reshape([n, -1, s[2]]), &weight.transpose(1, 2), 1, 1); // [N, B*T, out]
-        y.view([s[0], s[1], -1])
+        bias.baddbmm(x, &weight.transpose(1, 2), 1, 1)
     }
 
-    /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`.
+    /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`; `x` `[N, R, in]` -> `[N, R, out]`.
     fn conv1d(&self, x: &Tensor, w: usize) -> Tensor {
         let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
-        let s = x.size();
-        let n = self.slots as i64;
-        let y = bias.baddbmm(&x.reshape([n, -1, s[2]]), weight, 1, 1); // [N, B*L, out]
-        y.view([s[0], s[1], -1])
+        bias.baddbmm(x, weight, 1, 1)
     }
 
-    /// LayerNorm over the last dimension with each run's weight and bias (`[N, H]`).
+    /// LayerNorm over the last dimension of `x` `[N, R, H]` with each run's weight and bias
+    /// (`[N, H]`).
     fn layer_norm(&self, x: &Tensor, w: usize, eps: f64) -> Tensor {
-        let s = x.size();
-        let n = self.slots as i64;
-        let h = s[2];
-        let xs = x.view([n, -1, h]); // [N, B*L, H]: run n's rows are contiguous
+        let h = x.size()[2];
         if self.layer_norm == LayerNormPlan::PerRun {
             // [N, H] each, through the bound views if any (what the gradients are taken of).
             let per_run = |i: usize| match self.bound(i) {
@@ -318,21 +312,20 @@ impl PackedPromptDt {
             let (weight, bias) = (per_run(w), per_run(w + 1));
             // `unbind`, not `get(i)` per run: its backward is one `stack`, where each `select`'s
             // would allocate and fill a gradient of the whole input.
-            let (xs, ws, bs) = (xs.unbind(0), weight.unbind(0), bias.unbind(0));
+            let (xs, ws, bs) = (x.unbind(0), weight.unbind(0), bias.unbind(0));
             let parts: Vec<Tensor> = xs
                 .iter()
                 .zip(ws.iter().zip(&bs))
                 .map(|(x, (w, b))| x.layer_norm([h], Some(w), Some(b), eps, false))
                 .collect();
-            return Tensor::stack(&parts, 0).view([s[0], s[1], h]);
+            return Tensor::stack(&parts, 0);
         }
-        let normed = xs.layer_norm([h], None::<&Tensor>, None::<&Tensor>, eps, false); // [N, B*L, H]
-        let y = normed * self.rows_of(w) + self.rows_of(w + 1);
-        y.view([s[0], s[1], h])
+        let normed = x.layer_norm([h], None::<&Tensor>, None::<&Tensor>, eps, false); // [N, R, H]
+        normed * self.rows_of(w) + self.rows_of(w + 1)
     }
 
     /// Interleaves (R_t, s_t, a_t) per step, as the solo `Embeddings::tokens`: tokens
-    /// `[N*B, 3T, H]` and their mask `[N*B, 3T]`.
+    /// `[N, B*3T, H]` and their mask `[N*B, 3T]`.
     fn tokens(&self, e: &EmbIdx, seg: &Segments, b: i64) -> (Tensor, Tensor) {
         let hidden = self.cfg.hidden_size as i64;
         let n = self.slots as i64;
@@ -340,16 +333,18 @@ impl PackedPromptDt {
         let table = &self.weights[e.timestep]; // [N, E, H]
         let big_e = table.size()[1];
         // Run n's timesteps index rows n*E.. of the flattened table.
-        let offsets = Tensor::arange(n, (Kind::Int64, self.device)).view([n, 1, 1]) * big_e;
-        let index = (seg.timesteps.view([n, b, t]) + offsets).view([rows, t]);
-        let time = Tensor::embedding(&table.reshape([n * big_e, hidden]), &index, -1, false, false); // [N*B, T, H]
-        let s = self.linear(&seg.states, e.state) + &time;
-        let a = self.linear(&seg.actions, e.action) + &time;
-        let r = self.linear(&seg.returns_to_go, e.ret) + &time;
-        let tokens =
-            Tensor::stack(&[r, s, a], 1).permute([0, 2, 1, 3]).reshape([rows, 3 * t, hidden]);
+        let offsets = Tensor::arange(n, (Kind::Int64, self.device)).view([n, 1]) * big_e;
+        let index = seg.timesteps.reshape([n, b * t]) + offsets; // [N, B*T]
+        let time = Tensor::embedding(&table.reshape([n * big_e, hidden]), &index, -1, false, false); // [N, B*T, H]
+        let per_run = |x: &Tensor| x.reshape([n, b * t, -1]); // [N*B, T, d] -> [N, B*T, d]
+        let s = self.linear(&per_run(&seg.states), e.state) + &time;
+        let a = self.linear(&per_run(&seg.actions), e.action) + &time;
+        let r = self.linear(&per_run(&seg.returns_to_go), e.ret) + &time;
+        // [N, B*T, 3, H]: a step's three tokens side by side, so that the rows read R_0, s_0,
+        // a_0, R_1, ... with no permutation (no copy).
+        let tokens = Tensor::stack(&[r, s, a], 2).view([n, b * 3 * t, hidden]);
         let m = &seg.mask;
-        let mask = Tensor::stack(&[m, m, m], 1).permute([0, 2, 1]).reshape([rows, 3 * t]);
+        let mask = Tensor::stack(&[m, m, m], 2).view([rows, 3 * t]); // [N*B, T, 3] -> [N*B, 3T]
         (tokens, mask)
     }
 
@@ -408,12 +403,20 @@ impl PackedPromptDt {
                 window.copy_(&noise);
             }
         }
-        Masks::from_sites(stacked)
+        // Drawn per sample; read in the activations' layout, `[N*B, L, H]` -> `[N, B*L, H]`.
+        let n = self.slots as i64;
+        Masks::from_sites(
+            stacked
+                .into_iter()
+                .zip(&sites)
+                .map(|(m, s)| m.map(|m| if s.attention { m } else { m.view([n, -1, h]) }))
+                .collect(),
+        )
     }
 
     /// [`MaskDraw::PerRun`]: each run's masks for every site in one draw into its row of one
     /// `[N, total]` buffer, at the pack's length `l` (a padded step's mask multiplies values
-    /// nothing reads); each site a `[N, B, ...]` view.
+    /// nothing reads); each site a view, `[N, B*L, H]` or, the attention weights', `[N, B, nh, L, L]`.
     fn masks_per_run(
         &self,
         batch: &PackedBatch,
@@ -424,7 +427,7 @@ impl PackedPromptDt {
         let cfg = &self.cfg;
         let (n, b, h, nh) =
             (self.slots as i64, batch.batch, cfg.hidden_size as i64, cfg.n_head as i64);
-        let shape = |attn: bool| if attn { vec![n, b, nh, l, l] } else { vec![n, b, l, h] };
+        let shape = |attn: bool| if attn { vec![n, b, nh, l, l] } else { vec![n, b * l, h] };
         let size = |attn: bool| shape(attn).iter().skip(1).product::<i64>();
         let drawn: Vec<(f64, bool)> =
             sites.iter().filter(|s| s.p > 0.0).map(|s| (s.p, s.attention)).collect();
@@ -491,39 +494,39 @@ impl PackedPromptDt {
         let hidden = self.cfg.hidden_size as i64;
         let nh = self.cfg.n_head as i64;
         let hd = hidden / nh;
-        let (n_rows, l) = (x.size()[0], x.size()[1]);
-        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
-        let q = if states { state_rows(&qkv[0]) } else { qkv[0].shallow_clone() }; // [N*B, R, H]
-        let r = q.size()[1];
+        let (n_rows, l) = (pad_bias.size()[0], pad_bias.size()[3]); // N*B, L
+        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N, B*L, H]
+        let q = if states { state_rows(&qkv[0]) } else { qkv[0].shallow_clone() }; // [N, B*R, H]
+        let r = if states { l / 3 } else { l };
         let q = q.view([n_rows, r, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, R, hd]
         let k = qkv[1].view([n_rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
         let v = qkv[2].view([n_rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, R, L]
         let w = w.where_self(causal, &self.masked_bias) + pad_bias;
         let w = drop(w.softmax(-1, None::<Kind>), masks.and_then(|m| m[0].as_ref()));
-        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous().view([n_rows, r, hidden]);
+        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous(); // [N*B, R, nh, hd]
+        let a = a.view([self.slots as i64, -1, hidden]); // [N, B*R, H]
         drop(self.conv1d(&a, blk.attn_proj), masks.and_then(|m| m[1].as_ref()))
     }
 
-    /// Every run's tokens, prompt first, and their mask: `[N*B, 3(P+K), H]`, `[N*B, 3(P+K)]`.
+    /// Every run's tokens, prompt first in each sample, and their mask: `[N, B*3(P+K), H]`,
+    /// `[N*B, 3(P+K)]`.
     fn embed(&self, batch: &PackedBatch) -> (Tensor, Tensor) {
         let (n, b) = (self.slots as i64, batch.batch);
-        let rows = n * b;
+        let hidden = self.cfg.hidden_size as i64;
         let (tokens, mask) = self.tokens(&self.idx.history, &batch.history, b);
-        let tokens = self.layer_norm(&tokens, self.idx.embed_ln, 1e-5); // [N*B, 3K, H]
+        let tokens = self.layer_norm(&tokens, self.idx.embed_ln, 1e-5); // [N, B*3K, H]
         match &batch.prompt {
             Some(p) => {
-                // [N*B, 3P, H], no LayerNorm. A run without prompt gets zero prompt tokens (all
+                // [N, B*3P, H], no LayerNorm. A run without prompt gets zero prompt tokens (all
                 // masked): none of its prompt layers' values or gradients enter.
                 let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b);
-                let keep: Vec<bool> = batch
-                    .prompt_lens
-                    .iter()
-                    .flat_map(|&lp| std::iter::repeat_n(lp > 0, b as usize))
-                    .collect();
-                let keep = crate::device::upload(&keep, self.device).view([rows, 1, 1]);
+                let keep: Vec<bool> = batch.prompt_lens.iter().map(|&lp| lp > 0).collect();
+                let keep = crate::device::upload(&keep, self.device).view([n, 1, 1]);
                 let p_tokens = p_tokens.where_scalarother(&keep, 0.0);
-                (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
+                let per_sample = |x: &Tensor| x.view([n * b, -1, hidden]); // [N*B, 3T, H]
+                let x = Tensor::cat(&[per_sample(&p_tokens), per_sample(&tokens)], 1);
+                (x.view([n, -1, hidden]), Tensor::cat(&[p_mask, mask], 1))
             }
             None => (tokens, mask),
         }
@@ -535,8 +538,8 @@ impl PackedPromptDt {
     pub fn forward_all_steps(&self, batch: &PackedBatch, dropout: Option<&DropoutSeeds>) -> Tensor {
         let cfg = &self.cfg;
         let (n, b) = (self.slots as i64, batch.batch);
-        let (tokens, mask) = self.embed(batch); // [N*B, 3(P+K), H], [N*B, 3(P+K)]
-        let l = tokens.size()[1]; // 3(P+K)
+        let (tokens, mask) = self.embed(batch); // [N, B*3(P+K), H], [N*B, 3(P+K)]
+        let l = mask.size()[1]; // 3(P+K)
         let masks = dropout.map(|s| self.dropout_masks(batch, s, l));
         let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
         let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
@@ -558,7 +561,7 @@ impl PackedPromptDt {
         // rows: the pack is a tolerance path, never bitwise (docs/implementation-details.md, C.9).
         let site = masks.as_ref().map(|m| &m.layers[blocks.len()]);
         let x = match self.last_block {
-            // [N*B, P+K, H]
+            // [N, B*(P+K), H]
             LastBlock::StateTokens => {
                 self.block(&x, last, &state_rows(&causal), &pad_bias, site, true)
             }
@@ -567,15 +570,16 @@ impl PackedPromptDt {
             }
         };
         let x = self.layer_norm(&x.contiguous(), self.idx.ln_f, eps);
-        debug_assert_eq!(x.size()[1], batch.p + batch.k);
-        let actions = self.linear(&x, self.idx.predict_action); // [N*B, P+K, da]
+        debug_assert_eq!(x.size()[1], b * (batch.p + batch.k));
+        let actions = self.linear(&x, self.idx.predict_action); // [N, B*(P+K), da]
         let actions = if cfg.action_tanh { actions.tanh() } else { actions };
         actions.view([n, b, batch.p + batch.k, -1])
     }
 
     /// One transformer block (attention, then MLP, each residual) on every position, or with
     /// `states` its queries, attention output and MLP for the state tokens only (positions 1, 4,
-    /// 7, ...): `[N*B, L/3, H]` from `x` `[N*B, L, H]`, `causal` holding their rows
+    /// 7, ...): `[N, B*L/3, H]` from `x` `[N, B*L, H]` (a sample's L rows are consecutive and L is
+    /// a multiple of 3, so its state tokens are every third row from the second), `causal` holding their rows
     /// (`[1, 1, L/3, L]`), the masks of `site` (the full forward's) read at their rows, so a state
     /// token's output is the full block's at its position.
     fn block(
@@ -593,7 +597,7 @@ impl PackedPromptDt {
         let masks = masks.as_ref();
         let ln_1 = self.layer_norm(x, blk.ln_1, eps);
         let a = self.attention(&ln_1, blk, causal, pad_bias, masks, states);
-        let h = rows(x) + a; // [N*B, R, H]: R = L/3 or L
+        let h = rows(x) + a; // [N, B*R, H]: R = L/3 or L
         let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
         let m = drop(self.conv1d(&inner, blk.mlp_proj), masks.and_then(|s| s[2].as_ref()));
         &h + m
@@ -607,10 +611,11 @@ impl PackedPromptDt {
     pub fn act_all(&self, batch: &PackedBatch) -> Tensor {
         tch::no_grad(|| {
             let (n, b) = (self.slots as i64, batch.batch);
-            let eps = self.cfg.layer_norm_epsilon;
-            let (tokens, mask) = self.embed(batch);
-            let l = tokens.size()[1] - 1; // 3(P+K) - 1: the last position is the last state token
-            let (mut x, mask) = (tokens.narrow(1, 0, l).contiguous(), mask.narrow(1, 0, l));
+            let (eps, hidden) = (self.cfg.layer_norm_epsilon, self.cfg.hidden_size as i64);
+            let (tokens, mask) = self.embed(batch); // [N, B*3(P+K), H], [N*B, 3(P+K)]
+            let l = mask.size()[1] - 1; // 3(P+K) - 1: the last position is the last state token
+            let tokens = tokens.view([n * b, l + 1, hidden]).narrow(1, 0, l); // [N*B, L, H]
+            let (mut x, mask) = (tokens.contiguous().view([n, -1, hidden]), mask.narrow(1, 0, l));
             let causal =
                 self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
             let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
@@ -621,31 +626,35 @@ impl PackedPromptDt {
             for blk in blocks {
                 x = self.block(&x, blk, &causal, &pad_bias, None, false);
             }
-            let a = self.attention_last(&self.layer_norm(&x, last.ln_1, eps), last, &pad_bias); // [N*B, 1, H]
-            let h = x.narrow(1, l - 1, 1).contiguous() + a; // [N*B, 1, H]
+            let a = self.attention_last(&self.layer_norm(&x, last.ln_1, eps), last, &pad_bias); // [N, B, H]
+                                                                                                // Each sample's last row (strided, no copy) plus its attention output.
+            let h = x.view([n * b, l, hidden]).narrow(1, l - 1, 1).view([n, b, hidden]) + a; // [N, B, H]
             let inner = self.conv1d(&self.layer_norm(&h, last.ln_2, eps), last.c_fc).relu();
             let x = &h + self.conv1d(&inner, last.mlp_proj);
-            let x = self.layer_norm(&x, self.idx.ln_f, eps); // [N*B, 1, H]
-            let actions = self.linear(&x, self.idx.predict_action); // [N*B, 1, da]
-            let actions = if self.cfg.action_tanh { actions.tanh() } else { actions };
-            actions.view([n, b, -1])
+            let x = self.layer_norm(&x, self.idx.ln_f, eps); // [N, B, H]
+            let actions = self.linear(&x, self.idx.predict_action); // [N, B, da]
+            if self.cfg.action_tanh {
+                actions.tanh()
+            } else {
+                actions
+            }
         })
     }
 
     /// [`Self::attention`] (eval mode) for the query of the last position only, which the causal
-    /// mask lets attend to every position: `[N*B, 1, H]`.
+    /// mask lets attend to every position: `[N, B, H]` from `x` `[N, B*L, H]`.
     fn attention_last(&self, x: &Tensor, blk: &BlockIdx, pad_bias: &Tensor) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
         let nh = self.cfg.n_head as i64;
         let hd = hidden / nh;
-        let (rows, l) = (x.size()[0], x.size()[1]);
-        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N*B, L, H]
-        let q = qkv[0].narrow(1, l - 1, 1).view([rows, 1, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, 1, hd]
+        let (rows, l) = (pad_bias.size()[0], pad_bias.size()[3]); // N*B, L
+        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N, B*L, H]
+        let q = qkv[0].view([rows, l, nh, hd]).narrow(1, l - 1, 1).permute([0, 2, 1, 3]); // [N*B, nh, 1, hd]
         let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
         let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
         let w = q.matmul(&k) / (hd as f64).powf(0.5) + pad_bias; // [N*B, nh, 1, L]
         let a = w.softmax(-1, None::<Kind>).matmul(&v); // [N*B, nh, 1, hd]
-        let a = a.permute([0, 2, 1, 3]).contiguous().view([rows, 1, hidden]);
+        let a = a.permute([0, 2, 1, 3]).contiguous().view([self.slots as i64, -1, hidden]); // [N, B, H]
         self.conv1d(&a, blk.attn_proj)
     }
 

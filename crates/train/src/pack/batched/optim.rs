@@ -10,7 +10,7 @@
 //! Flat mode (`optim.flat`, on CUDA by default, as the solo optimiser): the pack's weights and
 //! moments live in run-major buffers `[N, total]`, each parameter a view of its columns (the model's
 //! weight tensors are re-pointed there with `set_data`, so they are strided in the run dimension).
-//! A step then gathers every gradient into one `[N, prefix]` buffer (one `cat`) and clips and
+//! A step then gathers every gradient into one `[N, prefix]` buffer (one `_chunk_cat`) and clips and
 //! updates all runs and parameters at once: about 20 kernels per step whatever N and the number of
 //! parameter tensors, where the per-tensor loop launches about 15 per tensor (some 900 for the
 //! reference model). The parameters some run reads come first, so the columns updated are one
@@ -423,7 +423,9 @@ impl PackedAdamW {
             .read
             .iter()
             .map(|&i| match &grads[i] {
-                Some(g) => g.reshape([nn, -1]),
+                // (`contiguous` is no operator for a gradient that already is: all but those of
+                // the weights `nn.Linear` reads transposed.)
+                Some(g) => g.contiguous(),
                 // Read by a run not stepped now: no pair of it updates (`keep`).
                 None => Tensor::zeros([nn, fl.numel[i]], (Kind::Float, device)),
             })
@@ -434,7 +436,11 @@ impl PackedAdamW {
         let steps: Vec<u64> = count.iter().map(|c| c.map_or(0, |c| c + 1)).collect();
         let f = self.factors(&steps, lrs);
         let total = tch::no_grad(|| {
-            let mut g = Tensor::cat(&parts, 1); // [N, prefix]
+            // Each part `[N, ...]` flattened per run and concatenated: `[N, prefix]`. On CUDA one
+            // operator and one kernel for contiguous parts (`_chunk_cat`, as FSDP2 gathers its
+            // gradients), where a reshape per part and a `cat` dispatch about two operators per
+            // parameter tensor; on the CPU libtorch runs those same reshapes and `cat` for it.
+            let mut g = Tensor::internal_chunk_cat(&parts, 0, nn); // [N, prefix]
             if let Some(k) = &keep {
                 g = g.where_scalarother(k, 0.0);
             }
