@@ -303,6 +303,13 @@ impl PackedBatch {
     /// `[N, B, P+K, da]` and `[N, B, P+K]` (float). `supervise_prompt[n]` says whether run `n`'s
     /// loss reads its prompt steps (the paper's loss); otherwise they are masked (the reference's).
     pub fn targets(&self, supervise_prompt: &[bool]) -> (Tensor, Tensor) {
+        let keep: Vec<f32> = supervise_prompt.iter().map(|&s| if s { 1.0 } else { 0.0 }).collect();
+        self.targets_with(&crate::device::upload(&keep, self.history.mask.device()))
+    }
+
+    /// [`Self::targets`] with `supervise_prompt` given on the device as 1 or 0 per run, `[N]`
+    /// float (a pack's callers upload it once).
+    pub fn targets_with(&self, supervise_prompt: &Tensor) -> (Tensor, Tensor) {
         let (n, b) = (self.slots(), self.batch);
         let h = &self.history;
         let Some(p) = &self.prompt else {
@@ -310,8 +317,7 @@ impl PackedBatch {
             return (h.actions.view([n, b, self.k, da]), h.mask.view([n, b, self.k]));
         };
         let da = h.actions.size()[2];
-        let keep: Vec<f32> = supervise_prompt.iter().map(|&s| if s { 1.0 } else { 0.0 }).collect();
-        let keep = crate::device::upload(&keep, h.mask.device()).view([n, 1, 1]);
+        let keep = supervise_prompt.view([n, 1, 1]);
         let prompt_mask = p.mask.view([n, b, self.p]) * keep; // 0/1 products of finite masks
         let actions = Tensor::cat(&[&p.actions, &h.actions], 1).view([n, b, self.p + self.k, da]);
         let mask = Tensor::cat(&[prompt_mask, h.mask.view([n, b, self.k])], 2);

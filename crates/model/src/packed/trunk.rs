@@ -88,6 +88,19 @@ pub struct PackedPromptDt {
     last_block: LastBlock,
     /// Per weight, its bound broadcast view if it has one ([`Self::bind_broadcast`]).
     bcast: Vec<Option<Broadcast>>,
+    /// Tensors that depend only on what a step's batch shows of the pack's shape, made once and
+    /// reused: an upload costs about eight host operators and a copy, the causal mask's cut a
+    /// dozen operators and a kernel, every step otherwise.
+    reused: std::sync::Mutex<Reused>,
+}
+
+/// See [`PackedPromptDt::reused`].
+#[derive(Debug, Default)]
+struct Reused {
+    /// Per sequence length L: the causal mask's `[1, 1, L, L]` (contiguous).
+    causal: std::collections::HashMap<i64, Tensor>,
+    /// Per pattern of which runs have a prompt: that pattern as `[N, 1, 1]` bools on the device.
+    has_prompt: std::collections::HashMap<Vec<bool>, Tensor>,
 }
 
 /// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
@@ -143,6 +156,7 @@ impl PackedPromptDt {
             layer_norm: LayerNormPlan::default_for(device),
             last_block: LastBlock::StateTokens,
             bcast: (0..shapes.len()).map(|_| None).collect(),
+            reused: Default::default(),
         })
     }
 
@@ -324,6 +338,34 @@ impl PackedPromptDt {
         normed * self.rows_of(w) + self.rows_of(w + 1)
     }
 
+    /// The causal mask of `l` tokens, `[1, 1, l, l]` (made once per length).
+    fn causal(&self, l: i64) -> Tensor {
+        let make = || self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+        match self.reused.lock() {
+            Ok(mut r) => r.causal.entry(l).or_insert_with(make).shallow_clone(),
+            // (A thread that panicked holding the lock: the same tensor, made afresh.)
+            Err(_) => make(),
+        }
+    }
+
+    /// `has[n]`, whether run n has a prompt, as `[N, 1, 1]` bools on the device (made once per
+    /// pattern).
+    fn has_prompt(&self, has: Vec<bool>) -> Tensor {
+        let n = self.slots as i64;
+        let make = |has: &[bool]| crate::device::upload(has, self.device).view([n, 1, 1]);
+        match self.reused.lock() {
+            Ok(mut r) => {
+                if let Some(t) = r.has_prompt.get(&has) {
+                    return t.shallow_clone();
+                }
+                let t = make(&has);
+                r.has_prompt.insert(has, t.shallow_clone());
+                t
+            }
+            Err(_) => make(&has),
+        }
+    }
+
     /// Interleaves (R_t, s_t, a_t) per step, as the solo `Embeddings::tokens`: tokens
     /// `[N, B*3T, H]` and their mask `[N*B, 3T]`.
     fn tokens(&self, e: &EmbIdx, seg: &Segments, b: i64) -> (Tensor, Tensor) {
@@ -498,15 +540,41 @@ impl PackedPromptDt {
         let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N, B*L, H]
         let q = if states { state_rows(&qkv[0]) } else { qkv[0].shallow_clone() }; // [N, B*R, H]
         let r = if states { l / 3 } else { l };
-        let q = q.view([n_rows, r, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, R, hd]
-        let k = qkv[1].view([n_rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
-        let v = qkv[2].view([n_rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
-        let w = q.matmul(&k) / (hd as f64).powf(0.5); // [N*B, nh, R, L]
+        let q = self.heads(&q, n_rows, r); // [N*B*nh, R, hd]
+        let k = self.heads(&qkv[1], n_rows, l).transpose(1, 2); // [N*B*nh, hd, L]
+        let v = self.heads(&qkv[2], n_rows, l); // [N*B*nh, L, hd]
+        let w = q.bmm(&k).view([n_rows, nh, r, l]) / (hd as f64).powf(0.5); // [N*B, nh, R, L]
         let w = w.where_self(causal, &self.masked_bias) + pad_bias;
         let w = drop(w.softmax(-1, None::<Kind>), masks.and_then(|m| m[0].as_ref()));
-        let a = w.matmul(&v).permute([0, 2, 1, 3]).contiguous(); // [N*B, R, nh, hd]
-        let a = a.view([self.slots as i64, -1, hidden]); // [N, B*R, H]
-        drop(self.conv1d(&a, blk.attn_proj), masks.and_then(|m| m[1].as_ref()))
+        let a = w.reshape([n_rows * nh, r, l]).bmm(&v); // [N*B*nh, R, hd]
+        drop(
+            self.conv1d(&self.merge_heads(a, n_rows), blk.attn_proj),
+            masks.and_then(|m| m[1].as_ref()),
+        )
+    }
+
+    /// Queries, keys or values `[N, B*T, H]` (a sample's T rows consecutive) as the batched
+    /// matrices of their heads, `[N*B*nh, T, hd]`. What `matmul` of the 4-D heads `[N*B, nh, T,
+    /// hd]` would reshape them to for its `bmm`, without its expands and reshapes (some ten host
+    /// operators per product, forward and backward); with one head, a view with no permutation.
+    fn heads(&self, x: &Tensor, rows: i64, t: i64) -> Tensor {
+        let nh = self.cfg.n_head as i64;
+        let hd = self.cfg.hidden_size as i64 / nh;
+        if nh == 1 {
+            return x.view([rows, t, hd]);
+        }
+        x.view([rows, t, nh, hd]).permute([0, 2, 1, 3]).reshape([rows * nh, t, hd])
+    }
+
+    /// [`Self::heads`] undone for the attention's output `[N*B*nh, T, hd]`: `[N, B*T, H]`.
+    fn merge_heads(&self, a: Tensor, rows: i64) -> Tensor {
+        let (n, nh) = (self.slots as i64, self.cfg.n_head as i64);
+        let hidden = self.cfg.hidden_size as i64;
+        if nh == 1 {
+            return a.view([n, -1, hidden]);
+        }
+        let t = a.size()[1];
+        a.view([rows, nh, t, hidden / nh]).permute([0, 2, 1, 3]).contiguous().view([n, -1, hidden])
     }
 
     /// Every run's tokens, prompt first in each sample, and their mask: `[N, B*3(P+K), H]`,
@@ -522,8 +590,7 @@ impl PackedPromptDt {
                 // masked): none of its prompt layers' values or gradients enter.
                 let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b);
                 let keep: Vec<bool> = batch.prompt_lens.iter().map(|&lp| lp > 0).collect();
-                let keep = crate::device::upload(&keep, self.device).view([n, 1, 1]);
-                let p_tokens = p_tokens.where_scalarother(&keep, 0.0);
+                let p_tokens = p_tokens.where_scalarother(&self.has_prompt(keep), 0.0);
                 let per_sample = |x: &Tensor| x.view([n * b, -1, hidden]); // [N*B, 3T, H]
                 let x = Tensor::cat(&[per_sample(&p_tokens), per_sample(&tokens)], 1);
                 (x.view([n, -1, hidden]), Tensor::cat(&[p_mask, mask], 1))
@@ -541,7 +608,7 @@ impl PackedPromptDt {
         let (tokens, mask) = self.embed(batch); // [N, B*3(P+K), H], [N*B, 3(P+K)]
         let l = mask.size()[1]; // 3(P+K)
         let masks = dropout.map(|s| self.dropout_masks(batch, s, l));
-        let causal = self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+        let causal = self.causal(l);
         let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
         let eps = cfg.layer_norm_epsilon;
         let mut x = drop(tokens, masks.as_ref().and_then(|m| m.embd.as_ref()));
@@ -616,8 +683,7 @@ impl PackedPromptDt {
             let l = mask.size()[1] - 1; // 3(P+K) - 1: the last position is the last state token
             let tokens = tokens.view([n * b, l + 1, hidden]).narrow(1, 0, l); // [N*B, L, H]
             let (mut x, mask) = (tokens.contiguous().view([n, -1, hidden]), mask.narrow(1, 0, l));
-            let causal =
-                self.causal.narrow(0, 0, l).narrow(1, 0, l).contiguous().view([1, 1, l, l]);
+            let causal = self.causal(l);
             let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
             let Some((last, blocks)) = self.idx.blocks.split_last() else {
                 // (A model of no layers: `PromptDtConfig::validate` refuses it.)
@@ -649,13 +715,13 @@ impl PackedPromptDt {
         let hd = hidden / nh;
         let (rows, l) = (pad_bias.size()[0], pad_bias.size()[3]); // N*B, L
         let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N, B*L, H]
-        let q = qkv[0].view([rows, l, nh, hd]).narrow(1, l - 1, 1).permute([0, 2, 1, 3]); // [N*B, nh, 1, hd]
-        let k = qkv[1].view([rows, l, nh, hd]).permute([0, 2, 3, 1]); // [N*B, nh, hd, L]
-        let v = qkv[2].view([rows, l, nh, hd]).permute([0, 2, 1, 3]); // [N*B, nh, L, hd]
-        let w = q.matmul(&k) / (hd as f64).powf(0.5) + pad_bias; // [N*B, nh, 1, L]
-        let a = w.softmax(-1, None::<Kind>).matmul(&v); // [N*B, nh, 1, hd]
-        let a = a.permute([0, 2, 1, 3]).contiguous().view([self.slots as i64, -1, hidden]); // [N, B, H]
-        self.conv1d(&a, blk.attn_proj)
+        let q = qkv[0].view([rows, l, hidden]).narrow(1, l - 1, 1); // [N*B, 1, H]
+        let q = self.heads(&q, rows, 1); // [N*B*nh, 1, hd]
+        let k = self.heads(&qkv[1], rows, l).transpose(1, 2); // [N*B*nh, hd, L]
+        let v = self.heads(&qkv[2], rows, l); // [N*B*nh, L, hd]
+        let w = q.bmm(&k).view([rows, nh, 1, l]) / (hd as f64).powf(0.5) + pad_bias; // [N*B, nh, 1, L]
+        let a = w.softmax(-1, None::<Kind>).view([rows * nh, 1, l]).bmm(&v); // [N*B*nh, 1, hd]
+        self.conv1d(&self.merge_heads(a, rows), blk.attn_proj) // [N, B, H]
     }
 
     /// The masked action MSE of each run (`PromptDt::action_loss` per run): `[N]`. Padded steps

@@ -41,6 +41,12 @@ pub struct BatchedEngine {
     layout: PackLayout,
     model: PackedPromptDt,
     opt: PackedAdamW,
+    /// Per run, 1 where its loss reads its prompt's steps, else 0: `[N]` on the device (the specs
+    /// fix it for the pack's life).
+    supervise: Tensor,
+    /// Per pattern of stepped runs, that pattern as `[N]` bools on the device (an upload per step
+    /// otherwise).
+    active: std::collections::HashMap<Vec<bool>, Tensor>,
 }
 
 fn invalid(e: PackedError) -> RunError {
@@ -104,7 +110,14 @@ impl BatchedEngine {
         // Flat when every run's `optim.flat` asks for it on this device (`auto`: on CUDA).
         let flat = specs.iter().all(|s| s.optim.flat.use_flat(device.is_cuda()));
         let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, &uses, device, flat);
-        Ok(Self { specs, layout, model, opt })
+        // As `crate::step::train_step`: the prompt's steps are supervised only with
+        // `LossOn::PromptAndHistory` and a prompt.
+        let supervise: Vec<f32> = specs
+            .iter()
+            .map(|s| f32::from(u8::from(s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)))
+            .collect();
+        let supervise = pdt_model::device::upload(&supervise, device);
+        Ok(Self { specs, layout, model, opt, supervise, active: Default::default() })
     }
 
     pub fn layout(&self) -> PackLayout {
@@ -199,17 +212,14 @@ impl PackEngine for BatchedEngine {
         self.model.bind_broadcast();
         let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
 
-        // As `crate::step::train_step`: the prompt's steps are supervised only with
-        // `LossOn::PromptAndHistory` and a prompt.
-        let supervise: Vec<bool> = self
-            .specs
-            .iter()
-            .map(|s| s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)
-            .collect();
-        let (targets, mask) = batch.targets(&supervise);
+        let (targets, mask) = batch.targets_with(&self.supervise);
         let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
         let device = self.model.device();
-        let active_t = pdt_model::device::upload(&active, device);
+        let active_t = self
+            .active
+            .entry(active.clone())
+            .or_insert_with(|| pdt_model::device::upload(&active, device))
+            .shallow_clone();
         // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
         let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
         // (A bound view's gradient is `[N, 1, d]`, its weight's shape with a unit dimension: the
