@@ -31,6 +31,18 @@ pub(crate) struct Setup {
     /// (`crate::pack`), so a pack holds one copy of them.
     pub(crate) run_data: Arc<RunData>,
     pub(crate) device: Device,
+    /// Threads stepping the evaluation's environments: `eval.env_threads` resolved (0: all cores;
+    /// in a pack, the run's share of them, [`Setup::with_data`]).
+    pub(crate) env_threads: usize,
+}
+
+/// `eval.env_threads` for one run of a pack of `pack_size` on `cores` cores: a set count as given;
+/// 0 (all cores) the run's share, rounded up ([`Setup::with_data`]).
+fn env_threads_in_pack(setting: usize, cores: usize, pack_size: usize) -> usize {
+    match setting {
+        0 => cores.max(1).div_ceil(pack_size.max(1)),
+        n => n,
+    }
 }
 
 impl Setup {
@@ -40,17 +52,28 @@ impl Setup {
         let preset = family.preset();
         let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
         let device = pdt_model::device::resolve(cfg.run.device)?;
-        Ok(Self { cfg, family, preset, run_data, device })
+        let env_threads = pdt_base::threads(cfg.eval.env_threads);
+        Ok(Self { cfg, family, preset, run_data, device, env_threads })
     }
 
-    /// The set-up of `cfg` over data already loaded for it (a pack's runs with the same data
-    /// settings: [`Setup::data_key`]).
-    pub(crate) fn with_data(cfg: TrainConfig, run_data: Arc<RunData>) -> Result<Self, RunError> {
+    /// The set-up of `cfg` over data already loaded for it, as run `pack_size` runs in one process
+    /// (a pack's runs with the same data settings: [`Setup::data_key`]). `eval.env_threads = 0`
+    /// (all cores) gives each run its share of the cores, rounded up: the runs of a pack evaluate
+    /// at the same iterations, and N runs each stepping its episodes on every core start N times
+    /// the threads there are cores for, each with a few environments' work per step (results do
+    /// not depend on the count).
+    pub(crate) fn with_data(
+        cfg: TrainConfig,
+        run_data: Arc<RunData>,
+        pack_size: usize,
+    ) -> Result<Self, RunError> {
         cfg.validate()?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
         let device = pdt_model::device::resolve(cfg.run.device)?;
-        Ok(Self { cfg, family, preset, run_data, device })
+        let cores = pdt_base::threads::available_cores();
+        let env_threads = env_threads_in_pack(cfg.eval.env_threads, cores, pack_size);
+        Ok(Self { cfg, family, preset, run_data, device, env_threads })
     }
 
     /// What `RunData::load` reads of `cfg`, as text: two configurations with the same key load
@@ -140,5 +163,16 @@ mod tests {
         {
             assert_ne!(key(change), same);
         }
+    }
+
+    /// "All cores" in a pack is each run's share of them, never less than one thread.
+    #[test]
+    fn a_packs_runs_share_the_cores_for_their_environments() {
+        assert_eq!(env_threads_in_pack(0, 16, 1), 16, "a run alone: every core");
+        assert_eq!(env_threads_in_pack(0, 16, 12), 2, "16 cores, 12 runs: 2 each (rounded up)");
+        assert_eq!(env_threads_in_pack(0, 16, 36), 1);
+        assert_eq!(env_threads_in_pack(0, 2, 3), 1);
+        assert_eq!(env_threads_in_pack(0, 0, 0), 1, "nothing known: one thread");
+        assert_eq!(env_threads_in_pack(5, 16, 12), 5, "a set count is kept");
     }
 }

@@ -300,7 +300,8 @@ pub struct EvalSection {
     pub mt_bc_returns: MtBcEval,
     /// Largest number of episodes in one forward pass (1 reproduces the reference's loop).
     pub max_batch: usize,
-    /// Threads stepping environments during evaluation (results do not depend on it); 0 = all cores.
+    /// Threads stepping environments during evaluation (results do not depend on it); 0 = all cores
+    /// (in a pack of N runs, each run's share: cores / N, rounded up).
     pub env_threads: usize,
     /// MT-BC-Finetune: gradient steps on each test task (reference 10).
     pub finetune_steps: u64,

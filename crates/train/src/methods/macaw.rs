@@ -295,7 +295,7 @@ fn eval_tasks(
     let setup = l.setup;
     let data = setup.data(split);
     let m = &l.m;
-    let threads = pdt_base::threads(setup.cfg.eval.env_threads);
+    let threads = setup.env_threads;
     let mut out = Vec::with_capacity(data.tasks.len());
     for (t, buf) in data.tasks.iter().zip(bufs) {
         let batch = buf.sample(m.adapt_batch, false, rng, setup.device)?;

@@ -348,7 +348,7 @@ fn eval_tasks(
         norm: setup.run_data.norm.clone(),
         max_batch: setup.cfg.eval.max_batch,
         device: setup.device,
-        env_threads: pdt_base::threads(setup.cfg.eval.env_threads),
+        env_threads: setup.env_threads,
         inference: setup.cfg.eval.inference,
     };
     // An adaptation (`[eval.adapt]`) of the test tasks: its own evaluation, starting from the

@@ -313,7 +313,7 @@ fn train_member(
     // stops waiting for it.
     let _leave = Leave { hub, slot };
     let toml = m.cfg.to_toml()?;
-    let setup = Setup::with_data(m.cfg, m.data)?;
+    let setup = Setup::with_data(m.cfg, m.data, info.size)?;
     let mut learner = PackMember::new(&setup, slot, hub, act)?;
     learner.check_can_train()?;
     train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
