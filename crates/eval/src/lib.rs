@@ -306,6 +306,10 @@ struct Batch<'a> {
     eps: Vec<Option<Running>>,
     /// Finished episodes, by slot.
     done: Vec<(usize, EpisodeRecord)>,
+    /// The last [`Batch::task_prompts`], by the episodes' tasks: `prompts` are fixed for the
+    /// evaluation, so while the same episodes run (every step of a batch of equal-length episodes)
+    /// their prompts are on the device already (five uploads per step otherwise).
+    task_prompt_rows: std::cell::RefCell<Option<(Vec<usize>, Option<Segments>)>>,
 }
 
 impl Batch<'_> {
@@ -319,9 +323,21 @@ impl Batch<'_> {
     /// The prompts of the episodes' tasks, one row per episode (`[A, J*H]`), or `None` for tasks
     /// without prompts.
     fn task_prompts(&self, eps: &[&Running]) -> Option<Segments> {
+        let tasks: Vec<usize> = eps.iter().map(|e| e.task).collect();
+        let copy = |p: &Option<Segments>| p.as_ref().map(Segments::shallow_clone);
+        if let Ok(last) = self.task_prompt_rows.try_borrow() {
+            if let Some((t, p)) = last.as_ref().filter(|(t, _)| *t == tasks) {
+                debug_assert_eq!(t.len(), eps.len());
+                return copy(p);
+            }
+        }
         let rows: Option<Vec<&SegmentBatch>> =
             eps.iter().map(|e| self.prompts[e.task].as_ref()).collect();
-        rows.map(|p| prompt_batch(&p, self.cfg.device))
+        let made = rows.map(|p| prompt_batch(&p, self.cfg.device));
+        if let Ok(mut last) = self.task_prompt_rows.try_borrow_mut() {
+            *last = Some((tasks, copy(&made)));
+        }
+        made
     }
 
     /// The evaluator's own model's actions `[A, da]` for the running episodes `eps`.
@@ -588,6 +604,7 @@ fn evaluate_inner(
         names: &names,
         eps: (0..n).map(|_| None).collect(),
         done: Vec::with_capacity(n),
+        task_prompt_rows: Default::default(),
     };
     let mut queue = queue.into_iter().peekable();
     while queue.peek().is_some() {
