@@ -8,7 +8,7 @@
 //! the views, `checkpoint::load`'s in-place copies land in the buffer and whole-buffer updates are
 //! what the model sees. The Adam moments are flat buffers with the same layout.
 //!
-//! On CUDA a step launches, independent of the number of tensors: 1 `cat` (gathering the
+//! On CUDA a step launches, independent of the number of tensors: 1 `_chunk_cat` (gathering the
 //! gradients), 6 for clipping (`norm`, `+ 1e-6`, `reciprocal`, `* max_norm`, `clamp_max`, `mul_`),
 //! and 10 for the update (`mul_`, `lerp_`, `mul_`, `mul`, `addcmul_`, `sqrt`, `div`, `add`, `mul`,
 //! `addcdiv_`): 17 kernels, plus the one read of the total norm for the caller. On CPU the update's
@@ -236,7 +236,7 @@ impl FlatAdamW {
         self.gather(&grads)
     }
 
-    /// Gathers per-parameter gradients (optimisation order) into one buffer: one `cat`. Lays the
+    /// Gathers per-parameter gradients (optimisation order) into one buffer: one `_chunk_cat`. Lays the
     /// buffers out again first if the parameters with a gradient are not a prefix of them.
     pub fn gather(&mut self, grads: &Grads) -> FlatGrads {
         self.adopt_if_moved();
@@ -256,14 +256,19 @@ impl FlatAdamW {
             if let Some(Some(g)) = grads.0.get(i) {
                 let numel = self.slots[i].numel;
                 slots[i] = Some(Slot { offset, numel });
-                parts.push(g.reshape([-1]));
+                // (No operator for a gradient that is contiguous already.)
+                parts.push(g.contiguous());
                 offset += numel;
             }
         }
         let buf = if parts.is_empty() {
             self.weights.narrow(0, 0, 0).zeros_like()
         } else {
-            Tensor::cat(&parts, 0)
+            // Each part flattened and concatenated: on CUDA one operator and one kernel for
+            // contiguous parts (`_chunk_cat`, libtorch's gradient gather for FSDP2), where a reshape
+            // per part and a `cat` dispatch about two operators per parameter tensor; on the CPU
+            // libtorch runs those reshapes and `cat` for it. `[1, total]` -> `[total]`.
+            Tensor::internal_chunk_cat(&parts, 0, 1).view([-1])
         };
         FlatGrads { buf, slots, shapes: self.shapes.clone(), layout: self.layout }
     }
