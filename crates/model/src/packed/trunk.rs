@@ -300,14 +300,15 @@ impl PackedPromptDt {
         }))
     }
 
-    /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N, R, in]` -> `[N, R, out]`
-    /// (R: a run's rows, B*T).
+    /// `nn.Linear` per run: weight `[N, out, in]`, bias `[N, out]`; `x` `[N, R, in]` ->
+    /// `[N, R, out]` (R: a run's rows, B*T).
     fn linear(&self, x: &Tensor, w: usize) -> Tensor {
         let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
         bias.baddbmm(x, &weight.transpose(1, 2), 1, 1)
     }
 
-    /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`; `x` `[N, R, in]` -> `[N, R, out]`.
+    /// HF `Conv1D` per run: weight `[N, in, out]`, bias `[N, out]`; `x` `[N, R, in]` ->
+    /// `[N, R, out]`.
     fn conv1d(&self, x: &Tensor, w: usize) -> Tensor {
         let (weight, bias) = (&self.weights[w], self.rows_of(w + 1));
         bias.baddbmm(x, weight, 1, 1)
@@ -458,7 +459,8 @@ impl PackedPromptDt {
 
     /// [`MaskDraw::PerRun`]: each run's masks for every site in one draw into its row of one
     /// `[N, total]` buffer, at the pack's length `l` (a padded step's mask multiplies values
-    /// nothing reads); each site a view, `[N, B*L, H]` or, the attention weights', `[N, B, nh, L, L]`.
+    /// nothing reads); each site a view, `[N, B*L, H]` or, the attention weights',
+    /// `[N, B, nh, L, L]`.
     fn masks_per_run(
         &self,
         batch: &PackedBatch,
@@ -646,9 +648,9 @@ impl PackedPromptDt {
     /// One transformer block (attention, then MLP, each residual) on every position, or with
     /// `states` its queries, attention output and MLP for the state tokens only (positions 1, 4,
     /// 7, ...): `[N, B*L/3, H]` from `x` `[N, B*L, H]` (a sample's L rows are consecutive and L is
-    /// a multiple of 3, so its state tokens are every third row from the second), `causal` holding their rows
-    /// (`[1, 1, L/3, L]`), the masks of `site` (the full forward's) read at their rows, so a state
-    /// token's output is the full block's at its position.
+    /// a multiple of 3, so its state tokens are every third row from the second), `causal`
+    /// holding their rows (`[1, 1, L/3, L]`), the masks of `site` (the full forward's) read at
+    /// their rows, so a state token's output is the full block's at its position.
     fn block(
         &self,
         x: &Tensor,
@@ -692,8 +694,9 @@ impl PackedPromptDt {
             for blk in blocks {
                 x = self.block(&x, blk, &causal, &pad_bias, None, false);
             }
-            let a = self.attention_last(&self.layer_norm(&x, last.ln_1, eps), last, &pad_bias); // [N, B, H]
-                                                                                                // Each sample's last row (strided, no copy) plus its attention output.
+            let ln_1 = self.layer_norm(&x, last.ln_1, eps);
+            // The attention output `[N, B, H]`, plus each sample's last row (strided, no copy).
+            let a = self.attention_last(&ln_1, last, &pad_bias);
             let h = x.view([n * b, l, hidden]).narrow(1, l - 1, 1).view([n, b, hidden]) + a; // [N, B, H]
             let inner = self.conv1d(&self.layer_norm(&h, last.ln_2, eps), last.c_fc).relu();
             let x = &h + self.conv1d(&inner, last.mlp_proj);

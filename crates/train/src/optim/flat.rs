@@ -236,8 +236,8 @@ impl FlatAdamW {
         self.gather(&grads)
     }
 
-    /// Gathers per-parameter gradients (optimisation order) into one buffer: one `_chunk_cat`. Lays the
-    /// buffers out again first if the parameters with a gradient are not a prefix of them.
+    /// Gathers per-parameter gradients (optimisation order) into one buffer: one `_chunk_cat`.
+    /// Lays the buffers out again first if the parameters with a gradient are not a prefix of them.
     pub fn gather(&mut self, grads: &Grads) -> FlatGrads {
         self.adopt_if_moved();
         let present = |i: usize| grads.0.get(i).is_some_and(|g| g.is_some());
