@@ -268,7 +268,13 @@ impl FlatAdamW {
             // contiguous parts (`_chunk_cat`, libtorch's gradient gather for FSDP2), where a reshape
             // per part and a `cat` dispatch about two operators per parameter tensor; on the CPU
             // libtorch runs those reshapes and `cat` for it. `[1, total]` -> `[total]`.
-            Tensor::internal_chunk_cat(&parts, 0, 1).view([-1])
+            // (Should libtorch refuse it, the reshapes and `cat` it stands for.)
+            match Tensor::f_internal_chunk_cat(&parts, 0, 1) {
+                Ok(g) => g.view([-1]),
+                Err(_) => {
+                    Tensor::cat(&parts.iter().map(|p| p.reshape([-1])).collect::<Vec<_>>(), 0)
+                }
+            }
         };
         FlatGrads { buf, slots, shapes: self.shapes.clone(), layout: self.layout }
     }

@@ -440,7 +440,11 @@ impl PackedAdamW {
             // operator and one kernel for contiguous parts (`_chunk_cat`, as FSDP2 gathers its
             // gradients), where a reshape per part and a `cat` dispatch about two operators per
             // parameter tensor; on the CPU libtorch runs those same reshapes and `cat` for it.
-            let mut g = Tensor::internal_chunk_cat(&parts, 0, nn); // [N, prefix]
+            // (Should libtorch refuse it, the reshapes and `cat` it stands for.)
+            let mut g = Tensor::f_internal_chunk_cat(&parts, 0, nn).unwrap_or_else(|_| {
+                let flat: Vec<Tensor> = parts.iter().map(|p| p.reshape([nn, -1])).collect();
+                Tensor::cat(&flat, 1)
+            }); // [N, prefix]
             if let Some(k) = &keep {
                 g = g.where_scalarother(k, 0.0);
             }
