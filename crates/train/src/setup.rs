@@ -56,7 +56,7 @@ impl Setup {
         Ok(Self { cfg, family, preset, run_data, device, env_threads })
     }
 
-    /// The set-up of `cfg` over data already loaded for it, as run `pack_size` runs in one process
+    /// The set-up of `cfg` over data already loaded for it, as one of `pack_size` runs in a process
     /// (a pack's runs with the same data settings: [`Setup::data_key`]). `eval.env_threads = 0`
     /// (all cores) gives each run its share of the cores, rounded up: the runs of a pack evaluate
     /// at the same iterations, and N runs each stepping its episodes on every core start N times
