@@ -122,6 +122,26 @@ pub fn upload<T: tch::kind::Element>(values: &[T], device: Device) -> tch::Tenso
     }
 }
 
+/// Patterns of flags (which runs of a pack are stepped, which have a prompt) uploaded once each
+/// and reused: a pattern changes only when a run leaves, and on CUDA an upload costs about eight
+/// host operators and a copy, every step otherwise.
+#[derive(Debug, Default)]
+pub struct BoolUploads {
+    uploaded: std::collections::HashMap<Vec<bool>, tch::Tensor>,
+}
+
+impl BoolUploads {
+    /// `flags` as a `[len]` bool tensor on `device` (the same device at every call).
+    pub fn get(&mut self, flags: &[bool], device: Device) -> tch::Tensor {
+        if let Some(t) = self.uploaded.get(flags) {
+            return t.shallow_clone();
+        }
+        let t = upload(flags, device);
+        self.uploaded.insert(flags.to_vec(), t.shallow_clone());
+        t
+    }
+}
+
 /// `host` copied into page-locked memory. Not tch's `pin_memory(device)`: libtorch 2.11 warns on
 /// every call that passes a device (deprecated), two lines per upload of a CUDA run
 /// (`csrc/memory.cpp`). Fails where libtorch has no pinned-memory allocator (no CUDA).

@@ -300,16 +300,10 @@ impl PackedBatch {
     }
 
     /// The actions and the loss mask of every step of the packed sequence, prompt steps first:
-    /// `[N, B, P+K, da]` and `[N, B, P+K]` (float). `supervise_prompt[n]` says whether run `n`'s
-    /// loss reads its prompt steps (the paper's loss); otherwise they are masked (the reference's).
-    pub fn targets(&self, supervise_prompt: &[bool]) -> (Tensor, Tensor) {
-        let keep: Vec<f32> = supervise_prompt.iter().map(|&s| if s { 1.0 } else { 0.0 }).collect();
-        self.targets_with(&crate::device::upload(&keep, self.history.mask.device()))
-    }
-
-    /// [`Self::targets`] with `supervise_prompt` given on the device as 1 or 0 per run, `[N]`
-    /// float (a pack's callers upload it once).
-    pub fn targets_with(&self, supervise_prompt: &Tensor) -> (Tensor, Tensor) {
+    /// `[N, B, P+K, da]` and `[N, B, P+K]` (float). `supervise_prompt` `[N]` (float, on the
+    /// device; a pack uploads it once) is 1 where run `n`'s loss reads its prompt steps (the
+    /// paper's loss), 0 where they are masked (the reference's).
+    pub fn targets(&self, supervise_prompt: &Tensor) -> (Tensor, Tensor) {
         let (n, b) = (self.slots(), self.batch);
         let h = &self.history;
         let Some(p) = &self.prompt else {

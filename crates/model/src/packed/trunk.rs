@@ -99,8 +99,8 @@ pub struct PackedPromptDt {
 struct Reused {
     /// Per sequence length L: the causal mask's `[1, 1, L, L]` (contiguous).
     causal: std::collections::HashMap<i64, Tensor>,
-    /// Per pattern of which runs have a prompt: that pattern as `[N, 1, 1]` bools on the device.
-    has_prompt: std::collections::HashMap<Vec<bool>, Tensor>,
+    /// The patterns of which runs have a prompt.
+    has_prompt: crate::device::BoolUploads,
 }
 
 /// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
@@ -351,20 +351,13 @@ impl PackedPromptDt {
 
     /// `has[n]`, whether run n has a prompt, as `[N, 1, 1]` bools on the device (made once per
     /// pattern).
-    fn has_prompt(&self, has: Vec<bool>) -> Tensor {
+    fn has_prompt(&self, has: &[bool]) -> Tensor {
         let n = self.slots as i64;
-        let make = |has: &[bool]| crate::device::upload(has, self.device).view([n, 1, 1]);
-        match self.reused.lock() {
-            Ok(mut r) => {
-                if let Some(t) = r.has_prompt.get(&has) {
-                    return t.shallow_clone();
-                }
-                let t = make(&has);
-                r.has_prompt.insert(has, t.shallow_clone());
-                t
-            }
-            Err(_) => make(&has),
-        }
+        let flags = match self.reused.lock() {
+            Ok(mut r) => r.has_prompt.get(has, self.device),
+            Err(_) => crate::device::upload(has, self.device),
+        };
+        flags.view([n, 1, 1])
     }
 
     /// Interleaves (R_t, s_t, a_t) per step, as the solo `Embeddings::tokens`: tokens
@@ -592,7 +585,7 @@ impl PackedPromptDt {
                 // masked): none of its prompt layers' values or gradients enter.
                 let (p_tokens, p_mask) = self.tokens(&self.idx.prompt, p, b);
                 let keep: Vec<bool> = batch.prompt_lens.iter().map(|&lp| lp > 0).collect();
-                let p_tokens = p_tokens.where_scalarother(&self.has_prompt(keep), 0.0);
+                let p_tokens = p_tokens.where_scalarother(&self.has_prompt(&keep), 0.0);
                 let per_sample = |x: &Tensor| x.view([n * b, -1, hidden]); // [N*B, 3T, H]
                 let x = Tensor::cat(&[per_sample(&p_tokens), per_sample(&tokens)], 1);
                 (x.view([n, -1, hidden]), Tensor::cat(&[p_mask, mask], 1))

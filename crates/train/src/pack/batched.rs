@@ -44,9 +44,8 @@ pub struct BatchedEngine {
     /// Per run, 1 where its loss reads its prompt's steps, else 0: `[N]` on the device (the specs
     /// fix it for the pack's life).
     supervise: Tensor,
-    /// Per pattern of stepped runs, that pattern as `[N]` bools on the device (an upload per step
-    /// otherwise).
-    active: std::collections::HashMap<Vec<bool>, Tensor>,
+    /// The patterns of stepped runs.
+    active: pdt_model::device::BoolUploads,
 }
 
 fn invalid(e: PackedError) -> RunError {
@@ -212,14 +211,10 @@ impl PackEngine for BatchedEngine {
         self.model.bind_broadcast();
         let preds = self.model.forward_all_steps(&batch, Some(&seeds)); // [N, B, P+K, da]
 
-        let (targets, mask) = batch.targets_with(&self.supervise);
+        let (targets, mask) = batch.targets(&self.supervise);
         let loss = PackedPromptDt::action_loss(&preds, &targets, &mask); // [N]
         let device = self.model.device();
-        let active_t = self
-            .active
-            .entry(active.clone())
-            .or_insert_with(|| pdt_model::device::upload(&active, device))
-            .shallow_clone();
+        let active_t = self.active.get(&active, device);
         // A run not stepped gets no gradient (`where`, so its placeholder cannot send a NaN).
         let total = loss.where_scalarother(&active_t, 0.0).sum(Kind::Float);
         // (A bound view's gradient is `[N, 1, d]`, its weight's shape with a unit dimension: the
