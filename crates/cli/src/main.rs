@@ -419,7 +419,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Demo(a) if a.smoke => {
             let device = pdt_model::device::resolve(a.device)?;
-            for (i, s) in pdt_train::smoke::run(0, 20, device).iter().enumerate() {
+            for (i, s) in pdt_train::smoke::run(0, 20, device)?.iter().enumerate() {
                 out!(
                     "step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}",
                     s.loss,

@@ -35,7 +35,7 @@ fn synthetic_task(index: usize, rng: &mut Rng) -> TaskData {
 }
 
 /// Losses of `steps` training steps on synthetic data.
-pub fn run(seed: u64, steps: u64, device: Device) -> Vec<StepStats> {
+pub fn run(seed: u64, steps: u64, device: Device) -> Result<Vec<StepStats>, tch::TchError> {
     let mut rng = Rng::seed_from_u64(seed);
     let tasks = [synthetic_task(0, &mut rng), synthetic_task(1, &mut rng)];
     let refs: Vec<&TaskData> = tasks.iter().collect();

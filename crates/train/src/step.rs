@@ -20,6 +20,81 @@ pub struct StepStats {
     pub lr: f64,
 }
 
+/// A step's loss and gradient norm left where the step computed them, read later
+/// ([`Self::read_all`]): reading a value of a CUDA step waits for its kernels, so a loop that read
+/// each step's values at once would let the device idle while the host prepares the next step.
+/// The run loops read an iteration's steps together, once, after its last step. (Reading later
+/// changes no value: the same two `f32` numbers, widened to `f64` as `double_value` did.)
+#[derive(Debug)]
+pub struct PendingStats {
+    /// `[2]`: the loss and the gradient norm (the step's own `f32` scalars stacked, or values
+    /// already on the host); or a pack's `[2, N]`, of which this step's is column `column`.
+    values: Tensor,
+    column: Option<i64>,
+    lr: f64,
+}
+
+impl PendingStats {
+    /// `values` `[2]` (loss, gradient norm) as the step left them.
+    pub fn new(values: Tensor, lr: f64) -> Self {
+        Self { values, column: None, lr }
+    }
+
+    /// Column `column` of a pack step's `[2, N]` (every run's loss, then every run's norm),
+    /// taken when read: the pack's step makes no view per run.
+    pub fn column(values: &Tensor, column: usize, lr: f64) -> Self {
+        Self { values: values.shallow_clone(), column: Some(column as i64), lr }
+    }
+
+    /// Statistics already on the host.
+    pub fn ready(st: StepStats) -> Self {
+        Self::new(Tensor::from_slice(&[st.loss, st.grad_norm]), st.lr)
+    }
+
+    /// This step's statistics (waits for the step).
+    pub fn read(self) -> Result<StepStats, tch::TchError> {
+        Ok(Self::read_all(vec![self])?.remove(0))
+    }
+
+    /// The statistics of `steps`, in their order: one copy to the host for all of them, so one
+    /// wait for the device.
+    pub fn read_all(steps: Vec<PendingStats>) -> Result<Vec<StepStats>, tch::TchError> {
+        let Some(first) = steps.first() else { return Ok(Vec::new()) };
+        let device = first.values.device();
+        let parts: Vec<Tensor> = steps
+            .iter()
+            .map(|p| {
+                let v = match p.column {
+                    Some(c) => p.values.f_select(1, c)?, // [2]
+                    None => p.values.shallow_clone(),
+                };
+                v.f_to_device(device)?.f_to_kind(Kind::Double)
+            })
+            .collect::<Result<_, _>>()?;
+        let host = Tensor::f_stack(&parts, 0)?.f_to_device(Device::Cpu)?.f_view([-1])?; // [S*2]
+        let host = Vec::<f64>::try_from(&host)?;
+        Ok(steps
+            .iter()
+            .enumerate()
+            .map(|(i, p)| StepStats { loss: host[2 * i], grad_norm: host[2 * i + 1], lr: p.lr })
+            .collect())
+    }
+
+    /// The statistics of a pack step's slots (`None` where a slot was not stepped), read together.
+    pub fn read_slots(
+        slots: Vec<Option<PendingStats>>,
+    ) -> Result<Vec<Option<StepStats>>, tch::TchError> {
+        let stepped: Vec<bool> = slots.iter().map(Option::is_some).collect();
+        let mut read = Self::read_all(slots.into_iter().flatten().collect())?.into_iter();
+        Ok(stepped.into_iter().map(|s| if s { read.next() } else { None }).collect())
+    }
+}
+
+/// A failed read of step statistics, as a run's error.
+pub(crate) fn unreadable(e: tch::TchError) -> crate::error::RunError {
+    crate::error::RunError::Invalid(format!("reading the steps' losses from the device: {e}"))
+}
+
 pub use pdt_rundir::config::{LastBlockChoice, LossOn};
 
 /// The model's last block for a run's `train.last_block` on `device` (`batched`: in a batched
@@ -57,15 +132,16 @@ impl DeviceBatch {
     }
 }
 
-/// One training step at gradient step index `step` (0-based; it sets the warm-up learning rate).
+/// One training step at gradient step index `step` (0-based; it sets the warm-up learning rate),
+/// its statistics read at once.
 pub fn train_step(
     model: &PromptDt,
     opt: &mut Optimizer,
     batch: &DeviceBatch,
     loss_on: LossOn,
     step: u64,
-) -> StepStats {
-    train_step_with(model, opt, batch, loss_on, step, Dropout::Draw)
+) -> Result<StepStats, tch::TchError> {
+    train_step_with(model, opt, batch, loss_on, step, Dropout::Draw).read()
 }
 
 /// [`train_step`] with its dropout as given: [`Dropout::Given`] masks drawn beforehand
@@ -78,7 +154,7 @@ pub fn train_step_with(
     loss_on: LossOn,
     step: u64,
     dropout: Dropout<'_>,
-) -> StepStats {
+) -> PendingStats {
     let (h, p) = (&batch.history, batch.prompt.as_ref());
     let loss = match (loss_on, p) {
         (LossOn::PromptAndHistory, Some(p)) => {
@@ -90,8 +166,14 @@ pub fn train_step_with(
         _ => PromptDt::action_loss(&model.forward_with(h, p, dropout), &h.actions, &h.mask),
     };
     let mut grads = opt.backward(&loss);
-    let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg().grad_clip_norm);
+    let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg().grad_clip_norm); // [] (not read)
     let lr = opt.cfg().lr_at(step);
     opt.step(&grads, lr);
-    StepStats { loss: loss.to_kind(Kind::Double).double_value(&[]), grad_norm, lr }
+    // (The norm is the loss's kind and device but when no parameter has a gradient.)
+    let norm = if grad_norm.device() == loss.device() && grad_norm.kind() == loss.kind() {
+        grad_norm
+    } else {
+        grad_norm.to_device(loss.device()).to_kind(loss.kind())
+    };
+    PendingStats::new(Tensor::stack(&[loss.detach(), norm], 0), lr) // [2]
 }

@@ -96,7 +96,7 @@ fn train(t: &mut Trainee, batches: &[DeviceBatch], range: std::ops::Range<usize>
     range
         .map(|i| {
             tch::manual_seed(10_000 + i as i64);
-            train_step(&t.model, &mut t.opt, &batches[i], LossOn::History, i as u64).loss
+            train_step(&t.model, &mut t.opt, &batches[i], LossOn::History, i as u64).unwrap().loss
         })
         .collect()
 }
@@ -325,7 +325,7 @@ fn a_second_flat_optimiser_on_the_same_variables_hands_them_back() {
         let mut other = Optimizer::new(&t.vs, &model_cfg().parameter_names(), ocfg);
         let finetune = batches(7, 2, false);
         for (i, b) in finetune.iter().enumerate() {
-            train_step(&t.model, &mut other, b, LossOn::History, i as u64);
+            train_step(&t.model, &mut other, b, LossOn::History, i as u64).unwrap();
         }
         assert!(!bitwise(&snapshot, &weights(&t.vs)), "the second optimiser trains the model");
         // Restored as eval_tasks restores them: in place.

@@ -11,7 +11,7 @@ use pdt_model::packed::{DropoutSeeds, PackedBatch, PackedRow};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
-use pdt_train::step::{train_step, DeviceBatch, LossOn, StepStats};
+use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 #[path = "support/pack_fixture.rs"]
 mod fixture;
@@ -121,7 +121,7 @@ fn fifty_pack_steps_match_three_solo_runs() {
     let mut e = engine();
     let mut packed: Vec<Vec<StepStats>> = vec![Vec::new(); 3];
     for step in 0..STEPS {
-        let out = e.step(steps_of(step, [true; 3])).unwrap();
+        let out = PendingStats::read_slots(e.step(steps_of(step, [true; 3])).unwrap()).unwrap();
         for (i, st) in out.into_iter().enumerate() {
             packed[i].push(st.expect("every run was stepped"));
         }
@@ -134,7 +134,8 @@ fn fifty_pack_steps_match_three_solo_runs() {
         let mut opt = Optimizer::PerTensor(AdamW::new(&vs, &cfg().parameter_names(), optim()));
         for step in 0..STEPS {
             tch::manual_seed(derive_seed(RUNS[run].seed, STREAM_DROPOUT, step) as i64);
-            let st = train_step(&model, &mut opt, &batch(run, step), RUNS[run].loss_on, step);
+            let st =
+                train_step(&model, &mut opt, &batch(run, step), RUNS[run].loss_on, step).unwrap();
             let p = &packed[run][step as usize];
             assert_eq!(p.lr, st.lr, "run {run} step {step}: learning rate");
             loss_d = loss_d.max((p.loss - st.loss).abs());
@@ -186,7 +187,7 @@ fn an_imported_solo_state_continues_as_solo() {
     let mut opt = Optimizer::PerTensor(AdamW::new(&vs, &cfg().parameter_names(), optim()));
     let solo_step = |opt: &mut Optimizer, step: u64| {
         tch::manual_seed(derive_seed(RUNS[run].seed, STREAM_DROPOUT, step) as i64);
-        train_step(&model, opt, &batch(run, step), RUNS[run].loss_on, step)
+        train_step(&model, opt, &batch(run, step), RUNS[run].loss_on, step).unwrap()
     };
     for step in 0..5 {
         solo_step(&mut opt, step);
@@ -220,7 +221,7 @@ fn an_imported_solo_state_continues_as_solo() {
     for step in 5..10 {
         let mut steps: Vec<Option<SlotStep>> = (0..3).map(|_| None).collect();
         steps[run] = Some(SlotStep { step, batch: batch(run, step) });
-        let packed = e.step(steps).unwrap()[run].unwrap();
+        let packed = PendingStats::read_slots(e.step(steps).unwrap()).unwrap()[run].unwrap();
         let st = solo_step(&mut opt, step);
         assert_eq!(packed.lr, st.lr);
         loss_d = loss_d.max((packed.loss - st.loss).abs());
@@ -356,7 +357,7 @@ fn time_pack_of_three_against_three_solo_steps() {
             let (t0, c0) = (std::time::Instant::now(), on_cpu_ms());
             for (r, ((_, m), opt)) in solos.iter().zip(&mut opts).enumerate() {
                 tch::manual_seed(derive_seed(r as u64, STREAM_DROPOUT, step) as i64);
-                train_step(m, opt, &batches[r], LossOn::History, step);
+                train_step(m, opt, &batches[r], LossOn::History, step).unwrap();
             }
             solo.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
             // Forward (train mode) alone.

@@ -11,6 +11,7 @@ use fixture::*;
 use pdt_model::packed::MaskDraw;
 use pdt_train::optim::FlatOptim;
 use pdt_train::pack::{BatchedEngine, PackEngine, SlotSpec, SlotState};
+use pdt_train::step::PendingStats;
 use tch::{Device, Tensor};
 
 fn flat_specs() -> Vec<SlotSpec> {
@@ -66,8 +67,8 @@ fn the_flat_pack_trains_as_the_per_tensor_pack() {
     }
     let (mut loss_d, mut norm_d, mut w_d): (f64, f64, f64) = (0.0, 0.0, 0.0);
     for step in 0..STEPS {
-        let a = pt.step(steps_of(step, [true; 3])).unwrap();
-        let b = fl.step(steps_of(step, [true; 3])).unwrap();
+        let a = PendingStats::read_slots(pt.step(steps_of(step, [true; 3])).unwrap()).unwrap();
+        let b = PendingStats::read_slots(fl.step(steps_of(step, [true; 3])).unwrap()).unwrap();
         for (a, b) in a.iter().zip(&b) {
             let (a, b) = (a.unwrap(), b.unwrap());
             assert_eq!(a.lr, b.lr, "step {step}: learning rate");
@@ -124,8 +125,10 @@ fn uneven_step_counts_take_the_per_tensor_loop() {
     fl.import(0, copy_state(&state)).unwrap();
     pt2.import(0, state).unwrap();
     for step in 3..5 {
-        let a = pt2.step(steps_of(step, [true, false, false])).unwrap();
-        let b = fl.step(steps_of(step, [true, false, false])).unwrap();
+        let a = PendingStats::read_slots(pt2.step(steps_of(step, [true, false, false])).unwrap())
+            .unwrap();
+        let b = PendingStats::read_slots(fl.step(steps_of(step, [true, false, false])).unwrap())
+            .unwrap();
         assert_eq!(a[0], b[0], "step {step}: the fallback is the per-tensor loop, bit for bit");
     }
     let (a, b) = (pt2.export(0).unwrap(), fl.export(0).unwrap());
@@ -154,9 +157,10 @@ fn per_run_masks_are_seeded_and_applied() {
     let mut b = flat_engine(MaskDraw::PerRun);
     let mut solo_order = flat_engine(MaskDraw::SoloOrder);
     for step in 0..3 {
-        let x = a.step(steps_of(step, [true; 3])).unwrap();
-        let y = b.step(steps_of(step, [true; 3])).unwrap();
-        let z = solo_order.step(steps_of(step, [true; 3])).unwrap();
+        let x = PendingStats::read_slots(a.step(steps_of(step, [true; 3])).unwrap()).unwrap();
+        let y = PendingStats::read_slots(b.step(steps_of(step, [true; 3])).unwrap()).unwrap();
+        let z =
+            PendingStats::read_slots(solo_order.step(steps_of(step, [true; 3])).unwrap()).unwrap();
         assert_eq!(x, y, "step {step}: per-run masks are a function of the seeds");
         for run in 0..3 {
             let (x, z) = (x[run].unwrap().loss, z[run].unwrap().loss);

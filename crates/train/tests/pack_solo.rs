@@ -12,7 +12,7 @@ use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamWConfig, Optimizer};
 use pdt_train::pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine, SoloThreads};
-use pdt_train::step::{train_step, DeviceBatch, LossOn, StepStats};
+use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
 use std::sync::Mutex;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
@@ -180,7 +180,7 @@ fn stepped_as_alone(threads: SoloThreads) {
                 .collect();
             started.into_iter().map(|p| p.map(|p| p.wait().unwrap())).collect()
         } else {
-            engine.step(steps).unwrap()
+            PendingStats::read_slots(engine.step(steps).unwrap()).unwrap()
         };
         for i in 0..3 {
             if !on[i] {
@@ -195,7 +195,7 @@ fn stepped_as_alone(threads: SoloThreads) {
             let a = &mut alone[i];
             tch::manual_seed(derive_seed(RUNS[i].0, STREAM_DROPOUT, next[i]) as i64);
             let want: StepStats =
-                train_step(&a.model, &mut a.opt, &batch(i, next[i]), RUNS[i].2, next[i]);
+                train_step(&a.model, &mut a.opt, &batch(i, next[i]), RUNS[i].2, next[i]).unwrap();
             let st = got[i].unwrap();
             let at = format!("{threads:?}, step {s}: run {i}");
             assert_eq!(st.loss.to_bits(), want.loss.to_bits(), "{at}: loss");

@@ -203,7 +203,7 @@ fn training_steps(set: &Golden) {
         }
         let norm = opt.clip_grad_norm(&mut grads, 0.25);
         let name = format!("train.{k}.grad_norm");
-        let ours = Tensor::from(norm as f32);
+        let ours = norm;
         check.close(&name, &ours, &exp[&name], Bound::RelToMax(bounds::SCALAR_REL));
         let lr = opt.cfg.lr_at(k - 1);
         // The schedule is f64 arithmetic on both sides: equal on every CPU.

@@ -12,7 +12,9 @@ use crate::error::RunError;
 use crate::optim::{AdamWConfig, Optimizer, ParamState};
 use crate::pack::SlotState;
 use crate::setup::{Setup, Split};
-use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
+use crate::step::{
+    train_step, train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats,
+};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
 use pdt_eval::{
@@ -237,9 +239,18 @@ impl Learner for PromptDtLearner<'_> {
             // interleave with other runs', draws the same masks as solo.
             tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, step) as i64);
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
-            let st = train_step(&self.model, &mut self.opt, &batch, cfg.train.loss_on, step);
-            checked(at, cfg, step, st)
+            let (model, loss_on) = (&self.model, cfg.train.loss_on);
+            let draw = pdt_model::dropout::Dropout::Draw;
+            Ok(train_step_with(model, &mut self.opt, &batch, loss_on, step, draw))
         })?;
+        // The iteration's losses read once, after its last step: reading a step's loss waits for
+        // the device, which would otherwise idle while the host prepares each next step. A
+        // divergence is found at the same step as reading each at once would, after the rest of
+        // its iteration (which a run that stops with it never saves).
+        let stats = PendingStats::read_all(stats).map_err(unreadable)?;
+        for (i, st) in stats.iter().enumerate() {
+            checked(at, cfg, at.first_step + i as u64, *st)?;
+        }
         Ok(iteration_metrics(&stats))
     }
 
@@ -426,7 +437,8 @@ fn eval_tasks(
                 &DeviceBatch { history, prompt: None },
                 LossOn::History,
                 s,
-            );
+            )
+            .map_err(unreadable)?;
         }
         let eps = evaluate(&learner.model, vec![task], &settings)?;
         results.extend(summarise_all(&[i], &eps));

@@ -53,11 +53,13 @@ impl AdamW {
     }
 
     /// `torch.nn.utils.clip_grad_norm_(params, max_norm)`: scales all gradients in place by
-    /// `min(max_norm / (total_norm + 1e-6), 1)` and returns the total norm before clipping.
-    pub fn clip_grad_norm(&self, grads: &mut Grads, max_norm: f64) -> f64 {
+    /// `min(max_norm / (total_norm + 1e-6), 1)` and returns the total norm before clipping, a 0-d
+    /// tensor on the gradients' device, not read (as PyTorch's: reading waits for the device).
+    /// With no gradient at all, a 0-d zero on the CPU.
+    pub fn clip_grad_norm(&self, grads: &mut Grads, max_norm: f64) -> Tensor {
         let present: Vec<&mut Tensor> = grads.0.iter_mut().flatten().collect();
         if present.is_empty() {
-            return 0.0;
+            return Tensor::from(0f32);
         }
         // `norm()` is at::norm(p=2), which libtorch computes with linalg_vector_norm's kernel (tch
         // 0.24 has no binding for the latter).
@@ -68,7 +70,7 @@ impl AdamW {
         for g in present {
             let _ = g.g_mul_(&coef);
         }
-        total.double_value(&[])
+        total
     }
 
     /// One AdamW update at learning rate `lr`, for every parameter that has a gradient.

@@ -280,16 +280,17 @@ impl FlatAdamW {
     }
 
     /// `clip_grad_norm_` over the whole gradient buffer: one norm, one scale. Returns the total
-    /// norm before clipping (0 when no parameter has a gradient, as `AdamW::clip_grad_norm`).
-    pub fn clip_grad_norm(&self, grads: &mut FlatGrads, max_norm: f64) -> f64 {
+    /// norm before clipping, not read (a 0-d zero on the CPU when no parameter has a gradient, as
+    /// `AdamW::clip_grad_norm`).
+    pub fn clip_grad_norm(&self, grads: &mut FlatGrads, max_norm: f64) -> Tensor {
         if grads.slots.iter().all(Option::is_none) {
-            return 0.0;
+            return Tensor::from(0f32);
         }
         let total = grads.buf.norm();
         // As `AdamW::clip_grad_norm`: Python's `max_norm / (total + 1e-6)`, clamped at 1.
         let coef = ((&total + 1e-6).reciprocal() * max_norm).clamp_max(1.0);
         let _ = grads.buf.g_mul_(&coef);
-        total.double_value(&[])
+        total
     }
 
     /// One AdamW update at learning rate `lr` of every parameter that has a gradient.

@@ -70,7 +70,7 @@ impl Optimizer {
 
     /// See [`AdamW::clip_grad_norm`]. Gradients of the other kind (from another optimiser over
     /// the same parameters) are converted first.
-    pub fn clip_grad_norm(&mut self, grads: &mut Gradients, max_norm: f64) -> f64 {
+    pub fn clip_grad_norm(&mut self, grads: &mut Gradients, max_norm: f64) -> Tensor {
         match (self, &mut *grads) {
             (Self::PerTensor(o), Gradients::PerTensor(g)) => o.clip_grad_norm(g, max_norm),
             // The views alias the flat buffer: scaling them scales it.

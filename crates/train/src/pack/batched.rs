@@ -12,7 +12,7 @@ mod optim;
 
 use super::engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
-use crate::step::{LossOn, StepStats};
+use crate::step::{LossOn, PendingStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
@@ -156,7 +156,10 @@ impl PackEngine for BatchedEngine {
         self.specs.len()
     }
 
-    fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+    fn step(
+        &mut self,
+        steps: Vec<Option<SlotStep>>,
+    ) -> Result<Vec<Option<PendingStats>>, RunError> {
         let n = self.specs.len();
         if steps.len() != n {
             return Err(RunError::Invalid(format!(
@@ -231,18 +234,11 @@ impl PackEngine for BatchedEngine {
             .collect();
         let norms = self.opt.step(self.model.weights(), &grads, &active, &lrs); // [N]
 
-        // One copy to the host for every run's loss and norm.
-        let host = Tensor::stack(&[loss.detach(), norms], 0)
-            .to_kind(Kind::Double)
-            .to_device(Device::Cpu)
-            .view([-1]);
-        let host: Vec<f64> = Vec::<f64>::try_from(&host)
-            .map_err(|e| RunError::Invalid(format!("pack: reading the step's losses: {e}")))?;
-        Ok((0..n)
-            .map(|s| {
-                active[s].then(|| StepStats { loss: host[s], grad_norm: host[n + s], lr: lrs[s] })
-            })
-            .collect())
+        // Every run's loss and norm left on the device: each run reads its own column with its
+        // iteration's other steps (`PendingStats::read_all`), so the host goes on to the next
+        // step while the device computes this one.
+        let stats = Tensor::stack(&[loss.detach(), norms], 0); // [2, N]
+        Ok((0..n).map(|s| active[s].then(|| PendingStats::column(&stats, s, lrs[s]))).collect())
     }
 
     fn acts_together(&self) -> bool {

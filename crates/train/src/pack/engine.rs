@@ -13,7 +13,7 @@
 
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, ParamState};
-use crate::step::{DeviceBatch, LastBlockChoice, LossOn, StepStats};
+use crate::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats, StepStats};
 use pdt_model::{PromptDtConfig, Segments};
 use std::collections::BTreeMap;
 use tch::Tensor;
@@ -108,8 +108,10 @@ pub trait PackEngine {
     /// Number of slots (runs) in the pack.
     fn slots(&self) -> usize;
     /// One gradient step for every slot given `Some` (the result at the same position); slots
-    /// given `None` are untouched and get `None`. `steps.len() == self.slots()`.
-    fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError>;
+    /// given `None` are untouched and get `None`. `steps.len() == self.slots()`. The statistics
+    /// may be left on the device, for the run to read when it needs them.
+    fn step(&mut self, steps: Vec<Option<SlotStep>>)
+        -> Result<Vec<Option<PendingStats>>, RunError>;
     /// The slot's current weights and optimiser state, as a solo run holds them.
     fn export(&self, slot: usize) -> Result<SlotState, RunError>;
     /// Sets the slot's weights and optimiser state (a fresh run's initial weights with empty

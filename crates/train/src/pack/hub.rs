@@ -14,7 +14,7 @@
 
 use super::engine::{PackEngine, PendingStep, SlotAct, SlotState, SlotStep};
 use crate::error::RunError;
-use crate::step::StepStats;
+use crate::step::PendingStats;
 use crate::streams::torch_rng_lock;
 use std::sync::{Condvar, Mutex, MutexGuard};
 use tch::Tensor;
@@ -28,7 +28,7 @@ struct Table {
     pending: Vec<Option<SlotStep>>,
     /// Each submitted run's result, until it takes it (an engine error as its message, shared by
     /// every run of the failed step).
-    results: Vec<Option<Result<StepStats, String>>>,
+    results: Vec<Option<Result<PendingStats, String>>>,
     /// An engine that steps its slots alone: each run's started step (or the error of its start),
     /// until the run waits for it.
     started: Vec<Option<Result<PendingStep, RunError>>>,
@@ -86,9 +86,10 @@ impl Table {
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
                 .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
         };
+        let mut out = out;
         for i in (0..submitted.len()).filter(|&i| submitted[i]) {
-            self.results[i] = Some(match &out {
-                Ok(stats) => stats.get(i).copied().flatten().ok_or_else(|| {
+            self.results[i] = Some(match &mut out {
+                Ok(stats) => stats.get_mut(i).and_then(Option::take).ok_or_else(|| {
                     format!("the pack engine returned no result for the run in slot {i}")
                 }),
                 Err(e) => Err(format!("the pack engine failed: {e}")),
@@ -111,7 +112,7 @@ impl Hub {
                 engine,
                 active: vec![true; n],
                 pending: (0..n).map(|_| None).collect(),
-                results: vec![None; n],
+                results: (0..n).map(|_| None).collect(),
                 started: (0..n).map(|_| None).collect(),
                 acting: vec![false; n],
                 act_pending: (0..n).map(|_| None).collect(),
@@ -161,14 +162,16 @@ impl Hub {
     }
 
     /// The result of `slot`'s submitted step, taking the engine step if the pack is ready and no
-    /// other run has taken it yet.
-    pub(crate) fn wait(&self, slot: usize) -> Result<StepStats, RunError> {
+    /// other run has taken it yet. Returns once the step is taken; its statistics may still be
+    /// computing (`PendingStats::read_all`).
+    pub(crate) fn wait(&self, slot: usize) -> Result<PendingStats, RunError> {
         let mut t = self.lock();
         if let Some(started) = t.started.get_mut(slot).and_then(Option::take) {
             // The others may start, export or import while this step computes.
             drop(t);
             return started
                 .and_then(PendingStep::wait)
+                .map(PendingStats::ready)
                 .map_err(|e| RunError::Invalid(format!("the pack engine failed: {e}")));
         }
         loop {
@@ -310,7 +313,7 @@ mod tests {
     use super::*;
     use crate::config::AdamWConfig;
     use crate::pack::{BatchedEngine, PackLayout, SlotSpec};
-    use crate::step::{LossOn, StepStats};
+    use crate::step::{LossOn, PendingStats};
     use pdt_model::{PromptDtConfig, Segments};
     use std::sync::{Arc, Barrier};
     use tch::Device;
@@ -339,7 +342,10 @@ mod tests {
         fn slots(&self) -> usize {
             self.inner.slots()
         }
-        fn step(&mut self, s: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+        fn step(
+            &mut self,
+            s: Vec<Option<SlotStep>>,
+        ) -> Result<Vec<Option<PendingStats>>, RunError> {
             self.inner.step(s)
         }
         fn export(&self, slot: usize) -> Result<SlotState, RunError> {
@@ -395,7 +401,10 @@ mod tests {
         fn slots(&self) -> usize {
             self.inner.slots()
         }
-        fn step(&mut self, s: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+        fn step(
+            &mut self,
+            s: Vec<Option<SlotStep>>,
+        ) -> Result<Vec<Option<PendingStats>>, RunError> {
             let n = s.iter().flatten().count();
             let out = self.inner.step(s);
             let _ = self.stepped.send(n);
@@ -425,7 +434,7 @@ mod tests {
             let n = rx.recv_timeout(std::time::Duration::from_secs(120)).unwrap();
             assert_eq!(n, 3);
             for slot in 0..3 {
-                assert!(hub.wait(slot).unwrap().loss.is_finite());
+                assert!(hub.wait(slot).unwrap().read().unwrap().loss.is_finite());
             }
             hub.close();
             stepper.join().unwrap();

@@ -14,7 +14,7 @@ use crate::methods::{
     CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 use crate::setup::{Setup, Split};
-use crate::step::DeviceBatch;
+use crate::step::{unreadable, DeviceBatch, PendingStats};
 use crate::streams::torch_rng_lock;
 use pdt_eval::{ActRows, EvalError};
 use pdt_model::Segments;
@@ -146,11 +146,16 @@ impl Learner for PackMember<'_> {
             if step + 1 < end {
                 next = Some(solo.sample_batch(rng));
             }
-            let st = hub.wait(slot)?;
-            checked(at, cfg, step, st)
+            hub.wait(slot)
         })?;
         drop(solo);
         self.last_step = last;
+        // Read once the iteration's steps are all taken (the solo learner's reason): a
+        // divergence is found at the same step, after the rest of its iteration.
+        let stats = PendingStats::read_all(stats).map_err(unreadable)?;
+        for (i, st) in stats.iter().enumerate() {
+            checked(at, cfg, at.first_step + i as u64, *st)?;
+        }
         Ok(iteration_metrics(&stats))
     }
 

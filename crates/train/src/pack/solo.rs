@@ -17,7 +17,7 @@ mod workers;
 use super::engine::{PackEngine, PendingStep, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::optim::Optimizer;
-use crate::step::{train_step_with, StepStats};
+use crate::step::{train_step_with, unreadable, PendingStats, StepStats};
 use crate::streams::STREAM_DROPOUT;
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::{Dropout, DropoutMasks};
@@ -36,9 +36,12 @@ struct Slot {
 
 impl Slot {
     /// The solo step; `dropout` is [`Dropout::Draw`] (seeded by the caller) or masks drawn for it.
-    fn step(&mut self, input: &SlotStep, dropout: Dropout<'_>) -> StepStats {
+    /// (Read at once: the exact engine steps on the CPU, where reading waits for nothing.)
+    fn step(&mut self, input: &SlotStep, dropout: Dropout<'_>) -> Result<StepStats, RunError> {
         let (batch, loss_on) = (&input.batch, self.spec.loss_on);
         train_step_with(&self.model, &mut self.opt, batch, loss_on, input.step, dropout)
+            .read()
+            .map_err(unreadable)
     }
 
     fn state(&self) -> SlotState {
@@ -254,7 +257,10 @@ impl PackEngine for SoloEngine {
         self.specs.len()
     }
 
-    fn step(&mut self, steps: Vec<Option<SlotStep>>) -> Result<Vec<Option<StepStats>>, RunError> {
+    fn step(
+        &mut self,
+        steps: Vec<Option<SlotStep>>,
+    ) -> Result<Vec<Option<PendingStats>>, RunError> {
         if steps.len() != self.specs.len() {
             return Err(RunError::Invalid(format!(
                 "pack engine: {} slot inputs for a pack of {} runs",
@@ -268,7 +274,7 @@ impl PackEngine for SoloEngine {
             }
         }
         if let Slots::Here(slots) = &mut self.slots {
-            return Ok(slots
+            let done: Vec<Option<Result<StepStats, RunError>>> = slots
                 .iter_mut()
                 .zip(steps)
                 .map(|(slot, input)| {
@@ -277,7 +283,10 @@ impl PackEngine for SoloEngine {
                     tch::manual_seed(dropout_seed(&slot.spec, &input));
                     Some(slot.step(&input, Dropout::Draw))
                 })
-                .collect());
+                .collect();
+            let done: Vec<Option<StepStats>> =
+                done.into_iter().map(Option::transpose).collect::<Result<_, _>>()?;
+            return Ok(done.into_iter().map(|st| st.map(PendingStats::ready)).collect());
         }
         // On the workers: every slot's step started (one after another: their masks come from
         // the one generator), then every result awaited before any error is returned.
@@ -287,7 +296,9 @@ impl PackEngine for SoloEngine {
         }
         let done: Vec<Option<Result<StepStats, RunError>>> =
             pending.into_iter().map(|p| p.map(|p| p.and_then(PendingStep::wait))).collect();
-        done.into_iter().map(Option::transpose).collect()
+        let done: Vec<Option<StepStats>> =
+            done.into_iter().map(Option::transpose).collect::<Result<_, _>>()?;
+        Ok(done.into_iter().map(|st| st.map(PendingStats::ready)).collect())
     }
 
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {

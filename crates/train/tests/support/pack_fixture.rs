@@ -7,7 +7,7 @@ use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
 use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
-use pdt_train::step::{DeviceBatch, LossOn};
+use pdt_train::step::{DeviceBatch, LossOn, PendingStats};
 use std::sync::Mutex;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
@@ -193,10 +193,14 @@ pub fn assert_runs_independent(make: &dyn Fn() -> BatchedEngine) {
     poisoned.import(2, state).unwrap();
     let before = some.export(2).unwrap();
     for step in 0..STEPS {
-        let a = all.step(steps_of(step, [true; 3])).unwrap();
+        let a = PendingStats::read_slots(all.step(steps_of(step, [true; 3])).unwrap()).unwrap();
         // Run 1 every other step, run 2 never.
-        let s = some.step(steps_of(step, [true, step % 2 == 0, false])).unwrap();
-        let p = poisoned.step(steps_of(step, [true; 3])).unwrap();
+        let s = PendingStats::read_slots(
+            some.step(steps_of(step, [true, step % 2 == 0, false])).unwrap(),
+        )
+        .unwrap();
+        let p =
+            PendingStats::read_slots(poisoned.step(steps_of(step, [true; 3])).unwrap()).unwrap();
         assert_eq!(a[0], s[0], "step {step}: run 0's stats depend on which runs are stepped");
         assert_eq!(a[0], p[0], "step {step}: run 0's stats depend on a diverged pack-mate");
         assert_eq!(a[1], p[1], "step {step}: run 1's stats depend on a diverged pack-mate");
@@ -221,7 +225,7 @@ pub fn assert_runs_independent(make: &dyn Fn() -> BatchedEngine) {
     );
     assert_same_state("run 2, never stepped", &some.export(2).unwrap(), &before);
     // No step at all leaves everything as it was.
-    let out = some.step((0..3).map(|_| None).collect()).unwrap();
+    let out = PendingStats::read_slots(some.step((0..3).map(|_| None).collect()).unwrap()).unwrap();
     assert!(out.iter().all(Option::is_none));
     assert_same_state(
         "run 0 after an empty step",

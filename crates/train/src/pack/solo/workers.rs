@@ -128,7 +128,10 @@ fn serve(mut slot: Slot, intra_op: i32, index: usize, inbox: &Receiver<(Job, Sen
         // A libtorch error (a panic in tch) fails this job, not the thread: the run fails with it,
         // and the engine can still be dropped.
         let done = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match job {
-            Job::Step(input, masks) => Reply::Step(slot.step(&input, Dropout::Given(&masks))),
+            Job::Step(input, masks) => match slot.step(&input, Dropout::Given(&masks)) {
+                Ok(st) => Reply::Step(st),
+                Err(e) => Reply::Failed(e),
+            },
             Job::Export => Reply::State(slot.state()),
             Job::Import(state) => match slot.import(index, state) {
                 Ok(()) => Reply::Imported,
