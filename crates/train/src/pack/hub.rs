@@ -78,7 +78,7 @@ impl Table {
         let submitted: Vec<bool> = steps.iter().map(Option::is_some).collect();
         // libtorch's generator (the dropout masks) is the process's: no other run may draw from
         // it while the engine does.
-        let out = {
+        let mut out = {
             let _rng = torch_rng_lock();
             // A panic in the engine (a libtorch error) fails this step for every run in it,
             // rather than leaving the others waiting for results that never come.
@@ -86,7 +86,6 @@ impl Table {
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
                 .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
         };
-        let mut out = out;
         for i in (0..submitted.len()).filter(|&i| submitted[i]) {
             self.results[i] = Some(match &mut out {
                 Ok(stats) => stats.get_mut(i).and_then(Option::take).ok_or_else(|| {

@@ -17,7 +17,7 @@ mod workers;
 use super::engine::{PackEngine, PendingStep, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::optim::Optimizer;
-use crate::step::{train_step_with, unreadable, PendingStats, StepStats};
+use crate::step::{train_step_with, PendingStats, StepStats};
 use crate::streams::STREAM_DROPOUT;
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::{Dropout, DropoutMasks};
@@ -36,12 +36,10 @@ struct Slot {
 
 impl Slot {
     /// The solo step; `dropout` is [`Dropout::Draw`] (seeded by the caller) or masks drawn for it.
-    /// (Read at once: the exact engine steps on the CPU, where reading waits for nothing.)
-    fn step(&mut self, input: &SlotStep, dropout: Dropout<'_>) -> Result<StepStats, RunError> {
+    /// Its statistics are left unread (a worker reads them on its own thread).
+    fn step(&mut self, input: &SlotStep, dropout: Dropout<'_>) -> PendingStats {
         let (batch, loss_on) = (&input.batch, self.spec.loss_on);
         train_step_with(&self.model, &mut self.opt, batch, loss_on, input.step, dropout)
-            .read()
-            .map_err(unreadable)
     }
 
     fn state(&self) -> SlotState {
@@ -274,7 +272,7 @@ impl PackEngine for SoloEngine {
             }
         }
         if let Slots::Here(slots) = &mut self.slots {
-            let done: Vec<Option<Result<StepStats, RunError>>> = slots
+            return Ok(slots
                 .iter_mut()
                 .zip(steps)
                 .map(|(slot, input)| {
@@ -283,10 +281,7 @@ impl PackEngine for SoloEngine {
                     tch::manual_seed(dropout_seed(&slot.spec, &input));
                     Some(slot.step(&input, Dropout::Draw))
                 })
-                .collect();
-            let done: Vec<Option<StepStats>> =
-                done.into_iter().map(Option::transpose).collect::<Result<_, _>>()?;
-            return Ok(done.into_iter().map(|st| st.map(PendingStats::ready)).collect());
+                .collect());
         }
         // On the workers: every slot's step started (one after another: their masks come from
         // the one generator), then every result awaited before any error is returned.

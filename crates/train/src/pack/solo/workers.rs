@@ -12,7 +12,7 @@
 use super::Slot;
 use crate::error::RunError;
 use crate::pack::engine::{PendingStep, SlotState, SlotStep};
-use crate::step::StepStats;
+use crate::step::{unreadable, StepStats};
 use pdt_model::dropout::{Dropout, DropoutMasks};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::thread::JoinHandle;
@@ -128,9 +128,10 @@ fn serve(mut slot: Slot, intra_op: i32, index: usize, inbox: &Receiver<(Job, Sen
         // A libtorch error (a panic in tch) fails this job, not the thread: the run fails with it,
         // and the engine can still be dropped.
         let done = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match job {
-            Job::Step(input, masks) => match slot.step(&input, Dropout::Given(&masks)) {
+            // Read here: the worker's CPU step is done when it returns (nothing to wait for).
+            Job::Step(input, masks) => match slot.step(&input, Dropout::Given(&masks)).read() {
                 Ok(st) => Reply::Step(st),
-                Err(e) => Reply::Failed(e),
+                Err(e) => Reply::Failed(unreadable(e)),
             },
             Job::Export => Reply::State(slot.state()),
             Job::Import(state) => match slot.import(index, state) {
