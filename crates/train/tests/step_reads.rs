@@ -2,7 +2,8 @@
 //! (on a GPU a read waits for the step's kernels, and the device idles while the host prepares the
 //! next step). The run loops read an iteration's statistics once, after its last step
 //! (`PendingStats::read_all`), and get the values reading each step at once gives, bit for bit.
-//! In its own binary: libtorch's profiler sees every thread's operators.
+//! In its own binary, one test: libtorch's profiler sees every thread's operators and is started
+//! from one thread.
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
 #[path = "support/pack_fixture.rs"]
@@ -25,6 +26,12 @@ fn reads(events: &[profiler::Event]) -> Vec<String> {
 #[test]
 fn steps_read_nothing_back_and_read_later_give_the_values_of_reading_at_once() {
     let _rng = lock();
+    solo_steps();
+    batched_pack_steps();
+}
+
+/// A solo step, with either optimiser.
+fn solo_steps() {
     let steps = 4u64;
     for flat in [FlatOptim::Off, FlatOptim::On] {
         let names = cfg().parameter_names();
@@ -58,9 +65,8 @@ fn steps_read_nothing_back_and_read_later_give_the_values_of_reading_at_once() {
     }
 }
 
-#[test]
-fn a_batched_pack_step_reads_nothing_back_and_each_run_reads_its_own() {
-    let _rng = lock();
+/// A batched pack's step; each run reads its own statistics.
+fn batched_pack_steps() {
     let mut e = engine();
     let mut twin = engine();
     for s in 0..3u64 {
