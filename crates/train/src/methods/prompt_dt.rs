@@ -196,22 +196,28 @@ impl PromptDtLearner<'_> {
     }
 }
 
-/// The step's statistics, or the error of a divergence (a non-finite loss or gradient norm).
-pub(crate) fn checked(
+/// What an iteration logs, from its steps' statistics read once, after its last step: reading a
+/// step's loss waits for the device, which would otherwise idle while the host prepares each next
+/// step. A divergence (a non-finite loss or gradient norm) is the error of its step, as reading
+/// each at once would give, found after the rest of its iteration (which a stopped run never
+/// saves).
+pub(crate) fn read_iteration(
     at: IterationAt<'_>,
     cfg: &TrainConfig,
-    step: u64,
-    st: StepStats,
-) -> Result<StepStats, RunError> {
-    if st.loss.is_finite() && st.grad_norm.is_finite() {
-        Ok(st)
-    } else {
-        Err(diverged(at.dir, cfg, at.iteration, step, &st))
+    steps: Vec<PendingStats>,
+) -> Result<IterationMetrics, RunError> {
+    let stats = PendingStats::read_all(steps).map_err(unreadable)?;
+    for (i, st) in stats.iter().enumerate() {
+        if !(st.loss.is_finite() && st.grad_norm.is_finite()) {
+            let step = at.first_step + i as u64;
+            return Err(diverged(at.dir, cfg, at.iteration, step, st));
+        }
     }
+    Ok(iteration_metrics(&stats))
 }
 
 /// What an iteration of `stats` logs: the mean loss, the mean gradient norm and the last rate.
-pub(crate) fn iteration_metrics(stats: &[StepStats]) -> IterationMetrics {
+fn iteration_metrics(stats: &[StepStats]) -> IterationMetrics {
     let n = stats.len() as f64;
     let mut columns = BTreeMap::new();
     columns
@@ -243,15 +249,7 @@ impl Learner for PromptDtLearner<'_> {
             let draw = pdt_model::dropout::Dropout::Draw;
             Ok(train_step_with(model, &mut self.opt, &batch, loss_on, step, draw))
         })?;
-        // The iteration's losses read once, after its last step: reading a step's loss waits for
-        // the device, which would otherwise idle while the host prepares each next step. A
-        // divergence is found at the same step as reading each at once would, after the rest of
-        // its iteration (which a run that stops with it never saves).
-        let stats = PendingStats::read_all(stats).map_err(unreadable)?;
-        for (i, st) in stats.iter().enumerate() {
-            checked(at, cfg, at.first_step + i as u64, *st)?;
-        }
-        Ok(iteration_metrics(&stats))
+        read_iteration(at, cfg, stats)
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {

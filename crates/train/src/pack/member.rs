@@ -9,12 +9,12 @@
 use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;
 use crate::error::RunError;
-use crate::methods::prompt_dt::{checked, iteration_metrics, PromptDtLearner, Variant};
+use crate::methods::prompt_dt::{read_iteration, PromptDtLearner, Variant};
 use crate::methods::{
     CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 use crate::setup::{Setup, Split};
-use crate::step::{unreadable, DeviceBatch, PendingStats};
+use crate::step::DeviceBatch;
 use crate::streams::torch_rng_lock;
 use pdt_eval::{ActRows, EvalError};
 use pdt_model::Segments;
@@ -150,13 +150,7 @@ impl Learner for PackMember<'_> {
         })?;
         drop(solo);
         self.last_step = last;
-        // Read once the iteration's steps are all taken (the solo learner's reason): a
-        // divergence is found at the same step, after the rest of its iteration.
-        let stats = PendingStats::read_all(stats).map_err(unreadable)?;
-        for (i, st) in stats.iter().enumerate() {
-            checked(at, cfg, at.first_step + i as u64, *st)?;
-        }
-        Ok(iteration_metrics(&stats))
+        read_iteration(at, cfg, stats)
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
