@@ -17,8 +17,9 @@
 #   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
 #      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
-#      (4 methods x 3 seeds), one solo run, then the 12 runs as 12 processes at once; memory and
-#      utilisation sampled by nvidia-smi every 0.5 s;
+#      (4 methods x 3 seeds), one solo run (or each of D_SOLO_CELLS in turn), a pack of 12 Prompt-DT
+#      seeds (D_SEEDS_S > 0, `train --pack`), then the 12 runs as 12 processes at once; memory and
+#      utilisation sampled by nvidia-smi every 0.5 s, each thread's CPU time in the packs;
 #   E. FAMILY's cells of EXP at the cpu budget as one pack (collecting its data first), until the
 #      deadline.
 # Usage (repository root): BIN=... DATA=... OUT=... [DEADLINE=570] bash scripts/bench/gpu_pack.sh
@@ -104,22 +105,49 @@ repro() { # timeout out-dir args...
     --pretrained-root pretrained "$@" >"$O/$d.log" 2>&1; log "$d: rc $?"
   find "$WORK/$d" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
 }
+# Each thread's CPU seconds (name, user, system ticks) in the newest promptdt process, twice
+# THREADS_GAP_S apart, THREADS_AT_S after the start: which thread is busy (the pack's are named).
+threads_cpu() {
+  sleep "${THREADS_AT_S:-45}"; local pid; pid=$(pgrep -n -f "^$BIN ") || return 0
+  for i in 1 2; do
+    for t in /proc/"$pid"/task/*; do echo "$i $(date +%s.%N) ${t##*/} $(cut -d' ' -f2,14,15 "$t/stat" 2>/dev/null)"; done
+    [ "$i" = 1 ] && sleep "${THREADS_GAP_S:-10}"
+  done >"$O/$1.threads.txt"
+}
 if [ "$(left)" -gt ${D_MIN_S:-200} ]; then
   # A phase given 0 s is skipped.
   if [ "${D_PACK_S:-100}" -gt 0 ]; then
-    log "D1. pack of 12, paper budget"; smi "$O/pk12"
-    repro ${D_PACK_S:-100} pk12 --pack 12 --jobs 1 --threads 4 --only "$CELLS"; smi_stop
+    log "D1. pack of 12, paper budget"; smi "$O/pk12"; threads_cpu pk12 &
+    repro ${D_PACK_S:-100} pk12 --pack 12 --jobs 1 --threads 4 --only "$CELLS"; smi_stop; wait
   fi
   if [ "${D_SOLO_S:-45}" -gt 0 ]; then
-    log "D2. one solo run"; smi "$O/solo1"
-    repro ${D_SOLO_S:-45} solo1 --pack 1 --jobs 1 --threads 4 --only cheetah_dir/prompt-dt/paper/seed0; smi_stop
+    # D_SOLO_CELLS: the solo runs, one after another (e.g. one of each method of the pack).
+    for cell in $(echo "${D_SOLO_CELLS:-cheetah_dir/prompt-dt/paper/seed0}" | tr , ' '); do
+      d=solo1; [ -n "${D_SOLO_CELLS:-}" ] && d=solo-$(echo "$cell" | cut -d/ -f2)
+      log "D2. one solo run: $cell"; smi "$O/$d"
+      repro ${D_SOLO_S:-45} "$d" --pack 1 --jobs 1 --threads 4 --only "$cell"; smi_stop
+    done
+  fi
+  if [ "${D_SEEDS_S:-0}" -gt 0 ]; then
+    # A pack of 12 Prompt-DT runs (seeds 0-11; `train --pack`): the same method as the solo run.
+    log "D4. pack of 12 Prompt-DT seeds"; smi "$O/seeds12"; mkdir -p "$WORK/seedcfg"
+    cfgs=""; for s in $(seq 0 11); do
+      # reproduce's resume points (every 25 iterations) and libtorch threads (4), as in D1 and D2.
+      { sed -e "s/^seed = 0$/seed = $s\nthreads = 4/" configs/cheetah_dir/prompt-dt.toml
+        printf '\n[train]\nresume_interval = 25\n'; } >"$WORK/seedcfg/prompt-dt-seed$s.toml"
+      cfgs="$cfgs $WORK/seedcfg/prompt-dt-seed$s.toml"
+    done
+    threads_cpu seeds12 &
+    timeout "$D_SEEDS_S" "$BIN" train --pack $cfgs --device "$DEVICE" --data "$DATA/cheetah_dir" --out "$WORK/seeds12" \
+      --quiet >"$O/seeds12.log" 2>&1; log "seeds12: rc $?"; smi_stop; wait
+    find "$WORK/seeds12" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
   fi
   if [ "${D_PROC_S:-60}" -gt 0 ]; then
     log "D3. 12 processes at once"; smi "$O/proc12"
     repro ${D_PROC_S:-60} proc12 --pack 1 --jobs 12 --threads 1 --only "$CELLS"; smi_stop
   fi
 fi
-(cd "$WORK" && find pk12 solo1 proc12 -name metrics.csv -o -name 'run.json' -o -name pack.json 2>/dev/null | tar czf "$O/realloop.tar.gz" -T -)
+(cd "$WORK" && find pk12 solo* proc12 seeds12 -name metrics.csv -o -name 'run.json' -o -name pack.json 2>/dev/null | tar czf "$O/realloop.tar.gz" -T -)
 if [ -n "${FAMILY:-}" ] && [ "$(left)" -gt 120 ]; then
   log "E. $FAMILY cpu-budget cells of ${EXP:-fig2}, one pack, $(left) s left"; smi "$O/fam"
   timeout $(( $(left) - 25 )) "$BIN" reproduce "${EXP:-fig2}" --budget cpu --device "$DEVICE" --out "$WORK/fam" --data-root "$WORK/famdata" \

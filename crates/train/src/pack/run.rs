@@ -257,18 +257,28 @@ pub(crate) fn run_pack(
     let size = members.len();
     let (with, stop, progress) = (&opts.resume_with, opts.stop_after_iterations, opts.progress);
     std::thread::scope(|scope| {
-        let stepper = scope.spawn(|| {
-            // The pack's steps compute on this thread: the runs' libtorch thread count.
-            tch::set_num_threads(libtorch_threads);
-            hub.stepper();
-        });
+        // Named, so that `top -H` or a profiler shows which thread steps and which run is which.
+        let stepper =
+            std::thread::Builder::new().name("pack-stepper".into()).spawn_scoped(scope, || {
+                // The pack's steps compute on this thread: the runs' libtorch thread count.
+                tch::set_num_threads(libtorch_threads);
+                hub.stepper();
+            });
+        let stepper = match stepper {
+            Ok(s) => s,
+            Err(e) => {
+                let message = format!("could not start the pack's stepper thread: {e}");
+                return (0..size).map(|_| Err(RunError::Invalid(message.clone()))).collect();
+            }
+        };
         let handles: Vec<_> = members
             .into_iter()
             .enumerate()
             .map(|(slot, m)| {
                 let hub = &hub;
                 let info = PackInfo { size, slot, engine: engine_kind.name().into() };
-                scope.spawn(move || {
+                let thread = std::thread::Builder::new().name(format!("pack-run-{slot}"));
+                let spawned = thread.spawn_scoped(scope, move || {
                     // Per OS thread (OpenMP's): this run's evaluations get the pack's count.
                     tch::set_num_threads(libtorch_threads);
                     let with = if m.resume { with.clone() } else { ResumeWith::default() };
@@ -282,13 +292,20 @@ pub(crate) fn run_pack(
                         interrupt: Default::default(),
                     };
                     train_member(m, slot, hub, act, opts, &info)
+                });
+                // A run whose thread did not start has left: the others do not wait for it.
+                spawned.map_err(|e| {
+                    hub.leave(slot);
+                    RunError::Invalid(format!(
+                        "could not start the thread of the pack's run {slot}: {e}"
+                    ))
                 })
             })
             .collect();
         let results = handles
             .into_iter()
             .map(|h| {
-                h.join().unwrap_or_else(|_| {
+                h?.join().unwrap_or_else(|_| {
                     Err(RunError::Invalid("a run of the pack panicked (see above)".into()))
                 })
             })
