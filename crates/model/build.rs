@@ -3,8 +3,7 @@
 //! `third_party/libtorch/torch`, installed by `scripts/fetch_libtorch.py`), with torch-sys's own
 //! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_model::device::Matmul`);
 //! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`);
-//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`);
-//! `csrc/generator.cpp`: the default random generators' state (`pdt_model::device::GeneratorState`).
+//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`).
 
 use std::path::PathBuf;
 
@@ -13,7 +12,6 @@ fn main() {
     println!("cargo::rerun-if-changed=csrc/matmul.cpp");
     println!("cargo::rerun-if-changed=csrc/profiler.cpp");
     println!("cargo::rerun-if-changed=csrc/memory.cpp");
-    println!("cargo::rerun-if-changed=csrc/generator.cpp");
     println!("cargo::rerun-if-changed=csrc/guard.h");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
@@ -37,7 +35,6 @@ fn main() {
         .file("csrc/matmul.cpp")
         .file("csrc/profiler.cpp")
         .file("csrc/memory.cpp")
-        .file("csrc/generator.cpp")
         .include(&include)
         .include(include.join("torch").join("csrc").join("api").join("include"))
         .include(include.join("kineto"))
