@@ -8,7 +8,8 @@
 //! pack's masks drawn per run, one LayerNorm for the pack, a solo run's last block for the state
 //! tokens only), `_pt` for the CPU one (`optim.flat = "off"`, masks in solo order, a LayerNorm per
 //! run, a solo run's last block on every token). A pack's last block always runs for the state
-//! tokens only.
+//! tokens only. A final `_mix` gives every second run no prompt (as Figure 2's pack of 4 methods,
+//! whose MT-ORL and MT-BC-Finetune runs have none), the others a prompt as before.
 //!
 //! With `_act` a case times one environment step of N runs evaluating with B episodes each: the
 //! pack's forward for all runs (`pack<N>_b<B>_act`: `PackEngine::act`, as `--pack-eval together`)
@@ -42,10 +43,17 @@ pub struct PackCase {
     pub flat: FlatOptim,
     /// `_act`: an evaluation's forward, not a gradient step.
     pub act: bool,
+    /// `_mix`: the odd-numbered runs without a prompt.
+    pub mix: bool,
 }
 
-/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1), then `_flat`, `_pt` or `_act` if wanted.
+/// `pack<N>_b<B>` or `solo<N>_b<B>` (N, B at least 1), then `_flat`, `_pt` or `_act` if wanted,
+/// then `_mix` if wanted (not with `_act`).
 pub fn parse_case(name: &str) -> Option<PackCase> {
+    let (name, mix) = match name.strip_suffix("_mix") {
+        Some(r) => (r, true),
+        None => (name, false),
+    };
     let (name, act) = match name.strip_suffix("_act") {
         Some(r) => (r, true),
         None => (name, false),
@@ -65,10 +73,10 @@ pub fn parse_case(name: &str) -> Option<PackCase> {
     let (runs, batch) = rest.split_once("_b")?;
     let runs = runs.parse().ok().filter(|&n: &usize| n > 0)?;
     let batch = batch.parse().ok().filter(|&b: &usize| b > 0)?;
-    if act && flat != FlatOptim::Auto {
-        return None; // an evaluation's forward has no optimiser
+    if act && (flat != FlatOptim::Auto || mix) {
+        return None; // an evaluation's forward has no optimiser; its runs all have prompts
     }
-    Some(PackCase { mode, runs, batch, flat, act })
+    Some(PackCase { mode, runs, batch, flat, act, mix })
 }
 
 const K: usize = 20;
@@ -95,15 +103,19 @@ pub fn time_pack(
             )
         })
         .collect();
+    let prompted = |i: usize| !(case.mix && i % 2 == 1);
     let batch_of = |i: usize| DeviceBatch {
         history: batches[i].0.shallow_clone(),
-        prompt: Some(batches[i].1.shallow_clone()),
+        prompt: prompted(i).then(|| batches[i].1.shallow_clone()),
     };
     type StepFn<'a> = Box<dyn FnMut(u64) -> Result<(), String> + 'a>;
     let optim = AdamWConfig { flat: case.flat, ..AdamWConfig::default() };
     let step_fn: StepFn<'_> = match case.mode {
         PackMode::Packed => {
-            let specs = specs(case.runs, &cfg, &optim);
+            let mut specs = specs(case.runs, &cfg, &optim);
+            for (i, s) in specs.iter_mut().enumerate() {
+                s.uses_prompt = prompted(i);
+            }
             let layout = PackLayout { batch_size: case.batch, history_len: K, prompt_len: PROMPT };
             let mut engine =
                 BatchedEngine::new(specs, layout, device).map_err(|e| e.to_string())?;
@@ -278,8 +290,14 @@ mod tests {
 
     #[test]
     fn pack_case_names() {
-        let c =
-            |m, runs, batch| PackCase { mode: m, runs, batch, flat: FlatOptim::Auto, act: false };
+        let c = |m, runs, batch| PackCase {
+            mode: m,
+            runs,
+            batch,
+            flat: FlatOptim::Auto,
+            act: false,
+            mix: false,
+        };
         assert_eq!(parse_case("pack3_b64"), Some(c(PackMode::Packed, 3, 64)));
         assert_eq!(parse_case("solo12_b16"), Some(c(PackMode::Solo, 12, 16)));
         let flat = PackCase { flat: FlatOptim::On, ..c(PackMode::Packed, 12, 32) };
@@ -289,6 +307,12 @@ mod tests {
         let act = PackCase { act: true, ..c(PackMode::Packed, 12, 100) };
         assert_eq!(parse_case("pack12_b100_act"), Some(act));
         assert_eq!(parse_case("solo12_b100_act"), Some(PackCase { mode: PackMode::Solo, ..act }));
+        let mix = PackCase { mix: true, ..flat };
+        assert_eq!(parse_case("pack12_b32_flat_mix"), Some(mix));
+        assert_eq!(
+            parse_case("solo12_b32_flat_mix"),
+            Some(PackCase { mode: PackMode::Solo, ..mix })
+        );
         for bad in [
             "pack0_b64",
             "pack3_b0",
@@ -299,6 +323,8 @@ mod tests {
             "pack3_b2_x",
             "pack3_b2_flat_act",
             "pack3_b2_act_flat",
+            "pack3_b2_act_mix",
+            "pack3_b2_mix_flat",
         ] {
             assert_eq!(parse_case(bad), None, "{bad}");
         }
