@@ -99,11 +99,14 @@ fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done
 CELLS=${CELLS#,}
+runs_reached() { # dir: each run's first and last metrics line (iteration, elapsed s) into the log
+  find "$1" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
+}
 repro() { # timeout out-dir args...
   local t=$1 d=$2; shift 2
   timeout "$t" "$BIN" reproduce fig2 --budget paper --device "$DEVICE" --out "$WORK/$d" --data-root "$DATA" \
     --pretrained-root pretrained "$@" >"$O/$d.log" 2>&1; log "$d: rc $?"
-  find "$WORK/$d" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
+  runs_reached "$WORK/$d"
 }
 # Each thread's CPU seconds (name, user, system ticks) in the newest promptdt process, twice
 # THREADS_GAP_S apart, THREADS_AT_S after the start: which thread is busy (the pack's are named).
@@ -140,7 +143,7 @@ if [ "$(left)" -gt ${D_MIN_S:-200} ]; then
     threads_cpu seeds12 &
     timeout "$D_SEEDS_S" "$BIN" train --pack $cfgs --device "$DEVICE" --data "$DATA/cheetah_dir" --out "$WORK/seeds12" \
       --quiet >"$O/seeds12.log" 2>&1; log "seeds12: rc $?"; smi_stop; wait
-    find "$WORK/seeds12" -name metrics.csv | sort | while read -r f; do echo "$f $(sed -n 2p "$f" | cut -d, -f1,3) $(tail -1 "$f" | cut -d, -f1,3)"; done | tee -a "$OUT/session.log"
+    runs_reached "$WORK/seeds12"
   fi
   if [ "${D_PROC_S:-60}" -gt 0 ]; then
     log "D3. 12 processes at once"; smi "$O/proc12"

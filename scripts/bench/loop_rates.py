@@ -31,9 +31,10 @@ def group_stats(name, root):
     files = sorted(Path(root).rglob("metrics.csv"))
     if not files:
         sys.exit(f"{name}: no metrics.csv under {root}")
-    train, evals, gross = [], [], []
+    train, evals, gross, lines = [], [], [], []
     for f in files:
         iv, n, last = run_intervals(f)
+        lines.append(n)
         if not iv:
             sys.exit(f"{f}: fewer than 3 iterations")
         med = statistics.median(iv)
@@ -43,7 +44,7 @@ def group_stats(name, root):
     return {
         "group": name,
         "runs": len(files),
-        "iterations_per_run": run_intervals(files[0])[1],
+        "iterations_per_run": lines[0],
         "train_s_per_iteration_median": statistics.median(train),
         "train_s_per_iteration_mean": statistics.fmean(train),
         "evaluation_intervals_per_run": len(evals) / len(files),
