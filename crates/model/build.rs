@@ -3,7 +3,9 @@
 //! `third_party/libtorch/torch`, installed by `scripts/fetch_libtorch.py`), with torch-sys's own
 //! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_model::device::Matmul`);
 //! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`);
-//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`).
+//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`);
+//! `csrc/bernoulli.cpp`: dropout's Bernoulli noise on the CPU, libtorch's bits drawn faster
+//! (`pdt_model::dropout::draw_noise`).
 
 use std::path::PathBuf;
 
@@ -12,6 +14,7 @@ fn main() {
     println!("cargo::rerun-if-changed=csrc/matmul.cpp");
     println!("cargo::rerun-if-changed=csrc/profiler.cpp");
     println!("cargo::rerun-if-changed=csrc/memory.cpp");
+    println!("cargo::rerun-if-changed=csrc/bernoulli.cpp");
     println!("cargo::rerun-if-changed=csrc/guard.h");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
@@ -35,6 +38,7 @@ fn main() {
         .file("csrc/matmul.cpp")
         .file("csrc/profiler.cpp")
         .file("csrc/memory.cpp")
+        .file("csrc/bernoulli.cpp")
         .include(&include)
         .include(include.join("torch").join("csrc").join("api").join("include"))
         .include(include.join("kineto"))

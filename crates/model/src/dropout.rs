@@ -40,8 +40,50 @@ pub fn dropout_sites(cfg: &PromptDtConfig) -> Vec<DropoutSite> {
 /// `bernoulli_(1 - p)` then `div_(1 - p)`, drawn from libtorch's generator in memory order, so a
 /// contiguous tensor (or contiguous rows of one) gets what a fresh tensor of its shape gets.
 pub fn draw_noise(noise: &mut Tensor, p: f64) {
-    let _ = noise.bernoulli_float_(1.0 - p);
+    bernoulli_(noise, 1.0 - p);
     let _ = noise.g_div_scalar_(1.0 - p);
+}
+
+/// `t.bernoulli_(p)`: the same bits, through [`bernoulli_cpu`] where it draws them.
+pub fn bernoulli_(t: &mut Tensor, p: f64) {
+    if !bernoulli_cpu(t, p) {
+        let _ = t.bernoulli_float_(p);
+    }
+}
+
+/// `noise.bernoulli_(p)` for a contiguous float tensor on the CPU, libtorch's own bits drawn in one
+/// tight loop (`csrc/bernoulli.cpp`: libtorch's loop on a CPU other than Intel's was about a tenth
+/// of a training step). False, with nothing drawn, where that is not what `bernoulli_` draws on
+/// this machine (an Intel CPU draws through MKL) or for any other tensor: then call `bernoulli_`.
+pub fn bernoulli_cpu(noise: &mut Tensor, p: f64) -> bool {
+    if noise.device() != Device::Cpu || noise.kind() != Kind::Float {
+        return false;
+    }
+    // SAFETY: `noise.as_mut_ptr()` is a live tch tensor handle (`at::Tensor*`) for the call; the
+    // C++ side checks it is a contiguous float CPU tensor and writes its elements only.
+    #[allow(unsafe_code)]
+    let fill =
+        |err, len| unsafe { crate::ffi::pdt_bernoulli_cpu(noise.as_mut_ptr().cast(), p, err, len) };
+    // An error (none is expected: the C++ side only checks and fills) leaves the draw to libtorch.
+    matches!(crate::ffi::call(fill), Ok(1))
+}
+
+/// `at::dropout(x, p, train = true)` on the CPU: `x * noise` with [`draw_noise`]'s noise, the ops
+/// and bits of libtorch's (whose noise is `empty_like(x)`, so `x`'s memory order: a contiguous `x`
+/// only; any other goes to `at::dropout`, as does a tensor elsewhere than on the CPU).
+fn dropout_cpu(x: Tensor, p: f64) -> Tensor {
+    if x.device() != Device::Cpu
+        || x.kind() != Kind::Float
+        || !x.is_contiguous()
+        || p <= 0.0
+        || p >= 1.0
+        || x.numel() == 0
+    {
+        return x.dropout(p, true);
+    }
+    let mut noise = Tensor::empty(x.size().as_slice(), (Kind::Float, Device::Cpu));
+    draw_noise(&mut noise, p);
+    x * noise
 }
 
 /// The masks of one training forward pass (`None` at a site with `p = 0`, where `at::dropout`
@@ -129,7 +171,7 @@ impl Dropout<'_> {
     pub(crate) fn apply(&self, x: Tensor, p: f64, at: At) -> Tensor {
         match self {
             Dropout::Off => x,
-            Dropout::Draw => x.dropout(p, true),
+            Dropout::Draw => dropout_cpu(x, p),
             Dropout::Given(m) => match m.at(at) {
                 // `at::dropout` returns `input * noise`.
                 Some(mask) => x * mask,

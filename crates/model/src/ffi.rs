@@ -25,6 +25,14 @@ unsafe extern "C" {
         err: *mut u8,
         err_len: usize,
     ) -> c_int;
+    /// Fills `tensor` (a tch handle) with `bernoulli_(p)`'s bits: 1 if drawn, 0 if not (use
+    /// `bernoulli_`).
+    pub(crate) fn pdt_bernoulli_cpu(
+        tensor: *mut c_void,
+        p: f64,
+        err: *mut u8,
+        err_len: usize,
+    ) -> c_int;
 }
 
 /// Calls `f` with a message buffer (pointer, length) for a `csrc/` function: its answer (>= 0), or

@@ -3,7 +3,8 @@
 //! a PyTorch model written from the reference description (`scripts/golden/prompt_dt_torch.py`).
 //!
 //! Same weights, same inputs, same dropout seed (libtorch's CPU generator is shared by PyTorch and
-//! tch, and both call `at::dropout`), so on the CPU that made the fixtures the results are compared
+//! tch; promptdt draws `at::dropout`'s noise, the same bits, through `pdt_model::dropout`), so on the
+//! CPU that made the fixtures the results are compared
 //! bit for bit. libtorch picks its kernels by instruction set, so fixtures made on another CPU are
 //! compared within measured bounds (`support/golden.rs`): every test runs against the committed
 //! fixtures and, when `make test` made them on this machine, against live ones bit for bit.

@@ -483,12 +483,12 @@ impl PackedPromptDt {
             let mut row = noise.get(slot as i64);
             match drawn.first() {
                 Some(&(p, _)) if one_p => {
-                    let _ = row.bernoulli_float_(1.0 - p);
+                    crate::dropout::bernoulli_(&mut row, 1.0 - p);
                 }
                 _ => {
                     let mut off = 0;
                     for &(p, attn) in &drawn {
-                        let _ = row.narrow(0, off, size(attn)).bernoulli_float_(1.0 - p);
+                        crate::dropout::bernoulli_(&mut row.narrow(0, off, size(attn)), 1.0 - p);
                         off += size(attn);
                     }
                 }
