@@ -172,7 +172,22 @@ impl PromptDtLearner<'_> {
     ) -> Result<Vec<TaskEval>, RunError> {
         self.picks.clear();
         self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, Some(actor))?;
+        let results = eval_tasks(self, split, rng, Some(actor), &Alone)?;
+        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+    }
+
+    /// [`Learner::evaluate`] with MT-BC-Finetune's fine-tuning before each test task in `turns`
+    /// (a run of a pack: libtorch's generator is the process's, so each tuning takes its turn at it
+    /// while the episodes run without it).
+    pub(crate) fn evaluate_in_turns(
+        &mut self,
+        split: Split,
+        rng: &mut Rng,
+        turns: &dyn TuneTurns,
+    ) -> Result<Vec<TaskEval>, RunError> {
+        self.picks.clear();
+        self.adapt_log.clear();
+        let results = eval_tasks(self, split, rng, None, turns)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
 
@@ -255,7 +270,7 @@ impl Learner for PromptDtLearner<'_> {
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
         self.picks.clear();
         self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, None)?;
+        let results = eval_tasks(self, split, rng, None, &Alone)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
 
@@ -330,6 +345,7 @@ fn eval_tasks(
     split: Split,
     rng: &mut Rng,
     actor: Option<&dyn ActRows>,
+    turns: &dyn TuneTurns,
 ) -> Result<Vec<TaskResult>, RunError> {
     let actor = actor.filter(|_| learner.evaluates_plainly(split));
     let setup = learner.setup;
@@ -421,23 +437,28 @@ fn eval_tasks(
         };
         let mut opt =
             Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
-        for s in 0..setup.cfg.eval.finetune_steps {
-            let seg = sampler.tail_segments(
-                i,
-                setup.cfg.eval.finetune_batch,
-                setup.run_data.sampler_cfg.prompt_length,
-                rng,
-            );
-            let history = crate::step::to_segments(&seg, setup.device);
-            train_step(
-                &learner.model,
-                &mut opt,
-                &DeviceBatch { history, prompt: None },
-                LossOn::History,
-                s,
-            )
-            .map_err(unreadable)?;
-        }
+        // The tuning's dropout comes from libtorch's generator (in its turn); its episodes draw
+        // nothing from it.
+        turns.turn(&mut || {
+            for s in 0..setup.cfg.eval.finetune_steps {
+                let seg = sampler.tail_segments(
+                    i,
+                    setup.cfg.eval.finetune_batch,
+                    setup.run_data.sampler_cfg.prompt_length,
+                    rng,
+                );
+                let history = crate::step::to_segments(&seg, setup.device);
+                train_step(
+                    &learner.model,
+                    &mut opt,
+                    &DeviceBatch { history, prompt: None },
+                    LossOn::History,
+                    s,
+                )
+                .map_err(unreadable)?;
+            }
+            Ok(())
+        })?;
         let eps = evaluate(&learner.model, vec![task], &settings)?;
         results.extend(summarise_all(&[i], &eps));
         tch::no_grad(|| {
@@ -450,6 +471,23 @@ fn eval_tasks(
         });
     }
     Ok(results)
+}
+
+/// How MT-BC-Finetune's fine-tuning before a test task gets libtorch's generator, from which its
+/// dropout is drawn: a solo run has it to itself ([`Alone`]); a run of a pack, whose other runs
+/// draw from the same generator, takes turns at it (`crate::pack::member`).
+pub(crate) trait TuneTurns {
+    /// Runs `tune` with the generator where this run's previous turn left it.
+    fn turn(&self, tune: &mut dyn FnMut() -> Result<(), RunError>) -> Result<(), RunError>;
+}
+
+/// The generator as it stands: a solo run's own.
+pub(crate) struct Alone;
+
+impl TuneTurns for Alone {
+    fn turn(&self, tune: &mut dyn FnMut() -> Result<(), RunError>) -> Result<(), RunError> {
+        tune()
+    }
 }
 
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.

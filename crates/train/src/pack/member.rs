@@ -9,7 +9,7 @@
 use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;
 use crate::error::RunError;
-use crate::methods::prompt_dt::{read_iteration, PromptDtLearner, Variant};
+use crate::methods::prompt_dt::{read_iteration, PromptDtLearner, TuneTurns, Variant};
 use crate::methods::{
     CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
@@ -17,6 +17,7 @@ use crate::setup::{Setup, Split};
 use crate::step::DeviceBatch;
 use crate::streams::torch_rng_lock;
 use pdt_eval::{ActRows, EvalError};
+use pdt_model::device::GeneratorState;
 use pdt_model::Segments;
 use pdt_prompt::Rng;
 use std::cell::{Cell, RefCell};
@@ -167,12 +168,19 @@ impl Learner for PackMember<'_> {
         }
         if solo.variant().finetune && split == Split::Test {
             // Fine-tuning draws its dropout from libtorch's generator where the run's last step
-            // left it: that state restored, and no other run's draw between it and the tuning.
-            let _rng = torch_rng_lock();
-            if let Some((step, batch)) = &self.last_step {
-                solo.redraw_step_dropout(*step, batch);
-            }
-            return solo.evaluate(split, rng);
+            // left it: that state restored, then kept between the test tasks' tunings, each in its
+            // turn at the generator. The episodes run without it, so the pack's other runs (its
+            // other fine-tuning runs too) step and evaluate meanwhile. (Holding the generator for
+            // the whole evaluation made a pack's fine-tuning runs evaluate one after another.)
+            let state = {
+                let _rng = torch_rng_lock();
+                if let Some((step, batch)) = &self.last_step {
+                    solo.redraw_step_dropout(*step, batch);
+                }
+                GeneratorState::take(self.setup.device).map_err(generator_error)?
+            };
+            let turns = InTurns { state: RefCell::new(state), device: self.setup.device };
+            return solo.evaluate_in_turns(split, rng, &turns);
         }
         solo.evaluate(split, rng)
     }
@@ -197,4 +205,25 @@ impl Learner for PackMember<'_> {
         self.synced.set(true);
         Ok(())
     }
+}
+
+/// A packed run's turns at libtorch's generator for its fine-tuning: each holds the generator with
+/// the state the previous turn left (`pdt_model::device::GeneratorState`).
+struct InTurns {
+    state: RefCell<GeneratorState>,
+    device: tch::Device,
+}
+
+impl TuneTurns for InTurns {
+    fn turn(&self, tune: &mut dyn FnMut() -> Result<(), RunError>) -> Result<(), RunError> {
+        let _rng = torch_rng_lock();
+        self.state.borrow().restore().map_err(generator_error)?;
+        tune()?;
+        *self.state.borrow_mut() = GeneratorState::take(self.device).map_err(generator_error)?;
+        Ok(())
+    }
+}
+
+fn generator_error(e: String) -> RunError {
+    RunError::Invalid(format!("libtorch's random generator: {e}"))
 }
