@@ -170,10 +170,7 @@ impl PromptDtLearner<'_> {
         rng: &mut Rng,
         actor: &dyn ActRows,
     ) -> Result<Vec<TaskEval>, RunError> {
-        self.picks.clear();
-        self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, Some(actor), &Alone)?;
-        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+        self.evaluate_with(split, rng, Some(actor), &Alone)
     }
 
     /// [`Learner::evaluate`] with MT-BC-Finetune's fine-tuning before each test task in `turns`
@@ -185,9 +182,20 @@ impl PromptDtLearner<'_> {
         rng: &mut Rng,
         turns: &dyn TuneTurns,
     ) -> Result<Vec<TaskEval>, RunError> {
+        self.evaluate_with(split, rng, None, turns)
+    }
+
+    /// The evaluation of every task of `split`, its prompt picks and adaptation log kept.
+    fn evaluate_with(
+        &mut self,
+        split: Split,
+        rng: &mut Rng,
+        actor: Option<&dyn ActRows>,
+        turns: &dyn TuneTurns,
+    ) -> Result<Vec<TaskEval>, RunError> {
         self.picks.clear();
         self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, None, turns)?;
+        let results = eval_tasks(self, split, rng, actor, turns)?;
         Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
     }
 
@@ -268,10 +276,7 @@ impl Learner for PromptDtLearner<'_> {
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
-        self.picks.clear();
-        self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, None, &Alone)?;
-        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+        self.evaluate_with(split, rng, None, &Alone)
     }
 
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
