@@ -154,6 +154,39 @@ fn run_03_state_file_claiming_fewer_log_lines_than_its_iteration_is_refused() {
     assert_eq!(losses(&run).len(), 10);
 }
 
+/// Item 3b: The optimiser's moments file is checked like the weights: truncated, or holding a NaN,
+/// the resume stops naming the file (and the tensor) in plain words, and the run resumes once the
+/// file is whole again.
+#[test]
+fn run_03_a_broken_moments_file_is_refused_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let run = tmp.path().join("r");
+    train(&cfg, &run, &[]);
+    let moments = run.join("checkpoints/state_16.safetensors");
+    let good = std::fs::read(&moments).unwrap();
+    std::fs::write(&moments, &good[..good.len() / 2]).unwrap();
+    let e = clean(fails(&["train", "--resume", s(&run), "--iterations", "10"]));
+    assert!(e.contains("state_16.safetensors") && e.contains("truncated"), "{e}");
+    let mut tensors: Vec<(String, tch::Tensor)> = {
+        std::fs::write(&moments, &good).unwrap();
+        tch::Tensor::read_safetensors(&moments).unwrap()
+    };
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    let (name, t) = &tensors[0];
+    let name = name.clone();
+    let _ = t.view(-1).get(0).fill_(f64::NAN);
+    tch::Tensor::write_safetensors(&tensors, &moments).unwrap();
+    let e = clean(fails(&["train", "--resume", s(&run), "--iterations", "10"]));
+    assert!(
+        e.contains("state_16.safetensors") && e.contains(&name) && e.contains("non-finite"),
+        "{e}"
+    );
+    std::fs::write(&moments, &good).unwrap();
+    ok(&["train", "--resume", s(&run), "--iterations", "10", "--quiet"]);
+    assert_eq!(losses(&run).len(), 10);
+}
+
 /// Item 4a: Checkpoint files a killed run left behind (not referenced by `latest.json`) are removed
 /// when the run next starts; the checkpoints in force are kept.
 #[test]

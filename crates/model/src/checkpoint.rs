@@ -206,6 +206,41 @@ pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), Checkp
     Ok(())
 }
 
+/// Reads a float tensor file of ours (an optimiser's moments, MACAW's weights) into a map by name,
+/// each tensor float32 on the CPU. Size-checked, the format's errors in plain words, and every value
+/// finite: a NaN moment would otherwise poison the weights at the first step after a resume.
+pub fn read_float_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>, CheckpointError> {
+    read_float_tensors_of(path, |_| Ok(()))
+}
+
+/// [`read_float_tensors`], with the file's tensor names first shown to `check`, so that a file of
+/// another kind is named as such before its dtypes are (MACAW's weights against Prompt-DT's).
+pub fn read_float_tensors_of(
+    path: &Path,
+    check: impl FnOnce(&[String]) -> Result<(), String>,
+) -> Result<BTreeMap<String, Tensor>, CheckpointError> {
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+        .map_err(|source| CheckpointError::Io { path: path.into(), source })?;
+    let st = deserialize(path, &bytes)?;
+    let names: Vec<String> = st.names().into_iter().cloned().collect();
+    check(&names).map_err(|message| CheckpointError::Format { path: path.into(), message })?;
+    let mut out = BTreeMap::new();
+    for (name, view) in st.tensors() {
+        let values = to_f32(&view).ok_or_else(|| CheckpointError::Dtype {
+            path: path.into(),
+            name: name.clone(),
+            dtype: view.dtype(),
+            expected: "float32 or float64",
+        })?;
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(CheckpointError::NonFinite { path: path.into(), name });
+        }
+        let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
+        out.insert(name, Tensor::from_slice(&values).view(shape.as_slice()));
+    }
+    Ok(out)
+}
+
 fn check_buffer(
     path: &Path,
     name: &str,

@@ -12,12 +12,13 @@ use super::learner::{
     Learner, MacawAdaptation, SavedSteps, TaskEval,
 };
 use crate::config::compact;
-use crate::error::{io_err, RunError};
+use crate::error::RunError;
 use crate::setup::{Setup, Split};
 use crate::streams::STREAM_INIT;
 use pdt_base::seed::derive_seed;
 use pdt_eval::{summarise, EpisodeRecord};
 use pdt_macaw::{Batch, Dims, MacawConfig, Optimisers, Params, StepStats, TaskBuffer};
+use pdt_model::checkpoint;
 use pdt_prompt::Rng;
 use pdt_rundir::AdaptationStats;
 use rand::{RngCore, SeedableRng};
@@ -238,32 +239,22 @@ fn check_sizes(train: &[TaskBuffer], test: &[TaskBuffer], m: &MacawConfig) -> Re
     Ok(())
 }
 
-/// Reads a safetensors file of ours (size-checked) into a map.
+/// Reads a safetensors file of ours (size-checked, finite float values) into a map.
 fn read_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>, RunError> {
-    let meta = std::fs::metadata(path).map_err(io_err(path))?;
-    if meta.len() > pdt_base::fs::MAX_TENSOR_FILE_BYTES {
-        return Err(RunError::Corrupt {
-            path: path.into(),
-            message: format!("{} bytes, above the limit", meta.len()),
-        });
-    }
-    Ok(Tensor::read_safetensors(path)
-        .map_err(|e| RunError::Corrupt { path: path.into(), message: e.to_string() })?
-        .into_iter()
-        .collect())
+    Ok(checkpoint::read_float_tensors(path)?)
 }
 
 /// Loads MACAW weights into `params`, every tensor by name and shape.
 fn load_weights(path: &Path, params: &mut Params, dims: &Dims) -> Result<(), RunError> {
-    let mut saved = read_tensors(path)?;
-    let corrupt = |message: String| RunError::Corrupt { path: path.into(), message };
-    if !saved.contains_key("rho_adv") {
-        return Err(corrupt(
-            "not MACAW weights (no `rho_adv`): the checkpoint is of another method, or the run's \
+    let mut saved = checkpoint::read_float_tensors_of(path, |names| {
+        if names.iter().any(|n| n == "rho_adv") {
+            return Ok(());
+        }
+        Err("not MACAW weights (no `rho_adv`): the checkpoint is of another method, or the run's \
              config.toml was edited"
-                .into(),
-        ));
-    }
+            .into())
+    })?;
+    let corrupt = |message: String| RunError::Corrupt { path: path.into(), message };
     for (name, t) in params.named(dims) {
         let s = saved.remove(&name).ok_or_else(|| corrupt(format!("missing `{name}`")))?;
         if s.size() != t.size() {

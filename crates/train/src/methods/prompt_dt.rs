@@ -306,10 +306,7 @@ impl Learner for PromptDtLearner<'_> {
         }
         checkpoint::load(&mut self.vs, &files.weights, self.model.cfg.n_layer)?;
         let opt_path = &files.moments;
-        let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(opt_path)
-            .map_err(|e| corrupt(opt_path, e.to_string()))?
-            .into_iter()
-            .collect();
+        let tensors = checkpoint::read_float_tensors(opt_path)?;
         let mut state = BTreeMap::new();
         for (name, &step) in &adam_steps {
             let get = |k: String| {
