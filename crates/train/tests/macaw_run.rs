@@ -135,3 +135,29 @@ fn a_checkpoint_of_another_method_is_a_clear_error() {
     .to_string();
     assert!(e.contains("--adapt-steps") && e.contains("mt-orl"), "{e}");
 }
+
+#[test]
+fn a_non_finite_weight_or_moment_is_refused_by_name() {
+    let (tmp, data) = tiny_data();
+    let mut m = config(&data);
+    m.train.iterations = 4;
+    let dir = tmp.path().join("macaw");
+    run(Some(m), &dir, false, Some(2)).unwrap(); // stopped after its checkpoint at step 4
+    for file in ["step_4.safetensors", "state_4.safetensors"] {
+        let path = dir.join("checkpoints").join(file);
+        let good = std::fs::read(&path).unwrap();
+        let mut tensors = tch::Tensor::read_safetensors(&path).unwrap();
+        tensors.sort_by(|a, b| a.0.cmp(&b.0));
+        let name = tensors[0].0.clone();
+        let _ = tensors[0].1.view(-1).get(0).fill_(f64::NAN);
+        tch::Tensor::write_safetensors(&tensors, &path).unwrap();
+        let e = if file.starts_with("step") {
+            evaluate_run(&dir, Some(1), "test", None, None).unwrap_err().to_string()
+        } else {
+            run(None, &dir, true, None).unwrap_err().to_string()
+        };
+        assert!(e.contains(file) && e.contains(&name) && e.contains("non-finite"), "{e}");
+        std::fs::write(&path, good).unwrap();
+    }
+    run(None, &dir, true, None).unwrap();
+}
