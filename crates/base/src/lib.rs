@@ -10,6 +10,7 @@
 //! - [`threads`]: thread-count settings where 0 means all cores.
 //! - [`table`]: Markdown and aligned plain-text tables.
 //! - [`stop`]: a request to stop a long call early (Ctrl-C from a front end).
+//! - [`tensor_file`]: what is wrong with a safetensors file, in plain words.
 
 pub mod device;
 pub mod fs;
@@ -18,6 +19,7 @@ pub mod random;
 pub mod seed;
 pub mod stop;
 pub mod table;
+pub mod tensor_file;
 pub mod threads;
 
 pub use random::standard_normal;

@@ -143,7 +143,7 @@ pub fn infer_config(
     let header = SafeTensors::read_metadata(&bytes)
         .map_err(|e| ForwardFileError::Format {
             path: path.into(),
-            message: checkpoint::describe_safetensors_error(&e, bytes.len()),
+            message: pdt_base::tensor_file::describe_safetensors_error(&e, bytes.len()),
         })?
         .1;
     let key = checkpoint::ARCHITECTURE_KEY;
@@ -379,7 +379,7 @@ pub fn forward_file(
         .map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| ForwardFileError::Format {
         path: inputs.into(),
-        message: checkpoint::describe_safetensors_error(&e, bytes.len()),
+        message: pdt_base::tensor_file::describe_safetensors_error(&e, bytes.len()),
     })?;
     let to_dev = |s: Segments| Segments {
         states: s.states.to_device(device),

@@ -8,6 +8,7 @@
 use crate::agent::{actor_raw, Algorithm, Noise, PolicyHead, TaskEncoder};
 use crate::nets::Mlp;
 use crate::RlError;
+use pdt_base::tensor_file::describe_safetensors_error;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
@@ -95,16 +96,18 @@ pub fn save(path: &Path, actor: &Mlp, meta: &PolicyMeta) -> Result<(), RlError> 
 
 /// Reads a policy file, checking its metadata against its tensors.
 pub fn load(path: &Path, device: Device) -> Result<Policy, RlError> {
-    let bytes =
-        std::fs::read(path).map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+        .map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
     from_bytes(&bytes, path, device)
 }
 
 /// Parses the bytes of the policy file `path` (named in errors), as [`load`] does.
 pub fn from_bytes(bytes: &[u8], path: &Path, device: Device) -> Result<Policy, RlError> {
     let bad = |message: String| RlError::File { path: path.to_path_buf(), message };
-    let (_, header) = SafeTensors::read_metadata(bytes)
-        .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let plain = |e: safetensors::SafeTensorError| {
+        bad(format!("not a policy file: {}", describe_safetensors_error(&e, bytes.len())))
+    };
+    let (_, header) = SafeTensors::read_metadata(bytes).map_err(plain)?;
     let meta_json = header
         .metadata()
         .as_ref()
@@ -137,8 +140,7 @@ pub fn from_bytes(bytes: &[u8], path: &Path, device: Device) -> Result<Policy, R
             )));
         }
     }
-    let st =
-        SafeTensors::deserialize(bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+    let st = SafeTensors::deserialize(bytes).map_err(plain)?;
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut actor = Mlp::new(&meta.sizes, 1, &mut rng, Device::Cpu);
     let mut flat = vec![0f32; actor.flat.numel()];

@@ -21,6 +21,7 @@ use crate::buffer::{BufferArrays, ReplayBuffer, Transition};
 use crate::policy::{self, PolicyMeta, POLICY_FORMAT};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
 use crate::{stream_rng, write_atomic, RlError};
+use pdt_base::tensor_file::describe_safetensors_error;
 use pdt_envs::{Env, EnvFamily};
 use rand::Rng;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
@@ -757,17 +758,19 @@ type Tensors = HashMap<String, Vec<f32>>;
 /// Reads a checkpoint: its state and every tensor, by name.
 pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Tensors), RlError> {
     let bad = |message: String| RlError::File { path: path.to_path_buf(), message };
-    let bytes =
-        std::fs::read(path).map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
-    let (_, header) =
-        SafeTensors::read_metadata(&bytes).map_err(|e| bad(format!("not a checkpoint: {e}")))?;
+    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+        .map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
+    let plain = |e: safetensors::SafeTensorError| {
+        bad(format!("not a checkpoint: {}", describe_safetensors_error(&e, bytes.len())))
+    };
+    let (_, header) = SafeTensors::read_metadata(&bytes).map_err(plain)?;
     let meta =
         header.metadata().as_ref().and_then(|m| m.get(STATE_KEY)).ok_or_else(|| {
             bad(format!("no `{STATE_KEY}` metadata: not a promptdt RL checkpoint"))
         })?;
     let state: TrainState =
         serde_json::from_str(meta).map_err(|e| bad(format!("invalid state: {e}")))?;
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("not a checkpoint: {e}")))?;
+    let st = SafeTensors::deserialize(&bytes).map_err(plain)?;
     let mut tensors = HashMap::new();
     for (name, view) in st.tensors() {
         if view.dtype() != Dtype::F32 {

@@ -205,13 +205,13 @@ fn bad_inputs_are_clear_errors() {
     )
     .unwrap_err()
     .to_string();
-    assert!(e.contains("checkpoint.safetensors"), "{e}");
+    assert!(e.contains("checkpoint.safetensors") && e.contains("truncated"), "{e}");
     // A policy file that is not one.
     std::fs::write(tmp.path().join("p.safetensors"), b"junk").unwrap();
     let e = pdt_rl::policy::load(&tmp.path().join("p.safetensors"), Device::Cpu)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("p.safetensors"), "{e}");
+    assert!(e.contains("p.safetensors") && e.contains("4 bytes, too short"), "{e}");
 }
 
 /// A finished run resumed with a larger budget keeps training and snapshotting on the new
