@@ -758,7 +758,9 @@ type Tensors = HashMap<String, Vec<f32>>;
 /// Reads a checkpoint: its state and every tensor, by name.
 pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Tensors), RlError> {
     let bad = |message: String| RlError::File { path: path.to_path_buf(), message };
-    let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+    // The replay buffer is in the file (`total_steps` transitions of a few hundred bytes each), so
+    // the bound is wider than for weights; the read still refuses FIFOs and devices.
+    let bytes = pdt_base::fs::read_limited(path, 64 << 30)
         .map_err(|source| RlError::Io { path: path.to_path_buf(), source })?;
     let plain = |e: safetensors::SafeTensorError| {
         bad(format!("not a checkpoint: {}", describe_safetensors_error(&e, bytes.len())))
