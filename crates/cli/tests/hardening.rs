@@ -223,6 +223,10 @@ fn case_07_devices_and_fifos_are_refused() {
     let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
     let i = repo("testdata/golden/prompt_dt_inputs.safetensors");
     let out = tmp.path().join("o.safetensors");
+    // an RL agent directory whose card is a FIFO
+    let agent = tmp.path().join("agent");
+    std::fs::create_dir(&agent).unwrap();
+    assert!(mkfifo(&agent.join("agent.json")));
     for args in [
         vec!["train", "--config", s(&fifo)],
         vec!["model", "forward", "--weights", s(&fifo), "--inputs", s(&i), "--out", s(&out)],
@@ -253,6 +257,16 @@ fn case_07_devices_and_fifos_are_refused() {
             s(&out),
         ],
         vec!["data", "inspect", s(&fifo)],
+        vec![
+            "collect",
+            "--env",
+            "cheetah_dir",
+            "--from-pretrained",
+            "--pretrained-dir",
+            s(&agent),
+            "--out",
+            s(&out),
+        ],
     ] {
         // A blocking read would hang here; the test harness's timeout would catch it.
         let e = fails(&args);

@@ -159,8 +159,8 @@ pub fn combine(
     for path in paths {
         // The same actor twice (the base expert is also one of its run's snapshots) would take
         // two of a task's top_k places: keep the first.
-        let bytes =
-            std::fs::read(&path).map_err(|source| RlError::Io { path: path.clone(), source })?;
+        let bytes = pdt_base::fs::read_limited(&path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+            .map_err(|source| RlError::Io { path: path.clone(), source })?;
         if cands.iter().any(|c| c.bytes == bytes) {
             continue;
         }
@@ -292,8 +292,9 @@ pub fn combine(
         r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>() / half.len().max(1) as f64
     };
     let base_medium_path = cfg.base.join("medium.safetensors");
-    let base_medium_bytes = std::fs::read(&base_medium_path)
-        .map_err(|source| RlError::Io { path: base_medium_path.clone(), source })?;
+    let base_medium_bytes =
+        pdt_base::fs::read_limited(&base_medium_path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+            .map_err(|source| RlError::Io { path: base_medium_path.clone(), source })?;
     let base_medium = policy::from_bytes(&base_medium_bytes, &base_medium_path, device)?;
     let mut medium = (&base_medium_path, &base_medium_bytes, &base_medium.meta);
     for c in &cands {

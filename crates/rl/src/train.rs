@@ -697,7 +697,7 @@ fn finish(
 /// Reads `agent.json` of an agent directory.
 pub fn read_agent_card(agent_dir: &Path) -> Result<AgentCard, RlError> {
     let path = agent_dir.join("agent.json");
-    let text = std::fs::read_to_string(&path)
+    let text = pdt_base::fs::read_text_limited(&path, pdt_base::fs::MAX_TEXT_BYTES)
         .map_err(|source| RlError::Io { path: path.clone(), source })?;
     let card: AgentCard = serde_json::from_str(&text).map_err(|e| RlError::File {
         path: path.clone(),
