@@ -57,7 +57,7 @@ pub fn runs(plan: &Plan, registry: &Path) -> Vec<RunStatus> {
 
 /// The iteration of the last complete line of a `metrics.jsonl` (a line being written is skipped).
 fn last_logged(path: &Path) -> Option<u64> {
-    let file = std::fs::File::open(path).ok()?;
+    let (file, _) = pdt_base::fs::open_regular(path).ok()?; // a FIFO is skipped, not blocked on
     std::io::BufReader::new(file)
         .lines()
         .map_while(Result::ok)
