@@ -53,8 +53,9 @@ pub fn bernoulli_(t: &mut Tensor, p: f64) {
 
 /// `noise.bernoulli_(p)` for a contiguous float tensor on the CPU, libtorch's own bits drawn a block
 /// of its MT19937 state at a time (`csrc/bernoulli.cpp`, 5x faster: libtorch's element-by-element
-/// loop on a CPU other than Intel's was a tenth of a training step). False, with nothing drawn, where that is not what `bernoulli_` draws on
-/// this machine (an Intel CPU draws through MKL) or for any other tensor: then call `bernoulli_`.
+/// loop on a CPU other than Intel's was a tenth of a training step). False, with nothing drawn,
+/// where that is not what `bernoulli_` draws on this machine (an Intel CPU draws through MKL) or
+/// for any other tensor: then call `bernoulli_`.
 pub fn bernoulli_cpu(noise: &mut Tensor, p: f64) -> bool {
     if noise.device() != Device::Cpu || noise.kind() != Kind::Float {
         return false;

@@ -147,7 +147,7 @@ impl Learner for MacawLearner<'_> {
         let adam_steps: Vec<Vec<u64>> = adam_steps_of(saved, files)?;
         load_weights(&files.weights, &mut self.params, &self.dims)?;
         let path = &files.moments;
-        let moments = read_tensors(path)?;
+        let moments = checkpoint::read_float_tensors(path)?;
         if adam_steps.len() != self.opt.adams.len() {
             return Err(RunError::Corrupt {
                 path: state_path.clone(),
@@ -237,11 +237,6 @@ fn check_sizes(train: &[TaskBuffer], test: &[TaskBuffer], m: &MacawConfig) -> Re
         b.sample(m.adapt_batch, false, &mut rng, Device::Cpu)?;
     }
     Ok(())
-}
-
-/// Reads a safetensors file of ours (size-checked, finite float values) into a map.
-fn read_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>, RunError> {
-    Ok(checkpoint::read_float_tensors(path)?)
 }
 
 /// Loads MACAW weights into `params`, every tensor by name and shape.
