@@ -17,7 +17,7 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
     use pdt_envs::collect_scripted::{CollectConfig, Mode, ScriptedFamily};
     // The families named in messages come from pdt-envs, so a new family needs no edit here.
     let families_where = |keep: fn(ScriptedFamily) -> bool| {
-        ScriptedFamily::ALL.into_iter().filter(|f| keep(*f)).map(|f| f.name()).collect::<Vec<_>>()
+        ScriptedFamily::all().into_iter().filter(|f| keep(*f)).map(|f| f.name()).collect::<Vec<_>>()
     };
     let noise_families = || families_where(ScriptedFamily::takes_action_noise).join(", ");
     let family = pdt_envs::family(&a.env)?;
@@ -169,9 +169,11 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         "[1/4] collecting point-robot datasets (40 goals x expert/medium/random) into {}",
         data.display()
     );
-    let cfg = pdt_envs::collect_scripted::CollectConfig::default();
-    pdt_envs::collect_scripted::collect(&cfg, &data, &mut |_, _| {})?;
     let base: TrainConfig = toml::from_str(DEMO_CONFIG).context("configs/point_robot/demo.toml")?;
+    // The demo config's family, collected with its scripted policies' defaults.
+    let family = pdt_envs::collect_scripted::ScriptedFamily::named(&base.env.name)?;
+    let cfg = pdt_envs::collect_scripted::CollectConfig::for_family(family);
+    pdt_envs::collect_scripted::collect(&cfg, &data, &mut |_, _| {})?;
     let mut runs = Vec::new();
     for (n, method) in [Method::PromptDt, Method::MtOrl].into_iter().enumerate() {
         for seed in 0..a.seeds {

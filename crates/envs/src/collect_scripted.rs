@@ -1,11 +1,11 @@
-//! Scripted policies of the families that have them (point robot, Meta-World reach) and a
-//! deterministic writer for their datasets.
+//! The machinery that collects a scripted family's datasets: RNG keys, files, card, threads.
 //!
 //! Three policies of decreasing quality ([`Mode`]): `expert` heads straight for the goal,
 //! `medium` heads for a goal misremembered once per episode, `random` moves uniformly at random
-//! ([`ScriptedFamily::policy_description`] gives each family's exact formulas). Each family's
-//! policies live in `collect_scripted/<family>.rs` ([`ScriptedPolicies`]); the machinery here
-//! (RNG keys, files, card, threads) is shared.
+//! ([`ScriptedFamily::policy_description`] gives each family's exact formulas). Each family owns
+//! its policies ([`ScriptedPolicies`], beside its environment: `point_robot.rs`,
+//! `metaworld_reach/collect.rs`, `dial/collect.rs`) and hands them out through
+//! [`EnvFamily::scripted`]; nothing here names a family.
 //! [`collect`] writes, for every task `i` and mode `m`, the main dataset D_i
 //! (`{env}-{i}-{m}.safetensors`) and the prompt set P_i (`{env}-{i}-prompt-{m}.safetensors`) in
 //! the native format, plus a `dataset.json` card.
@@ -30,16 +30,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::{EnvError, EnvFamily, StepResult};
 
-mod dial;
-mod metaworld_reach;
-mod point_robot;
-
-pub use dial::{run_dial_episode, DIAL_DART_AMOUNTS, DIAL_MEDIUM_TARGET_NOISE};
-pub use metaworld_reach::{run_reach_episode, REACH_ACTION_NOISE, REACH_MEDIUM_GOAL_NOISE};
-pub use point_robot::{run_episode, EXPERT_ACTION_NOISE, MEDIUM_ACTION_NOISE, MEDIUM_GOAL_NOISE};
-
-/// A family's scripted policies: one implementation per family, in `collect_scripted/<family>.rs`
-/// beside the shared collection machinery here.
+/// A family's scripted policies: one implementation per family, in the family's own module, which
+/// hands it out through [`EnvFamily::scripted`].
 pub trait ScriptedPolicies: Sync {
     /// The family's name (as [`crate::family`] spells it).
     fn name(&self) -> &'static str;
@@ -56,6 +48,10 @@ pub trait ScriptedPolicies: Sync {
     fn takes_action_noise(&self) -> bool {
         false
     }
+    /// That noise's default (a standard deviation); only read where [`Self::takes_action_noise`].
+    fn default_action_noise(&self) -> f64 {
+        0.0
+    }
     /// `episodes` episodes of `(task, mode)` for one set, with `cfg`'s seed (and noise); also the
     /// fraction that succeeded (`None` for a family without a success criterion).
     fn episodes(
@@ -68,29 +64,20 @@ pub trait ScriptedPolicies: Sync {
     ) -> Result<(Vec<Trajectory>, Option<f64>), CollectError>;
 }
 
-/// A family with scripted policies: the name under which configs and the families themselves
-/// ([`EnvFamily::scripted`]) refer to its [`ScriptedPolicies`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ScriptedFamily {
-    #[default]
-    PointRobot,
-    MetaWorldReach,
-    Dial,
-}
+/// A family with scripted policies, as its [`EnvFamily::scripted`] hands them out: the handle
+/// configs and front ends hold. Compared, printed and serialised by the family's name.
+#[derive(Clone, Copy)]
+pub struct ScriptedFamily(&'static dyn ScriptedPolicies);
 
 impl ScriptedFamily {
-    /// Every family with scripted policies.
-    pub const ALL: [ScriptedFamily; 3] =
-        [ScriptedFamily::PointRobot, ScriptedFamily::MetaWorldReach, ScriptedFamily::Dial];
+    /// The handle of a family's policies (for its [`EnvFamily::scripted`]).
+    pub const fn new(policies: &'static dyn ScriptedPolicies) -> Self {
+        Self(policies)
+    }
 
-    /// The family's policies.
-    pub fn policies(self) -> &'static dyn ScriptedPolicies {
-        match self {
-            Self::PointRobot => &point_robot::PointRobotPolicies,
-            Self::MetaWorldReach => &metaworld_reach::ReachPolicies,
-            Self::Dial => &dial::DialPolicies,
-        }
+    /// Every family with scripted policies, in [`crate::FAMILY_NAMES`] order.
+    pub fn all() -> Vec<Self> {
+        crate::FAMILY_NAMES.iter().filter_map(|name| Self::from_name(name)).collect()
     }
 
     /// The family of `name` (as [`crate::family`] spells it), if it has scripted policies.
@@ -98,52 +85,95 @@ impl ScriptedFamily {
         crate::family(name).ok()?.scripted()
     }
 
+    /// The family of `name`; an unknown family, or one collected by an RL agent, is an error
+    /// naming the families that have scripted policies.
+    pub fn named(name: &str) -> Result<Self, CollectError> {
+        Self::from_name(name).ok_or_else(|| {
+            let known: Vec<&str> = Self::all().iter().map(|f| f.name()).collect();
+            CollectError::Config(format!(
+                "`{name}` has no scripted policies (the families that do: {})",
+                known.join(", ")
+            ))
+        })
+    }
+
+    /// The family's policies.
+    pub fn policies(self) -> &'static dyn ScriptedPolicies {
+        self.0
+    }
+
     pub fn name(self) -> &'static str {
-        self.policies().name()
+        self.0.name()
     }
 
     fn num_tasks(self) -> usize {
-        self.policies().family().num_tasks()
+        self.0.family().num_tasks()
     }
 
     fn dims(self) -> (usize, usize) {
-        let p = self.policies().family().preset();
+        let p = self.0.family().preset();
         (p.obs_dim, p.act_dim)
     }
 
     /// The tasks collected by default ([`ScriptedPolicies::default_tasks`]).
     pub fn default_tasks(self) -> Vec<usize> {
-        self.policies().default_tasks()
+        self.0.default_tasks()
     }
 
     /// Episodes per task in D_i by default ([`ScriptedPolicies::default_episodes`]).
     pub fn default_episodes(self) -> usize {
-        self.policies().default_episodes()
+        self.0.default_episodes()
     }
 
     fn params(self, task: usize) -> Result<serde_json::Value, EnvError> {
-        self.policies().family().task_params(task)
+        self.0.family().task_params(task)
     }
 
     /// One-line description of `mode`'s policy in this family, recorded in the dataset card.
     pub fn policy_description(self, mode: Mode) -> &'static str {
-        self.policies().policy_description(mode)
+        self.0.policy_description(mode)
     }
 
     /// Whether `--action-noise` ([`CollectConfig::reach_action_noise`]) applies to this family.
     pub fn takes_action_noise(self) -> bool {
-        self.policies().takes_action_noise()
+        self.0.takes_action_noise()
+    }
+}
+
+impl PartialEq for ScriptedFamily {
+    fn eq(&self, other: &Self) -> bool {
+        self.name() == other.name()
+    }
+}
+
+impl Eq for ScriptedFamily {}
+
+impl std::fmt::Debug for ScriptedFamily {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_tuple("ScriptedFamily").field(&self.name()).finish()
+    }
+}
+
+impl Serialize for ScriptedFamily {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for ScriptedFamily {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        Self::named(&name).map_err(serde::de::Error::custom)
     }
 }
 
 // The datasets' vocabulary lives in pdt-data; re-exported here, where it was first defined.
 pub use pdt_data::mode::{Mode, Set, UnknownMode};
 
-/// What to collect.
+/// What to collect ([`CollectConfig::for_family`] gives a family's defaults).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CollectConfig {
-    /// Which family (default: the point robot).
-    #[serde(default)]
+    /// Which family.
     pub family: ScriptedFamily,
     pub seed: u64,
     /// Episodes in each main dataset D_i.
@@ -153,10 +183,10 @@ pub struct CollectConfig {
     pub modes: Vec<Mode>,
     /// Task indices of the family (point robot `0..40`, reach `0..50`).
     pub tasks: Vec<usize>,
-    /// Meta-World reach: standard deviation of the expert's and medium policy's Gaussian action
-    /// noise ([`REACH_ACTION_NOISE`] by default). 0 gives the deterministic expert, whose episodes
-    /// of a task are then all the same (spec §5: "200 copies").
-    #[serde(default = "default_reach_noise")]
+    /// The expert's and medium policy's Gaussian action noise (a standard deviation), for the
+    /// families that take one ([`ScriptedPolicies::takes_action_noise`]: Meta-World reach, whose
+    /// default is `metaworld_reach::REACH_ACTION_NOISE`). 0 gives the deterministic expert, whose
+    /// episodes of a task are then all the same (spec §5: "200 copies").
     pub reach_action_noise: f64,
     /// A request to stop now (a front end's Ctrl-C), checked before every episode: the call then
     /// returns [`CollectError::Interrupted`]; the files already written are whole (each is
@@ -165,33 +195,19 @@ pub struct CollectConfig {
     pub interrupt: pdt_base::stop::StopFlag,
 }
 
-fn default_reach_noise() -> f64 {
-    REACH_ACTION_NOISE
-}
-
-impl Default for CollectConfig {
-    fn default() -> Self {
-        Self {
-            family: ScriptedFamily::PointRobot,
-            seed: 0,
-            episodes_per_task: 100,
-            prompt_episodes: 5,
-            modes: Mode::ALL.to_vec(),
-            tasks: ScriptedFamily::PointRobot.policies().default_tasks(),
-            reach_action_noise: REACH_ACTION_NOISE,
-            interrupt: pdt_base::stop::StopFlag::default(),
-        }
-    }
-}
-
 impl CollectConfig {
-    /// The defaults of `family`: its default tasks and episodes, every mode, seed 0.
+    /// The defaults of `family`: its default tasks, episodes and action noise, every mode, 5
+    /// prompt episodes per set, seed 0.
     pub fn for_family(family: ScriptedFamily) -> Self {
         Self {
             family,
+            seed: 0,
             episodes_per_task: family.default_episodes(),
+            prompt_episodes: 5,
+            modes: Mode::ALL.to_vec(),
             tasks: family.default_tasks(),
-            ..Self::default()
+            reach_action_noise: family.policies().default_action_noise(),
+            interrupt: pdt_base::stop::StopFlag::default(),
         }
     }
 
@@ -329,15 +345,8 @@ pub fn episode_rng(seed: u64, task: usize, mode: Mode, set: Set, episode: usize)
     ChaCha8Rng::from_seed(key)
 }
 
-// One Box-Muller for the whole workspace (`pdt_base::standard_normal`), through the environments' helper.
-use crate::mujoco_env::standard_normal;
-
-fn normal(rng: &mut ChaCha8Rng, std: f64) -> f32 {
-    (std * standard_normal(rng)) as f32
-}
-
-/// The arrays of one episode as it is played, for [`Trajectory::new`].
-struct EpisodeLog {
+/// The arrays of one episode as a family's policies play it, for [`Trajectory::new`].
+pub(crate) struct EpisodeLog {
     obs_dim: usize,
     act_dim: usize,
     observations: Vec<f32>,
@@ -348,7 +357,7 @@ struct EpisodeLog {
 }
 
 impl EpisodeLog {
-    fn new(obs_dim: usize, act_dim: usize, horizon: usize) -> Self {
+    pub(crate) fn new(obs_dim: usize, act_dim: usize, horizon: usize) -> Self {
         Self {
             obs_dim,
             act_dim,
@@ -362,7 +371,7 @@ impl EpisodeLog {
 
     /// Records `action`, taken at observation `obs`, and its step; returns whether the episode
     /// ended there.
-    fn record(&mut self, obs: &[f32], action: &[f32], step: &StepResult) -> bool {
+    pub(crate) fn record(&mut self, obs: &[f32], action: &[f32], step: &StepResult) -> bool {
         self.observations.extend_from_slice(obs);
         self.actions.extend_from_slice(action);
         self.rewards.push(step.reward);
@@ -371,22 +380,43 @@ impl EpisodeLog {
         step.terminated || step.truncated
     }
 
-    fn finish(self) -> Result<Trajectory, DataError> {
+    /// The episode of `(task, mode)` of the family `env`.
+    pub(crate) fn finish(
+        self,
+        env: &'static str,
+        task: usize,
+        mode: Mode,
+    ) -> Result<Trajectory, CollectError> {
         let Self { obs_dim, act_dim, observations, actions, rewards, terminated, truncated } = self;
         Trajectory::new(obs_dim, act_dim, observations, actions, rewards, terminated, truncated)
+            .map_err(|source| CollectError::Data { env, task, mode, source })
     }
 }
 
-/// Generates `episodes` point-robot episodes of `(task, mode)` for one set.
-pub fn generate(
-    seed: u64,
+/// Plays the `episodes` episodes of `(task, mode)`'s `set` one after another, each with its own
+/// generator ([`episode_rng`] of `cfg`'s seed), checking [`CollectConfig::interrupt`] before each.
+/// `play` returns an episode and whether it succeeded. Also returns the fraction that succeeded,
+/// for a family with a success rule (`None` without one).
+pub(crate) fn play_set(
+    cfg: &CollectConfig,
     task: usize,
     mode: Mode,
     set: Set,
     episodes: usize,
-) -> Result<TaskDataset, CollectError> {
-    let cfg = CollectConfig { seed, ..CollectConfig::default() };
-    Ok(generate_for(&cfg, task, mode, set, episodes)?.0)
+    success_rule: bool,
+    mut play: impl FnMut(&mut ChaCha8Rng) -> Result<(Trajectory, bool), CollectError>,
+) -> Result<(Vec<Trajectory>, Option<f64>), CollectError> {
+    let mut trajectories = Vec::with_capacity(episodes);
+    let mut wins = 0usize;
+    for e in 0..episodes {
+        if cfg.interrupt.is_set() {
+            return Err(CollectError::Interrupted);
+        }
+        let (traj, succeeded) = play(&mut episode_rng(cfg.seed, task, mode, set, e))?;
+        wins += usize::from(succeeded);
+        trajectories.push(traj);
+    }
+    Ok((trajectories, success_rule.then(|| wins as f64 / episodes.max(1) as f64)))
 }
 
 /// Generates `episodes` episodes of `(task, mode)` of `cfg`'s family with its seed (and noise) for

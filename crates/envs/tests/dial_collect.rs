@@ -5,9 +5,12 @@
 //! same configuration gives the same bytes.
 
 use pdt_data::native;
-use pdt_envs::collect_scripted::{collect, run_dial_episode, CollectConfig, Mode, ScriptedFamily};
-use pdt_envs::dial::{Dial, DialExpert, ACT_DIM, C_HIGH, C_LOW, HORIZON, NUM_TASKS, SUCCESS_L1};
-use pdt_envs::Env;
+use pdt_envs::collect_scripted::{collect, CollectConfig, Mode};
+use pdt_envs::dial::{
+    run_dial_episode, Dial, DialExpert, DialFamily, ACT_DIM, C_HIGH, C_LOW, HORIZON, NUM_TASKS,
+    SUCCESS_L1,
+};
+use pdt_envs::{Env, EnvFamily};
 use rand::{Rng, SeedableRng};
 
 mod support;
@@ -15,13 +18,12 @@ use support::dir_bytes;
 
 fn config(seed: u64, episodes: usize, modes: Vec<Mode>, tasks: Vec<usize>) -> CollectConfig {
     CollectConfig {
-        family: ScriptedFamily::Dial,
         seed,
         episodes_per_task: episodes,
         prompt_episodes: 2,
         modes,
         tasks,
-        ..CollectConfig::default()
+        ..CollectConfig::for_family(DialFamily.scripted().expect("dial is scripted"))
     }
 }
 

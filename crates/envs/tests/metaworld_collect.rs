@@ -5,15 +5,20 @@
 
 use pdt_data::native;
 use pdt_envs::collect_scripted::{collect, CollectConfig, CollectError, Mode, ScriptedFamily};
-use pdt_envs::metaworld_reach::{ENV_NAME, HORIZON, OBS_DIM, SUCCESS_REWARD};
-use pdt_envs::EnvError;
+use pdt_envs::metaworld_reach::{
+    MetaWorldReachFamily, ENV_NAME, HORIZON, OBS_DIM, REACH_ACTION_NOISE, SUCCESS_REWARD,
+};
+use pdt_envs::{EnvError, EnvFamily};
 
 mod support;
 use support::dir_bytes;
 
+fn reach() -> ScriptedFamily {
+    MetaWorldReachFamily::default().scripted().expect("reach is scripted")
+}
+
 fn config(seed: u64) -> CollectConfig {
     CollectConfig {
-        family: ScriptedFamily::MetaWorldReach,
         seed,
         episodes_per_task: 4,
         prompt_episodes: 2,
@@ -21,7 +26,7 @@ fn config(seed: u64) -> CollectConfig {
         // A training task and a test task of the paper's split.
         tasks: vec![1, 6],
         reach_action_noise: 0.2,
-        ..CollectConfig::default()
+        ..CollectConfig::for_family(reach())
     }
 }
 
@@ -108,9 +113,10 @@ fn reach_collection_refuses_unknown_tasks() {
     // Nothing was written.
     assert!(dir_bytes(dir.path()).is_empty());
     // The family defaults: the paper's 20 tasks, 200 episodes.
-    let d = CollectConfig::for_family(ScriptedFamily::MetaWorldReach);
+    let d = CollectConfig::for_family(reach());
     assert_eq!(d.tasks, (1..=20).collect::<Vec<_>>());
     assert_eq!(d.episodes_per_task, 200);
+    assert_eq!(d.reach_action_noise, REACH_ACTION_NOISE);
 }
 
 #[test]

@@ -6,26 +6,44 @@ use std::time::Instant;
 
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::native::{self, read_card, read_file_meta, read_task_dataset, FileMeta};
+use pdt_data::TaskDataset;
 use pdt_envs::collect_scripted::{
-    collect, episode_rng, generate, run_episode, CollectConfig, CollectError, Mode, ScriptedFamily,
-    Set,
+    collect, episode_rng, generate_for, CollectConfig, CollectError, Mode, ScriptedFamily, Set,
 };
-use pdt_envs::point_robot::{self, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS};
+use pdt_envs::point_robot::{
+    self, run_episode, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS,
+};
 use pdt_envs::{family, EnvError, EnvFamily};
 
 mod support;
 use support::dir_bytes;
 
+/// The point robot's collection defaults (every goal and mode, 100 + 5 episodes, seed 0).
+fn defaults() -> CollectConfig {
+    let scripted = PointRobotFamily::default().scripted().expect("the point robot is scripted");
+    CollectConfig::for_family(scripted)
+}
+
 fn small_config(seed: u64) -> CollectConfig {
     CollectConfig {
-        family: ScriptedFamily::PointRobot,
         seed,
         episodes_per_task: 10,
         prompt_episodes: 3,
         modes: Mode::ALL.to_vec(),
         tasks: vec![0, 2, 39],
-        ..CollectConfig::default()
+        ..defaults()
     }
+}
+
+/// `episodes` point-robot episodes of `(task, mode)` for one set, with `seed`.
+fn generate(
+    seed: u64,
+    task: usize,
+    mode: Mode,
+    set: Set,
+    episodes: usize,
+) -> Result<TaskDataset, CollectError> {
+    Ok(generate_for(&CollectConfig { seed, ..defaults() }, task, mode, set, episodes)?.0)
 }
 
 fn no_progress() -> impl FnMut(usize, usize) {
@@ -44,7 +62,7 @@ fn registry_finds_the_family() {
 fn expert_beats_medium_beats_random_on_test_tasks() {
     let dir = tempfile::tempdir().expect("tempdir");
     let tasks: Vec<usize> = DEFAULT_TEST_TASKS.iter().chain(&OOD_TEST_TASKS).copied().collect();
-    let cfg = CollectConfig { seed: 7, tasks: tasks.clone(), ..CollectConfig::default() };
+    let cfg = CollectConfig { seed: 7, tasks: tasks.clone(), ..defaults() };
     let summary = collect(&cfg, dir.path(), &mut no_progress()).expect("collect");
     let mean = |m: Mode, t: &[usize]| summary.mean_return(m, t).expect("collected");
     for (split, t) in [("default", &DEFAULT_TEST_TASKS[..]), ("ood", &OOD_TEST_TASKS[..])] {
@@ -250,8 +268,7 @@ fn written_files_load_back() {
 fn full_collection_is_fast() {
     let dir = tempfile::tempdir().expect("tempdir");
     let start = Instant::now();
-    let summary =
-        collect(&CollectConfig::default(), dir.path(), &mut no_progress()).expect("collect");
+    let summary = collect(&defaults(), dir.path(), &mut no_progress()).expect("collect");
     let elapsed = start.elapsed();
     println!("40 tasks x 3 modes x (100 + 5) episodes: {elapsed:?}");
     assert_eq!(summary.entries.len(), 40 * 3);
@@ -331,4 +348,25 @@ fn check_dims_names_the_family_and_both_sizes() {
     );
     let e = pdt_envs::check_dims("nonsense_family", 2, 2).unwrap_err();
     assert!(matches!(e, EnvError::UnknownEnv(..)), "{e}");
+}
+
+#[test]
+fn scripted_families_are_found_and_serialised_by_name() {
+    let names: Vec<&str> = ScriptedFamily::all().iter().map(|f| f.name()).collect();
+    assert_eq!(names, ["point_robot", "metaworld_reach", "dial"]);
+    let pr = ScriptedFamily::from_name("point-robot").expect("the alias");
+    assert_eq!(pr, defaults().family);
+    assert_ne!(pr, ScriptedFamily::from_name("dial").expect("dial"));
+    // A family collected by an RL agent has none; the error names the ones that do.
+    assert!(ScriptedFamily::from_name("cheetah_dir").is_none());
+    let err = ScriptedFamily::named("cheetah_dir").expect_err("not scripted").to_string();
+    assert!(err.contains("`cheetah_dir`") && err.contains("point_robot, metaworld_reach, dial"));
+    // A config round-trips through its name.
+    let cfg = small_config(3);
+    let json = serde_json::to_string(&cfg).expect("serialise");
+    assert!(json.contains(r#""family":"point_robot""#), "{json}");
+    let back: CollectConfig = serde_json::from_str(&json).expect("deserialise");
+    assert_eq!(back, cfg);
+    let bad = serde_json::from_str::<ScriptedFamily>(r#""ant_dir""#).expect_err("not scripted");
+    assert!(bad.to_string().contains("`ant_dir` has no scripted policies"), "{bad}");
 }

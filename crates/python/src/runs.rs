@@ -234,7 +234,7 @@ pub(crate) fn collect_scripted(
     use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
     let fam = pdt_envs::family(family).map_err(value_error)?;
     let scripted = fam.scripted().ok_or_else(|| {
-        let names: Vec<&str> = ScriptedFamily::ALL.iter().map(|f| f.name()).collect();
+        let names: Vec<&str> = ScriptedFamily::all().iter().map(|f| f.name()).collect();
         value_error(format!(
             "{family} has no scripted policies ({} do); use collect_from_agent",
             names.join(", ")
@@ -250,7 +250,7 @@ pub(crate) fn collect_scripted(
     }
     if let Some(n) = action_noise {
         if !scripted.takes_action_noise() {
-            let names: Vec<&str> = ScriptedFamily::ALL
+            let names: Vec<&str> = ScriptedFamily::all()
                 .iter()
                 .filter(|f| f.takes_action_noise())
                 .map(|f| f.name())

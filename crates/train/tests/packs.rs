@@ -152,7 +152,9 @@ fn a_run_that_diverges_stops_with_its_error_and_the_others_finish() {
     let collect = pdt_envs::collect_scripted::CollectConfig {
         episodes_per_task: 4,
         prompt_episodes: 2,
-        ..Default::default()
+        ..pdt_envs::collect_scripted::CollectConfig::for_family(
+            pdt_envs::collect_scripted::ScriptedFamily::named("point_robot").unwrap(),
+        )
     };
     pdt_envs::collect_scripted::collect(&collect, &bad, &mut |_, _| {}).unwrap();
     for entry in std::fs::read_dir(&bad).unwrap() {

@@ -167,6 +167,10 @@ fn load_model() -> Result<Arc<MjModel>, EnvError> {
 mod tasks;
 pub use tasks::{ml1_tasks, NumpyRandomState, TaskList};
 
+// The scripted policies that collect the datasets (the machinery: `collect_scripted`).
+mod collect;
+pub use collect::{run_reach_episode, REACH_ACTION_NOISE, REACH_MEDIUM_GOAL_NOISE};
+
 // ------------------------------------------------------------------------------------------------
 // The environment
 // ------------------------------------------------------------------------------------------------
@@ -636,8 +640,9 @@ impl EnvFamily for MetaWorldReachFamily {
         Some(SUCCESS_REWARD)
     }
 
+    /// [`collect::ReachPolicies`].
     fn scripted(&self) -> Option<ScriptedFamily> {
-        Some(ScriptedFamily::MetaWorldReach)
+        Some(ScriptedFamily::new(&collect::ReachPolicies))
     }
 
     /// From the task's reset state (a reach task has no start-state noise: no `init`).

@@ -14,7 +14,9 @@ pub fn tiny_data() -> (tempfile::TempDir, PathBuf) {
     let collect = pdt_envs::collect_scripted::CollectConfig {
         episodes_per_task: 4,
         prompt_episodes: 2,
-        ..Default::default()
+        ..pdt_envs::collect_scripted::CollectConfig::for_family(
+            pdt_envs::collect_scripted::ScriptedFamily::named("point_robot").unwrap(),
+        )
     };
     pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
     (tmp, data)

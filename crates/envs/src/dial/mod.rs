@@ -37,6 +37,10 @@ use crate::collect_scripted::ScriptedFamily;
 use crate::replay::ReplayResult;
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
 
+// The scripted policies that collect Dial's datasets (the machinery: `collect_scripted`).
+mod collect;
+pub use collect::{run_dial_episode, DIAL_DART_AMOUNTS, DIAL_MEDIUM_TARGET_NOISE};
+
 /// Family name, as used in file names.
 pub const ENV_NAME: &str = "dial";
 pub const OBS_DIM: usize = 39;
@@ -103,8 +107,8 @@ pub const TARGET_RETURN: f32 = 1.0;
 pub const PROMPT_LENGTH: usize = 15;
 
 const SCENE: &str = "dial.xml";
-const SCENE_XML: &[u8] = include_bytes!("../assets/dial/dial.xml");
-const TARGETS_JSON: &str = include_str!("../assets/dial/targets.json");
+const SCENE_XML: &[u8] = include_bytes!("../../assets/dial/dial.xml");
+const TARGETS_JSON: &str = include_str!("../../assets/dial/targets.json");
 
 fn sim_error(message: String) -> EnvError {
     EnvError::Simulation { env: ENV_NAME.into(), message }
@@ -537,8 +541,9 @@ impl EnvFamily for DialFamily {
         Some(SUCCESS_REWARD)
     }
 
+    /// [`collect::DialPolicies`].
     fn scripted(&self) -> Option<ScriptedFamily> {
-        Some(ScriptedFamily::Dial)
+        Some(ScriptedFamily::new(&collect::DialPolicies))
     }
 
     /// From the digit's deterministic reset, or from `init` = `{"qpos": [9 joint angles]}`

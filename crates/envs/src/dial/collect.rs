@@ -5,11 +5,11 @@ use rand_chacha::ChaCha8Rng;
 
 use pdt_data::Trajectory;
 
-use super::{
-    episode_rng, standard_normal, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies,
-    Set,
+use crate::collect_scripted::{
+    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
 };
 use crate::dial::{self, Dial, DialExpert, DialFamily};
+use crate::mujoco_env::standard_normal;
 use crate::{Env, EnvFamily};
 
 /// Dial: the expert's per-episode DART noise amounts (the original collector's, spec §3.2), drawn
@@ -78,17 +78,11 @@ pub fn run_dial_episode(
             break;
         }
     }
-    let traj = log.finish().map_err(|source| CollectError::Data {
-        env: dial::ENV_NAME,
-        task,
-        mode,
-        source,
-    })?;
-    Ok((traj, succeeded))
+    Ok((log.finish(dial::ENV_NAME, task, mode)?, succeeded))
 }
 
 /// Dial's [`ScriptedPolicies`].
-pub(super) struct DialPolicies;
+pub struct DialPolicies;
 
 impl ScriptedPolicies for DialPolicies {
     fn name(&self) -> &'static str {
@@ -136,17 +130,6 @@ impl ScriptedPolicies for DialPolicies {
     ) -> Result<(Vec<Trajectory>, Option<f64>), CollectError> {
         // One simulator for the whole set: every episode starts with a full reset.
         let mut sim = DialFamily.make_env(task)?;
-        let mut t = Vec::with_capacity(episodes);
-        let mut wins = 0usize;
-        for e in 0..episodes {
-            if cfg.interrupt.is_set() {
-                return Err(CollectError::Interrupted);
-            }
-            let mut rng = episode_rng(cfg.seed, task, mode, set, e);
-            let (traj, ok) = run_dial_episode(&mut sim, mode, &mut rng)?;
-            wins += usize::from(ok);
-            t.push(traj);
-        }
-        Ok((t, Some(wins as f64 / episodes.max(1) as f64)))
+        play_set(cfg, task, mode, set, episodes, true, |rng| run_dial_episode(&mut sim, mode, rng))
     }
 }

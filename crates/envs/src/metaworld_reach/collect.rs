@@ -5,11 +5,11 @@ use rand_chacha::ChaCha8Rng;
 
 use pdt_data::Trajectory;
 
-use super::{
-    episode_rng, standard_normal, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies,
-    Set,
+use crate::collect_scripted::{
+    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
 };
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
+use crate::mujoco_env::standard_normal;
 use crate::{Env, EnvFamily};
 
 /// Meta-World reach: standard deviation of the expert's (and medium policy's) action noise on
@@ -66,17 +66,11 @@ pub fn run_reach_episode(
             break;
         }
     }
-    let traj = log.finish().map_err(|source| CollectError::Data {
-        env: reach::ENV_NAME,
-        task,
-        mode,
-        source,
-    })?;
-    Ok((traj, succeeded))
+    Ok((log.finish(reach::ENV_NAME, task, mode)?, succeeded))
 }
 
 /// Meta-World reach's [`ScriptedPolicies`].
-pub(super) struct ReachPolicies;
+pub struct ReachPolicies;
 
 impl ScriptedPolicies for ReachPolicies {
     fn name(&self) -> &'static str {
@@ -120,6 +114,11 @@ impl ScriptedPolicies for ReachPolicies {
         true
     }
 
+    /// [`REACH_ACTION_NOISE`].
+    fn default_action_noise(&self) -> f64 {
+        REACH_ACTION_NOISE
+    }
+
     fn episodes(
         &self,
         cfg: &CollectConfig,
@@ -131,18 +130,9 @@ impl ScriptedPolicies for ReachPolicies {
         // One simulator for the whole set: every reset restores the same start state, so the
         // episodes do not depend on what ran before them (tests/metaworld_parity.rs).
         let mut sim = MetaWorldReachFamily::default().make_env(task)?;
-        let mut t = Vec::with_capacity(episodes);
-        let mut wins = 0usize;
-        for e in 0..episodes {
-            if cfg.interrupt.is_set() {
-                return Err(CollectError::Interrupted);
-            }
-            let mut rng = episode_rng(cfg.seed, task, mode, set, e);
-            let noise = cfg.reach_action_noise;
-            let (traj, ok) = run_reach_episode(&mut sim, task, mode, noise, &mut rng)?;
-            wins += usize::from(ok);
-            t.push(traj);
-        }
-        Ok((t, Some(wins as f64 / episodes.max(1) as f64)))
+        let noise = cfg.reach_action_noise;
+        play_set(cfg, task, mode, set, episodes, true, |rng| {
+            run_reach_episode(&mut sim, task, mode, noise, rng)
+        })
     }
 }
