@@ -4,58 +4,9 @@
 //! taken back, so one bad input never stays in later contexts. `promptdt serve` and the Python
 //! `Policy` keep their episodes as these.
 
+use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::{Policy, PolicyError};
 use pdt_eval::{first_rtg, EvalReturns, History};
-
-/// The largest return and return-to-go accepted (raw, in reward units), as the data readers accept
-/// returns-to-go (`docs/failure-behaviour.md`): returns are f32 tokens, and beyond this they
-/// overflow in the model's arithmetic.
-pub const MAX_RETURN: f64 = 1e30;
-
-/// `values` as f32, refusing what is not finite there (a huge f64 becomes an f32 infinity).
-pub(crate) fn finite_f32(name: &str, values: &[f64]) -> Result<Vec<f32>, PolicyError> {
-    values
-        .iter()
-        .enumerate()
-        .map(|(i, &x)| {
-            let y = x as f32;
-            if y.is_finite() {
-                Ok(y)
-            } else {
-                Err(PolicyError::Input(format!("{name}[{i}] = {x:e} is not a finite f32")))
-            }
-        })
-        .collect()
-}
-
-/// The model inputs of one step, kept by magnitude: when the policy's action comes out NaN or
-/// infinite, the error names the input most likely at fault (the largest one fed to the model).
-#[derive(Debug, Default, Clone)]
-pub struct Inputs {
-    /// The field and raw value, as given; the value the model sees.
-    largest: Option<(String, f32)>,
-}
-
-impl Inputs {
-    pub(crate) fn see(&mut self, field: impl FnOnce() -> String, model_value: f32) {
-        let bigger = match &self.largest {
-            Some((_, v)) => model_value.abs() > v.abs(),
-            None => true,
-        };
-        if bigger {
-            self.largest = Some((field(), model_value));
-        }
-    }
-
-    fn describe(&self) -> String {
-        match &self.largest {
-            Some((field, v)) => {
-                format!("its largest input is {field} ({v:e} as the model sees it)")
-            }
-            None => "no input stands out".into(),
-        }
-    }
-}
 
 /// An observation checked for a policy: `obs_dim` finite f32 values whose normalisation is finite
 /// too (a finite 3e38 normalises to infinity, and one infinite state makes every action of its

@@ -27,14 +27,16 @@ pub mod episode;
 mod error;
 pub mod files;
 mod font;
+mod inputs;
 pub mod policy;
 pub mod strategy;
 pub mod video;
 
 pub use adapt::{Adapted, TaskAdaptation};
 pub use data::RunData;
-pub use episode::{Episode, Inputs, Observation, Step, Target, MAX_RETURN};
+pub use episode::{Episode, Observation, Step, Target};
 pub use error::PolicyError;
+pub use inputs::{Inputs, MAX_RETURN};
 pub use pdt_rundir::RunStats;
 pub use policy::{eval_returns, plan_task, Policy, PromptArrays, TaskPlan};
 pub use strategy::{ChosenPrompt, TaskBandit};

@@ -1,8 +1,8 @@
 //! [`Policy`]: a trained run loaded to act, and the prompts it acts with.
 
 use crate::data::RunData;
-use crate::episode::{finite_f32, Inputs, MAX_RETURN};
 use crate::files;
+use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
 use pdt_base::seed::derive_seed;
 use pdt_data::MultiTaskDataset;

@@ -1,8 +1,10 @@
 //! The house's structure, checked from the sources (issue 29's acceptance, kept true):
 //!
 //! - no source file over [`MAX_LINES`] lines, except the few named in [`LONG_FILES`] with why;
-//! - no import circle between the files of a crate (a file's references to its own ancestors,
-//!   `super::` and the crate root, are not counted: a module's parent declares it);
+//! - no import circle between the files of a crate: a file's `crate::`/`super::` paths (followed
+//!   through the facades that re-export what they name, to the file that defines it) and its
+//!   parent's uses of it by path (`child::Item`) are edges; references to its own ancestors are
+//!   not (a module's parent declares it);
 //! - (that no crate above `pdt-envs` dispatches on a family's name is checked by
 //!   `crates/cli/tests/families.rs`, with every family through the front ends);
 //! - `pdt-serve` does not depend on `pdt-train`, and serve and the Python package act through the
@@ -167,26 +169,38 @@ fn tree(s: &str, i: &mut usize, prefix: &mut Vec<String>, out: &mut Vec<Vec<Stri
     prefix.pop();
 }
 
-/// The module files a file refers to through `crate::` and `super::` paths.
-fn references(text: &str, me: &[String], modules: &BTreeSet<Vec<String>>) -> BTreeSet<Vec<String>> {
+/// The module files a file refers to through `crate::` and `super::` paths (`code`: its text
+/// without comments), each through the facades that re-export what it names ([`Reexports`]).
+fn references(
+    code: &str,
+    me: &[String],
+    modules: &BTreeSet<Vec<String>>,
+    reexported: &Reexports,
+) -> BTreeSet<Vec<String>> {
     let mut found = BTreeSet::new();
-    let code: String = text
-        .lines()
-        .map(|l| match l.find("//") {
-            Some(i) => &l[..i],
-            None => l,
-        })
-        .collect::<Vec<_>>()
-        .join("\n");
     let mut resolve = |base: Vec<String>, rest: &str| {
         for tail in expand(rest) {
             let mut full = base.clone();
             full.extend(tail);
-            // The longest prefix that is a module file.
-            while !full.is_empty() && !modules.contains(&full) {
-                full.pop();
+            // The longest prefix that is a module file, then on through re-exports of the name
+            // after it (bounded: a facade of a facade at most a few levels deep).
+            let longest = |path: &[String]| {
+                let mut m = path.to_vec();
+                while !m.is_empty() && !modules.contains(&m) {
+                    m.pop();
+                }
+                m
+            };
+            let mut module = longest(&full);
+            for _ in 0..8 {
+                let Some(name) = full.get(module.len()).cloned() else { break };
+                let Some(behind) = reexported.get(&(module.clone(), name)) else { break };
+                // `facade::Name::rest` is `behind::Name::rest`.
+                let rest = full.split_off(module.len());
+                full = behind.iter().cloned().chain(rest).collect();
+                module = longest(&full);
             }
-            found.insert(full);
+            found.insert(module);
         }
     };
     for (i, _) in code.match_indices("crate::") {
@@ -212,6 +226,84 @@ fn references(text: &str, me: &[String], modules: &BTreeSet<Vec<String>>) -> BTr
     found
 }
 
+/// Source text without `//` comments and without the unit tests at the end of a file (they use
+/// `super::*`: not the module's imports).
+fn code_of(text: &str) -> String {
+    let text = match text.find("#[cfg(test)]") {
+        Some(i) => &text[..i],
+        None => text,
+    };
+    text.lines()
+        .map(|l| match l.find("//") {
+            Some(i) => &l[..i],
+            None => l,
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// A `pub use` (or `pub(crate) use`, ...) line's tree, if the line is one: a re-export, not a use.
+fn reexport_tree(line: &str) -> Option<&str> {
+    let l = line.trim_start().strip_prefix("pub")?;
+    let l = if l.starts_with('(') { &l[l.find(')')? + 1..] } else { l };
+    l.trim_start().strip_prefix("use ")
+}
+
+/// The names a module file re-exports from its child modules (`pub use child::{X, Y}`), each with
+/// the module file that defines it: a path through a facade (`crate::pack::SlotState`) leads to
+/// the file behind it (`pack/engine.rs`), not to every child the facade declares.
+type Reexports = BTreeMap<(Vec<String>, String), Vec<String>>;
+
+fn reexports(code: &str, me: &[String], modules: &BTreeSet<Vec<String>>, out: &mut Reexports) {
+    for line in code.lines() {
+        let Some(tree) = reexport_tree(line) else { continue };
+        for path in expand(tree) {
+            let Some(name) = path.last() else { continue };
+            let mut full = me.to_vec();
+            full.extend(path.iter().cloned());
+            while !full.is_empty() && !modules.contains(&full) {
+                full.pop();
+            }
+            if full.len() > me.len() {
+                out.insert((me.to_vec(), name.clone()), full);
+            }
+        }
+    }
+}
+
+/// The child module files a file uses by a relative path (`child::Item` in its code, or a private
+/// `use child::...`; `pub use` re-exports are not uses): a parent that uses a child which reaches
+/// back to the parent through a third file closes a circle, as the scripted-collection module
+/// did while it matched on each family's policies and the families named its types.
+fn child_uses(code: &str, me: &[String], modules: &BTreeSet<Vec<String>>) -> BTreeSet<Vec<String>> {
+    let declared = code.lines().filter_map(|l| {
+        let l = l.trim_start();
+        let l = match l.strip_prefix("pub") {
+            Some(rest) if rest.starts_with('(') => &rest[rest.find(')')? + 1..],
+            Some(rest) => rest,
+            None => l,
+        };
+        let name = l.trim_start().strip_prefix("mod ")?.trim().strip_suffix(';')?.trim();
+        let mut child = me.to_vec();
+        child.push(name.to_string());
+        modules.contains(&child).then(|| (name.to_string(), child))
+    });
+    let uses: String =
+        code.lines().filter(|l| reexport_tree(l).is_none()).collect::<Vec<_>>().join("\n");
+    let mut found = BTreeSet::new();
+    for (name, child) in declared {
+        let needle = format!("{name}::");
+        let used = uses.match_indices(&needle).any(|(i, _)| {
+            let before = uses[..i].chars().next_back();
+            !before.is_some_and(|c| c.is_alphanumeric() || c == '_' || c == ':')
+        });
+        if used {
+            found.insert(child);
+        }
+    }
+    found
+}
+
 #[test]
 fn no_import_circle_between_files() {
     let root = repo_root();
@@ -227,20 +319,23 @@ fn no_import_circle_between_files() {
             }
         }
         let modules: BTreeSet<Vec<String>> = by_module.keys().cloned().collect();
+        let code: BTreeMap<&Vec<String>, String> = by_module
+            .iter()
+            .map(|(m, f)| (m, code_of(&std::fs::read_to_string(f).expect("source readable"))))
+            .collect();
+        let mut reexported = Reexports::new();
+        for (m, c) in &code {
+            reexports(c, m, &modules, &mut reexported);
+        }
         let mut edges: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = BTreeMap::new();
-        for (m, f) in &by_module {
-            let text = std::fs::read_to_string(f).expect("source readable");
-            // Unit tests at the end of a file use `super::*`: not the module's imports.
-            let text = match text.find("#[cfg(test)]") {
-                Some(i) => &text[..i],
-                None => &text[..],
-            };
-            let targets = references(text, m, &modules)
+        for (m, c) in &code {
+            let targets = references(c, m, &modules, &reexported)
                 .into_iter()
+                .chain(child_uses(c, m, &modules))
                 // An ancestor (or the file itself) is not an import edge: it declares this module.
                 .filter(|t| !m.starts_with(t))
                 .collect();
-            edges.insert(m.clone(), targets);
+            edges.insert((*m).clone(), targets);
         }
         // Every cycle shows up as a pair a -> ... -> b -> ... -> a; report each strongly connected
         // pair of files once.
@@ -285,6 +380,7 @@ fn the_module_path_parser_sees_grouped_imports() {
         "use crate::{a::b::{X, Y}, c::Z};\nfn f() { super::super::c::g() }",
         &["a".into(), "b".into()],
         &modules,
+        &Reexports::new(),
     );
     let want: BTreeSet<Vec<String>> =
         [vec!["a".to_string(), "b".to_string()], vec!["c".to_string()]].into_iter().collect();
@@ -329,4 +425,24 @@ fn serve_and_python_act_through_one_policy_runtime_without_the_trainer() {
         python.contains("pdt-policy"),
         "the Python package does not use pdt-policy: {python:?}"
     );
+}
+
+#[test]
+fn facades_lead_to_the_file_behind_and_parents_use_children_by_path() {
+    let path = |parts: &[&str]| parts.iter().map(|s| s.to_string()).collect::<Vec<String>>();
+    let modules: BTreeSet<Vec<String>> =
+        [path(&[]), path(&["p"]), path(&["p", "e"]), path(&["p", "r"]), path(&["m"])]
+            .into_iter()
+            .collect();
+    let facade = "mod e;\nmod r;\npub use e::{S, T};\npub(crate) use r::run;\nfn f() { r::go() }";
+    let mut reexported = Reexports::new();
+    reexports(facade, &path(&["p"]), &modules, &mut reexported);
+    assert_eq!(reexported.get(&(path(&["p"]), "T".into())), Some(&path(&["p", "e"])));
+    assert_eq!(reexported.get(&(path(&["p"]), "run".into())), Some(&path(&["p", "r"])));
+    // `crate::p::S` is `p/e.rs`'s, not every file `p` declares.
+    let found = references("use crate::p::S;", &path(&["m"]), &modules, &reexported);
+    assert_eq!(found, [path(&["p", "e"])].into_iter().collect());
+    // `p` uses `r` (`r::go()`); it only re-exports from `e`.
+    let used = child_uses(facade, &path(&["p"]), &modules);
+    assert_eq!(used, [path(&["p", "r"])].into_iter().collect());
 }
