@@ -46,6 +46,8 @@ import urllib.request
 import zipfile
 import zlib
 
+from wheel_files import read_checked, record_hashes, write_file
+
 TORCH_VERSION = "2.11.0"
 # (distribution, version, wheel-name regex, member filter, destination prefix mapping)
 WHEELS = [
@@ -125,16 +127,6 @@ def wheel_url(dist, pattern):
     return m.group(1)
 
 
-def record_hashes(zf):
-    rec = [n for n in zf.namelist() if n.endswith(".dist-info/RECORD")][0]
-    hashes = {}
-    for line in zf.read(rec).decode().splitlines():
-        parts = line.rsplit(",", 2)
-        if len(parts) == 3 and parts[1].startswith("sha256="):
-            hashes[parts[0]] = parts[1][len("sha256="):]
-    return hashes
-
-
 # Each wheel's licence files (PEP 639 puts them under .dist-info/licenses/; older wheels keep them
 # directly in .dist-info/). They are installed as licenses/<distribution>/<file name>.
 LICENSE_RE = re.compile(r"[^/]+\.dist-info/(?:licenses/)?((?:LICEN[CS]E|NOTICE|COPYING)[^/]*)", re.I)
@@ -154,13 +146,7 @@ def licence_members(zf, dist):
 
 
 def extract_checked(zf, hashes, member, path, url):
-    data = zf.read(member)
-    digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
-    if hashes.get(member) != digest:
-        sys.exit(f"fetch_libtorch: sha256 mismatch for {member} in {url}")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "wb") as out:
-        out.write(data)
+    write_file(path, read_checked(zf, hashes, member, "fetch_libtorch", url))
 
 
 def install_licences(dest):

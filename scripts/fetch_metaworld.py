@@ -21,15 +21,13 @@ relative, `../scene/basic_scene.xml`, so the tree is kept as is):
 
 Standard library only; safe to run concurrently (extracts to a temp dir, then renames into place).
 """
-import base64
 import hashlib
 import os
-import shutil
 import sys
-import tempfile
 import time
-import urllib.request
 import zipfile
+
+from wheel_files import http_get, install_atomically, read_checked, record_hashes, write_file
 
 METAWORLD_VERSION = "3.1.1"
 WHEEL = "metaworld-3.1.1-py3-none-any.whl"
@@ -60,73 +58,31 @@ def log(msg):
     print(f"fetch_metaworld: {msg}", file=sys.stderr)
 
 
-def http_get(url, timeout=300):
-    for attempt in range(5):
-        try:
-            with urllib.request.urlopen(url, timeout=timeout) as r:
-                return r.read()
-        except OSError as e:
-            if attempt == 4:
-                raise
-            log(f"retrying {url} after: {e}")
-            time.sleep(2 ** attempt)
-
-
-def record_hashes(zf):
-    rec = [n for n in zf.namelist() if n.endswith(".dist-info/RECORD")][0]
-    hashes = {}
-    for line in zf.read(rec).decode().splitlines():
-        parts = line.rsplit(",", 2)
-        if len(parts) == 3 and parts[1].startswith("sha256="):
-            hashes[parts[0]] = parts[1][len("sha256="):]
-    return hashes
+def populate(tmp):
+    """Downloads the wheel and extracts the checked reach assets and licence into `tmp`."""
+    log(f"downloading {WHEEL}")
+    data = http_get(WHEEL_URL, "fetch_metaworld", timeout=300)
+    if hashlib.sha256(data).hexdigest() != WHEEL_SHA256:
+        sys.exit(f"fetch_metaworld: sha256 mismatch for {WHEEL_URL}")
+    wheel_path = os.path.join(tmp, WHEEL)
+    write_file(wheel_path, data)
+    with zipfile.ZipFile(wheel_path) as zf:
+        hashes = record_hashes(zf)
+        members = [("metaworld/assets/" + f, os.path.join("assets", f)) for f in ASSET_FILES]
+        members.append((LICENSE_MEMBER, "LICENSE"))
+        for member, rel in members:
+            write_file(os.path.join(tmp, rel), read_checked(zf, hashes, member, "fetch_metaworld", WHEEL))
+    os.remove(wheel_path)
+    return len(data)
 
 
 def main():
     root = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "third_party"))
-    dest = os.path.join(root, "metaworld")
-    stamp = os.path.join(dest, "build-version")
-    if os.path.exists(stamp) and open(stamp).read().strip() == METAWORLD_VERSION:
-        return  # already installed
-    os.makedirs(root, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".metaworld-", dir=root)
     t0 = time.time()
-    try:
-        log(f"downloading {WHEEL}")
-        data = http_get(WHEEL_URL)
-        if hashlib.sha256(data).hexdigest() != WHEEL_SHA256:
-            sys.exit(f"fetch_metaworld: sha256 mismatch for {WHEEL_URL}")
-        wheel_path = os.path.join(tmp, WHEEL)
-        with open(wheel_path, "wb") as out:
-            out.write(data)
-        with zipfile.ZipFile(wheel_path) as zf:
-            hashes = record_hashes(zf)
-            members = [("metaworld/assets/" + f, os.path.join("assets", f)) for f in ASSET_FILES]
-            members.append((LICENSE_MEMBER, "LICENSE"))
-            for member, rel in members:
-                blob = zf.read(member)
-                digest = base64.urlsafe_b64encode(hashlib.sha256(blob).digest()).rstrip(b"=").decode()
-                if hashes.get(member) != digest:
-                    sys.exit(f"fetch_metaworld: sha256 mismatch for {member} in {WHEEL}")
-                path = os.path.join(tmp, rel)
-                os.makedirs(os.path.dirname(path), exist_ok=True)
-                with open(path, "wb") as out:
-                    out.write(blob)
-        os.remove(wheel_path)
-        with open(os.path.join(tmp, "build-version"), "w") as out:
-            out.write(METAWORLD_VERSION + "\n")
-        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the install is an ordinary folder
-        if os.path.exists(dest):
-            shutil.rmtree(dest)
-        try:
-            os.rename(tmp, dest)
-        except OSError:
-            if not os.path.exists(stamp):  # lost a race to a concurrent run that did not finish
-                raise
-        log(f"installed the Meta-World {METAWORLD_VERSION} reach assets in {dest} "
-            f"({len(data) / 1e6:.0f} MB wheel, {time.time() - t0:.1f} s)")
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    size = install_atomically(root, "metaworld", METAWORLD_VERSION, populate)
+    if size is not None:
+        log(f"installed the Meta-World {METAWORLD_VERSION} reach assets in {os.path.join(root, 'metaworld')} "
+            f"({size / 1e6:.0f} MB wheel, {time.time() - t0:.1f} s)")
 
 
 if __name__ == "__main__":

@@ -19,16 +19,14 @@ Layout (what pkgconfig/mujoco.pc points at; crates/envs/build.rs runs this scrip
 
 Standard library only; safe to run concurrently (extracts to a temp dir, then renames into place).
 """
-import base64
 import hashlib
 import os
 import re
-import shutil
 import sys
-import tempfile
 import time
-import urllib.request
 import zipfile
+
+from wheel_files import http_get, install_atomically, read_checked, record_hashes, write_file
 
 MUJOCO_VERSION = "3.17.0"
 INDEX = "https://pypi.org/simple/mujoco/"
@@ -44,21 +42,9 @@ def log(msg):
     print(f"fetch_mujoco: {msg}", file=sys.stderr)
 
 
-def http_get(url, timeout=120):
-    for attempt in range(5):
-        try:
-            with urllib.request.urlopen(url, timeout=timeout) as r:
-                return r.read()
-        except OSError as e:
-            if attempt == 4:
-                raise
-            log(f"retrying {url} after: {e}")
-            time.sleep(2 ** attempt)
-
-
 def find_wheel():
     """Returns (file name, url, sha256) of the wheel to use, from PyPI's simple index."""
-    html = http_get(INDEX, timeout=60).decode()
+    html = http_get(INDEX, "fetch_mujoco", timeout=60).decode()
     found = {}
     for m in re.finditer(r'href="(https://[^"#]*/(' + WHEEL_RE + r'))#sha256=([0-9a-f]{64})"', html):
         found[m.group(2)] = (m.group(1), m.group(4))
@@ -69,16 +55,6 @@ def find_wheel():
     if name == PREFERRED_WHEEL and sha != PREFERRED_WHEEL_SHA256:
         sys.exit(f"fetch_mujoco: the index lists sha256 {sha} for {name}, expected {PREFERRED_WHEEL_SHA256}")
     return name, url, sha
-
-
-def record_hashes(zf):
-    rec = [n for n in zf.namelist() if n.endswith(".dist-info/RECORD")][0]
-    hashes = {}
-    for line in zf.read(rec).decode().splitlines():
-        parts = line.rsplit(",", 2)
-        if len(parts) == 3 and parts[1].startswith("sha256="):
-            hashes[parts[0]] = parts[1][len("sha256="):]
-    return hashes
 
 
 def destination(member):
@@ -94,60 +70,42 @@ def destination(member):
     return None
 
 
+def populate(tmp):
+    """Downloads the wheel and extracts the checked library, headers and licences into `tmp`."""
+    name, url, sha = find_wheel()
+    log(f"downloading {name}")
+    data = http_get(url, "fetch_mujoco", timeout=300)
+    if hashlib.sha256(data).hexdigest() != sha:
+        sys.exit(f"fetch_mujoco: sha256 mismatch for {url}")
+    wheel_path = os.path.join(tmp, name)
+    write_file(wheel_path, data)
+    with zipfile.ZipFile(wheel_path) as zf:
+        hashes = record_hashes(zf)
+        wanted = [(i, destination(i.filename)) for i in zf.infolist()]
+        wanted = [(i, d) for i, d in wanted if d is not None]
+        if not any(d.endswith(LIB_NAME) for _, d in wanted):
+            sys.exit(f"fetch_mujoco: {name} has no mujoco/{LIB_NAME}")
+        for info, rel in wanted:
+            blob = read_checked(zf, hashes, info.filename, "fetch_mujoco", url)
+            if rel.endswith(LIB_NAME) and hashlib.sha256(blob).hexdigest() != LIB_SHA256:
+                sys.exit(f"fetch_mujoco: {LIB_NAME} in {name} is not the pinned build (sha256)")
+            path = os.path.join(tmp, rel)
+            write_file(path, blob)
+            if rel.endswith(LIB_NAME):
+                os.chmod(path, 0o755)
+    os.remove(wheel_path)
+    # The linker looks for libmujoco.so (-lmujoco); the loader then wants the SONAME.
+    os.symlink(LIB_NAME, os.path.join(tmp, "lib", "libmujoco.so"))
+    return len(data)
+
+
 def main():
     root = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "third_party"))
-    dest = os.path.join(root, "mujoco")
-    stamp = os.path.join(dest, "build-version")
-    if os.path.exists(stamp) and open(stamp).read().strip() == MUJOCO_VERSION:
-        return  # already installed
-    os.makedirs(root, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".mujoco-", dir=root)
     t0 = time.time()
-    try:
-        name, url, sha = find_wheel()
-        log(f"downloading {name}")
-        data = http_get(url, timeout=300)
-        if hashlib.sha256(data).hexdigest() != sha:
-            sys.exit(f"fetch_mujoco: sha256 mismatch for {url}")
-        wheel_path = os.path.join(tmp, name)
-        with open(wheel_path, "wb") as out:
-            out.write(data)
-        with zipfile.ZipFile(wheel_path) as zf:
-            hashes = record_hashes(zf)
-            wanted = [(i, destination(i.filename)) for i in zf.infolist()]
-            wanted = [(i, d) for i, d in wanted if d is not None]
-            if not any(d.endswith(LIB_NAME) for _, d in wanted):
-                sys.exit(f"fetch_mujoco: {name} has no mujoco/{LIB_NAME}")
-            for info, rel in wanted:
-                blob = zf.read(info)
-                digest = base64.urlsafe_b64encode(hashlib.sha256(blob).digest()).rstrip(b"=").decode()
-                if hashes.get(info.filename) != digest:
-                    sys.exit(f"fetch_mujoco: sha256 mismatch for {info.filename} in {url}")
-                if rel.endswith(LIB_NAME) and hashlib.sha256(blob).hexdigest() != LIB_SHA256:
-                    sys.exit(f"fetch_mujoco: {LIB_NAME} in {name} is not the pinned build (sha256)")
-                path = os.path.join(tmp, rel)
-                os.makedirs(os.path.dirname(path), exist_ok=True)
-                with open(path, "wb") as out:
-                    out.write(blob)
-                if rel.endswith(LIB_NAME):
-                    os.chmod(path, 0o755)
-        os.remove(wheel_path)
-        # The linker looks for libmujoco.so (-lmujoco); the loader then wants the SONAME.
-        os.symlink(LIB_NAME, os.path.join(tmp, "lib", "libmujoco.so"))
-        with open(os.path.join(tmp, "build-version"), "w") as out:
-            out.write(MUJOCO_VERSION + "\n")
-        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the install is an ordinary folder
-        if os.path.exists(dest):
-            shutil.rmtree(dest)
-        try:
-            os.rename(tmp, dest)
-        except OSError:
-            if not os.path.exists(stamp):  # lost a race to a concurrent run that did not finish
-                raise
-        log(f"installed MuJoCo {MUJOCO_VERSION} in {dest} ({len(data) / 1e6:.0f} MB wheel, "
-            f"{time.time() - t0:.1f} s)")
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    size = install_atomically(root, "mujoco", MUJOCO_VERSION, populate)
+    if size is not None:
+        log(f"installed MuJoCo {MUJOCO_VERSION} in {os.path.join(root, 'mujoco')} "
+            f"({size / 1e6:.0f} MB wheel, {time.time() - t0:.1f} s)")
 
 
 if __name__ == "__main__":
