@@ -12,6 +12,9 @@
 //! The start is deterministic (PEARL's `reset` also puts the robot at 0), so `reset(seed)` ignores
 //! its seed and an episode is a pure function of the task and the actions. `docs/point-robot.md`
 //! describes the family, its splits, and how it differs from PEARL's.
+//!
+//! Its datasets are collected by scripted policies ([`PointRobotPolicies`], below: expert, medium,
+//! random), on the machinery every scripted family shares (`collect_scripted`).
 
 use pdt_data::Trajectory;
 use rand::Rng;

@@ -25,6 +25,10 @@
 //!
 //! `scripts/dial/twin.py` is a Python twin on the `mujoco` bindings; `tests/dial_parity.rs`
 //! replays its fixtures and requires bit-equal observations, rewards and flags.
+//!
+//! Its datasets are collected by the scripted policies of `collect.rs` (`DialPolicies`:
+//! the PI controller with DART noise), on the machinery every scripted family shares
+//! (`collect_scripted`).
 
 use std::sync::{Arc, OnceLock};
 
@@ -541,7 +545,7 @@ impl EnvFamily for DialFamily {
         Some(SUCCESS_REWARD)
     }
 
-    /// [`collect::DialPolicies`].
+    /// Its scripted policies (`collect.rs`).
     fn scripted(&self) -> Option<ScriptedFamily> {
         Some(ScriptedFamily::new(&collect::DialPolicies))
     }

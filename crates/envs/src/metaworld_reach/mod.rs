@@ -22,6 +22,10 @@
 //! - Reward: `10 * tolerance(‖tcp − goal‖)` (long tail, bounds [0, 0.05], margin
 //!   ‖hand_init − goal‖); success when ‖tcp − goal‖ <= 0.05. Episodes never terminate; they are
 //!   truncated at 500 steps.
+//!
+//! Its datasets are collected by the scripted policies of `collect.rs` (`ReachPolicies`:
+//! Meta-World's `SawyerReachV3Policy` with noise), on the machinery every scripted family shares
+//! (`collect_scripted`).
 
 use std::sync::{Arc, OnceLock};
 
@@ -640,7 +644,7 @@ impl EnvFamily for MetaWorldReachFamily {
         Some(SUCCESS_REWARD)
     }
 
-    /// [`collect::ReachPolicies`].
+    /// Its scripted policies (`collect.rs`).
     fn scripted(&self) -> Option<ScriptedFamily> {
         Some(ScriptedFamily::new(&collect::ReachPolicies))
     }
