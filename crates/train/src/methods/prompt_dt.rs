@@ -9,8 +9,7 @@ use super::learner::{
 use super::prompt_strategy::evaluate_strategy;
 use crate::config::{compact, Method, TrainConfig};
 use crate::error::RunError;
-use crate::optim::{AdamWConfig, Optimizer, ParamState};
-use crate::pack::SlotState;
+use crate::optim::{AdamWConfig, Optimizer, ParamState, SlotState};
 use crate::setup::{Setup, Split};
 use crate::step::{
     train_step, train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats,

@@ -164,3 +164,37 @@ impl Optimizer {
         }
     }
 }
+
+/// One run's weights and optimiser state in the solo format: the reference `state_dict` names
+/// and shapes, the per-parameter AdamW moments and step counts ([`AdamW::state`]). What a pack's
+/// slot exports and imports (`crate::pack`), and what a solo learner hands a pack.
+#[derive(Debug)]
+pub struct SlotState {
+    pub weights: Vec<(String, Tensor)>,
+    pub moments: BTreeMap<String, ParamState>,
+}
+
+impl SlotState {
+    /// A copy of a solo model's weights (sorted by name) and its optimiser's state: never shared
+    /// with the model it was read from.
+    pub fn copy_of(vs: &tch::nn::VarStore, opt: &Optimizer) -> Self {
+        tch::no_grad(|| {
+            let mut weights: Vec<(String, Tensor)> =
+                vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+            weights.sort_by(|a, b| a.0.cmp(&b.0));
+            let moments = opt
+                .state()
+                .iter()
+                .map(|(n, st)| {
+                    let copy = ParamState {
+                        step: st.step,
+                        exp_avg: st.exp_avg.copy(),
+                        exp_avg_sq: st.exp_avg_sq.copy(),
+                    };
+                    (n.clone(), copy)
+                })
+                .collect();
+            SlotState { weights, moments }
+        })
+    }
+}

@@ -12,10 +12,12 @@
 //!   reads) get no update and no step count for that slot, as PyTorch skips a `None` gradient.
 
 use crate::error::RunError;
-use crate::optim::{AdamWConfig, ParamState};
+// A slot's state is a solo run's, so the optimiser owns its type (the solo learner hands it over).
+pub use crate::optim::SlotState;
+
+use crate::optim::AdamWConfig;
 use crate::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats, StepStats};
 use pdt_model::{PromptDtConfig, Segments};
-use std::collections::BTreeMap;
 use tch::Tensor;
 
 /// What an engine knows about one run of the pack, fixed for the pack's life.
@@ -54,39 +56,6 @@ pub struct SlotAct {
     pub history: Segments,
     pub prompt: Option<Segments>,
     pub rows: i64,
-}
-
-/// One run's weights and optimiser state in the solo format: the reference `state_dict` names
-/// and shapes, the per-parameter AdamW moments and step counts (`crate::optim::AdamW::state`).
-#[derive(Debug)]
-pub struct SlotState {
-    pub weights: Vec<(String, Tensor)>,
-    pub moments: BTreeMap<String, ParamState>,
-}
-
-impl SlotState {
-    /// A copy of a solo model's weights (sorted by name) and its optimiser's state: never shared
-    /// with the model it was read from.
-    pub fn copy_of(vs: &tch::nn::VarStore, opt: &crate::optim::Optimizer) -> Self {
-        tch::no_grad(|| {
-            let mut weights: Vec<(String, Tensor)> =
-                vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-            weights.sort_by(|a, b| a.0.cmp(&b.0));
-            let moments = opt
-                .state()
-                .iter()
-                .map(|(n, st)| {
-                    let copy = ParamState {
-                        step: st.step,
-                        exp_avg: st.exp_avg.copy(),
-                        exp_avg_sq: st.exp_avg_sq.copy(),
-                    };
-                    (n.clone(), copy)
-                })
-                .collect();
-            SlotState { weights, moments }
-        })
-    }
 }
 
 /// A slot's step started on its own ([`PackEngine::start`]): its statistics once computed.
