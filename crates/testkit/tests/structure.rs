@@ -242,11 +242,30 @@ fn code_of(text: &str) -> String {
         .join("\n")
 }
 
-/// A `pub use` (or `pub(crate) use`, ...) line's tree, if the line is one: a re-export, not a use.
-fn reexport_tree(line: &str) -> Option<&str> {
-    let l = line.trim_start().strip_prefix("pub")?;
-    let l = if l.starts_with('(') { &l[l.find(')')? + 1..] } else { l };
-    l.trim_start().strip_prefix("use ")
+/// The `pub use` (or `pub(crate) use`, ...) statements of `code`, each as the byte range of the
+/// whole statement and its use tree (a statement may span lines): re-exports, not uses.
+fn reexport_statements(code: &str) -> Vec<(std::ops::Range<usize>, &str)> {
+    let mut out = Vec::new();
+    let mut from = 0;
+    while let Some(i) = code[from..].find("pub") {
+        let start = from + i;
+        from = start + 3;
+        let line_start = code[..start].rfind('\n').map_or(0, |n| n + 1);
+        if !code[line_start..start].trim().is_empty() {
+            continue;
+        }
+        let mut rest = &code[start + 3..];
+        if rest.starts_with('(') {
+            let Some(close) = rest.find(')') else { continue };
+            rest = &rest[close + 1..];
+        }
+        let Some(tree) = rest.trim_start().strip_prefix("use ") else { continue };
+        let Some(end) = tree.find(';') else { continue };
+        let tree_start = code.len() - tree.len();
+        out.push((start..tree_start + end + 1, &tree[..end]));
+        from = tree_start + end + 1;
+    }
+    out
 }
 
 /// The names a module file re-exports from its child modules (`pub use child::{X, Y}`), each with
@@ -255,8 +274,7 @@ fn reexport_tree(line: &str) -> Option<&str> {
 type Reexports = BTreeMap<(Vec<String>, String), Vec<String>>;
 
 fn reexports(code: &str, me: &[String], modules: &BTreeSet<Vec<String>>, out: &mut Reexports) {
-    for line in code.lines() {
-        let Some(tree) = reexport_tree(line) else { continue };
+    for (_, tree) in reexport_statements(code) {
         for path in expand(tree) {
             let Some(name) = path.last() else { continue };
             let mut full = me.to_vec();
@@ -288,8 +306,10 @@ fn child_uses(code: &str, me: &[String], modules: &BTreeSet<Vec<String>>) -> BTr
         child.push(name.to_string());
         modules.contains(&child).then(|| (name.to_string(), child))
     });
-    let uses: String =
-        code.lines().filter(|l| reexport_tree(l).is_none()).collect::<Vec<_>>().join("\n");
+    let mut uses = code.to_string();
+    for (range, _) in reexport_statements(code).into_iter().rev() {
+        uses.replace_range(range, "");
+    }
     let mut found = BTreeSet::new();
     for (name, child) in declared {
         let needle = format!("{name}::");
@@ -434,7 +454,8 @@ fn facades_lead_to_the_file_behind_and_parents_use_children_by_path() {
         [path(&[]), path(&["p"]), path(&["p", "e"]), path(&["p", "r"]), path(&["m"])]
             .into_iter()
             .collect();
-    let facade = "mod e;\nmod r;\npub use e::{S, T};\npub(crate) use r::run;\nfn f() { r::go() }";
+    let facade =
+        "mod e;\nmod r;\npub use e::{\n    S,\n    T,\n};\npub(crate) use r::run;\nfn f() { r::go() }";
     let mut reexported = Reexports::new();
     reexports(facade, &path(&["p"]), &modules, &mut reexported);
     assert_eq!(reexported.get(&(path(&["p"]), "T".into())), Some(&path(&["p", "e"])));
