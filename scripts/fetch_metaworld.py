@@ -21,13 +21,12 @@ relative, `../scene/basic_scene.xml`, so the tree is kept as is):
 
 Standard library only; safe to run concurrently (extracts to a temp dir, then renames into place).
 """
-import hashlib
 import os
 import sys
 import time
 import zipfile
 
-from wheel_files import http_get, install_atomically, read_checked, record_hashes, write_file
+from wheel_files import download_checked, install_atomically, read_checked, record_hashes, write_file
 
 METAWORLD_VERSION = "3.1.1"
 WHEEL = "metaworld-3.1.1-py3-none-any.whl"
@@ -61,11 +60,8 @@ def log(msg):
 def populate(tmp):
     """Downloads the wheel and extracts the checked reach assets and licence into `tmp`."""
     log(f"downloading {WHEEL}")
-    data = http_get(WHEEL_URL, "fetch_metaworld", timeout=300)
-    if hashlib.sha256(data).hexdigest() != WHEEL_SHA256:
-        sys.exit(f"fetch_metaworld: sha256 mismatch for {WHEEL_URL}")
     wheel_path = os.path.join(tmp, WHEEL)
-    write_file(wheel_path, data)
+    size = download_checked(WHEEL_URL, WHEEL_SHA256, wheel_path, "fetch_metaworld")
     with zipfile.ZipFile(wheel_path) as zf:
         hashes = record_hashes(zf)
         members = [("metaworld/assets/" + f, os.path.join("assets", f)) for f in ASSET_FILES]
@@ -73,7 +69,7 @@ def populate(tmp):
         for member, rel in members:
             write_file(os.path.join(tmp, rel), read_checked(zf, hashes, member, "fetch_metaworld", WHEEL))
     os.remove(wheel_path)
-    return len(data)
+    return size
 
 
 def main():

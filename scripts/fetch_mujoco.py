@@ -26,7 +26,7 @@ import sys
 import time
 import zipfile
 
-from wheel_files import http_get, install_atomically, read_checked, record_hashes, write_file
+from wheel_files import download_checked, http_get, install_atomically, read_checked, record_hashes, write_file
 
 MUJOCO_VERSION = "3.17.0"
 INDEX = "https://pypi.org/simple/mujoco/"
@@ -74,11 +74,8 @@ def populate(tmp):
     """Downloads the wheel and extracts the checked library, headers and licences into `tmp`."""
     name, url, sha = find_wheel()
     log(f"downloading {name}")
-    data = http_get(url, "fetch_mujoco", timeout=300)
-    if hashlib.sha256(data).hexdigest() != sha:
-        sys.exit(f"fetch_mujoco: sha256 mismatch for {url}")
     wheel_path = os.path.join(tmp, name)
-    write_file(wheel_path, data)
+    size = download_checked(url, sha, wheel_path, "fetch_mujoco")
     with zipfile.ZipFile(wheel_path) as zf:
         hashes = record_hashes(zf)
         wanted = [(i, destination(i.filename)) for i in zf.infolist()]
@@ -96,7 +93,7 @@ def populate(tmp):
     os.remove(wheel_path)
     # The linker looks for libmujoco.so (-lmujoco); the loader then wants the SONAME.
     os.symlink(LIB_NAME, os.path.join(tmp, "lib", "libmujoco.so"))
-    return len(data)
+    return size
 
 
 def main():

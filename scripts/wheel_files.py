@@ -25,6 +25,16 @@ def http_get(url, who, timeout=120):
             time.sleep(2 ** attempt)
 
 
+def download_checked(url, sha256, path, who, timeout=300):
+    """Downloads `url` into `path` after checking its sha256 (a mismatch ends the script); returns
+    its size in bytes."""
+    data = http_get(url, who, timeout=timeout)
+    if hashlib.sha256(data).hexdigest() != sha256:
+        sys.exit(f"{who}: sha256 mismatch for {url}")
+    write_file(path, data)
+    return len(data)
+
+
 def record_hashes(zf):
     """The urlsafe-base64 sha256 of every file a wheel's .dist-info/RECORD lists."""
     rec = [n for n in zf.namelist() if n.endswith(".dist-info/RECORD")][0]
