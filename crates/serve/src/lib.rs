@@ -20,14 +20,17 @@ use pdt_model::PrefixCache;
 use pdt_policy::{Policy, PolicyError};
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 mod adapt;
+pub mod auth;
 pub mod conn;
 mod wire;
 
 pub use adapt::MAX_ADAPTATIONS;
+pub use auth::{Auth, Token};
 
 /// The longest `batch_wait` (a longer one would only hold every request back).
 pub const MAX_BATCH_WAIT: Duration = Duration::from_secs(10);
@@ -72,6 +75,8 @@ pub struct ServeOptions {
     /// an episode gets the same bits alone or batched with others on AVX2 CPUs (within 1e-6 on
     /// AVX-512 ones, whose kernels depend on the batch size).
     pub threads: usize,
+    /// Who may use the server: by default no token, on a loopback `listen` only ([`Auth`]).
+    pub auth: Auth,
 }
 
 impl Default for ServeOptions {
@@ -90,6 +95,7 @@ impl Default for ServeOptions {
             prompt_strategy: pdt_prompt::PromptStrategy::default(),
             adapt: pdt_rundir::config::AdaptConfig::default(),
             threads: 0,
+            auth: Auth::default(),
         }
     }
 }
@@ -102,6 +108,17 @@ pub enum ServeError {
     Io(#[from] std::io::Error),
     #[error("{0}")]
     Invalid(String),
+    #[error("{from}: {why}")]
+    Token { from: String, why: String },
+    #[error(
+        "refusing to serve {0} without authentication: it is not a loopback address, so anyone \
+         who can reach the port could open episodes and use the model's compute. Give a token \
+         (--token-file PATH, or the environment variable {env}; --generate-token makes one and \
+         prints it once), or pass --no-auth to serve without one (behind a proxy that \
+         authenticates, say)",
+        env = auth::TOKEN_ENV
+    )]
+    Unauthenticated(SocketAddr),
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -469,17 +486,19 @@ impl Worker {
         }
         let da = self.run.stats.act_dim;
         for (_, lora, group) in groups {
-            let eps: Vec<&Episode> =
-                group.iter().filter_map(|p| self.episodes.get(&p.id)).collect();
-            if eps.len() != group.len() {
-                for p in group {
-                    let _ = p.reply.send(Err(ApiError::new(
-                        StatusCode::INTERNAL_SERVER_ERROR,
-                        "episode vanished",
-                    )));
-                }
+            // An episode closed (DELETE) in the same batch as its step was recorded: the close
+            // won, and the step is answered as any step of a closed episode is (404). The others
+            // of the group act as usual.
+            let (group, closed): (Vec<Pending>, Vec<Pending>) =
+                group.into_iter().partition(|p| self.episodes.contains_key(&p.id));
+            for p in closed {
+                let _ = p.reply.send(Err(unknown(p.id)));
+            }
+            if group.is_empty() {
                 continue;
             }
+            let eps: Vec<&Episode> =
+                group.iter().filter_map(|p| self.episodes.get(&p.id)).collect();
             let states: Vec<&pdt_policy::Episode> = eps.iter().map(|e| &e.e).collect();
             let prefixes: Option<Vec<&PrefixCache>> =
                 eps.iter().map(|e| e.prefix.as_ref()).collect();
@@ -540,6 +559,17 @@ fn unknown(id: u64) -> ApiError {
 #[derive(Clone)]
 struct AppState {
     tx: mpsc::SyncSender<Msg>,
+    /// Whether the model thread still runs (false once it has ended, as after a panic).
+    alive: Arc<AtomicBool>,
+}
+
+/// Sets its flag to false when dropped: the model thread's end, however it ends.
+struct AliveGuard(Arc<AtomicBool>);
+
+impl Drop for AliveGuard {
+    fn drop(&mut self) {
+        self.0.store(false, Ordering::SeqCst);
+    }
 }
 
 impl AppState {
@@ -557,6 +587,16 @@ impl AppState {
         rx.await.map_err(|_| {
             ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, "the model thread dropped the request")
         })?
+    }
+}
+
+/// `GET /v1/health`, open without a token: 200 while the model thread runs. It does not queue
+/// anything for the model thread, so calling it costs no model time.
+async fn health(State(s): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
+    if s.alive.load(Ordering::SeqCst) {
+        Ok(Json(serde_json::json!({ "status": "ok" })))
+    } else {
+        Err(ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "the model thread has stopped"))
     }
 }
 
@@ -593,7 +633,7 @@ async fn close(
 async fn not_found() -> ApiError {
     ApiError::new(
         StatusCode::NOT_FOUND,
-        "unknown route: GET /v1/info, POST /v1/episodes, POST /v1/episodes/{id}/step, DELETE /v1/episodes/{id}",
+        "unknown route: GET /v1/health, GET /v1/info, POST /v1/episodes, POST /v1/episodes/{id}/step, DELETE /v1/episodes/{id}",
     )
 }
 
@@ -607,21 +647,11 @@ pub struct Server {
 impl Server {
     /// Starts serving `run` on a thread of its own; returns once the socket is bound.
     pub fn start(run: Policy, opts: ServeOptions) -> Result<Self, ServeError> {
-        if run.method.adapts_before_acting() {
-            // Its evaluation adapts to each task's demonstrations before acting (MT-BC-Finetune
-            // fine-tunes); served as is it would be another policy than the one evaluated.
-            let servable: Vec<&str> = pdt_rundir::config::Method::ALL
-                .into_iter()
-                .filter(|m| m.is_transformer() && !m.adapts_before_acting())
-                .map(|m| m.name())
-                .collect();
-            return Err(ServeError::Invalid(format!(
-                "an {} run adapts to each task before it acts; serving it is not supported \
-                 (serve {} runs)",
-                run.method.name(),
-                servable.join(", ")
-            )));
-        }
+        // Served as saved, an MT-BC-Finetune checkpoint would be another policy than the one
+        // evaluated (the check `promptdt render` makes too).
+        run.check_acts_as_evaluated("serve").map_err(|e| ServeError::Invalid(e.to_string()))?;
+        check_adapt(run.method, &opts)?;
+        auth::check(&opts.listen, &opts.auth)?;
         let max_connections = check(&opts)?;
         let listener = std::net::TcpListener::bind(opts.listen)
             .map_err(|source| ServeError::Bind { addr: opts.listen, source })?;
@@ -631,18 +661,34 @@ impl Server {
         let body = conn::BodyLimits { max_bytes: opts.max_body_bytes, timeout: opts.body_timeout };
         let limits = conn::ConnLimits { max_connections, header_timeout: opts.header_timeout };
         let grace = opts.body_timeout + Duration::from_secs(1);
+        let token = match &opts.auth {
+            Auth::Token(t) => Some(Arc::new(t.clone())),
+            Auth::LoopbackOnly | Auth::Disabled => None,
+        };
         let worker = Worker::new(run, opts);
-        std::thread::Builder::new().name("pdt-serve-model".into()).spawn(move || worker.run(rx))?;
+        let alive = Arc::new(AtomicBool::new(true));
+        let guard = AliveGuard(Arc::clone(&alive));
+        std::thread::Builder::new().name("pdt-serve-model".into()).spawn(move || {
+            let _guard = guard;
+            worker.run(rx);
+        })?;
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
         let app = Router::new()
+            .route(auth::HEALTH_PATH, get(health))
             .route("/v1/info", get(info))
             .route("/v1/episodes", post(open))
             .route("/v1/episodes/{id}/step", post(step))
             .route("/v1/episodes/{id}", axum::routing::delete(close))
             .fallback(not_found)
             .layer(DefaultBodyLimit::max(body.max_bytes))
-            .layer(axum::middleware::from_fn_with_state(body, conn::read_body))
-            .with_state(AppState { tx });
+            .layer(axum::middleware::from_fn_with_state(body, conn::read_body));
+        // The token is checked first (the outermost layer): a request without it is refused
+        // before its body is read.
+        let app = match token {
+            Some(t) => app.layer(axum::middleware::from_fn_with_state(t, auth::require_token)),
+            None => app,
+        };
+        let app = app.with_state(AppState { tx, alive });
         let thread =
             std::thread::Builder::new().name("pdt-serve-http".into()).spawn(move || {
                 let rt = tokio::runtime::Builder::new_multi_thread()
@@ -678,6 +724,42 @@ impl Server {
             None => Ok(()),
         }
     }
+}
+
+/// Refuses the server adaptation settings (`--adapt` and its flags) that would refuse, or
+/// silently skip, every episode opened with a `task`, naming the flags.
+fn check_adapt(method: pdt_rundir::config::Method, opts: &ServeOptions) -> Result<(), ServeError> {
+    let cfg = &opts.adapt;
+    if cfg.ptdt.score == pdt_rundir::config::PtdtScore::Return {
+        // Any episode adapted by PTDT would be refused (a request may name `adapt: ptdt`).
+        return Err(ServeError::Invalid(
+            "--ptdt-score return ranks PTDT's candidate prompts by episodes in the task's \
+             environment, which only `promptdt eval` steps (a served episode's environment is \
+             the client's); serve with --ptdt-score action-loss (the default)"
+                .into(),
+        ));
+    }
+    if cfg.is_none() {
+        return Ok(());
+    }
+    if !method.uses_prompt() {
+        return Err(ServeError::Invalid(format!(
+            "--adapt {}: this run's method ({}) takes no prompt, and the adaptations adapt a \
+             prompt or act through one (prompt-dt and prompt-mt-bc runs); serve it without --adapt",
+            cfg.kind,
+            method.name()
+        )));
+    }
+    let s = opts.prompt_strategy.strategy;
+    if s.per_episode() || s.learns_from_returns() {
+        return Err(ServeError::Invalid(format!(
+            "--adapt {} with --prompt-strategy {s}: an adaptation starts from one prompt per \
+             task, and {s} picks one per episode or learns across them; use --prompt-strategy \
+             reference, random-segment or best-return, or no --adapt",
+            cfg.kind
+        )));
+    }
+    Ok(())
 }
 
 /// Checks the limits of `opts` (each named as its `promptdt serve` flag); returns the connection

@@ -199,3 +199,44 @@ fn idle_episodes_are_closed() {
     );
     assert_eq!(s, 404, "{r}");
 }
+
+#[test]
+fn a_step_racing_the_delete_of_its_episode_gets_404_never_500() {
+    // A 20 ms batch window: the step and the DELETE sent together land in one batch, in either
+    // order. A step recorded before its episode closed in the same batch used to be answered
+    // `500 "episode vanished"`, and so was every other episode of that forward (issue 56 point
+    // 2); now the close wins (404, as for any closed episode) and the others act.
+    let server =
+        start(ServeOptions { batch_wait: Duration::from_millis(20), ..Default::default() });
+    let addr = server.addr;
+    let open = r#"{"task": 34, "observation": [0.0, 0.0]}"#;
+    let body = r#"{"reward": -0.5, "observation": [0.1, 0.0]}"#;
+    let (s, r) = http(addr, "POST", "/v1/episodes", Some(open));
+    assert_eq!(s, 201, "{r}");
+    let bystander = format!("/v1/episodes/{}/step", r["episode"]);
+    let mut answers = std::collections::BTreeMap::<u16, usize>::new();
+    for round in 1..=40u64 {
+        let (s, r) = http(addr, "POST", "/v1/episodes", Some(open));
+        assert_eq!(s, 201, "{r}");
+        let id = r["episode"].as_u64().unwrap();
+        let ((step, step_reply), delete, (other, other_reply)) = std::thread::scope(|sc| {
+            let step =
+                sc.spawn(|| http(addr, "POST", &format!("/v1/episodes/{id}/step"), Some(body)));
+            let delete = sc.spawn(|| http(addr, "DELETE", &format!("/v1/episodes/{id}"), None).0);
+            let other = sc.spawn(|| http(addr, "POST", &bystander, Some(body)));
+            (step.join().unwrap(), delete.join().unwrap(), other.join().unwrap())
+        });
+        *answers.entry(step).or_default() += 1;
+        assert!(step == 200 || step == 404, "round {round}: step {step} {step_reply}");
+        if step == 404 {
+            let msg = step_reply["error"].as_str().unwrap();
+            assert!(msg.contains(&format!("no open episode {id}")), "{msg}");
+        }
+        assert_eq!(delete, 204, "round {round}");
+        // The other episode of the batch acted, and counted its step once.
+        assert_eq!((other, other_reply["t"].as_u64()), (200, Some(round)), "{other_reply}");
+    }
+    eprintln!("steps racing their DELETE: {answers:?} (status: count)");
+    // The race was run: some steps met their closed episode.
+    assert!(answers.get(&404).is_some_and(|&n| n > 0), "{answers:?}");
+}

@@ -43,19 +43,34 @@ pub fn http(
     path: &str,
     body: Option<&str>,
 ) -> (u16, serde_json::Value) {
+    let (status, _, body) = http_with(addr, method, path, body, &[]);
+    (status, body)
+}
+
+/// [`http`] with extra header lines (`"Authorization: Bearer x"`); also returns the reply's
+/// headers, lower-cased.
+pub fn http_with(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    body: Option<&str>,
+    headers: &[&str],
+) -> (u16, String, serde_json::Value) {
     let mut s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let body = body.unwrap_or("");
+    let extra: String = headers.iter().map(|h| format!("{h}\r\n")).collect();
     write!(
         s,
         "{method} {path} HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\n\
-         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+         Content-Length: {}\r\n{extra}Connection: close\r\n\r\n{body}",
         body.len()
     )
     .unwrap();
     let mut out = String::new();
     s.read_to_string(&mut out).unwrap();
     let status: u16 = out.split(' ').nth(1).unwrap().parse().unwrap();
+    let head = out.split("\r\n\r\n").next().unwrap_or("").to_lowercase();
     let payload = out.split("\r\n\r\n").nth(1).unwrap_or("");
-    (status, serde_json::from_str(payload).unwrap_or(serde_json::Value::Null))
+    (status, head, serde_json::from_str(payload).unwrap_or(serde_json::Value::Null))
 }
