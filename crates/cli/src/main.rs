@@ -159,8 +159,14 @@ fn run(cli: Cli) -> Result<()> {
                 None => {}
             }
             let device = pdt_model::device::resolve(a.device)?;
+            let run = pdt_policy::files::run_architecture_of(&a.weights)?;
             let s = pdt_model::forward_file::forward_file(
-                &a.weights, &a.inputs, &a.out, device, a.n_head,
+                &a.weights,
+                &a.inputs,
+                &a.out,
+                device,
+                a.n_head,
+                run.as_ref(),
             )?;
             out!(
                 "wrote action_preds [{}, {}, {}] to {} (prompt: {} steps)",

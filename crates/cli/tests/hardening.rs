@@ -460,3 +460,74 @@ fn errors_are_exit_codes_not_crashes() {
     let e = check_fails(&args, promptdt_in(Path::new("/"), &args));
     assert!(e.contains("no run to resume"), "{e}");
 }
+
+/// Round 3 (issue 56): a checkpoint whose recorded heads contradict its run's `config.toml` is
+/// refused where the run is acted with (`eval`) and where the file is run on its own (`model
+/// forward`), naming both; before, each ran it with whichever number it read.
+#[test]
+fn round3_recorded_heads_must_be_the_runs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = variant(&tiny_setup(tmp.path()), "model", "n_head", "2");
+    let run = tmp.path().join("r");
+    train(&cfg, &run, &["--iterations", "2"]);
+    let ck = run.join("checkpoints/step_4.safetensors");
+    // The metadata is JSON inside the header's JSON: `\"n_head\":2`; the same length as `...4`, so
+    // the header's length prefix stays right.
+    let mut bytes = std::fs::read(&ck).unwrap();
+    let (from, to) = (br#"\"n_head\":2"#, br#"\"n_head\":4"#);
+    let at = bytes.windows(from.len()).position(|w| w == from).expect("recorded n_head = 2");
+    bytes[at..at + from.len()].copy_from_slice(to);
+    std::fs::write(&ck, &bytes).unwrap();
+    let e = fails(&["eval", "--run", s(&run), "--episodes", "1"]);
+    assert!(e.contains("step_4.safetensors"), "{e}");
+    assert!(e.contains("record n_head = 4") && e.contains("n_head = 2"), "{e}");
+    let (i, out) = (tmp.path().join("in.safetensors"), tmp.path().join("o.safetensors"));
+    std::fs::copy(repo("testdata/golden/prompt_dt_inputs.safetensors"), &i).unwrap();
+    let e = fails(&["model", "forward", "--weights", s(&ck), "--inputs", s(&i), "--out", s(&out)]);
+    assert!(e.contains("the weights have n_head = 4") && e.contains("config.toml"), "{e}");
+    assert!(e.contains("[model] n_head = 2"), "{e}");
+    // Outside a run directory nothing says otherwise: the recorded 4 heads run (the golden inputs
+    // have other dims, so the error is about them, not the heads).
+    let alone = tmp.path().join("alone.safetensors");
+    std::fs::copy(&ck, &alone).unwrap();
+    let e =
+        fails(&["model", "forward", "--weights", s(&alone), "--inputs", s(&i), "--out", s(&out)]);
+    assert!(!e.contains("n_head"), "{e}");
+}
+
+/// Round 3 (issue 56): a sample whose attention mask is all padding is refused by row, in the
+/// history and in the prompt; before, it ran and returned actions that mean nothing.
+#[test]
+fn round3_an_all_zero_attention_mask_row_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let w = repo("testdata/golden/prompt_dt_state_dict.safetensors");
+    let golden = std::fs::read(repo("testdata/golden/prompt_dt_inputs.safetensors")).unwrap();
+    let n = u64::from_le_bytes(golden[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&golden[8..8 + n]).unwrap();
+    let out = tmp.path().join("o.safetensors");
+    for name in ["attention_mask", "prompt_attention_mask"] {
+        let t = &header[name];
+        assert_eq!(t["dtype"], "I64", "{t}");
+        let steps = t["shape"][1].as_u64().unwrap() as usize;
+        let start = 8 + n + t["data_offsets"][0].as_u64().unwrap() as usize;
+        // Row 2 (the third sample) all 0.
+        let mut bytes = golden.clone();
+        bytes[start + 2 * steps * 8..start + 3 * steps * 8].fill(0);
+        let inputs = tmp.path().join(format!("{name}.safetensors"));
+        std::fs::write(&inputs, &bytes).unwrap();
+        let e = fails(&[
+            "model",
+            "forward",
+            "--weights",
+            s(&w),
+            "--inputs",
+            s(&inputs),
+            "--out",
+            s(&out),
+            "--n-head",
+            "1",
+        ]);
+        assert!(e.contains(&format!("`{name}` row 2 is all 0")), "{e}");
+        assert!(!out.exists());
+    }
+}

@@ -1,12 +1,14 @@
 //! Run directories written by the code before `pdt-rundir` owned their files
 //! (testdata/rundir-v1, its README says how they were made) through the binary of today:
-//! `report` (with each method's loss column), `eval` (the same final evaluation, bit for bit) and
+//! `report` (with each method's loss column), `eval` (the same final evaluation, within the
+//! measured cross-CPU bound: the fixture was made on another machine) and
 //! `reproduce --report-only` (the same cells, the loss beside the returns).
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 #[path = "support/cli.rs"]
 mod support;
 use pdt_rundir::{FinalEval, RunDir};
+use pdt_testkit::cpu::{json_close, CROSS_CPU_RETURN_REL};
 use std::path::{Path, PathBuf};
 use support::*;
 
@@ -86,7 +88,11 @@ fn old_run_directories_are_reported_evaluated_and_reproduced() {
         ]);
         assert!(out.contains("average (test)"), "{out}");
         let after = RunDir::open(&run).unwrap().final_eval().unwrap().unwrap();
-        assert_eq!(after, before, "{method}");
+        // The committed evaluation was made on another CPU (an AMD EPYC, AVX2): the same episodes,
+        // lengths and tasks, returns within the measured cross-CPU bound, not bit for bit.
+        let json = |e: &FinalEval| serde_json::to_value(e).unwrap();
+        let close = json_close(&json(&after), &json(&before), CROSS_CPU_RETURN_REL);
+        assert_eq!(close, Ok(()), "{method}: the evaluation now against the committed one");
     }
 
     // serve: the old run's policy loads (weights, statistics, its moved data's prompts).

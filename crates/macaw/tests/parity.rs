@@ -4,9 +4,9 @@
 //! rates and the advantage coefficient, the parameters after the five Adams) and a two-step
 //! test-time adaptation, in float64 and float32.
 //!
-//! Fixtures made on this machine's CPU (the live set `make test` writes, or committed ones made on
-//! the same CPU) must match bit for bit with one libtorch thread. Committed fixtures made on another
-//! CPU are compared within bounds (see `bound`).
+//! Fixtures made on this machine (the live set `make test` writes) must match bit for bit with one
+//! libtorch thread. The committed fixtures, made on another machine, are compared within bounds
+//! (see `bound`), whatever CPU they record (`pdt_testkit::golden`).
 
 use pdt_macaw::{adapt, meta_task, Batch, Dims, MacawConfig, Optimisers, Params};
 use std::collections::BTreeMap;

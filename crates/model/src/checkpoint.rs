@@ -13,6 +13,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use tch::{nn::VarStore, Kind, Tensor};
 
+use crate::PromptDtConfig;
+
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
     #[error("{path}: {source}")]
@@ -38,6 +40,8 @@ pub enum CheckpointError {
     NonFinite { path: PathBuf, name: String },
     #[error("{path}: buffer `{name}` does not hold the reference's value ({what})")]
     Buffer { path: PathBuf, name: String, what: &'static str },
+    #[error("{path}: {message}")]
+    Architecture { path: PathBuf, message: String },
 }
 
 /// Names of the per-block buffers of the reference state_dict.
@@ -113,11 +117,66 @@ pub(crate) fn check_dtypes(
     Ok(())
 }
 
-/// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`]).
-pub fn load(vs: &mut VarStore, path: &Path, n_layer: usize) -> Result<(), CheckpointError> {
+/// The architecture a promptdt weights file records ([`ARCHITECTURE_KEY`] in its metadata), as a
+/// JSON object; `None` for a file without it (a PyTorch `state_dict` export).
+pub fn recorded_architecture(
+    path: &Path,
+    bytes: &[u8],
+) -> Result<Option<serde_json::Map<String, serde_json::Value>>, CheckpointError> {
+    let format = |message: String| CheckpointError::Format { path: path.into(), message };
+    let (_, header) = SafeTensors::read_metadata(bytes)
+        .map_err(|e| format(describe_safetensors_error(&e, bytes.len())))?;
+    let key = ARCHITECTURE_KEY;
+    match header.metadata().as_ref().and_then(|m| m.get(key)) {
+        None => Ok(None),
+        Some(text) => match serde_json::from_str(text) {
+            Ok(serde_json::Value::Object(map)) => Ok(Some(map)),
+            Ok(_) => Err(format(format!("metadata `{key}` is not a JSON object"))),
+            Err(e) => Err(format(format!("metadata `{key}` is not JSON: {e}"))),
+        },
+    }
+}
+
+/// Checks what a weights file records of its architecture against the model it is loaded into:
+/// every recorded field must equal `cfg`'s. The shapes check all but the number of attention
+/// heads, which changes no shape: without this a checkpoint written with 4 heads would run as the
+/// 2 its run's `config.toml` says (or the reverse), with other results and no error.
+fn check_recorded(path: &Path, bytes: &[u8], cfg: &PromptDtConfig) -> Result<(), CheckpointError> {
+    let Some(recorded) = recorded_architecture(path, bytes)? else { return Ok(()) };
+    let fields = [
+        ("state_dim", cfg.state_dim),
+        ("act_dim", cfg.act_dim),
+        ("hidden_size", cfg.hidden_size),
+        ("n_layer", cfg.n_layer),
+        ("n_head", cfg.n_head),
+        ("n_inner", cfg.n_inner),
+        ("max_ep_len", cfg.max_ep_len),
+        ("n_positions", cfg.n_positions),
+    ];
+    for (name, want) in fields {
+        let Some(said) = recorded.get(name) else { continue };
+        if said.as_u64() != u64::try_from(want).ok() {
+            return Err(CheckpointError::Architecture {
+                path: path.into(),
+                message: format!(
+                    "the weights record {name} = {said} (metadata `{ARCHITECTURE_KEY}`), but the \
+                     model they are loaded into has {name} = {want} (the run's configuration, \
+                     [model] in config.toml): they were not written by this run's model"
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Loads weights into the variables of `vs` (built by [`crate::PromptDt::new`] with `cfg`). What
+/// the file records of its architecture must be `cfg` ([`check_recorded`]).
+pub fn load(vs: &mut VarStore, path: &Path, cfg: &PromptDtConfig) -> Result<(), CheckpointError> {
+    let n_layer = cfg.n_layer;
     let bytes = pdt_base::fs::read_limited(path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| CheckpointError::Io { path: path.into(), source })?;
     let st = deserialize(path, &bytes)?;
+    check_recorded(path, &bytes, cfg)?;
     let buffers: BTreeMap<String, &'static str> = buffer_names(n_layer).into_iter().collect();
     let mut vars = vs.variables();
     for name in st.names() {
@@ -233,11 +292,7 @@ pub const ARCHITECTURE_KEY: &str = "promptdt_architecture";
 
 /// Writes the weights of `vs` plus the reference buffers, atomically (temp file + rename), with
 /// the architecture in the metadata ([`ARCHITECTURE_KEY`]).
-pub fn save(
-    vs: &VarStore,
-    path: &Path,
-    cfg: &crate::PromptDtConfig,
-) -> Result<(), CheckpointError> {
+pub fn save(vs: &VarStore, path: &Path, cfg: &PromptDtConfig) -> Result<(), CheckpointError> {
     let (n_layer, n_positions) = (cfg.n_layer, cfg.n_positions);
     let io = |source| CheckpointError::Io { path: path.into(), source };
     let mut named: Vec<(String, Vec<u8>, Dtype, Vec<usize>)> = Vec::new();

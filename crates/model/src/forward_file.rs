@@ -38,6 +38,11 @@ pub enum ForwardFileError {
          (padding)"
     )]
     Mask { path: PathBuf, name: String, index: usize, value: f32 },
+    #[error(
+        "{path}: `{name}` row {row} is all 0: sample {row} has no real step (the model would \
+         attend over padding only and still return actions)"
+    )]
+    EmptyMaskRow { path: PathBuf, name: String, row: usize },
     #[error("{path}: tensor `{name}` is missing")]
     Missing { path: PathBuf, name: &'static str },
     #[error("{path}: tensor `{name}` has dtype {dtype:?}, expected {expected}")]
@@ -140,22 +145,8 @@ pub fn infer_config(
         (0..).take_while(|i| st.tensor(&format!("transformer.h.{i}.ln_1.weight")).is_ok()).count();
     check_names(path, &st, n_layer)?;
     checkpoint::check_dtypes(path, &st, n_layer)?;
-    let header = SafeTensors::read_metadata(&bytes)
-        .map_err(|e| ForwardFileError::Format {
-            path: path.into(),
-            message: pdt_base::tensor_file::describe_safetensors_error(&e, bytes.len()),
-        })?
-        .1;
     let key = checkpoint::ARCHITECTURE_KEY;
-    let recorded: Option<serde_json::Map<String, serde_json::Value>> =
-        match header.metadata().as_ref().and_then(|m| m.get(key)) {
-            Some(text) => match serde_json::from_str(text) {
-                Ok(serde_json::Value::Object(map)) => Some(map),
-                Ok(_) => return Err(arch(format!("metadata `{key}` is not a JSON object"))),
-                Err(e) => return Err(arch(format!("metadata `{key}` is not JSON: {e}"))),
-            },
-            None => None,
-        };
+    let recorded = checkpoint::recorded_architecture(path, &bytes)?;
     // A recorded field must be a whole number; a missing one is not checked.
     let field = |name: &str| -> Result<Option<usize>, ForwardFileError> {
         match recorded.as_ref().and_then(|m| m.get(name)) {
@@ -250,6 +241,24 @@ fn tensor_of(
     let Ok(view) = st.tensor(name) else { return Ok(None) };
     let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
     let t = decode(path, name, &view, kind)?;
+    // A sample whose mask is all padding runs (the additive bias makes its attention uniform over
+    // padding) and returns actions that mean nothing: refuse it by row. Shapes that are not
+    // [B, K] are left to the shape check.
+    if name.ends_with("attention_mask") && shape.len() == 2 && shape[1] > 0 {
+        let row_sums: Vec<f32> = Vec::<f32>::try_from(t.view(shape.as_slice()).sum_dim_intlist(
+            [1i64].as_slice(),
+            false,
+            Kind::Float,
+        ))
+        .unwrap_or_default();
+        if let Some(row) = row_sums.iter().position(|&s| s == 0.0) {
+            return Err(ForwardFileError::EmptyMaskRow {
+                path: path.into(),
+                name: name.into(),
+                row,
+            });
+        }
+    }
     Ok(Some(t.view(shape.as_slice())))
 }
 
@@ -354,6 +363,44 @@ fn segments(
     }))
 }
 
+/// What a run's configuration says of the model its checkpoints hold (`model forward` of a file in
+/// a run's `checkpoints/`): compared with what is read off the weights, since the number of heads
+/// changes no shape and a file's own record of it could be wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunArchitecture {
+    /// The configuration file it comes from (for messages).
+    pub source: PathBuf,
+    /// `[model]` fields by name: hidden_size, n_layer, n_head, n_inner, max_ep_len, n_positions.
+    pub fields: Vec<(&'static str, usize)>,
+}
+
+impl RunArchitecture {
+    fn check(&self, weights: &Path, cfg: &PromptDtConfig) -> Result<(), ForwardFileError> {
+        let have = [
+            ("hidden_size", cfg.hidden_size),
+            ("n_layer", cfg.n_layer),
+            ("n_head", cfg.n_head),
+            ("n_inner", cfg.n_inner),
+            ("max_ep_len", cfg.max_ep_len),
+            ("n_positions", cfg.n_positions),
+        ];
+        for (name, said) in &self.fields {
+            let Some((_, actual)) = have.iter().find(|(n, _)| n == name) else { continue };
+            if actual != said {
+                return Err(ForwardFileError::Architecture {
+                    path: weights.into(),
+                    message: format!(
+                        "the weights have {name} = {actual}, but their run's {} says [model] \
+                         {name} = {said}",
+                        self.source.display()
+                    ),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
 /// What [`forward_file`] did.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ForwardSummary {
@@ -363,18 +410,24 @@ pub struct ForwardSummary {
     pub act_dim: usize,
 }
 
-/// Loads `weights`, runs the model in eval mode on `inputs`, writes `action_preds` to `out`.
+/// Loads `weights`, runs the model in eval mode on `inputs`, writes `action_preds` to `out`. With
+/// `run` (the weights are a run's checkpoint), the architecture must be what the run's
+/// configuration says.
 pub fn forward_file(
     weights: &Path,
     inputs: &Path,
     out: &Path,
     device: Device,
     n_head: Option<usize>,
+    run: Option<&RunArchitecture>,
 ) -> Result<ForwardSummary, ForwardFileError> {
     let cfg = infer_config(weights, n_head)?;
+    if let Some(run) = run {
+        run.check(weights, &cfg)?;
+    }
     let mut vs = VarStore::new(device);
     let model = PromptDt::new(&vs.root(), &cfg);
-    checkpoint::load(&mut vs, weights, cfg.n_layer)?;
+    checkpoint::load(&mut vs, weights, &cfg)?;
     let bytes = pdt_base::fs::read_limited(inputs, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
         .map_err(|source| ForwardFileError::Io { path: inputs.into(), source })?;
     let st = SafeTensors::deserialize(&bytes).map_err(|e| ForwardFileError::Format {

@@ -57,3 +57,31 @@ pub fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
         Err(e) => Err(e.into()),
     }
 }
+
+/// What the run whose `checkpoints/` holds `weights` says of its model, for `model forward` of a
+/// run's checkpoint (the file's own record of its number of heads cannot be checked against its
+/// shapes; the run's configuration can be); `None` for a file outside a run directory.
+pub fn run_architecture_of(
+    weights: &Path,
+) -> Result<Option<pdt_model::forward_file::RunArchitecture>, PolicyError> {
+    let Some(checkpoints) = weights.parent() else { return Ok(None) };
+    if checkpoints.file_name() != Some("checkpoints".as_ref()) {
+        return Ok(None);
+    }
+    let dir = RunDir::at(checkpoints.parent().unwrap_or(Path::new("")));
+    if !dir.config_path().is_file() {
+        return Ok(None);
+    }
+    let m = dir.config()?.model;
+    Ok(Some(pdt_model::forward_file::RunArchitecture {
+        source: dir.config_path(),
+        fields: vec![
+            ("hidden_size", m.hidden_size),
+            ("n_layer", m.n_layer),
+            ("n_head", m.n_head),
+            ("n_inner", m.n_inner),
+            ("max_ep_len", m.max_ep_len),
+            ("n_positions", m.n_positions),
+        ],
+    }))
+}

@@ -131,7 +131,7 @@ impl Policy {
         let mut vs = VarStore::new(device);
         let model = PromptDt::new(&vs.root(), &model_cfg);
         let latest = files::latest_checkpoint(&run)?;
-        checkpoint::load(&mut vs, &run.checkpoint_file(&latest.model), model_cfg.n_layer)?;
+        checkpoint::load(&mut vs, &run.checkpoint_file(&latest.model), &model_cfg)?;
         let method = cfg.run.method;
         let returns = eval_returns(&cfg);
         let prompt_steps =

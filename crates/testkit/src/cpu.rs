@@ -106,6 +106,75 @@ pub fn batch_invariant() -> bool {
     CpuFingerprint::detect().is_none_or(|f| f.aten_capability() != "AVX512")
 }
 
+/// Largest relative difference allowed between an episode return evaluated now and one committed
+/// from another CPU (`testdata/rundir-v1`'s `eval_final.json`). Measured on the fixture's two runs
+/// (20-step point-robot episodes, so closed-loop drift is short): Prompt-DT up to 2.6e-8 on an
+/// Intel Xeon with AVX-512 against the AMD EPYC (AVX2) that made them, and up to 1.1e-7 on that AMD
+/// under `ATEN_CPU_CAPABILITY=default`; MACAW, whose evaluation takes gradient steps first, up to
+/// 1.1e-6 under `MKL_CBWR=COMPATIBLE` (2026-12-06). About ten times the largest.
+pub const CROSS_CPU_RETURN_REL: f64 = 1e-5;
+
+/// The environment variables [`KERNEL_PATH_ENV`] sets: another code path in each of libtorch's
+/// three kernel sources (ATen's vectorised kernels, MKL's sgemm, oneDNN), on any x86 CPU. Each was
+/// checked to change the bits of some operation on an AMD EPYC with AVX2 (matmul, softmax, layer
+/// norm under `ATEN_CPU_CAPABILITY=default`; matmul under `MKL_CBWR=COMPATIBLE`; GELU under
+/// `ONEDNN_MAX_CPU_ISA=SSE41`). `scripts/test_other_kernels.sh` runs the tests that read numbers
+/// committed from another machine under them, so a bitwise assumption against such numbers fails
+/// on the machine where the test is written, not first on a user's CPU.
+pub const KERNEL_PATH_ENV: &[(&str, &str)] = &[
+    ("ATEN_CPU_CAPABILITY", "default"),
+    ("MKL_CBWR", "COMPATIBLE"),
+    ("ONEDNN_MAX_CPU_ISA", "SSE41"),
+];
+
+/// Compares two JSON documents: the same shape, keys and non-numeric values exactly, integers
+/// exactly, and other numbers within `rel` of `want` (relative; absolute below 1). `Err` names the
+/// first difference by its path (`tasks[2].returns[0]`). For results made now against results
+/// committed from another CPU, whose floats may differ in their last bits.
+pub fn json_close(
+    got: &serde_json::Value,
+    want: &serde_json::Value,
+    rel: f64,
+) -> Result<(), String> {
+    json_close_at("$", got, want, rel)
+}
+
+fn json_close_at(
+    at: &str,
+    got: &serde_json::Value,
+    want: &serde_json::Value,
+    rel: f64,
+) -> Result<(), String> {
+    use serde_json::Value;
+    match (got, want) {
+        (Value::Number(g), Value::Number(w)) if w.is_f64() || g.is_f64() => {
+            let (g, w) = (g.as_f64().unwrap_or(f64::NAN), w.as_f64().unwrap_or(f64::NAN));
+            let diff = (g - w).abs();
+            if diff <= rel * w.abs().max(1.0) {
+                Ok(())
+            } else {
+                Err(format!(
+                    "{at}: {g} against {w} (difference {diff:e}, allowed {rel:e} relative)"
+                ))
+            }
+        }
+        (Value::Array(g), Value::Array(w)) if g.len() == w.len() => g
+            .iter()
+            .zip(w)
+            .enumerate()
+            .try_for_each(|(i, (g, w))| json_close_at(&format!("{at}[{i}]"), g, w, rel)),
+        (Value::Object(g), Value::Object(w))
+            if g.keys().collect::<Vec<_>>() == w.keys().collect::<Vec<_>>() =>
+        {
+            g.iter()
+                .zip(w)
+                .try_for_each(|((k, g), (_, w))| json_close_at(&format!("{at}.{k}"), g, w, rel))
+        }
+        _ if got == want => Ok(()),
+        _ => Err(format!("{at}: {got} against {want}")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -134,5 +203,23 @@ mod tests {
         let back: CpuFingerprint =
             serde_json::from_str(&serde_json::to_string(&c).expect("json")).expect("parsed");
         assert_eq!(back, c);
+    }
+
+    #[test]
+    fn json_close_allows_last_bits_and_names_the_first_difference() {
+        let want = serde_json::json!({"n": 3, "tasks": [{"r": -22.777376651763916, "s": "a"}]});
+        let near = serde_json::json!({"n": 3, "tasks": [{"r": -22.777377247810364, "s": "a"}]});
+        assert_eq!(json_close(&near, &want, CROSS_CPU_RETURN_REL), Ok(()));
+        assert!(json_close(&near, &want, 0.0).unwrap_err().starts_with("$.tasks[0].r: "));
+        let far = serde_json::json!({"n": 3, "tasks": [{"r": -22.8, "s": "a"}]});
+        assert!(json_close(&far, &want, CROSS_CPU_RETURN_REL).is_err());
+        let other_int =
+            serde_json::json!({"n": 4, "tasks": [{"r": -22.777376651763916, "s": "a"}]});
+        assert_eq!(json_close(&other_int, &want, 1.0), Err("$.n: 4 against 3".into()));
+        let other_str =
+            serde_json::json!({"n": 3, "tasks": [{"r": -22.777376651763916, "s": "b"}]});
+        assert!(json_close(&other_str, &want, 1.0).is_err());
+        let shorter = serde_json::json!({"n": 3, "tasks": []});
+        assert!(json_close(&shorter, &want, 1.0).is_err());
     }
 }

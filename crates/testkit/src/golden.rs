@@ -1,10 +1,15 @@
-//! Which golden fixture sets a parity test compares against, and how: bit for bit where the
-//! fixtures were made on a CPU with this machine's fingerprint ([`crate::cpu`]), within the test's
-//! measured cross-CPU bounds otherwise. The Prompt-DT parity tests (`prompt_dt_cpu.json`) and the
-//! MACAW ones (`macaw_cpu.json`) choose the same way.
+//! Which golden fixture sets a parity test compares against, and how: bit for bit against fixtures
+//! made on this machine in this run's environment (the live set), within the test's measured
+//! cross-CPU bounds against the committed ones. The Prompt-DT parity tests (`prompt_dt_cpu.json`)
+//! and the MACAW ones (`macaw_cpu.json`) choose the same way.
 //!
 //! Two sets:
-//! - **committed** (`testdata/golden/`): made once, on an AVX-512 CPU.
+//! - **committed** (`testdata/golden/`): made once, on another machine (Prompt-DT's on an AVX-512
+//!   CPU, MACAW's on an AMD EPYC with AVX2). Never compared bit for bit, even on a CPU with the
+//!   same fingerprint: the fingerprint does not see everything that picks a kernel
+//!   (`ATEN_CPU_CAPABILITY`, `MKL_CBWR`, `ONEDNN_MAX_CPU_ISA`, a microcode or hypervisor that hides
+//!   a flag), so "a CPU like the one that made them" is a guess, and a wrong guess fails a user's
+//!   `make test` (issue 56). `scripts/test_other_kernels.sh` checks that on any CPU.
 //! - **live** (`$PROMPTDT_LIVE_GOLDEN`, written by `make test` with the PyTorch of
 //!   `scripts/setup_torch_venv.sh` just before the tests run): made on this machine, so compared
 //!   bit for bit. `.ci/run` sets `PROMPTDT_REQUIRE_LIVE_GOLDEN=1`, so CI cannot skip it.
@@ -58,14 +63,14 @@ pub fn fixture_cpu(dir: &Path, cpu_file: &str) -> FixtureCpu {
 }
 
 /// Every fixture set this run compares against, by the CPU record `cpu_file` beside the fixtures:
-/// the committed one (bit for bit if it was made on a CPU like this one), and the live one when
-/// present (it must have been made here; required when `PROMPTDT_REQUIRE_LIVE_GOLDEN=1`).
+/// the committed one (within bounds: made on another machine), and the live one when present (it
+/// must have been made here; required when `PROMPTDT_REQUIRE_LIVE_GOLDEN=1`).
 pub fn sets(cpu_file: &str) -> Vec<GoldenSet> {
     let here = CpuFingerprint::detect();
     let dir = committed_dir();
-    let made_on = fixture_cpu(&dir, cpu_file);
-    let bitwise = made_on.cpu.is_some() && made_on.cpu == here;
-    let mut sets = vec![GoldenSet { dir, label: "committed", bitwise }];
+    // Read for its errors (a missing record fails the test); the committed set is never bitwise.
+    let _made_on = fixture_cpu(&dir, cpu_file);
+    let mut sets = vec![GoldenSet { dir, label: "committed", bitwise: false }];
     match std::env::var_os(LIVE_VAR).map(PathBuf::from) {
         Some(dir) if dir.join(cpu_file).is_file() => {
             let made_on = fixture_cpu(&dir, cpu_file);
@@ -104,15 +109,13 @@ mod tests {
     use super::*;
 
     #[test]
-    fn committed_sets_are_bitwise_only_on_the_cpu_they_record() {
+    fn committed_sets_are_never_bitwise() {
         for file in ["prompt_dt_cpu.json", "macaw_cpu.json"] {
-            let made_on = fixture_cpu(&committed_dir(), file);
             let sets = sets(file);
             assert_eq!(sets[0].label, "committed");
             assert_eq!(sets[0].file("x"), committed_dir().join("x"));
-            // The Prompt-DT fixtures predate the fingerprint (`"cpu": null`): never bitwise.
-            let same = made_on.cpu.is_some() && made_on.cpu == CpuFingerprint::detect();
-            assert_eq!(sets[0].bitwise, same, "{file}");
+            // Even where the record names this very CPU (MACAW's were made on an AMD EPYC).
+            assert!(!sets[0].bitwise, "{file}");
         }
         assert!(fixture_cpu(&committed_dir(), "macaw_cpu.json").cpu.is_some());
     }

@@ -235,7 +235,7 @@ fn save(t: &Trainee, dir: &Path) -> BTreeMap<String, ParamState> {
 /// Loads what [`save`] wrote into `t` (built from another seed, so that everything must come from
 /// the checkpoint).
 fn load(t: &mut Trainee, dir: &Path, state: &BTreeMap<String, ParamState>) {
-    checkpoint::load(&mut t.vs, &dir.join("model.safetensors"), model_cfg().n_layer).unwrap();
+    checkpoint::load(&mut t.vs, &dir.join("model.safetensors"), &model_cfg()).unwrap();
     let copied = state
         .iter()
         .map(|(n, s)| {
@@ -290,8 +290,7 @@ fn checkpoints_move_between_the_two_optimisers() {
         // `checkpoint::save` reads the weights through the views of the flat buffer.
         let mut reread = trainee(5, FlatOptim::Off);
         checkpoint::save(&second.vs, &dir.join("end.safetensors"), &model_cfg()).unwrap();
-        checkpoint::load(&mut reread.vs, &dir.join("end.safetensors"), model_cfg().n_layer)
-            .unwrap();
+        checkpoint::load(&mut reread.vs, &dir.join("end.safetensors"), &model_cfg()).unwrap();
         assert!(bitwise(&weights(&second.vs), &weights(&reread.vs)));
         let (full_losses, full_weights) = &uninterrupted[&(to == FlatOptim::On)];
         if from == to {

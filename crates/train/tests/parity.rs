@@ -115,7 +115,7 @@ fn model(set: &Golden) -> (VarStore, PromptDt) {
     let cfg = PromptDtConfig::reference(20, 6);
     let mut vs = VarStore::new(Device::Cpu);
     let m = PromptDt::new(&vs.root(), &cfg);
-    checkpoint::load(&mut vs, &set.file("prompt_dt_state_dict.safetensors"), cfg.n_layer)
+    checkpoint::load(&mut vs, &set.file("prompt_dt_state_dict.safetensors"), &cfg)
         .expect("weights load");
     (vs, m)
 }

@@ -303,7 +303,7 @@ impl Learner for PromptDtLearner<'_> {
                 format!("optimiser step {n} for `{name}` at step {}", saved.step),
             ));
         }
-        checkpoint::load(&mut self.vs, &files.weights, self.model.cfg.n_layer)?;
+        checkpoint::load(&mut self.vs, &files.weights, &self.model.cfg)?;
         let opt_path = &files.moments;
         let tensors = checkpoint::read_float_tensors(opt_path)?;
         let mut state = BTreeMap::new();
@@ -325,7 +325,7 @@ impl Learner for PromptDtLearner<'_> {
     }
 
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError> {
-        checkpoint::load(&mut self.vs, path, self.setup.run_data.model_cfg.n_layer)?;
+        checkpoint::load(&mut self.vs, path, &self.setup.run_data.model_cfg)?;
         Ok(())
     }
 
