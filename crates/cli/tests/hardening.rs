@@ -531,3 +531,20 @@ fn round3_an_all_zero_attention_mask_row_is_refused() {
         assert!(!out.exists());
     }
 }
+
+/// Round 3 (issue 56): `train --pack --out DIR` refuses a DIR that holds a solo run, as `train
+/// --config` refuses one that holds a run; before, the pack's record and runs went in beside it.
+#[test]
+fn round3_a_pack_is_not_written_into_a_solo_runs_directory() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let solo = tmp.path().join("solo");
+    train(&cfg, &solo, &["--iterations", "1"]);
+    let before: Vec<_> =
+        std::fs::read_dir(&solo).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let b = variant(&cfg, "run", "seed", "1");
+    let e = fails(&["train", "--pack", s(&cfg), s(&b), "--out", s(&solo)]);
+    assert!(e.contains("holds a run") && e.contains("pick another --out"), "{e}");
+    let after: Vec<_> = std::fs::read_dir(&solo).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(after, before, "nothing written into the solo run's directory");
+}

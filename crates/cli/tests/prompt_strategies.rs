@@ -135,3 +135,56 @@ fn a_runs_eval_prompt_section_sets_its_evaluations_strategy() {
     ]);
     assert!(e.contains("tail") && e.contains("best-return"), "{e}");
 }
+
+/// Issue 56: a flag that acts only with another is refused by name; before, `--bandit-epsilon`
+/// without the bandit was ignored (the evaluation ran the reference rule) and yet recorded in
+/// `eval_prompt_reference.json`, and `--lora-rank` without `--adapt lora` was ignored.
+#[test]
+fn flags_that_act_only_with_another_are_refused_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let run = tmp.path().join("run");
+    let r = run.to_str().unwrap();
+    ok(&["train", "--config", cfg.to_str().unwrap(), "--out", r, "--quiet"]);
+    let cases: [(&[&str], &str); 6] = [
+        (&["--bandit-epsilon", "0.3"], "--bandit-epsilon acts only with --prompt-strategy bandit"),
+        (&["--prompt-strategy", "best-return", "--bandit-round", "2"], "--bandit-round acts only"),
+        (
+            &["--prompt-stride", "2"],
+            "--prompt-stride acts only with --prompt-strategy nearest-start",
+        ),
+        (&["--lora-rank", "2"], "--lora-rank acts only with --adapt lora"),
+        (
+            &["--adapt", "soft-prompt", "--ptdt-sigma", "0.1"],
+            "--ptdt-sigma acts only with --adapt ptdt",
+        ),
+        (
+            &["--adapt", "ptdt", "--adapt-lr", "0.1"],
+            "--adapt-lr acts only with --adapt soft-prompt or lora",
+        ),
+    ];
+    for (flags, message) in cases {
+        let mut args = vec!["eval", "--run", r, "--episodes", "1"];
+        args.extend_from_slice(flags);
+        let e = fails(&args);
+        assert!(e.contains(message), "{flags:?}: {e}");
+    }
+    let written: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("eval_"))
+        .collect();
+    assert!(written.is_empty(), "nothing evaluated, nothing written: {written:?}");
+    // With their strategy they act.
+    ok(&[
+        "eval",
+        "--run",
+        r,
+        "--episodes",
+        "1",
+        "--prompt-strategy",
+        "bandit",
+        "--bandit-epsilon",
+        "0.3",
+    ]);
+}

@@ -57,6 +57,17 @@ pub fn train_pack_dir(
             out.display()
         )));
     }
+    // A pack directory holds its runs in subdirectories; one that is itself a run's directory
+    // would mix the two (`train --config` refuses the same --out).
+    let solo = pdt_rundir::RunDir::at(out);
+    if let Some(file) = [solo.info_path(), solo.config_path()].into_iter().find(|f| f.is_file()) {
+        return Err(RunError::Invalid(format!(
+            "{} holds a run ({} is there): a pack directory holds its runs in subdirectories of \
+             its own; pick another --out",
+            out.display(),
+            file.display()
+        )));
+    }
     let mut runs = Vec::with_capacity(configs.len());
     for cfg in &mut configs {
         // Recorded absolute, so the pack resumes from any directory.
