@@ -279,9 +279,10 @@ pub struct ReproduceArgs {
     /// Where the datasets go (default: <out>/data).
     #[arg(long)]
     pub data_root: Option<PathBuf>,
-    /// Directory with the committed agents (`<env>/agent.json`) that collect the datasets.
-    #[arg(long, default_value = "pretrained")]
-    pub pretrained_root: PathBuf,
+    /// Directory with the committed agents (`<env>/agent.json`) that collect the datasets
+    /// (default: `pretrained` here, else the `pretrained/` of the checkout promptdt was built in).
+    #[arg(long)]
+    pub pretrained_root: Option<PathBuf>,
     /// The reference release's prompt files (`official-prompts/`): its experts' returns, which
     /// normalise the paper's numbers, are recomputed from them (default: the numbers committed in
     /// the manifest, made from the same files).

@@ -516,7 +516,14 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     if a.status {
         return print_status(&p, a, name);
     }
-    let exe = std::env::current_exe().context("the promptdt binary's path")?;
+    let eopts = exec::ExecOptions {
+        exe: std::env::current_exe().context("the promptdt binary's path")?,
+        jobs,
+        omp_wait_policy: Some(a.omp_wait_policy.clone()),
+        pretrained_root: pretrained_root(a.pretrained_root.as_deref())?,
+        pack,
+        pack_engine,
+    };
     match a.emit.as_deref() {
         Some("jobs") => {
             let dir = out.join("jobs").join(format!("{}-{}", p.experiment, p.budget));
@@ -539,7 +546,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 extra.push(opts.data_root.to_string_lossy().into_owned());
             }
             extra.push("--pretrained-root".into());
-            extra.push(std::path::absolute(&a.pretrained_root)?.to_string_lossy().into_owned());
+            extra.push(eopts.pretrained_root.to_string_lossy().into_owned());
             // A manifest given as a file is named by its absolute path, so the jobs run from anywhere.
             let manifest = match std::path::Path::new(name).is_file() {
                 true => std::path::absolute(name)?.to_string_lossy().into_owned(),
@@ -551,7 +558,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 extra.push("--pack-engine".into());
                 extra.push(pack_engine.name().into());
             }
-            let files = exec::emit_jobs(&p, &dir, &exe, &manifest, &extra, pack)?;
+            let files = exec::emit_jobs(&p, &dir, &eopts, &manifest, &extra)?;
             out!(
                 "{} runs; wrote {}",
                 p.runs.len(),
@@ -580,14 +587,6 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         None => {}
     }
     if !a.report_only {
-        let eopts = exec::ExecOptions {
-            exe,
-            jobs,
-            omp_wait_policy: Some(a.omp_wait_policy.clone()),
-            pretrained_root: std::path::absolute(&a.pretrained_root)?,
-            pack,
-            pack_engine,
-        };
         let pb = bar(0, "{prefix} {bar:30} {pos}/{len} iterations [{elapsed} < {eta}] {msg}");
         pb.set_prefix(format!("{} {}", p.experiment, p.budget));
         let summary = exec::execute(&p, a.only.as_deref(), &eopts, &mut |pr| match &pr.stage {
@@ -704,6 +703,21 @@ pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::Promp
             ..d
         },
     })
+}
+
+/// `--pretrained-root`, absolute: as given, else `pretrained` in this directory, else the
+/// `pretrained/` of the checkout this binary was built in, so `reproduce`, and the jobs it emits for
+/// other machines, find the committed agents from any directory (`exec::check_agents` refuses to
+/// emit jobs whose agents are missing).
+fn pretrained_root(given: Option<&std::path::Path>) -> Result<PathBuf> {
+    let here = PathBuf::from("pretrained");
+    let built = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pretrained");
+    let dir = match given {
+        Some(d) => d.to_path_buf(),
+        None if !here.is_dir() && built.is_dir() => built.canonicalize().unwrap_or(built),
+        None => here,
+    };
+    std::path::absolute(&dir).with_context(|| format!("--pretrained-root {}", dir.display()))
 }
 
 /// `reproduce --status`: the plan's runs and where each stands, then the command that goes on.

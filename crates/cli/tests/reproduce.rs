@@ -204,3 +204,72 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
         |d: &Path| std::fs::read_to_string(d.join("reports/fig4-smoke/curves.csv")).unwrap();
     assert_eq!(curves(&a), curves(&b));
 }
+
+/// The Slurm array script asks for what its tasks use (issue 56): `--cpus-per-task` is the runs'
+/// `--threads` (times a CPU pack's runs, which compute at once), a GPU (`--gres=gpu:1`, marked as
+/// the place a site edits) only on `--device cuda`, and the jobs name the committed agents by an
+/// absolute path that does not depend on the directory `--emit` ran in; agents that are not there
+/// are refused before anything is written. Emitted from a directory other than the checkout.
+#[test]
+fn emitted_slurm_script_asks_for_what_the_runs_use() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cwd = tmp.path().join("elsewhere"); // no `pretrained/` here
+    std::fs::create_dir(&cwd).unwrap();
+    let mut n = 0;
+    // Emits fig4 at smoke with `extra` into a fresh --out: (run.slurm, jobs.txt).
+    let mut emit = |extra: &[&str]| {
+        n += 1;
+        let out = tmp.path().join(format!("out{n}"));
+        let mut args = vec!["reproduce", "fig4", "--budget", "smoke", "--emit", "jobs", "--out"];
+        args.push(out.to_str().unwrap());
+        args.extend(extra);
+        cli::check_ok(&args, cli::promptdt_in(&cwd, &args));
+        let read = |f: &str| std::fs::read_to_string(out.join("jobs/fig4-smoke").join(f)).unwrap();
+        (read("run.slurm"), read("jobs.txt"))
+    };
+    let (slurm, jobs) = emit(&["--threads", "1", "--device", "cpu"]);
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=1\n"), "{slurm}");
+    assert!(!slurm.contains("--gres"), "{slurm}");
+    let agents = repo().join("pretrained").canonicalize().unwrap();
+    let agents = format!("'--pretrained-root' '{}'", agents.display());
+    assert!(jobs.lines().all(|l| l.contains(&agents)), "{agents} missing from:\n{jobs}");
+    let (slurm, _) = emit(&["--threads", "3", "--device", "cpu"]);
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=3\n"), "{slurm}");
+    // A GPU per task on CUDA, with the comment that says where a site edits it.
+    let (slurm, jobs) = emit(&["--threads", "2", "--device", "cuda"]);
+    assert!(slurm.contains("\n#SBATCH --gres=gpu:1\n"), "{slurm}");
+    assert!(slurm.contains("The place to edit for a site"), "{slurm}");
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=2\n"), "{slurm}");
+    assert!(jobs.lines().all(|l| l.contains("'--device' 'cuda'")), "{jobs}");
+    // sbatch reads #SBATCH lines up to the first command only.
+    let first_command = slurm.lines().position(|l| !l.starts_with('#')).unwrap();
+    assert!(slurm.lines().skip(first_command).all(|l| !l.starts_with("#SBATCH")), "{slurm}");
+    // Packs of 3 seeds: the solo engine on the CPU computes a pack's runs at once, each on its
+    // threads; the batched engine as one computation on them.
+    let pack = ["--seeds", "3", "--pack", "3", "--threads", "2", "--device", "cpu"];
+    let (slurm, jobs) = emit(&[&pack[..], &["--pack-engine", "solo"]].concat());
+    assert!(jobs.lines().any(|l| l.matches(",").count() == 2), "no pack of 3:\n{jobs}");
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=6\n"), "{slurm}");
+    let (slurm, _) = emit(&[&pack[..], &["--pack-engine", "batched"]].concat());
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=2\n"), "{slurm}");
+
+    // Agents that are not there: refused by name, nothing written.
+    let out = tmp.path().join("none");
+    let missing = tmp.path().join("no-agents");
+    let args = [
+        "reproduce",
+        "fig4",
+        "--budget",
+        "smoke",
+        "--emit",
+        "jobs",
+        "--out",
+        out.to_str().unwrap(),
+        "--pretrained-root",
+        missing.to_str().unwrap(),
+    ];
+    let err = cli::check_fails(&args, cli::promptdt_in(&cwd, &args));
+    let agent = missing.join("ant_dir/agent.json");
+    assert!(err.contains("--pretrained-root") && err.contains(agent.to_str().unwrap()), "{err}");
+    assert!(!out.join("jobs").exists(), "jobs written for agents that are not there");
+}

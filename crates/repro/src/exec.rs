@@ -497,17 +497,20 @@ pub fn execute(
 /// it collects its data if missing, starts or resumes the run, and writes no report; `reproduce
 /// --report-only` merges the results from the run directories alone.
 ///
-/// With `pack` > 1, one command per pack instead (`--only` naming its runs, comma-separated; the
-/// runs grouped as [`execute`] groups them: `crate::packs::group`); `extra_args` then carries
-/// `--pack`.
+/// With `opts.pack` > 1, one command per pack instead (`--only` naming its runs, comma-separated;
+/// the runs grouped as [`execute`] groups them: `crate::packs::group`); `extra_args` then carries
+/// `--pack`. `opts.exe` is the binary the commands run; the datasets a command would collect from
+/// `opts.pretrained_root`'s agents must have one there ([`check_agents`]), or nothing is written:
+/// every task would fail on its node. `opts.jobs` is not used (the scheduler decides).
 pub fn emit_jobs(
     plan: &Plan,
     dir: &Path,
-    exe: &Path,
+    opts: &ExecOptions,
     manifest_arg: &str,
     extra_args: &[String],
-    pack: usize,
 ) -> Result<Vec<PathBuf>, ReproError> {
+    check_agents(plan, &opts.pretrained_root)?;
+    let (exe, pack) = (opts.exe.as_path(), opts.pack);
     let q = |s: &str| format!("'{}'", s.replace('\'', r"'\''"));
     let mut lines = String::new();
     // Variants are left to the `reproduce` call after the jobs (they need the trained weights).
@@ -535,13 +538,26 @@ pub fn emit_jobs(
     let slurm = dir.join("run.slurm");
     let n = groups.len();
     let unit = if pack > 1 { "pack" } else { "run" };
+    let cpus = groups.iter().map(|g| task_cpus(g, opts.pack_engine)).max().unwrap_or(1);
+    let gpu = runs.iter().any(|r| r.config.run.device == pdt_model::device::DeviceSpec::Cuda);
+    // A site names its GPUs, partitions and accounts its own way: the one line to edit is marked.
+    let gres = match gpu {
+        true => {
+            "# --device cuda: one GPU per task. The place to edit for a site: its GPU type\n\
+                 # (--gres=gpu:a100:1), partition (--partition=gpu), account, time limit.\n\
+                 #SBATCH --gres=gpu:1\n"
+        }
+        false => "",
+    };
     write_atomic(
         &slurm,
         &format!(
             "#!/bin/bash\n# One array task per {unit} of {exp} at the {budget} budget ({n} {unit}s).\n\
              # Submit: sbatch --array=1-{n} {slurm}\n\
              # Then:   {exe} reproduce {exp} --budget {budget} --out {out} --report-only\n\
-             #SBATCH --job-name=promptdt-{exp}-{budget}\n#SBATCH --cpus-per-task=2\n\
+             #SBATCH --job-name=promptdt-{exp}-{budget}\n\
+             # The CPUs a task computes on: {cpus_why}.\n\
+             #SBATCH --cpus-per-task={cpus}\n{gres}\
              set -euo pipefail\n\
              cmd=$(sed -n \"${{SLURM_ARRAY_TASK_ID}}p\" {jobs})\n\
              eval \"$cmd\"\n",
@@ -551,9 +567,48 @@ pub fn emit_jobs(
             exe = q(&exe.to_string_lossy()),
             out = q(&plan.out.to_string_lossy()),
             jobs = q(&jobs.to_string_lossy()),
+            cpus_why = match unit {
+                "pack" => "its runs' --threads, times the runs of a pack computing at once",
+                _ => "its run's --threads",
+            },
         ),
     )?;
     Ok(vec![jobs, slurm])
+}
+
+/// The CPUs one emitted task keeps busy: its runs' libtorch threads (`run.threads`), times the
+/// pack's runs where they compute at once (the solo engine off the GPU steps each run on a thread
+/// of its own with its threads; the batched engine, or the solo one on a GPU, one computation at a
+/// time: docs/packs.md).
+fn task_cpus(group: &[&RunSpec], engine: pdt_train::pack::Engine) -> usize {
+    let threads = group.iter().map(|r| pdt_base::threads(r.config.run.threads)).max().unwrap_or(1);
+    let at_once = engine == pdt_train::pack::Engine::Solo
+        && group.iter().all(|r| r.config.run.device != pdt_model::device::DeviceSpec::Cuda);
+    threads.max(1) * if at_once { group.len() } else { 1 }
+}
+
+/// Refuses a plan whose datasets, not collected yet, would be collected from committed agents that
+/// are not in `pretrained_root` (`<env>/agent.json`), naming the first one missing. Scripted
+/// families need none.
+pub fn check_agents(plan: &Plan, pretrained_root: &Path) -> Result<(), ReproError> {
+    for d in plan.data() {
+        let scripted = pdt_envs::family(&d.env).is_ok_and(|f| f.scripted().is_some());
+        if scripted || d.dir.join("dataset.json").is_file() {
+            continue;
+        }
+        let agent = pretrained_root.join(&d.env).join("agent.json");
+        if !agent.is_file() {
+            return Err(ReproError::Invalid(format!(
+                "--pretrained-root {}: no {} to collect the {} datasets ({}) with; give the \
+                 directory of the committed agents (`pretrained/` in the checkout)",
+                pretrained_root.display(),
+                agent.display(),
+                d.env,
+                d.dir.display()
+            )));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
