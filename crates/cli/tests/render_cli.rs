@@ -63,3 +63,30 @@ fn render_writes_a_gif_of_a_prompted_episode() {
     let e = fails(&["render", "--run", s(&run), "--task", "34", "--out", s(&missing)]);
     assert!(e.contains("does not exist"), "{e}");
 }
+
+/// An MT-BC-Finetune run is evaluated after fine-tuning its multi-task weights on each test
+/// task's demonstrations; its checkpoint acting as saved is another policy. `render` refused
+/// MACAW but filmed such a run from its multi-task weights (issue 56): now it refuses it, with the
+/// check and the message `serve` uses (one owner: `Policy::check_acts_as_evaluated`).
+#[test]
+fn render_and_serve_refuse_a_run_that_fine_tunes_before_it_acts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let run = tmp.path().join("finetune");
+    ok(&["train", "--config", s(&cfg), "--out", s(&run), "--method", "mt-bc-finetune", "--quiet"]);
+    let gif = tmp.path().join("episode.gif");
+    let e = fails(&["render", "--run", s(&run), "--task", "34", "--out", s(&gif)]);
+    assert!(
+        e.contains("an MT-BC-Finetune run adapts to each test task before it acts")
+            && e.contains("`promptdt render` takes prompt-dt, prompt-mt-bc, mt-orl runs")
+            && e.contains("`promptdt eval`"),
+        "{e}"
+    );
+    assert!(!gif.exists(), "nothing written");
+    let e = fails(&["serve", "--run", s(&run), "--listen", "127.0.0.1:0"]);
+    assert!(
+        e.contains("an MT-BC-Finetune run adapts to each test task before it acts")
+            && e.contains("`promptdt serve` takes prompt-dt, prompt-mt-bc, mt-orl runs"),
+        "{e}"
+    );
+}

@@ -29,11 +29,21 @@ pub enum PolicyError {
     NoCheckpoint(PathBuf),
     /// A run of a method without the Decision Transformer (MACAW): it has no policy here.
     #[error(
-        "{}: a {method} run adapts to a task's data before it acts; serving it is not supported \
-         (evaluate it with `promptdt eval`)",
+        "{}: a {method} run adapts to a task's data before it acts and has no Decision \
+         Transformer policy to serve or film (evaluate it with `promptdt eval`)",
         dir.display()
     )]
     NotTransformer { dir: PathBuf, method: &'static str },
+    /// A run whose evaluation adapts its weights to each test task before acting
+    /// (MT-BC-Finetune): its checkpoint as saved is not the policy its evaluation scores
+    /// ([`crate::Policy::check_acts_as_evaluated`]).
+    #[error(
+        "an {method} run adapts to each test task before it acts (its evaluation fine-tunes the \
+         multi-task weights on the task's demonstrations first), so its checkpoint as saved is \
+         not the policy it is evaluated as: `promptdt {command}` takes {acting} runs (evaluate this \
+         one with `promptdt eval`)"
+    )]
+    AdaptsBeforeActing { method: &'static str, command: &'static str, acting: String },
     /// The run's configuration and data do not fit together (the trainer's checks).
     #[error("{0}")]
     Invalid(String),

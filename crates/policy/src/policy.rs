@@ -163,6 +163,26 @@ impl Policy {
         })
     }
 
+    /// Whether the checkpoint, acting as loaded, is the policy the run's evaluation scores on
+    /// its test tasks: not for a method that adapts to each test task first (MT-BC-Finetune), whose
+    /// saved weights are its multi-task pre-training. The one check of `promptdt serve` and
+    /// `promptdt render` (`command`, named in the error), so both show only what is evaluated.
+    pub fn check_acts_as_evaluated(&self, command: &'static str) -> Result<(), PolicyError> {
+        if !self.method.adapts_before_acting() {
+            return Ok(());
+        }
+        let acting: Vec<&str> = Method::ALL
+            .into_iter()
+            .filter(|m| m.is_transformer() && !m.adapts_before_acting())
+            .map(|m| m.name())
+            .collect();
+        Err(PolicyError::AdaptsBeforeActing {
+            method: self.method.title(),
+            command,
+            acting: acting.join(", "),
+        })
+    }
+
     /// The state normalisation of the run's training data.
     pub fn norm(&self) -> &StateNorm {
         &self.norm

@@ -103,6 +103,9 @@ impl VideoConfig {
 /// Loads the run, plays one episode of its policy on `cfg.task` and writes it as a GIF.
 pub fn record_episode(cfg: &VideoConfig) -> Result<VideoSummary, VideoError> {
     let policy = Policy::load(&cfg.run, cfg.device, cfg.data.as_deref())?;
+    // Film the policy that is evaluated, or nothing: an MT-BC-Finetune checkpoint acting as
+    // saved would be its multi-task weights, never scored on a test task.
+    policy.check_acts_as_evaluated("render")?;
     let family = pdt_envs::family(&policy.env)?;
     let mut env = family.make(cfg.task)?;
     let prompt = if policy.method.uses_prompt() {
