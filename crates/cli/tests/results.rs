@@ -186,3 +186,174 @@ fn report_only_counts_the_planned_seeds_not_only_the_archived_ones() {
     let bad = [&fresh[..], &["--report-only"]].concat();
     cli::check_fails(&bad, promptdt_in(&empty, &bad));
 }
+
+/// `results add --date` takes a calendar date `YYYY-MM-DD` only, and a finished run whose
+/// `metrics.jsonl` lost its last line (or had it torn) is refused, naming the file and the
+/// missing iteration, not archived with a curve that lacks its end (issue 56).
+#[test]
+fn add_refuses_a_date_that_is_no_day_and_a_run_whose_metrics_lost_their_end() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let m = root.join("reg.toml");
+    std::fs::write(&m, cli::tiny_manifest("reg", "Registry", "the results registry", 1)).unwrap();
+    let tree = root.join("tree");
+    let only = "point_robot/prompt-dt/smoke/seed0";
+    let run = ["reproduce", s(&m), "--budget", "smoke", "--out", s(&tree), "--only", only];
+    check_ok(&run, promptdt_in(root, &run));
+    let (reg, data) = (root.join("reg"), tree.join("data"));
+    let good = tree.join("runs").join(only);
+    let archived = reg.join(only);
+
+    for date in ["2026-13-45", "yesterday", "2026-02-29", "26-01-01"] {
+        let mut a = add_args(&m, &reg, &data, &[&good]);
+        a.extend(["--date".to_string(), date.to_string()]);
+        let err = check_fails(&a, promptdt_in(root, &a));
+        assert!(err.contains(&format!("--date \"{date}\"")) && err.contains("YYYY-MM-DD"), "{err}");
+        assert!(!archived.exists(), "{date}: nothing archived");
+    }
+
+    // The last line gone (a copy taken before it was written): iteration 2 of 2 is missing.
+    let cut = root.join("cut/runs").join(only);
+    copy_dir(&good, &cut);
+    let metrics = cut.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&metrics).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text}");
+    std::fs::write(&metrics, format!("{}\n", lines[0])).unwrap();
+    let a = add_args(&m, &reg, &data, &[&cut]);
+    let err = check_fails(&a, promptdt_in(root, &a));
+    assert!(
+        err.contains(&format!("{}: not archived", cut.display()))
+            && err.contains(&format!("{} ends at iteration 1", metrics.display()))
+            && err.contains("iteration 2 is missing"),
+        "{err}"
+    );
+    // Torn in the middle of its last line: named as such too.
+    std::fs::write(&metrics, format!("{}\n{}", lines[0], &lines[1][..lines[1].len() / 2])).unwrap();
+    let err = check_fails(&a, promptdt_in(root, &a));
+    assert!(
+        err.contains("iteration 2 is missing") && err.contains("skipped a truncated last line"),
+        "{err}"
+    );
+    assert!(!archived.exists());
+
+    // The same run whole, with a real date: archived, the date as given.
+    let mut a = add_args(&m, &reg, &data, &[&good]);
+    a.extend(["--date".to_string(), "2024-02-29".to_string()]);
+    check_ok(&a, promptdt_in(root, &a));
+    let prov = std::fs::read_to_string(archived.join("provenance.json")).unwrap();
+    assert!(prov.contains("\"date\": \"2024-02-29\""), "{prov}");
+}
+
+/// The committed registry (`results/`) copied into `dir`.
+fn committed_registry(dir: &Path) -> std::path::PathBuf {
+    let reg = dir.join("results");
+    copy_dir(&cli::repo("results"), &reg);
+    reg
+}
+
+/// `promptdt results render` of `reg` into `dir/RESULTS.md` (the README left alone).
+fn render_args(reg: &Path, dir: &Path) -> Vec<String> {
+    let out = dir.join("RESULTS.md");
+    ["results", "render", "--registry", s(reg), "--out", s(&out), "--no-readme"]
+        .map(String::from)
+        .to_vec()
+}
+
+/// `results render` fails, naming the run's directory, the file and why, when an archived run
+/// cannot be read (a cut `eval.jsonl`, a garbage `config.toml`, a corrupt `provenance.json` or
+/// `normalisation.json`, a `metrics.jsonl` without its end), and writes nothing: it once left such a run out of RESULTS.md (or showed its device as `-`)
+/// without a word and exited 0 (issue 56).
+#[test]
+fn render_refuses_a_registry_with_an_unreadable_run_and_writes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let reg = committed_registry(root);
+    let out = root.join("RESULTS.md");
+    let a = render_args(&reg, root);
+    // The committed registry, copied, renders the committed RESULTS.md.
+    check_ok(&a, promptdt_in(root, &a));
+    let committed = std::fs::read_to_string(cli::repo("RESULTS.md")).unwrap();
+    assert!(std::fs::read_to_string(&out).unwrap() == committed, "the copy renders RESULTS.md");
+    std::fs::write(&out, "kept\n").unwrap();
+
+    let key = "cheetah_vel/prompt-dt/cpu/seed0";
+    let run = reg.join(key);
+    let damage = |file: &str, f: &dyn Fn(&str) -> String| {
+        let path = run.join(file);
+        let text = std::fs::read_to_string(&path).unwrap();
+        std::fs::write(&path, f(&text)).unwrap();
+        text
+    };
+    let restore = |file: &str, text: &str| std::fs::write(run.join(file), text).unwrap();
+    // The last evaluation's last line cut in the middle (a copy taken while it was written).
+    let eval = damage("eval.jsonl", &|t| t[..t.len() - 40].to_string());
+    let err = check_fails(&a, promptdt_in(root, &a));
+    let path = run.join("eval.jsonl");
+    assert!(
+        err.contains(&format!("{key}: finished, but {}", path.display()))
+            && err.contains("cut short")
+            && err.contains("nothing written")
+            && err.contains("fig2 `cpu`"),
+        "{err}"
+    );
+    restore("eval.jsonl", &eval);
+    // A garbage config.toml.
+    let config = damage("config.toml", &|_| "[[[ not toml\n".into());
+    let err = check_fails(&a, promptdt_in(root, &a));
+    assert!(err.contains(&run.join("config.toml").display().to_string()), "{err}");
+    restore("config.toml", &config);
+    // A corrupt provenance.json (it was shown as device `-`).
+    let prov = damage("provenance.json", &|t| t.replace("\"device_name\"", "\"device_nom\""));
+    let err = check_fails(&a, promptdt_in(root, &a));
+    let path = run.join("provenance.json");
+    assert!(
+        err.contains(&format!("{key}: {}", path.display())) && err.contains("device_name"),
+        "{err}"
+    );
+    restore("provenance.json", &prov);
+    // A corrupt normalisation.json of one seed (the report took another seed's card unseen).
+    let norm = damage("normalisation.json", &|t| t[..t.len() / 2].to_string());
+    let err = check_fails(&a, promptdt_in(root, &a));
+    assert!(err.contains(&format!("{key}: {}", run.join("normalisation.json").display())), "{err}");
+    restore("normalisation.json", &norm);
+    // The training curve without its last row (its loss curve would lack the end).
+    let metrics = damage("metrics.jsonl", &|t| {
+        let lines: Vec<&str> = t.lines().collect();
+        format!("{}\n", lines[..lines.len() - 1].join("\n"))
+    });
+    let err = check_fails(&a, promptdt_in(root, &a));
+    let path = run.join("metrics.jsonl");
+    assert!(
+        err.contains(&format!("{key}: {} ends at iteration", path.display()))
+            && err.contains("iteration 500 is missing"),
+        "{err}"
+    );
+    restore("metrics.jsonl", &metrics);
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "kept\n", "nothing written");
+    check_ok(&a, promptdt_in(root, &a));
+    assert!(std::fs::read_to_string(&out).unwrap() == committed);
+}
+
+/// `results render --registry DIR` with no registry at DIR (absent, or holding no archived run)
+/// is refused naming DIR, and the committed RESULTS.md and README stay as they are: it once
+/// wrote an empty RESULTS.md over them and exited 0 (issue 56).
+#[test]
+fn render_refuses_a_registry_that_is_not_there() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    std::fs::write(root.join("RESULTS.md"), "committed\n").unwrap();
+    std::fs::write(root.join("README.md"), "a\n<!-- results:begin -->\nx\n<!-- results:end -->\n")
+        .unwrap();
+    let before = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let empty = root.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    for (reg, why) in [("no-such-dir", "no such directory"), ("empty", "holds no archived run")] {
+        // The default outputs, in the working directory: RESULTS.md and README.md.
+        let a = ["results", "render", "--registry", reg];
+        let err = check_fails(&a, promptdt_in(root, &a));
+        assert!(err.contains(&format!("--registry {reg}: {why}")), "{err}");
+        assert_eq!(std::fs::read_to_string(root.join("RESULTS.md")).unwrap(), "committed\n");
+        assert_eq!(std::fs::read_to_string(root.join("README.md")).unwrap(), before);
+    }
+}

@@ -13,8 +13,10 @@
 //!   was scored with ([`crate::baselines::baselines`]), so its normalised score needs no data;
 //! - `provenance.json`: where and how it ran ([`Provenance`]).
 //!
-//! `promptdt results add` ([`add`]) is the only writer: it refuses an unfinished run and one whose
-//! configuration is not its cell's at that budget.
+//! `promptdt results add` ([`add`]) is the only writer: it refuses an unfinished run, one whose
+//! configuration is not its cell's at that budget, one whose `metrics.jsonl` does not reach its
+//! last iteration, and a `--date` that is no calendar day. `results render` refuses a registry
+//! with a run it cannot read ([`archive_problems`], and what the report names).
 
 use crate::baselines::{baselines, Normalisation, NORMALISATION_JSON};
 use crate::manifest::Manifest;
@@ -103,6 +105,10 @@ fn refuse(dir: &Path, why: impl std::fmt::Display) -> ReproError {
 /// Adds every run of `o` to the registry (each written into a temporary directory renamed into
 /// place, replacing an earlier archive of the same run). Stops at the first run refused.
 pub fn add(o: &AddOptions) -> Result<Vec<Added>, ReproError> {
+    // Checked before any run is archived: a provenance date that is no day is refused, not kept.
+    if let Some(d) = &o.provenance.date {
+        check_date(d).map_err(|why| ReproError::Invalid(format!("--date {d:?}: {why}")))?;
+    }
     let m = Manifest::load(&o.experiment)?;
     let mut added = Vec::new();
     for dir in &o.runs {
@@ -156,7 +162,16 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     if eval_iters.last().is_none_or(|&last| last < n) {
         return Err(refuse(dir, format!("eval.jsonl has no test evaluation of iteration {n}")));
     }
-    let metrics = run.metrics()?.map(|l| l.rows).unwrap_or_default();
+    let metrics = run.metrics()?;
+    // A trained run's curve must reach the iteration its commit record says it reached: a
+    // `metrics.jsonl` cut short (a copy taken while it was written, a lost or torn last line)
+    // would be archived as a curve without its end, and its wall time read from an earlier row.
+    // A variant trained nothing: its metrics are the base run's business.
+    if spec.base.is_none() {
+        check_metrics_reach(&run.metrics_path(), metrics.as_ref(), done)
+            .map_err(|w| refuse(dir, w))?;
+    }
+    let metrics = metrics.map(|l| l.rows).unwrap_or_default();
     // A variant's time is its evaluation's (it trained nothing); its record names its files.
     let variant = match &spec.base {
         Some(_) => {
@@ -254,6 +269,63 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     Ok(Added { key: spec.key.clone(), dir: target, bytes })
 }
 
+/// Why `metrics` (the rows of `path`) do not reach iteration `done`, if they do not.
+fn check_metrics_reach(
+    path: &Path,
+    metrics: Option<&pdt_rundir::JsonLines<MetricsLine>>,
+    done: u64,
+) -> Result<(), String> {
+    let Some(lines) = metrics else {
+        return Err(format!("{} is missing (the run's training curve)", path.display()));
+    };
+    let last = lines.rows.iter().map(|r| r.iteration).max();
+    if last.is_some_and(|l| l >= done) {
+        return Ok(());
+    }
+    let missing = match last {
+        Some(l) if l + 1 == done => format!("iteration {done} is missing"),
+        Some(l) => format!("iterations {}..={done} are missing", l + 1),
+        None => format!("it has no row (iterations 1..={done} are missing)"),
+    };
+    let torn = lines.skipped.as_ref().map_or(String::new(), |s| format!("; {s}"));
+    Err(format!(
+        "{} ends at iteration {}, but checkpoints/latest.json says the run reached {done}: \
+         {missing} (cut short?){torn}",
+        path.display(),
+        last.unwrap_or(0)
+    ))
+}
+
+/// Whether `d` is a calendar date written `YYYY-MM-DD` (the provenance's format), year 1970 on.
+pub fn check_date(d: &str) -> Result<(), String> {
+    let expected = "expected a calendar date YYYY-MM-DD, e.g. 2026-03-14";
+    let b = d.as_bytes();
+    let shaped = b.len() == 10
+        && b[4] == b'-'
+        && b[7] == b'-'
+        && b.iter().enumerate().all(|(i, c)| i == 4 || i == 7 || c.is_ascii_digit());
+    if !shaped {
+        return Err(format!("not YYYY-MM-DD; {expected}"));
+    }
+    let num = |r: std::ops::Range<usize>| d[r].parse::<u32>().unwrap_or(0);
+    let (y, m, day) = (num(0..4), num(5..7), num(8..10));
+    if y < 1970 {
+        return Err(format!("year {y} is before any run (1970 on); {expected}"));
+    }
+    let leap = (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+    let days = match m {
+        1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
+        4 | 6 | 9 | 11 => 30,
+        2 if leap => 29,
+        2 => 28,
+        _ => return Err(format!("month {m} is not 01-12; {expected}")),
+    };
+    if !(1..=days).contains(&day) {
+        return Err(format!("day {day} is not in {y}-{m:02}, which has {days} days; {expected}"));
+    }
+    Ok(())
+}
+
 fn io(path: &Path, source: std::io::Error) -> ReproError {
     ReproError::Io { path: path.to_path_buf(), source }
 }
@@ -303,9 +375,34 @@ fn civil_date(days: i64) -> String {
     format!("{y:04}-{m:02}-{d:02}")
 }
 
-/// An archived run's provenance, if `run_dir` is one.
-pub fn provenance(run_dir: &Path) -> Option<Provenance> {
-    pdt_rundir::read_json::<Provenance>(&run_dir.join(PROVENANCE_JSON)).ok()
+/// An archived run's provenance; an error names `provenance.json` and why it cannot be read.
+pub fn provenance(run_dir: &Path) -> Result<Provenance, ReproError> {
+    Ok(pdt_rundir::read_json::<Provenance>(&run_dir.join(PROVENANCE_JSON))?)
+}
+
+/// What cannot be read in the archived run in `dir` besides what the report reads and names
+/// itself: its `provenance.json`, its `normalisation.json` (the report takes the first seed's
+/// readable one, so another seed's corrupt one would pass unseen) and, for a trained run (not a
+/// `variant`), a `metrics.jsonl` that reaches the iteration its commit record says (as
+/// [`add`] checks it). Each names the file and why.
+pub fn archive_problems(dir: &Path, variant: bool) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Err(e) = provenance(dir) {
+        out.push(e.to_string());
+    }
+    if let Err(e) = pdt_rundir::read_json::<Normalisation>(&dir.join(NORMALISATION_JSON)) {
+        out.push(e.to_string());
+    }
+    let run = RunDir::at(dir);
+    // An unreadable commit record or log is named by the report (the run's state, its loss).
+    if let (false, Ok(Some(latest)), Ok(metrics)) = (variant, run.latest(), run.metrics()) {
+        if let Err(why) =
+            check_metrics_reach(&run.metrics_path(), metrics.as_ref(), latest.iteration)
+        {
+            out.push(why);
+        }
+    }
+    out
 }
 
 /// Points every run of `plan` whose run directory is absent at its archive in `registry`, where
@@ -387,6 +484,29 @@ pub fn keys(registry: &Path) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn dates_are_calendar_days() {
+        for d in ["2026-03-14", "2024-02-29", "2000-02-29", "1970-01-01", "2026-12-31"] {
+            assert_eq!(check_date(d), Ok(()), "{d}");
+        }
+        for (d, why) in [
+            ("2026-13-45", "month 13"),
+            ("yesterday", "not YYYY-MM-DD"),
+            ("2026-1-5", "not YYYY-MM-DD"),
+            ("2026-02-29", "day 29"),
+            ("1900-02-29", "year 1900"),
+            ("2026-04-31", "day 31"),
+            ("2026-00-10", "month 0"),
+            ("2026-01-00", "day 0"),
+            ("+026-01-01", "not YYYY-MM-DD"),
+        ] {
+            let e = check_date(d).err().unwrap_or_default();
+            assert!(e.contains(why), "{d}: {e}");
+        }
+        // What the default (run.json's day) writes passes the check.
+        assert_eq!(check_date(&civil_date(20_000)), Ok(()));
+    }
 
     #[test]
     fn civil_dates() {

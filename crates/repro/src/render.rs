@@ -36,8 +36,33 @@ struct Section {
 
 /// Every committed experiment at every budget with an archived run, as reported from the
 /// registry in `registry` (no run directory, data or checkpoint is read).
+///
+/// An archived run that cannot be read (a cut `eval.jsonl`, a garbage `config.toml`, a corrupt
+/// `provenance.json` or `normalisation.json`: any file of it the report reads) fails the whole
+/// render, every such run named with its file and why: `RESULTS.md` is committed, and a row
+/// silently left out (or a device shown as `-`) would publish another result than the registry
+/// holds.
 fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
+    // A registry that is not there, or holds no archived run, would render an empty RESULTS.md
+    // over the committed one: a mistyped `--registry`, never an intended result.
+    if !registry.is_dir() {
+        return Err(ReproError::Invalid(format!(
+            "--registry {}: no such directory (the results registry, `results/` in the \
+             repository); nothing written",
+            registry.display()
+        )));
+    }
     let archived: BTreeSet<String> = registry::keys(registry).into_iter().collect();
+    if archived.is_empty() {
+        return Err(ReproError::Invalid(format!(
+            "--registry {}: holds no archived run (no <cell id>/<budget>/seed<N>/{} under it); \
+             nothing written",
+            registry.display(),
+            registry::PROVENANCE_JSON
+        )));
+    }
+    // Problem -> where it was met (`fig2 cpu`): a run read by two experiments is named once.
+    let mut problems: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
     // A place with no run directories, so that every run is read from the registry.
     let nowhere = registry.join(".no-run-directories");
     let mut out = Vec::new();
@@ -62,17 +87,48 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
                 continue;
             }
             let rep = report::build(&m, &p, None)?;
+            let at = format!("{} `{b}`", m.name);
+            for c in &rep.cells {
+                for why in &c.problems {
+                    // The report's problems start with the run's key, or name the cell's card.
+                    let why = match why.starts_with(&format!("{}/", c.id)) {
+                        true => why.clone(),
+                        false => format!("{}: {why}", c.id),
+                    };
+                    problems.entry(why).or_default().insert(at.clone());
+                }
+            }
             let mut seeds: BTreeMap<String, Vec<u64>> = BTreeMap::new();
             let mut devices: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
             for r in p.runs.iter().filter(|r| used.contains(&r.key)) {
                 let id = m.cells[r.cell].id();
                 seeds.entry(id.clone()).or_default().push(r.seed);
-                if let Some(pv) = registry::provenance(&r.dir) {
+                if let Ok(pv) = registry::provenance(&r.dir) {
                     devices.entry(id).or_default().insert(pv.device_name);
+                }
+                for why in registry::archive_problems(&r.dir, r.base.is_some()) {
+                    problems.entry(format!("{}: {why}", r.key)).or_default().insert(at.clone());
                 }
             }
             out.push(Section { report: rep, seeds, devices });
         }
+    }
+    if !problems.is_empty() {
+        let list: Vec<String> = problems
+            .iter()
+            .map(|(why, at)| {
+                let at: Vec<&str> = at.iter().map(String::as_str).collect();
+                format!("  {why} (read for {})", at.join(", "))
+            })
+            .collect();
+        return Err(ReproError::Invalid(format!(
+            "{}: {} archived run file(s) cannot be read, so RESULTS.md would leave their runs out \
+             or show them wrong; nothing written. Archive each run again from its run directory \
+             (`promptdt results add`), or remove its directory from the registry:\n{}",
+            registry.display(),
+            list.len(),
+            list.join("\n")
+        )));
     }
     Ok(out)
 }
