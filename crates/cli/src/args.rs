@@ -211,6 +211,47 @@ pub struct ServeArgs {
     pub prompt_length: Option<usize>,
     #[command(flatten)]
     pub adaptation: ServeAdaptFlags,
+    /// Require `Authorization: Bearer <token>` with the token in this file (whitespace around it
+    /// ignored; at least 16 characters) on every request but GET /v1/health. Without it the
+    /// token is read from PROMPTDT_SERVE_TOKEN when set. A token is needed on an address other
+    /// than loopback (docs/serve.md, Authentication).
+    #[arg(long, conflicts_with_all = ["generate_token", "no_auth"])]
+    pub token_file: Option<PathBuf>,
+    /// Require a bearer token made now at random, printed once (`token: ...`, the line after the
+    /// address) and kept nowhere.
+    #[arg(long, conflicts_with = "no_auth")]
+    pub generate_token: bool,
+    /// Serve without authentication on an address other than loopback (anyone who reaches the
+    /// port can use the server; for a server behind a proxy that authenticates). Prints a
+    /// warning.
+    #[arg(long)]
+    pub no_auth: bool,
+}
+
+impl ServeArgs {
+    /// Who may use the server, from `--token-file`, `--generate-token`, `--no-auth` and
+    /// PROMPTDT_SERVE_TOKEN (a flag wins over the variable; `--no-auth` with the variable set is
+    /// a contradiction, refused); and a generated token's text, to be printed once.
+    pub fn auth(&self) -> anyhow::Result<(pdt_serve::Auth, Option<String>)> {
+        use pdt_serve::{auth::TOKEN_ENV, Auth, Token};
+        if let Some(path) = &self.token_file {
+            return Ok((Auth::Token(Token::from_file(path)?), None));
+        }
+        if self.generate_token {
+            let (token, text) = Token::generate()?;
+            return Ok((Auth::Token(token), Some(text)));
+        }
+        let from_env = Token::from_env(TOKEN_ENV)?;
+        Ok(match (from_env, self.no_auth) {
+            (Some(_), true) => anyhow::bail!(
+                "--no-auth, but the environment variable {TOKEN_ENV} holds a token: unset it to \
+                 serve without authentication, or drop --no-auth to require it"
+            ),
+            (Some(t), false) => (Auth::Token(t), None),
+            (None, true) => (Auth::Disabled, None),
+            (None, false) => (Auth::LoopbackOnly, None),
+        })
+    }
 }
 
 #[derive(Debug, Args)]

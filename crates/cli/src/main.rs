@@ -383,6 +383,10 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Serve(a) => {
+            // Who may use it, settled (and an exposed address without a token refused) before
+            // the run is loaded.
+            let (auth, generated) = a.auth()?;
+            pdt_serve::auth::check(&a.listen, &auth)?;
             let run = pdt_policy::Policy::load(&a.run, a.device, a.data.as_deref())?;
             let opts = pdt_serve::ServeOptions {
                 listen: a.listen,
@@ -402,11 +406,20 @@ fn run(cli: Cli) -> Result<()> {
                     ..Default::default()
                 },
                 adapt: a.adaptation.to_config(),
+                auth,
                 ..Default::default()
             };
+            let warning = pdt_serve::auth::exposure_warning(&opts.listen, &opts.auth);
             let server = pdt_serve::Server::start(run, opts)?;
-            // The first line of output: clients (and tests) read the address from it.
+            if let Some(w) = warning {
+                eprintln!("{w}");
+            }
+            // The first line of output: clients (and tests) read the address from it; a
+            // generated token is the second, shown this once.
             out!("listening on http://{}", server.addr);
+            if let Some(token) = generated {
+                out!("token: {token}");
+            }
             use std::io::Write as _;
             let _ = std::io::stdout().flush();
             server.wait_for_ctrl_c()?;

@@ -20,6 +20,7 @@ fn the_python_client_example_runs_against_promptdt_serve() {
     ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
     let mut server = Command::new(env!("CARGO_BIN_EXE_promptdt"))
         .args(["serve", "--run", run.to_str().unwrap(), "--listen", "127.0.0.1:0"])
+        .env_remove(TOKEN_ENV)
         .stdout(Stdio::piped())
         .spawn()
         .unwrap();
@@ -96,6 +97,7 @@ impl Served {
         }
         let mut child = Command::new("sh")
             .args(["-c", &cmd])
+            .env_remove(TOKEN_ENV)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -373,4 +375,241 @@ fn serve_adapts_task_episodes_with_its_adapt_flags() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && stderr.contains("eval.adapt.lora.rank = 0"), "{stderr}");
+}
+
+// ------------------------------------------------------------------------------------------------
+// Authentication and settings refused at start (issue 56 points 5 and 2). Addresses other than
+// loopback are bound only as 0.0.0.0 on port 0 and reached through 127.0.0.1.
+// ------------------------------------------------------------------------------------------------
+
+const TOKEN_ENV: &str = "PROMPTDT_SERVE_TOKEN";
+
+/// `promptdt serve ARGS` (with `env` set, PROMPTDT_SERVE_TOKEN removed unless `env` sets it) that
+/// must exit: its stderr. Fails the test if it is still serving after 60 s or exits 0.
+fn refused_at_start(args: &[&str], env: &[(&str, &str)]) -> String {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_promptdt"));
+    cmd.arg("serve").args(args).env_remove(TOKEN_ENV);
+    cmd.envs(env.iter().copied()).stdout(Stdio::null()).stderr(Stdio::piped());
+    let mut child = cmd.spawn().unwrap();
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break st;
+        }
+        if t0.elapsed() > Duration::from_secs(60) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("serve {args:?} started (still running after 60 s)");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    child.stderr.take().unwrap().read_to_string(&mut stderr).unwrap();
+    assert!(!status.success(), "serve {args:?} exited 0: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    stderr
+}
+
+/// `promptdt serve --run RUN ARGS` serving: the child, its stdout's lines after the address, and
+/// the address to reach it on (127.0.0.1 where it listens on 0.0.0.0).
+struct Exposed {
+    child: std::process::Child,
+    addr: SocketAddr,
+    stdout: std::io::BufReader<std::process::ChildStdout>,
+}
+
+impl Exposed {
+    fn start(args: &[&str], env: &[(&str, &str)]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+            .args(["serve", "--run", trained_run().to_str().unwrap()])
+            .args(args)
+            .env_remove(TOKEN_ENV)
+            .envs(env.iter().copied())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        stdout.read_line(&mut line).unwrap();
+        let listening: SocketAddr = line
+            .trim()
+            .strip_prefix("listening on http://")
+            .unwrap_or_else(|| panic!("no address in {line:?}"))
+            .parse()
+            .unwrap();
+        let addr = SocketAddr::from(([127, 0, 0, 1], listening.port()));
+        Self { child, addr, stdout }
+    }
+
+    /// Stops it; its stderr.
+    fn stop(mut self) -> String {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        let mut stderr = String::new();
+        self.child.stderr.take().unwrap().read_to_string(&mut stderr).unwrap();
+        stderr
+    }
+}
+
+/// One request with `Authorization: Bearer <token>` when given: the status and the raw reply.
+fn authed(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    body: &str,
+    token: Option<&str>,
+) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
+    let msg = format!(
+        "{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n{auth}\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(msg.as_bytes()).unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    let status = out.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    (status, out)
+}
+
+#[test]
+fn serve_refuses_an_address_other_than_loopback_without_a_token_or_no_auth() {
+    let run = trained_run().to_str().unwrap();
+    let e = refused_at_start(&["--run", run, "--listen", "0.0.0.0:0"], &[]);
+    for says in ["0.0.0.0:0", "without authentication", "--token-file", TOKEN_ENV, "--no-auth"] {
+        assert!(e.contains(says), "the refusal should name {says}: {e}");
+    }
+    // A token that cannot be read, or is no token, is refused by its file or variable.
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("missing-token");
+    let empty = tmp.path().join("empty-token");
+    std::fs::write(&empty, "\n").unwrap();
+    let short = tmp.path().join("short-token");
+    std::fs::write(&short, "abc123\n").unwrap();
+    for (file, says) in [(&missing, "No such file"), (&empty, "empty"), (&short, "too few")] {
+        let f = file.to_str().unwrap();
+        let e = refused_at_start(&["--run", run, "--listen", "0.0.0.0:0", "--token-file", f], &[]);
+        assert!(e.contains(f) && e.contains(says), "{f}: {e}");
+    }
+    let e = refused_at_start(&["--run", run, "--listen", "127.0.0.1:0"], &[(TOKEN_ENV, "")]);
+    assert!(e.contains(TOKEN_ENV) && e.contains("empty"), "{e}");
+    // Contradictions are refused, not settled silently.
+    let e = refused_at_start(
+        &["--run", run, "--listen", "0.0.0.0:0", "--no-auth"],
+        &[(TOKEN_ENV, "pdt-test-token-0123456789")],
+    );
+    assert!(e.contains("--no-auth") && e.contains(TOKEN_ENV), "{e}");
+    let f = empty.to_str().unwrap();
+    let e = refused_at_start(&["--run", run, "--token-file", f, "--no-auth"], &[]);
+    assert!(e.contains("--token-file") && e.contains("--no-auth"), "{e}");
+}
+
+#[test]
+fn serve_with_no_auth_on_all_addresses_warns_and_serves() {
+    let s = Exposed::start(&["--listen", "0.0.0.0:0", "--no-auth"], &[]);
+    let (status, reply) = authed(s.addr, "GET", "/v1/info", "", None);
+    assert_eq!(status, 200, "{reply}");
+    let stderr = s.stop();
+    let warnings: Vec<&str> = stderr.lines().filter(|l| l.starts_with("warning:")).collect();
+    assert_eq!(warnings.len(), 1, "{stderr}");
+    assert!(warnings[0].contains("without authentication (--no-auth)"), "{stderr}");
+    // On loopback, no token and no warning, as before.
+    let s = Exposed::start(&["--listen", "127.0.0.1:0"], &[]);
+    assert_eq!(authed(s.addr, "GET", "/v1/info", "", None).0, 200);
+    let stderr = s.stop();
+    assert!(!stderr.contains("warning"), "{stderr}");
+}
+
+#[test]
+fn serve_with_a_token_answers_401_without_it_and_serves_with_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("token");
+    let secret = "pdt-test-token-from-a-file-0123456789";
+    std::fs::write(&file, format!("{secret}\n")).unwrap();
+    let open = r#"{"task": 34, "observation": [0.0, 0.0]}"#;
+    let check = |addr: SocketAddr, secret: &str| {
+        let (s, reply) = authed(addr, "GET", "/v1/health", "", None);
+        assert_eq!(s, 200, "the health check is open: {reply}");
+        for token in [None, Some("pdt-test-token-but-not-the-right-one")] {
+            for (method, path, body) in [("GET", "/v1/info", ""), ("POST", "/v1/episodes", open)] {
+                let (s, reply) = authed(addr, method, path, body, token);
+                assert_eq!(s, 401, "{method} {path} {token:?}: {reply}");
+                let lower = reply.to_lowercase();
+                assert!(lower.contains("www-authenticate: bearer"), "{reply}");
+                assert!(reply.contains("{\"error\":"), "{reply}");
+            }
+        }
+        let (s, reply) = authed(addr, "POST", "/v1/episodes", open, Some(secret));
+        assert_eq!(s, 201, "{reply}");
+        assert!(action_of(&reply).is_some(), "{reply}");
+    };
+    // From a file, on all addresses, and on loopback too (a token given is always required).
+    let f = file.to_str().unwrap();
+    for listen in ["0.0.0.0:0", "127.0.0.1:0"] {
+        let s = Exposed::start(&["--listen", listen, "--token-file", f], &[]);
+        check(s.addr, secret);
+        let stderr = s.stop();
+        assert!(!stderr.contains("warning"), "{stderr}");
+    }
+    // From the environment.
+    let from_env = "pdt-test-token-from-the-environment-42";
+    let s = Exposed::start(&["--listen", "0.0.0.0:0"], &[(TOKEN_ENV, from_env)]);
+    check(s.addr, from_env);
+    s.stop();
+    // Generated: printed once, on the line after the address.
+    let mut s = Exposed::start(&["--listen", "0.0.0.0:0", "--generate-token"], &[]);
+    let mut line = String::new();
+    s.stdout.read_line(&mut line).unwrap();
+    let generated = line.trim().strip_prefix("token: ").unwrap_or_else(|| panic!("{line:?}"));
+    assert_eq!(generated.len(), 64, "{generated}");
+    check(s.addr, generated);
+    let stderr = s.stop();
+    assert!(!stderr.contains(generated), "the token is printed once, on stdout: {stderr}");
+}
+
+#[test]
+fn serve_refuses_adaptation_settings_that_would_refuse_every_episode() {
+    let run = trained_run().to_str().unwrap();
+    let e = refused_at_start(
+        &["--run", run, "--listen", "127.0.0.1:0", "--adapt", "ptdt", "--ptdt-score", "return"],
+        &[],
+    );
+    assert!(e.contains("--ptdt-score return") && e.contains("action-loss"), "{e}");
+    let e = refused_at_start(
+        &[
+            "--run",
+            run,
+            "--listen",
+            "127.0.0.1:0",
+            "--adapt",
+            "lora",
+            "--prompt-strategy",
+            "bandit",
+        ],
+        &[],
+    );
+    assert!(e.contains("--adapt lora") && e.contains("--prompt-strategy bandit"), "{e}");
+    // A run without prompts (MT-ORL) has nothing to adapt.
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let mt_orl = tmp.path().join("mt-orl");
+    let (c, out) = (cfg.to_str().unwrap(), mt_orl.to_str().unwrap());
+    ok(&["train", "--config", c, "--method", "mt-orl", "--out", out, "--quiet"]);
+    let e = refused_at_start(&["--run", out, "--listen", "127.0.0.1:0", "--adapt", "lora"], &[]);
+    assert!(e.contains("--adapt lora") && e.contains("mt-orl") && e.contains("no prompt"), "{e}");
+    // Without --adapt it serves, as before.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+        .args(["serve", "--run", out, "--listen", "127.0.0.1:0"])
+        .env_remove(TOKEN_ENV)
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(line.starts_with("listening on"), "{line}");
 }
