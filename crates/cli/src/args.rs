@@ -386,7 +386,9 @@ pub struct DataReportArgs {
 
 #[derive(Debug, Args)]
 pub struct InspectArgs {
-    /// A dataset file (.pkl or .safetensors) or a directory of them.
+    /// A dataset file (.pkl or .safetensors) or a directory of them. In a directory, an entry
+    /// named like a data file that is not one (a symbolic link loop, a dangling link) is an error
+    /// naming it and why.
     pub path: PathBuf,
     /// Print JSON instead of a table.
     #[arg(long)]

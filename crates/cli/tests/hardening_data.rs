@@ -384,3 +384,196 @@ fn model_forward_explains_broken_files_in_plain_words() {
     let e = fails(&["data", "inspect", s(&short)]);
     assert_eq!(count(&e, s(&short)), 1, "the path once: {e}");
 }
+
+/// Writes a native dataset of `episodes` episodes of 250 steps (obs_dim 64, act_dim 8: 294 bytes a
+/// step) straight to `path`, a part at a time, so a test can make a file of hundreds of MiB without
+/// holding it in memory.
+fn write_big_dataset(path: &Path, episodes: usize) {
+    use std::io::Write;
+    let (len, obs_dim, act_dim) = (250, 64, 8);
+    let n = episodes * len;
+    let le = |v: Vec<f32>| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
+    let obs = le((0..len * obs_dim).map(|i| (i % 97) as f32 * 0.01).collect());
+    let act = le(vec![0.5; len * act_dim]);
+    let rew: Vec<u8> = (0..episodes).flat_map(|e| le(vec![e as f32 * 0.001; len])).collect();
+    let starts: Vec<u8> = (0..=episodes).flat_map(|e| ((e * len) as i64).to_le_bytes()).collect();
+    let tensors = [
+        ("observations", "F32", vec![n, obs_dim], obs.len() * episodes),
+        ("actions", "F32", vec![n, act_dim], act.len() * episodes),
+        ("rewards", "F32", vec![n], rew.len()),
+        ("terminated", "U8", vec![n], n),
+        ("truncated", "U8", vec![n], n),
+        ("episode_starts", "I64", vec![episodes + 1], starts.len()),
+    ];
+    let mut header = Map::new();
+    let mut at = 0;
+    for (name, dtype, shape, size) in tensors {
+        header.insert(
+            name.into(),
+            json!({"dtype": dtype, "shape": shape, "data_offsets": [at, at + size]}),
+        );
+        at += size;
+    }
+    let header = serde_json::to_vec(&Value::Object(header)).unwrap();
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    w.write_all(&(header.len() as u64).to_le_bytes()).unwrap();
+    w.write_all(&header).unwrap();
+    (0..episodes).for_each(|_| w.write_all(&obs).unwrap());
+    (0..episodes).for_each(|_| w.write_all(&act).unwrap());
+    w.write_all(&rew).unwrap();
+    w.write_all(&vec![0u8; 2 * n]).unwrap(); // terminated, truncated
+    w.write_all(&starts).unwrap();
+    w.flush().unwrap();
+}
+
+/// Whether process `pid` has `file` open.
+fn has_open(pid: u32, file: &Path) -> bool {
+    let fds = PathBuf::from(format!("/proc/{pid}/fd"));
+    std::fs::read_dir(fds)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .any(|e| std::fs::read_link(e.path()).is_ok_and(|target| target == file))
+}
+
+/// Issue 56, item 2: a file over 256 MiB truncated by another process while `promptdt data
+/// inspect` reads it. Files that size used to be memory-mapped, and a truncation landing while the
+/// map was decoded killed promptdt with SIGBUS (by hand: 5 of 5 runs that truncated the moment the
+/// file was mapped). No file is mapped any more: every round ends in a complete read or in an error
+/// that names the file and says it changed while it was read. The rounds truncate at delays spread
+/// over the read after the file is opened, and at once if the file ever shows up mapped.
+#[test]
+fn a_file_over_256_mib_truncated_while_it_is_read_is_an_error_not_a_sigbus() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::time::{Duration, Instant};
+    let tmp = tempfile::tempdir().unwrap();
+    let pristine = tmp.path().join("pristine");
+    write_big_dataset(&pristine, 4300);
+    assert!(std::fs::metadata(&pristine).unwrap().len() > 300 << 20);
+    let path = tmp.path().join("big-0-expert.safetensors");
+    let (mut mid_read, mut told_changed) = (0, 0);
+    for round in 0..10u64 {
+        // In place (the same inode, truncated and rewritten), as a foreign writer would.
+        std::fs::copy(&pristine, &path).unwrap();
+        let real = std::fs::canonicalize(&path).unwrap();
+        let mut child = Command::new(env!("CARGO_BIN_EXE_promptdt"))
+            .args(["data", "inspect", s(&path)])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let maps = PathBuf::from(format!("/proc/{}/maps", child.id()));
+        let delay = Duration::from_millis(40 * round);
+        let mut opened: Option<Instant> = None;
+        while child.try_wait().unwrap().is_none() {
+            let mapped = std::fs::read_to_string(&maps).is_ok_and(|m| m.contains("big-0-expert"));
+            if opened.is_none() && has_open(child.id(), &real) {
+                opened = Some(Instant::now());
+            }
+            if mapped || opened.is_some_and(|t| t.elapsed() >= delay) {
+                std::fs::OpenOptions::new().write(true).open(&path).unwrap().set_len(4096).unwrap();
+                mid_read += 1;
+                break;
+            }
+        }
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.code().is_some(),
+            "round {round}: promptdt was killed by signal {:?} (7 is SIGBUS):\n{stderr}",
+            out.status.signal()
+        );
+        if !out.status.success() {
+            assert!(stderr.contains(s(&path)) && !stderr.contains("panicked"), "{stderr}");
+            // Truncated before the read began (the header says more than the file holds), or
+            // during it.
+            let changed = stderr.contains("the file changed while it was being read");
+            assert!(changed || stderr.contains("truncated file"), "round {round}: {stderr}");
+            told_changed += usize::from(changed);
+        }
+    }
+    assert!(mid_read > 0, "no round truncated the file while it was open");
+    assert!(told_changed > 0, "no round truncated the file during the read");
+}
+
+/// Issue 56, item 2: `data inspect DIR` where the data names are symbolic link loops or dangling
+/// links names each of them and why, instead of saying the directory has no data files (which is
+/// what it said before: the broken entries were skipped as "not files").
+#[test]
+fn data_inspect_names_broken_links_in_a_directory() {
+    use std::os::unix::fs::symlink;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    symlink("b-0-expert.safetensors", dir.join("a-0-expert.safetensors")).unwrap();
+    symlink("a-0-expert.safetensors", dir.join("b-0-expert.safetensors")).unwrap();
+    symlink("gone.pkl", dir.join("c-0-expert.pkl")).unwrap();
+    let e = fails(&["data", "inspect", s(dir)]);
+    assert!(!e.contains("no .pkl or .safetensors files"), "{e}");
+    assert!(e.contains("3 entries named as data files cannot be read"), "{e}");
+    assert!(e.contains("a-0-expert.safetensors: a symbolic link to b-0-expert.safetensors"), "{e}");
+    assert!(e.contains("b-0-expert.safetensors: a symbolic link to a-0-expert.safetensors"), "{e}");
+    assert_eq!(count(&e, "levels of symbolic links"), 2, "{e}");
+    assert!(e.contains("c-0-expert.pkl: a symbolic link to gone.pkl, which does not exist"), "{e}");
+    // A good file beside them does not hide them: data inspect fails on what it cannot read.
+    let good = tiny_dataset(dir);
+    let e = fails(&["data", "inspect", s(dir)]);
+    assert!(e.contains("3 entries named as data files cannot be read"), "{e}");
+    // Broken links under other names are not data files, but when the directory holds none they
+    // are named: they may be what the user meant.
+    for name in ["a-0-expert.safetensors", "b-0-expert.safetensors", "c-0-expert.pkl"] {
+        std::fs::remove_file(dir.join(name)).unwrap();
+    }
+    std::fs::remove_file(&good).unwrap();
+    symlink("y", dir.join("x")).unwrap();
+    symlink("x", dir.join("y")).unwrap();
+    let e = fails(&["data", "inspect", s(dir)]);
+    assert!(e.contains("no .pkl or .safetensors files in this directory"), "{e}");
+    assert!(e.contains("x: a symbolic link to y that cannot be followed"), "{e}");
+    assert!(e.contains("y: a symbolic link to x that cannot be followed"), "{e}");
+    // With a data file there, the other names are left alone.
+    tiny_dataset(dir);
+    let shown = ok(&["data", "inspect", s(dir)]);
+    assert!(shown.contains("1 file, 2 trajectories"), "{shown}");
+}
+
+/// A readable two-episode native file in `dir`; returns its path.
+fn tiny_dataset(dir: &Path) -> PathBuf {
+    let path = dir.join("good-0-expert.safetensors");
+    let last = vec![false, false, true];
+    let traj = |r: f32| {
+        let (obs, act) = (vec![0.1; 6], vec![0.5; 3]);
+        pdt_data::Trajectory::new(2, 1, obs, act, vec![r; 3], vec![false; 3], last.clone()).unwrap()
+    };
+    let ds = pdt_data::TaskDataset::new(vec![traj(1.0), traj(2.0)]).unwrap();
+    pdt_data::native::write_task_dataset(&path, &ds, &pdt_data::native::FileMeta::default())
+        .unwrap();
+    path
+}
+
+/// Issue 56, item 2: a Dial start pose of 1e300 is refused with the number in exponent form (it
+/// was printed with all its 301 digits).
+#[test]
+fn a_huge_dial_start_pose_is_printed_in_exponent_form() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (init, actions) = (tmp.path().join("init.json"), tmp.path().join("actions.json"));
+    std::fs::write(&init, r#"{"qpos": [1e300, 0, 0, 0, 0, 0, 0, 0, 0]}"#).unwrap();
+    std::fs::write(&actions, "[[0, 0, 0, 0, 0, 0, 0, 0, 0]]").unwrap();
+    let out = tmp.path().join("out.json");
+    let e = fails(&[
+        "env",
+        "replay",
+        "--env",
+        "dial",
+        "--task",
+        "0",
+        "--init",
+        s(&init),
+        "--actions",
+        s(&actions),
+        "--out",
+        s(&out),
+    ]);
+    assert!(e.contains("initial qpos[0] is 1e300 (must be finite, at most 100 rad)"), "{e}");
+    assert!(!e.contains("0000000000"), "{e}");
+    assert!(e.len() < 300, "{e}");
+}

@@ -37,28 +37,82 @@ pub struct FileReport {
 
 /// Reports on a file, or on every `*.pkl` and `*.safetensors` file directly in a directory, in
 /// natural order of their names (`cheetah_vel-2` before `cheetah_vel-10`). Fails on the first file
-/// that cannot be read.
+/// that cannot be read. In a directory, every entry with a data file's name that is not a readable
+/// regular file (a symbolic link loop, a dangling link, a directory, a FIFO) is named in the error
+/// with what it is; a directory with no data files names the entries it could not follow, whatever
+/// their names, since they may be the data files.
 pub fn inspect_path(path: &Path) -> Result<Vec<FileReport>, DataError> {
     let io = |source| DataError::Io { path: path.into(), source };
     if !fs::metadata(path).map_err(io)?.is_dir() {
         return Ok(vec![inspect_file(path)?]);
     }
     let mut files = Vec::new();
+    // Data names that are not regular files, and other entries that cannot be followed.
+    let (mut bad_data, mut bad_other) = (Vec::new(), Vec::new());
     for entry in fs::read_dir(path).map_err(io)? {
         let file = entry.map_err(io)?.path();
         let ext = file.extension().and_then(|e| e.to_str());
-        if matches!(ext, Some("pkl" | "safetensors")) && file.is_file() {
-            files.push(file);
+        let data_name = matches!(ext, Some("pkl" | "safetensors"));
+        match fs::metadata(&file) {
+            Ok(m) if m.is_file() => {
+                if data_name {
+                    files.push(file);
+                }
+            }
+            Ok(m) => {
+                if data_name {
+                    bad_data.push((file, crate::multitask::file_kind(&m.file_type()).to_string()));
+                }
+            }
+            Err(e) => {
+                let why = unfollowable(&file, &e);
+                if data_name { &mut bad_data } else { &mut bad_other }.push((file, why));
+            }
         }
     }
-    if files.is_empty() {
+    let list = |mut bad: Vec<(PathBuf, String)>| {
+        bad.sort_by(|a, b| natural_cmp(&file_label(&a.0), &file_label(&b.0)));
+        let items: Vec<String> =
+            bad.iter().map(|(f, why)| format!("{}: {why}", file_label(f))).collect();
+        items.join("; ")
+    };
+    if !bad_data.is_empty() {
+        let n = bad_data.len();
         return Err(DataError::Format {
             path: path.into(),
-            message: "no .pkl or .safetensors files in this directory".into(),
+            message: format!(
+                "{n} entr{} named as data file{} cannot be read as one: {}",
+                if n == 1 { "y" } else { "ies" },
+                if n == 1 { "" } else { "s" },
+                list(bad_data)
+            ),
         });
+    }
+    if files.is_empty() {
+        let mut message = "no .pkl or .safetensors files in this directory".to_string();
+        if !bad_other.is_empty() {
+            message.push_str(&format!(" (entries that cannot be followed: {})", list(bad_other)));
+        }
+        return Err(DataError::Format { path: path.into(), message });
     }
     files.sort_by(|a, b| natural_cmp(&file_label(a), &file_label(b)));
     files.iter().map(|f| inspect_file(f)).collect()
+}
+
+/// Why `fs::metadata` of a directory entry failed, in words: a dangling link names its target, a
+/// link loop is called one.
+fn unfollowable(file: &Path, e: &std::io::Error) -> String {
+    let is_link = fs::symlink_metadata(file).is_ok_and(|m| m.file_type().is_symlink());
+    if !is_link {
+        return e.to_string();
+    }
+    let target = fs::read_link(file).map(|t| t.display().to_string()).unwrap_or_default();
+    if e.kind() == std::io::ErrorKind::NotFound {
+        format!("a symbolic link to {target}, which does not exist")
+    } else {
+        // ELOOP ("too many levels of symbolic links") for a loop; its number differs by OS.
+        format!("a symbolic link to {target} that cannot be followed ({e})")
+    }
 }
 
 /// Reports on one file: `.safetensors` is read as the native format, anything else as a

@@ -163,7 +163,7 @@ pub fn resolve_task_file(
 }
 
 /// What a non-regular file is, for messages.
-fn file_kind(ft: &fs::FileType) -> &'static str {
+pub(crate) fn file_kind(ft: &fs::FileType) -> &'static str {
     if ft.is_dir() {
         return "a directory";
     }

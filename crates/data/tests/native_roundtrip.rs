@@ -24,6 +24,23 @@ fn roundtrip_preserves_every_field() {
     assert_eq!(back.returns(), ds.returns());
 }
 
+/// The reader decodes the floats through 1 MiB buffers: a file of several buffers, whose episodes
+/// (odd lengths, odd widths) straddle the buffer boundaries, reads back exactly.
+#[test]
+fn roundtrip_across_read_buffer_boundaries() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big-0-expert.safetensors");
+    let lens = [1usize, 333, 4097, 77, 2049, 1, 5003];
+    let ds = TaskDataset::new(
+        (0..40).map(|i| traj(37, 5, lens[i % lens.len()], i as u32, i % 3 == 0, true)).collect(),
+    )
+    .unwrap();
+    write_task_dataset(&path, &ds, &FileMeta::default()).unwrap();
+    // Observations alone span several 1 MiB buffers.
+    assert!(ds.num_steps() * 37 * 4 > 3 << 20, "{} steps", ds.num_steps());
+    assert_eq!(read_task_dataset(&path).unwrap(), ds);
+}
+
 #[test]
 fn roundtrip_of_minimal_dataset() {
     // One episode of one step, obs_dim = act_dim = 1, no metadata at all.

@@ -281,8 +281,6 @@ mod read;
 mod write;
 
 pub use card::{read_card, write_card, CardFile, CardTask, DatasetCard, ReturnStats};
-pub use read::{
-    read_file_meta, read_task_dataset, read_task_dataset_with_meta, MAX_READ_INTO_MEMORY_BYTES,
-};
+pub use read::{read_file_meta, read_task_dataset, read_task_dataset_with_meta};
 pub(crate) use write::write_atomically;
 pub use write::{write_bytes_atomically, write_task_dataset};

@@ -1,32 +1,22 @@
 //! Reading and validating a task's safetensors file: header, layout, dtypes, shapes, offsets.
 
+use std::fs::File;
+use std::io::{Seek, SeekFrom};
+use std::time::SystemTime;
+
 use super::*;
 
 /// Reads only the metadata of a native file (the header; the tensor data is not read).
 pub fn read_file_meta(path: &Path) -> Result<FileMeta, DataError> {
-    // A FIFO or device is refused before it is opened (opening a FIFO would block).
-    let (mut file, file_len) = pdt_base::fs::open_regular(path).map_err(io_err(path))?;
-    let mut prefix = [0u8; 8];
-    if file_len < 8 {
-        return Err(too_short(path, file_len));
-    }
-    file.read_exact(&mut prefix).map_err(io_err(path))?;
-    let header_len = check_header_len(path, u64::from_le_bytes(prefix), file_len)?;
-    // Bounded by MAX_HEADER_BYTES and by the file size, so this allocation is small.
-    let mut header = vec![0u8; header_len];
-    file.read_exact(&mut header).map_err(io_err(path))?;
-    let metadata = parse_header(path, &header)?;
+    let file = open(path)?;
+    let src = Source::new(path, &file)?;
+    let (_, metadata) = read_header(&src)?;
     FileMeta::from_safetensors_map(path, metadata.metadata().as_ref())
 }
 
-/// Files up to this size are read into memory; larger ones are memory-mapped. Reading costs a
-/// second copy of the file for the duration of the decode, which is nothing for the files of a
-/// real run (the largest in the reference release is a few hundred MB, most are a few MB) but
-/// makes the reader immune to the file changing under it: a mapped file that another process
-/// truncates while it is decoded kills the reader with SIGBUS, with no message. Above the bound
-/// the copy would cost real memory, so those files are mapped and carry that caveat
-/// (`docs/data-format.md`, "Reading while another process writes").
-pub const MAX_READ_INTO_MEMORY_BYTES: u64 = 256 << 20;
+/// Bytes read per `read` call for the float tensors: the file is decoded through buffers of this
+/// size, never held in memory whole. Large enough that the calls cost nothing next to the decode.
+const CHUNK_BYTES: usize = 1 << 20;
 
 /// Reads and fully validates a native file: dtypes and shapes of every tensor, episode offsets
 /// (start at 0, end at `N`, strictly increasing: no empty episode), `obs_dim, act_dim >= 1`, finite
@@ -37,33 +27,101 @@ pub fn read_task_dataset(path: &Path) -> Result<TaskDataset, DataError> {
 }
 
 /// [`read_task_dataset`], also returning what the file's metadata says about itself.
+///
+/// The file is read with ordinary `read` calls through bounded buffers, whatever its size, and
+/// decoded straight into the per-episode vectors, so peak memory is the dataset plus a few MiB.
+/// It is never memory-mapped: a mapped file that another process truncates while it is decoded
+/// kills the reader with SIGBUS, which no check before or after the decode can prevent (the file
+/// can shrink between the check and the access). A file truncated or rewritten in place while it
+/// is read is refused with an error naming it: a read past its new end, or a size or modification
+/// time that differs after the read from before it, says the file changed under the reader.
 pub fn read_task_dataset_with_meta(path: &Path) -> Result<(TaskDataset, FileMeta), DataError> {
-    let (file, file_len) = pdt_base::fs::open_regular(path).map_err(io_err(path))?;
-    if file_len < 8 {
-        // Also avoids mapping an empty file, which mmap rejects.
-        return Err(too_short(path, file_len));
+    let file = open(path)?;
+    let src = Source::new(path, &file)?;
+    let decoded = decode(&src);
+    // Checked whether the decode succeeded or not: bytes from a file that changed under the read
+    // may fail any check, and "the file changed" is then the message that says what happened.
+    src.check_unchanged()?;
+    decoded
+}
+
+/// Opens a regular file (a FIFO or device is refused before it is opened: opening a FIFO would
+/// block).
+fn open(path: &Path) -> Result<File, DataError> {
+    Ok(pdt_base::fs::open_regular(path).map_err(io_err(path))?.0)
+}
+
+/// An open data file read at explicit offsets, with the size and modification time it had when
+/// the read began.
+struct Source<'a> {
+    path: &'a Path,
+    file: &'a File,
+    len: u64,
+    modified: Option<SystemTime>,
+}
+
+impl<'a> Source<'a> {
+    fn new(path: &'a Path, file: &'a File) -> Result<Self, DataError> {
+        // From the open file, not the path: the name may have been replaced since it was opened.
+        let meta = file.metadata().map_err(io_err(path))?;
+        Ok(Self { path, file, len: meta.len(), modified: meta.modified().ok() })
     }
-    if file_len <= MAX_READ_INTO_MEMORY_BYTES {
-        // A file truncated or rewritten while it is read gives short or mixed bytes here, which
-        // `decode` refuses with a message (truncated file, bad offsets, ...), never a signal.
-        let mut bytes = Vec::with_capacity(file_len as usize);
-        file.take(MAX_READ_INTO_MEMORY_BYTES + 1).read_to_end(&mut bytes).map_err(io_err(path))?;
-        return decode(path, &bytes);
+
+    /// Fills `buf` from byte `offset`. A file that ends before (it was longer when the read began)
+    /// is an error saying it changed, not an I/O error.
+    fn read_at(&self, offset: u64, buf: &mut [u8]) -> Result<(), DataError> {
+        let mut file = self.file;
+        file.seek(SeekFrom::Start(offset)).map_err(io_err(self.path))?;
+        match file.read_exact(buf) {
+            Ok(()) => Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Err(self.changed()),
+            Err(e) => Err(io_err(self.path)(e)),
+        }
     }
-    // Memory-map rather than read: the data is decoded straight from the page cache into the
-    // per-episode vectors, so a file is copied once instead of twice and peak memory is the
-    // dataset rather than dataset + file.
-    //
-    // SAFETY: a mapping is undefined behaviour if the file changes while mapped. The file is
-    // opened read-only, every byte is copied out (decoded) before this function returns, and the
-    // map is dropped then. This crate never modifies a dataset file in place: writers replace
-    // files by renaming a new file over the name (`write_atomically`), which leaves the inode we
-    // mapped unchanged. Only a foreign process truncating or rewriting the file in place during
-    // the read could break this (the process then dies with SIGBUS), the same caveat every
-    // mmap-based safetensors loader carries; `docs/data-format.md` says so.
-    #[allow(unsafe_code)]
-    let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io_err(path))?;
-    decode(path, &map)
+
+    /// Refuses a file whose size or modification time differs from when the read began: another
+    /// process wrote it in place during the read, so the bytes read may mix old and new.
+    fn check_unchanged(&self) -> Result<(), DataError> {
+        let meta = self.file.metadata().map_err(io_err(self.path))?;
+        if meta.len() != self.len || meta.modified().ok() != self.modified {
+            return Err(self.changed());
+        }
+        Ok(())
+    }
+
+    fn changed(&self) -> DataError {
+        let now = match self.file.metadata() {
+            Ok(m) if m.len() != self.len => format!("{} bytes now", m.len()),
+            Ok(_) => "the same size now, but modified".into(),
+            Err(e) => format!("unreadable now: {e}"),
+        };
+        format_err(
+            self.path,
+            format!(
+                "the file changed while it was being read (it was {} bytes when the read began, \
+                 {now}): another process truncated or rewrote it in place. promptdt never writes \
+                 a data file in place (it renames a complete new file over the old one); read it \
+                 again once the other writer is done",
+                self.len
+            ),
+        )
+    }
+}
+
+/// Reads and parses the 8-byte header length and the JSON header; returns where the data section
+/// starts and the parsed header.
+fn read_header(src: &Source<'_>) -> Result<(u64, Metadata), DataError> {
+    let path = src.path;
+    if src.len < 8 {
+        return Err(too_short(path, src.len));
+    }
+    let mut prefix = [0u8; 8];
+    src.read_at(0, &mut prefix)?;
+    let header_len = check_header_len(path, u64::from_le_bytes(prefix), src.len)?;
+    // Bounded by MAX_HEADER_BYTES and by the file size, so this allocation is small.
+    let mut header = vec![0u8; header_len];
+    src.read_at(8, &mut header)?;
+    Ok((8 + header_len as u64, parse_header(path, &header)?))
 }
 
 fn too_short(path: &Path, len: u64) -> DataError {
@@ -112,31 +170,114 @@ fn parse_header(path: &Path, header: &[u8]) -> Result<Metadata, DataError> {
         .map_err(|e| format_err(path, format!("safetensors header is invalid: {e}")))
 }
 
-/// A tensor located in the file, not yet decoded.
-struct Raw<'a> {
+/// A tensor located in the file, not yet read.
+struct Raw {
     name: &'static str,
     dtype: Dtype,
     shape: Vec<usize>,
-    bytes: &'a [u8],
+    /// Where its bytes are in the file (absolute offset) and how many there are.
+    offset: u64,
+    len: usize,
 }
 
-fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError> {
-    let file_len = buf.len() as u64;
-    let mut prefix = [0u8; 8];
-    prefix.copy_from_slice(buf.get(..8).ok_or_else(|| too_short(path, file_len))?);
-    let header_len = check_header_len(path, u64::from_le_bytes(prefix), file_len)?;
-    let header = buf.get(8..8 + header_len).ok_or_else(|| too_short(path, file_len))?;
-    let metadata = parse_header(path, header)?;
-    let data = buf.get(8 + header_len..).ok_or_else(|| too_short(path, file_len))?;
-    // Let safetensors check the layout too (offsets contiguous from 0, each tensor's byte size
-    // equal to shape x dtype without overflow, data ending exactly at the end of the file); we
-    // turn its terse errors into ones that say what is wrong.
-    safetensors::SafeTensors::read_metadata(buf)
-        .map_err(|e| layout_err(path, &metadata, data.len(), e))?;
+/// Reads a whole tensor into memory: only for the flags and the episode offsets, a byte or 8
+/// per step or episode, a small part of a file whose floats take 4 bytes per dimension and step.
+fn read_tensor(src: &Source<'_>, t: &Raw) -> Result<Vec<u8>, DataError> {
+    let mut bytes = vec![0u8; t.len];
+    src.read_at(t.offset, &mut bytes)?;
+    Ok(bytes)
+}
+
+/// A float tensor read in order, through a buffer of at most [`CHUNK_BYTES`].
+struct FloatStream<'s, 'a> {
+    src: &'s Source<'a>,
+    name: &'static str,
+    /// File offset of the next byte to read, and the tensor's end.
+    next: u64,
+    end: u64,
+    buf: Vec<u8>,
+    /// Bytes of `buf` already decoded.
+    used: usize,
+}
+
+impl<'s, 'a> FloatStream<'s, 'a> {
+    fn new(src: &'s Source<'a>, t: &Raw) -> Self {
+        let end = t.offset + t.len as u64;
+        Self { src, name: t.name, next: t.offset, end, buf: Vec::new(), used: 0 }
+    }
+
+    /// The next `count` floats of the tensor.
+    fn take(&mut self, count: usize) -> Result<Vec<f32>, DataError> {
+        let mut out = Vec::with_capacity(count);
+        while out.len() < count {
+            if self.used == self.buf.len() {
+                // A multiple of 4 (the chunk size and the tensor's byte size are), so no float is
+                // split between two reads.
+                let k = (self.end - self.next).min(CHUNK_BYTES as u64) as usize;
+                if k == 0 {
+                    // Unreachable after the shape and offset checks; an error rather than a panic.
+                    return Err(format_err(
+                        self.src.path,
+                        format!(
+                            "tensor `{}`: the episodes need more data than it holds",
+                            self.name
+                        ),
+                    ));
+                }
+                self.buf.resize(k, 0);
+                self.src.read_at(self.next, &mut self.buf)?;
+                self.next += k as u64;
+                self.used = 0;
+            }
+            let k = ((count - out.len()) * 4).min(self.buf.len() - self.used);
+            out.extend(f32s(&self.buf[self.used..self.used + k]));
+            self.used += k;
+        }
+        Ok(out)
+    }
+}
+
+/// Checks the layout as `SafeTensors::read_metadata` does (offsets tile the data section from 0
+/// without gaps or overlaps, each tensor's byte size is shape x dtype without overflow, the data
+/// end exactly at the end of the file), without the whole file in memory; its errors are
+/// explained by [`layout_err`].
+fn check_layout(metadata: &Metadata, data_len: u64) -> Result<(), SafeTensorError> {
+    let mut tensors: Vec<_> = metadata.tensors().into_iter().collect();
+    tensors.sort_by(|(a, x), (b, y)| x.data_offsets.cmp(&y.data_offsets).then_with(|| a.cmp(b)));
+    let mut start = 0usize;
+    for (name, info) in tensors {
+        let (s, e) = info.data_offsets;
+        if s != start || e < s {
+            return Err(SafeTensorError::InvalidOffset(name));
+        }
+        start = e;
+        let elems = info.shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+        let bytes = elems
+            .and_then(|n| n.checked_mul(info.dtype.size()))
+            .ok_or(SafeTensorError::ValidationOverflow)?;
+        if e - s != bytes {
+            return Err(SafeTensorError::TensorInvalidInfo);
+        }
+    }
+    if start as u64 != data_len {
+        return Err(SafeTensorError::MetadataIncompleteBuffer);
+    }
+    Ok(())
+}
+
+fn decode(src: &Source<'_>) -> Result<(TaskDataset, FileMeta), DataError> {
+    let path = src.path;
+    let (data_start, metadata) = read_header(src)?;
+    let data_len = src.len - data_start;
+    let data_len_usize = usize::try_from(data_len).map_err(|_| {
+        format_err(path, format!("the data section ({data_len} bytes) does not fit in memory"))
+    })?;
+    check_layout(&metadata, data_len)
+        .map_err(|e| layout_err(path, &metadata, data_len_usize, e))?;
     // Parsed for its checks (format, format_version, task_index) and returned beside the data.
     let meta = FileMeta::from_safetensors_map(path, metadata.metadata().as_ref())?;
 
-    let tensor = |name: &'static str| -> Result<Raw<'_>, DataError> {
+    let tensor = |name: &'static str| -> Result<Raw, DataError> {
         let info = metadata.info(name).ok_or_else(|| {
             let mut present: Vec<String> = metadata.tensors().into_keys().collect();
             present.sort();
@@ -146,17 +287,22 @@ fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError>
             )
         })?;
         let (start, end) = info.data_offsets;
-        let bytes = data.get(start..end).ok_or_else(|| {
-            format_err(
+        if start > end || end > data_len_usize {
+            return Err(format_err(
                 path,
                 format!(
-                    "tensor `{name}`: data_offsets [{start}, {end}] lie outside the {}-byte \
-                     data section",
-                    data.len()
+                    "tensor `{name}`: data_offsets [{start}, {end}] lie outside the \
+                     {data_len}-byte data section"
                 ),
-            )
-        })?;
-        Ok(Raw { name, dtype: info.dtype, shape: info.shape.clone(), bytes })
+            ));
+        }
+        Ok(Raw {
+            name,
+            dtype: info.dtype,
+            shape: info.shape.clone(),
+            offset: data_start + start as u64,
+            len: end - start,
+        })
     };
     let obs = tensor(OBSERVATIONS)?;
     let act = tensor(ACTIONS)?;
@@ -196,15 +342,21 @@ fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError>
             format!("{:?}", starts.shape),
         ));
     }
-    for flags in [&term, &trunc] {
-        if let Some(i) = flags.bytes.iter().position(|&b| b > 1) {
+    let term_bytes = read_tensor(src, &term)?;
+    let trunc_bytes = read_tensor(src, &trunc)?;
+    for (flags, bytes) in [(&term, &term_bytes), (&trunc, &trunc_bytes)] {
+        if let Some(i) = bytes.iter().position(|&b| b > 1) {
             return Err(format_err(
                 path,
-                format!("`{}`[{i}] is {}; flags must be 0 or 1", flags.name, flags.bytes[i]),
+                format!("`{}`[{i}] is {}; flags must be 0 or 1", flags.name, bytes[i]),
             ));
         }
     }
-    let offsets = decode_offsets(path, starts.bytes, n)?;
+    let offsets = decode_offsets(path, &read_tensor(src, &starts)?, n)?;
+
+    // The floats are read episode by episode, in file order within each tensor.
+    let (mut obs, mut act, mut rew) =
+        (FloatStream::new(src, &obs), FloatStream::new(src, &act), FloatStream::new(src, &rew));
 
     let mut trajectories = Vec::with_capacity(offsets.len() - 1);
     for (e, w) in offsets.windows(2).enumerate() {
@@ -212,11 +364,11 @@ fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError>
         let traj = Trajectory {
             obs_dim,
             act_dim,
-            observations: f32s(&obs.bytes[s * obs_dim * 4..t * obs_dim * 4]),
-            actions: f32s(&act.bytes[s * act_dim * 4..t * act_dim * 4]),
-            rewards: f32s(&rew.bytes[s * 4..t * 4]),
-            terminated: term.bytes[s..t].iter().map(|&b| b == 1).collect(),
-            truncated: trunc.bytes[s..t].iter().map(|&b| b == 1).collect(),
+            observations: obs.take((t - s) * obs_dim)?,
+            actions: act.take((t - s) * act_dim)?,
+            rewards: rew.take(t - s)?,
+            terminated: term_bytes[s..t].iter().map(|&b| b == 1).collect(),
+            truncated: trunc_bytes[s..t].iter().map(|&b| b == 1).collect(),
         };
         check_trajectory(e, &traj, obs_dim, act_dim)
             .map_err(|m| format_err(path, format!("{m} (episode {e} is steps {s}..{t})")))?;
@@ -226,7 +378,7 @@ fn decode(path: &Path, buf: &[u8]) -> Result<(TaskDataset, FileMeta), DataError>
     Ok((dataset, meta))
 }
 
-fn expect_dtype(path: &Path, t: &Raw<'_>, allowed: &[Dtype]) -> Result<(), DataError> {
+fn expect_dtype(path: &Path, t: &Raw, allowed: &[Dtype]) -> Result<(), DataError> {
     if allowed.contains(&t.dtype) {
         return Ok(());
     }
@@ -237,7 +389,7 @@ fn expect_dtype(path: &Path, t: &Raw<'_>, allowed: &[Dtype]) -> Result<(), DataE
     ))
 }
 
-fn expect_rank1(path: &Path, t: &Raw<'_>, layout: &str) -> Result<usize, DataError> {
+fn expect_rank1(path: &Path, t: &Raw, layout: &str) -> Result<usize, DataError> {
     match t.shape.as_slice() {
         [len] => Ok(*len),
         other => Err(shape_err(path, t.name, format!("rank 1, {layout}"), format!("{other:?}"))),
@@ -245,7 +397,7 @@ fn expect_rank1(path: &Path, t: &Raw<'_>, layout: &str) -> Result<usize, DataErr
 }
 
 /// `[n, d]` with `d >= 1`; returns `d`.
-fn expect_rows(path: &Path, t: &Raw<'_>, n: usize, layout: &str) -> Result<usize, DataError> {
+fn expect_rows(path: &Path, t: &Raw, n: usize, layout: &str) -> Result<usize, DataError> {
     match t.shape.as_slice() {
         [rows, d] if *rows == n && *d >= 1 => Ok(*d),
         [rows, d] if *rows == n => Err(shape_err(
@@ -296,8 +448,8 @@ fn decode_offsets(path: &Path, bytes: &[u8], n: usize) -> Result<Vec<usize>, Dat
 }
 
 fn f32s(bytes: &[u8]) -> Vec<f32> {
-    // Decoded per element from little-endian bytes: the data is not necessarily 4-byte aligned
-    // within the map, and this is also correct on big-endian hosts. It vectorises well.
+    // Decoded per element from little-endian bytes: correct on big-endian hosts too, and it
+    // vectorises well.
     bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
 }
 

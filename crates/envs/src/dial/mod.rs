@@ -321,7 +321,11 @@ impl Dial {
         {
             return Err(EnvError::BadState {
                 env: ENV_NAME.into(),
-                message: format!("initial qpos[{i}] is {v} (must be finite, at most 100 rad)"),
+                // `compact`: `{}` would print 1e300 with all its 301 digits.
+                message: format!(
+                    "initial qpos[{i}] is {} (must be finite, at most 100 rad)",
+                    pdt_base::num::compact(*v)
+                ),
             });
         }
         let start: [f64; NQ] = std::array::from_fn(|j| qpos[j]);
