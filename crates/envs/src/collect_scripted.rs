@@ -193,6 +193,11 @@ pub struct CollectConfig {
     /// written atomically) and the card is not written. Not a setting: never serialised.
     #[serde(skip)]
     pub interrupt: pdt_base::stop::StopFlag,
+    /// Episodes played so far by the call's threads, datasets' and prompt sets' alike (for a
+    /// front end's progress: [`collect`]'s own callback only sees whole files). Not a setting:
+    /// never serialised.
+    #[serde(skip)]
+    pub episodes_played: crate::rollout::EpisodeCount,
 }
 
 impl CollectConfig {
@@ -208,6 +213,7 @@ impl CollectConfig {
             tasks: family.default_tasks(),
             reach_action_noise: family.policies().default_action_noise(),
             interrupt: pdt_base::stop::StopFlag::default(),
+            episodes_played: Default::default(),
         }
     }
 
@@ -394,7 +400,8 @@ impl EpisodeLog {
 }
 
 /// Plays the `episodes` episodes of `(task, mode)`'s `set` one after another, each with its own
-/// generator ([`episode_rng`] of `cfg`'s seed), checking [`CollectConfig::interrupt`] before each.
+/// generator ([`episode_rng`] of `cfg`'s seed), checking [`CollectConfig::interrupt`] before each
+/// and counting each in [`CollectConfig::episodes_played`].
 /// `play` returns an episode and whether it succeeded. Also returns the fraction that succeeded,
 /// for a family with a success rule (`None` without one).
 pub(crate) fn play_set(
@@ -413,6 +420,7 @@ pub(crate) fn play_set(
             return Err(CollectError::Interrupted);
         }
         let (traj, succeeded) = play(&mut episode_rng(cfg.seed, task, mode, set, e))?;
+        cfg.episodes_played.add(1);
         wins += usize::from(succeeded);
         trajectories.push(traj);
     }

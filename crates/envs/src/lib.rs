@@ -84,6 +84,9 @@ pub enum EnvError {
     /// A replay's initial state (`promptdt env replay --init`) is missing, unwanted or unreadable.
     #[error("{message}")]
     ReplayInit { message: String },
+    /// A front end asked the rollouts to stop (`rollout::Watch`, its Ctrl-C).
+    #[error("stopped on request before the episodes ended")]
+    Interrupted,
 }
 
 impl EnvError {

@@ -11,6 +11,63 @@
 
 use crate::vec_env::VecEnv;
 use crate::{EnvError, StepResult};
+use pdt_base::stop::StopFlag;
+use std::cell::RefCell;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+/// A count of finished episodes, shared by its clones: the threads playing them add to it, a
+/// front end reads it to show progress. Not a setting: it compares equal to any other count, as
+/// [`StopFlag`] does, so configurations that carry one still compare by their settings.
+#[derive(Debug, Clone, Default)]
+pub struct EpisodeCount(Arc<AtomicUsize>);
+
+impl EpisodeCount {
+    pub fn add(&self, n: usize) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn get(&self) -> usize {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+impl PartialEq for EpisodeCount {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+/// A front end's watch over the rollouts of one long call (Python's `promptdt.evaluate`: Ctrl-C
+/// and progress): [`run_batch`] checks `stop` before every step, returning
+/// [`EnvError::Interrupted`] through [`BatchPolicy::batch_error`] once it is set, and adds each
+/// episode that ends to `episodes`. It is set for a scope on the calling thread ([`watching`])
+/// rather than passed down, because the evaluations (Prompt-DT's with its strategies and
+/// adaptations, MACAW's) reach `run_batch` through learners and settings that have no place for
+/// it, and `run_batch` runs on the thread that called them.
+#[derive(Debug, Clone, Default)]
+pub struct Watch {
+    pub stop: StopFlag,
+    pub episodes: EpisodeCount,
+}
+
+thread_local! {
+    static WATCH: RefCell<Option<Watch>> = const { RefCell::new(None) };
+}
+
+/// Runs `f` with `watch` over every [`run_batch`] it makes on this thread (the previous watch, if
+/// any, is restored afterwards, also when `f` panics).
+pub fn watching<T>(watch: &Watch, f: impl FnOnce() -> T) -> T {
+    struct Restore(Option<Watch>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            let previous = self.0.take();
+            WATCH.with(|w| *w.borrow_mut() = previous);
+        }
+    }
+    let _restore = Restore(WATCH.with(|w| w.borrow_mut().replace(watch.clone())));
+    f()
+}
 
 /// What a batched rollout asks of its caller. Slots are indices into the [`VecEnv`].
 pub trait BatchPolicy {
@@ -56,7 +113,12 @@ pub fn run_batch<P: BatchPolicy>(
     let mut flat = vec![0f32; venv.flat_action_len()];
     let mut mask = vec![false; venv.len()];
     let mut active = slots;
+    let watch = WATCH.with(|w| w.borrow().clone());
     while !active.is_empty() {
+        if watch.as_ref().is_some_and(|w| w.stop.is_set()) {
+            return Err(policy.batch_error(&active, EnvError::Interrupted));
+        }
+        let mut ended = 0;
         let actions = policy.act(&active)?;
         // (slot, its action's range in `actions`) for the episodes stepped this time.
         let mut stepped = Vec::with_capacity(active.len());
@@ -78,6 +140,7 @@ pub fn run_batch<P: BatchPolicy>(
                 return Err(policy.batch_error(&active, error));
             };
             if policy.ends_before_step(slot, action) {
+                ended += 1;
                 continue;
             }
             flat[range].copy_from_slice(action);
@@ -85,6 +148,7 @@ pub fn run_batch<P: BatchPolicy>(
             stepped.push((slot, own));
         }
         if stepped.is_empty() {
+            count_ended(&watch, ended);
             break;
         }
         let steps = venv.step_flat(&flat, Some(&mask));
@@ -97,11 +161,20 @@ pub fn run_batch<P: BatchPolicy>(
             let step = steps.get_mut(slot).and_then(Option::take).unwrap_or_else(|| {
                 Err(internal(format!("the episode in slot {slot} was not stepped")))
             });
-            if !policy.record(slot, &actions[own], step)? {
+            if policy.record(slot, &actions[own], step)? {
+                ended += 1;
+            } else {
                 still.push(slot);
             }
         }
+        count_ended(&watch, ended);
         active = still;
     }
     Ok(())
+}
+
+fn count_ended(watch: &Option<Watch>, ended: usize) {
+    if let Some(w) = watch {
+        w.episodes.add(ended);
+    }
 }

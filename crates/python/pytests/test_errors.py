@@ -81,3 +81,77 @@ def test_closed_env_error_is_gymnasiums_too():
     env.close()
     with pytest.raises(gym.error.ClosedEnvironmentError):
         env.reset(seed=0)
+
+
+# Issue 56: messages of the library crates worded for the command line (`--resume`, `--out`,
+# `--data DIR`, `--iterations`, `promptdt train ...`) or for the checkout (`scripts/...`), as a
+# Python caller gets them.
+def _no_cli_words(message):
+    for word in ("--", "scripts/", "promptdt train"):
+        assert word not in message, message
+
+
+def test_train_into_a_run_says_resume_true(point_run, point_data):
+    with pytest.raises(ValueError, match=r"already holds a run; continue it with "
+                       r"promptdt\.train\(out, resume=True\) or pick another out") as e:
+        promptdt.train(point_run, point_run.parent / "tiny.toml", data=point_data, progress=False)
+    _no_cli_words(str(e.value))
+
+
+def test_resume_with_fewer_iterations_names_the_keyword(point_run):
+    with pytest.raises(ValueError, match=r"^iterations=1: the run in .* has already done 4") as e:
+        promptdt.train(point_run, resume=True, iterations=1, progress=False)
+    _no_cli_words(str(e.value))
+
+
+def test_evaluate_with_other_data_says_data_keyword(point_run, tmp_path):
+    other = tmp_path / "other"
+    promptdt.collect("point_robot", other, seed=1, episodes=20, prompt_episodes=5, progress=False)
+    with pytest.raises(ValueError, match=r"\(data=DIR where it moved\)") as e:
+        promptdt.evaluate(point_run, data=other, progress=False)
+    _no_cli_words(str(e.value))
+
+
+def test_half_created_run_directories_say_what_to_call(point_run, tmp_path):
+    # Killed after run.json, before config.toml: nothing to resume.
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "run.json").write_bytes((point_run / "run.json").read_bytes())
+    with pytest.raises(ValueError, match=r"delete it or rerun promptdt\.train\(config=\.\.\., out=.*bare\)$") as e:
+        promptdt.train(bare, resume=True, progress=False)
+    _no_cli_words(str(e.value))
+    # Killed after config.toml, before task_stats.json: resume recreates it.
+    half = tmp_path / "half"
+    half.mkdir()
+    for name in ("run.json", "config.toml"):
+        (half / name).write_bytes((point_run / name).read_bytes())
+    with pytest.raises(ValueError, match=r"promptdt\.train\(out, resume=True\) recreates it") as e:
+        promptdt.evaluate(half, progress=False)
+    _no_cli_words(str(e.value))
+
+
+def test_cuda_without_its_libraries_says_what_to_install(point_run):
+    try:
+        promptdt.Policy.load(point_run, device="cuda")
+    except ValueError as e:
+        message = str(e)
+    else:
+        pytest.skip("CUDA works in this process")
+    assert "libtorch_cuda.so could not be loaded" in message and "pip install torch==2.11.0" in message
+    assert "LD_LIBRARY_PATH" in message
+    _no_cli_words(message)
+
+
+@pytest.mark.parametrize("kind", ["single", "vector"])
+def test_string_actions_name_the_argument(kind):
+    """Issue 56: numpy's "could not convert string to float" named neither `action(s)` nor what
+    was given."""
+    if kind == "single":
+        env = gym.make("promptdt/PointRobot-v0").unwrapped
+        env.reset(seed=0)
+        call, name = (lambda: env.step("left")), "action"
+    else:
+        env = started_env()
+        call, name = (lambda: env.step([["a"] * 6, ["b"] * 6])), "actions"
+    with pytest.raises(ValueError, match=rf"^{name}: .* given, expected an array of floats"):
+        call()

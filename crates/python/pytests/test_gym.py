@@ -59,7 +59,7 @@ def test_sb3_style_loop_on_the_single_env_equals_the_vector_env():
         if term or trunc:
             obs, info = env.reset()
     assert steps == 50 and np.isfinite(ret)
-    # The horizon ends a single env's episode itself (no TimeLimit wrapper needed).
+    # The horizon ends a single env's episode (itself, and gymnasium's TimeLimit at the same step).
     p = gym.make("promptdt/PointRobot-v0", task=0)
     p.reset(seed=1)
     ends = [p.step(np.zeros(2, np.float32))[3] for _ in range(p.unwrapped.horizon)]
@@ -147,3 +147,47 @@ def test_reset_options_are_honoured_or_refused():
     assert single.unwrapped.task == 7
     with pytest.raises(ValueError, match=r"options: unknown key\(s\) \['reset_mask'\]"):
         single.reset(options={"reset_mask": np.ones(1, bool)})
+
+
+@pytest.mark.parametrize("gid", sorted(ENV_IDS))
+def test_spec_has_the_horizon_and_metadata_a_frame_rate(gid):
+    """Issue 56: the spec had no max_episode_steps and the metadata no render_fps (what SB3 and
+    gymnasium's RecordVideo read)."""
+    family = ENV_IDS[gid]
+    horizon = promptdt.families()[family]["horizon"]
+    assert gym.spec(gid).max_episode_steps == horizon
+    env = gym.make(gid)
+    assert env.spec.max_episode_steps == horizon
+    fps = env.metadata["render_fps"]
+    assert isinstance(fps, int) and fps > 0 and env.metadata["render_modes"] == ["rgb_array"]
+    assert gym.make_vec(gid, num_envs=2).metadata["render_fps"] == fps
+    # The simulated time a step stands for: 1 / dt of the MuJoCo families (gym's own Cheetah and
+    # Ant render at 20 frames a second, Meta-World at 80).
+    expected = {"cheetah_dir": 20, "cheetah_vel": 20, "ant_dir": 20, "metaworld_reach": 80, "dial": 25}
+    if family in expected:
+        assert fps == expected[family]
+    env.close()
+
+
+def test_time_limit_of_the_spec_ends_episodes_where_the_env_does():
+    env = gym.make("promptdt/PointRobot-v0", task=2)
+    env.reset(seed=0)
+    steps = 0
+    while True:
+        _, _, term, trunc, _ = env.step(np.zeros(2, np.float32))
+        steps += 1
+        if term or trunc:
+            break
+    assert steps == env.spec.max_episode_steps == env.unwrapped.horizon
+
+
+def test_make_vec_takes_the_spec_limit_and_refuses_another():
+    v = gym.make_vec("promptdt/PointRobot-v0", num_envs=2, task=1)
+    assert v.spec.max_episode_steps == v.horizon
+    with pytest.raises(ValueError, match=r"max_episode_steps: 5 given; .*horizon \(20\).*vectorization_mode='sync'"):
+        gym.make_vec("promptdt/PointRobot-v0", num_envs=2, task=1, max_episode_steps=5)
+    sync = gym.make_vec("promptdt/PointRobot-v0", num_envs=2, vectorization_mode="sync", task=1,
+                        max_episode_steps=5)
+    sync.reset(seed=0)
+    ends = [sync.step(np.zeros((2, 2), np.float32))[3].all() for _ in range(5)]
+    assert ends == [False] * 4 + [True]

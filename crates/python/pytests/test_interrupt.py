@@ -1,8 +1,9 @@
-"""Ctrl-C stops promptdt.train and promptdt.collect within 5 s with KeyboardInterrupt, the run
-resumes and finishes afterwards, and both calls report progress (a line on stderr, a callback, or
-nothing)."""
+"""Ctrl-C stops promptdt.train, promptdt.evaluate and promptdt.collect within 5 s with
+KeyboardInterrupt, the run resumes and finishes afterwards, and the three calls report progress (a
+line on stderr, a callback, or nothing): evaluate's and a scripted collection's per episode."""
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -30,14 +31,16 @@ def _long_config(repo, root, iterations):
 
 
 def _interrupt(code, started, cwd, timeout=120):
-    """Runs `code` in a new Python, waits until `started()` holds, sends SIGINT and returns
-    (seconds from SIGINT to exit, return code, stderr)."""
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=cwd, stderr=subprocess.PIPE,
-                            stdout=subprocess.DEVNULL, text=True)
+    """Runs `code` in a new Python, waits until `started(stderr so far)` holds, sends SIGINT and
+    returns (seconds from SIGINT to exit, return code, stderr)."""
+    err_path = cwd / "stderr.txt"
+    with open(err_path, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-c", code], cwd=cwd, stderr=err,
+                                stdout=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + timeout
-        while not started():
-            assert proc.poll() is None, f"ended before it could be interrupted: {proc.stderr.read()}"
+        while not started(err_path.read_text()):
+            assert proc.poll() is None, f"ended before it could be interrupted: {err_path.read_text()}"
             assert time.monotonic() < deadline, "never started"
             time.sleep(0.1)
         t0 = time.monotonic()
@@ -46,7 +49,7 @@ def _interrupt(code, started, cwd, timeout=120):
             proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             pytest.fail("still running 30 s after SIGINT")
-        return time.monotonic() - t0, proc.returncode, proc.stderr.read()
+        return time.monotonic() - t0, proc.returncode, err_path.read_text()
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -64,7 +67,7 @@ def test_ctrl_c_stops_train_within_5s_and_the_run_resumes(repo, point_data, tmp_
     out = tmp_path / "run"
     code = (f"import promptdt; promptdt.train({str(out)!r}, {str(config)!r}, "
             f"data={str(point_data)!r})")
-    elapsed, rc, err = _interrupt(code, lambda: _metrics_lines(out) >= 3, tmp_path)
+    elapsed, rc, err = _interrupt(code, lambda _: _metrics_lines(out) >= 3, tmp_path)
     print(f"train: SIGINT -> exit in {elapsed:.2f} s")
     assert elapsed < 5.0, f"took {elapsed:.1f} s to stop"
     assert rc != 0 and "KeyboardInterrupt" in err, err[-2000:]
@@ -94,7 +97,7 @@ def test_train_progress_can_be_turned_off(repo, point_data, tmp_path):
 def test_ctrl_c_stops_collect_within_5s(tmp_path):
     out = tmp_path / "reach"
     code = (f"import promptdt; promptdt.collect('metaworld_reach', {str(out)!r}, episodes=200)")
-    files = lambda: out.is_dir() and any(p.suffix == ".safetensors" for p in out.iterdir())
+    files = lambda _: out.is_dir() and any(p.suffix == ".safetensors" for p in out.iterdir())
     elapsed, rc, err = _interrupt(code, files, tmp_path)
     print(f"collect: SIGINT -> exit in {elapsed:.2f} s")
     assert elapsed < 5.0, f"took {elapsed:.1f} s to stop"
@@ -107,3 +110,78 @@ def test_ctrl_c_stops_collect_within_5s(tmp_path):
     n = promptdt.collect("metaworld_reach", out, episodes=2, prompt_episodes=1, progress=seen.append)
     assert n == len(list(out.glob("*.safetensors"))) and (out / "dataset.json").exists()
     assert seen and seen[-1]["done"] == seen[-1]["total"]
+
+
+def _test_tasks():
+    return len(promptdt.families()["point_robot"]["splits"]["default"][1])
+
+
+@pytest.fixture
+def small_batch_run(point_run, tmp_path):
+    """The tiny run with batches of 16 episodes (`eval.max_batch`): a long evaluation of short
+    steps. The default batch (4096 episodes) makes one step a forward of 4096 histories, seconds
+    on one thread, and Ctrl-C is seen between steps."""
+    run = tmp_path / "run"
+    shutil.copytree(point_run, run)
+    config = run / "config.toml"
+    text = config.read_text()
+    assert "max_batch = 4096" in text
+    config.write_text(text.replace("max_batch = 4096", "max_batch = 16"))
+    return run
+
+
+def test_ctrl_c_stops_evaluate_within_5s_and_writes_nothing(small_batch_run, tmp_path):
+    """Issue 56: evaluate ignored Ctrl-C (60 s on) and showed no progress. 10,000 episodes per
+    task (the most eval.episodes takes) are well over 5 s; SIGINT once the default progress line
+    shows episodes done."""
+    final = small_batch_run / "eval_final.json"
+    before = final.read_bytes() if final.exists() else None
+    code = f"import promptdt; promptdt.evaluate({str(small_batch_run)!r}, episodes=10000)"
+    line = f"/{10000 * _test_tasks()} episodes"
+    elapsed, rc, err = _interrupt(code, lambda e: line in e, tmp_path)
+    print(f"evaluate: SIGINT -> exit in {elapsed:.2f} s")
+    assert elapsed < 5.0, f"took {elapsed:.1f} s to stop"
+    assert rc != 0 and "KeyboardInterrupt" in err, err[-2000:]
+    # The default line: episodes done of all planned, and the time left.
+    assert "ETA" in err and f"evaluate {10000 * _test_tasks()}{line}" not in err, err[-2000:]
+    assert (final.read_bytes() if final.exists() else None) == before
+
+
+def test_evaluate_reports_progress_and_its_callable_can_stop_it(small_batch_run):
+    seen = []
+    result = promptdt.evaluate(small_batch_run, episodes=7, progress=seen.append)
+    total = 7 * _test_tasks()
+    assert seen and all(p["unit"] == "episodes" and p["total"] == total for p in seen), seen
+    assert seen[-1]["done"] == total and len(result["tasks"]) == _test_tasks()
+    assert [p["done"] for p in seen] == sorted(p["done"] for p in seen)
+
+    class Enough(Exception):
+        pass
+
+    def stop(p):
+        raise Enough(p["done"])
+
+    with pytest.raises(Enough):
+        promptdt.evaluate(small_batch_run, episodes=10000, progress=stop)
+
+
+def test_scripted_collect_reports_episodes_before_a_task_is_written(tmp_path):
+    """Issue 56: a scripted collection reported once per (task, mode), so Meta-World reach's first
+    report came after 200 episodes (over 150 s on 2 cores). Now episodes are counted as they are
+    played: the first report comes before any (task, mode) has its 40 episodes."""
+    seen = []
+
+    class Enough(Exception):
+        pass
+
+    def first(p):
+        seen.append(p)
+        raise Enough()
+
+    out = tmp_path / "reach"
+    with pytest.raises(Enough):
+        promptdt.collect("metaworld_reach", out, episodes=40, prompt_episodes=1, progress=first)
+    (p,) = seen
+    assert p["unit"] == "episodes" and p["total"] == 20 * 3 * (40 + 1), p
+    assert 1 <= p["done"] < 40, p
+    assert not [f for f in out.glob("*.safetensors") if "-prompt-" not in f.name]

@@ -69,7 +69,7 @@ class OneTaskEnv:
 def _register_point_robot():
     import gymnasium as gym
 
-    from promptdt.minari_io import gym_id
+    from promptdt.envs import env_id as gym_id  # the one naming, which the export uses
 
     env_id = gym_id("point_robot")
     assert env_id == "promptdt/PointRobot-v0"

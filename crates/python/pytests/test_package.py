@@ -101,3 +101,19 @@ def test_unzip_of_the_wheel_lists_every_licence():
     for path in expected_paths():
         assert f"promptdt/_licenses/{path}" in names, path
         assert any(n.endswith(f".dist-info/licenses/python/promptdt/_licenses/{path}") for n in names), path
+
+
+def test_train_evaluate_collect_need_no_gymnasium(tmp_path):
+    """gymnasium is optional (pyproject: the `gym` extra): the argument checks of train, evaluate
+    and collect imported promptdt.envs, which needs it (ImportError for `seed=1`)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['gymnasium'] = None\n"
+            "import promptdt\n"
+            "assert not hasattr(promptdt, 'make_vec') and 'make_vec' not in promptdt.__all__\n"
+            f"n = promptdt.collect('point_robot', {str(tmp_path / 'd')!r}, seed=1, episodes=1, "
+            "prompt_episodes=1, progress=False)\n"
+            "assert n == 240, n\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr

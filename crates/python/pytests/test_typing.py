@@ -39,3 +39,39 @@ def test_vector_env_reset_and_step_are_annotated():
         for name in ("reset", "step"):
             hints = typing.get_type_hints(getattr(cls, name))
             assert "return" in hints and typing.get_origin(hints["return"]) is tuple, (cls, name)
+
+
+def test_mypy_strict_accepts_minari_calls_and_star_imports(tmp_path):
+    """Issue 56: export_minari/import_minari were untyped `*args, **kwargs` wrappers (an error
+    under --strict), and `make_vec` was not in `__all__`."""
+    (tmp_path / "user.py").write_text(
+        "from pathlib import Path\n"
+        "from typing import List\n"
+        "import promptdt\n"
+        "from promptdt import *\n"
+        "\n"
+        "def export(data: Path) -> List[Path]:\n"
+        "    ds = promptdt.export_minari(data, 'promptdt/point_robot/x-v0', tasks=[1, 2])\n"
+        "    return promptdt.import_minari(ds, data / 'back', env='point_robot')\n"
+        "\n"
+        "env = make_vec('point_robot', 2, task=0)\n"
+        "files: List[Path] = import_minari('promptdt/point_robot/x-v0', 'out')\n"
+    )
+    out = run_mypy(["mypy", "--strict", "user.py"], tmp_path)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_mypy_finds_the_package_consistent(tmp_path):
+    """The package's own modules, as installed: a name imported from a sibling module must exist
+    (minari_io imported `envs.gym_id`, which never did, behind an ImportError fallback)."""
+    out = run_mypy(["mypy", "-p", "promptdt"], tmp_path)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_make_vec_is_exported():
+    import promptdt
+
+    assert "make_vec" in promptdt.__all__
+    names: dict = {}
+    exec("from promptdt import *", names)
+    assert names["make_vec"] is promptdt.envs.make_vec

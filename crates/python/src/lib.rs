@@ -22,7 +22,50 @@ use std::path::Path;
 use std::sync::{Mutex, MutexGuard};
 
 pub(crate) fn value_error(e: impl std::fmt::Display) -> PyErr {
-    PyValueError::new_err(e.to_string())
+    PyValueError::new_err(python_terms(&e.to_string()))
+}
+
+/// The library's messages that tell a command-line user what to type (`--resume`, `--out`, a
+/// script of the checkout), in the terms of the Python call that got them. The library crates
+/// are shared with the CLI, whose wording they keep; pytests/test_errors.py triggers each of these
+/// messages through the package, so a change of wording there fails a test here.
+const PYTHON_TERMS: &[(&str, &str)] = &[
+    // `train` into a directory that holds a run, or one another process holds.
+    (
+        "use --resume to continue it or pick another --out",
+        "continue it with promptdt.train(out, resume=True) or pick another out",
+    ),
+    ("or pick another --out", "or pick another out"),
+    // A run's data moved (`train(resume=True)`, `evaluate`).
+    ("(--data DIR where it moved)", "(data=DIR where it moved)"),
+    // `train(resume=True, iterations=N)` below what the run has done.
+    ("--iterations ", "iterations="),
+    // A run directory killed while being created.
+    ("`promptdt train --resume` recreates it", "promptdt.train(out, resume=True) recreates it"),
+    ("rerun `promptdt train --config <experiment> --out ", "rerun promptdt.train(config=..., out="),
+    // `device="cuda"` without the CUDA part of libtorch: the package has no scripts/.
+    (
+        "install the CUDA part of libtorch 2.11.0 (python3 scripts/fetch_libtorch.py --cuda) and \
+         put the directory it prints on LD_LIBRARY_PATH",
+        "the promptdt package carries only the CPU part of libtorch; for device=\"cuda\", install \
+         torch 2.11.0 with CUDA (pip install torch==2.11.0) and start Python with its torch/lib \
+         directory on LD_LIBRARY_PATH",
+    ),
+];
+
+/// `message` with [`PYTHON_TERMS`]' replacements.
+fn python_terms(message: &str) -> String {
+    let mut out = message.to_string();
+    for (cli, python) in PYTHON_TERMS {
+        out = out.replace(cli, python);
+    }
+    // The closing quote of the command line rewritten above.
+    if out.contains("rerun promptdt.train(config=..., out=") {
+        if let Some(end) = out.rfind('`') {
+            out.replace_range(end..=end, ")");
+        }
+    }
+    out
 }
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> PyResult<MutexGuard<'_, T>> {

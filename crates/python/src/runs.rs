@@ -1,6 +1,6 @@
 //! Runs: the CLI's library calls (train, evaluate, collect, list experiments, benchmark).
 
-use crate::signals::{interruptible, Progress};
+use crate::signals::{interruptible, interruptible_ticking, Progress};
 use crate::{existing, value_error};
 use pdt_base::stop::StopFlag;
 use pyo3::prelude::*;
@@ -111,10 +111,13 @@ pub(crate) fn train<'py>(
 /// (`soft-prompt`, `ptdt`, `lora`; `adapt_steps` / `adapt_batch` its budget) each test task is
 /// adapted first (`promptdt eval --adapt`): `eval_adapt_<kind>.json`, with `adapt` and each
 /// task's `adapt_log`.
+/// `progress`: called with `{"done", "total", "unit": "episodes", "elapsed_s"}` as episodes end
+/// (at most every 50 ms); Ctrl-C (or an exception of `progress`) stops the episodes at their next
+/// step and raises, and nothing is written.
 #[pyfunction]
 #[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None,
                     prompt_strategy = None, prompt_episodes = None, prompt_length = None,
-                    adapt = None, adapt_steps = None, adapt_batch = None))]
+                    adapt = None, adapt_steps = None, adapt_batch = None, progress = None))]
 #[allow(clippy::too_many_arguments)] // the keywords of `promptdt.evaluate`
 pub(crate) fn evaluate(
     py: Python<'_>,
@@ -129,6 +132,7 @@ pub(crate) fn evaluate(
     adapt: Option<&str>,
     adapt_steps: Option<usize>,
     adapt_batch: Option<usize>,
+    progress: Option<Py<PyAny>>,
 ) -> PyResult<String> {
     existing(&run_dir, "run directory")?;
     let adapt = match adapt {
@@ -154,26 +158,53 @@ pub(crate) fn evaluate(
             ..Default::default()
         }),
     };
-    let r = py
-        .detach(|| {
-            let req = pdt_train::run::EvalRequest {
-                episodes,
-                split: split.into(),
-                device,
-                data,
-                prompt,
-                adapt,
-                ..Default::default()
-            };
+    let req = pdt_train::run::EvalRequest {
+        episodes,
+        split: split.into(),
+        device,
+        data,
+        prompt,
+        adapt,
+        ..Default::default()
+    };
+    // The episodes end in the library's rollouts, which count them in the watch; the waiting
+    // thread reports the count. `None`: the run's configuration is unreadable, which the
+    // evaluation reports itself before any episode.
+    let total = planned_episodes(&run_dir, episodes, split);
+    let watch = pdt_envs::rollout::Watch::default();
+    let report = Progress::new(progress, &watch.stop);
+    let started = std::time::Instant::now();
+    let mut shown = 0;
+    let tick = || {
+        let done = watch.episodes.get();
+        if let (Some(total), true) = (total, done != shown) {
+            shown = done;
+            // An adaptation that scores candidates by their return plays more episodes than planned.
+            let total = total.max(done);
+            report.report(|d| progress_items(d, done, total, "episodes", started));
+        }
+    };
+    let r = interruptible_ticking(py, &watch.stop, tick, || {
+        pdt_envs::rollout::watching(&watch, || {
             pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| e.to_string())
         })
-        .map_err(value_error)?;
+    })?
+    .map_err(|e| stopped_or(&report, e))?;
     // The default strategy returns `eval_final.json`'s content, as before strategies.
     if r.prompt_strategy.is_default() && r.adapt.is_none() {
         serde_json::to_string(&r.eval).map_err(value_error)
     } else {
         serde_json::to_string(&r).map_err(value_error)
     }
+}
+
+/// The episodes an evaluation of the run in `dir` plays: each task of `split`, `episodes` (else
+/// the run's `eval.episodes`) each; `None` where the run's configuration cannot be read.
+fn planned_episodes(dir: &std::path::Path, episodes: Option<usize>, split: &str) -> Option<usize> {
+    let cfg = pdt_rundir::RunDir::at(dir).config().ok()?;
+    let (train, test) = pdt_envs::family(&cfg.env.name).ok()?.split(&cfg.env.split).ok()?;
+    let tasks = if split == "train" { train.len() } else { test.len() };
+    Some(tasks * episodes.unwrap_or(cfg.eval.episodes))
 }
 
 /// `promptdt reproduce --list`: every committed experiment with its cells and its cost per budget,
@@ -215,9 +246,10 @@ pub(crate) fn is_scripted(family: &str) -> PyResult<bool> {
 /// expert/medium/random datasets and prompt sets of the family's default tasks, into `out`.
 /// `action_noise`: the expert's noise where the family takes one (Meta-World reach: standard
 /// deviation; default 0.2, 0 = deterministic). Returns the number of files written (a dataset and
-/// a prompt set per task and mode). `progress`: called with `{"done", "total", "unit": "sets",
-/// "elapsed_s"}` each time a task's mode is written; Ctrl-C stops it between episodes and raises
-/// (the files written are whole; the card is written only at the end).
+/// a prompt set per task and mode). `progress`: called with `{"done", "total", "unit":
+/// "episodes", "elapsed_s"}` as episodes are played (at most every 50 ms; datasets' and prompt
+/// sets' episodes alike); Ctrl-C stops it between episodes and raises (the files written are
+/// whole; the card is written only at the end).
 #[pyfunction]
 #[pyo3(signature = (family, out, seed = 0, episodes = None, prompt_episodes = None, action_noise = None, progress = None))]
 #[allow(clippy::too_many_arguments)]
@@ -261,11 +293,20 @@ pub(crate) fn collect_scripted(
     }
     let report = Progress::new(progress, &cfg.interrupt);
     let started = std::time::Instant::now();
-    let summary = interruptible(py, &cfg.interrupt, || {
-        pdt_envs::collect_scripted::collect(&cfg, &out, &mut |done, total| {
-            report.report(|d| progress_items(d, done, total, "sets", started))
-        })
-        .map_err(|e| e.to_string())
+    // The library reports whole files (a task's mode can take minutes: Meta-World's 200
+    // episodes); its threads count episodes, which the waiting thread reports.
+    let per_pair = cfg.episodes_per_task.saturating_add(cfg.prompt_episodes);
+    let total = (cfg.tasks.len() * cfg.modes.len()).saturating_mul(per_pair);
+    let mut shown = 0;
+    let tick = || {
+        let done = cfg.episodes_played.get();
+        if done != shown {
+            shown = done;
+            report.report(|d| progress_items(d, done, total, "episodes", started));
+        }
+    };
+    let summary = interruptible_ticking(py, &cfg.interrupt, tick, || {
+        pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}).map_err(|e| e.to_string())
     })?
     .map_err(|e| stopped_or(&report, e))?;
     // Each entry is one task's mode: its dataset and its prompt set.

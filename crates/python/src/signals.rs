@@ -6,6 +6,11 @@
 //! exception a handler raises) sets the call's [`StopFlag`]; the library stops at its next check
 //! (between gradient steps, between episodes), leaving only whole files and committed
 //! checkpoints, and the exception is raised once the worker has returned.
+//!
+//! Progress is reported to a Python callable ([`Progress`]) from the worker thread, where the
+//! library reports it (training's iterations, an agent's collection), or from the waiting thread,
+//! which reads a count the work keeps ([`interruptible_ticking`]: the episodes of an evaluation
+//! or of a scripted collection, played on threads the library does not let report).
 
 use pdt_base::stop::StopFlag;
 use pyo3::prelude::*;
@@ -26,6 +31,18 @@ pub(crate) fn interruptible<T: Send>(
     interrupt: &StopFlag,
     work: impl FnOnce() -> T + Send,
 ) -> PyResult<T> {
+    interruptible_ticking(py, interrupt, || {}, work)
+}
+
+/// [`interruptible`], calling `tick` on the waiting thread every [`POLL`] and once when the work
+/// has returned: for progress the work counts rather than reports (an evaluation's or a
+/// collection's episodes, counted by the threads playing them).
+pub(crate) fn interruptible_ticking<T: Send>(
+    py: Python<'_>,
+    interrupt: &StopFlag,
+    mut tick: impl FnMut(),
+    work: impl FnOnce() -> T + Send,
+) -> PyResult<T> {
     let done = Done::default();
     std::thread::scope(|scope| {
         let worker = std::thread::Builder::new()
@@ -42,8 +59,10 @@ pub(crate) fn interruptible<T: Send>(
         let mut raised = None;
         loop {
             if py.detach(|| done.wait(POLL)) {
+                tick();
                 break;
             }
+            tick();
             if raised.is_none() {
                 if let Err(e) = py.check_signals() {
                     interrupt.set();

@@ -30,6 +30,7 @@ if "torch" in _sys.modules:
         )
 
 from . import _native  # noqa: E402
+from ._args import _uint  # noqa: E402
 from ._native import Adaptation, Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
@@ -105,8 +106,8 @@ def task_params(family: str, task: int) -> dict:
     return _json.loads(_native.task_params(family, task))
 
 
-#: What ``train``'s and ``collect``'s ``progress`` takes: True (a progress line on stderr), False
-#: (nothing), or a callable called with each report (a dict).
+#: What ``train``'s, ``evaluate``'s and ``collect``'s ``progress`` takes: True (a progress line on
+#: stderr), False (nothing), or a callable called with each report (a dict).
 ProgressArg = Union[bool, Callable[[dict], Any]]
 
 
@@ -177,8 +178,6 @@ def _opt_uint(name: str, value: Any, expected: str, *, low: int = 0) -> Optional
     given and what is expected (never an ``OverflowError`` from the native layer)."""
     if value is None:
         return None
-    from .envs import _uint
-
     return _uint(name, value, expected, low=low, high=2**64)
 
 
@@ -237,6 +236,7 @@ def evaluate(
     adapt: Optional[str] = None,
     adapt_steps: Optional[int] = None,
     adapt_batch: Optional[int] = None,
+    progress: ProgressArg = True,
 ) -> dict:
     """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
     run's ``eval_final.json``; returns its content.
@@ -250,27 +250,32 @@ def evaluate(
     ``adapt`` (``promptdt eval --adapt``): ``soft-prompt``, ``ptdt`` or ``lora``, each test task
     adapted from its demonstrations first, the backbone frozen (``adapt_steps`` / ``adapt_batch``:
     iterations and demonstration segments per iteration, defaults 20 and 16); the result goes to
-    ``eval_adapt_<kind>.json`` and carries ``adapt`` and each task's ``adapt_log``."""
+    ``eval_adapt_<kind>.json`` and carries ``adapt`` and each task's ``adapt_log``.
+
+    ``progress``: True (default) shows a line on stderr (episodes done, time left), False shows
+    nothing, a callable gets ``{"done", "total", "unit": "episodes", "elapsed_s"}`` as episodes end
+    (an exception it raises stops the evaluation and propagates). Ctrl-C stops the episodes at
+    their next step and raises ``KeyboardInterrupt``; nothing is written then."""
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
     adapt_steps = _opt_uint("adapt_steps", adapt_steps, "a number of iterations", low=1)
     adapt_batch = _opt_uint("adapt_batch", adapt_batch, "a number of segments", low=1)
     prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of segments", low=1)
     prompt_length = _opt_uint("prompt_length", prompt_length, "a number of steps", low=1)
-    return _json.loads(
-        _native.evaluate(
-            _os.fspath(run),
-            episodes=episodes,
-            split=split,
-            device=device,
-            data=None if data is None else _os.fspath(data),
-            prompt_strategy=prompt_strategy,
-            prompt_episodes=prompt_episodes,
-            prompt_length=prompt_length,
-            adapt=adapt,
-            adapt_steps=adapt_steps,
-            adapt_batch=adapt_batch,
-        )
-    )
+    text = _with_progress(progress, "evaluate", lambda report: _native.evaluate(
+        _os.fspath(run),
+        episodes=episodes,
+        split=split,
+        device=device,
+        data=None if data is None else _os.fspath(data),
+        prompt_strategy=prompt_strategy,
+        prompt_episodes=prompt_episodes,
+        prompt_length=prompt_length,
+        adapt=adapt,
+        adapt_steps=adapt_steps,
+        adapt_batch=adapt_batch,
+        progress=report,
+    ))
+    return _json.loads(text)
 
 
 def pretrained_dir(env: str) -> _Path:
@@ -317,11 +322,12 @@ def collect(
     families.
 
     ``progress``: True (default) shows a line on stderr, False nothing, a callable gets
-    ``{"done", "total", "unit", "elapsed_s"}`` (``unit``: ``"sets"`` (a task's mode written) for
-    scripted families, ``"episodes"`` for the others). Ctrl-C stops it within a step or an episode
+    ``{"done", "total", "unit": "episodes", "elapsed_s"}`` as episodes are played (the datasets'
+    and the prompt sets' episodes; for scripted families at most every 50 ms, for the others
+    after each chunk of episodes). Ctrl-C stops it within a step or an episode
     and raises ``KeyboardInterrupt``; the files already written are whole, ``dataset.json`` (the
     card) is written only by a call that finishes: collect again to finish."""
-    seed = _opt_uint("seed", seed, "a seed")
+    seed = _uint("seed", seed, "a seed", high=2**64)
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
     prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of episodes")
     scripted = _native.is_scripted(env)  # raises ValueError naming an unknown family
@@ -413,18 +419,9 @@ def reproduce(
     return _json.loads(report.read_text())
 
 
-def export_minari(*args, **kwargs):
-    """promptdt files -> a Minari dataset (see ``promptdt.minari_io.export_minari``)."""
-    from .minari_io import export_minari as f
-
-    return f(*args, **kwargs)
-
-
-def import_minari(*args, **kwargs):
-    """A Minari dataset -> promptdt files (see ``promptdt.minari_io.import_minari``)."""
-    from .minari_io import import_minari as f
-
-    return f(*args, **kwargs)
+# Minari interop (``promptdt.minari_io``): its functions themselves, typed; minari is imported only
+# when one is called.
+from .minari_io import export_minari, import_minari  # noqa: E402
 
 
 def write_dataset(path: PathLike, dataset: "Dataset") -> None:
@@ -483,6 +480,7 @@ def flat_dataset(
 
         files = _task_files(source, mode, tasks, env)
         env = files[0][0]
+        flat_mode: Optional[str] = mode
         parts = [(task, load_dataset(path)) for _, task, path in files]
     else:
         parts = []
@@ -500,7 +498,7 @@ def flat_dataset(
             raise ValueError(f"source: datasets of several families ({sorted(map(str, envs))})")
         env = envs.pop()
         modes = {ds.mode for _, ds in parts}
-        mode = modes.pop() if len(modes) == 1 else None
+        flat_mode = modes.pop() if len(modes) == 1 else None
     dims = {(ds.obs_dim, ds.act_dim) for _, ds in parts}
     if len(dims) > 1:
         raise ValueError(f"source: datasets of different (obs_dim, act_dim): {sorted(dims)}")
@@ -521,7 +519,7 @@ def flat_dataset(
         task_ids=_np.concatenate([_np.full(len(t), task, _np.int64) for task, t in trajs])
         if trajs else _np.zeros(0, _np.int64),
         env=env,
-        mode=mode,
+        mode=flat_mode,
     )
 
 
@@ -549,3 +547,5 @@ __all__ = [
     "task_params",
     "train",
 ]
+if "make_vec" in globals():  # with gymnasium (above)
+    __all__ += ["make_vec"]

@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _native
+from ._args import _uint
 
 try:
     import gymnasium as gym
@@ -61,18 +62,6 @@ class EnvClosedError(gym.error.ClosedEnvironmentError, ValueError):
     """``reset`` or ``step`` after ``close()``: gymnasium's error, and a ``ValueError``."""
 
 
-def _uint(name: str, value: Any, expected: str, *, low: int = 0, high: Optional[int] = None) -> int:
-    """An integer argument in ``[low, high)``, or a ``TypeError``/``ValueError`` that names it, what
-    was given and what is expected."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name}: {value!r} ({type(value).__name__}) given, expected {expected} (an int)")
-    v = int(value)
-    if v < low or (high is not None and v >= high):
-        rng = f">= {low}" if high is None else f"in [{low}, {high})"
-        raise ValueError(f"{name}: {v} given, expected {expected} ({rng})")
-    return v
-
-
 def _seed(name: str, value: Any) -> int:
     return _uint(name, value, "a seed", high=2**64)
 
@@ -95,6 +84,35 @@ def _spaces(family: str, obs_dim: int, act_dim: int) -> Tuple[gym.spaces.Box, gy
         np.float32,
     )
     return obs, act
+
+
+#: Environment steps a second of each family's simulated time, gymnasium's ``render_fps`` (what
+#: ``RecordVideo`` plays frames at): 1 / dt, as gym's and Meta-World's own environments give it.
+RENDER_FPS: Dict[str, int] = {
+    "cheetah_dir": 20,  # frame skip 5 x timestep 0.01 s (gym's HalfCheetah: 20)
+    "cheetah_vel": 20,
+    "ant_dir": 20,  # frame skip 5 x 0.01 s (gym's Ant: 20)
+    "metaworld_reach": 80,  # frame skip 5 x 0.0025 s (Meta-World: 80)
+    "dial": 25,  # 20 simulator steps of 0.002 s per action
+    "point_robot": 20,  # no simulated time: `promptdt render`'s default rate
+}
+
+
+def _metadata(base: Dict[str, Any], family: str) -> Dict[str, Any]:
+    return {**base, "render_fps": RENDER_FPS[family]}
+
+
+def _float_array(name: str, value: Any) -> npt.NDArray[np.float32]:
+    """``value`` as float32, or a ``ValueError`` naming the argument (numpy's own message names
+    neither it nor what was given)."""
+    try:
+        return np.asarray(value, dtype=np.float32)
+    except (TypeError, ValueError) as e:
+        given = repr(value)
+        given = given if len(given) <= 80 else given[:77] + "..."
+        raise ValueError(
+            f"{name}: {given} ({type(value).__name__}) given, expected an array of floats ({e})"
+        ) from None
 
 
 def _options(options: Optional[Dict[str, Any]]) -> Optional[Any]:
@@ -133,6 +151,7 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
         self.render_mode, self._render_size = _render_args(render_mode, render_size)
         self._env: Optional[_native.VecEnv] = _native.VecEnv(family, [task], 1)
         self.family: str = self._env.family
+        self.metadata = _metadata(PromptDTEnv.metadata, self.family)
         self.task: int = task
         self.horizon: int = self._env.horizon
         self.observation_space, self.action_space = _spaces(
@@ -170,7 +189,7 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
         env = self._native_env("step")
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        a = np.asarray(action, dtype=np.float32)
+        a = _float_array("action", action)
         if a.shape != self.action_space.shape:
             raise ValueError(f"action: shape {a.shape}, expected {self.action_space.shape} (act_dim,)")
         obs, rew, term, trunc = env.step(a[None])
@@ -214,6 +233,7 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         self._threads = threads
         self._env: Optional[_native.VecEnv] = _native.VecEnv(_family_of(family), list(tasks), threads)
         self.family: str = self._env.family
+        self.metadata = _metadata(PromptDTVectorEnv.metadata, self.family)
         self.tasks: List[int] = list(self._env.tasks)
         self.num_envs = self._env.num_envs
         self.horizon: int = self._env.horizon
@@ -301,7 +321,7 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         env = self._native_env("step")
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        actions = np.asarray(actions, dtype=np.float32)
+        actions = _float_array("actions", actions)
         if actions.shape != (self.num_envs, self._act_dim):
             raise ValueError(
                 f"actions: shape {actions.shape}, expected "
@@ -412,9 +432,18 @@ def _vector_entry_point(
     threads: int = 0,
     render_mode: Optional[str] = None,
     render_size: Tuple[int, int] = (480, 480),
+    max_episode_steps: Optional[int] = None,
 ) -> PromptDTVectorEnv:
     """``gymnasium.make_vec(id, num_envs=n, task=t)``: our vector env (task 0 when none is given,
-    as ``gymnasium.make``)."""
+    as ``gymnasium.make``). gymnasium passes the spec's ``max_episode_steps`` (the family's
+    horizon, where the environments truncate); another limit is refused, not ignored."""
+    horizon = _native.families()[family]["horizon"]
+    if max_episode_steps is not None and max_episode_steps != horizon:
+        raise ValueError(
+            f"max_episode_steps: {max_episode_steps!r} given; promptdt's vector env truncates at "
+            f"{family}'s horizon ({horizon}). For another limit, vectorization_mode='sync' wraps "
+            "each environment in gymnasium's TimeLimit"
+        )
     if task is None and tasks is None:
         task = 0
     return make_vec(
@@ -438,8 +467,10 @@ def register_envs() -> None:
             entry_point=f"{__name__}:PromptDTEnv",
             vector_entry_point=f"{__name__}:_vector_entry_point",
             kwargs={"family": family},
-            # The environments truncate at their own horizon (no TimeLimit wrapper needed).
-            max_episode_steps=None,
+            # The family's horizon, where the environment truncates anyway: gymnasium.make's
+            # TimeLimit then truncates at the same step, and the spec says the episode length
+            # (what learners such as SB3 read from it).
+            max_episode_steps=families()[family]["horizon"],
         )
 
 
@@ -448,6 +479,7 @@ __all__ = [
     "EnvClosedError",
     "PromptDTEnv",
     "PromptDTVectorEnv",
+    "RENDER_FPS",
     "env_id",
     "families",
     "make_vec",

@@ -23,19 +23,21 @@ import dataclasses
 import json
 import os
 import re
-import warnings
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from . import _native
 
+if TYPE_CHECKING:  # minari is imported when a function here is called, not with the package
+    from minari import MinariDataset  # type: ignore[import-untyped]  # (minari 0.5 has no py.typed)
+
 PathLike = Union[str, "os.PathLike[str]"]
 _NAME = re.compile(r"^(?P<env>.+?)-(?P<task>\d+)-(?P<mode>[A-Za-z][\w-]*)\.(safetensors|pkl)$")
 
 
-def _minari():
+def _minari() -> Any:
     try:
         import minari
     except ImportError as e:
@@ -82,35 +84,24 @@ def _task_files(
         if missing:
             raise ValueError(f"{data}: no {mode} file for tasks {missing}" + (f" of {env}" if env else ""))
         found = {t: found[t] for t in tasks}
-    if not found:
+    if not found or env is None:  # (no family: no files)
         name = env or "{env}"
         raise ValueError(f"{data}: no `{name}-{{task}}-{mode}.safetensors` (or .pkl) files")
     return [(env, t, p) for t, p in sorted(found.items())]
 
 
-def gym_id(family: str) -> str:
-    """The gymnasium id of a family: ``promptdt/`` + its name in CamelCase + ``-v0``
-    (``cheetah_vel`` -> ``promptdt/CheetahVel-v0``), the task a keyword argument."""
-    try:  # the registration's own naming, where the package registers the families
-        from .envs import gym_id as registered
+def _env_spec(family: str, task: int) -> Any:
+    """The gymnasium spec ``import promptdt`` registered for ``family`` (``promptdt.envs.env_id``),
+    with ``task`` as its keyword."""
+    import gymnasium as gym
 
-        return registered(family)
-    except ImportError:
-        return "promptdt/" + "".join(w.capitalize() for w in family.split("_")) + "-v0"
+    # Imported here: promptdt.envs needs gymnasium, which the export needs anyway.
+    from .envs import env_id, register_envs
 
-
-def _env_spec(gym, family: str, task: int):
-    """The registered spec of ``family`` with ``task`` as its keyword, or None where the id is not
-    registered (then the dataset has no environment to recover)."""
-    env_id = gym_id(family)
-    if env_id not in gym.registry:
-        try:
-            from . import envs as _envs  # noqa: F401  (registers the families where it does)
-        except ImportError:
-            pass
-    if env_id not in gym.registry:
-        return None
-    spec = gym.spec(env_id)
+    gid = env_id(family)
+    if gid not in gym.registry:  # the registration was removed since the import: again
+        register_envs()
+    spec = gym.spec(gid)
     return dataclasses.replace(spec, kwargs={**spec.kwargs, "task": task})
 
 
@@ -125,7 +116,7 @@ def export_minari(
     author_email: Optional[str] = None,
     description: Optional[str] = None,
     env: Optional[str] = None,
-):
+) -> "MinariDataset":
     """Writes the ``mode`` files of ``data`` (a directory ``promptdt collect`` wrote, or the
     reference release's pickles) as the Minari dataset ``dataset_id`` (under
     ``MINARI_DATASETS_PATH``, default ``~/.minari/datasets``). ``tasks``: a subset; ``env``: the
@@ -144,15 +135,14 @@ def export_minari(
     if split not in fam["splits"]:
         raise ValueError(f"unknown split `{split}` of {env} (known: {', '.join(fam['splits'])})")
     train, test = (set(x) for x in fam["splits"][split])
-    buffers = []
-    obs_dim = act_dim = None
+    buffers: List[Any] = []
+    obs_dim, act_dim = int(fam["obs_dim"]), int(fam["act_dim"])
     for _, task, path in files:
         ds = _native.load_dataset(os.fspath(path))
-        obs_dim, act_dim = ds["obs_dim"], ds["act_dim"]
-        if (obs_dim, act_dim) != (fam["obs_dim"], fam["act_dim"]):
+        if (ds["obs_dim"], ds["act_dim"]) != (obs_dim, act_dim):
             raise ValueError(
-                f"{path}: obs_dim {obs_dim} and act_dim {act_dim}, but {env} has obs_dim "
-                f"{fam['obs_dim']} and act_dim {fam['act_dim']}"
+                f"{path}: obs_dim {ds['obs_dim']} and act_dim {ds['act_dim']}, but {env} has "
+                f"obs_dim {obs_dim} and act_dim {act_dim}"
             )
         which = "train" if task in train else "test" if task in test else "none"
         options = {
@@ -178,28 +168,22 @@ def export_minari(
     # The family's action box, per dimension, from Rust (`EnvFamily::action_bounds`).
     low = np.asarray(fam["action_low"], np.float32)
     high = np.asarray(fam["action_high"], np.float32)
-    spec = _env_spec(gym, env, files[0][1])
-    with warnings.catch_warnings():
-        if spec is None:
-            # No registered environment to record: Minari's two notices about it say nothing the
-            # metadata (`promptdt_env`) does not.
-            warnings.filterwarnings("ignore", message=r".*env_spec is None", category=UserWarning)
-            warnings.filterwarnings("ignore", message=r"`eval_env` is set to None", category=UserWarning)
-        dataset = minari.create_dataset_from_buffers(
-            dataset_id=dataset_id,
-            buffer=buffers,
-            env=spec,
-            eval_env=spec,
-            observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
-            action_space=gym.spaces.Box(low, high, (act_dim,), np.float32),
-            algorithm_name="promptdt collect",
-            author=author or "promptdt",
-            author_email=author_email or "https://github.com/promptdt/promptdt/issues",
-            code_permalink="https://github.com/promptdt/promptdt",
-            description=description
-            or f"promptdt {env} {mode} data, {len(files)} tasks (split `{split}`); the last "
-            "observation of each episode is a repeat (not recorded)",
-        )
+    spec = _env_spec(env, files[0][1])
+    dataset = minari.create_dataset_from_buffers(
+        dataset_id=dataset_id,
+        buffer=buffers,
+        env=spec,
+        eval_env=spec,
+        observation_space=gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32),
+        action_space=gym.spaces.Box(low, high, (act_dim,), np.float32),
+        algorithm_name="promptdt collect",
+        author=author or "promptdt",
+        author_email=author_email or "https://github.com/promptdt/promptdt/issues",
+        code_permalink="https://github.com/promptdt/promptdt",
+        description=description
+        or f"promptdt {env} {mode} data, {len(files)} tasks (split `{split}`); the last "
+        "observation of each episode is a repeat (not recorded)",
+    )
     dataset.storage.update_metadata(
         {
             "promptdt_env": env,
@@ -213,7 +197,7 @@ def export_minari(
 
 
 def import_minari(
-    dataset,
+    dataset: Union[str, "MinariDataset"],
     out: PathLike,
     *,
     env: Optional[str] = None,
