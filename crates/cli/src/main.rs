@@ -213,7 +213,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) if packs::is_pack(&a) => packs::train_pack(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            prompt_args::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
+            commands::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
             // With --adapt, --adapt-steps/--adapt-batch are the adaptation's, not MACAW's.
             let adapt = match a.adaptation.adapt {
                 Some(_) => {

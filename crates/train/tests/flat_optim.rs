@@ -382,8 +382,11 @@ fn flat_runs_resume_exactly_and_resume_on_the_per_tensor_optimiser() {
             assert!(d <= LOSS_BOUND, "{method:?}: {d:e}\n{x}\n{y}");
         }
         assert!(a[..2] == b[..2], "identical before the switch");
-        // The per-tensor optimiser ran from iteration 3: the last bits differ somewhere (the
-        // logged losses here happened to agree to every digit; the gradient norms do not).
-        assert!(a != b, "{method:?}: no difference after the switch");
+        // The per-tensor optimiser ran from iteration 3: the last bits differ somewhere, in the
+        // metrics (the gradient norms, on the AMD EPYC's normal kernels) or, where every logged
+        // number happens to agree (seen under other kernels, scripts/test_other_kernels.sh), in
+        // the weights the other clipping coefficient moved.
+        let differ = a != b || w(&full) != w(&cross);
+        assert!(differ, "{method:?}: no difference after the switch");
     }
 }
