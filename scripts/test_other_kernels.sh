@@ -19,8 +19,9 @@
 #
 # Which tests: every integration test whose file (or a support file it includes by `#[path]`) names
 # a place that holds committed numbers, or types a number with 6 or more decimals (the pattern
-# below). Found by running the whole suite under these variables once (2026-12-06): no other test
-# compares with another machine's numbers (docs/reproducibility.md, "Across CPUs").
+# below). The whole suite was run under these variables once (2026-12-06): no test outside this
+# list compares with another machine's numbers (docs/reproducibility.md, "How the tests hold these
+# claims on any CPU").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
