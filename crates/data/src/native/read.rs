@@ -29,7 +29,8 @@ pub fn read_task_dataset(path: &Path) -> Result<TaskDataset, DataError> {
 /// [`read_task_dataset`], also returning what the file's metadata says about itself.
 ///
 /// The file is read with ordinary `read` calls through bounded buffers, whatever its size, and
-/// decoded straight into the per-episode vectors, so peak memory is the dataset plus a few MiB.
+/// decoded straight into the per-episode vectors, so peak memory is the dataset plus its two flag
+/// tensors (a byte per step each, read whole) and three 1 MiB buffers.
 /// It is never memory-mapped: a mapped file that another process truncates while it is decoded
 /// kills the reader with SIGBUS, which no check before or after the decode can prevent (the file
 /// can shrink between the check and the access). A file truncated or rewritten in place while it
