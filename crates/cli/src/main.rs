@@ -21,6 +21,7 @@ macro_rules! out_inline {
 mod args;
 mod bench_args;
 mod commands;
+mod eval_flags;
 mod packs;
 mod prompt_args;
 
@@ -213,13 +214,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) if packs::is_pack(&a) => packs::train_pack(&a)?,
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
-            commands::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
+            eval_flags::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
             // With --adapt, --adapt-steps/--adapt-batch are the adaptation's, not MACAW's.
             let adapt = match a.adaptation.adapt {
                 Some(_) => {
                     let run = pdt_rundir::RunDir::at(&a.run);
                     let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
-                    commands::eval_adapt(&a, &cfg.eval.adapt)
+                    eval_flags::eval_adapt(&a, &cfg.eval.adapt)
                 }
                 None => None,
             };
@@ -235,7 +236,7 @@ fn run(cli: Cli) -> Result<()> {
                 device: a.device,
                 data: a.data.clone(),
                 macaw,
-                prompt: commands::eval_prompt(&a),
+                prompt: eval_flags::eval_prompt(&a),
                 adapt,
             };
             let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;

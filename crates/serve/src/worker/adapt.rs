@@ -3,7 +3,8 @@
 //! kind, made by `pdt_policy` when the first such episode opens (it takes the model thread for
 //! the adaptation's time) and kept for the next ones, which then cost what any episode costs.
 
-use crate::{ApiError, Episode, OpenRequest, StatusCode, Worker};
+use super::{Episode, Worker};
+use crate::{ApiError, OpenRequest, StatusCode};
 use pdt_model::PrefixCache;
 use pdt_policy::{Policy, TaskAdaptation};
 use pdt_prompt::PromptStrategy;
