@@ -29,8 +29,8 @@ mod worker;
 
 use worker::{Msg, Reply, Worker};
 
-pub use worker::adapt::MAX_ADAPTATIONS;
 pub use auth::{Auth, Token};
+pub use worker::adapt::MAX_ADAPTATIONS;
 
 /// The longest `batch_wait` (a longer one would only hold every request back).
 pub const MAX_BATCH_WAIT: Duration = Duration::from_secs(10);

@@ -392,4 +392,3 @@ fn unknown(id: u64) -> ApiError {
         format!("no open episode {id} (closed, timed out, or never opened)"),
     )
 }
-
