@@ -9,18 +9,28 @@ coordinate; reward = -distance to the goal; 20 steps), asking the server for eve
 
 The prompt is the one the server draws for `--task` from the run's data, as `promptdt eval` does;
 a deployed policy would instead send its own demonstration as arrays (`"prompt": {...}`).
+
+A server started with a token (`--token-file`, `--generate-token` or PROMPTDT_SERVE_TOKEN; needed on
+any address but loopback) wants it on every request: give it the same way, `--token-file FILE` or
+PROMPTDT_SERVE_TOKEN.
 """
 import argparse
 import json
 import math
+import os
 import urllib.error
 import urllib.request
 
 
+TOKEN = None
+
+
 def call(url, method, path, body=None):
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url + path, data=data, method=method,
-                                 headers={"Content-Type": "application/json"})
+    headers = {"Content-Type": "application/json"}
+    if TOKEN:
+        headers["Authorization"] = f"Bearer {TOKEN}"
+    req = urllib.request.Request(url + path, data=data, method=method, headers=headers)
     try:
         with urllib.request.urlopen(req, timeout=30) as r:
             text = r.read().decode()
@@ -34,7 +44,14 @@ def main():
     p.add_argument("--url", default="http://127.0.0.1:8000")
     p.add_argument("--task", type=int, default=34, help="point_robot task (goal angle pi*task/39)")
     p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--token-file", help="the server's bearer token (default: PROMPTDT_SERVE_TOKEN)")
     a = p.parse_args()
+    global TOKEN
+    if a.token_file:
+        with open(a.token_file) as f:
+            TOKEN = f.read().strip()
+    else:
+        TOKEN = os.environ.get("PROMPTDT_SERVE_TOKEN")
     info = call(a.url, "GET", "/v1/info")
     print(f"serving {info['method']} (iteration {info['iteration']}), K = {info['k']}")
     angle = math.pi * a.task / 39

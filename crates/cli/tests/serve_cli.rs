@@ -18,8 +18,13 @@ fn the_python_client_example_runs_against_promptdt_serve() {
     let cfg = tiny_setup(tmp.path());
     let run = tmp.path().join("run");
     ok(&["train", "--config", cfg.to_str().unwrap(), "--out", run.to_str().unwrap(), "--quiet"]);
+    // With a token, as a server beyond loopback needs: the client sends it from its file.
+    let token = tmp.path().join("token");
+    std::fs::write(&token, "0123456789abcdef0123456789abcdef\n").unwrap();
     let mut server = Command::new(env!("CARGO_BIN_EXE_promptdt"))
         .args(["serve", "--run", run.to_str().unwrap(), "--listen", "127.0.0.1:0"])
+        .arg("--token-file")
+        .arg(&token)
         .env_remove(TOKEN_ENV)
         .stdout(Stdio::piped())
         .spawn()
@@ -28,13 +33,20 @@ fn the_python_client_example_runs_against_promptdt_serve() {
     std::io::BufReader::new(server.stdout.take().unwrap()).read_line(&mut line).unwrap();
     let url =
         line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("{line}")).to_string();
-    let out = Command::new("python3")
-        .arg(repo("examples/serve_client.py"))
-        .args(["--url", &url, "--task", "34"])
-        .output()
-        .unwrap();
+    let client = |with_token: bool| {
+        let mut c = Command::new("python3");
+        c.arg(repo("examples/serve_client.py")).args(["--url", &url, "--task", "34"]);
+        c.env_remove(TOKEN_ENV);
+        if with_token {
+            c.arg("--token-file").arg(&token);
+        }
+        c.output().unwrap()
+    };
+    let (refused, out) = (client(false), client(true));
     let _ = server.kill();
     let _ = server.wait();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("401"), "{refused:?}");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("serving prompt-dt") && stdout.contains("episode return"), "{stdout}");
