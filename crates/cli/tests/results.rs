@@ -330,6 +330,12 @@ fn render_refuses_a_registry_with_an_unreadable_run_and_writes_nothing() {
         "{err}"
     );
     restore("metrics.jsonl", &metrics);
+    // A run's directory that lost its provenance.json (it was skipped without a word).
+    let prov = damage("provenance.json", &|t| t.to_string());
+    std::fs::remove_file(run.join("provenance.json")).unwrap();
+    let err = check_fails(&a, promptdt_in(root, &a));
+    assert!(err.contains(&format!("{key}: no provenance.json")), "{err}");
+    restore("provenance.json", &prov);
     assert_eq!(std::fs::read_to_string(&out).unwrap(), "kept\n", "nothing written");
     check_ok(&a, promptdt_in(root, &a));
     assert!(std::fs::read_to_string(&out).unwrap() == committed);

@@ -481,6 +481,32 @@ pub fn keys(registry: &Path) -> Vec<String> {
     out
 }
 
+/// Run directories under `registry` (`.../seed<N>`) without their `provenance.json`: [`keys`]
+/// does not see them, so `results render` names them instead of leaving their runs out unsaid.
+pub fn strays(registry: &Path) -> Vec<String> {
+    fn walk(dir: &Path, at: &Path, out: &mut Vec<String>) {
+        let Ok(entries) = std::fs::read_dir(dir) else { return };
+        for e in entries.flatten() {
+            let (p, name) = (e.path(), e.file_name());
+            let text = name.to_string_lossy();
+            if !p.is_dir() || text.starts_with('.') || p.join(PROVENANCE_JSON).is_file() {
+                continue;
+            }
+            let rel = at.join(&name);
+            let seed = text.strip_prefix("seed").is_some_and(|n| n.parse::<u32>().is_ok());
+            if seed {
+                out.push(rel.to_string_lossy().into_owned());
+            } else {
+                walk(&p, &rel, out);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(registry, Path::new(""), &mut out);
+    out.sort();
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -113,6 +113,13 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
             out.push(Section { report: rep, seeds, devices });
         }
     }
+    for key in registry::strays(registry) {
+        let why = format!(
+            "{key}: no {} (a run's directory without its record)",
+            registry::PROVENANCE_JSON
+        );
+        problems.entry(why).or_default().insert("every experiment".into());
+    }
     if !problems.is_empty() {
         let list: Vec<String> = problems
             .iter()
