@@ -254,6 +254,11 @@ impl EnvFamily for AntDirFamily {
     }
 
     /// MuJoCo clamps the controls to [-1, 1].
+    /// Frame skip 5 x MuJoCo timestep 0.01 s (gymnasium's Ant: 20).
+    fn render_fps(&self) -> u32 {
+        20
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds::symmetric(1.0, Body::Ant.act_dim())
     }

@@ -205,6 +205,11 @@ impl EnvFamily for CheetahDirFamily {
     }
 
     /// MuJoCo clamps the controls to [-1, 1].
+    /// Frame skip 5 x MuJoCo timestep 0.01 s (gymnasium's HalfCheetah: 20).
+    fn render_fps(&self) -> u32 {
+        20
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds::symmetric(1.0, self.preset().act_dim)
     }
@@ -296,6 +301,11 @@ impl EnvFamily for CheetahVelFamily {
     }
 
     /// MuJoCo clamps the controls to [-1, 1].
+    /// Frame skip 5 x MuJoCo timestep 0.01 s (gymnasium's HalfCheetah: 20).
+    fn render_fps(&self) -> u32 {
+        20
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds::symmetric(1.0, self.preset().act_dim)
     }

@@ -194,6 +194,10 @@ pub trait EnvFamily: Send + Sync {
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError>;
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError>;
 
+    /// Environment steps per second of the family's simulated time (gymnasium's `render_fps`, what
+    /// a video of its episodes plays at): 1 / (frame skip x the simulator's timestep).
+    fn render_fps(&self) -> u32;
+
     /// The box actions lie in.
     fn action_bounds(&self) -> ActionBounds;
 

@@ -251,6 +251,11 @@ impl EnvFamily for PointRobotFamily {
     }
 
     /// The speed is clipped to [-MAX_SPEED, MAX_SPEED] per coordinate.
+    /// No simulated time: `promptdt render`'s default rate.
+    fn render_fps(&self) -> u32 {
+        20
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds::symmetric(MAX_SPEED, ACT_DIM)
     }

@@ -10,7 +10,7 @@ use std::sync::Mutex;
 /// The environment families: `{name: {"num_tasks", "obs_dim", "act_dim", "horizon", "rtg_scale",
 /// "target_return", "prompt_length", "splits": {split: (train tasks, test tasks)}, "action_low",
 /// "action_high" (per dimension), "success_reward" (or None), "scripted" (datasets from
-/// scripted policies, else from an RL agent)}}`: all of it from pdt-envs, so a new family needs no
+/// scripted policies, else from an RL agent), "render_fps"}}`: all of it from pdt-envs, so a new family needs no
 /// edit in the Python package.
 #[pyfunction]
 pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
@@ -36,6 +36,7 @@ pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
         d.set_item("action_high", bounds.high)?;
         d.set_item("success_reward", f.success_reward())?;
         d.set_item("scripted", f.scripted().is_some())?;
+        d.set_item("render_fps", f.render_fps())?;
         out.set_item(name, d)?;
     }
     Ok(out)

@@ -537,6 +537,11 @@ impl EnvFamily for DialFamily {
     }
 
     /// The controller's box `[C_LOW, C_HIGH]`.
+    /// 20 simulator steps of 0.002 s per action.
+    fn render_fps(&self) -> u32 {
+        25
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds {
             low: C_LOW.iter().map(|&v| v as f32).collect(),

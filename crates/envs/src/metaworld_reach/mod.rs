@@ -635,6 +635,11 @@ impl EnvFamily for MetaWorldReachFamily {
     }
 
     /// Meta-World's action space (the hand's motion is clipped to it).
+    /// Frame skip 5 x MuJoCo timestep 0.0025 s (Meta-World's own `render_fps`: 80).
+    fn render_fps(&self) -> u32 {
+        80
+    }
+
     fn action_bounds(&self) -> ActionBounds {
         ActionBounds::symmetric(1.0, ACT_DIM)
     }

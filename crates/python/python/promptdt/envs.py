@@ -86,20 +86,8 @@ def _spaces(family: str, obs_dim: int, act_dim: int) -> Tuple[gym.spaces.Box, gy
     return obs, act
 
 
-#: Environment steps a second of each family's simulated time, gymnasium's ``render_fps`` (what
-#: ``RecordVideo`` plays frames at): 1 / dt, as gym's and Meta-World's own environments give it.
-RENDER_FPS: Dict[str, int] = {
-    "cheetah_dir": 20,  # frame skip 5 x timestep 0.01 s (gym's HalfCheetah: 20)
-    "cheetah_vel": 20,
-    "ant_dir": 20,  # frame skip 5 x 0.01 s (gym's Ant: 20)
-    "metaworld_reach": 80,  # frame skip 5 x 0.0025 s (Meta-World: 80)
-    "dial": 25,  # 20 simulator steps of 0.002 s per action
-    "point_robot": 20,  # no simulated time: `promptdt render`'s default rate
-}
-
-
 def _metadata(base: Dict[str, Any], family: str) -> Dict[str, Any]:
-    return {**base, "render_fps": RENDER_FPS[family]}
+    return {**base, "render_fps": _native.families()[family]["render_fps"]}
 
 
 def _float_array(name: str, value: Any) -> npt.NDArray[np.float32]:
@@ -479,7 +467,6 @@ __all__ = [
     "EnvClosedError",
     "PromptDTEnv",
     "PromptDTVectorEnv",
-    "RENDER_FPS",
     "env_id",
     "families",
     "make_vec",
