@@ -201,7 +201,7 @@ pub(crate) fn evaluate(
 /// The episodes an evaluation of the run in `dir` plays: each task of `split`, `episodes` (else
 /// the run's `eval.episodes`) each; `None` where the run's configuration cannot be read.
 fn planned_episodes(dir: &std::path::Path, episodes: Option<usize>, split: &str) -> Option<usize> {
-    let cfg = pdt_rundir::RunDir::at(dir).config().ok()?;
+    let cfg = pdt_train::config::TrainConfig::from_file(&dir.join("config.toml")).ok()?;
     let (train, test) = pdt_envs::family(&cfg.env.name).ok()?.split(&cfg.env.split).ok()?;
     let tasks = if split == "train" { train.len() } else { test.len() };
     Some(tasks * episodes.unwrap_or(cfg.eval.episodes))
