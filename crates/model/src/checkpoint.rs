@@ -143,17 +143,7 @@ pub fn recorded_architecture(
 /// 2 its run's `config.toml` says (or the reverse), with other results and no error.
 fn check_recorded(path: &Path, bytes: &[u8], cfg: &PromptDtConfig) -> Result<(), CheckpointError> {
     let Some(recorded) = recorded_architecture(path, bytes)? else { return Ok(()) };
-    let fields = [
-        ("state_dim", cfg.state_dim),
-        ("act_dim", cfg.act_dim),
-        ("hidden_size", cfg.hidden_size),
-        ("n_layer", cfg.n_layer),
-        ("n_head", cfg.n_head),
-        ("n_inner", cfg.n_inner),
-        ("max_ep_len", cfg.max_ep_len),
-        ("n_positions", cfg.n_positions),
-    ];
-    for (name, want) in fields {
+    for (name, want) in cfg.shape_fields() {
         let Some(said) = recorded.get(name) else { continue };
         if said.as_u64() != u64::try_from(want).ok() {
             return Err(CheckpointError::Architecture {

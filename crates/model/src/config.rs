@@ -54,9 +54,9 @@ impl PromptDtConfig {
         }
     }
 
-    /// Checks the sizes make a valid model.
-    pub fn validate(&self) -> Result<(), String> {
-        let positive = [
+    /// The sizes that make the architecture, by name (as checkpoints record them).
+    pub fn shape_fields(&self) -> [(&'static str, usize); 8] {
+        [
             ("state_dim", self.state_dim),
             ("act_dim", self.act_dim),
             ("hidden_size", self.hidden_size),
@@ -65,8 +65,12 @@ impl PromptDtConfig {
             ("n_inner", self.n_inner),
             ("max_ep_len", self.max_ep_len),
             ("n_positions", self.n_positions),
-        ];
-        for (name, v) in positive {
+        ]
+    }
+
+    /// Checks the sizes make a valid model.
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in self.shape_fields() {
             if v == 0 {
                 return Err(format!("model.{name} must be at least 1"));
             }

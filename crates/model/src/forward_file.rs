@@ -376,14 +376,7 @@ pub struct RunArchitecture {
 
 impl RunArchitecture {
     fn check(&self, weights: &Path, cfg: &PromptDtConfig) -> Result<(), ForwardFileError> {
-        let have = [
-            ("hidden_size", cfg.hidden_size),
-            ("n_layer", cfg.n_layer),
-            ("n_head", cfg.n_head),
-            ("n_inner", cfg.n_inner),
-            ("max_ep_len", cfg.max_ep_len),
-            ("n_positions", cfg.n_positions),
-        ];
+        let have = cfg.shape_fields();
         for (name, said) in &self.fields {
             let Some((_, actual)) = have.iter().find(|(n, _)| n == name) else { continue };
             if actual != said {

@@ -459,52 +459,42 @@ pub fn max_seed<'a>(keys: impl IntoIterator<Item = &'a String>, budget: &str) ->
 
 /// Every archived run's key (`<cell id>/<budget>/seed<N>`) under `registry`, sorted.
 pub fn keys(registry: &Path) -> Vec<String> {
-    fn walk(dir: &Path, at: &Path, out: &mut Vec<String>) {
-        let Ok(entries) = std::fs::read_dir(dir) else { return };
-        for e in entries.flatten() {
-            let p = e.path();
-            let name = e.file_name();
-            if !p.is_dir() || name.to_string_lossy().starts_with('.') {
-                continue;
-            }
-            let rel = at.join(&name);
-            if p.join(PROVENANCE_JSON).is_file() {
-                out.push(rel.to_string_lossy().into_owned());
-            } else {
-                walk(&p, &rel, out);
-            }
-        }
-    }
-    let mut out = Vec::new();
-    walk(registry, Path::new(""), &mut out);
-    out.sort();
-    out
+    walk_runs(registry).0
 }
 
 /// Run directories under `registry` (`.../seed<N>`) without their `provenance.json`: [`keys`]
 /// does not see them, so `results render` names them instead of leaving their runs out unsaid.
 pub fn strays(registry: &Path) -> Vec<String> {
-    fn walk(dir: &Path, at: &Path, out: &mut Vec<String>) {
+    walk_runs(registry).1
+}
+
+/// The registry's run directories, sorted: those with their `provenance.json` (archived) and the
+/// `seed<N>` directories without it (strays).
+fn walk_runs(registry: &Path) -> (Vec<String>, Vec<String>) {
+    fn walk(dir: &Path, at: &Path, found: &mut (Vec<String>, Vec<String>)) {
         let Ok(entries) = std::fs::read_dir(dir) else { return };
         for e in entries.flatten() {
             let (p, name) = (e.path(), e.file_name());
             let text = name.to_string_lossy();
-            if !p.is_dir() || text.starts_with('.') || p.join(PROVENANCE_JSON).is_file() {
+            if !p.is_dir() || text.starts_with('.') {
                 continue;
             }
             let rel = at.join(&name);
-            let seed = text.strip_prefix("seed").is_some_and(|n| n.parse::<u32>().is_ok());
-            if seed {
-                out.push(rel.to_string_lossy().into_owned());
+            let key = || rel.to_string_lossy().into_owned();
+            if p.join(PROVENANCE_JSON).is_file() {
+                found.0.push(key());
+            } else if text.strip_prefix("seed").is_some_and(|n| n.parse::<u32>().is_ok()) {
+                found.1.push(key());
             } else {
-                walk(&p, &rel, out);
+                walk(&p, &rel, found);
             }
         }
     }
-    let mut out = Vec::new();
-    walk(registry, Path::new(""), &mut out);
-    out.sort();
-    out
+    let mut found = (Vec::new(), Vec::new());
+    walk(registry, Path::new(""), &mut found);
+    found.0.sort();
+    found.1.sort();
+    found
 }
 
 #[cfg(test)]
