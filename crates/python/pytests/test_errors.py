@@ -2,6 +2,8 @@
 was given and what is expected (before: OverflowError "can't convert negative int to unsigned",
 TypeError "dimensionality mismatch", "'float' object is not iterable", AttributeError on a closed
 env, "give at least one task" for num_envs=-2)."""
+import errno
+
 import numpy as np
 import pytest
 
@@ -72,15 +74,42 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_argument_raises_a_clear_error(case, point_run):
     call, exc, message = CASES[case]
-    with pytest.raises(exc, match=message):
+    with pytest.raises(exc, match=message) as e:
         call(point_run)
+    # Every refusal is also a promptdt.Error (promptdt.errors), besides the built-in kind above.
+    assert isinstance(e.value, promptdt.Error), type(e.value).__mro__
 
 
 def test_closed_env_error_is_gymnasiums_too():
     env = started_env()
     env.close()
-    with pytest.raises(gym.error.ClosedEnvironmentError):
+    with pytest.raises(gym.error.ClosedEnvironmentError) as e:
         env.reset(seed=0)
+    assert isinstance(e.value, promptdt.InvalidInputError) and isinstance(e.value, ValueError)
+
+
+def test_the_error_classes_are_the_built_in_kinds_too():
+    assert issubclass(promptdt.InvalidInputError, ValueError)
+    assert issubclass(promptdt.ArgumentTypeError, TypeError)
+    assert issubclass(promptdt.FileError, OSError)
+    assert issubclass(promptdt.NotFoundError, FileNotFoundError)
+    assert issubclass(promptdt.NotFoundError, promptdt.FileError)
+    assert issubclass(promptdt.StateError, RuntimeError)
+    for cls in (promptdt.InvalidInputError, promptdt.ArgumentTypeError, promptdt.FileError,
+                promptdt.NotFoundError, promptdt.StateError):
+        assert issubclass(cls, promptdt.Error)
+
+
+def test_an_os_failure_in_the_library_is_a_file_error_with_its_errno(tmp_path):
+    # The library creates the output directory: under a regular file the system call fails with
+    # ENOTDIR, which must reach Python as an OSError carrying that errno, not as a ValueError.
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises(promptdt.FileError) as e:
+        promptdt.collect("point_robot", blocker / "data", episodes=1, prompt_episodes=1, progress=False)
+    assert e.value.errno == errno.ENOTDIR, (e.value.errno, str(e.value))
+    assert "a-file" in str(e.value)
+    assert not isinstance(e.value, ValueError) and not isinstance(e.value, promptdt.NotFoundError)
 
 
 # Issue 56: messages of the library crates worded for the command line (`--resume`, `--out`,

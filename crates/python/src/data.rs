@@ -1,9 +1,9 @@
 //! Dataset files: reading native and reference files, writing native ones.
 
-use crate::{array2, existing, value_error};
+use crate::errors::NotFoundError;
+use crate::{array2, existing, lib_error, value_error};
 use numpy::prelude::*;
 use numpy::{AllowTypeChange, PyArrayLike1, PyArrayLike2};
-use pyo3::exceptions::PyFileNotFoundError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use std::path::PathBuf;
@@ -16,9 +16,9 @@ use std::path::PathBuf;
 pub(crate) fn load_dataset<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>> {
     existing(&path, "dataset")?;
     let p = path.clone();
-    let ds = py.detach(move || pdt_data::multitask::load_task_file(&p)).map_err(value_error)?;
+    let ds = py.detach(move || pdt_data::multitask::load_task_file(&p)).map_err(lib_error)?;
     let meta = match path.extension().and_then(|e| e.to_str()) {
-        Some("safetensors") => Some(pdt_data::native::read_file_meta(&path).map_err(value_error)?),
+        Some("safetensors") => Some(pdt_data::native::read_file_meta(&path).map_err(lib_error)?),
         _ => None,
     };
     let out = PyDict::new(py);
@@ -115,11 +115,11 @@ pub(crate) fn write_dataset(
     mode: Option<String>,
 ) -> PyResult<()> {
     if let Some(env) = &env {
-        pdt_envs::check_dims(env, obs_dim, act_dim).map_err(value_error)?;
+        pdt_envs::check_dims(env, obs_dim, act_dim).map_err(lib_error)?;
     }
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         if !dir.is_dir() {
-            return Err(PyFileNotFoundError::new_err(format!(
+            return Err(NotFoundError::new_err(format!(
                 "directory {} (to write {}): no such directory",
                 dir.display(),
                 path.display()
@@ -133,12 +133,12 @@ pub(crate) fn write_dataset(
         .collect::<PyResult<Vec<_>>>()?;
     let ds = pdt_data::TaskDataset { obs_dim, act_dim, trajectories: trajs };
     let meta = pdt_data::native::FileMeta { env, task_index: task, mode };
-    py.detach(|| pdt_data::native::write_task_dataset(&path, &ds, &meta)).map_err(value_error)
+    py.detach(|| pdt_data::native::write_task_dataset(&path, &ds, &meta)).map_err(lib_error)
 }
 
 /// Checks that data of `obs_dim` x `act_dim` can be the family `env`'s (`pdt_envs::check_dims`):
 /// `ValueError` naming the family and both sizes, or the known families for an unknown one.
 #[pyfunction]
 pub(crate) fn check_dims(env: &str, obs_dim: usize, act_dim: usize) -> PyResult<()> {
-    pdt_envs::check_dims(env, obs_dim, act_dim).map_err(value_error)
+    pdt_envs::check_dims(env, obs_dim, act_dim).map_err(lib_error)
 }

@@ -1,6 +1,6 @@
 //! The environment families and their vector of environments stepped on worker threads.
 
-use crate::{array2, lock, uint_list, usize_arg, usize_list, value_error};
+use crate::{array2, lib_error, lock, uint_list, usize_arg, usize_list, value_error};
 use numpy::prelude::*;
 use numpy::{AllowTypeChange, PyArray1, PyArray2, PyArrayLikeDyn};
 use pyo3::prelude::*;
@@ -16,7 +16,7 @@ use std::sync::Mutex;
 pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     let out = PyDict::new(py);
     for name in pdt_envs::FAMILY_NAMES {
-        let f = pdt_envs::family(name).map_err(value_error)?;
+        let f = pdt_envs::family(name).map_err(lib_error)?;
         let p = f.preset();
         let d = PyDict::new(py);
         d.set_item("num_tasks", f.num_tasks())?;
@@ -28,7 +28,7 @@ pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
         d.set_item("prompt_length", p.prompt_length)?;
         let splits = PyDict::new(py);
         for s in f.split_names() {
-            splits.set_item(&s, f.split(&s).map_err(value_error)?)?;
+            splits.set_item(&s, f.split(&s).map_err(lib_error)?)?;
         }
         d.set_item("splits", splits)?;
         let bounds = f.action_bounds();
@@ -45,10 +45,10 @@ pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 /// A task's parameters as JSON text (`{"goal": [x, y]}`, `{"velocity": v}`, ...).
 #[pyfunction]
 pub(crate) fn task_params(family: &str, task: &Bound<'_, PyAny>) -> PyResult<String> {
-    let f = pdt_envs::family(family).map_err(value_error)?;
+    let f = pdt_envs::family(family).map_err(lib_error)?;
     let task =
         usize_arg("task", task, &format!("a task index of {} (0..{})", f.name(), f.num_tasks()))?;
-    Ok(f.task_params(task).map_err(value_error)?.to_string())
+    Ok(f.task_params(task).map_err(lib_error)?.to_string())
 }
 
 struct VecState {
@@ -86,7 +86,7 @@ impl VecEnv {
         tasks: &Bound<'_, PyAny>,
         threads: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
-        let f = pdt_envs::family(family).map_err(value_error)?;
+        let f = pdt_envs::family(family).map_err(lib_error)?;
         let expected = format!("task indices of {} (0..{})", f.name(), f.num_tasks());
         let tasks = usize_list("tasks", tasks, &expected)?;
         let threads = match threads {
@@ -97,7 +97,7 @@ impl VecEnv {
             return Err(value_error("tasks: an empty list given, expected at least one task"));
         }
         let envs =
-            tasks.iter().map(|&t| f.make(t)).collect::<Result<Vec<_>, _>>().map_err(value_error)?;
+            tasks.iter().map(|&t| f.make(t)).collect::<Result<Vec<_>, _>>().map_err(lib_error)?;
         let (obs_dim, act_dim, horizon) = (envs[0].obs_dim(), envs[0].act_dim(), envs[0].horizon());
         let threads = pdt_base::threads(threads);
         let venv = pdt_envs::vec_env::VecEnv::new(envs, threads);
@@ -144,7 +144,7 @@ impl VecEnv {
         let resets: Vec<(usize, u64)> = indices.into_iter().zip(seeds).collect();
         let (obs, ds) = py.detach(|| -> PyResult<(Vec<f32>, usize)> {
             let mut st = lock(&self.state)?;
-            let first = st.venv.reset_some(&resets).map_err(value_error)?;
+            let first = st.venv.reset_some(&resets).map_err(lib_error)?;
             Ok((first.concat(), st.obs_dim))
         })?;
         array2(py, obs, resets.len(), ds)
@@ -192,7 +192,7 @@ impl VecEnv {
         let (obs, rew, term, trunc) = py.detach(|| -> PyResult<_> {
             let mut st = lock(&self.state)?;
             let ds = st.obs_dim;
-            let slots = st.venv.step_flat(&flat, mask.as_deref()).map_err(value_error)?;
+            let slots = st.venv.step_flat(&flat, mask.as_deref()).map_err(lib_error)?;
             let (mut obs, mut rew) = (vec![0f32; n * ds], vec![0f32; n]);
             let (mut term, mut trunc) = (vec![false; n], vec![false; n]);
             let mut success: Option<Vec<bool>> = None;

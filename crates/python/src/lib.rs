@@ -15,14 +15,19 @@
 
 use numpy::prelude::*;
 use numpy::PyArray2;
-use pyo3::exceptions::{PyFileNotFoundError, PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyString};
 use std::path::Path;
+
+pub(crate) use errors::lib_error;
+use errors::{ArgumentTypeError, Failure, Kind, NotFoundError};
 use std::sync::{Mutex, MutexGuard};
 
+/// `promptdt.InvalidInputError` (a `ValueError`) with `e`'s message: for a message made here. A
+/// library error goes through [`lib_error`] instead, which looks at its cause (an I/O error is a
+/// `promptdt.FileError`).
 pub(crate) fn value_error(e: impl std::fmt::Display) -> PyErr {
-    PyValueError::new_err(python_terms(&e.to_string()))
+    Failure::new(Kind::Invalid, e.to_string()).into_py()
 }
 
 /// The library's messages that tell a command-line user what to type (`--resume`, `--out`, a
@@ -54,7 +59,7 @@ const PYTHON_TERMS: &[(&str, &str)] = &[
 ];
 
 /// `message` with [`PYTHON_TERMS`]' replacements.
-fn python_terms(message: &str) -> String {
+pub(crate) fn python_terms(message: &str) -> String {
     let mut out = message.to_string();
     for (cli, python) in PYTHON_TERMS {
         out = out.replace(cli, python);
@@ -70,17 +75,16 @@ fn python_terms(message: &str) -> String {
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> PyResult<MutexGuard<'_, T>> {
     // A panic while the lock was held (none is expected) leaves the state unusable, not unsafe.
-    m.lock().map_err(|_| PyRuntimeError::new_err("internal state poisoned by an earlier panic"))
+    m.lock().map_err(|_| {
+        Failure::new(Kind::State, "internal state poisoned by an earlier panic").into_py()
+    })
 }
 
 pub(crate) fn existing(path: &Path, what: &str) -> PyResult<()> {
     if path.exists() {
         Ok(())
     } else {
-        Err(PyFileNotFoundError::new_err(format!(
-            "{what} {}: no such file or directory",
-            path.display()
-        )))
+        Err(NotFoundError::new_err(format!("{what} {}: no such file or directory", path.display())))
     }
 }
 
@@ -100,7 +104,9 @@ pub(crate) fn uint_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyRe
         return Err(value_error(format!("{name}: {given} is too large, expected {expected}")));
     }
     let ty = v.get_type().name().map_or_else(|_| "?".to_string(), |n| n.to_string());
-    Err(PyTypeError::new_err(format!("{name}: {given} ({ty}) given, expected {expected} (an int)")))
+    Err(ArgumentTypeError::new_err(format!(
+        "{name}: {given} ({ty}) given, expected {expected} (an int)"
+    )))
 }
 
 /// [`uint_arg`] as a `usize`.
@@ -114,8 +120,9 @@ pub(crate) fn usize_arg(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyR
 /// named `name[i]`.
 pub(crate) fn uint_list(name: &str, v: &Bound<'_, PyAny>, expected: &str) -> PyResult<Vec<u64>> {
     let ty = v.get_type().name().map_or_else(|_| "?".to_string(), |n| n.to_string());
-    let not_a_list =
-        || PyTypeError::new_err(format!("{name}: a {ty} given, expected a list of {expected}s"));
+    let not_a_list = || {
+        ArgumentTypeError::new_err(format!("{name}: a {ty} given, expected a list of {expected}s"))
+    };
     if v.is_instance_of::<PyString>() || v.is_instance_of::<PyBytes>() {
         return Err(not_a_list());
     }
@@ -143,13 +150,15 @@ pub(crate) fn array2<'py, T: numpy::Element>(
     rows: usize,
     cols: usize,
 ) -> PyResult<Bound<'py, PyArray2<T>>> {
-    v.into_pyarray(py).reshape([rows, cols]).map_err(value_error)
+    v.into_pyarray(py).reshape([rows, cols]).map_err(lib_error)
 }
 
 /// Dataset files: `load_dataset`, `write_dataset`.
 mod data;
 /// Environment families and `VecEnv`.
 mod envs;
+/// The library's errors as `promptdt.Error`s.
+mod errors;
 /// `Policy`, `PromptBandit`: a trained run acting through `pdt_policy`.
 mod policy;
 /// `Prompt`, `TaskPlan`, `Adaptation`: what a `Policy` acts with.

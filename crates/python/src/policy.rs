@@ -1,7 +1,8 @@
 //! A trained run's prompted policy (`pdt_policy`) and the prompts it acts from.
 
+use crate::errors::Failure;
 use crate::prompts::{Adaptation, Prompt, TaskPlan};
-use crate::{array2, existing, lock, uint_arg, usize_arg, usize_list, value_error};
+use crate::{array2, existing, lib_error, lock, uint_arg, usize_arg, usize_list, value_error};
 use numpy::{AllowTypeChange, PyArray2, PyArrayLike1, PyArrayLike2, PyArrayLikeDyn};
 use pdt_model::PrefixCache;
 use pdt_policy::{Episode, Inputs, PolicyError, PromptArrays, Target};
@@ -37,7 +38,7 @@ impl PromptBandit {
         let policy = self.policy.bind(py).get();
         let st = lock(&policy.state)?;
         let mut b = lock(&self.state)?;
-        let (chosen, choice) = b.bandit.choose(&st.run).map_err(value_error)?;
+        let (chosen, choice) = b.bandit.choose(&st.run).map_err(lib_error)?;
         b.pending = Some(choice);
         Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
     }
@@ -190,10 +191,10 @@ impl Policy {
         let run = py
             .detach(|| {
                 pdt_policy::Policy::load(&run_dir, Some(device), data.as_deref())
-                    .map_err(|e| e.to_string())
+                    .map_err(|e| Failure::of(&e))
             })
-            .map_err(value_error)?;
-        let target = run.target(None).map_err(value_error)?;
+            .map_err(Failure::into_py)?;
+        let target = run.target(None).map_err(lib_error)?;
         Ok(Self {
             obs_dim: run.stats.obs_dim,
             act_dim: run.stats.act_dim,
@@ -219,7 +220,7 @@ impl Policy {
 
     /// The tasks whose prompts `task_prompt` can draw (test tasks first).
     fn prompt_tasks(&self) -> PyResult<Vec<usize>> {
-        lock(&self.state)?.run.prompt_tasks().map_err(value_error)
+        lock(&self.state)?.run.prompt_tasks().map_err(lib_error)
     }
 
     /// A prompt of task `task` drawn from the run's prompt set as the evaluation draws one (`seed`:
@@ -244,7 +245,7 @@ impl Policy {
             v.map(|v| usize_arg(name, v, "a number of prompt steps (at least 1)")).transpose()
         };
         let strategy = pdt_prompt::PromptStrategy {
-            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
+            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(lib_error)?,
             episodes: count("prompt_episodes", prompt_episodes)?,
             length: count("prompt_length", prompt_length)?,
             ..Default::default()
@@ -252,16 +253,16 @@ impl Policy {
         let obs: Option<Vec<f32>> = observation.map(|o| o.as_array().to_vec());
         let st = lock(&self.state)?;
         if strategy.is_default() {
-            let inner = st.run.task_prompt(task, seed).map_err(value_error)?;
+            let inner = st.run.task_prompt(task, seed).map_err(lib_error)?;
             return Ok(Prompt { inner, segments: vec![] });
         }
         if let Some(o) = &obs {
             st.run
                 .observation(&o.iter().map(|&x| f64::from(x)).collect::<Vec<_>>())
-                .map_err(value_error)?;
+                .map_err(lib_error)?;
         }
         let chosen =
-            st.run.strategy_prompt(task, seed, &strategy, obs.as_deref()).map_err(value_error)?;
+            st.run.strategy_prompt(task, seed, &strategy, obs.as_deref()).map_err(lib_error)?;
         Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
     }
 
@@ -305,10 +306,10 @@ impl Policy {
             stride: count("stride", stride)?,
             bandit: pdt_prompt::BanditConfig { rule, epsilon: epsilon.unwrap_or(d.epsilon), ..d },
         };
-        strategy.validate().map_err(value_error)?;
+        strategy.validate().map_err(lib_error)?;
         let bandit = {
             let st = lock(&slf.get().state)?;
-            st.run.task_bandit(task, seed, &strategy).map_err(value_error)?
+            st.run.task_bandit(task, seed, &strategy).map_err(lib_error)?
         };
         Ok(PromptBandit {
             policy: slf.clone().unbind(),
@@ -339,7 +340,7 @@ impl Policy {
         // The prompt's largest inputs are not kept: an episode names its own when its action is
         // refused.
         let mut inputs = Inputs::default();
-        let inner = st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(value_error)?;
+        let inner = st.run.prompt_from_arrays(&arrays, &mut inputs).map_err(lib_error)?;
         Ok(Prompt { inner, segments: vec![] })
     }
 
@@ -356,7 +357,7 @@ impl Policy {
         let episodes = episodes
             .map(|e| usize_arg("episodes", e, "a number of episodes per task"))
             .transpose()?;
-        let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(value_error)?;
+        let plan = lock(&self.state)?.run.eval_plan(split, episodes).map_err(lib_error)?;
         plan.into_iter()
             .map(|t| {
                 let prompt = t
@@ -417,8 +418,8 @@ impl Policy {
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
         let cache = py
-            .detach(move || run.prefix(&batches).map_err(|e| e.to_string()))
-            .map_err(value_error)?;
+            .detach(move || run.prefix(&batches).map_err(|e| Failure::of(&e)))
+            .map_err(Failure::into_py)?;
         st.prefix = Some((cache, rows));
         st.lora = None;
         Ok(())
@@ -448,7 +449,7 @@ impl Policy {
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
         let mut cfg = pdt_eval::adapt::AdaptConfig {
-            kind: adapt.parse().map_err(value_error)?,
+            kind: adapt.parse().map_err(lib_error)?,
             ..Default::default()
         };
         if cfg.kind == pdt_eval::adapt::AdaptKind::None {
@@ -462,15 +463,15 @@ impl Policy {
         }
         cfg.lr = lr.unwrap_or(cfg.lr);
         let strategy = pdt_prompt::PromptStrategy {
-            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(value_error)?,
+            strategy: prompt_strategy.unwrap_or("reference").parse().map_err(lib_error)?,
             ..Default::default()
         };
         let mut st = lock(&slf.get().state)?;
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
         let a = py
-            .detach(move || run.adapt(task, seed, &strategy, &cfg).map_err(|e| e.to_string()))
-            .map_err(value_error)?;
+            .detach(move || run.adapt(task, seed, &strategy, &cfg).map_err(|e| Failure::of(&e)))
+            .map_err(Failure::into_py)?;
         drop(st);
         let policy = slf.get() as *const Policy as usize;
         let owner = slf.clone().into_any().unbind();
@@ -492,7 +493,7 @@ impl Policy {
             return Err(value_error("n_episodes: 0 given, expected at least 1"));
         }
         let mut st = lock(&self.state)?;
-        st.target = st.run.target(target_return).map_err(value_error)?;
+        st.target = st.run.target(target_return).map_err(lib_error)?;
         st.episodes = vec![None; n_episodes];
         st.ended = vec![None; n_episodes];
         Ok(())
@@ -626,7 +627,7 @@ impl Policy {
                 }
                 Next::Step(step) => {
                     let e = slot.as_mut().ok_or_else(internal)?;
-                    st.run.record(e, step).map_err(value_error)?;
+                    st.run.record(e, step).map_err(lib_error)?;
                 }
                 Next::End(ret) => {
                     finished.push((i, slot.take().ok_or_else(internal)?));
@@ -676,7 +677,7 @@ impl Policy {
         let mut out = vec![0f32; n * da];
         for (&i, a) in active.iter().zip(flat.chunks_exact(da)) {
             if let Some(e) = &mut st.episodes[i] {
-                e.accept(a).map_err(value_error)?;
+                e.accept(a).map_err(lib_error)?;
             }
             out[i * da..(i + 1) * da].copy_from_slice(a);
         }

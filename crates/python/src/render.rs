@@ -2,8 +2,8 @@
 //! `pdt_envs::render` (`docs/rendering.md`). Conversion only: the renderer, cameras and checks
 //! live in pdt-envs.
 
+use crate::errors::{InvalidInputError, StateError};
 use numpy::{PyArray3, PyArrayMethods, ToPyArray};
-use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 
 use pdt_envs::render::{FrameSize, RenderError};
@@ -16,8 +16,8 @@ const DEFAULT_SIZE: usize = 480;
 fn render_error(e: RenderError) -> PyErr {
     match e {
         // A bad argument; everything else (no GL context, a renderer failure) is the machine's.
-        RenderError::Size { .. } => PyValueError::new_err(e.to_string()),
-        other => PyRuntimeError::new_err(other.to_string()),
+        RenderError::Size { .. } => InvalidInputError::new_err(e.to_string()),
+        other => StateError::new_err(other.to_string()),
     }
 }
 
@@ -35,10 +35,13 @@ pub(crate) fn render<'py>(
     let env = env.get();
     let n = env.with_venv(|venv| venv.len())?;
     if index >= n {
-        return Err(PyValueError::new_err(format!("index: {index}, expected 0..{n} (num_envs)")));
+        return Err(InvalidInputError::new_err(format!(
+            "index: {index}, expected 0..{n} (num_envs)"
+        )));
     }
     let frame = py.detach(|| env.with_venv(|venv| venv.render(index, size)))?;
     let frame = frame.map_err(render_error)?;
     let flat = frame.rgb.to_pyarray(py);
-    flat.reshape([frame.height, frame.width, 3]).map_err(|e| PyValueError::new_err(e.to_string()))
+    flat.reshape([frame.height, frame.width, 3])
+        .map_err(|e| InvalidInputError::new_err(e.to_string()))
 }

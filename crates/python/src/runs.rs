@@ -1,7 +1,8 @@
 //! Runs: the CLI's library calls (train, evaluate, collect, list experiments, benchmark).
 
+use crate::errors::Failure;
 use crate::signals::{interruptible, interruptible_ticking, Progress};
-use crate::{existing, value_error};
+use crate::{existing, lib_error, value_error};
 use pdt_base::stop::StopFlag;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -9,8 +10,8 @@ use std::path::PathBuf;
 
 /// The error of a long call stopped by Ctrl-C or by its progress callable: the callable's
 /// exception when it raised one, else the library's (an `Interrupted` error, or a real failure).
-fn stopped_or(progress: &Progress, e: impl std::fmt::Display) -> PyErr {
-    progress.take_error().unwrap_or_else(|| value_error(e))
+fn stopped_or(progress: &Progress, e: Failure) -> PyErr {
+    progress.take_error().unwrap_or_else(|| e.into_py())
 }
 
 /// `promptdt train`: trains from `config` (a TOML file) into `out`, or resumes the run in `out`
@@ -48,7 +49,7 @@ pub(crate) fn train<'py>(
         (false, None) => return Err(value_error("give config (a TOML file) or resume=True")),
         (false, Some(path)) => {
             existing(path, "config")?;
-            let mut cfg = TrainConfig::from_file(path).map_err(value_error)?;
+            let mut cfg = TrainConfig::from_file(path).map_err(lib_error)?;
             let method = method
                 .as_deref()
                 .map(str::parse::<Method>)
@@ -65,7 +66,7 @@ pub(crate) fn train<'py>(
             };
             // No MACAW preset here: the environment is never asked.
             cfg.apply(&overrides, |_| Ok::<usize, std::convert::Infallible>(0))
-                .map_err(value_error)?;
+                .map_err(lib_error)?;
             Some(cfg)
         }
     };
@@ -89,7 +90,7 @@ pub(crate) fn train<'py>(
             progress: &mut progress,
             interrupt: interrupt.clone(),
         };
-        pdt_train::run::train(cfg, &out, opts).map_err(|e| e.to_string())
+        pdt_train::run::train(cfg, &out, opts).map_err(|e| Failure::of(&e))
     })?
     .map_err(|e| stopped_or(&report, e))?;
     let d = PyDict::new(py);
@@ -140,7 +141,7 @@ pub(crate) fn evaluate(
         Some(kind) => {
             let d = pdt_eval::adapt::AdaptConfig::default();
             Some(pdt_eval::adapt::AdaptConfig {
-                kind: kind.parse().map_err(value_error)?,
+                kind: kind.parse().map_err(lib_error)?,
                 steps: adapt_steps.unwrap_or(d.steps),
                 batch: adapt_batch.unwrap_or(d.batch),
                 ..d
@@ -152,7 +153,7 @@ pub(crate) fn evaluate(
     let prompt = match (prompt_strategy, prompt_episodes, prompt_length) {
         (None, None, None) => None,
         (name, episodes, length) => Some(pdt_prompt::PromptStrategy {
-            strategy: name.unwrap_or("reference").parse().map_err(value_error)?,
+            strategy: name.unwrap_or("reference").parse().map_err(lib_error)?,
             episodes,
             length,
             ..Default::default()
@@ -186,15 +187,15 @@ pub(crate) fn evaluate(
     };
     let r = interruptible_ticking(py, &watch.stop, tick, || {
         pdt_envs::rollout::watching(&watch, || {
-            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| e.to_string())
+            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| Failure::of(&e))
         })
     })?
     .map_err(|e| stopped_or(&report, e))?;
     // The default strategy returns `eval_final.json`'s content, as before strategies.
     if r.prompt_strategy.is_default() && r.adapt.is_none() {
-        serde_json::to_string(&r.eval).map_err(value_error)
+        serde_json::to_string(&r.eval).map_err(lib_error)
     } else {
-        serde_json::to_string(&r).map_err(value_error)
+        serde_json::to_string(&r).map_err(lib_error)
     }
 }
 
@@ -212,7 +213,7 @@ fn planned_episodes(dir: &std::path::Path, episodes: Option<usize>, split: &str)
 /// hours, note}]}`).
 #[pyfunction]
 pub(crate) fn experiments() -> PyResult<String> {
-    let list = pdt_repro::list().map_err(value_error)?;
+    let list = pdt_repro::list().map_err(lib_error)?;
     let v: Vec<serde_json::Value> = list
         .iter()
         .map(|e| {
@@ -232,14 +233,14 @@ pub(crate) fn experiments() -> PyResult<String> {
             })
         })
         .collect();
-    serde_json::to_string(&v).map_err(value_error)
+    serde_json::to_string(&v).map_err(lib_error)
 }
 
 /// Whether `family` (any spelling [`pdt_envs::family`] takes) collects its datasets with scripted
 /// policies ([`collect_scripted`]) rather than from an RL agent ([`collect_from_agent`]).
 #[pyfunction]
 pub(crate) fn is_scripted(family: &str) -> PyResult<bool> {
-    Ok(pdt_envs::family(family).map_err(value_error)?.scripted().is_some())
+    Ok(pdt_envs::family(family).map_err(lib_error)?.scripted().is_some())
 }
 
 /// `promptdt collect --env FAMILY` for a family with scripted policies: the scripted
@@ -264,7 +265,7 @@ pub(crate) fn collect_scripted(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<usize> {
     use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
-    let fam = pdt_envs::family(family).map_err(value_error)?;
+    let fam = pdt_envs::family(family).map_err(lib_error)?;
     let scripted = fam.scripted().ok_or_else(|| {
         let names: Vec<&str> = ScriptedFamily::all().iter().map(|f| f.name()).collect();
         value_error(format!(
@@ -306,7 +307,7 @@ pub(crate) fn collect_scripted(
         }
     };
     let summary = interruptible_ticking(py, &cfg.interrupt, tick, || {
-        pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}).map_err(|e| e.to_string())
+        pdt_envs::collect_scripted::collect(&cfg, &out, &mut |_, _| {}).map_err(|e| Failure::of(&e))
     })?
     .map_err(|e| stopped_or(&report, e))?;
     // Each entry is one task's mode: its dataset and its prompt set.
@@ -332,7 +333,7 @@ pub(crate) fn collect_from_agent(
 ) -> PyResult<usize> {
     existing(&agent_dir, "agent directory")?;
     let spec: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
-    let device = pdt_model::device::resolve(spec).map_err(value_error)?;
+    let device = pdt_model::device::resolve(spec).map_err(lib_error)?;
     let mut cfg = pdt_rl::datasets::DatasetConfig { seed, ..Default::default() };
     if let Some(e) = episodes {
         cfg.episodes = e;
@@ -346,7 +347,7 @@ pub(crate) fn collect_from_agent(
         pdt_rl::datasets::generate(&agent_dir, &out, &cfg, device, &mut |done, total| {
             report.report(|d| progress_items(d, done, total, "episodes", started))
         })
-        .map_err(|e| e.to_string())
+        .map_err(|e| Failure::of(&e))
     })?
     .map_err(|e| stopped_or(&report, e))?;
     Ok(summary.files)
@@ -379,6 +380,6 @@ pub(crate) fn bench_envs(
     seed: u64,
 ) -> PyResult<String> {
     let cfg = pdt_envs::bench::EnvBenchConfig { families, steps_per_env, vec_envs, threads, seed };
-    let r = py.detach(|| pdt_envs::bench::run(&cfg)).map_err(value_error)?;
-    serde_json::to_string(&r).map_err(value_error)
+    let r = py.detach(|| pdt_envs::bench::run(&cfg)).map_err(lib_error)?;
+    serde_json::to_string(&r).map_err(lib_error)
 }

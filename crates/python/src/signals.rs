@@ -54,7 +54,7 @@ pub(crate) fn interruptible_ticking<T: Send>(
                 work()
             })
             .map_err(|e| {
-                pyo3::exceptions::PyRuntimeError::new_err(format!("cannot start a thread: {e}"))
+                crate::errors::StateError::new_err(format!("cannot start a thread: {e}"))
             })?;
         let mut raised = None;
         loop {

@@ -3,8 +3,9 @@
 A trained run's policy (``Policy``), the environment families as gymnasium environments
 (``gymnasium.make("promptdt/CheetahVel-v0", task=3)``, ``promptdt.make_vec``), the dataset readers (``load_dataset``), and training, evaluation and
 collection (``train``, ``evaluate``, ``collect``), over the same library code as the ``promptdt``
-command. Arrays are numpy arrays; errors are Python exceptions (``ValueError``,
-``FileNotFoundError``) that name the file, field or shape.
+command. Arrays are numpy arrays. Every error is a ``promptdt.Error`` (``promptdt.errors``) that
+names the file, field or shape, and also the built-in exception of its kind (``ValueError``,
+``TypeError``, ``FileNotFoundError``, ``OSError``, ``RuntimeError``).
 """
 from __future__ import annotations
 
@@ -31,6 +32,14 @@ if "torch" in _sys.modules:
 
 from . import _native  # noqa: E402
 from ._args import _uint  # noqa: E402
+from .errors import (  # noqa: E402,F401
+    ArgumentTypeError,
+    Error,
+    FileError,
+    InvalidInputError,
+    NotFoundError,
+    StateError,
+)
 from ._native import Adaptation, Policy, Prompt, PromptBandit, TaskPlan, families, set_num_threads  # noqa: E402,F401
 
 __version__ = _native.__version__
@@ -169,7 +178,7 @@ def _with_progress(progress: ProgressArg, what: str, call: Callable[[Any], Any])
     if progress is False or progress is None:
         return call(None)
     if not callable(progress):
-        raise TypeError(f"progress: expected True, False or a callable, got {progress!r}")
+        raise ArgumentTypeError(f"progress: expected True, False or a callable, got {progress!r}")
     return call(progress)
 
 
@@ -288,10 +297,10 @@ def pretrained_dir(env: str) -> _Path:
 
 def _shipped_agents(env: str) -> _Path:
     if _native.is_scripted(env):  # raises ValueError naming an unknown family and the known ones
-        raise ValueError(f"{env} is collected with scripted policies: it has no agent directory")
+        raise InvalidInputError(f"{env} is collected with scripted policies: it has no agent directory")
     path = _Path(__file__).resolve().parent / "pretrained" / env
     if not (path / "agent.json").is_file():
-        raise FileNotFoundError(
+        raise NotFoundError(
             f"agent directory {path}: not in this installation (scripts/install_python.sh copies "
             "the checkout's pretrained/ into the package); pass pretrained_dir=..."
         )
@@ -388,7 +397,7 @@ def reproduce(
 
     binary = exe or _os.environ.get("PROMPTDT_BIN") or _shutil.which("promptdt")
     if binary is None or not _Path(binary).is_file():
-        raise FileNotFoundError(
+        raise NotFoundError(
             "reproduce needs the promptdt binary: pass exe=..., set PROMPTDT_BIN, or put promptdt "
             f"on PATH (cargo build --release -p promptdt); got {binary!r}"
         )
@@ -409,7 +418,7 @@ def reproduce(
         args.append("--report-only")
     done = _subprocess.run(args, stdin=_subprocess.DEVNULL, capture_output=True, text=True)
     if done.returncode != 0:
-        raise RuntimeError(
+        raise StateError(
             f"promptdt reproduce {experiment} --budget {budget} failed "
             f"(exit {done.returncode}): {done.stderr.strip()[-2000:]}"
         )
@@ -486,22 +495,22 @@ def flat_dataset(
         parts = []
         for i, ds in enumerate(source):
             if not isinstance(ds, Dataset):
-                raise TypeError(f"source[{i}]: expected a promptdt.Dataset, got {type(ds).__name__}")
+                raise ArgumentTypeError(f"source[{i}]: expected a promptdt.Dataset, got {type(ds).__name__}")
             if ds.task is None:
-                raise ValueError(f"source[{i}]: the dataset names no task (a reference pickle): "
+                raise InvalidInputError(f"source[{i}]: the dataset names no task (a reference pickle): "
                                  "pass the directory instead")
             parts.append((ds.task, ds))
         if not parts:
-            raise ValueError("source: no datasets")
+            raise InvalidInputError("source: no datasets")
         envs = {ds.env for _, ds in parts}
         if len(envs) > 1:
-            raise ValueError(f"source: datasets of several families ({sorted(map(str, envs))})")
+            raise InvalidInputError(f"source: datasets of several families ({sorted(map(str, envs))})")
         env = envs.pop()
         modes = {ds.mode for _, ds in parts}
         flat_mode = modes.pop() if len(modes) == 1 else None
     dims = {(ds.obs_dim, ds.act_dim) for _, ds in parts}
     if len(dims) > 1:
-        raise ValueError(f"source: datasets of different (obs_dim, act_dim): {sorted(dims)}")
+        raise InvalidInputError(f"source: datasets of different (obs_dim, act_dim): {sorted(dims)}")
     trajs = [(task, t) for task, ds in parts for t in ds.trajectories]
     obs_dim, act_dim = dims.pop()
 
@@ -546,6 +555,12 @@ __all__ = [
     "set_num_threads",
     "task_params",
     "train",
+    "Error",
+    "InvalidInputError",
+    "ArgumentTypeError",
+    "FileError",
+    "NotFoundError",
+    "StateError",
 ]
 if "make_vec" in globals():  # with gymnasium (above)
     __all__ += ["make_vec"]

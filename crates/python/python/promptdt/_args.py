@@ -5,15 +5,16 @@ from __future__ import annotations
 from typing import Any, Optional
 
 import numpy as np
+from .errors import ArgumentTypeError, InvalidInputError
 
 
 def _uint(name: str, value: Any, expected: str, *, low: int = 0, high: Optional[int] = None) -> int:
     """An integer argument in ``[low, high)``, or a ``TypeError``/``ValueError`` that names it, what
     was given and what is expected."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name}: {value!r} ({type(value).__name__}) given, expected {expected} (an int)")
+        raise ArgumentTypeError(f"{name}: {value!r} ({type(value).__name__}) given, expected {expected} (an int)")
     v = int(value)
     if v < low or (high is not None and v >= high):
         rng = f">= {low}" if high is None else f"in [{low}, {high})"
-        raise ValueError(f"{name}: {v} given, expected {expected} ({rng})")
+        raise InvalidInputError(f"{name}: {v} given, expected {expected} ({rng})")
     return v

@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _native
+from .errors import ArgumentTypeError, InvalidInputError, StateError
 from ._args import _uint
 
 try:
@@ -58,8 +59,9 @@ def env_id(family: str) -> str:
 ENV_IDS: Dict[str, str] = {env_id(f): f for f in _native.families()}
 
 
-class EnvClosedError(gym.error.ClosedEnvironmentError, ValueError):
-    """``reset`` or ``step`` after ``close()``: gymnasium's error, and a ``ValueError``."""
+class EnvClosedError(gym.error.ClosedEnvironmentError, InvalidInputError):
+    """``reset`` or ``step`` after ``close()``: gymnasium's error, and a ``promptdt.InvalidInputError``
+    (so a ``ValueError``)."""
 
 
 def _seed(name: str, value: Any) -> int:
@@ -69,7 +71,7 @@ def _seed(name: str, value: Any) -> int:
 def _family_of(id: str) -> str:
     """A family name from a family name or a registered id (``promptdt/CheetahVel-v0``)."""
     if not isinstance(id, str):
-        raise TypeError(f"id: {id!r} ({type(id).__name__}) given, expected a family name or id")
+        raise ArgumentTypeError(f"id: {id!r} ({type(id).__name__}) given, expected a family name or id")
     return ENV_IDS.get(id, id)
 
 
@@ -98,7 +100,7 @@ def _float_array(name: str, value: Any) -> npt.NDArray[np.float32]:
     except (TypeError, ValueError) as e:
         given = repr(value)
         given = given if len(given) <= 80 else given[:77] + "..."
-        raise ValueError(
+        raise InvalidInputError(
             f"{name}: {given} ({type(value).__name__}) given, expected an array of floats ({e})"
         ) from None
 
@@ -109,10 +111,10 @@ def _options(options: Optional[Dict[str, Any]]) -> Optional[Any]:
     if options is None:
         return None
     if not isinstance(options, dict):
-        raise TypeError(f"options: {type(options).__name__} given, expected a dict or None")
+        raise ArgumentTypeError(f"options: {type(options).__name__} given, expected a dict or None")
     unknown = sorted(set(options) - {"task"})
     if unknown:
-        raise ValueError(
+        raise InvalidInputError(
             f"options: unknown key(s) {unknown}; the only option is 'task' (a task index, or one "
             "per environment for a vector env)"
         )
@@ -176,10 +178,10 @@ class PromptDTEnv(gym.Env[npt.NDArray[Any], npt.NDArray[Any]]):
         families with a success criterion)."""
         env = self._native_env("step")
         if not self._started:
-            raise RuntimeError("call reset() before step()")
+            raise StateError("call reset() before step()")
         a = _float_array("action", action)
         if a.shape != self.action_space.shape:
-            raise ValueError(f"action: shape {a.shape}, expected {self.action_space.shape} (act_dim,)")
+            raise InvalidInputError(f"action: shape {a.shape}, expected {self.action_space.shape} (act_dim,)")
         obs, rew, term, trunc = env.step(a[None])
         info: Dict[str, Any] = {}
         success = env.last_success()
@@ -266,14 +268,14 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         elif isinstance(seed, (list, tuple, np.ndarray)):
             given = list(seed)
             if len(given) != self.num_envs:
-                raise ValueError(
+                raise InvalidInputError(
                     f"seed: {len(given)} seeds given, expected one per environment ({self.num_envs})"
                 )
             drawn = self._draw_seeds(self.num_envs)
             seeds = [_seed(f"seed[{i}]", s) if s is not None else d for i, (s, d) in enumerate(zip(given, drawn))]
             self._seed_rng = np.random.default_rng([s % 2**63 for s in seeds])
         else:
-            raise TypeError(
+            raise ArgumentTypeError(
                 f"seed: {seed!r} ({type(seed).__name__}) given, expected an int, a list of one per "
                 "environment, or None"
             )
@@ -281,7 +283,7 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
             if isinstance(task, (list, tuple, np.ndarray)):
                 tasks = [_uint(f"options['task'][{i}]", t, "a task index") for i, t in enumerate(task)]
                 if len(tasks) != self.num_envs:
-                    raise ValueError(
+                    raise InvalidInputError(
                         f"options['task']: {len(tasks)} tasks given, expected one, or one per "
                         f"environment ({self.num_envs})"
                     )
@@ -308,10 +310,10 @@ class PromptDTVectorEnv(VectorEnv[Obs, Obs, npt.NDArray[Any]]):
         ended at the previous step is reset instead (its action ignored, reward 0)."""
         env = self._native_env("step")
         if not self._started:
-            raise RuntimeError("call reset() before step()")
+            raise StateError("call reset() before step()")
         actions = _float_array("actions", actions)
         if actions.shape != (self.num_envs, self._act_dim):
-            raise ValueError(
+            raise InvalidInputError(
                 f"actions: shape {actions.shape}, expected "
                 f"{(self.num_envs, self._act_dim)} (num_envs, act_dim)"
             )
@@ -350,13 +352,13 @@ def _render_args(
 ) -> Tuple[Optional[str], Tuple[int, int]]:
     """``render_mode`` and ``render_size`` checked (rendering: docs/rendering.md)."""
     if render_mode not in (None, "rgb_array"):
-        raise ValueError(f"render_mode: {render_mode!r}, expected None or 'rgb_array'")
+        raise InvalidInputError(f"render_mode: {render_mode!r}, expected None or 'rgb_array'")
     try:
         w, h = (int(v) for v in render_size)
     except (TypeError, ValueError):
-        raise ValueError(f"render_size: {render_size!r}, expected (width, height)") from None
+        raise InvalidInputError(f"render_size: {render_size!r}, expected (width, height)") from None
     if not (1 <= w <= 640 and 1 <= h <= 480):
-        raise ValueError(f"render_size: {(w, h)}, expected width 1..640 and height 1..480")
+        raise InvalidInputError(f"render_size: {(w, h)}, expected width 1..640 and height 1..480")
     return render_mode, (w, h)
 
 
@@ -380,14 +382,14 @@ def make_vec(
     frame, ``render_size`` = (width, height) pixels (docs/rendering.md)."""
     family = _family_of(id)
     if num_envs is not None and not isinstance(num_envs, (int, np.integer)):
-        raise TypeError(
+        raise ArgumentTypeError(
             f"num_envs: {num_envs!r} ({type(num_envs).__name__}) given, expected a number of "
             "environments; the tasks go by keyword (make_vec(id, num_envs, task=t) or tasks=[...]), "
             "as in gymnasium.make_vec"
         )
     n = None if num_envs is None else _uint("num_envs", num_envs, "a number of environments", low=1)
     if (task is None) == (tasks is None):
-        raise TypeError(
+        raise ArgumentTypeError(
             "make_vec: give the task by keyword, task=t or tasks=[...] (one of them): "
             f"make_vec({family!r}, num_envs={n or 1}, task=0). The second positional argument is "
             "num_envs, as in gymnasium.make_vec"
@@ -396,16 +398,16 @@ def make_vec(
         task_list = [_uint("task", task, "a task index")] * (n or 1)
     else:
         if isinstance(tasks, (str, bytes)) or not hasattr(tasks, "__iter__"):
-            raise TypeError(f"tasks: {tasks!r} given, expected a list of task indices")
+            raise ArgumentTypeError(f"tasks: {tasks!r} given, expected a list of task indices")
         base = [_uint(f"tasks[{i}]", t, "a task index") for i, t in enumerate(tasks or [])]
         if not base:
-            raise ValueError("tasks: an empty list given, expected at least one task")
+            raise InvalidInputError("tasks: an empty list given, expected at least one task")
         if n is None or n == len(base):
             task_list = base
         elif n % len(base) == 0:
             task_list = [t for t in base for _ in range(n // len(base))]
         else:
-            raise ValueError(f"num_envs: {n} given, expected a multiple of the {len(base)} tasks given")
+            raise InvalidInputError(f"num_envs: {n} given, expected a multiple of the {len(base)} tasks given")
     return PromptDTVectorEnv(
         family, task_list, threads=threads, render_mode=render_mode, render_size=render_size
     )
@@ -427,7 +429,7 @@ def _vector_entry_point(
     horizon, where the environments truncate); another limit is refused, not ignored."""
     horizon = _native.families()[family]["horizon"]
     if max_episode_steps is not None and max_episode_steps != horizon:
-        raise ValueError(
+        raise InvalidInputError(
             f"max_episode_steps: {max_episode_steps!r} given; promptdt's vector env truncates at "
             f"{family}'s horizon ({horizon}). For another limit, vectorization_mode='sync' wraps "
             "each environment in gymnasium's TimeLimit"

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple, Un
 import numpy as np
 
 from . import _native
+from .errors import InvalidInputError, NotFoundError
 
 if TYPE_CHECKING:  # minari is imported when a function here is called, not with the package
     from minari import MinariDataset  # type: ignore[import-untyped]  # (minari 0.5 has no py.typed)
@@ -55,9 +56,9 @@ def _task_files(
     with files there (or, with ``tasks``, the only one with a file for each of them)."""
     data = Path(data)
     if not data.is_dir():
-        raise FileNotFoundError(f"{data}: not a directory of dataset files")
+        raise NotFoundError(f"{data}: not a directory of dataset files")
     if env is not None and env not in _native.families():
-        raise ValueError(f"env: unknown family `{env}` (known: {', '.join(_native.families())})")
+        raise InvalidInputError(f"env: unknown family `{env}` (known: {', '.join(_native.families())})")
     by_env: Dict[str, Dict[int, Path]] = {}
     for p in sorted(data.iterdir()):
         m = _NAME.match(p.name)
@@ -71,7 +72,7 @@ def _task_files(
     if env is None and len(by_env) > 1:
         fits = [e for e in by_env if tasks is not None and all(t in by_env[e] for t in tasks)]
         if len(fits) != 1:
-            raise ValueError(
+            raise InvalidInputError(
                 f"{data}: files of several families ({', '.join(sorted(by_env))}) for mode {mode}; "
                 "give env=... to pick one"
             )
@@ -82,11 +83,11 @@ def _task_files(
     if tasks is not None:
         missing = [t for t in tasks if t not in found]
         if missing:
-            raise ValueError(f"{data}: no {mode} file for tasks {missing}" + (f" of {env}" if env else ""))
+            raise InvalidInputError(f"{data}: no {mode} file for tasks {missing}" + (f" of {env}" if env else ""))
         found = {t: found[t] for t in tasks}
     if not found or env is None:  # (no family: no files)
         name = env or "{env}"
-        raise ValueError(f"{data}: no `{name}-{{task}}-{mode}.safetensors` (or .pkl) files")
+        raise InvalidInputError(f"{data}: no `{name}-{{task}}-{mode}.safetensors` (or .pkl) files")
     return [(env, t, p) for t, p in sorted(found.items())]
 
 
@@ -130,17 +131,17 @@ def export_minari(
     env = files[0][0]
     fams = _native.families()
     if env not in fams:
-        raise ValueError(f"{env}: not a promptdt family ({', '.join(fams)})")
+        raise InvalidInputError(f"{env}: not a promptdt family ({', '.join(fams)})")
     fam = fams[env]
     if split not in fam["splits"]:
-        raise ValueError(f"unknown split `{split}` of {env} (known: {', '.join(fam['splits'])})")
+        raise InvalidInputError(f"unknown split `{split}` of {env} (known: {', '.join(fam['splits'])})")
     train, test = (set(x) for x in fam["splits"][split])
     buffers: List[Any] = []
     obs_dim, act_dim = int(fam["obs_dim"]), int(fam["act_dim"])
     for _, task, path in files:
         ds = _native.load_dataset(os.fspath(path))
         if (ds["obs_dim"], ds["act_dim"]) != (obs_dim, act_dim):
-            raise ValueError(
+            raise InvalidInputError(
                 f"{path}: obs_dim {ds['obs_dim']} and act_dim {ds['act_dim']}, but {env} has "
                 f"obs_dim {obs_dim} and act_dim {act_dim}"
             )
@@ -214,7 +215,7 @@ def import_minari(
     meta = dataset.storage.metadata
     env = env or meta.get("promptdt_env")
     if env is None:
-        raise ValueError("the dataset was not exported by promptdt: give env, task and mode")
+        raise InvalidInputError("the dataset was not exported by promptdt: give env, task and mode")
     if env not in _native.families():
         _native.check_dims(env, 0, 0)  # raises the library's error naming the known families
     groups: Dict[Tuple[int, str], List[dict]] = {}
@@ -224,10 +225,10 @@ def import_minari(
         t = task if task is not None else opts.get("task")
         m = mode or opts.get("mode")
         if t is None or m is None:
-            raise ValueError(f"episode {ep.id}: no task/mode in its options; give task and mode")
+            raise InvalidInputError(f"episode {ep.id}: no task/mode in its options; give task and mode")
         obs = np.asarray(ep.observations)
         if obs.ndim != 2 or len(obs) != len(ep.rewards) + 1:
-            raise ValueError(
+            raise InvalidInputError(
                 f"episode {ep.id}: observations of shape {obs.shape} for {len(ep.rewards)} steps "
                 "(promptdt takes Box observations, T + 1 of them)"
             )
@@ -244,7 +245,7 @@ def import_minari(
     for (t, m), trajs in groups.items():
         obs, act = trajs[0]["observations"], trajs[0]["actions"]
         if obs.ndim != 2 or act.ndim != 2:
-            raise ValueError(
+            raise InvalidInputError(
                 f"task {t} ({m}): observations {obs.shape} and actions {act.shape}; promptdt takes "
                 "[T, dim] Box observations and actions"
             )
