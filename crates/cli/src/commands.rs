@@ -233,6 +233,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
 /// the datasets.
 fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
     use pdt_rl::agent::Noise;
+    use pdt_rl::overrides::RlOverrides;
     use pdt_rl::train::{RlConfig, TrainProgress};
     if let Some(t) = a.threads {
         tch::set_num_threads(t as i32);
@@ -254,33 +255,17 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
                 .clone()
                 .unwrap_or_else(|| PathBuf::from("runs").join(format!("collect-{family}")));
             let mut cfg = RlConfig::preset(family)?;
-            cfg.seed = a.seed;
-            if let Some(alg) = &a.algorithm {
-                cfg.algorithm = alg.parse()?;
-            }
-            if let Some(s) = a.steps {
-                cfg.total_steps = s;
-                cfg.learning_starts = cfg.learning_starts.min(s / 4);
-            }
-            if let Some(l) = a.learning_starts {
-                cfg.learning_starts = l;
-            }
-            if let Some(h) = &a.hidden {
-                cfg.agent.sac.hidden = h.clone();
-                cfg.agent.td3.hidden = h.clone();
-            }
-            if let Some(b) = a.batch_size {
-                cfg.batch_size = b;
-            }
-            if let Some(c) = a.checkpoint_every {
-                cfg.checkpoint_every = c;
-            }
-            if let Some(t) = &a.tasks {
-                cfg.tasks = t.clone();
-            }
-            if let Some(w) = a.sample_recent {
-                cfg.sample_recent = w;
-            }
+            cfg.apply(&RlOverrides {
+                seed: Some(a.seed),
+                algorithm: a.algorithm.as_deref().map(str::parse).transpose()?,
+                total_steps: a.steps,
+                learning_starts: a.learning_starts,
+                hidden: a.hidden.clone(),
+                batch_size: a.batch_size,
+                checkpoint_every: a.checkpoint_every,
+                tasks: a.tasks.clone(),
+                sample_recent: a.sample_recent,
+            });
             let pb = bar(
                 cfg.total_steps,
                 "{prefix} {bar:30} {pos}/{len} steps [{elapsed} < {eta}] {msg}",

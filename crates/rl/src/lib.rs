@@ -19,6 +19,7 @@ pub mod buffer;
 pub mod combine;
 pub mod datasets;
 pub mod nets;
+pub mod overrides;
 pub mod policy;
 pub mod rollout;
 pub mod sac;
