@@ -32,9 +32,10 @@ pub enum Fit {
     /// `R = c - k |v - v*|`: one speed `v*` for every task.
     /// `k` is about the horizon for a policy that holds `v*` all episode (the reward loses
     /// `|v - target|` per step).
-    /// `on_edge`: the best `v*` lies at or beyond the test targets' extreme `value` (up to the
-    /// searched range's end): past the last test target every speed fits alike (`|v - v*|` is
-    /// then linear in `v`, `c` absorbs the rest), so the speed is not identified, only bounded.
+    /// `on_edge`: fewer than two test targets lie beyond `v*` on one side, so the kink rests on
+    /// one return or none: not identified. Past the last test target every speed fits alike
+    /// (`|v - v*|` is then linear in `v`, `c` absorbs the rest); such a fit is reported at that
+    /// target.
     Target { value: f64, slope: f64, offset: f64, on_edge: bool },
 }
 
@@ -129,27 +130,35 @@ pub fn fit(features: &[Vec<f64>], y: &[f64], range: Option<(f64, f64)>) -> Optio
             }
         }
         // At or past a test target's extreme the fit is flat in `v*`: report the extreme itself
-        // (whichever speed past it rounding picked) and flag it.
+        // (whichever speed past it rounding picked). Either way, a kink with fewer than two test
+        // targets beyond it on one side rests on one return (or none): flagged, not identified.
         let (t_lo, t_hi) = (
             v.iter().copied().fold(f64::INFINITY, f64::min),
             v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
         );
         let step = (hi - lo) / STEPS as f64;
-        if let Some((Fit::Target { value, .. }, _)) = best {
-            let edge = match value {
+        if let Some((Fit::Target { value, slope, offset, .. }, r)) = best {
+            let snapped = match value {
                 x if x >= t_hi - step / 2.0 => Some(t_hi),
                 x if x <= t_lo + step / 2.0 => Some(t_lo),
                 _ => None,
             };
-            if let Some(e) = edge {
-                let x: Vec<Vec<f64>> = v.iter().map(|&t| vec![1.0, -(t - e).abs()]).collect();
-                let mut w = least_squares(&x, y)?;
-                if w[1] < 0.0 {
-                    w = vec![y.iter().sum::<f64>() / y.len() as f64, 0.0];
+            let (value, slope, offset, r) = match snapped {
+                Some(e) => {
+                    let x: Vec<Vec<f64>> = v.iter().map(|&t| vec![1.0, -(t - e).abs()]).collect();
+                    let mut w = least_squares(&x, y)?;
+                    if w[1] < 0.0 {
+                        w = vec![y.iter().sum::<f64>() / y.len() as f64, 0.0];
+                    }
+                    let r = rmse(x.iter().map(|row| w[0] + w[1] * row[1]), y);
+                    (e, w[1], w[0], r)
                 }
-                let r = rmse(x.iter().map(|row| w[0] + w[1] * row[1]), y);
-                return Some((Fit::Target { value: e, slope: w[1], offset: w[0], on_edge: true }, r));
-            }
+                None => (value, slope, offset, r),
+            };
+            let above = v.iter().filter(|t| **t > value + step / 2.0).count();
+            let below = v.iter().filter(|t| **t < value - step / 2.0).count();
+            let on_edge = above.min(below) < 2;
+            return Some((Fit::Target { value, slope, offset, on_edge }, r));
         }
         return best;
     }
@@ -210,8 +219,8 @@ fn describe(f: &Fit, horizon: usize) -> String {
         }
         Fit::Target { value, slope, offset, on_edge } => {
             let edge = match on_edge {
-                true => ": at an end of the test targets, where any speed from there to the \
-                         searched range's end fits alike: not identified",
+                true => "; fewer than two test targets lie beyond the speed on one side, so \
+                         the fit does not pin it down: not identified",
                 false => "",
             };
             format!(
@@ -291,8 +300,8 @@ pub fn section(registry: &Path) -> Result<Option<String>, ReproError> {
          each task's goal: for a heading `phi`, `R = a + b cos(goal - phi)`; for a speed `v*`, \
          `R = c - k |v - v*|`. Each evaluated iteration of each archived MT-ORL run is fitted by \
          that function over its test tasks (`crates/repro/src/task_blind.rs`; a speed is searched \
-         over every target of the run's split, training tasks included, and a fit at the range's \
-         end is marked not identified). A residual (rmse) \
+         over every target of the run's split, training tasks included, and a speed with fewer \
+         than two test targets beyond it on one side is marked not identified). A residual (rmse) \
          far below the returns' span means the policy ignores the task; Prompt-DT's last \
          evaluation of the same seed is the contrast.\n"
     );
@@ -327,11 +336,16 @@ mod tests {
     fn a_policy_with_one_speed_is_found_and_a_task_aware_one_fits_badly() {
         let v = [0.22_f64, 0.6, 1.2, 1.8, 2.02];
         let features: Vec<Vec<f64>> = v.iter().map(|&t| vec![t]).collect();
-        let y: Vec<f64> = v.iter().map(|t| -30.0 - 200.0 * (t - 1.95).abs()).collect();
+        let y: Vec<f64> = v.iter().map(|t| -30.0 - 200.0 * (t - 0.95).abs()).collect();
         let (f, r) = fit(&features, &y, Some((0.0, 3.0))).expect("fit");
         let Fit::Target { value, slope, on_edge, .. } = f else { panic!("{f:?}") };
-        assert!((value - 1.95).abs() < 0.01 && (slope - 200.0).abs() < 5.0 && r < 2.0, "{f:?} {r}");
-        assert!(!on_edge);
+        assert!((value - 0.95).abs() < 0.01 && (slope - 200.0).abs() < 5.0 && r < 2.0, "{f:?} {r}");
+        assert!(!on_edge, "{f:?}");
+        // 1.95: one test target above it, so its kink rests on one return.
+        let y: Vec<f64> = v.iter().map(|t| -30.0 - 200.0 * (t - 1.95).abs()).collect();
+        let (f, _) = fit(&features, &y, Some((0.0, 3.0))).expect("fit");
+        let Fit::Target { value, on_edge, .. } = f else { panic!("{f:?}") };
+        assert!((value - 1.95).abs() < 0.01 && on_edge, "{f:?}");
         // A speed beyond the test targets (2.8, inside the searched range) fits exactly, but so
         // does every speed past 2.02: the fit is flagged at the test targets' end, not identified.
         let y: Vec<f64> = v.iter().map(|t| -30.0 - 200.0 * (t - 2.8).abs()).collect();
