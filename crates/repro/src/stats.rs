@@ -75,10 +75,7 @@ fn mean(v: &[f64]) -> f64 {
 /// Keeps the seeds that have a score on some task and only finite scores: a diverged seed's NaN is
 /// left out, as `Stat` does.
 fn clean(s: &Scores) -> Vec<Vec<f64>> {
-    s.iter()
-        .filter(|t| !t.is_empty() && t.iter().all(|x| x.is_finite()))
-        .cloned()
-        .collect()
+    s.iter().filter(|t| !t.is_empty() && t.iter().all(|x| x.is_finite())).cloned().collect()
 }
 
 /// Sample standard deviation (n - 1); `None` for fewer than two values.
@@ -337,9 +334,15 @@ pub fn worked_example() -> String {
         s.push_str(&format!("- \"a beats b\", margin {margin}: **{}**: {}\n", j.verdict, j.detail));
     }
     let j = judge_better(("a", &a[..1]), ("b", &b[..1]), 10.0).expect("example scores");
-    s.push_str(&format!("- the same with seed 1 alone on each side: **{}**: {}\n", j.verdict, j.detail));
+    s.push_str(&format!(
+        "- the same with seed 1 alone on each side: **{}**: {}\n",
+        j.verdict, j.detail
+    ));
     let j = judge_similar(&[("a", &a), ("b", &b)], 10.0).expect("example scores");
-    s.push_str(&format!("- \"a and b perform similarly\", margin 10: **{}**: {}\n", j.verdict, j.detail));
+    s.push_str(&format!(
+        "- \"a and b perform similarly\", margin 10: **{}**: {}\n",
+        j.verdict, j.detail
+    ));
     s
 }
 

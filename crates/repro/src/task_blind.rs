@@ -126,7 +126,8 @@ pub fn fit(features: &[Vec<f64>], y: &[f64], range: Option<(f64, f64)>) -> Optio
             }
             let r = rmse(x.iter().map(|row| w[0] + w[1] * row[1]), y);
             if best.is_none_or(|(_, b)| r < b) {
-                best = Some((Fit::Target { value: vs, slope: w[1], offset: w[0], on_edge: false }, r));
+                best =
+                    Some((Fit::Target { value: vs, slope: w[1], offset: w[0], on_edge: false }, r));
             }
         }
         // At or past a test target's extreme the fit is flat in `v*`: report the extreme itself
@@ -219,8 +220,10 @@ fn describe(f: &Fit, horizon: usize) -> String {
         }
         Fit::Target { value, slope, offset, on_edge } => {
             let edge = match on_edge {
-                true => "; fewer than two test targets lie beyond the speed on one side, so \
-                         the fit does not pin it down: not identified",
+                true => {
+                    "; fewer than two test targets lie beyond the speed on one side, so \
+                         the fit does not pin it down: not identified"
+                }
                 false => "",
             };
             format!(

@@ -106,5 +106,9 @@ fn readme_result_numbers_are_in_generated_blocks_only() {
             typed.push(line);
         }
     }
-    assert!(typed.is_empty(), "README.md: result numbers outside a generated block:\n{}", typed.join("\n"));
+    assert!(
+        typed.is_empty(),
+        "README.md: result numbers outside a generated block:\n{}",
+        typed.join("\n")
+    );
 }

@@ -82,8 +82,7 @@ fn ordered(data: &[(&str, &stats::Scores)]) -> Option<Judgement> {
     Some(Judgement {
         verdict: match provisional {
             Some(_) => {
-                let seeds: Vec<String> =
-                    data.iter().map(|(_, s)| s.len().to_string()).collect();
+                let seeds: Vec<String> = data.iter().map(|(_, s)| s.len().to_string()).collect();
                 format!("provisional ({} seeds)", seeds.join(" vs "))
             }
             None => call.word().into(),
@@ -103,7 +102,8 @@ mod tests {
     use crate::report::Stat;
 
     fn cell(id: &str, scores: Vec<Vec<f64>>) -> CellResult {
-        let means: Vec<f64> = scores.iter().map(|t| t.iter().sum::<f64>() / t.len() as f64).collect();
+        let means: Vec<f64> =
+            scores.iter().map(|t| t.iter().sum::<f64>() / t.len() as f64).collect();
         CellResult {
             id: id.into(),
             env: "ant_dir".into(),

@@ -22,8 +22,8 @@ use std::path::{Path, PathBuf};
 mod claims;
 mod render;
 use crate::stats::CellStats;
-pub use claims::{ClaimResult, DEFAULT_MARGIN};
 use claims::check_claim;
+pub use claims::{ClaimResult, DEFAULT_MARGIN};
 pub(crate) use render::PaperText;
 use render::{cells_csv, curves_csv, markdown};
 
