@@ -24,6 +24,7 @@ pub mod plan;
 pub mod registry;
 pub mod render;
 pub mod report;
+pub mod stats;
 pub mod status;
 pub mod task_blind;
 pub mod variant;

@@ -7,6 +7,7 @@ use crate::manifest::{Manifest, BUILTIN};
 use crate::plan::{self, PlanOptions};
 use crate::registry;
 use crate::report::{self, Report, Stat};
+use crate::stats;
 use crate::ReproError;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
@@ -32,6 +33,9 @@ struct Section {
     /// Per cell id: the archived runs' seeds and the devices that ran them.
     seeds: BTreeMap<String, Vec<u64>>,
     devices: BTreeMap<String, BTreeSet<String>>,
+    /// Per cell id the budget plans runs for: how many seeds it plans (what the archive is
+    /// described against).
+    planned: Vec<(String, usize)>,
 }
 
 /// Every committed experiment at every budget with an archived run, as reported from the
@@ -80,6 +84,14 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
             };
             // Every archived seed, however many the budget plans: the registry's runs only.
             let Some(max_seed) = registry::max_seed(&archived, b) else { continue };
+            let mut planned: Vec<(String, usize)> = Vec::new();
+            for r in &plan::plan(&m, &opts)?.runs {
+                let id = m.cells[r.cell].id();
+                match planned.iter_mut().find(|(c, _)| *c == id) {
+                    Some((_, n)) => *n += 1,
+                    None => planned.push((id, 1)),
+                }
+            }
             let mut p = plan::plan(&m, &PlanOptions { seeds: Some(max_seed + 1), ..opts })?;
             p.runs.retain(|r| archived.contains(&r.key));
             let used = registry::use_archived(&mut p, registry);
@@ -110,7 +122,7 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
                     problems.entry(format!("{}: {why}", r.key)).or_default().insert(at.clone());
                 }
             }
-            out.push(Section { report: rep, seeds, devices });
+            out.push(Section { report: rep, seeds, devices, planned });
         }
     }
     for key in registry::strays(registry) {
@@ -155,21 +167,57 @@ fn seeds_text(seeds: &[u64]) -> String {
     format!("{} ({list})", seeds.len())
 }
 
-/// What the task-blind fits mean (the numbers are in the generated table above it).
+/// What the task-blind fits mean: no number (they are in the generated table above it), and
+/// nothing the table does not show.
 const MT_ORL_READING: &str = "Reading: MT-ORL sees no prompt, so it cannot tell the test tasks \
-apart. Early in training it acts alike on every task without moving much: the Ant stands and \
-collects its survive bonus (about the same return on every goal), the cheetah runs at a middling \
-speed. That is its peak on the test tasks. Later it learns the experts' gait, still without the \
-task: it walks fast in one heading, or runs at one speed, on every test task, and the two seeds \
-pick nearly the same heading or speed (so it comes from the data, not from chance). Each task's \
-return then follows how far its goal lies from that one behaviour, and walking fast the wrong \
-way costs more than standing still, so the mean falls while the training loss keeps going down. \
-Measured: the fits above (one behaviour explains every test task's return to within the \
-residual). Not measured: whether another target return or the reference code's own MT-ORL run \
-behaves otherwise at this budget. The paper's MT-ORL values (about -155 on Cheetah-Vel and 120 \
-on Ant-Dir, Figure 2) are close to our runs' uncommitted phase; ours commit from iteration 200-300 on, at half the warm-up's peak learning rate. Which one a paper-budget run ends at is \
-known only when a paper-budget MT-ORL run is archived; until then expect ours: a task-blind \
-policy's score set by where the test goals lie relative to the one behaviour it settles on.";
+apart. Where a fit's residual is small against the span of the task returns, the run acted alike \
+on every test task at that iteration, and each task's return follows how far its goal lies from \
+that one behaviour; a run whose mean falls while its fits stay tight is a task-blind policy \
+settling on a behaviour that suits the test goals worse, not one that unlearned them. A speed fit \
+marked not identified sits on the edge of the searched targets: the returns do not pin the speed \
+down. Not measured here: what a paper-budget MT-ORL run ends at, or whether the reference code's \
+own MT-ORL behaves alike at this budget.";
+
+/// The archive of a section, described from the registry: per planned cell, how many of the
+/// seeds its budget plans are archived (the manifest's budget note describes the plan only).
+fn archive_text(sec: &Section) -> String {
+    let mut full = Vec::new();
+    let mut short = Vec::new();
+    let mut none = Vec::new();
+    for (id, n) in &sec.planned {
+        match sec.seeds.get(id).map_or(0, Vec::len) {
+            0 => none.push(format!("`{id}`")),
+            k if k >= *n => full.push(format!("`{id}` ({k})")),
+            k => short.push(format!("`{id}` ({k} of {n})")),
+        }
+    }
+    let list = |v: &[String]| if v.is_empty() { "none".to_string() } else { v.join(", ") };
+    format!(
+        "Archived (from the registry): every planned seed for {}; fewer for {}; no run for {}.",
+        list(&full),
+        list(&short),
+        list(&none)
+    )
+}
+
+fn opt(v: Option<f64>) -> String {
+    v.map_or("-".into(), |v| format!("{v:.1}"))
+}
+
+/// The cell's normalised mean ± sample SD (per-task mean of ratios), its interval and IQM.
+fn normalised_text(c: &report::CellResult) -> (String, String, String) {
+    match &c.normalised_stats {
+        Some(st) => (
+            match st.sd {
+                Some(sd) => format!("{:.1} ± {sd:.1}", st.mean),
+                None => format!("{:.1}", st.mean),
+            },
+            st.ci.to_string(),
+            opt(st.iqm),
+        ),
+        None => (stat(c.ours_normalised, 1), "-".into(), "-".into()),
+    }
+}
 
 /// `RESULTS.md` and the README block from the registry in `registry`.
 pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
@@ -187,16 +235,33 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
          expert data, 0 = random ([docs/reproduce.md](docs/reproduce.md#normalised-scores)); the \
          paper's value is normalised with the reference release's experts where they are known.\n"
     );
+    let _ = writeln!(
+        s,
+        "Columns: *ours*: mean ± population std over seeds of the average test return. *ours \
+         normalised*: per seed the mean over test tasks of each task's normalised score (the \
+         per-task mean of ratios), then mean ± sample SD over seeds; the claims use it. *{:.0} % \
+         interval*: of that mean, by a stratified bootstrap over seeds x tasks ({} resamples, \
+         seeded; docs/reproduce.md#claims). *IQM*: interquartile mean of the seeds' per-task \
+         scores pooled, shown where a cell has at least {} seeds. *ours, ratio of means*: per seed \
+         the mean test return normalised by the mean expert and mean random returns over the test \
+         tasks, the only way the paper's value (a mean over tasks) can be normalised, so the one \
+         compared with *paper normalised*.\n",
+        100.0 * stats::CONFIDENCE,
+        stats::RESAMPLES,
+        stats::MIN_SEEDS
+    );
     for sec in &sections {
         let r = &sec.report;
         let _ = writeln!(s, "## {} — `{}` budget\n", r.title, r.budget);
-        let _ = writeln!(s, "Budget: {}\n", r.budget_note.trim());
+        let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
+        let _ = writeln!(s, "{}\n", archive_text(sec));
         let _ = writeln!(
             s,
-            "| cell | budget | seeds | iterations | device | ours | ours normalised | paper | \
-             paper normalised |"
+            "| cell | budget | seeds | iterations | device | ours | ours normalised | {:.0} % \
+             interval | IQM | ours, ratio of means | paper | paper normalised |",
+            100.0 * stats::CONFIDENCE
         );
-        let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|---:|---:|");
+        let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
         for c in &r.cells {
             let Some(seeds) = sec.seeds.get(&c.id).filter(|_| c.seeds > 0) else { continue };
             let ours = match c.success {
@@ -206,16 +271,17 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
             let report::PaperText { raw: p, normalised: pn } = report::PaperText::of(c);
             let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
             let devices = devices.map_or("-".into(), |d| d.join(", "));
+            let (norm, ci, iqm) = normalised_text(c);
             let _ = writeln!(
                 s,
-                "| {} `{}` | {} | {} | {} | {} | {ours} | {} | {p} | {pn} |",
+                "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} | {p} | {pn} |",
                 c.label,
                 c.id,
                 r.budget,
                 seeds_text(seeds),
                 c.iteration.map_or("-".into(), |i| i.to_string()),
                 devices,
-                stat(c.ours_normalised, 1),
+                stat(c.ours_normalised_rom, 1),
             );
         }
         let _ = writeln!(s);
@@ -223,42 +289,60 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
     let _ = writeln!(s, "## What reproduces\n");
     let _ = writeln!(
         s,
-        "The paper's claims, checked on the normalised means of the archived runs (the manifests' \
-         rules: a \"beats\" claim needs a lead beyond both its margin and the spread over seeds, docs/reproduce.md#claims).\n"
+        "The paper's claims, judged on the per-task normalised scores of the archived runs \
+         (docs/reproduce.md#claims): a \"beats\" claim **holds** when the {:.0} % bootstrap \
+         interval of the difference lies above its margin ({} normalised points unless the \
+         manifest says otherwise), **fails** when it lies below, and is **undecided** when it \
+         contains the margin; a \"similar\" claim holds only when the interval lies inside ± the \
+         margin (an equivalence test). With fewer than {} seeds on a side a verdict reads \
+         **provisional (n vs m seeds)**, and the detail says what the interval alone says. Ours \
+         against the paper's value: ours as a ratio of means, the paper's way.\n",
+        100.0 * stats::CONFIDENCE,
+        report::DEFAULT_MARGIN,
+        stats::MIN_SEEDS
     );
     for sec in &sections {
         let r = &sec.report;
         let measured: Vec<_> = r.claims.iter().filter(|c| c.verdict != "not measured").collect();
         let unmeasured = r.claims.len() - measured.len();
         let _ = writeln!(s, "- **{} (`{}`)**:", r.experiment, r.budget);
-        for verdict in ["holds", "does not hold", "too close to call"] {
-            for c in measured.iter().filter(|c| c.verdict == verdict) {
-                let _ = writeln!(s, "  - {verdict}: {} ({})", c.text, c.detail);
-            }
+        let order = |v: &str| match v {
+            "holds" => 0,
+            "fails" => 1,
+            "undecided" => 2,
+            _ => 3,
+        };
+        let mut measured = measured;
+        measured.sort_by_key(|c| order(&c.verdict));
+        for c in &measured {
+            let _ = writeln!(s, "  - {}: {} ({})", c.verdict, c.text, c.detail);
         }
-        // Ours against the paper's value, normalised alike, where the paper's can be normalised.
+        // Ours against the paper's value, normalised alike (ratio of means over the test tasks),
+        // where the paper's can be normalised.
         for c in r.cells.iter().filter(|c| sec.seeds.contains_key(&c.id) && c.seeds > 0) {
-            let (Some(o), Some(p)) = (c.ours_normalised, c.paper_normalised) else { continue };
+            let (Some(o), Some(p)) = (c.ours_normalised_rom, c.paper_normalised) else { continue };
             let gap = o.mean - p;
-            let how = if gap.abs() <= 10.0 {
-                "within 10 normalised points of the paper"
+            let how = if gap.abs() <= report::DEFAULT_MARGIN {
+                format!("within {} normalised points of the paper", report::DEFAULT_MARGIN)
             } else if gap < 0.0 {
-                "below the paper"
+                "below the paper".into()
             } else {
-                "above the paper"
+                "above the paper".into()
             };
-            let at = c.iteration.map_or(String::new(), |i| format!(" at iteration {i}"));
+            let at = c.iteration.map_or(String::new(), |i| format!(", ours at iteration {i}"));
             // Below the paper: whether the run was still improving when its budget ended.
-            let trend = match gap < -10.0 {
+            let trend = match gap < -report::DEFAULT_MARGIN {
                 true => trend(&c.curve).map_or(String::new(), |t| format!("; {t}")),
                 false => String::new(),
             };
             let _ = writeln!(
                 s,
-                "  - {how}: {} `{}`, {:.1} vs the paper's {p:.1}{at} ({} seed{}){trend}",
+                "  - {how}: {} `{}`, {:.1} (ratio of means; per-task mean of ratios {}) vs the \
+                 paper's {p:.1} at the paper's budget{at} ({} seed{}){trend}",
                 c.label,
                 c.id,
                 o.mean,
+                opt(c.ours_normalised.map(|x| x.mean)),
                 o.n,
                 if o.n == 1 { "" } else { "s" }
             );
@@ -310,11 +394,16 @@ fn headline(sections: &[Section]) -> String {
     let _ = writeln!(
         s,
         "Figure 2 from the archived runs (normalised: 100 = expert data, 0 = random; generated by \
-         `promptdt results render`; every row and the claims in [RESULTS.md](RESULTS.md)):\n"
+         `promptdt results render`; every row and the claims in [RESULTS.md](RESULTS.md)). \
+         *ours normalised*: the per-task mean of ratios, mean ± sample SD over seeds; *ours, ratio \
+         of means*: normalised the paper's way, the one compared with *paper normalised*:\n"
     );
-    let _ =
-        writeln!(s, "| cell | budget | seeds | iterations | ours normalised | paper normalised |");
-    let _ = writeln!(s, "|---|---|---|---:|---:|---:|");
+    let _ = writeln!(
+        s,
+        "| cell | budget | seeds | iterations | ours normalised | ours, ratio of means | paper \
+         normalised |"
+    );
+    let _ = writeln!(s, "|---|---|---|---:|---:|---:|---:|");
     let mut any = false;
     for sec in sections.iter().filter(|x| x.report.experiment == HEADLINE_EXPERIMENT) {
         for c in &sec.report.cells {
@@ -322,19 +411,20 @@ fn headline(sections: &[Section]) -> String {
             any = true;
             let _ = writeln!(
                 s,
-                "| {} `{}` | {} | {} | {} | {} | {} |",
+                "| {} `{}` | {} | {} | {} | {} | {} | {} |",
                 c.label,
                 c.id,
                 sec.report.budget,
                 seeds.len(),
                 c.iteration.map_or("-".into(), |i| i.to_string()),
-                stat(c.ours_normalised, 1),
+                normalised_text(c).0,
+                stat(c.ours_normalised_rom, 1),
                 report::PaperText::of(c).normalised
             );
         }
     }
     if !any {
-        let _ = writeln!(s, "| (no archived run) | | | | | |");
+        let _ = writeln!(s, "| (no archived run) | | | | | | |");
     }
     s
 }

@@ -46,3 +46,69 @@ fn a_readme_without_the_markers_is_refused() {
         Some("a\n<!-- results:begin -->\nnew\n<!-- results:end -->\nb\n")
     );
 }
+
+/// The text of `doc` between `begin` and `end` (the marker lines excluded).
+fn block<'a>(doc: &'a str, begin: &str, end: &str) -> Option<&'a str> {
+    let start = doc.find(begin)? + begin.len();
+    let stop = doc[start..].find(end)? + start;
+    Some(doc[start..stop].strip_prefix('\n').unwrap_or(&doc[start..stop]))
+}
+
+/// docs/reproduce.md#claims quotes the rule's worked example: computed by the code, never typed.
+#[test]
+fn the_docs_worked_example_of_the_claim_rule_is_the_codes_output() {
+    let (begin, end) = ("<!-- claims-example:begin -->", "<!-- claims-example:end -->");
+    let path = repo().join("docs/reproduce.md");
+    let doc = read(&path);
+    let quoted = block(&doc, begin, end)
+        .unwrap_or_else(|| panic!("{}: no {begin} ... {end} block", path.display()));
+    let expected = pdt_repro::stats::worked_example();
+    assert!(
+        quoted == expected,
+        "{}: the block between {begin} and {end} differs from stats::worked_example(); replace it \
+         with these lines:\n{expected}",
+        path.display()
+    );
+}
+
+/// The README's result numbers live in generated blocks only: every `<!-- NAME:begin -->` block is
+/// one a test here regenerates, and outside them no table row carries a decimal number and no line
+/// a `± number` (the demo's table, typed from runs nobody archived, had both).
+#[test]
+fn readme_result_numbers_are_in_generated_blocks_only() {
+    let readme = read(&repo().join("README.md"));
+    let generated = [pdt_repro::render::README_BEGIN];
+    for (i, _) in readme.match_indices("<!-- ") {
+        let marker = &readme[i..readme[i..].find("-->").map_or(readme.len(), |e| i + e + 3)];
+        if marker.ends_with(":begin -->") {
+            assert!(generated.contains(&marker), "README.md: {marker} is no block a test checks");
+        }
+    }
+    let decimal = |l: &str| {
+        let b = l.as_bytes();
+        (1..b.len().saturating_sub(1))
+            .any(|i| b[i] == b'.' && b[i - 1].is_ascii_digit() && b[i + 1].is_ascii_digit())
+    };
+    // `± 0.29`, not `mean ± std`.
+    let pm_number = |l: &str| {
+        l.match_indices('±').any(|(i, _)| {
+            l[i + '±'.len_utf8()..].trim_start().starts_with(|c: char| c.is_ascii_digit())
+        })
+    };
+    let mut inside = false;
+    let mut typed = Vec::new();
+    for line in readme.lines() {
+        if line.contains(pdt_repro::render::README_BEGIN) {
+            inside = true;
+        } else if line.contains(pdt_repro::render::README_END) {
+            inside = false;
+        } else if !inside && ((line.starts_with('|') && decimal(line)) || pm_number(line)) {
+            typed.push(line);
+        }
+    }
+    assert!(
+        typed.is_empty(),
+        "README.md: result numbers outside a generated block:\n{}",
+        typed.join("\n")
+    );
+}

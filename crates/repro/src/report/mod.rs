@@ -9,7 +9,7 @@
 //! they are known, and with our random returns (a uniform random policy in the same environment).
 
 use crate::baselines::{archived_baselines, baselines, Baselines};
-use crate::manifest::{ClaimKind, Layout, Manifest};
+use crate::manifest::{Layout, Manifest};
 use crate::plan::{self, Plan, RunState};
 use crate::ReproError;
 use pdt_base::table::{Align, Rule, Table};
@@ -19,7 +19,11 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+mod claims;
 mod render;
+use crate::stats::CellStats;
+use claims::check_claim;
+pub use claims::{ClaimResult, DEFAULT_MARGIN};
 pub(crate) use render::PaperText;
 use render::{cells_csv, curves_csv, markdown};
 
@@ -51,8 +55,18 @@ pub struct CellResult {
     pub iterations_planned: Option<u64>,
     /// Average test return, over seeds.
     pub ours: Option<Stat>,
-    /// Normalised score, over seeds.
+    /// Normalised score, over seeds: per seed the mean over test tasks of the per-task ratios
+    /// (population std, as [`Stat`]).
     pub ours_normalised: Option<Stat>,
+    /// Normalised score the paper's way, over seeds: per seed the ratio of means, its mean return
+    /// over the test tasks normalised by the mean expert and mean random returns over those tasks
+    /// (the only way a paper value, a mean over tasks, can be normalised).
+    pub ours_normalised_rom: Option<Stat>,
+    /// Per seed used, the per-task normalised scores of its last evaluation (what the claims'
+    /// bootstrap resamples).
+    pub seed_task_scores: Vec<Vec<f64>>,
+    /// Sample SD, stratified-bootstrap interval and IQM of the per-task normalised scores.
+    pub normalised_stats: Option<CellStats>,
     /// Success rate on the test tasks at the last evaluation, over seeds (families with a success
     /// criterion: Meta-World reach); `None` for the others.
     pub success: Option<Stat>,
@@ -62,7 +76,8 @@ pub struct CellResult {
     /// The paper's value normalised with the reference's expert returns.
     pub paper_normalised: Option<f64>,
     pub paper_normalised_std: Option<f64>,
-    /// Whether our normalised mean is within the paper's (normalised) std of its value.
+    /// Whether our normalised mean (ratio of means, the paper's way) is within the paper's
+    /// (normalised) std of its value.
     pub within_paper_std: Option<bool>,
     /// `(iteration, mean over seeds, std)` of the average test return.
     pub curve: Vec<(u64, f64, f64)>,
@@ -75,16 +90,6 @@ pub struct CellResult {
     /// What could not be read, by run key and file: a run left out of the result, or the dataset
     /// card the normalised scores need.
     pub problems: Vec<String>,
-}
-
-/// A checked claim.
-#[derive(Debug, Clone, Serialize)]
-pub struct ClaimResult {
-    pub text: String,
-    /// `holds`, `does not hold`, `too close to call` (a `better` claim whose two scores lie within
-    /// its margin), or `not measured`.
-    pub verdict: String,
-    pub detail: String,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -273,6 +278,9 @@ pub fn build(
             iterations_planned: None,
             ours: None,
             ours_normalised: None,
+            ours_normalised_rom: None,
+            seed_task_scores: Vec::new(),
+            normalised_stats: None,
             success: None,
             paper: cell.paper,
             paper_std: cell.paper_std,
@@ -340,6 +348,7 @@ pub fn build(
         // Per seed: the last evaluation, and every evaluation for the curve.
         let mut finals = Vec::new();
         let mut norms = Vec::new();
+        let mut norms_rom = Vec::new();
         let mut successes = Vec::new();
         let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
         let mut losses: Vec<&Loss> = Vec::new();
@@ -363,6 +372,15 @@ pub fn build(
                     .collect();
                 if let Some(n) = n {
                     norms.push(n.iter().sum::<f64>() / n.len() as f64);
+                    res.seed_task_scores.push(n);
+                }
+                let cards: Option<(Vec<f64>, Vec<f64>)> = last
+                    .keys()
+                    .map(|t| Some((*b.expert.get(t)?, *b.random.get(t)?)))
+                    .collect::<Option<Vec<_>>>()
+                    .map(|v| v.into_iter().unzip());
+                if let Some((e, r)) = cards {
+                    norms_rom.push(normalise(avg, mean(&e), mean(&r)));
                 }
             }
             curves.push(
@@ -381,6 +399,8 @@ pub fn build(
         res.iteration = last_iter;
         res.ours = Stat::of(&finals);
         res.ours_normalised = Stat::of(&norms);
+        res.ours_normalised_rom = Stat::of(&norms_rom);
+        res.normalised_stats = crate::stats::cell_stats(&res.seed_task_scores);
         // Only where every seed's run reports a success rate.
         if successes.len() == finals.len() {
             res.success = Stat::of(&successes);
@@ -438,7 +458,7 @@ pub fn build(
             }
         }
         if let (Some(o), Some(p), Some(s)) =
-            (res.ours_normalised, res.paper_normalised, res.paper_normalised_std)
+            (res.ours_normalised_rom, res.paper_normalised, res.paper_normalised_std)
         {
             res.within_paper_std = Some((o.mean - p).abs() <= s);
         }
@@ -529,161 +549,4 @@ fn write_outputs(m: &Manifest, plan: &Plan, rep: &mut Report) -> Result<(), Repr
 
 fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
-fn check_claim(c: &crate::manifest::Claim, cells: &[CellResult]) -> ClaimResult {
-    let cell = |id: &str| cells.iter().find(|x| x.id == id);
-    // Only cells with a finished seed count: a claim checked on a model still at iteration 1
-    // would read "does not hold" for no reason.
-    let stat = |id: &str| cell(id).filter(|x| x.seeds_finished > 0).and_then(|x| x.ours_normalised);
-    let score = |id: &str| stat(id).map(|s| s.mean);
-    let fmt = |id: &str| {
-        let Some(x) = cell(id) else { return format!("{id}: -") };
-        let value = x.ours_normalised.map_or("-".into(), |s| format!("{:.1}", s.mean));
-        match x.iteration.filter(|_| x.seeds_finished == 0) {
-            Some(it) => format!("{id}: {value} so far (running, iteration {it})"),
-            None => format!("{id}: {value}"),
-        }
-    };
-    let (verdict, detail) = match c.kind {
-        ClaimKind::Better => {
-            let (a, b) = (c.a.as_deref().unwrap_or(""), c.b.as_deref().unwrap_or(""));
-            let (Some(x), Some(y)) = (score(a), score(b)) else {
-                return not_measured(c, format!("{} vs {}", fmt(a), fmt(b)));
-            };
-            // The seed rule (docs/reproduce.md, "Claims"): a call needs a lead beyond both the
-            // claim's margin and the spread over seeds, the sum of the two cells' standard
-            // deviations over their seeds (0 for a cell of one seed, which the detail says).
-            let margin = c.min_margin.unwrap_or(10.0);
-            let (sa, sb) = (stat(a), stat(b));
-            let spread = sa.map_or(0.0, |s| s.std) + sb.map_or(0.0, |s| s.std);
-            let seeds = |s: Option<Stat>| s.map_or(0, |s| s.n);
-            let spread_note = if seeds(sa) < 2 || seeds(sb) < 2 {
-                format!(
-                    "seed spread {spread:.1}; {} vs {} seeds, so the spread is not fully known",
-                    seeds(sa),
-                    seeds(sb)
-                )
-            } else {
-                format!("seed spread {spread:.1}")
-            };
-            let detail = format!(
-                "{} vs {}; lead {:.1} (a call needs more than {margin} and more than the {spread_note})",
-                fmt(a),
-                fmt(b),
-                x - y
-            );
-            let lead = (x - y).abs();
-            let verdict =
-                if lead <= margin || lead <= spread { "too close to call" } else { holds(x > y) };
-            (verdict, detail)
-        }
-        ClaimKind::Insensitive | ClaimKind::Ordered => {
-            let s: Option<Vec<f64>> = c.cells.iter().map(|id| score(id)).collect();
-            let detail = c.cells.iter().map(|id| fmt(id)).collect::<Vec<_>>().join(", ");
-            let Some(s) = s else { return not_measured(c, detail) };
-            if c.kind == ClaimKind::Insensitive {
-                let spread = s.iter().copied().fold(f64::MIN, f64::max)
-                    - s.iter().copied().fold(f64::MAX, f64::min);
-                let max = c.max_spread.unwrap_or(10.0);
-                (
-                    holds(spread <= max),
-                    format!("{detail}; spread {spread:.1} (insensitive if <= {max})"),
-                )
-            } else {
-                (holds(s.windows(2).all(|w| w[0] >= w[1])), detail)
-            }
-        }
-    };
-    ClaimResult {
-        text: c.text.clone(),
-        verdict: verdict.into(),
-        detail: format!("normalised scores: {detail}"),
-    }
-}
-
-fn holds(yes: bool) -> &'static str {
-    if yes {
-        "holds"
-    } else {
-        "does not hold"
-    }
-}
-
-fn not_measured(c: &crate::manifest::Claim, detail: String) -> ClaimResult {
-    ClaimResult { text: c.text.clone(), verdict: "not measured".into(), detail }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::manifest::{Claim, ClaimKind};
-
-    fn cell(id: &str, score: f64) -> CellResult {
-        CellResult {
-            id: id.into(),
-            env: "ant_dir".into(),
-            label: id.into(),
-            row: None,
-            column: None,
-            status: "ran".into(),
-            seeds: 1,
-            seeds_finished: 1,
-            iteration: Some(500),
-            iterations_planned: Some(500),
-            ours: None,
-            ours_normalised: Some(Stat { mean: score, std: 0.0, n: 1 }),
-            success: None,
-            paper: None,
-            paper_std: None,
-            paper_source: None,
-            paper_normalised: None,
-            paper_normalised_std: None,
-            within_paper_std: None,
-            curve: vec![],
-            loss_metric: None,
-            loss_curve: vec![],
-            problems: vec![],
-        }
-    }
-
-    fn better(margin: Option<f64>) -> Claim {
-        Claim {
-            text: "a beats b".into(),
-            kind: ClaimKind::Better,
-            a: Some("a".into()),
-            b: Some("b".into()),
-            cells: vec![],
-            max_spread: None,
-            min_margin: margin,
-        }
-    }
-
-    #[test]
-    fn a_better_claim_needs_a_lead_beyond_its_margin() {
-        let verdict = |a: f64, b: f64, m: Option<f64>| {
-            check_claim(&better(m), &[cell("a", a), cell("b", b)]).verdict
-        };
-        assert_eq!(verdict(36.4, 32.2, None), "too close to call");
-        assert_eq!(verdict(32.2, 36.4, None), "too close to call");
-        assert_eq!(verdict(75.0, 50.0, None), "holds");
-        assert_eq!(verdict(50.0, 75.0, None), "does not hold");
-        assert_eq!(verdict(36.4, 32.2, Some(2.0)), "holds");
-        // The seed spread: a lead of 25 beyond the margin but within the seeds' spread is no call.
-        let mut a = cell("a", 75.0);
-        a.ours_normalised = Some(Stat { mean: 75.0, std: 20.0, n: 3 });
-        let mut b = cell("b", 50.0);
-        b.ours_normalised = Some(Stat { mean: 50.0, std: 10.0, n: 3 });
-        let r = check_claim(&better(None), &[a.clone(), b.clone()]);
-        assert_eq!(r.verdict, "too close to call", "{}", r.detail);
-        assert!(r.detail.contains("seed spread 30.0"), "{}", r.detail);
-        a.ours_normalised = Some(Stat { mean: 95.0, std: 20.0, n: 3 });
-        assert_eq!(check_claim(&better(None), &[a, b]).verdict, "holds");
-        let r = check_claim(&better(None), &[cell("a", 36.4), cell("b", 32.2)]);
-        assert!(r.detail.contains("lead 4.2"), "{}", r.detail);
-        // a cell with no finished seed is not measured, whatever the scores
-        let mut running = cell("a", 90.0);
-        running.seeds_finished = 0;
-        assert_eq!(check_claim(&better(None), &[running, cell("b", 0.0)]).verdict, "not measured");
-    }
 }

@@ -26,14 +26,17 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
         s,
         "Ours: mean ± std over seeds of the average return on the test tasks at the last evaluation; \
          normalised = 100 (R - R_random) / (R_expert - R_random) per test task with our datasets' \
-         returns, averaged. Paper normalised: the paper's value with the reference release's expert \
+         returns, averaged (the per-task mean of ratios: the claims judge it, docs/reproduce.md#claims). \
+         Ratio of means: the mean return over the test tasks normalised by the mean expert and mean \
+         random returns over them, the paper's way and the one compared with the paper's value. \
+         Paper normalised: the paper's value with the reference release's expert \
          returns (its prompt files) and our random returns; `-` where the reference's experts are \
-         unknown. Within: |ours - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
+         unknown. Within: |ours (ratio of means) - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
     );
     let header =
-        "cell|seeds|iteration|ours|ours normalised|paper|paper normalised|within paper std|status";
+        "cell|seeds|iteration|ours|ours normalised|ratio of means|paper|paper normalised|within paper std|status";
     let (text, num) = (Align::Left, Align::Right);
-    let align = vec![text, num, num, num, num, num, num, text, text];
+    let align = vec![text, num, num, num, num, num, num, num, text, text];
     let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
     for c in &r.cells {
         let PaperText { raw: paper, normalised: pn } = PaperText::of(c);
@@ -51,6 +54,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                 None => stat(c.ours, 2),
             },
             stat(c.ours_normalised, 1),
+            stat(c.ours_normalised_rom, 1),
             paper,
             pn,
             c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }).to_string(),
@@ -71,7 +75,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                 }
             }
         }
-        let _ = writeln!(s, "\n## As the paper lays it out (ours normalised / paper normalised; raw in the table above)\n");
+        let _ = writeln!(s, "\n## As the paper lays it out (ours normalised as a ratio of means / paper normalised; raw in the table above)\n");
         // The corner cell is empty: the rows are labelled, the columns are.
         let mut header = vec![String::new()];
         header.extend(cols.iter().cloned());
@@ -86,7 +90,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                         .map_or("".into(), |c| {
                             format!(
                                 "{} / {}",
-                                stat(c.ours_normalised, 1),
+                                stat(c.ours_normalised_rom, 1),
                                 opt(c.paper_normalised, 1)
                             )
                         })
@@ -120,14 +124,16 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
 pub(super) fn cells_csv(r: &Report) -> String {
     let mut s = String::from(
         "cell,env,label,row,column,status,seeds,iteration,iterations_planned,ours_mean,ours_std,\
-         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source,success_mean,success_std\n",
+         ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source,success_mean,success_std,\
+         ours_normalised_sample_sd,ours_normalised_ci_lo,ours_normalised_ci_hi,ours_normalised_iqm,\
+         ours_normalised_ratio_of_means_mean,ours_normalised_ratio_of_means_std\n",
     );
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
     let q = |v: &str| format!("\"{}\"", v.replace('"', "\"\""));
     for c in &r.cells {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             q(&c.id),
             c.env,
             q(&c.label),
@@ -149,6 +155,12 @@ pub(super) fn cells_csv(r: &Report) -> String {
             q(c.paper_source.as_deref().unwrap_or("")),
             f(c.success.map(|s| s.mean)),
             f(c.success.map(|s| s.std)),
+            f(c.normalised_stats.as_ref().and_then(|s| s.sd)),
+            f(c.normalised_stats.as_ref().map(|s| s.ci.lo)),
+            f(c.normalised_stats.as_ref().map(|s| s.ci.hi)),
+            f(c.normalised_stats.as_ref().and_then(|s| s.iqm)),
+            f(c.ours_normalised_rom.map(|s| s.mean)),
+            f(c.ours_normalised_rom.map(|s| s.std)),
         );
     }
     s
