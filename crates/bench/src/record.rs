@@ -130,7 +130,13 @@ impl Record {
         };
         let d = self.date.as_bytes();
         let date_ok = d.len() == 10
-            && d.iter().enumerate().all(|(i, c)| if i == 4 || i == 7 { *c == b'-' } else { c.is_ascii_digit() });
+            && d.iter().enumerate().all(|(i, c)| {
+                if i == 4 || i == 7 {
+                    *c == b'-'
+                } else {
+                    c.is_ascii_digit()
+                }
+            });
         if !date_ok {
             return Err(bad("date".into(), format!("`{}` is not YYYY-MM-DD", self.date)));
         }
@@ -447,7 +453,10 @@ mod tests {
         assert!(md.contains("| b | 1 | - | - |"), "{md}");
         // Repeated readings: the ratio of their medians.
         assert!(md.contains("| c | 1; 4; 2 | 5; 3 | 2.00x |"), "{md}");
-        assert!(md.starts_with("## T\nW. `promptdt bench` · C · 2026-11-28 at abc1234.\n\n| case |"), "{md}");
+        assert!(
+            md.starts_with("## T\nW. `promptdt bench` · C · 2026-11-28 at abc1234.\n\n| case |"),
+            "{md}"
+        );
     }
 
     #[test]

@@ -16,7 +16,11 @@ fn committed_benchmarks_md_is_the_render_of_the_records() {
     // An empty directory would render a file of only the preamble (and match an emptied file).
     assert!(records.len() >= 10, "{} records under benchmarks/", records.len());
     for (path, r) in &records {
-        assert!(!r.commands.iter().any(|c| c.trim().is_empty()), "{}: an empty command", path.display());
+        assert!(
+            !r.commands.iter().any(|c| c.trim().is_empty()),
+            "{}: an empty command",
+            path.display()
+        );
     }
     let md = render_dir(&root.join("benchmarks")).unwrap_or_else(|e| panic!("{e}"));
     let path = root.join("BENCHMARKS.md");
