@@ -289,7 +289,9 @@ pub fn render_dir(dir: &Path) -> Result<String, RecordError> {
 /// What `promptdt bench` ran, as a record. `command` is the invocation that reproduces it.
 pub fn from_report(r: &BenchReport, command: String, title: Option<String>) -> Record {
     let names: Vec<&str> = r.promptdt.results.iter().map(|c| c.name.as_str()).collect();
-    let mut columns = vec![format!("promptdt ms ({} threads)", r.promptdt.threads)];
+    let threads = r.promptdt.threads;
+    let mut columns =
+        vec![format!("promptdt ms, {threads} thread{}", if threads == 1 { "" } else { "s" })];
     let mut ratios = Vec::new();
     if let Some(p) = &r.pytorch {
         let version = p.torch_version.as_deref().unwrap_or("?");
@@ -297,7 +299,8 @@ pub fn from_report(r: &BenchReport, command: String, title: Option<String>) -> R
         ratios.push(Ratio { label: "PyTorch / promptdt".into(), num: 1, den: 0, scale: None });
     }
     let spread = |t: &crate::CaseTiming| {
-        Some(Value::Spread { median: t.median_ms, p10: t.p10_ms, p90: t.p90_ms })
+        let [median, p10, p90] = [t.median_ms, t.p10_ms, t.p90_ms].map(significant);
+        Some(Value::Spread { median, p10, p90 })
     };
     let rows = r
         .promptdt
@@ -324,7 +327,7 @@ pub fn from_report(r: &BenchReport, command: String, title: Option<String>) -> R
                 .map(|c| Row {
                     case: c.name.clone(),
                     values: [c.p50_ms, c.p99_ms, c.actions_per_s, c.requests as f64]
-                        .map(|x| Some(Value::Num(x)))
+                        .map(|x| Some(Value::Num(significant(x))))
                         .to_vec(),
                 })
                 .collect(),
@@ -342,6 +345,21 @@ pub fn from_report(r: &BenchReport, command: String, title: Option<String>) -> R
         conditions: None,
         source: None,
         tables,
+    }
+}
+
+/// `x` to 4 significant digits: what a timing's noise leaves meaningful, and a record a reader can
+/// scan (a median of 19.906958999999997 ms is kept as 19.91).
+fn significant(x: f64) -> f64 {
+    if x == 0.0 || !x.is_finite() {
+        return x;
+    }
+    // Dividing or multiplying by an exact power of ten, never by its inverse (0.1 is inexact).
+    let e = x.abs().log10().floor() as i32 - 3;
+    if e >= 0 {
+        (x / 10f64.powi(e)).round() * 10f64.powi(e)
+    } else {
+        (x * 10f64.powi(-e)).round() / 10f64.powi(-e)
     }
 }
 
@@ -475,6 +493,16 @@ mod tests {
         let mut bad = r;
         bad.date = "28.11.2026".into();
         assert!(bad.validate(p).unwrap_err().to_string().contains("date"));
+    }
+
+    #[test]
+    fn bench_numbers_keep_four_significant_digits() {
+        assert_eq!(significant(19.906958999999997), 19.91);
+        assert_eq!(significant(2542.7449), 2543.0);
+        assert_eq!(significant(0.09381234), 0.09381);
+        assert_eq!(significant(12800.0), 12800.0);
+        assert_eq!(significant(123456.0), 123500.0);
+        assert_eq!(significant(0.0), 0.0);
     }
 
     #[test]
