@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs the built wheel (target/wheels/promptdt-*.whl, cp39-abi3) into a fresh venv of each given
-# CPython version and runs a smoke test there, away from the checkout (issue 34, point 8):
+# CPython version and runs a smoke test there, away from the checkout (one abi3 wheel serves them all):
 #
 #   bash scripts/check_python_versions.sh [VERSION ...]      (default: 3.9 3.10 3.12 3.13)
 #

@@ -60,7 +60,7 @@ done
 rm -rf "$libs"
 mv "$libs.tmp" "$libs"
 
-# --- licences (issue 34 point 12) ------------------------------------------------------------------
+# --- licences of what the wheel bundles -------------------------------------------------------------
 # The licence texts of this project and of every library copied into _libs, in promptdt/_licenses/
 # (installed beside _libs) and, through pyproject.toml's license-files, in the wheel's
 # .dist-info/licenses/ (what `pip show` and `unzip -l` list). Sources: the wheels the libraries come

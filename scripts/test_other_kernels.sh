@@ -11,7 +11,7 @@
 # such a path the floats differ in their last bits from any other machine's, as they would on a
 # user's CPU of another vendor or width: a test that compares them bit for bit with committed
 # numbers fails here, on the machine where it is written, instead of on a user's Intel AVX-512
-# machine (issue 56). The live PyTorch fixtures are left out (PROMPTDT_LIVE_GOLDEN unset): they
+# machine. The live PyTorch fixtures are left out (PROMPTDT_LIVE_GOLDEN unset): they
 # were made on this machine's normal path, and these tests compare against the committed ones.
 #
 #   bash scripts/test_other_kernels.sh            (`make test-other-kernels`; CI runs it)

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmarks of the Python package, side by side in one run (BENCHMARKS.md, "Python package").
+"""Benchmarks of the Python package, side by side in one run (`benchmarks/08-python.json`).
 
     bash scripts/install_python.sh && .venv-promptdt/bin/pip install "gymnasium[mujoco]==1.4.0" mujoco==3.17.0
     .venv-promptdt/bin/python scripts/bench/bench_python.py [--torch-python .venv/bin/python] [--out target/bench-python]

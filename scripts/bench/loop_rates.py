@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Where a real run loop's time goes, from its runs' `metrics.csv` (issue 30's phase D,
-`scripts/bench/gpu_pack.sh`): per run, the intervals between consecutive iterations' elapsed times,
+"""Where a real run loop's time goes, from its runs' `metrics.csv` (a pack's run
+loop against solo runs): per run, the intervals between consecutive iterations' elapsed times,
 split into training iterations and those that held an evaluation (longer than EVAL_FACTOR times the
 median), and the pack's throughput in runs' iterations per second against solo runs'.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The path users take to a cluster, as a test (issue 56): a throw-away single-node Slurm (slurmctld,
+# The path users take to a cluster, as a test: a throw-away single-node Slurm (slurmctld,
 # slurmd and munged started here as plain daemons, no systemd, no configuration in /etc) runs the array
 # that `promptdt reproduce fig4 --budget smoke --emit jobs` writes; `--report-only` then merges it,
 # and the report must equal the same sweep run locally by `reproduce`, every file of it byte for

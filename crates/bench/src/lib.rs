@@ -16,6 +16,7 @@ use pdt_model::device::Matmul;
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 pub mod pack;
 pub mod profile;
+pub mod record;
 pub mod render;
 pub mod serve;
 

@@ -1,4 +1,4 @@
-//! Pack cases (issue 30): `pack<N>_b<B>` times one gradient step of N runs trained as one pack
+//! Pack cases: `pack<N>_b<B>` times one gradient step of N runs trained as one pack
 //! (`pdt_train::pack::BatchedEngine`), `solo<N>_b<B>` the same N runs' steps one after another in
 //! one process (N models, N optimisers): per iteration, one step of every run. The reference
 //! architecture (state 20, action 6), K = 20, a 5-step prompt, B samples per run; each run its own

@@ -1,5 +1,5 @@
 //! `bench --profile` on the CPU: libtorch's profiler counts what one iteration of a case runs.
-//! What it shows about the batched pack (issue 30): in the CUDA configuration (`_flat`: flat
+//! What it shows about the batched pack: in the CUDA configuration (`_flat`: flat
 //! optimiser, per-run mask draws, one LayerNorm for the pack) a step dispatches about as many
 //! operators for 3 runs as for 1, which is what keeps a pack's GPU step near one run's number of
 //! kernel launches; in the CPU configuration (`_pt`, a LayerNorm per run) each run adds hundreds.

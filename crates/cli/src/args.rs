@@ -43,7 +43,9 @@ pub enum Command {
     /// Environment tools.
     #[command(subcommand)]
     Env(EnvCommand),
-    /// Time training steps and inference against PyTorch.
+    /// Time training steps and inference against PyTorch (`bench render`: BENCHMARKS.md from
+    /// the records in `benchmarks/`).
+    #[command(args_conflicts_with_subcommands = true)]
     Bench(crate::bench_args::BenchArgs),
     /// A quick end-to-end run.
     Demo(DemoArgs),
@@ -302,7 +304,7 @@ pub struct ReproduceArgs {
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub seeds: Option<u32>,
     /// Runs at once; each gets cores / jobs libtorch threads unless --threads is given. Default:
-    /// one per core on the CPU, 2 on a GPU (both measured fastest: BENCHMARKS.md).
+    /// one per core on the CPU, 2 on a GPU (both measured fastest).
     #[arg(long, value_parser = count(1, 1024))]
     pub jobs: Option<usize>,
     /// libtorch threads per run.

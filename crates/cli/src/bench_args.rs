@@ -1,7 +1,7 @@
 //! `promptdt bench`'s arguments, and the benchmark configuration they become.
 
 use anyhow::{bail, Result};
-use clap::Args;
+use clap::{Args, Subcommand};
 use pdt_model::device::DeviceSpec;
 use std::path::PathBuf;
 
@@ -56,6 +56,46 @@ pub struct BenchArgs {
     /// Directory for bench.json and bench.md.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Also write the run as a benchmark record (`benchmarks/*.json`: what, the command, the
+    /// machine, the date, the commit and the numbers), from which `bench render` writes
+    /// BENCHMARKS.md.
+    #[arg(long)]
+    pub json_out: Option<PathBuf>,
+    /// The record's heading (default: the cases).
+    #[arg(long, requires = "json_out")]
+    pub title: Option<String>,
+    #[command(subcommand)]
+    pub action: Option<BenchCommand>,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Write BENCHMARKS.md from the benchmark records (`benchmarks/*.json`).
+    Render(BenchRenderArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct BenchRenderArgs {
+    #[arg(long, default_value = "benchmarks")]
+    pub records: PathBuf,
+    #[arg(long, default_value = "BENCHMARKS.md")]
+    pub out: PathBuf,
+}
+
+/// The command line as typed, one shell word per argument (quoted where the shell would need it),
+/// with the binary named `promptdt` wherever it was run from.
+pub fn command_line() -> String {
+    let quote = |a: String| {
+        let plain = |c: char| c.is_ascii_alphanumeric() || "-_./=,:@+%".contains(c);
+        if !a.is_empty() && a.chars().all(plain) {
+            a
+        } else {
+            format!("'{}'", a.replace('\'', "'\\''"))
+        }
+    };
+    let mut words = vec!["promptdt".to_string()];
+    words.extend(std::env::args().skip(1).map(quote));
+    words.join(" ")
 }
 
 impl BenchArgs {

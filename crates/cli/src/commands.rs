@@ -433,9 +433,9 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     let Some(name) = a.experiment.as_deref() else { bail!("name an experiment, or --list") };
     let m = Manifest::load(name)?;
     let cores = pdt_base::threads::available_cores();
-    // Measured on 2 cores (BENCHMARKS.md, "Sharing the cores"): 2 runs of 1 thread each finish a set
-    // of runs 1.36x sooner than 1 run of 2 threads. On an H200 (BENCHMARKS.md, "GPU"), two
-    // Cheetah-Dir runs at once made 1.7x the iterations per hour of one alone, and four no more.
+    // Measured on 2 cores (`benchmarks/14-omp-wait-policy.json`): 2 runs of 1 thread each finish
+    // a set of runs 1.36x sooner than 1 run of 2 threads. On an H200, two Cheetah-Dir runs at once
+    // made 1.7x the iterations per hour of one alone, and four no more.
     let on_gpu = matches!(pdt_model::device::resolve(a.device), Ok(d) if d.is_cuda());
     // Refused here rather than by each run after its data are collected. Emitted jobs and reports
     // may be made on a machine without the GPU that will run them.

@@ -426,6 +426,13 @@ fn run(cli: Cli) -> Result<()> {
             server.wait_for_ctrl_c()?;
         }
         Command::Bench(a) => {
+            if let Some(crate::bench_args::BenchCommand::Render(r)) = &a.action {
+                let md = pdt_bench::record::render_dir(&r.records)?;
+                pdt_base::fs::write_atomic(&r.out, md.as_bytes())
+                    .with_context(|| format!("writing {}", r.out.display()))?;
+                out!("wrote {}", r.out.display());
+                return Ok(());
+            }
             let cfg = a.to_config()?;
             let report = pdt_bench::run(&cfg)?;
             let md = pdt_bench::render_markdown(&report);
@@ -436,6 +443,11 @@ fn run(cli: Cli) -> Result<()> {
                 std::fs::write(dir.join("bench.json"), serde_json::to_string_pretty(&report)?)?;
                 std::fs::write(dir.join("bench.md"), md)?;
                 out!("wrote {}/bench.json and bench.md", dir.display());
+            }
+            if let Some(path) = &a.json_out {
+                let command = crate::bench_args::command_line();
+                pdt_bench::record::from_report(&report, command, a.title.clone()).write(path)?;
+                out!("wrote {}", path.display());
             }
         }
         Command::Demo(a) if a.smoke => {

@@ -1,6 +1,6 @@
 //! `promptdt eval --adapt`: each evaluation-time adaptation (soft prompt tuning, the
-//! Prompt-Tuning DT update, LoRA) end to end on a tiny trained point-robot run (issue 33 point
-//! 2): results in `eval_adapt_<kind>.json` with each task's adaptation log, on the reference
+//! Prompt-Tuning DT update, LoRA) end to end on a tiny trained point-robot run:
+//! results in `eval_adapt_<kind>.json` with each task's adaptation log, on the reference
 //! evaluation's tasks and episodes, and clear errors for bad settings.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 

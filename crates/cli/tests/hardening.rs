@@ -1,5 +1,6 @@
 //! Bad input and faults, as a demanding user or an attacker would try them: each gets a clear
-//! error naming the file, setting or step, and loses nothing (issue 11's cases, numbered as there).
+//! error naming the file, setting or step, and loses nothing (the cases numbered as in the
+//! hardening review that listed them).
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 #[path = "support/cli.rs"]
@@ -461,7 +462,7 @@ fn errors_are_exit_codes_not_crashes() {
     assert!(e.contains("no run to resume"), "{e}");
 }
 
-/// Round 3 (issue 56): a checkpoint whose recorded heads contradict its run's `config.toml` is
+/// A checkpoint whose recorded heads contradict its run's `config.toml` is
 /// refused where the run is acted with (`eval`) and where the file is run on its own (`model
 /// forward`), naming both; before, each ran it with whichever number it read.
 #[test]
@@ -495,7 +496,7 @@ fn round3_recorded_heads_must_be_the_runs() {
     assert!(!e.contains("n_head"), "{e}");
 }
 
-/// Round 3 (issue 56): a sample whose attention mask is all padding is refused by row, in the
+/// A sample whose attention mask is all padding is refused by row, in the
 /// history and in the prompt; before, it ran and returned actions that mean nothing.
 #[test]
 fn round3_an_all_zero_attention_mask_row_is_refused() {
@@ -532,7 +533,7 @@ fn round3_an_all_zero_attention_mask_row_is_refused() {
     }
 }
 
-/// Round 3 (issue 56): `train --pack --out DIR` refuses a DIR that holds a solo run, as `train
+/// `train --pack --out DIR` refuses a DIR that holds a solo run, as `train
 /// --config` refuses one that holds a run; before, the pack's record and runs went in beside it.
 #[test]
 fn round3_a_pack_is_not_written_into_a_solo_runs_directory() {

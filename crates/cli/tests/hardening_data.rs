@@ -1,4 +1,4 @@
-//! Hostile data files and model weights (issue 32), each through the real binary: a file truncated
+//! Hostile data files and model weights, each through the real binary: a file truncated
 //! while it is read, a file whose metadata names another task, inputs and weights that
 //! `model forward` must not trust, and messages that say what is actually wrong.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test

@@ -1,4 +1,4 @@
-//! Training runs and evaluation under hostile input (issue 32), through the real binary: each case
+//! Training runs and evaluation under hostile input, through the real binary: each case
 //! gets a clear error naming the setting, file or field, or is repaired, and loses nothing.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 

@@ -1,4 +1,4 @@
-//! Packs (issue 30, docs/packs.md) through the real binary: a run trained in a pack through the
+//! Packs (docs/packs.md) through the real binary: a run trained in a pack through the
 //! solo engine is the same run trained alone, file for file; a pack stopped or killed with
 //! SIGKILL and resumed ends byte-identical to one never interrupted; runs that cannot share a
 //! pack are refused by name.

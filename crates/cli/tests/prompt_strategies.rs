@@ -1,5 +1,5 @@
-//! `promptdt eval --prompt-strategy`: every strategy end to end on a tiny trained point-robot run
-//! (issue 33), its choices logged, and clear errors for an unknown name or a prompt that does not
+//! `promptdt eval --prompt-strategy`: every strategy end to end on a tiny trained point-robot run,
+//! its choices logged, and clear errors for an unknown name or a prompt that does not
 //! fit.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 

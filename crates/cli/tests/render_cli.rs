@@ -1,4 +1,4 @@
-//! `promptdt render` (issue 34, point 4): a tiny trained run's prompted episode as a GIF that
+//! `promptdt render`: a tiny trained run's prompted episode as a GIF that
 //! decodes with one frame per state, and the arguments it refuses.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
@@ -66,7 +66,7 @@ fn render_writes_a_gif_of_a_prompted_episode() {
 
 /// An MT-BC-Finetune run is evaluated after fine-tuning its multi-task weights on each test
 /// task's demonstrations; its checkpoint acting as saved is another policy. `render` refused
-/// MACAW but filmed such a run from its multi-task weights (issue 56): now it refuses it, with the
+/// MACAW but filmed such a run from its multi-task weights: now it refuses it, with the
 /// check and the message `serve` uses (one owner: `Policy::check_acts_as_evaluated`).
 #[test]
 fn render_and_serve_refuse_a_run_that_fine_tunes_before_it_acts() {

@@ -189,7 +189,7 @@ fn report_only_counts_the_planned_seeds_not_only_the_archived_ones() {
 
 /// `results add --date` takes a calendar date `YYYY-MM-DD` only, and a finished run whose
 /// `metrics.jsonl` lost its last line (or had it torn) is refused, naming the file and the
-/// missing iteration, not archived with a curve that lacks its end (issue 56).
+/// missing iteration, not archived with a curve that lacks its end.
 #[test]
 fn add_refuses_a_date_that_is_no_day_and_a_run_whose_metrics_lost_their_end() {
     let tmp = tempfile::tempdir().unwrap();
@@ -263,7 +263,7 @@ fn render_args(reg: &Path, dir: &Path) -> Vec<String> {
 /// `results render` fails, naming the run's directory, the file and why, when an archived run
 /// cannot be read (a cut `eval.jsonl`, a garbage `config.toml`, a corrupt `provenance.json` or
 /// `normalisation.json`, a `metrics.jsonl` without its end), and writes nothing: it once left such a run out of RESULTS.md (or showed its device as `-`)
-/// without a word and exited 0 (issue 56).
+/// without a word and exited 0.
 #[test]
 fn render_refuses_a_registry_with_an_unreadable_run_and_writes_nothing() {
     let tmp = tempfile::tempdir().unwrap();
@@ -343,7 +343,7 @@ fn render_refuses_a_registry_with_an_unreadable_run_and_writes_nothing() {
 
 /// `results render --registry DIR` with no registry at DIR (absent, or holding no archived run)
 /// is refused naming DIR, and the committed RESULTS.md and README stay as they are: it once
-/// wrote an empty RESULTS.md over them and exited 0 (issue 56).
+/// wrote an empty RESULTS.md over them and exited 0.
 #[test]
 fn render_refuses_a_registry_that_is_not_there() {
     let tmp = tempfile::tempdir().unwrap();

@@ -61,7 +61,7 @@ fn serve_refuses_a_directory_that_is_not_a_run() {
 }
 
 // ------------------------------------------------------------------------------------------------
-// Hostile input through the real binary (issue 32)
+// Hostile input through the real binary
 // ------------------------------------------------------------------------------------------------
 
 use std::io::{Read, Write};
@@ -390,7 +390,7 @@ fn serve_adapts_task_episodes_with_its_adapt_flags() {
 }
 
 // ------------------------------------------------------------------------------------------------
-// Authentication and settings refused at start (issue 56 points 5 and 2). Addresses other than
+// Authentication and settings refused at start. Addresses other than
 // loopback are bound only as 0.0.0.0 on port 0 and reached through 127.0.0.1.
 // ------------------------------------------------------------------------------------------------
 

@@ -1,6 +1,6 @@
 //! `pdt_envs::bench` with a tiny budget: the result rows, their counts and rates.
 //!
-//! The full-size run (the numbers for BENCHMARKS.md) is the ignored test `full_size`:
+//! The full-size run (the numbers of `benchmarks/05-envs.json`) is the ignored test `full_size`:
 //! `CARGO_TARGET_DIR=/work/target-mujoco cargo test --release -p pdt-envs --test bench_smoke \
 //!  -- --ignored --nocapture full_size`
 //! (environment variables `PDT_BENCH_STEPS`, `PDT_BENCH_ENVS`, `PDT_BENCH_THREADS` (e.g. `1,2`),

@@ -1,5 +1,5 @@
 //! Evaluation-time adaptation to a test task from its few demonstrations, the backbone frozen
-//! (issue 33 point 2; `docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT
+//! (`docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT
 //! update and LoRA adapters. `[eval.adapt]` ([`AdaptConfig`]) says which and its budget.
 //!
 //! Every adaptation learns from the action loss (the reference's masked MSE) on K-step segments

@@ -1,4 +1,5 @@
-//! Where a meta-step's time goes (tasks vs the Adams), for BENCHMARKS.md's MACAW section.
+//! Where a meta-step's time goes (tasks vs the Adams), to tell whether the tasks' second-order
+//! graphs or the optimisers bound a meta-step.
 //! `cargo run --release -p pdt-macaw --example profile_step -- [width] [tasks] [threads]`
 use pdt_macaw::*;
 use std::time::Instant;

@@ -10,8 +10,7 @@
 //! --cases train_b560 --threads 1` (AVX2 EPYC): 2.28 M page faults over four steps, a fifth of
 //! the samples in the kernel's fault path and page zeroing (PyTorch's own process has the same
 //! churn, a little less by luck of its heap layout: 1.45 M). With this setting (and one op less
-//! in the attention's backward) a step's CPU time went from 4.4 s to 2.8 s (PyTorch: 3.2 s;
-//! BENCHMARKS.md, issue 30).
+//! in the attention's backward) a step's CPU time went from 4.4 s to 2.8 s (PyTorch: 3.2 s).
 //!
 //! [`keep_freed_memory`] makes glibc serve every block from the heap and never trim it, so the
 //! memory of one step is reused by the next: once the heap has grown to a step's peak (two steps),
@@ -21,8 +20,8 @@
 //! block above 64 MB asked for on another thread is still served by its own mmap (glibc's
 //! per-thread arenas fall back to mmap whatever `M_MMAP_MAX` says). Nothing
 //! else changes: the same kernels run on the same values, so results are bit-identical (the
-//! parity tests do not call this and still pass; the training-run byte comparison in
-//! BENCHMARKS.md was made with it).
+//! parity tests do not call this and still pass; a training run gives byte-identical checkpoints
+//! with it and without it).
 
 /// What [`keep_freed_memory`] did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,4 +1,5 @@
-//! A pack of N Prompt-DT models of one shape, computed as one (issue 30): every parameter carries a
+//! A pack of N Prompt-DT models of one shape, computed as one (N small runs' steps then cost the
+//! device's kernel launches of about one run's): every parameter carries a
 //! leading run dimension N (a `Conv1D` weight `[N, in, out]`, a LayerNorm weight `[N, H]`, the
 //! timestep table `[N, max_ep_len, H]`), and the forward pass runs all N models with batched matrix
 //! products (`baddbmm`), one kernel per layer for the whole pack.

@@ -1,7 +1,7 @@
 //! The `run.matmul` switch reaches libtorch (csrc/matmul.cpp) and changes CUDA matmuls only: on the
 //! CPU, products stay bit-identical whichever way libtorch's TF32 flag is set. (Its effect on a GPU
-//! is measured by scripts/bench/gpu_pack.sh's TF32 phase.) One test in its own binary: the flag is
-//! process-wide.
+//! is measured by `promptdt bench --device cuda --matmul tf32`.) One test in its own binary: the
+//! flag is process-wide.
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
 use pdt_model::device::{cuda_matmul, set_cublas_tf32, set_matmul, Matmul, MatmulError};

@@ -1,4 +1,4 @@
-//! Test-time prompt strategies (issue 33, `docs/prompt-control.md`): which demonstration segments
+//! Test-time prompt strategies (`docs/prompt-control.md`): which demonstration segments
 //! form the prompt an evaluated (or served) episode is conditioned on, and how long it is.
 //!
 //! The one owner of the concept: every front end (`promptdt eval --prompt-strategy`, a run's

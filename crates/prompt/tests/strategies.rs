@@ -1,4 +1,4 @@
-//! Each prompt strategy picks a known segment in a known case (issue 33).
+//! Each prompt strategy picks a known segment in a known case.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};

@@ -1,4 +1,4 @@
-"""Evaluation-time adaptations from Python (issue 33 point 2): ``promptdt.evaluate(adapt=...)``
+"""Evaluation-time adaptations from Python: ``promptdt.evaluate(adapt=...)``
 adapts each test task before its episodes, as ``promptdt eval --adapt`` does, and
 ``Policy.adapt`` gives a task's adaptation to act with through ``Policy.set_prompt``."""
 import json

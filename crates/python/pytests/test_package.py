@@ -1,4 +1,5 @@
-"""What the wheel is, as installed: its tag (abi3) and the licences it carries (issue 34, points 8, 12)."""
+"""What the wheel is, as installed: its tag (abi3) and the licences it carries (one wheel for every
+CPython from 3.9, and the licences of everything it bundles)."""
 import email
 import importlib.metadata
 import pathlib

@@ -1,4 +1,4 @@
-"""Test-time prompt strategies from Python (issue 33): ``Policy.task_prompt(prompt_strategy=...)``
+"""Test-time prompt strategies from Python: ``Policy.task_prompt(prompt_strategy=...)``
 acts as ``promptdt eval`` would with the prompt the strategy chose, and
 ``promptdt.evaluate(prompt_strategy=...)`` evaluates every strategy, its choices logged."""
 import json

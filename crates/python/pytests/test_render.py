@@ -1,4 +1,4 @@
-"""render_mode="rgb_array" (issue 34, point 4): frames through MuJoCo's offscreen renderer
+"""render_mode="rgb_array": frames through MuJoCo's offscreen renderer
 (headless EGL), and the point robot's drawn top view. docs/rendering.md."""
 import numpy as np
 import pytest

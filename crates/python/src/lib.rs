@@ -163,7 +163,7 @@ mod errors;
 mod policy;
 /// `Prompt`, `TaskPlan`, `Adaptation`: what a `Policy` acts with.
 mod prompts;
-// The frames of `render_mode="rgb_array"` (issue 34, point 4).
+// The frames of `render_mode="rgb_array"`, gymnasium's way to get an episode's pictures.
 mod render;
 /// The CLI's library calls: train, evaluate, collect, experiments, benchmark.
 mod runs;

@@ -12,7 +12,7 @@ pub struct ExecOptions {
     /// Runs at once.
     pub jobs: usize,
     /// `OMP_WAIT_POLICY` given to the children (`PASSIVE`: idle OpenMP threads sleep rather than
-    /// spin, which matters when runs share cores; see BENCHMARKS.md).
+    /// spin: a spinning thread takes a core another run needs, and runs share the cores).
     pub omp_wait_policy: Option<String>,
     /// Directory holding `pretrained/<env>/` agents (for `collect --from-pretrained`).
     pub pretrained_root: PathBuf,

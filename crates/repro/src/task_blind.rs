@@ -1,4 +1,4 @@
-//! Why MT-ORL's test return rises and then falls (issue 31, item 4), measured on the archived runs.
+//! Why MT-ORL's test return rises and then falls, measured on the archived runs.
 //!
 //! A model without a prompt cannot tell the test tasks apart. If it acts the same on every task,
 //! its return on a task is a fixed function of that task's goal, and the archived per-task test

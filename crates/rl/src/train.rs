@@ -75,7 +75,7 @@ impl RlConfig {
     /// The settings used for the committed experts (and a starting point for others).
     ///
     /// Networks are 128 x 128 rather than the SAC paper's 256 x 256: an update then costs about a
-    /// third (a 2-core CPU is the budget these experts were trained on; see BENCHMARKS.md), and
+    /// third (a 2-core CPU is the budget these experts were trained on), and
     /// these locomotion tasks do not need more.
     pub fn preset(family: &str) -> Result<Self, RlError> {
         let fam = pdt_envs::family(family)?;

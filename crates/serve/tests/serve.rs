@@ -204,8 +204,8 @@ fn idle_episodes_are_closed() {
 fn a_step_racing_the_delete_of_its_episode_gets_404_never_500() {
     // A 20 ms batch window: the step and the DELETE sent together land in one batch, in either
     // order. A step recorded before its episode closed in the same batch used to be answered
-    // `500 "episode vanished"`, and so was every other episode of that forward (issue 56 point
-    // 2); now the close wins (404, as for any closed episode) and the others act.
+    // `500 "episode vanished"`, and so was every other episode of that forward;
+    // now the close wins (404, as for any closed episode) and the others act.
     let server =
         start(ServeOptions { batch_wait: Duration::from_millis(20), ..Default::default() });
     let addr = server.addr;

@@ -1,4 +1,4 @@
-//! `promptdt serve` with evaluation-time adaptations (issue 33 point 2): an episode opened with
+//! `promptdt serve` with evaluation-time adaptations: an episode opened with
 //! `adapt` acts as the evaluator does with that task's adaptation (`pdt_policy::Policy::adapt`,
 //! through `pdt_eval::evaluate_given`, LoRA's adapters included), the adaptation's log comes back
 //! with the first action, the next episode of the same task and settings reuses it, and bad

@@ -1,4 +1,4 @@
-//! Authentication of `promptdt serve` (issue 56 point 5; docs/serve.md, "Authentication"), over
+//! Authentication of `promptdt serve` (docs/serve.md, "Authentication"), over
 //! the wire: a server with a token answers 401 to a request without it or with a wrong one, on
 //! every endpoint but the health check, and serves with the right one; an address other than
 //! loopback is refused without a token or an explicit `Auth::Disabled`. Addresses other than

@@ -1,4 +1,4 @@
-//! `promptdt serve` with test-time prompt strategies (issue 33): an episode opened with
+//! `promptdt serve` with test-time prompt strategies: an episode opened with
 //! `prompt_strategy` acts as the evaluator does with the prompt that strategy chooses, its
 //! segments come back with the first action, a `bandit` learns across a task's closed episodes,
 //! and bad strategy requests get clear errors.

@@ -9,7 +9,7 @@
 //!   same fingerprint: the fingerprint does not see everything that picks a kernel
 //!   (`ATEN_CPU_CAPABILITY`, `MKL_CBWR`, `ONEDNN_MAX_CPU_ISA`, a microcode or hypervisor that hides
 //!   a flag), so "a CPU like the one that made them" is a guess, and a wrong guess fails a user's
-//!   `make test` (issue 56). `scripts/test_other_kernels.sh` checks that on any CPU.
+//!   `make test`. `scripts/test_other_kernels.sh` checks that on any CPU.
 //! - **live** (`$PROMPTDT_LIVE_GOLDEN`, written by `make test` with the PyTorch of
 //!   `scripts/setup_torch_venv.sh` just before the tests run): made on this machine, so compared
 //!   bit for bit. `.ci/run` sets `PROMPTDT_REQUIRE_LIVE_GOLDEN=1`, so CI cannot skip it.

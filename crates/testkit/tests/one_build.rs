@@ -1,4 +1,5 @@
-//! `make test`, `make demo` and the wheel share one build of the library crates (issue 34, point 8).
+//! `make test`, `make demo` and the wheel share one build of the library crates, so
+//! none of them builds libtorch's crates twice.
 //!
 //! Cargo turns on a dependency's features for the packages one command selects, and builds a
 //! dependency again (with every crate above it) for each different feature set. `make test` selects

@@ -1,4 +1,4 @@
-//! A batched pack acting for its runs' evaluations (`PackEngine::act`, issue 30): each run's
+//! A batched pack acting for its runs' evaluations (`PackEngine::act`): each run's
 //! actions are its solo model's (the eval-mode full forward at the last history step) within a
 //! measured bound; they do not depend on which pack-mates act with it, on a pack-mate that
 //! diverged, nor on the pack-mates' padded sizes; bad inputs are errors naming the run.

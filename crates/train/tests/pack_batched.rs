@@ -1,4 +1,4 @@
-//! The batched pack engine (`pdt_train::pack::BatchedEngine`, issue 30) against solo runs: weights
+//! The batched pack engine (`pdt_train::pack::BatchedEngine`) against solo runs: weights
 //! read out as solo checkpoints, the forward pass of each run of a pack, 50 training steps of a pack
 //! of 3 against 3 solo `train_step` loops, and the independence of a run from its pack-mates.
 //!

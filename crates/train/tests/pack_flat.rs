@@ -1,4 +1,4 @@
-//! The batched engine's flat mode (issue 30: the pack's optimiser on one run-major buffer, the
+//! The batched engine's flat mode (the pack's optimiser on one run-major buffer, the
 //! CUDA default) and its per-run dropout draw (`MaskDraw::PerRun`, the CUDA default), on the CPU:
 //! the flat pack against the per-tensor pack with the same masks, the per-tensor fallback for
 //! uneven step counts, and the independence of a run from its pack-mates in either draw.

@@ -1,5 +1,5 @@
-//! The solo pack engine stepping its runs at once in threads (`SoloThreads { concurrent: true }`,
-//! issue 30) against the solo step: every step's statistics and every weight and AdamW moment bit
+//! The solo pack engine stepping its runs at once in threads (`SoloThreads { concurrent: true }`)
+//! against the solo step: every step's statistics and every weight and AdamW moment bit
 //! for bit those of each run's own `train_step` loop (which draws its dropout in the forward), a
 //! run given no input left untouched, and the masks drawn beforehand equal to the forward's own.
 //!

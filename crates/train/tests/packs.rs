@@ -1,4 +1,4 @@
-//! Packs through the library (issue 30, docs/packs.md): each run of a pack matches the same run
+//! Packs through the library (docs/packs.md): each run of a pack matches the same run
 //! trained alone on every logged loss (bit for bit through the solo engine, its runs stepped at
 //! once in threads; within a measured bound through the batched one, whose
 //! final held-out returns lie within the seed-to-seed spread); a run that diverges stops with its

@@ -1,5 +1,5 @@
 //! `[eval.adapt]`: an evaluation-time adaptation to each test task from its few demonstrations,
-//! the backbone frozen (issue 33 point 2; `docs/prompt-control.md`). The algorithms are
+//! the backbone frozen (`docs/prompt-control.md`). The algorithms are
 //! `pdt_eval::adapt`'s; this is their configuration, read without libtorch.
 
 use serde::{Deserialize, Serialize};

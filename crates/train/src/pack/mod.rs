@@ -1,6 +1,7 @@
 //! A pack: N independent runs of one environment family trained together in one process on one
-//! device (issue 30). Each run keeps its own seed streams, sampler, weights, optimiser state,
-//! clipping, schedule, evaluation and run directory; only the gradient steps are shared, by a
+//! device, where one run's small steps would leave it mostly idle. Each run keeps its own seed
+//! streams, sampler, weights, optimiser state, clipping, schedule, evaluation and run directory;
+//! only the gradient steps are shared, by a
 //! [`PackEngine`] that steps every run of the pack at once (`docs/packs.md`).
 //!
 //! - `engine`: the contract between the runs and an engine.

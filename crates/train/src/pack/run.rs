@@ -46,8 +46,8 @@ impl Engine {
     }
 
     /// The engine a pack on `device` gets when none is asked for: on the CPU the solo one (its
-    /// runs stepped at once in threads: exact, and the fastest there, BENCHMARKS.md "Packs on the
-    /// CPU"); on a GPU the batched one where this build has it (one launch for all runs).
+    /// runs stepped at once in threads: exact, and as fast as separate processes with one copy of
+    /// the data); on a GPU the batched one where this build has it (one launch for all runs).
     pub fn default_for(device: tch::Device) -> Self {
         if device != tch::Device::Cpu && Self::batched_available() {
             Engine::Batched
@@ -89,7 +89,8 @@ impl PackEval {
     }
 
     /// Unless asked: together on a GPU with an engine that can act for its runs (the batched
-    /// one), apart otherwise (BENCHMARKS.md, "A batched pack's evaluations").
+    /// one), apart otherwise (on the CPU a forward is bound by arithmetic, so
+    /// batching the runs' forwards saves nothing there).
     pub fn default_for(device: tch::Device, engine: Engine) -> Self {
         if device != tch::Device::Cpu && engine == Engine::Batched {
             PackEval::Together
