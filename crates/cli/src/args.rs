@@ -621,8 +621,8 @@ pub struct TrainArgs {
     /// Override train.iterations; with --resume, extend the run to this many.
     #[arg(long)]
     pub iterations: Option<u64>,
-    /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune, macaw).
-    #[arg(long)]
+    /// Override run.method (the list: `Method::ALL`, so help never misses a method).
+    #[arg(long, help = method_help())]
     pub method: Option<String>,
     /// MACAW: replace the [macaw] section with a preset: `official` (the official
     /// standard.json) or `promptdt` (the Prompt-DT paper's table: width 300, the last 20k steps
@@ -754,4 +754,10 @@ fn count(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone
             Err(format!("must be between {lo} and {hi}, got {n}"))
         }
     }
+}
+
+/// `--method`'s help: every method's name, from `Method::ALL`.
+fn method_help() -> String {
+    let names: Vec<&str> = pdt_train::config::Method::ALL.iter().map(|m| m.name()).collect();
+    format!("Override run.method ({})", names.join(", "))
 }

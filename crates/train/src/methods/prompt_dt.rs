@@ -45,7 +45,8 @@ impl Variant {
         Self {
             prompt: method.uses_prompt(),
             zero_returns: method.zeroes_history_returns(),
-            finetune: method == Method::MtBcFinetune,
+            // Asked of `Method`, not named: the transformer that adapts before it acts.
+            finetune: method.is_transformer() && method.adapts_before_acting(),
         }
     }
 }
