@@ -136,9 +136,8 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
-    let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
-    let picks = learner.take_prompt_picks();
-    let adapt_log = learner.take_adapt_log();
+    let methods::Evaluation { tasks, picks, adapt_log } = learner.evaluate(which, &mut rng)?;
+    let tasks: Vec<_> = tasks.into_iter().map(|t| t.result).collect();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
         adaptation: learner.adaptation(),

@@ -346,7 +346,7 @@ fn run_loop(
         // Reference: evaluation after the first iteration and every `interval` after it.
         if (iteration - 1) % t.test_eval_interval == 0 || last {
             let res =
-                learner.evaluate(Split::Test, &mut eval_rng(setup, Split::Test, iteration))?;
+                learner.evaluate(Split::Test, &mut eval_rng(setup, Split::Test, iteration))?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "test", target))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
             test_return =
@@ -355,7 +355,7 @@ fn run_loop(
         }
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Train, iteration);
-            let res = learner.evaluate(Split::Train, &mut rng)?;
+            let res = learner.evaluate(Split::Train, &mut rng)?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "train", target))?;
         }
         let keep = iteration % t.save_interval == 0 || last;

@@ -76,6 +76,25 @@ pub(crate) struct TaskEval {
     pub(crate) adaptation: Option<AdaptationStats>,
 }
 
+/// One evaluation of a split: every task's result and what the test-time behaviour chose on the
+/// way, returned together (no learner keeps them for a later call to take).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Evaluation {
+    pub(crate) tasks: Vec<TaskEval>,
+    /// The prompt strategy's choices (`[eval.prompt]`); empty for the reference rule and the
+    /// methods without a prompt.
+    pub(crate) picks: Vec<pdt_prompt::PromptPick>,
+    /// What `[eval.adapt]`'s adaptation did per test task; empty without one.
+    pub(crate) adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
+}
+
+impl Evaluation {
+    /// The evaluation of `tasks` by a rule that chooses nothing on the way.
+    pub(crate) fn of_tasks(tasks: Vec<TaskEval>) -> Self {
+        Self { tasks, ..Self::default() }
+    }
+}
+
 /// The files of one checkpoint, named by its step (`checkpoints/step_<N>.safetensors` for weights,
 /// `state_<N>.safetensors` for optimiser moments).
 #[derive(Debug, Clone)]
@@ -153,7 +172,7 @@ pub(crate) trait Learner {
 
     /// Evaluates every task of `split` with the current weights, drawing from `rng` (a stream of
     /// the run seed apart from training's), and leaves the weights as they were.
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError>;
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Evaluation, RunError>;
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
     /// as `adam_steps`.
@@ -164,18 +183,6 @@ pub(crate) trait Learner {
 
     /// Loads weights alone (a final evaluation), each tensor by name and shape.
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
-
-    /// The prompt strategy's choices in the last [`Learner::evaluate`] (`[eval.prompt]`), taken
-    /// out; empty for the reference rule and the methods without a prompt.
-    fn take_prompt_picks(&mut self) -> Vec<pdt_prompt::PromptPick> {
-        Vec::new()
-    }
-
-    /// What `[eval.adapt]`'s adaptation did per test task in the last [`Learner::evaluate`],
-    /// taken out; empty without one.
-    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
-        Vec::new()
-    }
 
     /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
     /// transitions`); `None` for the methods without one.

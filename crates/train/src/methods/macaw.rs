@@ -9,7 +9,7 @@
 
 use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, MacawAdaptation, SavedSteps, TaskEval,
+    Evaluation, Learner, MacawAdaptation, SavedSteps, TaskEval,
 };
 use crate::config::compact;
 use crate::error::RunError;
@@ -114,12 +114,12 @@ impl Learner for MacawLearner<'_> {
         Ok(IterationMetrics { loss: mean(&|s| s.losses.policy_outer), columns })
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Evaluation, RunError> {
         let bufs = match split {
             Split::Test => &self.test_bufs,
             Split::Train => &self.train_bufs,
         };
-        eval_tasks(self, bufs, split, rng)
+        eval_tasks(self, bufs, split, rng).map(Evaluation::of_tasks)
     }
 
     /// Weights and the outer Adams' moments, each as one safetensors file written under a

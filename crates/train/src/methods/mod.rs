@@ -15,7 +15,7 @@ mod prompt_strategy;
 
 pub use learner::MacawAdaptation;
 pub(crate) use learner::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 
 use crate::config::Method;

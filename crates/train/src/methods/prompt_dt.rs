@@ -4,7 +4,7 @@
 
 use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, SavedSteps, TaskEval,
+    Evaluation, Learner, SavedSteps, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
 use crate::config::{compact, Method, TrainConfig};
@@ -22,7 +22,7 @@ use pdt_eval::{
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
-use pdt_prompt::{BatchSampler, PromptPick, Rng};
+use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -60,10 +60,6 @@ pub(crate) struct PromptDtLearner<'s> {
     opt: Optimizer,
     /// The training tasks' batch sampler.
     sampler: BatchSampler<'s>,
-    /// The prompt strategy's choices in the last evaluation (empty for the reference rule).
-    picks: Vec<PromptPick>,
-    /// What `[eval.adapt]`'s adaptation did per test task in the last evaluation.
-    adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
 }
 
 impl<'s> PromptDtLearner<'s> {
@@ -87,16 +83,7 @@ impl<'s> PromptDtLearner<'s> {
             &setup.run_data.model_cfg.parameter_names(),
             setup.cfg.optim.clone(),
         );
-        Ok(Self {
-            setup,
-            variant,
-            vs,
-            model,
-            opt,
-            sampler,
-            picks: Vec::new(),
-            adapt_log: Vec::new(),
-        })
+        Ok(Self { setup, variant, vs, model, opt, sampler })
     }
 }
 
@@ -169,7 +156,7 @@ impl PromptDtLearner<'_> {
         split: Split,
         rng: &mut Rng,
         actor: &dyn ActRows,
-    ) -> Result<Vec<TaskEval>, RunError> {
+    ) -> Result<Evaluation, RunError> {
         self.evaluate_with(split, rng, Some(actor), &Alone)
     }
 
@@ -181,22 +168,19 @@ impl PromptDtLearner<'_> {
         split: Split,
         rng: &mut Rng,
         turns: &dyn TuneTurns,
-    ) -> Result<Vec<TaskEval>, RunError> {
+    ) -> Result<Evaluation, RunError> {
         self.evaluate_with(split, rng, None, turns)
     }
 
-    /// The evaluation of every task of `split`, its prompt picks and adaptation log kept.
+    /// The evaluation of every task of `split`, with its prompt picks and adaptation log.
     fn evaluate_with(
         &mut self,
         split: Split,
         rng: &mut Rng,
         actor: Option<&dyn ActRows>,
         turns: &dyn TuneTurns,
-    ) -> Result<Vec<TaskEval>, RunError> {
-        self.picks.clear();
-        self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, actor, turns)?;
-        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+    ) -> Result<Evaluation, RunError> {
+        eval_tasks(self, split, rng, actor, turns)
     }
 
     /// Leaves libtorch's generator where the solo run's gradient step `step` on `batch` leaves
@@ -275,7 +259,7 @@ impl Learner for PromptDtLearner<'_> {
         read_iteration(at, cfg, stats)
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Evaluation, RunError> {
         self.evaluate_with(split, rng, None, &Alone)
     }
 
@@ -329,14 +313,6 @@ impl Learner for PromptDtLearner<'_> {
         checkpoint::load(&mut self.vs, path, &self.setup.run_data.model_cfg)?;
         Ok(())
     }
-
-    fn take_prompt_picks(&mut self) -> Vec<PromptPick> {
-        std::mem::take(&mut self.picks)
-    }
-
-    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
-        std::mem::take(&mut self.adapt_log)
-    }
 }
 
 /// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
@@ -348,7 +324,7 @@ fn eval_tasks(
     rng: &mut Rng,
     actor: Option<&dyn ActRows>,
     turns: &dyn TuneTurns,
-) -> Result<Vec<TaskResult>, RunError> {
+) -> Result<Evaluation, RunError> {
     let actor = actor.filter(|_| learner.evaluates_plainly(split));
     let setup = learner.setup;
     let data = setup.data(split);
@@ -392,14 +368,12 @@ fn eval_tasks(
             adapt_cfg,
             rng,
         )?;
-        learner.adapt_log = a.log;
-        return Ok(a.results);
+        return Ok(Evaluation { tasks: plain(a.results), adapt_log: a.log, ..Default::default() });
     }
     // A prompt strategy other than the reference rule (`[eval.prompt]`): its own evaluation.
     if !strategy.is_default() {
         let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
-        learner.picks = s.picks;
-        return Ok(s.results);
+        return Ok(Evaluation { tasks: plain(s.results), picks: s.picks, ..Default::default() });
     }
     // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
     // whose episodes carry `task_index == k`.
@@ -422,7 +396,7 @@ fn eval_tasks(
             None => evaluate(&learner.model, tasks, &settings)?,
         };
         let positions: Vec<usize> = (0..data.tasks.len()).collect();
-        return Ok(summarise_all(&positions, &eps));
+        return Ok(Evaluation::of_tasks(plain(summarise_all(&positions, &eps))));
     }
     // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
     // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
@@ -472,7 +446,12 @@ fn eval_tasks(
             }
         });
     }
-    Ok(results)
+    Ok(Evaluation::of_tasks(plain(results)))
+}
+
+/// Results of a rule without a per-task adaptation record.
+fn plain(results: Vec<TaskResult>) -> Vec<TaskEval> {
+    results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect()
 }
 
 /// How MT-BC-Finetune's fine-tuning before a test task gets libtorch's generator, from which its

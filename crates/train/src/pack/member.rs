@@ -11,7 +11,7 @@ use super::hub::Hub;
 use crate::error::RunError;
 use crate::methods::prompt_dt::{read_iteration, PromptDtLearner, TuneTurns, Variant};
 use crate::methods::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps,
 };
 use crate::setup::{Setup, Split};
 use crate::step::DeviceBatch;
@@ -154,7 +154,7 @@ impl Learner for PackMember<'_> {
         read_iteration(at, cfg, stats)
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Evaluation, RunError> {
         self.sync()?;
         let mut solo = self.solo.borrow_mut();
         // The engine acts for the pack's runs (the batched one): the plain evaluation's forwards
