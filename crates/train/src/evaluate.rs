@@ -9,7 +9,7 @@ use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
 use pdt_prompt::PromptStrategy;
-use pdt_rundir::config::AdaptConfig;
+use pdt_rundir::config::{AdaptConfig, Adaptation, TestTime};
 use pdt_rundir::{FinalEval, PromptEval, RunDir};
 use std::path::{Path, PathBuf};
 
@@ -122,25 +122,32 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;
+    let mut test_time = TestTime::of(&setup.cfg);
     if adaptation != &MacawAdaptation::default() {
-        if learner.adaptation().is_none() {
+        if !matches!(test_time.adaptation(), Some(Adaptation::Macaw { .. })) {
             return Err(RunError::Invalid(format!(
                 "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",
                 dir.display(),
                 setup.cfg.run.method.name()
             )));
         }
-        learner.set_adaptation(adaptation)?;
+        // The changed budget is checked as the run's own would be (`[macaw]`'s ranges).
+        let mut changed = setup.cfg.clone();
+        changed.macaw.adapt_steps = adaptation.steps.unwrap_or(changed.macaw.adapt_steps);
+        changed.macaw.adapt_batch = adaptation.batch.unwrap_or(changed.macaw.adapt_batch);
+        changed.validate()?;
+        test_time = TestTime::of(&changed);
     }
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
-    let methods::Evaluation { tasks, picks, adapt_log } = learner.evaluate(which, &mut rng)?;
+    let methods::Evaluation { tasks, picks, adapt_log } =
+        learner.evaluate(which, &test_time, &mut rng)?;
     let tasks: Vec<_> = tasks.into_iter().map(|t| t.result).collect();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
-        adaptation: learner.adaptation(),
+        adaptation: test_time.adaptation().and_then(Adaptation::recorded),
         iteration: latest.iteration,
         step: latest.step,
         checkpoint: format!("checkpoints/{}", latest.model),

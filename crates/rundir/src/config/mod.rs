@@ -7,6 +7,7 @@ pub mod macaw;
 mod method;
 mod options;
 mod overrides;
+mod testtime;
 
 pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore};
 pub use method::Method;
@@ -18,6 +19,7 @@ use pdt_data::multitask::DataFormat;
 use pdt_prompt::{NormalizationScope, PromptPosition, PromptStrategy, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+pub use testtime::{Adaptation, TestTime};
 
 /// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";

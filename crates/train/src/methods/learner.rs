@@ -1,5 +1,6 @@
 //! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in.
 
+use crate::config::TestTime;
 use crate::error::{io_err, RunError};
 use crate::run_dir::temp_name;
 use crate::setup::Split;
@@ -170,9 +171,16 @@ pub(crate) trait Learner {
         rng: &mut Rng,
     ) -> Result<IterationMetrics, RunError>;
 
-    /// Evaluates every task of `split` with the current weights, drawing from `rng` (a stream of
-    /// the run seed apart from training's), and leaves the weights as they were.
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Evaluation, RunError>;
+    /// Evaluates every task of `split` with the current weights as `test_time` says (the run's
+    /// own: [`TestTime::of`]; an evaluation's request may change it), drawing from `rng` (a
+    /// stream of the run seed apart from training's), and leaves the weights as they were. A
+    /// test time the learner has no means for (MACAW's adaptation for a transformer) is refused.
+    fn evaluate(
+        &mut self,
+        split: Split,
+        test_time: &TestTime,
+        rng: &mut Rng,
+    ) -> Result<Evaluation, RunError>;
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
     /// as `adam_steps`.
@@ -183,16 +191,4 @@ pub(crate) trait Learner {
 
     /// Loads weights alone (a final evaluation), each tensor by name and shape.
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
-
-    /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
-    /// transitions`); `None` for the methods without one.
-    fn adaptation(&self) -> Option<String> {
-        None
-    }
-
-    /// Changes the test-time adaptation for one evaluation (`promptdt eval --adapt-steps
-    /// --adapt-batch`). Only called when [`Learner::adaptation`] is `Some`.
-    fn set_adaptation(&mut self, _change: &MacawAdaptation) -> Result<(), RunError> {
-        Err(RunError::Invalid("this method has no test-time adaptation".into()))
-    }
 }
