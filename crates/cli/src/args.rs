@@ -667,10 +667,13 @@ pub struct EvalArgs {
     /// Where the run's data moved (their content must be what the run trained on).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// MACAW runs: adaptation steps for this evaluation (default: the run's macaw.adapt_steps).
+    /// The --adapt adaptation's iterations per task (default: the run's: [eval.adapt]'s steps,
+    /// macaw.adapt_steps, eval.finetune_steps). Without --adapt (the older form, with a note):
+    /// the run's own adaptation's (MACAW, MT-BC-Finetune).
     #[arg(long, value_parser = count(1, 1000))]
     pub adapt_steps: Option<usize>,
-    /// MACAW runs: transitions per task to adapt on (default: the run's macaw.adapt_batch).
+    /// The --adapt adaptation's batch: demonstration segments per iteration, MACAW's
+    /// transitions per task (default: the run's).
     #[arg(long, value_parser = count(2, 1_000_000))]
     pub adapt_batch: Option<usize>,
     /// Test-time prompt strategy (docs/prompt-control.md): reference (default: the run's

@@ -24,7 +24,8 @@ pub struct EvalRequest {
     pub device: Option<pdt_model::device::DeviceSpec>,
     /// Where the run's data are now, if they moved.
     pub data: Option<PathBuf>,
-    /// A MACAW run's adaptation (refused for the methods without one).
+    /// The budget of the run's own adaptation, MACAW's or MT-BC-Finetune's (`--adapt macaw` /
+    /// `--adapt finetune` with `--adapt-steps`, `--adapt-batch`); refused for the other methods.
     pub macaw: MacawAdaptation,
     /// A test-time prompt strategy (`None`: the run's `[eval.prompt]`, `reference` unless set).
     pub prompt: Option<PromptStrategy>,
@@ -124,17 +125,28 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     let mut learner = methods::learner(&setup)?;
     let mut test_time = TestTime::of(&setup.cfg);
     if adaptation != &MacawAdaptation::default() {
-        if !matches!(test_time.adaptation(), Some(Adaptation::Macaw { .. })) {
-            return Err(RunError::Invalid(format!(
-                "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",
-                dir.display(),
-                setup.cfg.run.method.name()
-            )));
-        }
-        // The changed budget is checked as the run's own would be (`[macaw]`'s ranges).
+        // The changed budget is checked as the run's own would be (`[macaw]`'s, `[eval]`'s ranges).
         let mut changed = setup.cfg.clone();
-        changed.macaw.adapt_steps = adaptation.steps.unwrap_or(changed.macaw.adapt_steps);
-        changed.macaw.adapt_batch = adaptation.batch.unwrap_or(changed.macaw.adapt_batch);
+        match test_time.adaptation() {
+            Some(Adaptation::Macaw { .. }) => {
+                let m = &mut changed.macaw;
+                m.adapt_steps = adaptation.steps.unwrap_or(m.adapt_steps);
+                m.adapt_batch = adaptation.batch.unwrap_or(m.adapt_batch);
+            }
+            Some(Adaptation::Finetune { .. }) => {
+                let e = &mut changed.eval;
+                e.finetune_steps = adaptation.steps.map_or(e.finetune_steps, |n| n as u64);
+                e.finetune_batch = adaptation.batch.unwrap_or(e.finetune_batch);
+            }
+            Some(Adaptation::Prompt(_)) | None => {
+                return Err(RunError::Invalid(format!(
+                    "{}: --adapt-steps / --adapt-batch without --adapt change a MACAW or \
+                     MT-BC-Finetune run's own adaptation; this run is {}",
+                    dir.display(),
+                    setup.cfg.run.method.name()
+                )));
+            }
+        }
         changed.validate()?;
         test_time = TestTime::of(&changed);
     }

@@ -11,9 +11,10 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
 
-/// A change of a run's test-time adaptation for one evaluation (`promptdt eval --adapt-steps
-/// --adapt-batch`; MACAW's): e.g. the official protocol (1 step on 256 transitions) for a run
-/// trained with the Prompt-DT one. `None` keeps the run's.
+/// A change of the budget of a run's own test-time adaptation for one evaluation (`promptdt eval
+/// --adapt macaw|finetune --adapt-steps --adapt-batch`): e.g. MACAW's official protocol (1 step
+/// on 256 transitions) for a run trained with the Prompt-DT one. `None` keeps the run's. (Named
+/// for MACAW, its first user; MT-BC-Finetune's fine-tuning takes it too.)
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MacawAdaptation {
     pub steps: Option<usize>,
