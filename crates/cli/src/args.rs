@@ -623,8 +623,8 @@ pub struct TrainArgs {
     /// Override train.iterations; with --resume, extend the run to this many.
     #[arg(long)]
     pub iterations: Option<u64>,
-    /// Override run.method (prompt-dt, prompt-mt-bc, mt-orl, mt-bc-finetune, macaw).
-    #[arg(long)]
+    /// Override run.method (the list: `Method::ALL`, so help never misses a method).
+    #[arg(long, help = method_help())]
     pub method: Option<String>,
     /// MACAW: replace the [macaw] section with a preset: `official` (the official
     /// standard.json) or `promptdt` (the Prompt-DT paper's table: width 300, the last 20k steps
@@ -669,10 +669,13 @@ pub struct EvalArgs {
     /// Where the run's data moved (their content must be what the run trained on).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// MACAW runs: adaptation steps for this evaluation (default: the run's macaw.adapt_steps).
+    /// The --adapt adaptation's iterations per task (default: the run's: [eval.adapt]'s steps,
+    /// macaw.adapt_steps, eval.finetune_steps). Without --adapt (the older form, with a note):
+    /// the run's own adaptation's (MACAW, MT-BC-Finetune).
     #[arg(long, value_parser = count(1, 1000))]
     pub adapt_steps: Option<usize>,
-    /// MACAW runs: transitions per task to adapt on (default: the run's macaw.adapt_batch).
+    /// The --adapt adaptation's batch: demonstration segments per iteration, MACAW's
+    /// transitions per task (default: the run's).
     #[arg(long, value_parser = count(2, 1_000_000))]
     pub adapt_batch: Option<usize>,
     /// Test-time prompt strategy (docs/prompt-control.md): reference (default: the run's
@@ -756,4 +759,10 @@ fn count(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone
             Err(format!("must be between {lo} and {hi}, got {n}"))
         }
     }
+}
+
+/// `--method`'s help: every method's name, from `Method::ALL`.
+fn method_help() -> String {
+    let names: Vec<&str> = pdt_train::config::Method::ALL.iter().map(|m| m.name()).collect();
+    format!("Override run.method ({})", names.join(", "))
 }

@@ -1,13 +1,14 @@
 //! `promptdt eval`'s test-time flags into the evaluation's request: the prompt strategy and the
 //! adaptation they ask for on top of the run's own, and the flags that act only with another.
 
-/// The adaptation `promptdt eval`'s flags ask for, on top of the run's `[eval.adapt]`; `None`
-/// without `--adapt`. Values are checked by the evaluation (`AdaptConfig::validate`).
+/// The `[eval.adapt]` adaptation `promptdt eval`'s flags ask for, on top of the run's; `None`
+/// without `--adapt` or with a method's own. Values are checked by the evaluation
+/// (`AdaptConfig::validate`).
 pub(crate) fn eval_adapt(
     a: &crate::args::EvalArgs,
     run: &pdt_rundir::config::AdaptConfig,
 ) -> Option<pdt_rundir::config::AdaptConfig> {
-    let kind = a.adaptation.adapt?;
+    let kind = a.adaptation.adapt?.prompt_kind()?;
     let mut c = run.clone();
     c.kind = kind;
     a.adaptation.apply(&mut c, a.adapt_steps, a.adapt_batch);
@@ -38,7 +39,7 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
         );
     }
     let f = &a.adaptation;
-    let kind = f.adapt;
+    let kind = f.adapt.and_then(crate::prompt_args::AdaptArg::prompt_kind);
     let adapt = [
         ("--adapt-lr", f.adapt_lr.is_some(), &[K::SoftPrompt, K::Lora][..], "soft-prompt or lora"),
         ("--ptdt-candidates", f.ptdt_candidates.is_some(), &[K::Ptdt][..], "ptdt"),
@@ -55,6 +56,48 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
         }
     }
     Ok(())
+}
+
+/// The budget of the run's own adaptation (MACAW's, MT-BC-Finetune's) the flags ask for, checked
+/// against the run's test time: `--adapt macaw` / `--adapt finetune` with the run that has it,
+/// or (the older form, with a note on stderr) `--adapt-steps` / `--adapt-batch` without
+/// `--adapt`. `None`: the flags ask for none (the run's own budget, or an `[eval.adapt]` kind).
+pub(crate) fn own_budget(
+    a: &crate::args::EvalArgs,
+    test_time: &pdt_rundir::config::TestTime,
+    method: pdt_rundir::config::Method,
+) -> Result<Option<pdt_train::run::MacawAdaptation>, String> {
+    use crate::prompt_args::AdaptArg;
+    use pdt_rundir::config::Adaptation;
+    let budget = pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch };
+    let own = match test_time.adaptation() {
+        Some(Adaptation::Macaw { .. }) => Some(AdaptArg::Macaw),
+        Some(Adaptation::Finetune { .. }) => Some(AdaptArg::Finetune),
+        Some(Adaptation::Prompt(_)) | None => None,
+    };
+    match a.adaptation.adapt {
+        Some(AdaptArg::Prompt(_)) => Ok(None),
+        Some(asked @ (AdaptArg::Macaw | AdaptArg::Finetune)) if Some(asked) != own => Err(format!(
+            "--adapt {}: this run is {}, whose own adaptation is {}",
+            asked.name(),
+            method.name(),
+            own.map_or("none", AdaptArg::name)
+        )),
+        Some(_) => Ok(Some(budget)),
+        None if budget == pdt_train::run::MacawAdaptation::default() => Ok(None),
+        None => {
+            // The older spelling: the budget without the kind meant MACAW's. Still read, so
+            // scripts keep working; the evaluation refuses it for a run without its own.
+            if let Some(own) = own {
+                eprintln!(
+                    "note: --adapt-steps / --adapt-batch without --adapt set the run's own \
+                     adaptation; write --adapt {} --adapt-steps N",
+                    own.name()
+                );
+            }
+            Ok(Some(budget))
+        }
+    }
 }
 
 /// The prompt strategy the flags ask for; `None` when no prompt flag is given (the run's own).

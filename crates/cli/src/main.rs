@@ -215,19 +215,17 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
             eval_flags::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
-            // With --adapt, --adapt-steps/--adapt-batch are the adaptation's, not MACAW's.
-            let adapt = match a.adaptation.adapt {
-                Some(_) => {
+            // --adapt-steps / --adapt-batch are the budget of the adaptation --adapt names: an
+            // [eval.adapt] kind's, or the run's own (MACAW's, MT-BC-Finetune's).
+            let (adapt, macaw) = match (a.adaptation.adapt, a.adapt_steps.or(a.adapt_batch)) {
+                (None, None) => (None, Default::default()),
+                _ => {
                     let run = pdt_rundir::RunDir::at(&a.run);
                     let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
-                    eval_flags::eval_adapt(&a, &cfg.eval.adapt)
-                }
-                None => None,
-            };
-            let macaw = match adapt {
-                Some(_) => pdt_train::run::MacawAdaptation::default(),
-                None => {
-                    pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch }
+                    let test_time = pdt_rundir::config::TestTime::of(&cfg);
+                    let own = eval_flags::own_budget(&a, &test_time, cfg.run.method)
+                        .map_err(anyhow::Error::msg)?;
+                    (eval_flags::eval_adapt(&a, &cfg.eval.adapt), own.unwrap_or_default())
                 }
             };
             let req = pdt_train::run::EvalRequest {
@@ -406,7 +404,7 @@ fn run(cli: Cli) -> Result<()> {
                     length: a.prompt_length,
                     ..Default::default()
                 },
-                adapt: a.adaptation.to_config(),
+                adapt: a.adaptation.to_config().map_err(anyhow::Error::msg)?,
                 auth,
                 ..Default::default()
             };

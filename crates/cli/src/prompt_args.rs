@@ -15,9 +15,45 @@ pub(crate) fn bandit_rule(s: &str) -> Result<pdt_prompt::BanditRule, String> {
     }
 }
 
-/// An evaluation-time adaptation by name (`--adapt`); the error names the value and the known names.
-fn adapt_kind(s: &str) -> Result<pdt_rundir::config::AdaptKind, String> {
-    s.parse().map_err(|e: pdt_rundir::config::AdaptError| e.to_string())
+/// `--adapt KIND`: one family for every test-time adaptation, `--adapt-steps` and `--adapt-batch`
+/// its budget whichever it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AdaptArg {
+    /// One of `[eval.adapt]`'s, the backbone frozen: soft-prompt, ptdt, lora (or none).
+    Prompt(pdt_rundir::config::AdaptKind),
+    /// MACAW's gradient steps on each task's transitions (a MACAW run's own adaptation).
+    Macaw,
+    /// MT-BC-Finetune's fine-tuning on each test task's demonstrations (its run's own).
+    Finetune,
+}
+
+impl AdaptArg {
+    /// The `[eval.adapt]` kind, for the adaptations that have one.
+    pub(crate) fn prompt_kind(self) -> Option<pdt_rundir::config::AdaptKind> {
+        match self {
+            AdaptArg::Prompt(k) => Some(k),
+            AdaptArg::Macaw | AdaptArg::Finetune => None,
+        }
+    }
+
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            AdaptArg::Prompt(k) => k.name(),
+            AdaptArg::Macaw => "macaw",
+            AdaptArg::Finetune => "finetune",
+        }
+    }
+}
+
+/// An adaptation by name (`--adapt`); the error names the value and the known names.
+fn adapt_kind(s: &str) -> Result<AdaptArg, String> {
+    match s {
+        "macaw" => Ok(AdaptArg::Macaw),
+        "finetune" => Ok(AdaptArg::Finetune),
+        _ => s.parse().map(AdaptArg::Prompt).map_err(|e: pdt_rundir::config::AdaptError| {
+            format!("{e}, or a method's own: macaw, finetune")
+        }),
+    }
 }
 
 fn ptdt_score(s: &str) -> Result<pdt_rundir::config::PtdtScore, String> {
@@ -31,13 +67,15 @@ fn ptdt_score(s: &str) -> Result<pdt_rundir::config::PtdtScore, String> {
 /// `promptdt eval`'s evaluation-time adaptation flags (flattened into its arguments).
 #[derive(Debug, clap::Args)]
 pub struct AdaptFlags {
-    /// Evaluation-time adaptation to each test task from its demonstrations, the backbone
-    /// frozen (docs/prompt-control.md): soft-prompt, ptdt, lora. eval: default the run's
-    /// [eval.adapt] (none unless set), results to eval_adapt_<kind>.json; serve: episodes opened
-    /// with a `task` (default none; a request's `adapt` names one). --adapt-steps and
-    /// --adapt-batch set the adaptation's iterations and demonstration segments per iteration.
+    /// Test-time adaptation to each test task from its demonstrations (docs/prompt-control.md):
+    /// soft-prompt, ptdt, lora (the backbone frozen); eval also takes a run's own, macaw (MACAW's
+    /// gradient steps) or finetune (MT-BC-Finetune's fine-tuning). --adapt-steps and
+    /// --adapt-batch set its budget: iterations and demonstration segments (macaw:
+    /// transitions) per iteration. eval: default the run's own ([eval.adapt], none unless set),
+    /// results of soft-prompt, ptdt and lora to eval_adapt_<kind>.json; serve: episodes opened
+    /// with a `task` (default none; a request's `adapt` names one).
     #[arg(long, value_parser = adapt_kind)]
-    pub adapt: Option<pdt_rundir::config::AdaptKind>,
+    pub adapt: Option<AdaptArg>,
     /// --adapt soft-prompt / lora: Adam's learning rate.
     #[arg(long)]
     pub adapt_lr: Option<f64>,
@@ -102,13 +140,21 @@ pub struct ServeAdaptFlags {
 
 impl ServeAdaptFlags {
     /// The server's adaptation: the kind `--adapt` names (none without it; a request's `adapt`
-    /// names one) and the budget these flags set.
-    pub(crate) fn to_config(&self) -> pdt_rundir::config::AdaptConfig {
-        let mut c = pdt_rundir::config::AdaptConfig {
-            kind: self.flags.adapt.unwrap_or_default(),
-            ..Default::default()
+    /// names one) and the budget these flags set. A method's own adaptation is refused: the
+    /// methods that adapt before acting are not served.
+    pub(crate) fn to_config(&self) -> Result<pdt_rundir::config::AdaptConfig, String> {
+        let kind = match self.flags.adapt {
+            None => Default::default(),
+            Some(a) => a.prompt_kind().ok_or_else(|| {
+                format!(
+                    "--adapt {}: a method's own adaptation is evaluated (`promptdt eval`), not \
+                     served; serve adapts with soft-prompt, ptdt or lora",
+                    a.name()
+                )
+            })?,
         };
+        let mut c = pdt_rundir::config::AdaptConfig { kind, ..Default::default() };
         self.flags.apply(&mut c, self.adapt_steps, self.adapt_batch);
-        c
+        Ok(c)
     }
 }

@@ -55,6 +55,12 @@ fn macaw_trains_evaluates_and_reports_from_the_cli() {
         "8",
     ]);
     assert!(eval.contains("1 steps on 8 transitions"), "{eval}");
+    // The one flag family: `--adapt macaw` names MACAW's own adaptation; another is refused.
+    let own = ["--adapt", "macaw", "--adapt-steps", "1", "--adapt-batch", "8"];
+    let eval = ok(&[&["eval", "--run", run_s, "--episodes", "1"][..], &own[..]].concat());
+    assert!(eval.contains("1 steps on 8 transitions"), "{eval}");
+    let e = fails(&["eval", "--run", run_s, "--adapt", "finetune", "--adapt-steps", "1"]);
+    assert!(e.contains("--adapt finetune") && e.contains("is macaw"), "{e}");
     let report = tmp.path().join("report");
     ok(&["report", run_s, "--out", report.to_str().unwrap()]);
     let table = std::fs::read_to_string(report.join("table.md")).unwrap();

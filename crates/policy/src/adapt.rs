@@ -176,10 +176,10 @@ pub fn check_adaptable(
 ) -> Result<(), PolicyError> {
     if !method.uses_prompt() {
         return Err(PolicyError::Input(format!(
-            "adaptation `{}`: {} takes no prompt; the adaptations apply to prompt-dt and \
-             prompt-mt-bc runs",
+            "adaptation `{}`: {} takes no prompt; the adaptations apply to {} runs",
             cfg.kind,
-            method.name()
+            method.name(),
+            Method::names_where(Method::uses_prompt)
         )));
     }
     if strategy.strategy.per_episode() || strategy.strategy.learns_from_returns() {

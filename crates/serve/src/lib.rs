@@ -17,6 +17,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use pdt_policy::{Policy, PolicyError};
+use pdt_rundir::config::Method;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc};
@@ -346,7 +347,7 @@ impl Server {
 
 /// Refuses the server adaptation settings (`--adapt` and its flags) that would refuse, or
 /// silently skip, every episode opened with a `task`, naming the flags.
-fn check_adapt(method: pdt_rundir::config::Method, opts: &ServeOptions) -> Result<(), ServeError> {
+fn check_adapt(method: Method, opts: &ServeOptions) -> Result<(), ServeError> {
     let cfg = &opts.adapt;
     if cfg.ptdt.score == pdt_rundir::config::PtdtScore::Return {
         // Any episode adapted by PTDT would be refused (a request may name `adapt: ptdt`).
@@ -363,9 +364,10 @@ fn check_adapt(method: pdt_rundir::config::Method, opts: &ServeOptions) -> Resul
     if !method.uses_prompt() {
         return Err(ServeError::Invalid(format!(
             "--adapt {}: this run's method ({}) takes no prompt, and the adaptations adapt a \
-             prompt or act through one (prompt-dt and prompt-mt-bc runs); serve it without --adapt",
+             prompt or act through one ({} runs); serve it without --adapt",
             cfg.kind,
-            method.name()
+            method.name(),
+            Method::names_where(Method::uses_prompt)
         )));
     }
     let s = opts.prompt_strategy.strategy;

@@ -9,7 +9,7 @@ use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
 use pdt_prompt::PromptStrategy;
-use pdt_rundir::config::AdaptConfig;
+use pdt_rundir::config::{AdaptConfig, Adaptation, TestTime};
 use pdt_rundir::{FinalEval, PromptEval, RunDir};
 use std::path::{Path, PathBuf};
 
@@ -24,7 +24,8 @@ pub struct EvalRequest {
     pub device: Option<pdt_model::device::DeviceSpec>,
     /// Where the run's data are now, if they moved.
     pub data: Option<PathBuf>,
-    /// A MACAW run's adaptation (refused for the methods without one).
+    /// The budget of the run's own adaptation, MACAW's or MT-BC-Finetune's (`--adapt macaw` /
+    /// `--adapt finetune` with `--adapt-steps`, `--adapt-batch`); refused for the other methods.
     pub macaw: MacawAdaptation,
     /// A test-time prompt strategy (`None`: the run's `[eval.prompt]`, `reference` unless set).
     pub prompt: Option<PromptStrategy>,
@@ -122,26 +123,43 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;
+    let mut test_time = TestTime::of(&setup.cfg);
     if adaptation != &MacawAdaptation::default() {
-        if learner.adaptation().is_none() {
-            return Err(RunError::Invalid(format!(
-                "{}: --adapt-steps / --adapt-batch change a MACAW run's adaptation; this run is {}",
-                dir.display(),
-                setup.cfg.run.method.name()
-            )));
+        // The changed budget is checked as the run's own would be (`[macaw]`'s, `[eval]`'s ranges).
+        let mut changed = setup.cfg.clone();
+        match test_time.adaptation() {
+            Some(Adaptation::Macaw { .. }) => {
+                let m = &mut changed.macaw;
+                m.adapt_steps = adaptation.steps.unwrap_or(m.adapt_steps);
+                m.adapt_batch = adaptation.batch.unwrap_or(m.adapt_batch);
+            }
+            Some(Adaptation::Finetune { .. }) => {
+                let e = &mut changed.eval;
+                e.finetune_steps = adaptation.steps.map_or(e.finetune_steps, |n| n as u64);
+                e.finetune_batch = adaptation.batch.unwrap_or(e.finetune_batch);
+            }
+            Some(Adaptation::Prompt(_)) | None => {
+                return Err(RunError::Invalid(format!(
+                    "{}: --adapt-steps / --adapt-batch without --adapt change a MACAW or \
+                     MT-BC-Finetune run's own adaptation; this run is {}",
+                    dir.display(),
+                    setup.cfg.run.method.name()
+                )));
+            }
         }
-        learner.set_adaptation(adaptation)?;
+        changed.validate()?;
+        test_time = TestTime::of(&changed);
     }
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
     let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
-    let tasks: Vec<_> = learner.evaluate(which, &mut rng)?.into_iter().map(|t| t.result).collect();
-    let picks = learner.take_prompt_picks();
-    let adapt_log = learner.take_adapt_log();
+    let methods::Evaluation { tasks, picks, adapt_log } =
+        learner.evaluate(which, &test_time, &mut rng)?;
+    let tasks: Vec<_> = tasks.into_iter().map(|t| t.result).collect();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
     let result = FinalEval {
-        adaptation: learner.adaptation(),
+        adaptation: test_time.adaptation().and_then(Adaptation::recorded),
         iteration: latest.iteration,
         step: latest.step,
         checkpoint: format!("checkpoints/{}", latest.model),

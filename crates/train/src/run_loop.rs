@@ -5,7 +5,7 @@
 //! iterations (an interruption, in tests). The method is a [`Learner`]; the directory's layout is
 //! `docs/run-directory.md`.
 
-use crate::config::TrainConfig;
+use crate::config::{TestTime, TrainConfig};
 use crate::error::{io_err, RunError};
 use crate::methods::{
     self, CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
@@ -314,6 +314,8 @@ fn run_loop(
     let (t, started) = (&cfg.train, std::time::Instant::now());
     let target = setup.run_data.stats.target_return;
     let mut last_test = None;
+    // The run's own test time, the same at every evaluation.
+    let test_time = TestTime::of(&setup.cfg);
     let mut done_here = 0;
     while iteration < t.iterations {
         if opts.interrupt.is_set() {
@@ -345,8 +347,8 @@ fn run_loop(
         let mut test_return = None;
         // Reference: evaluation after the first iteration and every `interval` after it.
         if (iteration - 1) % t.test_eval_interval == 0 || last {
-            let res =
-                learner.evaluate(Split::Test, &mut eval_rng(setup, Split::Test, iteration))?;
+            let mut rng = eval_rng(setup, Split::Test, iteration);
+            let res = learner.evaluate(Split::Test, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "test", target))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
             test_return =
@@ -355,7 +357,7 @@ fn run_loop(
         }
         if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Train, iteration);
-            let res = learner.evaluate(Split::Train, &mut rng)?;
+            let res = learner.evaluate(Split::Train, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "train", target))?;
         }
         let keep = iteration % t.save_interval == 0 || last;

@@ -4,10 +4,13 @@
 
 pub mod adapt;
 pub mod macaw;
+mod method;
 mod options;
 mod overrides;
+mod testtime;
 
 pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore};
+pub use method::Method;
 pub use options::{AdamWConfig, FlatOptim, Inference, LastBlockChoice, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
 pub use pdt_base::device::{DeviceSpec, Matmul};
@@ -16,99 +19,12 @@ use pdt_data::multitask::DataFormat;
 use pdt_prompt::{NormalizationScope, PromptPosition, PromptStrategy, TrajectoryRanking};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+pub use testtime::{Adaptation, TestTime};
 
 /// The loss column of Prompt-DT-style runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_LOSS_METRIC: &str = "train/action_loss";
 /// The loss column of MACAW runs written before `run.json` recorded `loss_metric`.
 pub const LEGACY_MACAW_LOSS_METRIC: &str = "train/policy_outer_loss";
-
-/// The methods of the paper's comparison.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Method {
-    /// Prompt-DT: prompt + returns-to-go.
-    #[default]
-    PromptDt,
-    /// Prompt-MT-BC: prompt, history returns-to-go zeroed in training (`--no-rtg --no-r`).
-    PromptMtBc,
-    /// MT-ORL: returns-to-go, no prompt (`--no-prompt`).
-    MtOrl,
-    /// MT-BC-Finetune: no prompt, no returns-to-go; fine-tuned on each test task's demonstrations
-    /// before evaluation (`--no-prompt --no-rtg --no-r --finetune`).
-    MtBcFinetune,
-    /// MACAW (Mitchell et al. 2021): meta-learned value function and policy, adapted to each test
-    /// task's data with a few gradient steps (`[macaw]` section; `crates/macaw`).
-    Macaw,
-}
-
-/// The one list of methods and what each is: the front ends, the report and the reproduction
-/// manifests ask these instead of naming methods, so a new method is its module, one line in
-/// [`Method::ALL`] (and [`Method::name`]) and its config section.
-impl Method {
-    /// Every method, in the order the paper lists them (the report's order and plot colours).
-    pub const ALL: [Method; 5] =
-        [Method::PromptDt, Method::PromptMtBc, Method::MtOrl, Method::MtBcFinetune, Method::Macaw];
-
-    pub fn uses_prompt(self) -> bool {
-        matches!(self, Method::PromptDt | Method::PromptMtBc)
-    }
-
-    pub fn zeroes_history_returns(self) -> bool {
-        matches!(self, Method::PromptMtBc | Method::MtBcFinetune)
-    }
-
-    /// Prompt-DT and its variants: the Decision Transformer, configured by the `[model]`,
-    /// `[optimizer]` and `[sampler]` sections and served by `pdt-policy`. MACAW has networks of
-    /// its own (its `[macaw]` section).
-    pub fn is_transformer(self) -> bool {
-        !matches!(self, Method::Macaw)
-    }
-
-    /// Whether the method adapts to each test task (fine-tuning, MACAW's gradient steps) before
-    /// it acts there: its test-time policy is not the checkpoint as saved, so it is not served.
-    pub fn adapts_before_acting(self) -> bool {
-        matches!(self, Method::MtBcFinetune | Method::Macaw)
-    }
-
-    /// The method's own section of `config.toml`, written only for runs of the method.
-    pub fn section(self) -> Option<&'static str> {
-        match self {
-            Method::Macaw => Some("macaw"),
-            Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune => None,
-        }
-    }
-
-    /// The `metrics.jsonl` column of the training loss in runs written before `run.json`
-    /// recorded it.
-    pub fn legacy_loss_metric(self) -> &'static str {
-        match self {
-            Method::Macaw => LEGACY_MACAW_LOSS_METRIC,
-            _ => LEGACY_LOSS_METRIC,
-        }
-    }
-
-    /// The method's name in the paper and in messages ("MACAW").
-    pub fn title(self) -> &'static str {
-        match self {
-            Method::PromptDt => "Prompt-DT",
-            Method::PromptMtBc => "Prompt-MT-BC",
-            Method::MtOrl => "MT-ORL",
-            Method::MtBcFinetune => "MT-BC-Finetune",
-            Method::Macaw => "MACAW",
-        }
-    }
-
-    /// The method's name in `config.toml`, `run.json` and on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            Method::PromptDt => "prompt-dt",
-            Method::PromptMtBc => "prompt-mt-bc",
-            Method::MtOrl => "mt-orl",
-            Method::MtBcFinetune => "mt-bc-finetune",
-            Method::Macaw => "macaw",
-        }
-    }
-}
 
 /// How Prompt-MT-BC and MT-BC-Finetune are evaluated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -419,8 +335,7 @@ impl TrainConfig {
         v.at_most("train.resume_interval", t.resume_interval, TOML_INT, "0 = only checkpoints");
         // The transformer's settings (model, optimiser, prompt sampling) are Prompt-DT's and its
         // variants'; MACAW reads its own section instead, so neither checks the other's.
-        let macaw = !self.run.method.is_transformer();
-        if !macaw {
+        if self.run.method.is_transformer() {
             self.validate_transformer(&mut v);
         }
         let s = &self.sampler;
@@ -458,9 +373,9 @@ impl TrainConfig {
         }
         if !e.prompt.is_default() && !self.run.method.uses_prompt() {
             v.fail(format!(
-                "eval.prompt: {} takes no prompt; a prompt strategy applies to prompt-dt and \
-                 prompt-mt-bc runs",
-                self.run.method.name()
+                "eval.prompt: {} takes no prompt; a prompt strategy applies to {} runs",
+                self.run.method.name(),
+                Method::names_where(Method::uses_prompt)
             ));
         }
         if let Err(err) = e.adapt.validate() {
@@ -468,16 +383,20 @@ impl TrainConfig {
         }
         if !e.adapt.is_none() && !self.run.method.uses_prompt() {
             v.fail(format!(
-                "eval.adapt.kind = {}: {} takes no prompt; the adaptations apply to prompt-dt and \
-                 prompt-mt-bc runs",
+                "eval.adapt.kind = {}: {} takes no prompt; the adaptations apply to {} runs",
                 e.adapt.kind,
-                self.run.method.name()
+                self.run.method.name(),
+                Method::names_where(Method::uses_prompt)
             ));
         }
-        if macaw {
-            if let Err(e) = self.macaw.validate() {
-                v.fail(e.to_string());
+        // Each method's own section is checked for its runs only (the others' are not written).
+        match self.run.method {
+            Method::Macaw => {
+                if let Err(e) = self.macaw.validate() {
+                    v.fail(e.to_string());
+                }
             }
+            Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune => {}
         }
         v.finish()
     }

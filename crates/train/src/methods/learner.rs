@@ -1,5 +1,6 @@
 //! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in.
 
+use crate::config::TestTime;
 use crate::error::{io_err, RunError};
 use crate::run_dir::temp_name;
 use crate::setup::Split;
@@ -10,9 +11,10 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
 
-/// A change of a run's test-time adaptation for one evaluation (`promptdt eval --adapt-steps
-/// --adapt-batch`; MACAW's): e.g. the official protocol (1 step on 256 transitions) for a run
-/// trained with the Prompt-DT one. `None` keeps the run's.
+/// A change of the budget of a run's own test-time adaptation for one evaluation (`promptdt eval
+/// --adapt macaw|finetune --adapt-steps --adapt-batch`): e.g. MACAW's official protocol (1 step
+/// on 256 transitions) for a run trained with the Prompt-DT one. `None` keeps the run's. (Named
+/// for MACAW, its first user; MT-BC-Finetune's fine-tuning takes it too.)
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MacawAdaptation {
     pub steps: Option<usize>,
@@ -74,6 +76,25 @@ pub(crate) struct TaskEval {
     /// MACAW: the adaptation steps taken and the episodes a non-finite action ended (columns of
     /// the task's `eval.jsonl` line); `None` for the methods without an adaptation.
     pub(crate) adaptation: Option<AdaptationStats>,
+}
+
+/// One evaluation of a split: every task's result and what the test-time behaviour chose on the
+/// way, returned together (no learner keeps them for a later call to take).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Evaluation {
+    pub(crate) tasks: Vec<TaskEval>,
+    /// The prompt strategy's choices (`[eval.prompt]`); empty for the reference rule and the
+    /// methods without a prompt.
+    pub(crate) picks: Vec<pdt_prompt::PromptPick>,
+    /// What `[eval.adapt]`'s adaptation did per test task; empty without one.
+    pub(crate) adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
+}
+
+impl Evaluation {
+    /// The evaluation of `tasks` by a rule that chooses nothing on the way.
+    pub(crate) fn of_tasks(tasks: Vec<TaskEval>) -> Self {
+        Self { tasks, ..Self::default() }
+    }
 }
 
 /// The files of one checkpoint, named by its step (`checkpoints/step_<N>.safetensors` for weights,
@@ -151,9 +172,16 @@ pub(crate) trait Learner {
         rng: &mut Rng,
     ) -> Result<IterationMetrics, RunError>;
 
-    /// Evaluates every task of `split` with the current weights, drawing from `rng` (a stream of
-    /// the run seed apart from training's), and leaves the weights as they were.
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError>;
+    /// Evaluates every task of `split` with the current weights as `test_time` says (the run's
+    /// own: [`TestTime::of`]; an evaluation's request may change it), drawing from `rng` (a
+    /// stream of the run seed apart from training's), and leaves the weights as they were. A
+    /// test time the learner has no means for (MACAW's adaptation for a transformer) is refused.
+    fn evaluate(
+        &mut self,
+        split: Split,
+        test_time: &TestTime,
+        rng: &mut Rng,
+    ) -> Result<Evaluation, RunError>;
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
     /// as `adam_steps`.
@@ -164,28 +192,4 @@ pub(crate) trait Learner {
 
     /// Loads weights alone (a final evaluation), each tensor by name and shape.
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
-
-    /// The prompt strategy's choices in the last [`Learner::evaluate`] (`[eval.prompt]`), taken
-    /// out; empty for the reference rule and the methods without a prompt.
-    fn take_prompt_picks(&mut self) -> Vec<pdt_prompt::PromptPick> {
-        Vec::new()
-    }
-
-    /// What `[eval.adapt]`'s adaptation did per test task in the last [`Learner::evaluate`],
-    /// taken out; empty without one.
-    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
-        Vec::new()
-    }
-
-    /// The test-time adaptation an evaluation uses, for `eval_final.json` (MACAW: `2 steps on 4
-    /// transitions`); `None` for the methods without one.
-    fn adaptation(&self) -> Option<String> {
-        None
-    }
-
-    /// Changes the test-time adaptation for one evaluation (`promptdt eval --adapt-steps
-    /// --adapt-batch`). Only called when [`Learner::adaptation`] is `Some`.
-    fn set_adaptation(&mut self, _change: &MacawAdaptation) -> Result<(), RunError> {
-        Err(RunError::Invalid("this method has no test-time adaptation".into()))
-    }
 }

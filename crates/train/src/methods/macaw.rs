@@ -8,10 +8,10 @@
 //! (adaptation rows and episode seeds) come from independent streams of the run seed.
 
 use super::learner::{
-    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, MacawAdaptation, SavedSteps, TaskEval,
+    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
+    IterationMetrics, Learner, SavedSteps, TaskEval,
 };
-use crate::config::compact;
+use crate::config::{compact, Adaptation, TestTime};
 use crate::error::RunError;
 use crate::setup::{Setup, Split};
 use crate::streams::STREAM_INIT;
@@ -35,8 +35,7 @@ impl From<pdt_macaw::MacawError> for RunError {
 /// The model of a MACAW run with its outer optimisers, and the training and test tasks' buffers.
 pub(crate) struct MacawLearner<'s> {
     setup: &'s Setup,
-    /// The run's `[macaw]` section, with an evaluation's changed adaptation
-    /// ([`Learner::set_adaptation`]).
+    /// The run's `[macaw]` section (an evaluation's adaptation budget is its [`TestTime`]'s).
     m: MacawConfig,
     dims: Dims,
     params: Params,
@@ -114,12 +113,31 @@ impl Learner for MacawLearner<'_> {
         Ok(IterationMetrics { loss: mean(&|s| s.losses.policy_outer), columns })
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+    fn evaluate(
+        &mut self,
+        split: Split,
+        test_time: &TestTime,
+        rng: &mut Rng,
+    ) -> Result<Evaluation, RunError> {
         let bufs = match split {
             Split::Test => &self.test_bufs,
             Split::Train => &self.train_bufs,
         };
-        eval_tasks(self, bufs, split, rng)
+        // MACAW's policy is its adaptation, on training tasks too: the budget is the test time's.
+        let mut m = self.m.clone();
+        match test_time.adaptation() {
+            Some(&Adaptation::Macaw { steps, batch }) => {
+                (m.adapt_steps, m.adapt_batch) = (steps, batch)
+            }
+            Some(Adaptation::Prompt(_) | Adaptation::Finetune { .. }) | None => {
+                return Err(RunError::Invalid(
+                    "MACAW evaluates through its own adaptation ([macaw]'s adapt_steps and \
+                     adapt_batch), not a prompt strategy or another adaptation"
+                        .into(),
+                ))
+            }
+        }
+        eval_tasks(self, &m, bufs, split, rng).map(Evaluation::of_tasks)
     }
 
     /// Weights and the outer Adams' moments, each as one safetensors file written under a
@@ -194,24 +212,6 @@ impl Learner for MacawLearner<'_> {
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError> {
         load_weights(path, &mut self.params, &self.dims)
     }
-
-    fn adaptation(&self) -> Option<String> {
-        Some(format!("{} steps on {} transitions", self.m.adapt_steps, self.m.adapt_batch))
-    }
-
-    fn set_adaptation(&mut self, change: &MacawAdaptation) -> Result<(), RunError> {
-        let mut cfg = self.setup.cfg.clone();
-        cfg.macaw = self.m.clone();
-        if let Some(n) = change.steps {
-            cfg.macaw.adapt_steps = n;
-        }
-        if let Some(b) = change.batch {
-            cfg.macaw.adapt_batch = b;
-        }
-        cfg.validate()?;
-        self.m = cfg.macaw;
-        Ok(())
-    }
 }
 
 fn buffers(
@@ -271,13 +271,13 @@ fn load_weights(path: &Path, params: &mut Params, dims: &Dims) -> Result<(), Run
 /// (`eval.episodes` episodes per task).
 fn eval_tasks(
     l: &MacawLearner<'_>,
+    m: &MacawConfig,
     bufs: &[TaskBuffer],
     split: Split,
     rng: &mut Rng,
 ) -> Result<Vec<TaskEval>, RunError> {
     let setup = l.setup;
     let data = setup.data(split);
-    let m = &l.m;
     let threads = setup.env_threads;
     let mut out = Vec::with_capacity(data.tasks.len());
     for (t, buf) in data.tasks.iter().zip(bufs) {

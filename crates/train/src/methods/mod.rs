@@ -15,7 +15,7 @@ mod prompt_strategy;
 
 pub use learner::MacawAdaptation;
 pub(crate) use learner::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 
 use crate::config::Method;
@@ -31,4 +31,47 @@ pub(crate) fn learner<'s>(setup: &'s Setup) -> Result<Box<dyn Learner + 's>, Run
         }
         Method::Macaw => Box::new(macaw::MacawLearner::new(setup)?),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::learner;
+    use crate::config::{Method, TrainConfig};
+    use crate::setup::Setup;
+
+    /// The registry builds a learner for every method of `Method::ALL` (its `match` has no `_`
+    /// arm, so a new variant does not compile without one), on a tiny point-robot dataset, and
+    /// each learner names its loss column.
+    #[test]
+    fn the_registry_builds_every_method() {
+        let tmp = tempfile::tempdir().unwrap();
+        let data = tmp.path().join("data");
+        let family = pdt_envs::collect_scripted::ScriptedFamily::named("point_robot").unwrap();
+        let collect = pdt_envs::collect_scripted::CollectConfig {
+            episodes_per_task: 2,
+            prompt_episodes: 1,
+            ..pdt_envs::collect_scripted::CollectConfig::for_family(family)
+        };
+        pdt_envs::collect_scripted::collect(&collect, &data, &mut |_, _| {}).unwrap();
+        for m in Method::ALL {
+            let mut cfg: TrainConfig = toml::from_str(
+                "[sampler]\nk = 4\nbatch_size_per_task = 1\n[model]\nhidden_size = 16\n\
+                 n_layer = 1\nn_inner = 32\n[run]\nthreads = 1\ndevice = \"cpu\"\n",
+            )
+            .unwrap();
+            cfg.data.dir = data.clone();
+            cfg.run.method = m;
+            if let Some(s) = m.section() {
+                assert_eq!(s, "macaw", "{m:?}: give its section a tiny setting here");
+                cfg.macaw.width = 8;
+            }
+            let setup = Setup::new(cfg).unwrap();
+            let built = {
+                let _torch = crate::streams::torch_rng_lock();
+                learner(&setup).map(|l| l.loss_metric())
+            };
+            let loss = built.unwrap_or_else(|e| panic!("{}: {e}", m.name()));
+            assert!(loss.starts_with("train/"), "{}: {loss}", m.name());
+        }
+    }
 }

@@ -3,11 +3,11 @@
 //! whether it fine-tunes on each test task's demonstrations before evaluating it.
 
 use super::learner::{
-    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, IterationAt, IterationMetrics,
-    Learner, SavedSteps, TaskEval,
+    adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
+    IterationMetrics, Learner, SavedSteps, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
-use crate::config::{compact, Method, TrainConfig};
+use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, Optimizer, ParamState, SlotState};
 use crate::setup::{Setup, Split};
@@ -22,7 +22,7 @@ use pdt_eval::{
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
-use pdt_prompt::{BatchSampler, PromptPick, Rng};
+use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -45,7 +45,8 @@ impl Variant {
         Self {
             prompt: method.uses_prompt(),
             zero_returns: method.zeroes_history_returns(),
-            finetune: method == Method::MtBcFinetune,
+            // Asked of `Method`, not named: the transformer that adapts before it acts.
+            finetune: method.is_transformer() && method.adapts_before_acting(),
         }
     }
 }
@@ -59,10 +60,6 @@ pub(crate) struct PromptDtLearner<'s> {
     opt: Optimizer,
     /// The training tasks' batch sampler.
     sampler: BatchSampler<'s>,
-    /// The prompt strategy's choices in the last evaluation (empty for the reference rule).
-    picks: Vec<PromptPick>,
-    /// What `[eval.adapt]`'s adaptation did per test task in the last evaluation.
-    adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
 }
 
 impl<'s> PromptDtLearner<'s> {
@@ -86,16 +83,7 @@ impl<'s> PromptDtLearner<'s> {
             &setup.run_data.model_cfg.parameter_names(),
             setup.cfg.optim.clone(),
         );
-        Ok(Self {
-            setup,
-            variant,
-            vs,
-            model,
-            opt,
-            sampler,
-            picks: Vec::new(),
-            adapt_log: Vec::new(),
-        })
+        Ok(Self { setup, variant, vs, model, opt, sampler })
     }
 }
 
@@ -168,8 +156,9 @@ impl PromptDtLearner<'_> {
         split: Split,
         rng: &mut Rng,
         actor: &dyn ActRows,
-    ) -> Result<Vec<TaskEval>, RunError> {
-        self.evaluate_with(split, rng, Some(actor), &Alone)
+    ) -> Result<Evaluation, RunError> {
+        let test_time = TestTime::of(&self.setup.cfg);
+        self.evaluate_with(split, &test_time, rng, Some(actor), &Alone)
     }
 
     /// [`Learner::evaluate`] with MT-BC-Finetune's fine-tuning before each test task in `turns`
@@ -178,24 +167,23 @@ impl PromptDtLearner<'_> {
     pub(crate) fn evaluate_in_turns(
         &mut self,
         split: Split,
+        test_time: &TestTime,
         rng: &mut Rng,
         turns: &dyn TuneTurns,
-    ) -> Result<Vec<TaskEval>, RunError> {
-        self.evaluate_with(split, rng, None, turns)
+    ) -> Result<Evaluation, RunError> {
+        self.evaluate_with(split, test_time, rng, None, turns)
     }
 
-    /// The evaluation of every task of `split`, its prompt picks and adaptation log kept.
+    /// The evaluation of every task of `split`, with its prompt picks and adaptation log.
     fn evaluate_with(
         &mut self,
         split: Split,
+        test_time: &TestTime,
         rng: &mut Rng,
         actor: Option<&dyn ActRows>,
         turns: &dyn TuneTurns,
-    ) -> Result<Vec<TaskEval>, RunError> {
-        self.picks.clear();
-        self.adapt_log.clear();
-        let results = eval_tasks(self, split, rng, actor, turns)?;
-        Ok(results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect())
+    ) -> Result<Evaluation, RunError> {
+        eval_tasks(self, split, test_time, rng, actor, turns)
     }
 
     /// Leaves libtorch's generator where the solo run's gradient step `step` on `batch` leaves
@@ -274,8 +262,13 @@ impl Learner for PromptDtLearner<'_> {
         read_iteration(at, cfg, stats)
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
-        self.evaluate_with(split, rng, None, &Alone)
+    fn evaluate(
+        &mut self,
+        split: Split,
+        test_time: &TestTime,
+        rng: &mut Rng,
+    ) -> Result<Evaluation, RunError> {
+        self.evaluate_with(split, test_time, rng, None, &Alone)
     }
 
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
@@ -328,26 +321,20 @@ impl Learner for PromptDtLearner<'_> {
         checkpoint::load(&mut self.vs, path, &self.setup.run_data.model_cfg)?;
         Ok(())
     }
-
-    fn take_prompt_picks(&mut self) -> Vec<PromptPick> {
-        std::mem::take(&mut self.picks)
-    }
-
-    fn take_adapt_log(&mut self) -> Vec<pdt_eval::adapt::AdaptLog> {
-        std::mem::take(&mut self.adapt_log)
-    }
 }
 
-/// Evaluates the tasks of `split`, each with its own prompt, all episodes together; with
-/// `variant.finetune`, each test task after fine-tuning a copy of the weights on its data. The
-/// plain evaluation's forwards are `actor`'s when given (`PromptDtLearner::evaluate_through`).
+/// Evaluates the tasks of `split`, each with its own prompt, all episodes together, as
+/// `test_time` says: the reference rule, a prompt strategy, or an adaptation to each test task
+/// (`[eval.adapt]`'s, or fine-tuning a copy of the weights on its data). The plain evaluation's
+/// forwards are `actor`'s when given (`PromptDtLearner::evaluate_through`).
 fn eval_tasks(
     learner: &mut PromptDtLearner<'_>,
     split: Split,
+    test_time: &TestTime,
     rng: &mut Rng,
     actor: Option<&dyn ActRows>,
     turns: &dyn TuneTurns,
-) -> Result<Vec<TaskResult>, RunError> {
+) -> Result<Evaluation, RunError> {
     let actor = actor.filter(|_| learner.evaluates_plainly(split));
     let setup = learner.setup;
     let data = setup.data(split);
@@ -377,74 +364,97 @@ fn eval_tasks(
         env_threads: setup.env_threads,
         inference: setup.cfg.eval.inference,
     };
-    // An adaptation (`[eval.adapt]`) of the test tasks: its own evaluation, starting from the
-    // strategy's prompt. Training tasks are evaluated as they are.
-    let strategy = &setup.cfg.eval.prompt;
-    let adapt_cfg = &setup.cfg.eval.adapt;
-    if !adapt_cfg.is_none() && split == Split::Test {
-        let a = super::adapt::evaluate_adapted(
-            &learner.model,
-            setup,
-            data,
-            &settings,
-            strategy,
-            adapt_cfg,
-            rng,
-        )?;
-        learner.adapt_log = a.log;
-        return Ok(a.results);
-    }
-    // A prompt strategy other than the reference rule (`[eval.prompt]`): its own evaluation.
-    if !strategy.is_default() {
-        let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
-        learner.picks = s.picks;
-        return Ok(s.results);
-    }
-    // `positions[k]` is the task (index into `data.tasks`) of the k-th task passed to `evaluate`,
-    // whose episodes carry `task_index == k`.
-    let summarise_all = |positions: &[usize], eps: &[pdt_eval::EpisodeRecord]| -> Vec<TaskResult> {
-        positions
-            .iter()
-            .enumerate()
-            .map(|(k, &i)| {
-                let id = &data.tasks[i].id;
-                let mine: Vec<_> = eps.iter().filter(|e| e.task_index == k).collect();
-                summarise(&id.to_string(), id.index, &mine)
-            })
-            .collect()
+    // An adaptation is of the test tasks; training tasks are evaluated with its strategy alone.
+    let (select, adaptation) = match test_time {
+        TestTime::Reference => (None, None),
+        TestTime::Strategy(s) => (Some(s), None),
+        TestTime::Adapt { from, adaptation } => (Some(from), Some(adaptation)),
     };
-    // The reference fine-tunes before test-task evaluations only; training tasks are evaluated as is.
-    if !learner.variant.finetune || split == Split::Train {
-        let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
-        let eps = match actor {
-            Some(actor) => evaluate_through(&learner.model, tasks, &settings, actor)?,
-            None => evaluate(&learner.model, tasks, &settings)?,
-        };
-        let positions: Vec<usize> = (0..data.tasks.len()).collect();
-        return Ok(summarise_all(&positions, &eps));
+    let adaptation = adaptation.filter(|_| split == Split::Test);
+    let select = select.filter(|s| !s.is_default());
+    match adaptation {
+        // `[eval.adapt]`: its own evaluation, starting from the strategy's prompt.
+        Some(Adaptation::Prompt(adapt_cfg)) => {
+            let strategy = select.cloned().unwrap_or_default();
+            let a = super::adapt::evaluate_adapted(
+                &learner.model,
+                setup,
+                data,
+                &settings,
+                &strategy,
+                adapt_cfg,
+                rng,
+            )?;
+            return Ok(Evaluation {
+                tasks: plain(a.results),
+                adapt_log: a.log,
+                ..Default::default()
+            });
+        }
+        Some(&Adaptation::Finetune { steps, batch, lr }) => {
+            let tune = Finetune { steps, batch, lr };
+            return finetune_each(learner, &sampler, &settings, &tune, turns, rng, &make);
+        }
+        Some(Adaptation::Macaw { .. }) => {
+            return Err(RunError::Invalid(format!(
+                "MACAW's adaptation is MACAW's own; this run is {}",
+                setup.cfg.run.method.name()
+            )))
+        }
+        None => {}
     }
-    // MT-BC-Finetune: per task, adapt a copy of the weights on the task's demonstrations with a
-    // fresh optimiser, evaluate, restore. (The reference shares one optimiser across the test tasks
-    // of an evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
+    // A prompt strategy other than the reference rule: its own evaluation.
+    if let Some(strategy) = select {
+        let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
+        return Ok(Evaluation { tasks: plain(s.results), picks: s.picks, ..Default::default() });
+    }
+    let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
+    let eps = match actor {
+        Some(actor) => evaluate_through(&learner.model, tasks, &settings, actor)?,
+        None => evaluate(&learner.model, tasks, &settings)?,
+    };
+    let positions: Vec<usize> = (0..data.tasks.len()).collect();
+    Ok(Evaluation::of_tasks(plain(summarise_all(data, &positions, &eps))))
+}
+
+/// MT-BC-Finetune's fine-tuning before each test task: its steps, segments per step and
+/// learning rate.
+struct Finetune {
+    steps: u64,
+    batch: usize,
+    lr: f64,
+}
+
+/// Per task: adapts a copy of the weights on the task's demonstrations with a fresh optimiser,
+/// evaluates, restores. (The reference shares one optimiser across the test tasks of an
+/// evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
+fn finetune_each(
+    learner: &mut PromptDtLearner<'_>,
+    sampler: &BatchSampler<'_>,
+    settings: &EvalSettings,
+    tune: &Finetune,
+    turns: &dyn TuneTurns,
+    rng: &mut Rng,
+    make: &dyn Fn(usize, &mut Rng) -> Result<EvalTask, RunError>,
+) -> Result<Evaluation, RunError> {
+    let setup = learner.setup;
+    let data = setup.data(Split::Test);
     let snapshot: Vec<(String, Tensor)> =
         learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
     let mut results = Vec::new();
     for i in 0..data.tasks.len() {
         let task = make(i, rng)?;
-        let ocfg = AdamWConfig {
-            learning_rate: setup.cfg.eval.finetune_lr,
-            warmup_steps: 1,
-            ..setup.cfg.optim.clone()
-        };
+        let ocfg =
+            AdamWConfig { learning_rate: tune.lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
         let mut opt =
             Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
         // The tuning's dropout comes from libtorch's generator (in its turn); its episodes draw
         // nothing from it.
         turns.turn(&mut || {
-            for s in 0..setup.cfg.eval.finetune_steps {
+            for s in 0..tune.steps {
                 let seg = sampler.tail_segments(
                     i,
-                    setup.cfg.eval.finetune_batch,
+                    tune.batch,
                     setup.run_data.sampler_cfg.prompt_length,
                     rng,
                 );
@@ -460,8 +470,8 @@ fn eval_tasks(
             }
             Ok(())
         })?;
-        let eps = evaluate(&learner.model, vec![task], &settings)?;
-        results.extend(summarise_all(&[i], &eps));
+        let eps = evaluate(&learner.model, vec![task], settings)?;
+        results.extend(summarise_all(data, &[i], &eps));
         tch::no_grad(|| {
             let vars = learner.vs.variables();
             for (n, saved) in &snapshot {
@@ -471,7 +481,30 @@ fn eval_tasks(
             }
         });
     }
-    Ok(results)
+    Ok(Evaluation::of_tasks(plain(results)))
+}
+
+/// The results of the tasks at `positions` (indices into `data.tasks`): the k-th task passed to
+/// `evaluate` is `data.tasks[positions[k]]`, whose episodes carry `task_index == k`.
+fn summarise_all(
+    data: &pdt_data::MultiTaskDataset,
+    positions: &[usize],
+    eps: &[pdt_eval::EpisodeRecord],
+) -> Vec<TaskResult> {
+    positions
+        .iter()
+        .enumerate()
+        .map(|(k, &i)| {
+            let id = &data.tasks[i].id;
+            let mine: Vec<_> = eps.iter().filter(|e| e.task_index == k).collect();
+            summarise(&id.to_string(), id.index, &mine)
+        })
+        .collect()
+}
+
+/// Results of a rule without a per-task adaptation record.
+fn plain(results: Vec<TaskResult>) -> Vec<TaskEval> {
+    results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect()
 }
 
 /// How MT-BC-Finetune's fine-tuning before a test task gets libtorch's generator, from which its

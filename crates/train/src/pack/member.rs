@@ -8,10 +8,11 @@
 
 use super::engine::{SlotAct, SlotStep};
 use super::hub::Hub;
+use crate::config::TestTime;
 use crate::error::RunError;
 use crate::methods::prompt_dt::{read_iteration, PromptDtLearner, TuneTurns, Variant};
 use crate::methods::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps,
 };
 use crate::setup::{Setup, Split};
 use crate::step::DeviceBatch;
@@ -154,7 +155,12 @@ impl Learner for PackMember<'_> {
         read_iteration(at, cfg, stats)
     }
 
-    fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
+    fn evaluate(
+        &mut self,
+        split: Split,
+        test_time: &TestTime,
+        rng: &mut Rng,
+    ) -> Result<Evaluation, RunError> {
         self.sync()?;
         let mut solo = self.solo.borrow_mut();
         // The engine acts for the pack's runs (the batched one): the plain evaluation's forwards
@@ -180,9 +186,9 @@ impl Learner for PackMember<'_> {
                 GeneratorState::take(self.setup.device).map_err(generator_error)?
             };
             let turns = InTurns { state: RefCell::new(state), device: self.setup.device };
-            return solo.evaluate_in_turns(split, rng, &turns);
+            return solo.evaluate_in_turns(split, test_time, rng, &turns);
         }
-        solo.evaluate(split, rng)
+        solo.evaluate(split, test_time, rng)
     }
 
     fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {

@@ -439,11 +439,15 @@ fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
 /// shape (`[model]`), one device and matmul precision; the Prompt-DT variants only.
 fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
     for (cfg, dir, _) in runs {
-        if cfg.run.method == Method::Macaw {
+        let m = cfg.run.method;
+        if !m.packs() {
             return Err(RunError::Invalid(format!(
-                "run {}: run.method = \"macaw\" cannot train in a pack (MACAW trains alone; \
-                 docs/packs.md); train it with `promptdt train --config`",
-                dir.display()
+                "run {}: run.method = \"{}\" cannot train in a pack ({} trains alone; packs \
+                 take {}; docs/packs.md); train it with `promptdt train --config`",
+                dir.display(),
+                m.name(),
+                m.title(),
+                Method::names_where(Method::packs)
             )));
         }
     }
