@@ -4,8 +4,7 @@
 # 13); promptdt built anywhere (CPU-only link) takes libtorch's CUDA part from that PyTorch.
 #   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
-#      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
-#      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
+#      pack `_pt`, one solo run's step with the flat optimiser);
 #   R. (R_ROUNDS=N) one solo run's step and the packs of 12 and 36, alternated N times in one process;
 #   P. where a step's time goes: libtorch's profiler over one solo run's step (beside PyTorch's) and a
 #      pack of 12's, at Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step,
@@ -62,7 +61,7 @@ bench() { # timeout out-name args...
 
 log "0. link check"
 timeout 120 "$BIN" bench --device "$DEVICE" --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
-PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt,pack12_b100_act,solo12_b100_act}
+PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt}
 if [ -z "${SKIP_A:-}" ]; then
   log "A. training step vs PyTorch"
   bench 90 bench_train --python "$PY" $(its 15 5) --cases train_b64_flat,train_b560_flat

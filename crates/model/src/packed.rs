@@ -257,43 +257,6 @@ impl PackedBatch {
         })
     }
 
-    /// [`Self::new`] for acting: each run may give fewer than `batch` samples (the episodes an
-    /// evaluation has running), padded at the end with finite placeholder samples whose outputs
-    /// the caller drops (their history fully unmasked, their prompt fully masked, as
-    /// [`Self::new`]'s placeholders).
-    pub fn for_acting(
-        rows: &[Option<PackedRow<'_>>],
-        batch: i64,
-        k: i64,
-        p: i64,
-        cfg: &PromptDtConfig,
-        device: Device,
-    ) -> Result<Self, PackedError> {
-        let mut padded: Vec<Option<(Segments, Option<Segments>)>> = Vec::with_capacity(rows.len());
-        for (slot, row) in rows.iter().enumerate() {
-            let Some(row) = row else {
-                padded.push(None);
-                continue;
-            };
-            let a = row.history.batch_size();
-            if a > batch || row.prompt.is_some_and(|p| p.batch_size() != a) {
-                let prompt = row.prompt.map_or("none".into(), |p| p.batch_size().to_string());
-                let what = format!(
-                    "{a} history samples and prompt samples {prompt}, acting holds {batch} samples"
-                );
-                return Err(PackedError::Input { slot, what });
-            }
-            let history = pad_samples(row.history, batch - a, 1.0, device);
-            let prompt = row.prompt.map(|p| pad_samples(p, batch - a, 0.0, device));
-            padded.push(Some((history, prompt)));
-        }
-        let refs: Vec<Option<PackedRow<'_>>> = padded
-            .iter()
-            .map(|r| r.as_ref().map(|(h, p)| PackedRow { history: h, prompt: p.as_ref() }))
-            .collect();
-        Self::new(&refs, batch, k, p, cfg, device)
-    }
-
     /// Number of runs (N).
     pub fn slots(&self) -> i64 {
         self.prompt_lens.len() as i64
@@ -349,16 +312,6 @@ fn shared_placeholder(b: i64, t: i64, ds: i64, da: i64, mask: f64, device: Devic
         made.push((key, s.shallow_clone()));
     }
     s
-}
-
-/// `pad` placeholder samples after `s`'s samples, with the given mask value.
-fn pad_samples(s: &Segments, pad: i64, mask: f64, device: Device) -> Segments {
-    if pad == 0 {
-        return s.shallow_clone();
-    }
-    let (t, ds, da) = (s.len(), s.states.size()[2], s.actions.size()[2]);
-    let z = placeholder(pad, t, ds, da, mask, device);
-    cat_segments(&[s.shallow_clone(), z])
 }
 
 /// `pad` masked zero steps before `s`'s steps.

@@ -408,7 +408,7 @@ pub(crate) fn checkpoint_files(ck: &Path, step: u64) -> CheckpointFiles {
 /// crash before it leaves the previous checkpoint in force.
 fn save_checkpoint(
     dir: &Path,
-    learner: &dyn Learner,
+    learner: &mut dyn Learner,
     mut state: TrainState,
 ) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");

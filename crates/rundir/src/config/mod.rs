@@ -64,6 +64,16 @@ impl Method {
         !matches!(self, Method::Macaw)
     }
 
+    /// Whether the method's runs may train in a pack (`docs/packs.md`): its learner lets a pack's
+    /// engine take its gradient steps (the trainer's `Steppable`). MACAW's inner and outer loops
+    /// over another network have no step to batch with another run's.
+    pub fn packs(self) -> bool {
+        match self {
+            Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune => true,
+            Method::Macaw => false,
+        }
+    }
+
     /// Whether the method adapts to each test task (fine-tuning, MACAW's gradient steps) before
     /// it acts there: its test-time policy is not the checkpoint as saved, so it is not served.
     pub fn adapts_before_acting(self) -> bool {

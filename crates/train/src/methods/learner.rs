@@ -1,8 +1,11 @@
-//! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in.
+//! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in; and
+//! [`Steppable`], what a pack asks of a method besides.
 
 use crate::error::{io_err, RunError};
+use crate::optim::SlotState;
 use crate::run_dir::temp_name;
 use crate::setup::Split;
+use crate::step::DeviceBatch;
 use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
 use pdt_rundir::AdaptationStats;
@@ -156,8 +159,9 @@ pub(crate) trait Learner {
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError>;
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
-    /// as `adam_steps`.
-    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError>;
+    /// as `adam_steps`. (`&mut`: a run of a pack takes its weights back from the pack's engine
+    /// first, `crate::pack::member`.)
+    fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError>;
 
     /// Restores weights and optimiser from `files`, checking the state file's record `saved`.
     fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError>;
@@ -188,4 +192,27 @@ pub(crate) trait Learner {
     fn set_adaptation(&mut self, _change: &MacawAdaptation) -> Result<(), RunError> {
         Err(RunError::Invalid("this method has no test-time adaptation".into()))
     }
+}
+
+/// A [`Learner`] whose gradient steps a pack's engine can take (`crate::pack`, docs/packs.md): it
+/// samples its batches, hands its weights and optimiser state to the engine and takes them back;
+/// its evaluations and files stay its own. The registry returns one only for a method that
+/// `Method::packs` (`super::steppable`).
+pub(crate) trait Steppable: Learner {
+    /// The next training batch from the run's batch stream (`rng`), on the run's device: the
+    /// batch its own [`Learner::train_iteration`] would step on.
+    fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch;
+
+    /// The weights and optimiser state, copied (the learner's own are never shared).
+    fn export(&self) -> SlotState;
+
+    /// Sets the weights (each by name and shape) and the optimiser state.
+    fn import(&mut self, state: SlotState) -> Result<(), RunError>;
+
+    /// Before an evaluation of `split`: whether it draws from libtorch's random generator
+    /// (MT-BC-Finetune's fine-tuning dropout), and if so the generator put where the run's own
+    /// gradient step `last` (its index and batch) left it, as it stands after that step in a run
+    /// trained alone. A packed run's generator has since served the other runs; the pack holds it
+    /// through such an evaluation. Call it with `crate::streams::torch_rng_lock` held.
+    fn replay_step_draws(&self, split: Split, last: Option<(u64, &DeviceBatch)>) -> bool;
 }

@@ -10,7 +10,7 @@
 
 mod optim;
 
-use super::engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
+use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::step::{LossOn, PendingStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
@@ -239,57 +239,6 @@ impl PackEngine for BatchedEngine {
         // step while the device computes this one.
         let stats = Tensor::stack(&[loss.detach(), norms], 0); // [2, N]
         Ok((0..n).map(|s| active[s].then(|| PendingStats::column(&stats, s, lrs[s]))).collect())
-    }
-
-    fn acts_together(&self) -> bool {
-        true
-    }
-
-    fn act(&mut self, acts: Vec<Option<SlotAct>>) -> Result<Vec<Option<Tensor>>, RunError> {
-        let n = self.specs.len();
-        if acts.len() != n {
-            return Err(RunError::Invalid(format!(
-                "pack: {} slot forwards for a pack of {n} runs",
-                acts.len()
-            )));
-        }
-        for (slot, (a, spec)) in acts.iter().zip(&self.specs).enumerate() {
-            if a.as_ref().is_some_and(|a| a.prompt.is_some() != spec.uses_prompt) {
-                return Err(RunError::Invalid(format!(
-                    "pack: run {slot} {}, its evaluation's forward {}",
-                    if spec.uses_prompt { "uses a prompt" } else { "uses no prompt" },
-                    if spec.uses_prompt { "has none" } else { "has one" }
-                )));
-            }
-        }
-        let mut out: Vec<Option<Tensor>> = (0..n).map(|_| None).collect();
-        // One forward per padded size among the requests (a size is an evaluation split's,
-        // fixed for the pack: `SlotAct::rows`).
-        let mut sizes: Vec<i64> = acts.iter().flatten().map(|a| a.rows).collect();
-        sizes.sort_unstable();
-        sizes.dedup();
-        let (k, p) = (self.layout.history_len as i64, self.layout.prompt_len as i64);
-        for rows in sizes {
-            let picked: Vec<Option<PackedRow<'_>>> = acts
-                .iter()
-                .map(|a| {
-                    a.as_ref()
-                        .filter(|a| a.rows == rows)
-                        .map(|a| PackedRow { history: &a.history, prompt: a.prompt.as_ref() })
-                })
-                .collect();
-            let device = self.model.device();
-            let batch = PackedBatch::for_acting(&picked, rows, k, p, &self.model.cfg, device)
-                .map_err(invalid)?;
-            let actions = self.model.act_all(&batch); // [N, rows, da]
-            for (slot, row) in picked.iter().enumerate() {
-                if let Some(row) = row {
-                    let a = row.history.batch_size();
-                    out[slot] = Some(actions.get(slot as i64).narrow(0, 0, a)); // [A, da]
-                }
-            }
-        }
-        Ok(out)
     }
 
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {

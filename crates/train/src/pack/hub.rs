@@ -1,23 +1,13 @@
 //! The meeting point of a pack's runs: each run's thread submits its gradient step, prepares its
 //! next batch and waits; when every run still training has submitted (or left), one call of the
 //! engine steps them all (by the pack's stepper thread, [`Hub::stepper`], or a waiting run if it
-//! gets there first) and each run gets its own result. An engine whose slots
-//! step alone (`PackEngine::steps_alone`: the solo engine on its threads) starts each run's step as
-//! soon as it is submitted, and the run waits for its own result only: its runs are not in
-//! lockstep, as separate processes would not be.
-//!
-//! An engine that acts for its runs (`PackEngine::acts_together`: the batched one) also takes
-//! their evaluations' forwards together: a run in an evaluation ([`Hub::acting`]) submits each
-//! environment step's forward ([`Hub::act`]), and once every run in an evaluation has submitted,
-//! one engine call computes them all. Only the runs in an evaluation are waited for: a run that
-//! trains meanwhile waits (at its next step) for those that evaluate, never the other way round.
+//! gets there first) and each run gets its own result.
 
-use super::engine::{PackEngine, PendingStep, SlotAct, SlotState, SlotStep};
+use super::engine::{PackEngine, SlotState, SlotStep};
 use crate::error::RunError;
 use crate::step::PendingStats;
 use crate::streams::torch_rng_lock;
 use std::sync::{Condvar, Mutex, MutexGuard};
-use tch::Tensor;
 
 /// The engine and the runs' submissions, behind one lock.
 struct Table {
@@ -29,14 +19,6 @@ struct Table {
     /// Each submitted run's result, until it takes it (an engine error as its message, shared by
     /// every run of the failed step).
     results: Vec<Option<Result<PendingStats, String>>>,
-    /// An engine that steps its slots alone: each run's started step (or the error of its start),
-    /// until the run waits for it.
-    started: Vec<Option<Result<PendingStep, RunError>>>,
-    /// The runs in an evaluation whose forwards the engine computes ([`Hub::acting`]).
-    acting: Vec<bool>,
-    /// Their submitted forwards not yet computed, and their results until taken.
-    act_pending: Vec<Option<SlotAct>>,
-    act_results: Vec<Option<Result<Tensor, String>>>,
     /// The pack's runs have all returned: [`Hub::stepper`] ends.
     closed: bool,
 }
@@ -46,30 +28,6 @@ impl Table {
     fn ready(&self) -> bool {
         let submitted = self.pending.iter().any(Option::is_some);
         submitted && self.active.iter().zip(&self.pending).all(|(a, p)| !a || p.is_some())
-    }
-
-    /// Every run in an evaluation has submitted its forward, and at least one has.
-    fn act_ready(&self) -> bool {
-        let submitted = self.act_pending.iter().any(Option::is_some);
-        submitted && self.acting.iter().zip(&self.act_pending).all(|(a, p)| !a || p.is_some())
-    }
-
-    /// One engine call for the submitted forwards; their results filed.
-    fn act_step(&mut self) {
-        let acts: Vec<Option<SlotAct>> = self.act_pending.iter_mut().map(Option::take).collect();
-        let submitted: Vec<bool> = acts.iter().map(Option::is_some).collect();
-        let engine = &mut self.engine;
-        let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.act(acts)))
-            .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())));
-        let mut out = out.map_err(|e| format!("the pack engine failed to act: {e}"));
-        for i in (0..submitted.len()).filter(|&i| submitted[i]) {
-            self.act_results[i] = Some(match &mut out {
-                Ok(actions) => actions.get_mut(i).and_then(Option::take).ok_or_else(|| {
-                    format!("the pack engine returned no actions for the run in slot {i}")
-                }),
-                Err(e) => Err(e.clone()),
-            });
-        }
     }
 
     /// One engine step for the submitted runs; their results filed.
@@ -112,10 +70,6 @@ impl Hub {
                 active: vec![true; n],
                 pending: (0..n).map(|_| None).collect(),
                 results: (0..n).map(|_| None).collect(),
-                started: (0..n).map(|_| None).collect(),
-                acting: vec![false; n],
-                act_pending: (0..n).map(|_| None).collect(),
-                act_results: (0..n).map(|_| None).collect(),
                 closed: false,
             }),
             stepped: Condvar::new(),
@@ -137,21 +91,10 @@ impl Hub {
         if !t.active.get(slot).copied().unwrap_or(false) {
             return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
         }
-        if t.pending[slot].is_some() || t.results[slot].is_some() || t.started[slot].is_some() {
+        if t.pending[slot].is_some() || t.results[slot].is_some() {
             return Err(RunError::Invalid(format!(
                 "slot {slot} submitted a step before taking its last one's result"
             )));
-        }
-        if t.engine.steps_alone() {
-            let started = {
-                // The step's dropout masks are drawn as it starts.
-                let _rng = torch_rng_lock();
-                let engine = &mut t.engine;
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.start(slot, step)))
-                    .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
-            };
-            t.started[slot] = Some(started);
-            return Ok(());
         }
         t.pending[slot] = Some(step);
         if t.ready() {
@@ -165,14 +108,6 @@ impl Hub {
     /// computing (`PendingStats::read_all`).
     pub(crate) fn wait(&self, slot: usize) -> Result<PendingStats, RunError> {
         let mut t = self.lock();
-        if let Some(started) = t.started.get_mut(slot).and_then(Option::take) {
-            // The others may start, export or import while this step computes.
-            drop(t);
-            return started
-                .and_then(PendingStep::wait)
-                .map(PendingStats::ready)
-                .map_err(|e| RunError::Invalid(format!("the pack engine failed: {e}")));
-        }
         loop {
             if let Some(r) = t.results.get_mut(slot).and_then(Option::take) {
                 return r.map_err(RunError::Invalid);
@@ -192,13 +127,9 @@ impl Hub {
     /// next batch, then waits. Without this thread a step is taken by a run that waits, so once the
     /// last run submitted, the step started only when the first run had sampled its next batch
     /// (each run samples at once, after its own submission): the device idled for a sampling
-    /// between steps. A run that waits still takes a ready step itself if it gets there first; an
-    /// engine whose slots step alone needs no stepper (this returns at once).
+    /// between steps. A run that waits still takes a ready step itself if it gets there first.
     pub(crate) fn stepper(&self) {
         let mut t = self.lock();
-        if t.engine.steps_alone() {
-            return;
-        }
         loop {
             if t.closed {
                 return;
@@ -222,7 +153,6 @@ impl Hub {
         if let Some(a) = t.active.get_mut(slot) {
             *a = false;
             t.pending[slot] = None;
-            t.started[slot] = None;
         }
         self.step_if_ready(&mut t);
     }
@@ -238,41 +168,6 @@ impl Hub {
         true
     }
 
-    /// `slot`'s run is in an evaluation until the guard is dropped: the others' forwards wait for
-    /// its own ([`Self::act`]).
-    pub(crate) fn acting(&self, slot: usize) -> Acting<'_> {
-        if let Some(a) = self.lock().acting.get_mut(slot) {
-            *a = true;
-        }
-        Acting { hub: self, slot }
-    }
-
-    /// The actions of `slot`'s forward (its run [`Self::acting`]), computed with the forwards of
-    /// every other run in an evaluation.
-    pub(crate) fn act(&self, slot: usize, act: SlotAct) -> Result<Tensor, RunError> {
-        let mut t = self.lock();
-        if !t.acting.get(slot).copied().unwrap_or(false) {
-            return Err(RunError::Invalid(format!("slot {slot} acts outside an evaluation")));
-        }
-        if t.act_pending[slot].is_some() || t.act_results[slot].is_some() {
-            return Err(RunError::Invalid(format!(
-                "slot {slot} submitted a forward before taking its last one's actions"
-            )));
-        }
-        t.act_pending[slot] = Some(act);
-        loop {
-            if let Some(r) = t.act_results[slot].take() {
-                return r.map_err(RunError::Invalid);
-            }
-            if t.act_ready() {
-                t.act_step();
-                self.stepped.notify_all();
-                continue;
-            }
-            t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
-        }
-    }
-
     /// `slot`'s weights and optimiser state as a solo run holds them.
     pub(crate) fn export(&self, slot: usize) -> Result<SlotState, RunError> {
         self.lock().engine.export(slot)
@@ -284,29 +179,9 @@ impl Hub {
     }
 }
 
-/// A run of the pack in an evaluation ([`Hub::acting`]); when dropped (the evaluation ended,
-/// failed or panicked), the others' forwards no longer wait for it.
-pub(crate) struct Acting<'h> {
-    hub: &'h Hub,
-    slot: usize,
-}
-
-impl Drop for Acting<'_> {
-    fn drop(&mut self) {
-        let mut t = self.hub.lock();
-        if let Some(a) = t.acting.get_mut(self.slot) {
-            *a = false;
-            t.act_pending[self.slot] = None;
-            t.act_results[self.slot] = None;
-        }
-        // A waiting run computes the forwards it was waiting for (`Hub::act`).
-        self.hub.stepped.notify_all();
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    //! The hub's meeting of evaluation forwards, over the real batched engine (counted).
+    //! The hub over the real batched engine: its stepper takes a ready step.
     #![allow(clippy::unwrap_used)] // a failed unwrap is a failed test
 
     use super::*;
@@ -314,7 +189,6 @@ mod tests {
     use crate::pack::{BatchedEngine, PackLayout, SlotSpec};
     use crate::step::{LossOn, PendingStats};
     use pdt_model::{PromptDtConfig, Segments};
-    use std::sync::{Arc, Barrier};
     use tch::Device;
 
     const K: usize = 3;
@@ -328,37 +202,6 @@ mod tests {
             max_ep_len: 30,
             n_positions: 3 * (2 + K),
             ..PromptDtConfig::reference(2, 2)
-        }
-    }
-
-    /// The batched engine, its `act` calls recorded (how many runs each computed).
-    struct Counting {
-        inner: BatchedEngine,
-        calls: Arc<Mutex<Vec<usize>>>,
-    }
-
-    impl PackEngine for Counting {
-        fn slots(&self) -> usize {
-            self.inner.slots()
-        }
-        fn step(
-            &mut self,
-            s: Vec<Option<SlotStep>>,
-        ) -> Result<Vec<Option<PendingStats>>, RunError> {
-            self.inner.step(s)
-        }
-        fn export(&self, slot: usize) -> Result<SlotState, RunError> {
-            self.inner.export(slot)
-        }
-        fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError> {
-            self.inner.import(slot, state)
-        }
-        fn acts_together(&self) -> bool {
-            true
-        }
-        fn act(&mut self, acts: Vec<Option<SlotAct>>) -> Result<Vec<Option<Tensor>>, RunError> {
-            self.calls.lock().unwrap().push(acts.iter().flatten().count());
-            self.inner.act(acts)
         }
     }
 
@@ -380,14 +223,13 @@ mod tests {
         BatchedEngine::new(specs, layout, Device::Cpu).unwrap()
     }
 
-    /// Run `slot`'s forward at environment step `t` (2 episodes, padded to 4).
-    fn act_at(slot: usize, t: usize) -> SlotAct {
-        let v: Vec<f32> = (0..2 * K * 2).map(|i| 0.01 * (i + 7 * slot + 3 * t) as f32).collect();
+    /// Run `slot`'s batch of 2 histories.
+    fn history(slot: usize) -> Segments {
+        let v: Vec<f32> = (0..2 * K * 2).map(|i| 0.01 * (i + 7 * slot) as f32).collect();
         let rtg = vec![0.5f32; 2 * K];
-        let ts: Vec<i64> = (0..2 * K as i64).map(|i| i % K as i64 + t as i64).collect();
+        let ts: Vec<i64> = (0..2 * K as i64).map(|i| i % K as i64).collect();
         let mask = vec![1f32; 2 * K];
-        let history = Segments::from_host(2, K, 2, 2, &v, &v, &rtg, &ts, &mask, Device::Cpu);
-        SlotAct { history, prompt: None, rows: 4 }
+        Segments::from_host(2, K, 2, 2, &v, &v, &rtg, &ts, &mask, Device::Cpu)
     }
 
     /// The batched engine, saying when it has taken a step.
@@ -424,8 +266,7 @@ mod tests {
         std::thread::scope(|scope| {
             let stepper = scope.spawn(|| hub.stepper());
             for slot in 0..3 {
-                let batch =
-                    crate::step::DeviceBatch { history: act_at(slot, 0).history, prompt: None };
+                let batch = crate::step::DeviceBatch { history: history(slot), prompt: None };
                 hub.submit(slot, SlotStep { step: 0, batch }).unwrap();
             }
             // No run has called `wait`: only the stepper can have taken the step (without it, this
@@ -438,46 +279,5 @@ mod tests {
             hub.close();
             stepper.join().unwrap();
         });
-    }
-
-    #[test]
-    fn the_runs_in_an_evaluation_act_together_and_one_that_leaves_is_not_waited_for() {
-        // What each run's forwards give computed directly, one run at a time.
-        let mut direct = engine();
-        let want: Vec<Vec<Tensor>> = (0..3)
-            .map(|slot| {
-                (0..5)
-                    .map(|t| {
-                        let mut acts: Vec<Option<SlotAct>> = (0..3).map(|_| None).collect();
-                        acts[slot] = Some(act_at(slot, t));
-                        direct.act(acts).unwrap()[slot].take().unwrap()
-                    })
-                    .collect()
-            })
-            .collect();
-        let calls = Arc::new(Mutex::new(Vec::new()));
-        let hub = Hub::new(Box::new(Counting { inner: engine(), calls: Arc::clone(&calls) }));
-        let start = Barrier::new(3);
-        std::thread::scope(|scope| {
-            for (slot, want) in want.into_iter().enumerate() {
-                let (hub, start) = (&hub, &start);
-                scope.spawn(move || {
-                    let acting = hub.acting(slot);
-                    start.wait();
-                    // Run 2's evaluation ends after two steps; the others go on without it.
-                    let steps = if slot == 2 { 2 } else { 5 };
-                    for (t, want) in want.iter().enumerate().take(steps) {
-                        let got = hub.act(slot, act_at(slot, t)).unwrap();
-                        assert!(got.equal(want), "run {slot}, step {t}");
-                    }
-                    drop(acting);
-                });
-            }
-        });
-        // Every forward computed with all the runs then in an evaluation.
-        assert_eq!(*calls.lock().unwrap(), vec![3, 3, 2, 2, 2]);
-        // Outside an evaluation, a forward is refused.
-        let e = hub.act(0, act_at(0, 0)).unwrap_err().to_string();
-        assert!(e.contains("slot 0 acts outside an evaluation"), "{e}");
     }
 }

@@ -4,16 +4,14 @@
 //! [`PackEngine`] that steps every run of the pack at once (`docs/packs.md`).
 //!
 //! - `engine`: the contract between the runs and an engine.
-//! - `solo`: [`SoloEngine`], the exact engine (each run's solo step: on the CPU each run on a thread
-//!   of its own, its steps taken as the run hands them over; elsewhere in turn).
-//! - `batched`: [`BatchedEngine`], every run's step as one batched computation.
-//! - `hub`: where the runs' threads meet for each gradient step (or start their own, for an engine
-//!   whose slots step alone), and, with an engine that acts for its runs, for each environment
-//!   step's forward of their evaluations.
+//! - `solo`: [`SoloEngine`], the exact engine (each run's solo step, one run after another): the
+//!   CPU's engine and the batched engine's test oracle.
+//! - `batched`: [`BatchedEngine`], every run's step as one batched computation (the GPU's).
+//! - `hub`: where the runs' threads meet for each gradient step.
 //! - `member`: a run of the pack as the run loop's `Learner` (solo code for all but the step).
 //! - `run`: [`train_pack`], the pack checked, its data loaded once, its runs' loops in threads.
-//! - `dir`: a pack directory (`pack.json` and the runs' directories): [`train_pack_dir`],
-//!   [`resume_pack_dir`].
+//! - `dir`: a pack directory (its `pack.json`, `pdt_rundir::pack::PackRecord`, and the runs'
+//!   directories): [`train_pack_dir`], [`resume_pack_dir`].
 
 pub mod batched;
 mod dir;
@@ -24,7 +22,7 @@ mod run;
 pub mod solo;
 
 pub use batched::{BatchedEngine, PackLayout};
-pub use dir::{is_pack_dir, resume_pack_dir, train_pack_dir, PackRecord, PackRecordRun, PACK_JSON};
-pub use engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
-pub use run::{train_pack, Engine, PackEval, PackOptions, PackRun};
-pub use solo::{SoloEngine, SoloThreads};
+pub use dir::{resume_pack_dir, train_pack_dir};
+pub use engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+pub use run::{train_pack, PackOptions, PackRun};
+pub use solo::SoloEngine;
