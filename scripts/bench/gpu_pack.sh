@@ -13,8 +13,6 @@
 #      solo and a pack of 12) and the launch-bound one (pack12_b32), and a solo step with the last
 #      block for the state tokens only against every token (train_b560_flat, _flat_all); the solo
 #      step against PyTorch with TF32 too (T_S seconds; SKIP_T=1 skips it);
-#   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
-#      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
 #      (4 methods x 3 seeds), one solo run (or each of D_SOLO_CELLS in turn), a pack of 12 Prompt-DT
 #      seeds (D_SEEDS_S > 0, `train --pack`), then the 12 runs as 12 processes at once; memory and
@@ -24,7 +22,7 @@
 # Usage (repository root): BIN=... DATA=... OUT=... [DEADLINE=570] bash scripts/bench/gpu_pack.sh
 # A rehearsal on a machine without a GPU (every phase's flags and the library path, before device time
 # is spent on them): DEVICE=cpu PYTHON=.venv/bin/python with small case lists and short timings, e.g.
-#   DEVICE=cpu PYTHON=.venv/bin/python SKIP_C=1 D_MIN_S=9999 PACKS=pack3_b32,solo1_b32 \
+#   DEVICE=cpu PYTHON=.venv/bin/python D_MIN_S=9999 PACKS=pack3_b32,solo1_b32 \
 #   P_CASES=train_b64_flat,pack3_b32 T_CASES=pack3_b32 ITERS=1 BIN=target/release/promptdt DATA=x OUT=o \
 #   bash scripts/bench/gpu_pack.sh
 set -u
@@ -88,12 +86,6 @@ if [ -z "${SKIP_T:-}" ] && [ "$(left)" -gt $((3 * ${T_S:-80})) ]; then
   bench ${T_S:-80} bench_fp32 $(its 8 3) --cases "$T_CASES"
   bench ${T_S:-80} bench_tf32 $(its 8 3) --cases "$T_CASES" --matmul tf32
   bench ${T_S:-80} bench_tf32_torch $(its 10 3) --cases train_b560_flat --python "$PY" --matmul tf32
-fi
-# Each side is a whole process (CUDA start-up included): a warm-up pair, then C_N timed pairs.
-if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-360} ]; then
-  log "C. a pack's evaluations, together vs each run alone"
-  timeout ${C_S:-150} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE="$DEVICE" RUNS=12 \
-    EPISODES=50 N=${C_N:-1} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
 fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done

@@ -1,5 +1,5 @@
 //! Pack cases (issue 30): `pack<N>_b<B>` times one gradient step of N runs trained as one pack
-//! (`pdt_train::pack::BatchedEngine`), `solo<N>_b<B>` the same N runs' steps one after another in
+//! (`pdt_pack::BatchedEngine`), `solo<N>_b<B>` the same N runs' steps one after another in
 //! one process (N models, N optimisers): per iteration, one step of every run. The reference
 //! architecture (state 20, action 6), K = 20, a 5-step prompt, B samples per run; each run its own
 //! random batch, left-padded histories. Both use what a run uses on the device (`optim.flat =
@@ -13,10 +13,10 @@
 
 use crate::random_segments;
 use pdt_base::seed::derive_seed;
-use pdt_model::packed::{LayerNormPlan, MaskDraw};
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
+use pdt_pack::model::{LayerNormPlan, MaskDraw};
+use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
-use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
 use pdt_train::step::{train_step_with, DeviceBatch, LossOn};
 use std::time::Instant;
 use tch::{nn::VarStore, Device};

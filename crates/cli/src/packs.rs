@@ -1,5 +1,5 @@
 //! `promptdt train --pack` and `promptdt train --resume <pack directory>`: argument handling and
-//! display; the pack is one library call (`pdt_train::pack`).
+//! display; the pack is one library call (`pdt_pack`).
 
 use crate::args::TrainArgs;
 use crate::commands::bar;
@@ -10,9 +10,9 @@ pub fn is_pack(a: &TrainArgs) -> bool {
 }
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
+use pdt_pack::PackOptions;
 use pdt_rundir::pack::Engine;
 use pdt_train::config::{Overrides, TrainConfig};
-use pdt_train::pack::PackOptions;
 use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,
@@ -59,7 +59,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
     let (results, out) = match (&a.resume, &a.out) {
         (Some(dir), _) => {
             let opts = PackOptions { resume_with, ..opts };
-            (pdt_train::pack::resume_pack_dir(dir, opts)?, dir.clone())
+            (pdt_pack::resume_pack_dir(dir, opts)?, dir.clone())
         }
         (None, Some(out)) => {
             let overrides = Overrides {
@@ -79,7 +79,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
                 })?;
                 configs.push(cfg);
             }
-            (pdt_train::pack::train_pack_dir(configs, out, opts)?, out.clone())
+            (pdt_pack::train_pack_dir(configs, out, opts)?, out.clone())
         }
         (None, None) => bail!("--pack needs --out (the pack directory)"),
     };

@@ -14,9 +14,10 @@ pub(crate) mod prompt_dt;
 mod prompt_strategy;
 
 pub use learner::MacawAdaptation;
-pub(crate) use learner::{
+pub use learner::{
     CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
+pub use prompt_dt::read_iteration;
 
 use crate::config::Method;
 use crate::error::RunError;
@@ -36,7 +37,7 @@ pub(crate) fn learner<'s>(setup: &'s Setup) -> Result<Box<dyn Learner + 's>, Run
 /// The registry's packable learners: the learner of the run's method as a [`Steppable`], its model
 /// initialised from the run seed, for a method that `Method::packs`; any other is refused by name.
 /// Call it with libtorch's generator held (`streams::torch_rng_lock`).
-pub(crate) fn steppable<'s>(setup: &'s Setup) -> Result<Box<dyn Steppable + 's>, RunError> {
+pub fn steppable<'s>(setup: &'s Setup) -> Result<Box<dyn Steppable + 's>, RunError> {
     let method = setup.cfg.run.method;
     let learner: Option<Box<dyn Steppable + 's>> = match method {
         m @ (Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune) => {
@@ -48,7 +49,7 @@ pub(crate) fn steppable<'s>(setup: &'s Setup) -> Result<Box<dyn Steppable + 's>,
 }
 
 /// The error of a method that cannot train in a pack, naming it.
-pub(crate) fn cannot_pack(method: Method) -> RunError {
+pub fn cannot_pack(method: Method) -> RunError {
     RunError::Invalid(format!(
         "run.method = \"{}\" cannot train in a pack: only a method whose learner gives the pack \
          its gradient steps can (docs/packs.md; MACAW trains alone); train it with `promptdt \

@@ -107,7 +107,7 @@ impl PromptDtLearner<'_> {
     }
 }
 
-/// A Prompt-DT-family run in a pack (`crate::pack`).
+/// A Prompt-DT-family run in a pack (`pdt-pack`).
 impl Steppable for PromptDtLearner<'_> {
     fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch {
         DeviceBatch::new(&self.sampler.sample(rng), self.variant.prompt, self.setup.device)
@@ -152,7 +152,7 @@ impl Steppable for PromptDtLearner<'_> {
 /// step. A divergence (a non-finite loss or gradient norm) is the error of its step, as reading
 /// each at once would give, found after the rest of its iteration (which a stopped run never
 /// saves).
-pub(crate) fn read_iteration(
+pub fn read_iteration(
     at: IterationAt<'_>,
     cfg: &TrainConfig,
     steps: Vec<PendingStats>,
@@ -192,7 +192,7 @@ impl Learner for PromptDtLearner<'_> {
         let sampler = &self.sampler;
         let stats = at.each_step(|step| {
             // Dropout draws come from libtorch's generator, re-seeded per gradient step so that a
-            // resumed run continues the same stream and a packed run (`crate::pack`), whose steps
+            // resumed run continues the same stream and a packed run (`pdt-pack`), whose steps
             // interleave with other runs', draws the same masks as solo.
             tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, step) as i64);
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
@@ -361,7 +361,7 @@ fn eval_tasks(
         let mut opt =
             Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
         // The tuning's dropout comes from libtorch's generator (a packed run holds it for the
-        // whole evaluation: `crate::pack::member`); its episodes draw nothing from it.
+        // whole evaluation: `pdt-pack`); its episodes draw nothing from it.
         for s in 0..setup.cfg.eval.finetune_steps {
             let seg = sampler.tail_segments(
                 i,

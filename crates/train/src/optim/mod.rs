@@ -167,7 +167,7 @@ impl Optimizer {
 
 /// One run's weights and optimiser state in the solo format: the reference `state_dict` names
 /// and shapes, the per-parameter AdamW moments and step counts ([`AdamW::state`]). What a pack's
-/// slot exports and imports (`crate::pack`), and what a solo learner hands a pack.
+/// slot exports and imports (`pdt-pack`), and what a solo learner hands a pack.
 #[derive(Debug)]
 pub struct SlotState {
     pub weights: Vec<(String, Tensor)>,

@@ -11,8 +11,8 @@
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine};
 use pdt_train::optim::{AdamWConfig, Optimizer};
-use pdt_train::pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine};
 use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
 use std::sync::Mutex;
 use tch::{nn::VarStore, Device, Kind, Tensor};

@@ -2,11 +2,9 @@
 //! same order, with a run dimension in front of every weight.
 
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
-use crate::config::PromptDtConfig;
-use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
-use crate::gpt2::LastBlock;
-use crate::prompt_dt::Segments;
-use crate::tokens::state_rows;
+use pdt_model::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
+use pdt_model::tokens::state_rows;
+use pdt_model::{LastBlock, PromptDtConfig, Segments};
 use tch::{Device, Kind, Tensor};
 
 /// How a pack computes its LayerNorms (each run has its own weight and bias).
@@ -66,7 +64,7 @@ impl MaskDraw {
 }
 
 /// N Prompt-DT models of one shape with stacked weights (see the module documentation of
-/// [`crate::packed`]).
+/// [`crate::model`]).
 #[derive(Debug)]
 pub struct PackedPromptDt {
     pub cfg: PromptDtConfig,
@@ -100,7 +98,7 @@ struct Reused {
     /// Per sequence length L: the causal mask's `[1, 1, L, L]` (contiguous).
     causal: std::collections::HashMap<i64, Tensor>,
     /// The patterns of which runs have a prompt.
-    has_prompt: crate::device::BoolUploads,
+    has_prompt: pdt_model::device::BoolUploads,
 }
 
 /// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
@@ -355,7 +353,7 @@ impl PackedPromptDt {
         let n = self.slots as i64;
         let flags = match self.reused.lock() {
             Ok(mut r) => r.has_prompt.get(has, self.device),
-            Err(_) => crate::device::upload(has, self.device),
+            Err(_) => pdt_model::device::upload(has, self.device),
         };
         flags.view([n, 1, 1])
     }
@@ -483,12 +481,15 @@ impl PackedPromptDt {
             let mut row = noise.get(slot as i64);
             match drawn.first() {
                 Some(&(p, _)) if one_p => {
-                    crate::dropout::bernoulli_(&mut row, 1.0 - p);
+                    pdt_model::dropout::bernoulli_(&mut row, 1.0 - p);
                 }
                 _ => {
                     let mut off = 0;
                     for &(p, attn) in &drawn {
-                        crate::dropout::bernoulli_(&mut row.narrow(0, off, size(attn)), 1.0 - p);
+                        pdt_model::dropout::bernoulli_(
+                            &mut row.narrow(0, off, size(attn)),
+                            1.0 - p,
+                        );
                         off += size(attn);
                     }
                 }

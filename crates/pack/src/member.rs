@@ -8,17 +8,17 @@
 //! save). Each hand-over is a `&mut` call of the run loop's, so the member always knows which side
 //! holds the current state (`at_engine`).
 
-use super::engine::SlotStep;
-use super::hub::Hub;
-use crate::error::RunError;
-use crate::methods::prompt_dt::read_iteration;
-use crate::methods::{
-    CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
-};
-use crate::setup::{Setup, Split};
-use crate::step::DeviceBatch;
-use crate::streams::torch_rng_lock;
+use crate::engine::SlotStep;
+use crate::hub::Hub;
 use pdt_prompt::Rng;
+use pdt_train::methods::{
+    read_iteration, CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, Steppable,
+    TaskEval,
+};
+use pdt_train::run::RunError;
+use pdt_train::setup::{Setup, Split};
+use pdt_train::step::DeviceBatch;
+use pdt_train::streams::torch_rng_lock;
 use std::path::Path;
 
 /// Which side holds a run's current weights and optimiser state.
@@ -50,7 +50,7 @@ impl<'s> PackMember<'s> {
     pub(crate) fn new(setup: &'s Setup, slot: usize, hub: &'s Hub) -> Result<Self, RunError> {
         let learner = {
             let _rng = torch_rng_lock();
-            crate::methods::steppable(setup)?
+            pdt_train::methods::steppable(setup)?
         };
         Ok(Self { setup, slot, hub, learner, at_engine: Holder::Learner, last_step: None })
     }

@@ -3,10 +3,10 @@
 //! engine steps them all (by the pack's stepper thread, [`Hub::stepper`], or a waiting run if it
 //! gets there first) and each run gets its own result.
 
-use super::engine::{PackEngine, SlotState, SlotStep};
-use crate::error::RunError;
-use crate::step::PendingStats;
-use crate::streams::torch_rng_lock;
+use crate::engine::{PackEngine, SlotState, SlotStep};
+use pdt_train::run::RunError;
+use pdt_train::step::PendingStats;
+use pdt_train::streams::torch_rng_lock;
 use std::sync::{Condvar, Mutex, MutexGuard};
 
 /// The engine and the runs' submissions, behind one lock.
@@ -185,10 +185,10 @@ mod tests {
     #![allow(clippy::unwrap_used)] // a failed unwrap is a failed test
 
     use super::*;
-    use crate::config::AdamWConfig;
-    use crate::pack::{BatchedEngine, PackLayout, SlotSpec};
-    use crate::step::{LossOn, PendingStats};
+    use crate::{BatchedEngine, PackLayout, SlotSpec};
     use pdt_model::{PromptDtConfig, Segments};
+    use pdt_train::config::AdamWConfig;
+    use pdt_train::step::{LossOn, PendingStats};
     use tch::Device;
 
     const K: usize = 3;
@@ -212,7 +212,7 @@ mod tests {
                 uses_prompt: false,
                 loss_on: LossOn::History,
                 optim: AdamWConfig::default(),
-                last_block: crate::step::LastBlockChoice::Auto,
+                last_block: pdt_train::step::LastBlockChoice::Auto,
                 seed,
             })
             .collect();
@@ -266,7 +266,7 @@ mod tests {
         std::thread::scope(|scope| {
             let stepper = scope.spawn(|| hub.stepper());
             for slot in 0..3 {
-                let batch = crate::step::DeviceBatch { history: history(slot), prompt: None };
+                let batch = pdt_train::step::DeviceBatch { history: history(slot), prompt: None };
                 hub.submit(slot, SlotStep { step: 0, batch }).unwrap();
             }
             // No run has called `wait`: only the stepper can have taken the step (without it, this

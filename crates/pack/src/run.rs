@@ -2,22 +2,21 @@
 //! engine built, then each run's ordinary run loop in its own thread with a [`PackMember`] whose
 //! gradient steps meet the others' in the [`Hub`].
 
-use super::batched::{BatchedEngine, PackLayout};
-use super::engine::{PackEngine, SlotSpec};
-use super::hub::Hub;
-use super::member::PackMember;
-use super::solo::SoloEngine;
-use crate::config::TrainConfig;
-use crate::error::RunError;
-use crate::methods::Learner;
-use crate::run_loop::{
-    run_config_for, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
-};
-use crate::setup::{absolute, Setup};
-use crate::streams::torch_rng_lock;
+use crate::batched::{BatchedEngine, PackLayout};
+use crate::engine::{PackEngine, SlotSpec};
+use crate::hub::Hub;
+use crate::member::PackMember;
+use crate::solo::SoloEngine;
 use pdt_policy::RunData;
 use pdt_rundir::pack::Engine;
 use pdt_rundir::PackInfo;
+use pdt_train::config::TrainConfig;
+use pdt_train::methods::Learner;
+use pdt_train::run::{
+    run_config_for, train_learner, Progress, ResumeWith, RunError, TrainOptions, TrainSummary,
+};
+use pdt_train::setup::{absolute, Setup};
+use pdt_train::streams::torch_rng_lock;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -317,7 +316,7 @@ fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
 fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
     for (cfg, dir, _) in runs {
         if !cfg.run.method.packs() {
-            let e = crate::methods::cannot_pack(cfg.run.method);
+            let e = pdt_train::methods::cannot_pack(cfg.run.method);
             return Err(RunError::Invalid(format!("run {}: {e}", dir.display())));
         }
     }

@@ -3,12 +3,11 @@
 //! created, and one ordinary run directory per run beside it. With the record, a pack killed at
 //! any moment (even before some of its runs had a directory) resumes from its directory alone.
 
-use super::run::{prepare_pack, run_pack, train_pack, PackOptions, PackRun};
-use crate::config::TrainConfig;
-use crate::error::{io_err, RunError};
-use crate::run_loop::TrainSummary;
+use crate::run::{prepare_pack, run_pack, train_pack, PackOptions, PackRun};
 use pdt_base::fs::write_atomic;
 use pdt_rundir::pack::{is_pack_dir, Engine, PackRecord, PackRecordRun, PACK_JSON};
+use pdt_train::config::TrainConfig;
+use pdt_train::run::{RunError, TrainSummary};
 use std::path::{Component, Path, PathBuf};
 
 /// Starts a pack of `configs` in the new pack directory `out`: `pack.json`, then each run in
@@ -40,7 +39,7 @@ pub fn train_pack_dir(
     let mut runs = Vec::with_capacity(configs.len());
     for cfg in &mut configs {
         // Recorded absolute, so the pack resumes from any directory.
-        cfg.data.dir = crate::setup::absolute(&cfg.data.dir);
+        cfg.data.dir = pdt_train::setup::absolute(&cfg.data.dir);
         let family = pdt_envs::family(&cfg.env.name)?;
         let name = cfg.run_name(family.name());
         if runs.iter().any(|r: &PackRecordRun| r.dir == name) {
@@ -65,11 +64,12 @@ pub fn train_pack_dir(
     // Checked and built before anything is written: a refused pack leaves no record behind.
     let ready = prepare_pack(members, &opts)?;
     let record = PackRecord { engine: engine.name().into(), eval: None, runs };
-    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    std::fs::create_dir_all(out).map_err(|source| RunError::Io { path: out.into(), source })?;
     let path = out.join(PACK_JSON);
     let text = serde_json::to_string_pretty(&record)
         .map_err(|e| RunError::Corrupt { path: path.clone(), message: e.to_string() })?;
-    write_atomic(&path, format!("{text}\n").as_bytes()).map_err(io_err(&path))?;
+    write_atomic(&path, format!("{text}\n").as_bytes())
+        .map_err(|source| RunError::Io { path: path.clone(), source })?;
     Ok(run_pack(ready, opts))
 }
 

@@ -5,12 +5,13 @@
 //! error while the others finish; runs that cannot share a pack are refused.
 #![allow(clippy::unwrap_used, clippy::result_large_err)] // test helpers: a failed unwrap is a failed test
 
-#[path = "support/runs.rs"]
+// The trainer's run helpers, shared with its own tests.
+#[path = "../../train/tests/support/runs.rs"]
 mod runs;
 
+use pdt_pack::{train_pack, PackOptions, PackRun};
 use pdt_rundir::pack::Engine;
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::pack::{train_pack, PackOptions, PackRun};
 use pdt_train::run::{RunError, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;

@@ -11,13 +11,13 @@
 //! - Parameters a slot's run never uses (the prompt layers of a no-prompt run; the heads no loss
 //!   reads) get no update and no step count for that slot, as PyTorch skips a `None` gradient.
 
-use crate::error::RunError;
+use pdt_train::run::RunError;
 // A slot's state is a solo run's, so the optimiser owns its type (the solo learner hands it over).
-pub use crate::optim::SlotState;
+pub use pdt_train::optim::SlotState;
 
-use crate::optim::AdamWConfig;
-use crate::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats};
 use pdt_model::PromptDtConfig;
+use pdt_train::optim::AdamWConfig;
+use pdt_train::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats};
 
 /// What an engine knows about one run of the pack, fixed for the pack's life.
 #[derive(Debug, Clone)]

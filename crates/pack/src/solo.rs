@@ -1,17 +1,17 @@
-//! The exact engine: each slot an ordinary solo model (`PromptDt` and `crate::optim::Optimizer`),
-//! stepped with the solo step (`crate::step::train_step`), one slot after another. A run trained
+//! The exact engine: each slot an ordinary solo model (`PromptDt` and `pdt_train::optim::Optimizer`),
+//! stepped with the solo step (`pdt_train::step::train_step`), one slot after another. A run trained
 //! through it is the same run trained alone, bit for bit: it is the CPU's engine and the oracle the
 //! batched engine is tested against. (On the CPU a pack of N runs so takes about the time of its
 //! runs one after another; `reproduce --jobs` runs them as processes at once instead.)
 
-use super::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
-use crate::error::RunError;
-use crate::optim::Optimizer;
-use crate::step::{train_step_with, PendingStats};
-use crate::streams::STREAM_DROPOUT;
+use crate::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::Dropout;
 use pdt_model::PromptDt;
+use pdt_train::optim::Optimizer;
+use pdt_train::run::RunError;
+use pdt_train::step::{train_step_with, PendingStats};
+use pdt_train::streams::STREAM_DROPOUT;
 use tch::{nn::VarStore, Device};
 
 /// One run of the pack: its model and optimiser, as a solo run holds them.
@@ -29,7 +29,7 @@ pub struct SoloEngine {
 
 impl SoloEngine {
     /// One slot per spec on `device`. Building a model draws its initial weights from libtorch's
-    /// generator: call it with `crate::streams::torch_rng_lock` held. The weights drawn here are
+    /// generator: call it with `pdt_train::streams::torch_rng_lock` held. The weights drawn here are
     /// placeholders: each run imports its own (its seed's initialisation or its checkpoint)
     /// before its first step.
     pub fn new(specs: Vec<SlotSpec>, device: Device) -> Self {
@@ -38,7 +38,7 @@ impl SoloEngine {
             .map(|spec| {
                 let vs = VarStore::new(device);
                 let mut model = PromptDt::new(&vs.root(), &spec.model);
-                model.set_last_block(crate::step::last_block(spec.last_block, device, false));
+                model.set_last_block(pdt_train::step::last_block(spec.last_block, device, false));
                 let opt = Optimizer::new(&vs, &spec.model.parameter_names(), spec.optim.clone());
                 Slot { spec, vs, model, opt }
             })

@@ -1,9 +1,9 @@
-//! A pack of N Prompt-DT models of one shape, computed as one (issue 30): every parameter carries a
+//! A pack of N Prompt-DT models of one shape, computed as one: every parameter carries a
 //! leading run dimension N (a `Conv1D` weight `[N, in, out]`, a LayerNorm weight `[N, H]`, the
 //! timestep table `[N, max_ep_len, H]`), and the forward pass runs all N models with batched matrix
 //! products (`baddbmm`), one kernel per layer for the whole pack.
 //!
-//! Each run's computation equals its solo [`crate::PromptDt`] computation up to rounding:
+//! Each run's computation equals its solo [`pdt_model::PromptDt`] computation up to rounding:
 //! - Runs may differ in prompt length (Table 1) and in whether they use a prompt at all (MT-ORL):
 //!   every run's prompt is *left*-padded to the pack's prompt length `P` with masked steps, so its
 //!   sequence is `[padding ; its prompt ; its history]`. The model has no position embedding (the
@@ -23,8 +23,7 @@
 //!
 //! Row `n * B + b` of a flattened `[N*B, ...]` tensor is sample `b` of run `n`.
 
-use crate::config::PromptDtConfig;
-use crate::prompt_dt::Segments;
+use pdt_model::{PromptDtConfig, Segments};
 use tch::{Device, Kind, Tensor};
 
 /// Why a pack's forward pass or weights were refused.
