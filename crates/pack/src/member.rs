@@ -56,7 +56,7 @@ impl<'s> PackMember<'s> {
     }
 
     /// The learner's state handed to the engine's slot, unless the slot already holds it.
-    fn to_engine(&mut self) -> Result<(), RunError> {
+    fn hand_to_engine(&mut self) -> Result<(), RunError> {
         if self.at_engine == Holder::Learner {
             self.hub.import(self.slot, self.learner.export())?;
             self.at_engine = Holder::Both;
@@ -65,7 +65,7 @@ impl<'s> PackMember<'s> {
     }
 
     /// The engine slot's state taken back into the learner, unless the learner holds it.
-    fn from_engine(&mut self) -> Result<(), RunError> {
+    fn take_back(&mut self) -> Result<(), RunError> {
         if self.at_engine == Holder::Engine {
             self.learner.import(self.hub.export(self.slot)?)?;
             self.at_engine = Holder::Both;
@@ -92,7 +92,7 @@ impl Learner for PackMember<'_> {
         at: IterationAt<'_>,
         rng: &mut Rng,
     ) -> Result<IterationMetrics, RunError> {
-        self.to_engine()?;
+        self.hand_to_engine()?;
         self.at_engine = Holder::Engine;
         let (hub, slot, learner) = (self.hub, self.slot, &*self.learner);
         let mut last = None;
@@ -118,7 +118,7 @@ impl Learner for PackMember<'_> {
     }
 
     fn evaluate(&mut self, split: Split, rng: &mut Rng) -> Result<Vec<TaskEval>, RunError> {
-        self.from_engine()?;
+        self.take_back()?;
         let last = self.last_step.as_ref().map(|(s, b)| (*s, b));
         let rng_lock = torch_rng_lock();
         if self.learner.replay_step_draws(split, last) {
@@ -132,7 +132,7 @@ impl Learner for PackMember<'_> {
     }
 
     fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
-        self.from_engine()?;
+        self.take_back()?;
         self.learner.save(files)
     }
 
