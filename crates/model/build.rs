@@ -5,8 +5,7 @@
 //! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`);
 //! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`);
 //! `csrc/bernoulli.cpp`: dropout's Bernoulli noise on the CPU, libtorch's bits drawn faster
-//! (`pdt_model::dropout::draw_noise`);
-//! `csrc/generator.cpp`: the default random generators' state (`pdt_model::device::GeneratorState`).
+//! (`pdt_model::dropout::draw_noise`).
 
 use std::path::PathBuf;
 
@@ -16,7 +15,6 @@ fn main() {
     println!("cargo::rerun-if-changed=csrc/profiler.cpp");
     println!("cargo::rerun-if-changed=csrc/memory.cpp");
     println!("cargo::rerun-if-changed=csrc/bernoulli.cpp");
-    println!("cargo::rerun-if-changed=csrc/generator.cpp");
     println!("cargo::rerun-if-changed=csrc/guard.h");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
@@ -41,7 +39,6 @@ fn main() {
         .file("csrc/profiler.cpp")
         .file("csrc/memory.cpp")
         .file("csrc/bernoulli.cpp")
-        .file("csrc/generator.cpp")
         .include(&include)
         .include(include.join("torch").join("csrc").join("api").join("include"))
         .include(include.join("kineto"))

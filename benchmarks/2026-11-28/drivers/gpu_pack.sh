@@ -4,8 +4,7 @@
 # 13); promptdt built anywhere (CPU-only link) takes libtorch's CUDA part from that PyTorch.
 #   A. the training step against PyTorch (train_b64_flat, train_b560_flat);
 #   B. pack cases (bench: packN_b32 with the flat pack optimiser and per-run masks, the old per-tensor
-#      pack `_pt`, one solo run's step with the flat optimiser; an evaluation's environment step for
-#      12 runs of 100 episodes, the pack's forward `_act` against the runs' own);
+#      pack `_pt`, one solo run's step with the flat optimiser);
 #   R. (R_ROUNDS=N) one solo run's step and the packs of 12 and 36, alternated N times in one process;
 #   P. where a step's time goes: libtorch's profiler over one solo run's step (beside PyTorch's) and a
 #      pack of 12's, at Cheetah-Dir's batch and Cheetah-Vel's (bench --profile: kernels per step,
@@ -14,8 +13,6 @@
 #      solo and a pack of 12) and the launch-bound one (pack12_b32), and a solo step with the last
 #      block for the state tokens only against every token (train_b560_flat, _flat_all); the solo
 #      step against PyTorch with TF32 too (T_S seconds; SKIP_T=1 skips it);
-#   C. a batched pack of 12 Cheetah-Dir runs' evaluation (50 episodes per test task), acting together
-#      against apart (--pack-eval): scripts/bench/pack_eval.sh;
 #   D. the real run loop at the paper budget, Cheetah-Dir (data in DATA/cheetah_dir): a pack of 12
 #      (4 methods x 3 seeds), one solo run (or each of D_SOLO_CELLS in turn), a pack of 12 Prompt-DT
 #      seeds (D_SEEDS_S > 0, `train --pack`), then the 12 runs as 12 processes at once; memory and
@@ -25,7 +22,7 @@
 # Usage (repository root): BIN=... DATA=... OUT=... [DEADLINE=570] bash scripts/bench/gpu_pack.sh
 # A rehearsal on a machine without a GPU (every phase's flags and the library path, before device time
 # is spent on them): DEVICE=cpu PYTHON=.venv/bin/python with small case lists and short timings, e.g.
-#   DEVICE=cpu PYTHON=.venv/bin/python SKIP_C=1 D_MIN_S=9999 PACKS=pack3_b32,solo1_b32 \
+#   DEVICE=cpu PYTHON=.venv/bin/python D_MIN_S=9999 PACKS=pack3_b32,solo1_b32 \
 #   P_CASES=train_b64_flat,pack3_b32 T_CASES=pack3_b32 ITERS=1 BIN=target/release/promptdt DATA=x OUT=o \
 #   bash scripts/bench/gpu_pack.sh
 set -u
@@ -62,7 +59,7 @@ bench() { # timeout out-name args...
 
 log "0. link check"
 timeout 120 "$BIN" bench --device "$DEVICE" --cases infer_b1 --iters 3 --warmup 1 >>"$OUT/session.log" 2>&1 || { log "link check failed"; exit 1; }
-PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt,pack12_b100_act,solo12_b100_act}
+PACKS=${PACKS:-solo1_b32,pack1_b32,pack3_b32,pack12_b32,pack36_b32,pack12_b32_pt,solo1_b32_pt}
 if [ -z "${SKIP_A:-}" ]; then
   log "A. training step vs PyTorch"
   bench 90 bench_train --python "$PY" $(its 15 5) --cases train_b64_flat,train_b560_flat
@@ -89,12 +86,6 @@ if [ -z "${SKIP_T:-}" ] && [ "$(left)" -gt $((3 * ${T_S:-80})) ]; then
   bench ${T_S:-80} bench_fp32 $(its 8 3) --cases "$T_CASES"
   bench ${T_S:-80} bench_tf32 $(its 8 3) --cases "$T_CASES" --matmul tf32
   bench ${T_S:-80} bench_tf32_torch $(its 10 3) --cases train_b560_flat --python "$PY" --matmul tf32
-fi
-# Each side is a whole process (CUDA start-up included): a warm-up pair, then C_N timed pairs.
-if [ -z "${SKIP_C:-}" ] && [ "$(left)" -gt ${C_MIN_S:-360} ]; then
-  log "C. a pack's evaluations, together vs each run alone"
-  timeout ${C_S:-150} env BIN="$BIN" DATA="$DATA/cheetah_dir" DEVICE="$DEVICE" RUNS=12 \
-    EPISODES=50 N=${C_N:-1} bash "$(dirname "$0")/pack_eval.sh" >>"$OUT/session.log" 2>&1 || log "C: rc $?"
 fi
 CELLS=""
 for m in prompt-dt prompt-mt-bc mt-orl mt-bc-finetune; do for s in 0 1 2; do CELLS="$CELLS,cheetah_dir/$m/paper/seed$s"; done; done

@@ -1,15 +1,14 @@
 #!/usr/bin/env bash
 # Issue 30 on the CPU: three Cheetah-Dir runs (Prompt-DT seeds 0 and 1, MT-ORL seed 0; the reference
 # model, batch 2 x 16, K = 20) trained three ways, each timed as a whole process with farm-bench:
-#   S  a solo-engine pack in one process      (train --engine solo --pack a b c: on the CPU its
-#      runs' steps at once, one thread each with THREADS libtorch threads, one copy of the data)
+#   S  a solo-engine pack in one process      (train --engine solo --pack a b c: its runs' steps
+#      one after another with THREADS libtorch threads, one copy of the data)
 #   B  three processes at once, sharing the cores (each with THREADS libtorch threads)
 #   A  a batched pack in one process          (train --engine batched --pack a b c)
 # ITER iterations of 10 steps each, no evaluation until the last (1 episode per task), so the time is
 # the training steps. Usage (from the repository root, a release build, Cheetah-Dir data at DATA):
 #   DATA=path/to/data/cheetah_dir ITER=3 THREADS=1 bash scripts/bench/pack_cpu.sh
-# BIN_OLD=path/to/promptdt adds C: that binary's solo-engine pack (e.g. a build from before the
-# concurrent solo engine, whose runs were stepped one after another). OMP_WAIT_POLICY is passed on
+# BIN_OLD=path/to/promptdt adds C: that binary's solo-engine pack (another build's, to compare). OMP_WAIT_POLICY is passed on
 # (PASSIVE unless set, as `reproduce` gives its runs). CASES picks the comparisons (default
 # "SB AS", and SC with BIN_OLD), e.g. CASES=SB for the pack against three processes alone.
 set -eu

@@ -356,7 +356,7 @@ pub struct ReproduceArgs {
     pub pack: Option<usize>,
     /// The engine of the packs (docs/packs.md): `batched` (one batched computation for the pack,
     /// within a tolerance of solo training; the default on a GPU) or `solo` (each run exactly as
-    /// alone; on the CPU the runs' steps at once, one thread each; the default on the CPU).
+    /// alone, one run after another; the default on the CPU).
     #[arg(long, value_parser = ["batched", "solo"])]
     pub pack_engine: Option<String>,
     /// OMP_WAIT_POLICY for the runs (PASSIVE or ACTIVE).
@@ -604,14 +604,13 @@ pub struct TrainArgs {
     )]
     pub pack: Vec<PathBuf>,
     /// The engine that steps a pack: `batched` (one batched computation) or `solo` (each run's own
-    /// step, exactly as alone; on the CPU the runs' steps at once, one thread each). Default: solo
-    /// on the CPU, batched on a GPU; a resumed pack keeps its engine.
+    /// step, exactly as alone, one run after another). Default: solo on the CPU, batched on a GPU;
+    /// a resumed pack keeps its engine.
     #[arg(long, value_parser = ["batched", "solo"])]
     pub engine: Option<String>,
-    /// How a pack's evaluations compute their forwards: `together` (one batched forward of the
-    /// batched engine for every run evaluating) or `apart` (each run's own model). Default:
-    /// together on a GPU with the batched engine, apart otherwise; a resumed pack keeps its own.
-    #[arg(long, value_parser = ["together", "apart"])]
+    /// Accepted for old scripts: a pack's runs always evaluate apart, each with its own model
+    /// (`together` is accepted with a note; docs/packs.md says why it went).
+    #[arg(long, value_parser = ["together", "apart"], hide = true)]
     pub pack_eval: Option<String>,
     /// Stop after this many iterations of this invocation, leaving a resumable run (to test
     /// interruption).

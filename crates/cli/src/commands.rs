@@ -457,20 +457,16 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
         None => (cores / jobs).max(1),
     };
     // On a GPU packing pays: one batched engine call steps the pack's runs at once. On the CPU a
-    // pack (the solo engine: its runs' steps at once in threads) computes as its runs in separate
-    // processes would, with one copy of the data; one run per process stays the default there.
+    // pack (the solo engine, its runs one after another) gains nothing over `--jobs` processes:
+    // one run per process stays the default there.
     let pack = match a.pack {
         Some(n) => n,
-        None if on_gpu && pdt_train::pack::Engine::batched_available() => 12,
+        None if on_gpu => 12,
         None => 1,
     };
     let pack_engine = match a.pack_engine.as_deref() {
-        Some(e) => e.parse::<pdt_train::pack::Engine>().map_err(anyhow::Error::msg)?,
-        None => pdt_train::pack::Engine::default_for(if on_gpu {
-            tch::Device::Cuda(0)
-        } else {
-            tch::Device::Cpu
-        }),
+        Some(e) => e.parse::<pdt_rundir::pack::Engine>().map_err(anyhow::Error::msg)?,
+        None => pdt_rundir::pack::Engine::default_for(on_gpu),
     };
     let out = std::path::absolute(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
     let data_root = match &a.data_root {

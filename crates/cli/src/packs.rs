@@ -1,17 +1,18 @@
 //! `promptdt train --pack` and `promptdt train --resume <pack directory>`: argument handling and
-//! display; the pack is one library call (`pdt_train::pack`).
+//! display; the pack is one library call (`pdt_pack`).
 
 use crate::args::TrainArgs;
 use crate::commands::bar;
 
 /// Whether `train` is asked for a pack: `--pack`, or `--resume` of a pack directory.
 pub fn is_pack(a: &TrainArgs) -> bool {
-    !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_train::pack::is_pack_dir)
+    !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_rundir::pack::is_pack_dir)
 }
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
+use pdt_pack::PackOptions;
+use pdt_rundir::pack::Engine;
 use pdt_train::config::{Overrides, TrainConfig};
-use pdt_train::pack::{Engine, PackEval, PackOptions};
 use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,
@@ -19,12 +20,14 @@ use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 pub fn train_pack(a: &TrainArgs) -> Result<()> {
     let engine =
         a.engine.as_deref().map(str::parse::<Engine>).transpose().map_err(anyhow::Error::msg)?;
-    let eval = a
-        .pack_eval
-        .as_deref()
-        .map(str::parse::<PackEval>)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    // An old script's `--pack-eval together` still runs: a note rather than an error, since the
+    // runs' results are the same (within the batched engine's tolerance) and only the time their
+    // evaluations take could differ, which measured the same (docs/packs.md).
+    if a.pack_eval.as_deref() == Some("together") {
+        eprintln!(
+            "note: --pack-eval together is no longer an option: a pack's runs evaluate apart,              each with its own model (docs/packs.md)"
+        );
+    }
     let multi = MultiProgress::new();
     if a.quiet {
         multi.set_draw_target(indicatif::ProgressDrawTarget::hidden());
@@ -51,13 +54,12 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
         resume_with: ResumeWith::default(),
         stop_after_iterations: a.stop_after_iterations,
         engine,
-        eval,
         progress: &progress,
     };
     let (results, out) = match (&a.resume, &a.out) {
         (Some(dir), _) => {
             let opts = PackOptions { resume_with, ..opts };
-            (pdt_train::pack::resume_pack_dir(dir, opts)?, dir.clone())
+            (pdt_pack::resume_pack_dir(dir, opts)?, dir.clone())
         }
         (None, Some(out)) => {
             let overrides = Overrides {
@@ -77,7 +79,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
                 })?;
                 configs.push(cfg);
             }
-            (pdt_train::pack::train_pack_dir(configs, out, opts)?, out.clone())
+            (pdt_pack::train_pack_dir(configs, out, opts)?, out.clone())
         }
         (None, None) => bail!("--pack needs --out (the pack directory)"),
     };

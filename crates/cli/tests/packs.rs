@@ -161,12 +161,7 @@ fn pack_args<'a>(configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
 }
 
 fn engine_pack_args<'a>(engine: &'a str, configs: &'a [PathBuf], out: &'a Path) -> Vec<&'a str> {
-    let mut args = vec!["train", "--quiet", "--engine", engine, "--out", s(out)];
-    if engine == "batched" {
-        // Its evaluations acting together (the default on a GPU; apart on the CPU).
-        args.extend(["--pack-eval", "together"]);
-    }
-    args.push("--pack");
+    let mut args = vec!["train", "--quiet", "--engine", engine, "--out", s(out), "--pack"];
     args.extend(configs.iter().map(|c| s(c)));
     args
 }
@@ -303,12 +298,13 @@ fn runs_that_cannot_share_a_pack_are_refused_by_name() {
     assert!(e.contains("--engine and --pack-eval are for packs"), "{e}");
     let e = fails(&["train", "--config", s(&a), "--pack-eval", "apart", "--out", s(&out)]);
     assert!(e.contains("--engine and --pack-eval are for packs"), "{e}");
-    // Evaluations acting together need an engine that acts for its runs.
-    let b = member(&cfg, "b", &[("run", "seed", "1")]);
+    // An old script's `--pack-eval together` is accepted with a note (a pack's runs evaluate
+    // apart); this pack is then refused for its own fault (one run twice).
     let mut args = vec!["train", "--engine", "solo", "--pack-eval", "together", "--out", s(&out)];
-    args.extend(["--pack", s(&a), s(&b)]);
+    args.extend(["--pack", s(&a), s(&a)]);
     let e = fails(&args);
-    assert!(e.contains("acting together need the batched engine (this pack's is solo)"), "{e}");
+    assert!(e.contains("note: --pack-eval together is no longer an option"), "{e}");
+    assert!(e.contains("two runs of the pack are"), "{e}");
     assert!(!out.join("pack.json").exists(), "nothing written");
 }
 

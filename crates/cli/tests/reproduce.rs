@@ -206,7 +206,7 @@ fn every_experiment_runs_at_smoke_and_emitted_jobs_give_the_same_report() {
 }
 
 /// The Slurm array script asks for what its tasks use: `--cpus-per-task` is the runs'
-/// `--threads` (times a CPU pack's runs, which compute at once), a GPU (`--gres=gpu:1`, marked as
+/// `--threads` (a pack's runs compute one at a time), a GPU (`--gres=gpu:1`, marked as
 /// the place a site edits) only on `--device cuda`, and the jobs name the committed agents by an
 /// absolute path that does not depend on the directory `--emit` ran in; agents that are not there
 /// are refused before anything is written. Emitted from a directory other than the checkout.

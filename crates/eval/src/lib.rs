@@ -59,15 +59,6 @@ pub trait EpisodePrompts {
     ) -> Result<SegmentBatch, EvalError>;
 }
 
-/// Acts for the evaluator in place of its own model: a pack's batched model (`pdt_train::pack`),
-/// which computes the forwards of all its runs' evaluations together. It is given what the
-/// evaluator's full (uncached) forward is given and returns that forward's actions.
-pub trait ActRows {
-    /// The actions `[A, da]` at the last step of each row of `history` (`[A, K]`), each row with
-    /// its task's prompt (`[A, J*H]`; `None` for the variants without one).
-    fn act_rows(&self, history: &Segments, prompt: Option<&Segments>) -> Result<Tensor, EvalError>;
-}
-
 /// Settings shared by all tasks.
 /// The model a `[model]` section describes, for an environment's dimensions. (A trait here, not a
 /// method of the section: the configuration is `pdt_rundir`'s, read without libtorch.)
@@ -143,9 +134,6 @@ pub enum EvalError {
     /// the message can name what the model was fed rather than only "action[0] is NaN".
     #[error("task {task}, {detail}")]
     NonFiniteAction { task: String, detail: String },
-    /// The computation an [`ActRows`] stands for failed (a pack's engine).
-    #[error("acting: {0}")]
-    Acting(String),
 }
 
 /// Messages print numbers through one helper (re-exported for the crates that use it from here).
@@ -294,8 +282,6 @@ struct Batch<'a> {
     prefix: Option<&'a PrefixCache>,
     /// LoRA adapters every forward runs with ([`evaluate_given`]).
     lora: Option<&'a LoraAdapters>,
-    /// Computes the forwards in place of `model` ([`evaluate_through`]).
-    actor: Option<&'a dyn ActRows>,
     prompts: &'a [Option<SegmentBatch>],
     /// Per-episode prompts of the episodes started last (rows: [`Running::row`]), and their keys
     /// and values when inference is cached. Empty without [`EpisodePrompts`].
@@ -385,21 +371,7 @@ impl BatchPolicy for Batch<'_> {
             slots.iter().map(|&s| self.running(s)).collect::<Result<_, _>>()?;
         let hs: Vec<&History> = eps.iter().map(|e| &e.h).collect();
         let history = history_batch(&hs, cfg.k, ds, da, cfg.device);
-        let last = match self.actor {
-            Some(actor) => {
-                let prompt = self.task_prompts(&eps);
-                let acts = actor.act_rows(&history, prompt.as_ref())?; // [A, da]
-                if acts.size() != [eps.len() as i64, da as i64] {
-                    let what =
-                        format!("{:?} actions for {} episodes of {da}", acts.size(), eps.len());
-                    return Err(EvalError::Acting(what));
-                }
-                acts
-            }
-            None => self.forward_own(&eps, &history),
-        }
-        .to_kind(Kind::Float)
-        .to_device(Device::Cpu);
+        let last = self.forward_own(&eps, &history).to_kind(Kind::Float).to_device(Device::Cpu);
         let mut acts = vec![0f32; eps.len() * da];
         last.contiguous().view([-1]).copy_data(&mut acts, eps.len() * da);
         // A non-finite action is the model's failure, not the environment's: say what it was fed.
@@ -491,19 +463,7 @@ pub fn evaluate_with(
     cfg: &EvalSettings,
     chooser: Option<&mut dyn EpisodePrompts>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
-    evaluate_inner(model, tasks, cfg, chooser, None, None)
-}
-
-/// [`evaluate`] with every forward computed by `actor` (the full forward of each episode's history
-/// and its task's prompt), not by `model`, which gives only the dimensions. The episodes, their
-/// order and their seeds are [`evaluate`]'s: the actions are the actor's.
-pub fn evaluate_through(
-    model: &PromptDt,
-    tasks: Vec<EvalTask>,
-    cfg: &EvalSettings,
-    actor: &dyn ActRows,
-) -> Result<Vec<EpisodeRecord>, EvalError> {
-    evaluate_inner(model, tasks, cfg, None, None, Some(actor))
+    evaluate_inner(model, tasks, cfg, chooser, None)
 }
 
 /// What an adapted evaluation acts with in place of the tasks' prompts: the prompts' keys and
@@ -531,7 +491,7 @@ pub fn evaluate_given(
         return Err(EvalError::Setup { task: String::new(), why });
     }
     let cfg = EvalSettings { inference: Inference::Cached, ..cfg.clone() };
-    evaluate_inner(model, tasks, &cfg, None, Some(given), None)
+    evaluate_inner(model, tasks, &cfg, None, Some(given))
 }
 
 fn evaluate_inner(
@@ -540,7 +500,6 @@ fn evaluate_inner(
     cfg: &EvalSettings,
     mut chooser: Option<&mut dyn EpisodePrompts>,
     given: Option<GivenPrompts<'_>>,
-    actor: Option<&dyn ActRows>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
     let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
@@ -584,7 +543,6 @@ fn evaluate_inner(
     let lora = given.as_ref().and_then(|g| g.lora);
     let prefix = match (cfg.inference, all_prompts) {
         _ if given.is_some() => given.map(|g| g.prefix),
-        _ if actor.is_some() => None,
         (Inference::Cached, Some(all)) if !all.is_empty() && chooser.is_none() => {
             Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device))))
         }
@@ -596,7 +554,6 @@ fn evaluate_inner(
         cfg,
         prefix: prefix.as_ref(),
         lora,
-        actor,
         prompts: &prompts,
         episode_prompts: Vec::new(),
         episode_prefix: None,

@@ -162,64 +162,6 @@ pub fn pinned(host: &tch::Tensor) -> Result<tch::Tensor, String> {
     Ok(unsafe { tch::Tensor::from_ptr(out.cast()) })
 }
 
-/// The state of libtorch's default random generators that a computation on a device draws from:
-/// the CPU's, and the CUDA device's when it is one (`csrc/generator.cpp`). Taken at the end of one
-/// turn of a computation and put back at the start of its next, it makes the turns' draws those of
-/// one uninterrupted sequence, whatever drew from the generators in between.
-pub struct GeneratorState {
-    cpu: tch::Tensor,
-    cuda: Option<(i32, tch::Tensor)>,
-}
-
-impl GeneratorState {
-    /// The generators' state now, for a computation on `device`.
-    pub fn take(device: Device) -> Result<Self, String> {
-        let cuda = match device {
-            Device::Cuda(i) => {
-                let i = i32::try_from(i).map_err(|_| format!("CUDA device {i}: no such index"))?;
-                Some((i, generator_state(i)?))
-            }
-            _ => None,
-        };
-        Ok(Self { cpu: generator_state(-1)?, cuda })
-    }
-
-    /// Puts the state back: the next draws are those that followed when it was taken.
-    pub fn restore(&self) -> Result<(), String> {
-        set_generator_state(-1, &self.cpu)?;
-        if let Some((i, state)) = &self.cuda {
-            set_generator_state(*i, state)?;
-        }
-        Ok(())
-    }
-}
-
-/// The state of the CPU's default generator (`cuda_index` < 0) or a CUDA device's.
-fn generator_state(cuda_index: i32) -> Result<tch::Tensor, String> {
-    let mut out: *mut std::ffi::c_void = std::ptr::null_mut();
-    // SAFETY: on success the C++ side stores a new `at::Tensor*` allocated with `new`, which
-    // `from_ptr` takes ownership of (as in `pinned`).
-    #[allow(unsafe_code)]
-    let get = |err, len| unsafe { crate::ffi::pdt_generator_state(cuda_index, &mut out, err, len) };
-    crate::ffi::call(get)?;
-    if out.is_null() {
-        return Err("the generator returned no state".into());
-    }
-    // SAFETY: see above; `out` is non-null and owned by nobody else.
-    #[allow(unsafe_code)]
-    Ok(unsafe { tch::Tensor::from_ptr(out.cast()) })
-}
-
-fn set_generator_state(cuda_index: i32, state: &tch::Tensor) -> Result<(), String> {
-    // SAFETY: `state.as_ptr()` is a live tch tensor handle (`at::Tensor*`) for the call; the C++
-    // side reads it only.
-    #[allow(unsafe_code)]
-    let set = |err, len| unsafe {
-        crate::ffi::pdt_set_generator_state(cuda_index, state.as_ptr().cast(), err, len)
-    };
-    crate::ffi::call(set).map(|_| ())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

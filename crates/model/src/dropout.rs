@@ -4,10 +4,9 @@
 //! A forward either draws its own masks (`at::dropout` at each site, as the reference does) or is
 //! given them, drawn beforehand by [`DropoutMasks::draw`]. On the CPU the two are the same bits:
 //! `at::dropout` (no fused kernel on the CPU) is `noise = empty_like(x).bernoulli_(1 - p);
-//! noise.div_(1 - p); x * noise`, and [`draw_noise`] is that noise. Masks drawn beforehand let
-//! several models train at once in threads (a pack's concurrent solo engine) while libtorch's one
-//! generator is used by one of them at a time; the batched model (`crate::packed`) draws its
-//! per-run masks with the same sites and noise.
+//! noise.div_(1 - p); x * noise`, and [`draw_noise`] is that noise. Masks drawn beforehand are
+//! drawn apart from the forward that uses them; the batched model of a pack (`pdt_pack::model`)
+//! draws its per-run masks with the same sites and noise.
 
 use crate::config::PromptDtConfig;
 use tch::{Device, Kind, Tensor};
@@ -92,9 +91,9 @@ fn dropout_cpu(x: Tensor, p: f64) -> Tensor {
 #[derive(Debug)]
 pub struct DropoutMasks {
     /// The embeddings `[B, L, H]`.
-    pub(crate) embd: Option<Tensor>,
+    pub embd: Option<Tensor>,
     /// Per layer: attention weights `[B, nh, L, L]`, attention output and MLP output `[B, L, H]`.
-    pub(crate) layers: Vec<[Option<Tensor>; 3]>,
+    pub layers: Vec<[Option<Tensor>; 3]>,
 }
 
 impl DropoutMasks {
@@ -107,7 +106,7 @@ impl DropoutMasks {
     }
 
     /// The masks in the order of [`dropout_sites`] (one per site), grouped per layer.
-    pub(crate) fn from_sites(sites: Vec<Option<Tensor>>) -> Self {
+    pub fn from_sites(sites: Vec<Option<Tensor>>) -> Self {
         let mut it = sites.into_iter();
         let embd = it.next().flatten();
         let mut layers = Vec::new();

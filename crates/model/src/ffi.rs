@@ -33,20 +33,6 @@ unsafe extern "C" {
         err: *mut u8,
         err_len: usize,
     ) -> c_int;
-    /// The default generator of the CPU (`cuda_index` < 0) or a CUDA device: its state as a new
-    /// tensor handle in `*out` (the caller owns it), or set from `state`.
-    pub(crate) fn pdt_generator_state(
-        cuda_index: c_int,
-        out: *mut *mut c_void,
-        err: *mut u8,
-        err_len: usize,
-    ) -> c_int;
-    pub(crate) fn pdt_set_generator_state(
-        cuda_index: c_int,
-        state: *const c_void,
-        err: *mut u8,
-        err_len: usize,
-    ) -> c_int;
 }
 
 /// Calls `f` with a message buffer (pointer, length) for a `csrc/` function: its answer (>= 0), or

@@ -3,7 +3,6 @@
 //! - [`config`]: [`PromptDtConfig`] with the reference's hyper-parameters.
 //! - [`gpt2`]: the GPT-2 trunk without position embedding (the reference's `trajectory_gpt2.py`).
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
-//! - [`packed`]: N models of one shape as one (stacked weights, batched products): a pack of runs.
 //! - [`lora`]: LoRA adapters on the attention projections, held apart from the weights.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
 //! - [`device`]: CPU/CUDA selection.
@@ -27,7 +26,6 @@ pub mod forward_file;
 pub mod gpt2;
 pub mod host_memory;
 pub mod lora;
-pub mod packed;
 pub mod profiler;
 pub mod prompt_dt;
 pub mod tokens;

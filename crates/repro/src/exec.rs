@@ -538,8 +538,8 @@ pub fn emit_jobs(
     let slurm = dir.join("run.slurm");
     let n = groups.len();
     let unit = if pack > 1 { "pack" } else { "run" };
-    let cpus = groups.iter().map(|g| task_cpus(g, opts.pack_engine)).max().unwrap_or(1);
-    let gpu = runs.iter().any(|r| r.config.run.device == pdt_model::device::DeviceSpec::Cuda);
+    let cpus = groups.iter().map(|g| task_cpus(g)).max().unwrap_or(1);
+    let gpu = runs.iter().any(|r| r.config.run.device == pdt_rundir::config::DeviceSpec::Cuda);
     // A site names its GPUs, partitions and accounts its own way: the one line to edit is marked.
     let gres = match gpu {
         true => {
@@ -576,15 +576,10 @@ pub fn emit_jobs(
     Ok(vec![jobs, slurm])
 }
 
-/// The CPUs one emitted task keeps busy: its runs' libtorch threads (`run.threads`), times the
-/// pack's runs where they compute at once (the solo engine off the GPU steps each run on a thread
-/// of its own with its threads; the batched engine, or the solo one on a GPU, one computation at a
-/// time: docs/packs.md).
-fn task_cpus(group: &[&RunSpec], engine: pdt_train::pack::Engine) -> usize {
-    let threads = group.iter().map(|r| pdt_base::threads(r.config.run.threads)).max().unwrap_or(1);
-    let at_once = engine == pdt_train::pack::Engine::Solo
-        && group.iter().all(|r| r.config.run.device != pdt_model::device::DeviceSpec::Cuda);
-    threads.max(1) * if at_once { group.len() } else { 1 }
+/// The CPUs one emitted task keeps busy: its runs' libtorch threads (`run.threads`); a pack's runs
+/// compute one at a time (one engine call for all, or each run's step in turn: docs/packs.md).
+fn task_cpus(group: &[&RunSpec]) -> usize {
+    group.iter().map(|r| pdt_base::threads(r.config.run.threads)).max().unwrap_or(1).max(1)
 }
 
 /// Refuses a plan whose datasets, not collected yet, would be collected from committed agents that

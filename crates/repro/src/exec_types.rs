@@ -21,7 +21,7 @@ pub struct ExecOptions {
     /// A pack counts as one of `jobs`.
     pub pack: usize,
     /// The packs' engine (written into each pack's record).
-    pub pack_engine: pdt_train::pack::Engine,
+    pub pack_engine: pdt_rundir::pack::Engine,
 }
 
 /// What the progress callback sees.

@@ -148,7 +148,7 @@ pub struct Settings {
     /// MACAW cells: the preset (`official` or `promptdt`, default `promptdt`: the paper's table),
     /// then its width, its inner and outer batch size and its buffer stride (the smaller budgets
     /// shrink them).
-    pub macaw_preset: Option<pdt_macaw::Preset>,
+    pub macaw_preset: Option<pdt_rundir::config::macaw::Preset>,
     pub macaw_width: Option<usize>,
     pub macaw_batch: Option<usize>,
     pub macaw_buffer_skip: Option<usize>,
@@ -346,7 +346,7 @@ impl Manifest {
                 if pdt_envs::family(&c.env).is_err() {
                     return bad(format!("cell {}: unknown environment {:?}", c.id(), c.env));
                 }
-                if c.method.parse::<pdt_train::config::Method>().is_err() {
+                if c.method.parse::<pdt_rundir::config::Method>().is_err() {
                     return bad(format!("cell {}: unknown method {:?}", c.id(), c.method));
                 }
             }

@@ -2,12 +2,12 @@
 //! `promptdt train` process training its runs in lockstep, each run in its ordinary directory.
 //!
 //! Runs share a pack when they are of one family, one model shape, one device and one data
-//! directory (so a moved tree's `--data` applies to all), and of a method that packs
-//! (`Method::packs`; MACAW trains alone).
+//! directory (so a moved tree's `--data` applies to all), and are of a method that packs
+//! (`Method::packs`: not MACAW, which trains alone).
 
 use crate::plan::RunSpec;
 use crate::ReproError;
-use pdt_train::pack::{Engine, PackRecord, PackRecordRun, PACK_JSON};
+use pdt_rundir::pack::{Engine, PackRecord, PackRecordRun, PACK_JSON};
 use std::path::{Path, PathBuf};
 
 /// What runs must have in common to share a pack; `None` for a run that trains alone.
@@ -63,7 +63,6 @@ pub fn write_pack_dir(
             .map_err(|e| ReproError::Io { path: r.dir.clone(), source: e })?;
         members.push(PackRecordRun { dir: abs.to_string_lossy().into_owned(), config });
     }
-    // Evaluations: the default for the device and engine (reproduce asks for none).
     let record = PackRecord { engine: engine.name().into(), eval: None, runs: members };
     let text = serde_json::to_string_pretty(&record)
         .map_err(|e| ReproError::Invalid(format!("pack record: {e}")))?;

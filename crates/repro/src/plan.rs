@@ -17,8 +17,8 @@
 
 use crate::manifest::{Cell, Manifest};
 use crate::ReproError;
-use pdt_model::device::{DeviceSpec, Matmul};
 use pdt_rundir::config::TrainConfig;
+use pdt_rundir::config::{DeviceSpec, Matmul};
 use pdt_rundir::RunDir;
 use std::path::{Path, PathBuf};
 
@@ -197,7 +197,7 @@ pub fn config_for(
 ) -> Result<TrainConfig, ReproError> {
     let method = cell
         .method
-        .parse::<pdt_train::config::Method>()
+        .parse::<pdt_rundir::config::Method>()
         .map_err(|_| ReproError::Invalid(format!("unknown method {:?}", cell.method)))?;
     let mut c = TrainConfig::default();
     c.run.method = method;
@@ -251,14 +251,14 @@ pub fn config_for(
     if let Some(v) = s.finetune_steps {
         c.eval.finetune_steps = v;
     }
-    if method == pdt_train::config::Method::Macaw {
+    if method == pdt_rundir::config::Method::Macaw {
         // The Prompt-DT paper's MACAW protocol by default: its table's settings, adapted on as
         // many transitions as the prompt has steps (K* = J x H) with 10 steps. The cell's and the
         // budget's fine-tuning data and steps are MACAW's adaptation data and steps.
         let family = pdt_envs::family(&c.env.name)
             .map_err(|e| ReproError::Invalid(format!("cell {}: {e}", cell.id())))?;
-        c.macaw = pdt_macaw::MacawConfig::preset(
-            s.macaw_preset.unwrap_or(pdt_macaw::Preset::Promptdt),
+        c.macaw = pdt_rundir::config::macaw::MacawConfig::preset(
+            s.macaw_preset.unwrap_or(pdt_rundir::config::macaw::Preset::Promptdt),
             c.prompt_steps(family.preset().prompt_length),
         );
         for b in [cell.finetune_batch, s.finetune_batch].into_iter().flatten() {

@@ -7,11 +7,13 @@
 //!   run's configuration without linking the crates that act on it.
 //! - [`files`]: the other files (`run.json`, `task_stats.json`, `checkpoints/latest.json`,
 //!   `eval_final.json`) and the lines of the logs (`eval.jsonl`, `metrics.jsonl`) as structs.
+//! - [`pack`]: a pack directory's `pack.json` ([`pack::PackRecord`]) and its engine's name.
 //! - [`RunDir`]: where each file lies, with typed readers and writers; errors name the file.
 
 pub mod config;
 mod dir;
 pub mod files;
+pub mod pack;
 
 pub use dir::{
     append_jsonl, read_json, read_json_opt, read_jsonl, write_json, JsonLines, RunDir, RunDirError,

@@ -2,14 +2,17 @@
 //!
 //! - [`run`]: the public face of a run (train, evaluate, serve a trained run).
 //! - `run_loop`: the one loop every method runs in (cadence, logs, checkpoints, resumption).
-//! - `methods`: the [`Learner`](methods::Learner) trait, its implementations (the Prompt-DT
-//!   family, MACAW) and the registry mapping `run.method` to one.
-//! - `setup`: the configuration checked against its environment and data, the data loaded
+//! - [`methods`]: the [`Learner`](methods::Learner) trait, its implementations (the Prompt-DT
+//!   family, MACAW) and the registry mapping `run.method` to one; and
+//!   [`Steppable`](methods::Steppable), the learner a pack (`pdt-pack`, above this crate) takes
+//!   the gradient steps of.
+//! - [`setup`]: the configuration checked against its environment and data, the data loaded
 //!   (`pdt_policy::RunData`).
 //! - `run_dir`: the trainer's bookkeeping of the run directory (logs cut back on resume, checkpoint
 //!   commits, clean-up after a kill) over `pdt_rundir`'s typed files.
 //! - `evaluate`: the final evaluation of a run (`eval_final.json`).
-//! - `streams`: the run seed's independent random streams.
+//! - [`streams`]: the run seed's independent random streams, and the lock on libtorch's one
+//!   random generator that runs sharing a process take turns at.
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
 //!   PyTorch's `torch.optim.AdamW` (single-tensor CPU path), `LambdaLR` and `clip_grad_norm_`
 //!   bit for bit, with a state that can be saved and restored for resumable runs; `FlatAdamW`,
@@ -24,13 +27,12 @@
 pub mod config;
 mod error;
 mod evaluate;
-mod methods;
+pub mod methods;
 pub mod optim;
-pub mod pack;
 pub mod run;
 mod run_dir;
 mod run_loop;
-mod setup;
+pub mod setup;
 pub mod smoke;
 pub mod step;
-mod streams;
+pub mod streams;

@@ -120,8 +120,8 @@ pub fn train(
 
 /// Trains `learner` (its checks passed) of `setup` in `dir`: the directory created and owned,
 /// its records written (`toml` as `config.toml`; `pack` in `run.json`) or checked, then the loop.
-/// A pack's runs come here each with its member learner (`crate::pack`).
-pub(crate) fn train_learner(
+/// A pack's runs come here each with its member learner (`pdt-pack`).
+pub fn train_learner(
     setup: &Setup,
     toml: &str,
     dir: &Path,
@@ -137,7 +137,7 @@ pub(crate) fn train_learner(
 
 /// The configuration a call to [`train`] runs: `cfg` for a new run (its data directory made
 /// absolute), the run's `config.toml` with `opts.resume_with`'s changes to resume.
-pub(crate) fn run_config_for(
+pub fn run_config_for(
     cfg: Option<TrainConfig>,
     dir: &Path,
     resume: bool,
@@ -410,7 +410,7 @@ pub(crate) fn checkpoint_files(ck: &Path, step: u64) -> CheckpointFiles {
 /// crash before it leaves the previous checkpoint in force.
 fn save_checkpoint(
     dir: &Path,
-    learner: &dyn Learner,
+    learner: &mut dyn Learner,
     mut state: TrainState,
 ) -> Result<(), RunError> {
     let ck = dir.join("checkpoints");

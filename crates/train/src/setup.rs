@@ -16,19 +16,19 @@ use tch::Device;
 
 /// Which tasks an evaluation covers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Split {
+pub enum Split {
     Test,
     Train,
 }
 
 /// Everything built from the configuration and the data.
-pub(crate) struct Setup {
-    pub(crate) cfg: TrainConfig,
+pub struct Setup {
+    pub cfg: TrainConfig,
     pub(crate) family: Box<dyn EnvFamily>,
     pub(crate) preset: EnvPreset,
     /// The datasets, normalisation, sampler settings, model shape and the statistics the run
     /// records (`task_stats.json`). Shared by the runs of a pack with the same data settings
-    /// (`crate::pack`), so a pack holds one copy of them.
+    /// (`pdt-pack`), so a pack holds one copy of them.
     pub(crate) run_data: Arc<RunData>,
     pub(crate) device: Device,
     /// Threads stepping the evaluation's environments: `eval.env_threads` resolved (0: all cores;
@@ -62,7 +62,7 @@ impl Setup {
     /// at the same iterations, and N runs each stepping its episodes on every core start N times
     /// the threads there are cores for, each with a few environments' work per step (results do
     /// not depend on the count).
-    pub(crate) fn with_data(
+    pub fn with_data(
         cfg: TrainConfig,
         run_data: Arc<RunData>,
         pack_size: usize,
@@ -81,7 +81,7 @@ impl Setup {
     /// and the method is reduced to what the loader asks of it (whether history returns are
     /// zeroed); everything else counts, so a setting the loader may read one day never makes two
     /// runs share data they would load differently.
-    pub(crate) fn data_key(cfg: &TrainConfig) -> Result<String, RunError> {
+    pub fn data_key(cfg: &TrainConfig) -> Result<String, RunError> {
         let mut k = cfg.clone();
         k.run.seed = 0;
         k.train = Default::default();
@@ -126,7 +126,7 @@ impl Setup {
 
 /// `path` made absolute against the current directory (not resolving symlinks; the path need
 /// not exist yet).
-pub(crate) fn absolute(path: &Path) -> PathBuf {
+pub fn absolute(path: &Path) -> PathBuf {
     std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf())
 }
 

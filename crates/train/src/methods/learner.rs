@@ -1,9 +1,12 @@
-//! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in.
+//! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in; and
+//! [`Steppable`], what a pack asks of a method besides.
 
 use crate::config::TestTime;
 use crate::error::{io_err, RunError};
+use crate::optim::SlotState;
 use crate::run_dir::temp_name;
 use crate::setup::Split;
+use crate::step::DeviceBatch;
 use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
 use pdt_rundir::AdaptationStats;
@@ -23,15 +26,15 @@ pub struct MacawAdaptation {
 
 /// Where one training iteration stands, for [`Learner::train_iteration`].
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct IterationAt<'a> {
+pub struct IterationAt<'a> {
     /// The run directory (named in errors).
     pub(crate) dir: &'a Path,
     /// The iteration being trained, from 1.
     pub(crate) iteration: u64,
     /// Gradient steps taken before it.
-    pub(crate) first_step: u64,
+    pub first_step: u64,
     /// Gradient steps it takes (`train.steps_per_iteration`).
-    pub(crate) steps: u64,
+    pub steps: u64,
     /// Checked before each step: one iteration can outlast a user's patience for Ctrl-C.
     pub(crate) interrupt: &'a pdt_base::stop::StopFlag,
 }
@@ -40,7 +43,7 @@ impl IterationAt<'_> {
     /// Takes the iteration's `steps` gradient steps, `one(step)` each (`step` counted from
     /// `first_step`), and returns their statistics; the first error (a divergence, or
     /// [`RunError::Interrupted`] when a stop was asked for before a step) ends it.
-    pub(crate) fn each_step<S>(
+    pub fn each_step<S>(
         &self,
         mut one: impl FnMut(u64) -> Result<S, RunError>,
     ) -> Result<Vec<S>, RunError> {
@@ -60,7 +63,7 @@ impl IterationAt<'_> {
 
 /// What one training iteration logs.
 #[derive(Debug, Clone)]
-pub(crate) struct IterationMetrics {
+pub struct IterationMetrics {
     /// The mean training loss over its steps, logged under [`Learner::loss_metric`] and reported
     /// as progress.
     pub(crate) loss: f64,
@@ -71,7 +74,7 @@ pub(crate) struct IterationMetrics {
 
 /// One task's evaluation.
 #[derive(Debug, Clone)]
-pub(crate) struct TaskEval {
+pub struct TaskEval {
     pub(crate) result: TaskResult,
     /// MACAW: the adaptation steps taken and the episodes a non-finite action ended (columns of
     /// the task's `eval.jsonl` line); `None` for the methods without an adaptation.
@@ -81,7 +84,7 @@ pub(crate) struct TaskEval {
 /// One evaluation of a split: every task's result and what the test-time behaviour chose on the
 /// way, returned together (no learner keeps them for a later call to take).
 #[derive(Debug, Clone, Default)]
-pub(crate) struct Evaluation {
+pub struct Evaluation {
     pub(crate) tasks: Vec<TaskEval>,
     /// The prompt strategy's choices (`[eval.prompt]`); empty for the reference rule and the
     /// methods without a prompt.
@@ -100,7 +103,7 @@ impl Evaluation {
 /// The files of one checkpoint, named by its step (`checkpoints/step_<N>.safetensors` for weights,
 /// `state_<N>.safetensors` for optimiser moments).
 #[derive(Debug, Clone)]
-pub(crate) struct CheckpointFiles {
+pub struct CheckpointFiles {
     pub(crate) weights: std::path::PathBuf,
     pub(crate) moments: std::path::PathBuf,
     /// The state file (`state_<N>.json`), named in errors about what it records.
@@ -110,7 +113,7 @@ pub(crate) struct CheckpointFiles {
 /// The state file's answer to "how far did the optimiser go": the step of the checkpoint, and the
 /// learner's own record ([`Learner::save`]'s return) of its optimiser steps.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct SavedSteps<'a> {
+pub struct SavedSteps<'a> {
     pub(crate) step: u64,
     pub(crate) adam_steps: &'a serde_json::Value,
 }
@@ -148,7 +151,7 @@ pub(crate) fn adam_steps_of<T: serde::de::DeserializeOwned>(
 
 /// A trainable method: a model with its optimiser, trained in iterations of gradient steps on
 /// batches it samples itself, evaluated on the test or training tasks, saved and loaded.
-pub(crate) trait Learner {
+pub trait Learner {
     /// The `metrics.jsonl` column of the training loss (`train/action_loss`).
     fn loss_metric(&self) -> &'static str;
 
@@ -184,12 +187,36 @@ pub(crate) trait Learner {
     ) -> Result<Evaluation, RunError>;
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
-    /// as `adam_steps`.
-    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError>;
+    /// as `adam_steps`. (`&mut`: a run of a pack takes its weights back from the pack's engine
+    /// first, `pdt-pack`.)
+    fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError>;
 
     /// Restores weights and optimiser from `files`, checking the state file's record `saved`.
     fn load(&mut self, files: &CheckpointFiles, saved: SavedSteps<'_>) -> Result<(), RunError>;
 
     /// Loads weights alone (a final evaluation), each tensor by name and shape.
     fn load_weights(&mut self, path: &Path) -> Result<(), RunError>;
+}
+
+/// A [`Learner`] whose gradient steps a pack's engine can take (`pdt-pack`, docs/packs.md): it
+/// samples its batches, hands its weights and optimiser state to the engine and takes them back;
+/// its evaluations and files stay its own. The registry returns one only for a method that
+/// `Method::packs` (`super::steppable`).
+pub trait Steppable: Learner {
+    /// The next training batch from the run's batch stream (`rng`), on the run's device: the
+    /// batch its own [`Learner::train_iteration`] would step on.
+    fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch;
+
+    /// The weights and optimiser state, copied (the learner's own are never shared).
+    fn export(&self) -> SlotState;
+
+    /// Sets the weights (each by name and shape) and the optimiser state.
+    fn import(&mut self, state: SlotState) -> Result<(), RunError>;
+
+    /// Before an evaluation of `split`: whether it draws from libtorch's random generator
+    /// (MT-BC-Finetune's fine-tuning dropout), and if so the generator put where the run's own
+    /// gradient step `last` (its index and batch) left it, as it stands after that step in a run
+    /// trained alone. A packed run's generator has since served the other runs; the pack holds it
+    /// through such an evaluation. Call it with `crate::streams::torch_rng_lock` held.
+    fn replay_step_draws(&self, split: Split, last: Option<(u64, &DeviceBatch)>) -> bool;
 }

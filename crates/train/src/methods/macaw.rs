@@ -142,7 +142,7 @@ impl Learner for MacawLearner<'_> {
 
     /// Weights and the outer Adams' moments, each as one safetensors file written under a
     /// temporary name and renamed.
-    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
+    fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
         let cpu = |t: &Tensor| t.detach().to_device(Device::Cpu).contiguous();
         let weights: Vec<(String, Tensor)> =
             self.params.named(&self.dims).into_iter().map(|(n, t)| (n, cpu(t))).collect();

@@ -3,8 +3,8 @@
 //! a run has whatever its method (cadence, logs, checkpoint commits, resume points, RNG restore,
 //! progress); a learner owns its model, optimiser, sampling, evaluation and tensor files.
 //!
-//! A new method: its module here, one line in [`learner`], and its section of the configuration
-//! (`docs/adding-a-method.md`).
+//! A new method: its module here, one line in [`learner`] (and in [`steppable`] if it packs), and
+//! its section of the configuration (`docs/adding-a-method.md`).
 
 mod adapt;
 mod learner;
@@ -14,9 +14,11 @@ pub(crate) mod prompt_dt;
 mod prompt_strategy;
 
 pub use learner::MacawAdaptation;
-pub(crate) use learner::{
-    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
+pub use learner::{
+    CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps, Steppable,
+    TaskEval,
 };
+pub use prompt_dt::read_iteration;
 
 use crate::config::Method;
 use crate::error::RunError;
@@ -31,6 +33,30 @@ pub(crate) fn learner<'s>(setup: &'s Setup) -> Result<Box<dyn Learner + 's>, Run
         }
         Method::Macaw => Box::new(macaw::MacawLearner::new(setup)?),
     })
+}
+
+/// The registry's packable learners: the learner of the run's method as a [`Steppable`], its model
+/// initialised from the run seed, for a method that `Method::packs`; any other is refused by name.
+/// Call it with libtorch's generator held (`streams::torch_rng_lock`).
+pub fn steppable<'s>(setup: &'s Setup) -> Result<Box<dyn Steppable + 's>, RunError> {
+    let method = setup.cfg.run.method;
+    let learner: Option<Box<dyn Steppable + 's>> = match method {
+        m @ (Method::PromptDt | Method::PromptMtBc | Method::MtOrl | Method::MtBcFinetune) => {
+            Some(Box::new(prompt_dt::PromptDtLearner::new(setup, prompt_dt::Variant::of(m))?))
+        }
+        Method::Macaw => None,
+    };
+    learner.filter(|_| method.packs()).ok_or_else(|| cannot_pack(method))
+}
+
+/// The error of a method that cannot train in a pack, naming it.
+pub fn cannot_pack(method: Method) -> RunError {
+    RunError::Invalid(format!(
+        "run.method = \"{}\" cannot train in a pack: only a method whose learner gives the pack \
+         its gradient steps can (docs/packs.md; MACAW trains alone); train it with `promptdt \
+         train --config`",
+        method.name()
+    ))
 }
 
 #[cfg(test)]

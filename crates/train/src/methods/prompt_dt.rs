@@ -4,7 +4,7 @@
 
 use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
-    IterationMetrics, Learner, SavedSteps, TaskEval,
+    IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
 use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
@@ -16,9 +16,7 @@ use crate::step::{
 };
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
-use pdt_eval::{
-    evaluate, evaluate_through, summarise, ActRows, EvalSettings, EvalTask, TaskResult,
-};
+use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
 use pdt_policy::plan_task;
@@ -87,122 +85,56 @@ impl<'s> PromptDtLearner<'s> {
     }
 }
 
-/// What a packed run (`crate::pack`) asks of the solo learner it evaluates and saves through.
 impl PromptDtLearner<'_> {
-    pub(crate) fn variant(&self) -> Variant {
-        self.variant
-    }
-
-    /// The next training batch from the run's batch stream, on the run's device.
-    pub(crate) fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch {
-        DeviceBatch::new(&self.sampler.sample(rng), self.variant.prompt, self.setup.device)
-    }
-
-    /// The weights and optimiser state, copied (the learner's own are never shared).
-    pub(crate) fn state(&self) -> SlotState {
-        SlotState::copy_of(&self.vs, &self.opt)
-    }
-
-    /// Sets the weights (each by name and shape) and the optimiser state.
-    pub(crate) fn set_state(&mut self, state: SlotState) -> Result<(), RunError> {
-        let vars = self.vs.variables();
-        if vars.len() != state.weights.len() {
-            return Err(RunError::Invalid(format!(
-                "a pack's run state has {} weight tensors, the model {}",
-                state.weights.len(),
-                vars.len()
-            )));
-        }
-        for (name, t) in &state.weights {
-            match vars.get(name) {
-                Some(v) if v.size() == t.size() => {}
-                _ => {
-                    return Err(RunError::Invalid(format!(
-                        "a pack's run state has weights `{name}` of shape {:?} the model lacks",
-                        t.size()
-                    )))
-                }
-            }
-        }
-        tch::no_grad(|| {
-            for (name, t) in &state.weights {
-                if let Some(v) = vars.get(name) {
-                    v.shallow_clone().copy_(t);
-                }
-            }
-        });
-        self.opt
-            .set_state(state.moments)
-            .map_err(|e| RunError::Invalid(format!("a pack's run state: {e}")))?;
-        Ok(())
-    }
-
-    /// Whether an evaluation of `split` is the plain one (each task's reference prompt, the
-    /// learner's weights as they are), whose forwards another model may compute
-    /// ([`Self::evaluate_through`]): not with a prompt strategy, an adaptation of the test tasks,
-    /// or MT-BC-Finetune's fine-tuning before each test task.
-    pub(crate) fn evaluates_plainly(&self, split: Split) -> bool {
-        let e = &self.setup.cfg.eval;
-        let adapts = !e.adapt.is_none() && split == Split::Test;
-        let tunes = self.variant.finetune && split == Split::Test;
-        e.prompt.is_default() && !adapts && !tunes
-    }
-
-    /// [`Learner::evaluate`] with the plain evaluation's forwards computed by `actor` (a pack's
-    /// batched model) instead of the learner's model; any other evaluation
-    /// ([`Self::evaluates_plainly`]) is the learner's own.
-    pub(crate) fn evaluate_through(
-        &mut self,
-        split: Split,
-        rng: &mut Rng,
-        actor: &dyn ActRows,
-    ) -> Result<Evaluation, RunError> {
-        let test_time = TestTime::of(&self.setup.cfg);
-        self.evaluate_with(split, &test_time, rng, Some(actor), &Alone)
-    }
-
-    /// [`Learner::evaluate`] with MT-BC-Finetune's fine-tuning before each test task in `turns`
-    /// (a run of a pack: libtorch's generator is the process's, so each tuning takes its turn at it
-    /// while the episodes run without it).
-    pub(crate) fn evaluate_in_turns(
-        &mut self,
-        split: Split,
-        test_time: &TestTime,
-        rng: &mut Rng,
-        turns: &dyn TuneTurns,
-    ) -> Result<Evaluation, RunError> {
-        self.evaluate_with(split, test_time, rng, None, turns)
-    }
-
-    /// The evaluation of every task of `split`, with its prompt picks and adaptation log.
+    /// The evaluation of every task of `split` as `test_time` says, with its prompt picks and
+    /// adaptation log.
     fn evaluate_with(
         &mut self,
         split: Split,
         test_time: &TestTime,
         rng: &mut Rng,
-        actor: Option<&dyn ActRows>,
-        turns: &dyn TuneTurns,
     ) -> Result<Evaluation, RunError> {
-        eval_tasks(self, split, test_time, rng, actor, turns)
+        eval_tasks(self, split, test_time, rng)
+    }
+}
+
+/// A Prompt-DT-family run in a pack (`pdt-pack`).
+impl Steppable for PromptDtLearner<'_> {
+    fn sample_batch(&self, rng: &mut Rng) -> DeviceBatch {
+        DeviceBatch::new(&self.sampler.sample(rng), self.variant.prompt, self.setup.device)
     }
 
-    /// Leaves libtorch's generator where the solo run's gradient step `step` on `batch` leaves
-    /// it: re-seeded, then the step's dropout masks drawn again by the same forward pass in
-    /// training mode (its result dropped). The masks' draws depend on the shapes alone, not on
-    /// the weights. MT-BC-Finetune fine-tunes from that state after an iteration; a packed run's
-    /// generator has since served other runs. Mirrors `crate::step::train_step`'s forward.
-    /// Call with `crate::streams::torch_rng_lock` held.
-    pub(crate) fn redraw_step_dropout(&self, step: u64, batch: &DeviceBatch) {
-        tch::manual_seed(derive_seed(self.setup.cfg.run.seed, STREAM_DROPOUT, step) as i64);
-        let (h, p) = (&batch.history, batch.prompt.as_ref());
-        tch::no_grad(|| match (self.setup.cfg.train.loss_on, p) {
-            (LossOn::PromptAndHistory, Some(p)) => {
-                let _ = self.model.forward_all_steps(h, Some(p), true);
-            }
-            _ => {
-                let _ = self.model.forward(h, p, true);
-            }
-        });
+    fn export(&self) -> SlotState {
+        SlotState::copy_of(&self.vs, &self.opt)
+    }
+
+    fn import(&mut self, state: SlotState) -> Result<(), RunError> {
+        state
+            .copy_into(&self.vs, &mut self.opt)
+            .map_err(|e| RunError::Invalid(format!("a pack's run state: {e}")))
+    }
+
+    /// MT-BC-Finetune's test evaluation fine-tunes, drawing its dropout from where the last
+    /// step left the generator: that step's dropout masks drawn again (re-seeded, then the same
+    /// forward in training mode, its result dropped; the draws depend on the shapes alone, not
+    /// the weights). Mirrors `crate::step::train_step`'s forward.
+    fn replay_step_draws(&self, split: Split, last: Option<(u64, &DeviceBatch)>) -> bool {
+        if !(self.variant.finetune && split == Split::Test) {
+            return false;
+        }
+        if let Some((step, batch)) = last {
+            tch::manual_seed(derive_seed(self.setup.cfg.run.seed, STREAM_DROPOUT, step) as i64);
+            let (h, p) = (&batch.history, batch.prompt.as_ref());
+            tch::no_grad(|| match (self.setup.cfg.train.loss_on, p) {
+                (LossOn::PromptAndHistory, Some(p)) => {
+                    let _ = self.model.forward_all_steps(h, Some(p), true);
+                }
+                _ => {
+                    let _ = self.model.forward(h, p, true);
+                }
+            });
+        }
+        true
     }
 }
 
@@ -211,7 +143,7 @@ impl PromptDtLearner<'_> {
 /// step. A divergence (a non-finite loss or gradient norm) is the error of its step, as reading
 /// each at once would give, found after the rest of its iteration (which a stopped run never
 /// saves).
-pub(crate) fn read_iteration(
+pub fn read_iteration(
     at: IterationAt<'_>,
     cfg: &TrainConfig,
     steps: Vec<PendingStats>,
@@ -251,7 +183,7 @@ impl Learner for PromptDtLearner<'_> {
         let sampler = &self.sampler;
         let stats = at.each_step(|step| {
             // Dropout draws come from libtorch's generator, re-seeded per gradient step so that a
-            // resumed run continues the same stream and a packed run (`crate::pack`), whose steps
+            // resumed run continues the same stream and a packed run (`pdt-pack`), whose steps
             // interleave with other runs', draws the same masks as solo.
             tch::manual_seed(derive_seed(cfg.run.seed, STREAM_DROPOUT, step) as i64);
             let batch = DeviceBatch::new(&sampler.sample(rng), self.variant.prompt, setup.device);
@@ -268,12 +200,12 @@ impl Learner for PromptDtLearner<'_> {
         test_time: &TestTime,
         rng: &mut Rng,
     ) -> Result<Evaluation, RunError> {
-        self.evaluate_with(split, test_time, rng, None, &Alone)
+        self.evaluate_with(split, test_time, rng)
     }
 
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
     /// parameter name; each written under a temporary name and renamed.
-    fn save(&self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
+    fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
         checkpoint::save(&self.vs, &files.weights, &self.model.cfg)?;
         let state = self.opt.state();
         let mut named: Vec<(String, Tensor)> = Vec::new();
@@ -325,17 +257,13 @@ impl Learner for PromptDtLearner<'_> {
 
 /// Evaluates the tasks of `split`, each with its own prompt, all episodes together, as
 /// `test_time` says: the reference rule, a prompt strategy, or an adaptation to each test task
-/// (`[eval.adapt]`'s, or fine-tuning a copy of the weights on its data). The plain evaluation's
-/// forwards are `actor`'s when given (`PromptDtLearner::evaluate_through`).
+/// (`[eval.adapt]`'s, or fine-tuning a copy of the weights on its data).
 fn eval_tasks(
     learner: &mut PromptDtLearner<'_>,
     split: Split,
     test_time: &TestTime,
     rng: &mut Rng,
-    actor: Option<&dyn ActRows>,
-    turns: &dyn TuneTurns,
 ) -> Result<Evaluation, RunError> {
-    let actor = actor.filter(|_| learner.evaluates_plainly(split));
     let setup = learner.setup;
     let data = setup.data(split);
     let sampler = setup.sampler(data)?;
@@ -393,7 +321,7 @@ fn eval_tasks(
         }
         Some(&Adaptation::Finetune { steps, batch, lr }) => {
             let tune = Finetune { steps, batch, lr };
-            return finetune_each(learner, &sampler, &settings, &tune, turns, rng, &make);
+            return finetune_each(learner, &sampler, &settings, &tune, rng, &make);
         }
         Some(Adaptation::Macaw { .. }) => {
             return Err(RunError::Invalid(format!(
@@ -409,10 +337,7 @@ fn eval_tasks(
         return Ok(Evaluation { tasks: plain(s.results), picks: s.picks, ..Default::default() });
     }
     let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
-    let eps = match actor {
-        Some(actor) => evaluate_through(&learner.model, tasks, &settings, actor)?,
-        None => evaluate(&learner.model, tasks, &settings)?,
-    };
+    let eps = evaluate(&learner.model, tasks, &settings)?;
     let positions: Vec<usize> = (0..data.tasks.len()).collect();
     Ok(Evaluation::of_tasks(plain(summarise_all(data, &positions, &eps))))
 }
@@ -433,7 +358,6 @@ fn finetune_each(
     sampler: &BatchSampler<'_>,
     settings: &EvalSettings,
     tune: &Finetune,
-    turns: &dyn TuneTurns,
     rng: &mut Rng,
     make: &dyn Fn(usize, &mut Rng) -> Result<EvalTask, RunError>,
 ) -> Result<Evaluation, RunError> {
@@ -448,28 +372,15 @@ fn finetune_each(
             AdamWConfig { learning_rate: tune.lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
         let mut opt =
             Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
-        // The tuning's dropout comes from libtorch's generator (in its turn); its episodes draw
-        // nothing from it.
-        turns.turn(&mut || {
-            for s in 0..tune.steps {
-                let seg = sampler.tail_segments(
-                    i,
-                    tune.batch,
-                    setup.run_data.sampler_cfg.prompt_length,
-                    rng,
-                );
-                let history = crate::step::to_segments(&seg, setup.device);
-                train_step(
-                    &learner.model,
-                    &mut opt,
-                    &DeviceBatch { history, prompt: None },
-                    LossOn::History,
-                    s,
-                )
-                .map_err(unreadable)?;
-            }
-            Ok(())
-        })?;
+        // The tuning's dropout comes from libtorch's generator (a packed run holds it for the
+        // whole evaluation: `pdt-pack`); its episodes draw nothing from it.
+        for s in 0..tune.steps {
+            let seg =
+                sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
+            let history = crate::step::to_segments(&seg, setup.device);
+            let batch = DeviceBatch { history, prompt: None };
+            train_step(&learner.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
+        }
         let eps = evaluate(&learner.model, vec![task], settings)?;
         results.extend(summarise_all(data, &[i], &eps));
         tch::no_grad(|| {
@@ -505,23 +416,6 @@ fn summarise_all(
 /// Results of a rule without a per-task adaptation record.
 fn plain(results: Vec<TaskResult>) -> Vec<TaskEval> {
     results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect()
-}
-
-/// How MT-BC-Finetune's fine-tuning before a test task gets libtorch's generator, from which its
-/// dropout is drawn: a solo run has it to itself ([`Alone`]); a run of a pack, whose other runs
-/// draw from the same generator, takes turns at it (`crate::pack::member`).
-pub(crate) trait TuneTurns {
-    /// Runs `tune` with the generator where this run's previous turn left it.
-    fn turn(&self, tune: &mut dyn FnMut() -> Result<(), RunError>) -> Result<(), RunError>;
-}
-
-/// The generator as it stands: a solo run's own.
-pub(crate) struct Alone;
-
-impl TuneTurns for Alone {
-    fn turn(&self, tune: &mut dyn FnMut() -> Result<(), RunError>) -> Result<(), RunError> {
-        tune()
-    }
 }
 
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.

@@ -167,7 +167,7 @@ impl Optimizer {
 
 /// One run's weights and optimiser state in the solo format: the reference `state_dict` names
 /// and shapes, the per-parameter AdamW moments and step counts ([`AdamW::state`]). What a pack's
-/// slot exports and imports (`crate::pack`), and what a solo learner hands a pack.
+/// slot exports and imports (`pdt-pack`), and what a solo learner hands a pack.
 #[derive(Debug)]
 pub struct SlotState {
     pub weights: Vec<(String, Tensor)>,
@@ -196,5 +196,38 @@ impl SlotState {
                 .collect();
             SlotState { weights, moments }
         })
+    }
+}
+
+impl SlotState {
+    /// Sets a solo model's weights (each by name and shape: every variable of `vs` given, none
+    /// unknown) and its optimiser's state from this one; nothing is set when a name or shape is
+    /// wrong. The error names the tensor.
+    pub fn copy_into(self, vs: &tch::nn::VarStore, opt: &mut Optimizer) -> Result<(), String> {
+        let vars = vs.variables();
+        if let Some(name) = vars.keys().find(|k| !self.weights.iter().any(|(n, _)| n == *k)) {
+            return Err(format!("no weights `{name}`"));
+        }
+        for (name, t) in &self.weights {
+            match vars.get(name) {
+                Some(v) if v.size() == t.size() => {}
+                Some(v) => {
+                    return Err(format!(
+                        "`{name}` has shape {:?}, the model {:?}",
+                        t.size(),
+                        v.size()
+                    ))
+                }
+                None => return Err(format!("unknown weights `{name}`")),
+            }
+        }
+        tch::no_grad(|| {
+            for (name, t) in &self.weights {
+                if let Some(v) = vars.get(name) {
+                    v.shallow_clone().copy_(t);
+                }
+            }
+        });
+        opt.set_state(self.moments).map_err(|e| e.to_string())
     }
 }

@@ -5,8 +5,8 @@
 
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
 use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
-use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
 use pdt_train::step::{DeviceBatch, LossOn, PendingStats};
 use std::sync::Mutex;
 use tch::{nn::VarStore, Device, Kind, Tensor};

@@ -1,4 +1,4 @@
-//! The batched pack engine (`pdt_train::pack::BatchedEngine`) against solo runs: weights
+//! The batched pack engine (`pdt_pack::BatchedEngine`) against solo runs: weights
 //! read out as solo checkpoints, the forward pass of each run of a pack, 50 training steps of a pack
 //! of 3 against 3 solo `train_step` loops, and the independence of a run from its pack-mates.
 //!
@@ -7,10 +7,10 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_base::seed::derive_seed;
-use pdt_model::packed::{DropoutSeeds, PackedBatch, PackedRow};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_pack::model::{DropoutSeeds, PackedBatch, PackedRow};
+use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
 use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
-use pdt_train::pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
 use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 #[path = "support/pack_fixture.rs"]
@@ -280,7 +280,7 @@ fn on_cpu_ms() -> f64 {
 /// Time of a pack of 3 against 3 solo steps, the reference architecture (state 20, action 6,
 /// K = 20, a 5-step prompt), with the forward pass alone beside the whole step; wall time and
 /// on-CPU time (1 thread: libtorch works on the calling thread). A measurement, not a check:
-/// `cargo test --release -p pdt-train --test pack_batched -- --ignored --nocapture`.
+/// `cargo test --release -p pdt-pack --test pack_batched -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn time_pack_of_three_against_three_solo_steps() {

@@ -1,7 +1,8 @@
-//! The solo pack engine stepping its runs at once in threads (`SoloThreads { concurrent: true }`)
-//! against the solo step: every step's statistics and every weight and AdamW moment bit
-//! for bit those of each run's own `train_step` loop (which draws its dropout in the forward), a
-//! run given no input left untouched, and the masks drawn beforehand equal to the forward's own.
+//! The solo pack engine (each run's solo step, one run after another: the batched engine's
+//! oracle) against the solo step: every step's statistics and every weight and AdamW moment bit
+//! for bit those of each run's own `train_step` loop, a run given no input left untouched; and
+//! dropout masks drawn beforehand equal to the forward's own (`pdt_model::dropout`, which the
+//! batched engine's CPU masks rest on).
 //!
 //! Batches are random tensors of the sampler's shapes on a small two-head model: a Prompt-DT run,
 //! an MT-ORL-like run without prompt, and a run whose loss also reads its (shorter) prompt.
@@ -10,8 +11,8 @@
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine};
 use pdt_train::optim::{AdamWConfig, Optimizer};
-use pdt_train::pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine, SoloThreads};
 use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
 use std::sync::Mutex;
 use tch::{nn::VarStore, Device, Kind, Tensor};
@@ -140,19 +141,17 @@ fn active(s: u64) -> [bool; 3] {
 }
 
 #[test]
-fn runs_stepped_at_once_in_threads_are_their_solo_steps_bit_for_bit() {
-    // Both ways of stepping, each against solo steps with the same libtorch thread count (results
-    // depend on it): at once in threads (a CPU pack), and one after another (a pack of one, CUDA).
+fn runs_stepped_in_turn_are_their_solo_steps_bit_for_bit() {
+    // Against solo steps with the same libtorch thread count (results depend on it).
     let _g = lock();
-    for (concurrent, intra_op) in [(true, 1), (true, 2), (false, 1)] {
-        tch::set_num_threads(intra_op as i32);
-        stepped_as_alone(SoloThreads { concurrent, intra_op });
+    for threads in [1, 2] {
+        tch::set_num_threads(threads);
+        stepped_as_alone(threads);
     }
 }
 
-fn stepped_as_alone(threads: SoloThreads) {
-    let mut engine = SoloEngine::with_threads(specs(), Device::Cpu, threads).unwrap();
-    assert_eq!(engine.threads(), threads);
+fn stepped_as_alone(threads: i32) {
+    let mut engine = SoloEngine::new(specs(), Device::Cpu);
     let mut alone: Vec<Solo> = (0..3).map(solo).collect();
     for (i, s) in alone.iter().enumerate() {
         engine.import(i, SlotState::copy_of(&s.vs, &s.opt)).unwrap();
@@ -161,27 +160,15 @@ fn stepped_as_alone(threads: SoloThreads) {
     for s in 0..12 {
         let on = active(s);
         if s == 9 {
-            // Run 2 goes on at another step (as a run resumed from elsewhere): the masks the
-            // engine drew ahead for it do not fit, and it must draw those of the step it gets.
+            // Run 2 goes on at another step (as a run resumed from elsewhere).
             next[2] += 5;
         }
         let before: Vec<SlotState> = (0..3).map(|i| engine.export(i).unwrap()).collect();
         let steps: Vec<Option<SlotStep>> = (0..3)
             .map(|i| on[i].then(|| SlotStep { step: next[i], batch: batch(i, next[i]) }))
             .collect();
-        assert_eq!(engine.steps_alone(), threads.concurrent);
-        let got: Vec<Option<StepStats>> = if engine.steps_alone() && s % 2 == 1 {
-            // Each run's step started alone (the hub's way for this engine: no lockstep), all
-            // started before any is awaited.
-            let started: Vec<_> = steps
-                .into_iter()
-                .enumerate()
-                .map(|(i, st)| st.map(|st| engine.start(i, st).unwrap()))
-                .collect();
-            started.into_iter().map(|p| p.map(|p| p.wait().unwrap())).collect()
-        } else {
-            PendingStats::read_slots(engine.step(steps).unwrap()).unwrap()
-        };
+        let got: Vec<Option<StepStats>> =
+            PendingStats::read_slots(engine.step(steps).unwrap()).unwrap();
         for i in 0..3 {
             if !on[i] {
                 assert!(got[i].is_none(), "step {s}: run {i} got a result without an input");
@@ -197,7 +184,7 @@ fn stepped_as_alone(threads: SoloThreads) {
             let want: StepStats =
                 train_step(&a.model, &mut a.opt, &batch(i, next[i]), RUNS[i].2, next[i]).unwrap();
             let st = got[i].unwrap();
-            let at = format!("{threads:?}, step {s}: run {i}");
+            let at = format!("{threads} threads, step {s}: run {i}");
             assert_eq!(st.loss.to_bits(), want.loss.to_bits(), "{at}: loss");
             assert_eq!(st.grad_norm.to_bits(), want.grad_norm.to_bits(), "{at}: gradient norm");
             assert_eq!(st.lr, want.lr, "{at}");
@@ -206,7 +193,7 @@ fn stepped_as_alone(threads: SoloThreads) {
     }
     for (i, a) in alone.iter().enumerate() {
         assert_same_state(
-            &format!("{threads:?}: run {i} after 12 steps"),
+            &format!("{threads} threads: run {i} after 12 steps"),
             &engine.export(i).unwrap(),
             &SlotState::copy_of(&a.vs, &a.opt),
         );

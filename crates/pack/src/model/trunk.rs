@@ -2,11 +2,9 @@
 //! same order, with a run dimension in front of every weight.
 
 use super::{parameter_shapes, BlockIdx, EmbIdx, Idx, PackedBatch, PackedError};
-use crate::config::PromptDtConfig;
-use crate::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
-use crate::gpt2::LastBlock;
-use crate::prompt_dt::Segments;
-use crate::tokens::state_rows;
+use pdt_model::dropout::{draw_noise, dropout_sites, DropoutMasks, DropoutSite};
+use pdt_model::tokens::state_rows;
+use pdt_model::{LastBlock, PromptDtConfig, Segments};
 use tch::{Device, Kind, Tensor};
 
 /// How a pack computes its LayerNorms (each run has its own weight and bias).
@@ -66,7 +64,7 @@ impl MaskDraw {
 }
 
 /// N Prompt-DT models of one shape with stacked weights (see the module documentation of
-/// [`crate::packed`]).
+/// [`crate::model`]).
 #[derive(Debug)]
 pub struct PackedPromptDt {
     pub cfg: PromptDtConfig,
@@ -100,7 +98,7 @@ struct Reused {
     /// Per sequence length L: the causal mask's `[1, 1, L, L]` (contiguous).
     causal: std::collections::HashMap<i64, Tensor>,
     /// The patterns of which runs have a prompt.
-    has_prompt: crate::device::BoolUploads,
+    has_prompt: pdt_model::device::BoolUploads,
 }
 
 /// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
@@ -355,7 +353,7 @@ impl PackedPromptDt {
         let n = self.slots as i64;
         let flags = match self.reused.lock() {
             Ok(mut r) => r.has_prompt.get(has, self.device),
-            Err(_) => crate::device::upload(has, self.device),
+            Err(_) => pdt_model::device::upload(has, self.device),
         };
         flags.view([n, 1, 1])
     }
@@ -483,12 +481,15 @@ impl PackedPromptDt {
             let mut row = noise.get(slot as i64);
             match drawn.first() {
                 Some(&(p, _)) if one_p => {
-                    crate::dropout::bernoulli_(&mut row, 1.0 - p);
+                    pdt_model::dropout::bernoulli_(&mut row, 1.0 - p);
                 }
                 _ => {
                     let mut off = 0;
                     for &(p, attn) in &drawn {
-                        crate::dropout::bernoulli_(&mut row.narrow(0, off, size(attn)), 1.0 - p);
+                        pdt_model::dropout::bernoulli_(
+                            &mut row.narrow(0, off, size(attn)),
+                            1.0 - p,
+                        );
                         off += size(attn);
                     }
                 }
@@ -663,61 +664,6 @@ impl PackedPromptDt {
         let inner = self.conv1d(&self.layer_norm(&h, blk.ln_2, eps), blk.c_fc).relu();
         let m = drop(self.conv1d(&inner, blk.mlp_proj), masks.and_then(|s| s[2].as_ref()));
         &h + m
-    }
-
-    /// Every run's action at the last history step of each sample, in eval mode (no dropout, no
-    /// gradient): `[N, B, da]`, `forward_all_steps(batch, None)[:, :, P+K-1]` with the solo
-    /// `PromptDt::act`'s savings: the last action token, which no state token attends to, is not
-    /// fed, and the last block runs for the last state token only (its keys and values from every
-    /// position).
-    pub fn act_all(&self, batch: &PackedBatch) -> Tensor {
-        tch::no_grad(|| {
-            let (n, b) = (self.slots as i64, batch.batch);
-            let (eps, hidden) = (self.cfg.layer_norm_epsilon, self.cfg.hidden_size as i64);
-            let (tokens, mask) = self.embed(batch); // [N, B*3(P+K), H], [N*B, 3(P+K)]
-            let l = mask.size()[1] - 1; // 3(P+K) - 1: the last position is the last state token
-            let tokens = tokens.view([n * b, l + 1, hidden]).narrow(1, 0, l); // [N*B, L, H]
-            let (mut x, mask) = (tokens.contiguous().view([n, -1, hidden]), mask.narrow(1, 0, l));
-            let causal = self.causal(l);
-            let pad_bias = (1.0 - mask.unsqueeze(1).unsqueeze(1)) * -10000.0; // [N*B, 1, 1, L]
-            let Some((last, blocks)) = self.idx.blocks.split_last() else {
-                // (A model of no layers: `PromptDtConfig::validate` refuses it.)
-                return Tensor::zeros([n, b, 0], (Kind::Float, self.device));
-            };
-            for blk in blocks {
-                x = self.block(&x, blk, &causal, &pad_bias, None, false);
-            }
-            let ln_1 = self.layer_norm(&x, last.ln_1, eps);
-            // The attention output `[N, B, H]`, plus each sample's last row (strided, no copy).
-            let a = self.attention_last(&ln_1, last, &pad_bias);
-            let h = x.view([n * b, l, hidden]).narrow(1, l - 1, 1).view([n, b, hidden]) + a; // [N, B, H]
-            let inner = self.conv1d(&self.layer_norm(&h, last.ln_2, eps), last.c_fc).relu();
-            let x = &h + self.conv1d(&inner, last.mlp_proj);
-            let x = self.layer_norm(&x, self.idx.ln_f, eps); // [N, B, H]
-            let actions = self.linear(&x, self.idx.predict_action); // [N, B, da]
-            if self.cfg.action_tanh {
-                actions.tanh()
-            } else {
-                actions
-            }
-        })
-    }
-
-    /// [`Self::attention`] (eval mode) for the query of the last position only, which the causal
-    /// mask lets attend to every position: `[N, B, H]` from `x` `[N, B*L, H]`.
-    fn attention_last(&self, x: &Tensor, blk: &BlockIdx, pad_bias: &Tensor) -> Tensor {
-        let hidden = self.cfg.hidden_size as i64;
-        let nh = self.cfg.n_head as i64;
-        let hd = hidden / nh;
-        let (rows, l) = (pad_bias.size()[0], pad_bias.size()[3]); // N*B, L
-        let qkv = self.conv1d(x, blk.c_attn).split(hidden, 2); // 3 x [N, B*L, H]
-        let q = qkv[0].view([rows, l, hidden]).narrow(1, l - 1, 1); // [N*B, 1, H]
-        let q = self.heads(&q, rows, 1); // [N*B*nh, 1, hd]
-        let k = self.heads(&qkv[1], rows, l).transpose(1, 2); // [N*B*nh, hd, L]
-        let v = self.heads(&qkv[2], rows, l); // [N*B*nh, L, hd]
-        let w = q.bmm(&k).view([rows, nh, 1, l]) / (hd as f64).powf(0.5) + pad_bias; // [N*B, nh, 1, L]
-        let a = w.softmax(-1, None::<Kind>).view([rows * nh, 1, l]).bmm(&v); // [N*B*nh, 1, hd]
-        self.conv1d(&self.merge_heads(a, rows), blk.attn_proj) // [N, B, H]
     }
 
     /// The masked action MSE of each run (`PromptDt::action_loss` per run): `[N]`. Padded steps

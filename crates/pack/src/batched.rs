@@ -1,25 +1,26 @@
-//! [`BatchedEngine`]: a pack's runs as one batched model ([`pdt_model::packed`]) with a packed
+//! [`BatchedEngine`]: a pack's runs as one batched model ([`crate::model`]) with a packed
 //! AdamW (`optim`): one forward, one backward and one optimiser pass for all runs of a step.
 //!
 //! The shapes of every step are fixed for the pack's life ([`PackLayout`]): a run without inputs in
 //! a step is computed on a finite placeholder and its results dropped, so that a run's results do
 //! not depend on which other runs are stepped (the first point of the [`PackEngine`] contract; a
 //! matrix product's kernel may depend on its batch count). Call [`PackEngine::step`] and
-//! [`BatchedEngine::new`] with libtorch's generator held (`crate::streams::torch_rng_lock`), as
+//! [`BatchedEngine::new`] with libtorch's generator held (`pdt_train::streams::torch_rng_lock`), as
 //! the solo learner is called.
 
 mod optim;
 
-use super::engine::{PackEngine, SlotAct, SlotSpec, SlotState, SlotStep};
-use crate::error::RunError;
-use crate::step::{LossOn, PendingStats};
-use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
-use optim::PackedAdamW;
-use pdt_base::seed::derive_seed;
-use pdt_model::packed::{
+use crate::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+use crate::model::{
     DropoutSeeds, LayerNormPlan, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
 };
-use pdt_model::PromptDt;
+use optim::PackedAdamW;
+use pdt_base::seed::derive_seed;
+use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_train::run::RunError;
+use pdt_train::step::{LossOn, PendingStats};
+use pdt_train::streams::{STREAM_DROPOUT, STREAM_INIT};
+use std::collections::BTreeSet;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
 /// The shapes of every step's batches, fixed for the pack's life.
@@ -79,11 +80,11 @@ impl BatchedEngine {
         }
         let mut model = PackedPromptDt::new(&cfg, specs.len(), device).map_err(invalid)?;
         // `train.last_block` (`auto`: the state tokens), one for the pack's computation.
-        let last = crate::step::last_block(first.last_block, device, true);
+        let last = pdt_train::step::last_block(first.last_block, device, true);
         if let Some((i, s)) = specs
             .iter()
             .enumerate()
-            .find(|(_, s)| crate::step::last_block(s.last_block, device, true) != last)
+            .find(|(_, s)| pdt_train::step::last_block(s.last_block, device, true) != last)
         {
             return Err(RunError::Invalid(format!(
                 "pack: run {i}'s train.last_block ({}) differs from run 0's ({})",
@@ -92,6 +93,9 @@ impl BatchedEngine {
             )));
         }
         model.set_last_block(last);
+        // Which parameters each run's loss reads, as its solo model says (one set with a prompt,
+        // one without): a parameter a run never reads gets no update and no step count.
+        let reads = [false, true].map(|p| read_parameters(&cfg, p, device));
         for (slot, spec) in specs.iter().enumerate() {
             tch::manual_seed(derive_seed(spec.seed, STREAM_INIT, 0) as i64);
             let vs = VarStore::new(device);
@@ -104,12 +108,17 @@ impl BatchedEngine {
                 .collect();
             model.set_slot(slot, &weights).map_err(invalid)?;
         }
-        let uses: Vec<bool> = specs.iter().map(|s| s.uses_prompt).collect();
+        let used = model
+            .names()
+            .iter()
+            .map(|name| specs.iter().map(|s| reads[usize::from(s.uses_prompt)].contains(name)))
+            .map(Iterator::collect)
+            .collect();
         let cfgs = specs.iter().map(|s| s.optim.clone()).collect();
         // Flat when every run's `optim.flat` asks for it on this device (`auto`: on CUDA).
         let flat = specs.iter().all(|s| s.optim.flat.use_flat(device.is_cuda()));
-        let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, &uses, device, flat);
-        // As `crate::step::train_step`: the prompt's steps are supervised only with
+        let opt = PackedAdamW::new(model.names(), model.weights(), cfgs, used, device, flat);
+        // As `pdt_train::step::train_step`: the prompt's steps are supervised only with
         // `LossOn::PromptAndHistory` and a prompt.
         let supervise: Vec<f32> = specs
             .iter()
@@ -241,57 +250,6 @@ impl PackEngine for BatchedEngine {
         Ok((0..n).map(|s| active[s].then(|| PendingStats::column(&stats, s, lrs[s]))).collect())
     }
 
-    fn acts_together(&self) -> bool {
-        true
-    }
-
-    fn act(&mut self, acts: Vec<Option<SlotAct>>) -> Result<Vec<Option<Tensor>>, RunError> {
-        let n = self.specs.len();
-        if acts.len() != n {
-            return Err(RunError::Invalid(format!(
-                "pack: {} slot forwards for a pack of {n} runs",
-                acts.len()
-            )));
-        }
-        for (slot, (a, spec)) in acts.iter().zip(&self.specs).enumerate() {
-            if a.as_ref().is_some_and(|a| a.prompt.is_some() != spec.uses_prompt) {
-                return Err(RunError::Invalid(format!(
-                    "pack: run {slot} {}, its evaluation's forward {}",
-                    if spec.uses_prompt { "uses a prompt" } else { "uses no prompt" },
-                    if spec.uses_prompt { "has none" } else { "has one" }
-                )));
-            }
-        }
-        let mut out: Vec<Option<Tensor>> = (0..n).map(|_| None).collect();
-        // One forward per padded size among the requests (a size is an evaluation split's,
-        // fixed for the pack: `SlotAct::rows`).
-        let mut sizes: Vec<i64> = acts.iter().flatten().map(|a| a.rows).collect();
-        sizes.sort_unstable();
-        sizes.dedup();
-        let (k, p) = (self.layout.history_len as i64, self.layout.prompt_len as i64);
-        for rows in sizes {
-            let picked: Vec<Option<PackedRow<'_>>> = acts
-                .iter()
-                .map(|a| {
-                    a.as_ref()
-                        .filter(|a| a.rows == rows)
-                        .map(|a| PackedRow { history: &a.history, prompt: a.prompt.as_ref() })
-                })
-                .collect();
-            let device = self.model.device();
-            let batch = PackedBatch::for_acting(&picked, rows, k, p, &self.model.cfg, device)
-                .map_err(invalid)?;
-            let actions = self.model.act_all(&batch); // [N, rows, da]
-            for (slot, row) in picked.iter().enumerate() {
-                if let Some(row) = row {
-                    let a = row.history.batch_size();
-                    out[slot] = Some(actions.get(slot as i64).narrow(0, 0, a)); // [A, da]
-                }
-            }
-        }
-        Ok(out)
-    }
-
     fn export(&self, slot: usize) -> Result<SlotState, RunError> {
         self.check_slot(slot)?;
         let weights = self.model.slot_weights(slot).map_err(invalid)?;
@@ -305,4 +263,24 @@ impl PackEngine for BatchedEngine {
             .import(slot, &state.moments)
             .map_err(|e| RunError::Invalid(format!("pack: run {slot}: {e}")))
     }
+}
+
+/// The parameters of a solo model of `cfg` to which its action loss gives a gradient, with a
+/// prompt or without (PyTorch's non-`None` gradients, which its AdamW steps): read off one
+/// backward of the solo model on a placeholder batch, so that no parameter is named here (the
+/// unused token embedding and state and return heads get none; the prompt layers only with a
+/// prompt). Draws from libtorch's generator (the model's initialisation): call it with the
+/// generator held, before the runs' own initialisations are drawn.
+fn read_parameters(cfg: &PromptDtConfig, uses_prompt: bool, device: Device) -> BTreeSet<String> {
+    let vs = VarStore::new(device);
+    let model = PromptDt::new(&vs.root(), cfg);
+    let (ds, da) = (cfg.state_dim, cfg.act_dim);
+    let one = |t: usize| {
+        let (s, a) = (vec![0f32; t * ds], vec![0f32; t * da]);
+        let (rtg, ts, mask) = (vec![0f32; t], vec![0i64; t], vec![1f32; t]);
+        Segments::from_host(1, t, ds, da, &s, &a, &rtg, &ts, &mask, device)
+    };
+    let prompt = uses_prompt.then(|| one(1));
+    model.forward(&one(1), prompt.as_ref(), false).sum(Kind::Float).backward();
+    vs.variables().into_iter().filter(|(_, t)| t.grad().defined()).map(|(n, _)| n).collect()
 }

@@ -2,114 +2,24 @@
 //! engine built, then each run's ordinary run loop in its own thread with a [`PackMember`] whose
 //! gradient steps meet the others' in the [`Hub`].
 
-use super::batched::{BatchedEngine, PackLayout};
-use super::engine::{PackEngine, SlotSpec};
-use super::hub::Hub;
-use super::member::{ActShape, PackMember};
-use super::solo::{SoloEngine, SoloThreads};
-use crate::config::{Method, TrainConfig};
-use crate::error::RunError;
-use crate::methods::Learner;
-use crate::run_loop::{
-    run_config_for, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
-};
-use crate::setup::{absolute, Setup};
-use crate::streams::torch_rng_lock;
+use crate::batched::{BatchedEngine, PackLayout};
+use crate::engine::{PackEngine, SlotSpec};
+use crate::hub::Hub;
+use crate::member::PackMember;
+use crate::solo::SoloEngine;
 use pdt_policy::RunData;
+use pdt_rundir::pack::Engine;
 use pdt_rundir::PackInfo;
+use pdt_train::config::TrainConfig;
+use pdt_train::methods::Learner;
+use pdt_train::run::{
+    run_config_for, train_learner, Progress, ResumeWith, RunError, TrainOptions, TrainSummary,
+};
+use pdt_train::setup::{absolute, Setup};
+use pdt_train::streams::torch_rng_lock;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
-
-/// The engine that steps a pack.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Engine {
-    /// One batched computation for all runs (stacked weights, batched products).
-    Batched,
-    /// Each run's ordinary solo step: exact (a run trained through it is the same run trained
-    /// alone, bit for bit). On the CPU the runs' steps run at once, one OS thread each with the
-    /// run's libtorch threads ([`SoloThreads::for_pack`]); elsewhere one after another.
-    Solo,
-}
-
-impl Engine {
-    pub fn name(self) -> &'static str {
-        match self {
-            Engine::Batched => "batched",
-            Engine::Solo => "solo",
-        }
-    }
-
-    /// Whether this build has the batched engine (`make_engine`).
-    pub fn batched_available() -> bool {
-        true
-    }
-
-    /// The engine a pack on `device` gets when none is asked for: on the CPU the solo one (its
-    /// runs stepped at once in threads: exact, and as fast as separate processes with one copy of
-    /// the data); on a GPU the batched one where this build has it (one launch for all runs).
-    pub fn default_for(device: tch::Device) -> Self {
-        if device != tch::Device::Cpu && Self::batched_available() {
-            Engine::Batched
-        } else {
-            Engine::Solo
-        }
-    }
-}
-
-impl std::str::FromStr for Engine {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "batched" => Ok(Engine::Batched),
-            "solo" => Ok(Engine::Solo),
-            _ => Err(format!("unknown pack engine `{s}` (batched or solo)")),
-        }
-    }
-}
-
-/// How a pack's evaluations compute their forwards (docs/packs.md, "Evaluations in a batched
-/// pack").
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PackEval {
-    /// One batched forward of the engine for every run then evaluating (the batched engine
-    /// only): few kernel launches on a GPU.
-    Together,
-    /// Each run with its own solo model in its own thread: on the CPU, where a forward is bound
-    /// by arithmetic, the runs' forwards then spread over the cores.
-    Apart,
-}
-
-impl PackEval {
-    pub fn name(self) -> &'static str {
-        match self {
-            PackEval::Together => "together",
-            PackEval::Apart => "apart",
-        }
-    }
-
-    /// Unless asked: together on a GPU with an engine that can act for its runs (the batched
-    /// one), apart otherwise (on the CPU a forward is bound by arithmetic, so
-    /// batching the runs' forwards saves nothing there).
-    pub fn default_for(device: tch::Device, engine: Engine) -> Self {
-        if device != tch::Device::Cpu && engine == Engine::Batched {
-            PackEval::Together
-        } else {
-            PackEval::Apart
-        }
-    }
-}
-
-impl std::str::FromStr for PackEval {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "together" => Ok(PackEval::Together),
-            "apart" => Ok(PackEval::Apart),
-            _ => Err(format!("unknown pack evaluation `{s}` (together or apart)")),
-        }
-    }
-}
 
 /// One run of a pack: its configuration (used to start it; a run being resumed reads its
 /// `config.toml`, which is authoritative) and its run directory.
@@ -131,8 +41,6 @@ pub struct PackOptions<'a> {
     pub stop_after_iterations: Option<u64>,
     /// `None`: [`Engine::default_for`] the runs' device.
     pub engine: Option<Engine>,
-    /// `None`: [`PackEval::default_for`] the runs' device and the engine.
-    pub eval: Option<PackEval>,
     /// Progress of the run in the given slot, after each of its iterations (called from the
     /// run's thread).
     pub progress: &'a (dyn Fn(usize, &Progress) + Sync),
@@ -164,12 +72,10 @@ pub(crate) struct ReadyPack {
     members: Vec<Member>,
     engine: Box<dyn PackEngine + Send>,
     engine_kind: Engine,
-    /// libtorch's intra-op threads for every thread of the pack (its runs' loops and the engine's
-    /// workers: the first run's `run.threads`): one count for all, since a thread's first parallel
-    /// op takes the process's count as its own.
+    /// libtorch's intra-op threads for every thread of the pack (its runs' loops and the
+    /// stepper: the first run's `run.threads`): one count for all, since a thread's first
+    /// parallel op takes the process's count as its own.
     libtorch_threads: usize,
-    /// The shape of the engine's evaluation forwards, when it acts for the runs.
-    act: Option<ActShape>,
 }
 
 /// Everything [`train_pack`] checks and builds before it writes anything.
@@ -181,7 +87,8 @@ pub(crate) fn prepare_pack(
     let device = pdt_model::device::resolve(members[0].cfg.run.device)?;
     // One setting for the process: the runs agree on it (checked where their configurations are).
     pdt_model::device::set_matmul(device, members[0].cfg.run.matmul)?;
-    let engine_kind = opts.engine.unwrap_or_else(|| Engine::default_for(device));
+    let engine_kind =
+        opts.engine.unwrap_or_else(|| Engine::default_for(device != tch::Device::Cpu));
     let specs: Vec<SlotSpec> = members
         .iter()
         .map(|m| SlotSpec {
@@ -210,40 +117,11 @@ pub(crate) fn prepare_pack(
             .unwrap_or(0),
     };
     let libtorch_threads = pdt_base::threads(members[0].cfg.run.threads);
-    let solo_threads = SoloThreads::for_pack(device, libtorch_threads, members.len());
     let engine = {
         let _rng = torch_rng_lock();
-        make_engine(engine_kind, specs, layout, device, solo_threads)?
+        make_engine(engine_kind, specs, layout, device)?
     };
-    let eval = opts.eval.unwrap_or_else(|| PackEval::default_for(device, engine_kind));
-    if eval == PackEval::Together && !engine.acts_together() {
-        return Err(RunError::Invalid(format!(
-            "a pack's evaluations acting together need the batched engine (this pack's is {}): \
-             evaluate apart (`--pack-eval apart`) or use `--engine batched`",
-            engine_kind.name()
-        )));
-    }
-    let act = (eval == PackEval::Together).then(|| act_shape(&members, &layout)).flatten();
-    Ok(ReadyPack { members, engine, engine_kind, libtorch_threads, act })
-}
-
-/// The fixed shape of the engine's evaluation forwards ([`ActShape`]), when the runs' histories
-/// are one length (the engine's inputs hold one history length; otherwise each run acts apart).
-fn act_shape(members: &[Member], layout: &PackLayout) -> Option<ActShape> {
-    if members.iter().any(|m| m.data.sampler_cfg.k != layout.history_len) {
-        return None;
-    }
-    let rows = |tasks: fn(&RunData) -> usize| {
-        let most = members.iter().map(|m| {
-            let e = &m.cfg.eval;
-            (tasks(&m.data) * e.episodes).min(e.max_batch).max(1)
-        });
-        most.max().unwrap_or(1) as i64
-    };
-    Some(ActShape {
-        test_rows: rows(|d| d.test_data.tasks.len()),
-        train_rows: rows(|d| d.train_data.tasks.len()),
-    })
+    Ok(ReadyPack { members, engine, engine_kind, libtorch_threads })
 }
 
 /// Trains a prepared pack: each run's loop in its own thread, the gradient steps in the hub.
@@ -251,7 +129,7 @@ pub(crate) fn run_pack(
     ready: ReadyPack,
     opts: PackOptions<'_>,
 ) -> Vec<Result<TrainSummary, RunError>> {
-    let ReadyPack { members, engine, engine_kind, libtorch_threads, act } = ready;
+    let ReadyPack { members, engine, engine_kind, libtorch_threads } = ready;
     let libtorch_threads = i32::try_from(libtorch_threads).unwrap_or(i32::MAX);
     tch::set_num_threads(libtorch_threads);
     let hub = Hub::new(engine);
@@ -292,7 +170,7 @@ pub(crate) fn run_pack(
                         // A pack is the CLI's (`promptdt pack`), which Ctrl-C ends outright.
                         interrupt: Default::default(),
                     };
-                    train_member(m, slot, hub, act, opts, &info)
+                    train_member(m, slot, hub, opts, &info)
                 });
                 // A run whose thread did not start has left: the others do not wait for it.
                 spawned.map_err(|e| {
@@ -323,7 +201,6 @@ fn train_member(
     m: Member,
     slot: usize,
     hub: &Hub,
-    act: Option<ActShape>,
     opts: TrainOptions<'_>,
     info: &PackInfo,
 ) -> Result<TrainSummary, RunError> {
@@ -332,7 +209,7 @@ fn train_member(
     let _leave = Leave { hub, slot };
     let toml = m.cfg.to_toml()?;
     let setup = Setup::with_data(m.cfg, m.data, info.size)?;
-    let mut learner = PackMember::new(&setup, slot, hub, act)?;
+    let mut learner = PackMember::new(&setup, slot, hub)?;
     learner.check_can_train()?;
     train_learner(&setup, &toml, &m.dir, &mut learner, opts, Some(info))
 }
@@ -355,10 +232,9 @@ fn make_engine(
     specs: Vec<SlotSpec>,
     layout: PackLayout,
     device: tch::Device,
-    solo_threads: SoloThreads,
 ) -> Result<Box<dyn PackEngine + Send>, RunError> {
     Ok(match kind {
-        Engine::Solo => Box::new(SoloEngine::with_threads(specs, device, solo_threads)?),
+        Engine::Solo => Box::new(SoloEngine::new(specs, device)),
         Engine::Batched => Box::new(BatchedEngine::new(specs, layout, device)?),
     })
 }
@@ -436,19 +312,12 @@ fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
 }
 
 /// Refuses runs that cannot share a pack, naming the setting: one environment family, one model
-/// shape (`[model]`), one device and matmul precision; the Prompt-DT variants only.
+/// shape (`[model]`), one device and matmul precision; methods that pack (`Method::packs`) only.
 fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
     for (cfg, dir, _) in runs {
-        let m = cfg.run.method;
-        if !m.packs() {
-            return Err(RunError::Invalid(format!(
-                "run {}: run.method = \"{}\" cannot train in a pack ({} trains alone; packs \
-                 take {}; docs/packs.md); train it with `promptdt train --config`",
-                dir.display(),
-                m.name(),
-                m.title(),
-                Method::names_where(Method::packs)
-            )));
+        if !cfg.run.method.packs() {
+            let e = pdt_train::methods::cannot_pack(cfg.run.method);
+            return Err(RunError::Invalid(format!("run {}: {e}", dir.display())));
         }
     }
     let (first, first_dir, _) = &runs[0];

@@ -1,46 +1,14 @@
 //! A pack directory (`promptdt train --pack`): `pack.json`, the pack's record (each run's
-//! directory and configuration, the engine, how its evaluations act), written before any run is
+//! directory and configuration, the engine: `pdt_rundir::pack`), written before any run is
 //! created, and one ordinary run directory per run beside it. With the record, a pack killed at
 //! any moment (even before some of its runs had a directory) resumes from its directory alone.
 
-use super::run::{prepare_pack, run_pack, train_pack, Engine, PackEval, PackOptions, PackRun};
-use crate::config::TrainConfig;
-use crate::error::{io_err, RunError};
-use crate::run_loop::TrainSummary;
+use crate::run::{prepare_pack, run_pack, train_pack, PackOptions, PackRun};
 use pdt_base::fs::write_atomic;
-use serde::{Deserialize, Serialize};
+use pdt_rundir::pack::{is_pack_dir, Engine, PackRecord, PackRecordRun, PACK_JSON};
+use pdt_train::config::TrainConfig;
+use pdt_train::run::{RunError, TrainSummary};
 use std::path::{Component, Path, PathBuf};
-
-/// The file of a pack directory that names its runs.
-pub const PACK_JSON: &str = "pack.json";
-
-/// `pack.json`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct PackRecord {
-    /// The engine the pack was started with (`batched` or `solo`); a resumed pack keeps it unless
-    /// told otherwise, so its runs go on with the same arithmetic.
-    pub engine: String,
-    /// How the pack's evaluations compute their forwards (`together` or `apart`), when it was
-    /// started with one: a resumed pack keeps it unless told otherwise. Absent: the default for
-    /// the device and engine (`PackEval::default_for`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub eval: Option<String>,
-    pub runs: Vec<PackRecordRun>,
-}
-
-/// One run of `pack.json`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct PackRecordRun {
-    /// The run's directory: a name inside the pack directory, or an absolute path.
-    pub dir: String,
-    /// The configuration the run starts from (TOML, as its `config.toml`).
-    pub config: String,
-}
-
-/// Whether `dir` is a pack directory (it has `pack.json`).
-pub fn is_pack_dir(dir: &Path) -> bool {
-    dir.join(PACK_JSON).is_file()
-}
 
 /// Starts a pack of `configs` in the new pack directory `out`: `pack.json`, then each run in
 /// `out/<method>-<env>-seed<seed>`. `opts.resume` must be false (see [`resume_pack_dir`]).
@@ -71,7 +39,7 @@ pub fn train_pack_dir(
     let mut runs = Vec::with_capacity(configs.len());
     for cfg in &mut configs {
         // Recorded absolute, so the pack resumes from any directory.
-        cfg.data.dir = crate::setup::absolute(&cfg.data.dir);
+        cfg.data.dir = pdt_train::setup::absolute(&cfg.data.dir);
         let family = pdt_envs::family(&cfg.env.name)?;
         let name = cfg.run_name(family.name());
         if runs.iter().any(|r: &PackRecordRun| r.dir == name) {
@@ -87,7 +55,7 @@ pub fn train_pack_dir(
         None => {
             let first = configs.first().map(|c| c.run.device);
             let device = first.map(pdt_model::device::resolve).transpose()?;
-            Engine::default_for(device.unwrap_or(tch::Device::Cpu))
+            Engine::default_for(device.is_some_and(|d| d != tch::Device::Cpu))
         }
     };
     let members = runs.iter().map(|r| out.join(&r.dir)).zip(configs);
@@ -95,13 +63,13 @@ pub fn train_pack_dir(
     let opts = PackOptions { resume: false, engine: Some(engine), ..opts };
     // Checked and built before anything is written: a refused pack leaves no record behind.
     let ready = prepare_pack(members, &opts)?;
-    let record =
-        PackRecord { engine: engine.name().into(), eval: opts.eval.map(|e| e.name().into()), runs };
-    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    let record = PackRecord { engine: engine.name().into(), eval: None, runs };
+    std::fs::create_dir_all(out).map_err(|source| RunError::Io { path: out.into(), source })?;
     let path = out.join(PACK_JSON);
     let text = serde_json::to_string_pretty(&record)
         .map_err(|e| RunError::Corrupt { path: path.clone(), message: e.to_string() })?;
-    write_atomic(&path, format!("{text}\n").as_bytes()).map_err(io_err(&path))?;
+    write_atomic(&path, format!("{text}\n").as_bytes())
+        .map_err(|source| RunError::Io { path: path.clone(), source })?;
     Ok(run_pack(ready, opts))
 }
 
@@ -142,12 +110,6 @@ pub fn resume_pack_dir(
         runs.push(PackRun { config, dir: dir.join(given) });
     }
     let engine = Some(opts.engine.unwrap_or(recorded));
-    let recorded_eval: Option<PackEval> = record
-        .eval
-        .as_deref()
-        .map(str::parse)
-        .transpose()
-        .map_err(|e: String| RunError::Corrupt { path: path.clone(), message: e })?;
-    let eval = opts.eval.or(recorded_eval);
-    train_pack(runs, PackOptions { resume: true, engine, eval, ..opts })
+    // (`record.eval`, from a pack started with `--pack-eval`, is ignored: evaluations are apart.)
+    train_pack(runs, PackOptions { resume: true, engine, ..opts })
 }

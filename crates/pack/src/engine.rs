@@ -11,14 +11,13 @@
 //! - Parameters a slot's run never uses (the prompt layers of a no-prompt run; the heads no loss
 //!   reads) get no update and no step count for that slot, as PyTorch skips a `None` gradient.
 
-use crate::error::RunError;
+use pdt_train::run::RunError;
 // A slot's state is a solo run's, so the optimiser owns its type (the solo learner hands it over).
-pub use crate::optim::SlotState;
+pub use pdt_train::optim::SlotState;
 
-use crate::optim::AdamWConfig;
-use crate::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats, StepStats};
-use pdt_model::{PromptDtConfig, Segments};
-use tch::Tensor;
+use pdt_model::PromptDtConfig;
+use pdt_train::optim::AdamWConfig;
+use pdt_train::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats};
 
 /// What an engine knows about one run of the pack, fixed for the pack's life.
 #[derive(Debug, Clone)]
@@ -46,32 +45,6 @@ pub struct SlotStep {
     pub batch: DeviceBatch,
 }
 
-/// One run's forward in an evaluation (`pdt_eval::ActRows`): its running episodes' histories
-/// `[A, K]` and their tasks' prompts `[A, J*H]` (`None` for a run without prompts), computed padded
-/// to `rows` samples. `rows` is fixed for the pack and the evaluation's split
-/// (the hub's `ActShape`), never by which other runs act in the same call, so that a run's
-/// actions depend on its own inputs alone (a matrix product's kernel may depend on its sizes).
-#[derive(Debug)]
-pub struct SlotAct {
-    pub history: Segments,
-    pub prompt: Option<Segments>,
-    pub rows: i64,
-}
-
-/// A slot's step started on its own ([`PackEngine::start`]): its statistics once computed.
-pub struct PendingStep(Box<dyn FnOnce() -> Result<StepStats, RunError> + Send>);
-
-impl PendingStep {
-    pub fn new(wait: impl FnOnce() -> Result<StepStats, RunError> + Send + 'static) -> Self {
-        Self(Box::new(wait))
-    }
-
-    /// Waits for the step's statistics (holding nothing of the pack's meanwhile).
-    pub fn wait(self) -> Result<StepStats, RunError> {
-        (self.0)()
-    }
-}
-
 /// Steps the runs of a pack together.
 pub trait PackEngine {
     /// Number of slots (runs) in the pack.
@@ -86,31 +59,4 @@ pub trait PackEngine {
     /// Sets the slot's weights and optimiser state (a fresh run's initial weights with empty
     /// moments, or a resumed run's checkpoint).
     fn import(&mut self, slot: usize, state: SlotState) -> Result<(), RunError>;
-    /// Whether a slot can be stepped on its own as soon as its run is ready ([`Self::start`]),
-    /// the others not waited for: an engine whose slots share no computation (the solo engine on
-    /// its threads). Such a pack's runs are not in lockstep; by the contract above, each run's
-    /// results are the same either way.
-    fn steps_alone(&self) -> bool {
-        false
-    }
-    /// Starts one gradient step of `slot` alone (an engine that [`Self::steps_alone`]); call it
-    /// with libtorch's generator held (the step's dropout masks are drawn here). Its statistics
-    /// come from the returned [`PendingStep`], awaited without holding anything.
-    fn start(&mut self, slot: usize, step: SlotStep) -> Result<PendingStep, RunError> {
-        let _ = step;
-        Err(RunError::Invalid(format!(
-            "pack engine: slot {slot}: this engine steps the runs of a pack together"
-        )))
-    }
-    /// Whether the engine computes its runs' evaluation forwards together ([`Self::act`]); an
-    /// engine that does not leaves each run to evaluate with its own solo model.
-    fn acts_together(&self) -> bool {
-        false
-    }
-    /// The evaluation actions `[A, da]` of every slot given `Some` (eval mode: no dropout), the
-    /// last history step's of each row; `acts.len() == self.slots()`.
-    fn act(&mut self, acts: Vec<Option<SlotAct>>) -> Result<Vec<Option<Tensor>>, RunError> {
-        let _ = acts;
-        Err(RunError::Invalid("pack engine: this engine does not act for its runs".into()))
-    }
 }

@@ -1,5 +1,5 @@
 //! AdamW and gradient clipping over a pack's stacked parameters (`[N, ...]`): the solo optimiser's
-//! ops (`crate::optim`) once per parameter tensor for all runs, with each run's scalars (learning
+//! ops (`pdt_train::optim`) once per parameter tensor for all runs, with each run's scalars (learning
 //! rate, bias corrections, clipping coefficient) as `[N]` tensors broadcast over its row. The
 //! number of kernels per step does not grow with N.
 //!
@@ -16,28 +16,13 @@
 //! reference model). The parameters some run reads come first, so the columns updated are one
 //! prefix. The element-wise update is the same ops as the per-tensor loop; the clipping norm is one
 //! reduction per run instead of the norm of the per-tensor norms, so it differs in the last bits
-//! (as the solo flat optimiser's, `crate::optim::flat`). A step whose runs' step counts differ
+//! (as the solo flat optimiser's, `pdt_train::optim::flat`). A step whose runs' step counts differ
 //! between parameters (a state imported from elsewhere) takes the per-tensor loop over the views.
 
-use crate::optim::{AdamWConfig, ParamState};
 use pdt_model::device::upload;
+use pdt_train::optim::{AdamWConfig, ParamState};
 use std::collections::{BTreeMap, HashMap};
 use tch::{Device, Kind, Tensor};
-
-/// Whether a run reads a parameter, so that PyTorch would give it a gradient: never the unused
-/// token embedding and prediction heads; the prompt layers only when the run uses a prompt.
-pub(super) fn reads(name: &str, uses_prompt: bool) -> bool {
-    if name == "transformer.wte.weight"
-        || name.starts_with("predict_state.")
-        || name.starts_with("predict_return.")
-    {
-        false
-    } else if name.starts_with("prompt_") {
-        uses_prompt
-    } else {
-        true
-    }
-}
 
 /// One parameter's moments for every run, and each run's step count for it.
 #[derive(Debug)]
@@ -92,20 +77,19 @@ const EPS: i64 = 5;
 const NEG_STEP_SIZE: i64 = 6; // -lr / (1 - beta1^step)
 
 impl PackedAdamW {
-    /// Zero moments for `params` (`[N, ...]`, named `names`); `uses_prompt[n]` and `cfgs[n]` per run.
+    /// Zero moments for `params` (`[N, ...]`, named `names`); `cfgs[n]` per run, `used[p][n]`
+    /// whether run `n` reads parameter `p` (gets a gradient for it).
     /// `flat`: flat mode, which re-points `params` (the model's weights) at views of one buffer,
     /// their values kept.
     pub(super) fn new(
         names: &[String],
         params: &[Tensor],
         cfgs: Vec<AdamWConfig>,
-        uses_prompt: &[bool],
+        used: Vec<Vec<bool>>,
         device: Device,
         flat: bool,
     ) -> Self {
         let n = cfgs.len();
-        let used: Vec<Vec<bool>> =
-            names.iter().map(|nm| uses_prompt.iter().map(|&u| reads(nm, u)).collect()).collect();
         let (moments, flat) = if flat {
             let (m, f) = Flat::new(params, &used, n);
             (m, Some(f))
@@ -148,7 +132,7 @@ impl PackedAdamW {
             let step = steps[s].max(1) as f64;
             let lr = lrs[s];
             let at = |row: i64| row as usize * n + s;
-            // As `crate::optim::AdamW::step` computes them, in f64, then used as f32 as libtorch
+            // As `pdt_train::optim::AdamW::step` computes them, in f64, then used as f32 as libtorch
             // uses a scalar operand of a float tensor.
             rows[at(DECAY)] = (1.0 - lr * cfg.weight_decay) as f32;
             rows[at(W1)] = (1.0 - cfg.beta1) as f32;

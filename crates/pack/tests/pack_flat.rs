@@ -8,9 +8,9 @@
 mod fixture;
 
 use fixture::*;
-use pdt_model::packed::MaskDraw;
+use pdt_pack::model::MaskDraw;
+use pdt_pack::{BatchedEngine, PackEngine, SlotSpec, SlotState};
 use pdt_train::optim::FlatOptim;
-use pdt_train::pack::{BatchedEngine, PackEngine, SlotSpec, SlotState};
 use pdt_train::step::PendingStats;
 use tch::{Device, Tensor};
 

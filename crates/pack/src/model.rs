@@ -1,10 +1,9 @@
-//! A pack of N Prompt-DT models of one shape, computed as one (N small runs' steps then cost the
-//! device's kernel launches of about one run's): every parameter carries a
+//! A pack of N Prompt-DT models of one shape, computed as one: every parameter carries a
 //! leading run dimension N (a `Conv1D` weight `[N, in, out]`, a LayerNorm weight `[N, H]`, the
 //! timestep table `[N, max_ep_len, H]`), and the forward pass runs all N models with batched matrix
 //! products (`baddbmm`), one kernel per layer for the whole pack.
 //!
-//! Each run's computation equals its solo [`crate::PromptDt`] computation up to rounding:
+//! Each run's computation equals its solo [`pdt_model::PromptDt`] computation up to rounding:
 //! - Runs may differ in prompt length (Table 1) and in whether they use a prompt at all (MT-ORL):
 //!   every run's prompt is *left*-padded to the pack's prompt length `P` with masked steps, so its
 //!   sequence is `[padding ; its prompt ; its history]`. The model has no position embedding (the
@@ -24,8 +23,7 @@
 //!
 //! Row `n * B + b` of a flattened `[N*B, ...]` tensor is sample `b` of run `n`.
 
-use crate::config::PromptDtConfig;
-use crate::prompt_dt::Segments;
+use pdt_model::{PromptDtConfig, Segments};
 use tch::{Device, Kind, Tensor};
 
 /// Why a pack's forward pass or weights were refused.
@@ -258,43 +256,6 @@ impl PackedBatch {
         })
     }
 
-    /// [`Self::new`] for acting: each run may give fewer than `batch` samples (the episodes an
-    /// evaluation has running), padded at the end with finite placeholder samples whose outputs
-    /// the caller drops (their history fully unmasked, their prompt fully masked, as
-    /// [`Self::new`]'s placeholders).
-    pub fn for_acting(
-        rows: &[Option<PackedRow<'_>>],
-        batch: i64,
-        k: i64,
-        p: i64,
-        cfg: &PromptDtConfig,
-        device: Device,
-    ) -> Result<Self, PackedError> {
-        let mut padded: Vec<Option<(Segments, Option<Segments>)>> = Vec::with_capacity(rows.len());
-        for (slot, row) in rows.iter().enumerate() {
-            let Some(row) = row else {
-                padded.push(None);
-                continue;
-            };
-            let a = row.history.batch_size();
-            if a > batch || row.prompt.is_some_and(|p| p.batch_size() != a) {
-                let prompt = row.prompt.map_or("none".into(), |p| p.batch_size().to_string());
-                let what = format!(
-                    "{a} history samples and prompt samples {prompt}, acting holds {batch} samples"
-                );
-                return Err(PackedError::Input { slot, what });
-            }
-            let history = pad_samples(row.history, batch - a, 1.0, device);
-            let prompt = row.prompt.map(|p| pad_samples(p, batch - a, 0.0, device));
-            padded.push(Some((history, prompt)));
-        }
-        let refs: Vec<Option<PackedRow<'_>>> = padded
-            .iter()
-            .map(|r| r.as_ref().map(|(h, p)| PackedRow { history: h, prompt: p.as_ref() }))
-            .collect();
-        Self::new(&refs, batch, k, p, cfg, device)
-    }
-
     /// Number of runs (N).
     pub fn slots(&self) -> i64 {
         self.prompt_lens.len() as i64
@@ -350,16 +311,6 @@ fn shared_placeholder(b: i64, t: i64, ds: i64, da: i64, mask: f64, device: Devic
         made.push((key, s.shallow_clone()));
     }
     s
-}
-
-/// `pad` placeholder samples after `s`'s samples, with the given mask value.
-fn pad_samples(s: &Segments, pad: i64, mask: f64, device: Device) -> Segments {
-    if pad == 0 {
-        return s.shallow_clone();
-    }
-    let (t, ds, da) = (s.len(), s.states.size()[2], s.actions.size()[2]);
-    let z = placeholder(pad, t, ds, da, mask, device);
-    cat_segments(&[s.shallow_clone(), z])
 }
 
 /// `pad` masked zero steps before `s`'s steps.

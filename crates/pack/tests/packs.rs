@@ -1,15 +1,17 @@
 //! Packs through the library (docs/packs.md): each run of a pack matches the same run
-//! trained alone on every logged loss (bit for bit through the solo engine, its runs stepped at
-//! once in threads; within a measured bound through the batched one, whose
+//! trained alone on every logged loss (bit for bit through the solo engine; within a measured
+//! bound through the batched one, whose
 //! final held-out returns lie within the seed-to-seed spread); a run that diverges stops with its
 //! error while the others finish; runs that cannot share a pack are refused.
 #![allow(clippy::unwrap_used, clippy::result_large_err)] // test helpers: a failed unwrap is a failed test
 
-#[path = "support/runs.rs"]
+// The trainer's run helpers, shared with its own tests.
+#[path = "../../train/tests/support/runs.rs"]
 mod runs;
 
+use pdt_pack::{train_pack, PackOptions, PackRun};
+use pdt_rundir::pack::Engine;
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::pack::{train_pack, Engine, PackEval, PackOptions, PackRun, SoloThreads};
 use pdt_train::run::{RunError, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;
@@ -39,8 +41,6 @@ fn pack(
             resume_with: Default::default(),
             stop_after_iterations: None,
             engine: Some(engine),
-            // The batched engine's evaluations acting together (its default on a GPU).
-            eval: (engine == Engine::Batched).then_some(PackEval::Together),
             progress: &progress,
         },
     )
@@ -61,16 +61,7 @@ fn loss_tolerance(engine: Engine) -> f64 {
 fn every_run_of_a_pack_matches_its_run_trained_alone() {
     let (tmp, data) = tiny_data();
     let members = [(Method::PromptDt, 0), (Method::MtOrl, 1), (Method::PromptDt, 2)];
-    // The solo engine steps a CPU pack's runs at once, one thread each with the runs' libtorch
-    // threads (so a packed run computes as the same run alone).
-    let mut engines = vec![Engine::Solo];
-    assert_eq!(
-        SoloThreads::for_pack(tch::Device::Cpu, 1, 3),
-        SoloThreads { concurrent: true, intra_op: 1 }
-    );
-    if Engine::batched_available() {
-        engines.push(Engine::Batched);
-    }
+    let engines = [Engine::Solo, Engine::Batched];
     let alone: Vec<_> = members
         .iter()
         .map(|&(m, seed)| {
@@ -209,9 +200,5 @@ fn runs_that_cannot_share_a_pack_are_refused_before_anything_is_written() {
             .to_string();
         assert!(e.contains(expect), "{expect}: {e}");
         assert!(!a.dir.exists() && !tmp.path().join("b").exists(), "{expect}: nothing written");
-    }
-    let e = pack(vec![a.clone()], Engine::Batched).err().map(|e| e.to_string());
-    if !Engine::batched_available() {
-        assert!(e.unwrap().contains("--engine solo"));
     }
 }
