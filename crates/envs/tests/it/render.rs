@@ -138,7 +138,11 @@ fn without_egl_a_frame_fails_naming_the_debian_packages() {
         .arg("sh")
         .arg(&lib)
         .arg(&exe)
-        .arg("without_egl_a_frame_fails_naming_the_debian_packages")
+        // Its name in the test binary: the module path less the crate's name (`render::..`).
+        .arg(format!(
+            "{}::without_egl_a_frame_fails_naming_the_debian_packages",
+            module_path!().split_once("::").map_or("", |(_, m)| m)
+        ))
         .env("PROMPTDT_RENDER_NO_EGL_CHILD", "1")
         .output();
     let out = match out {
