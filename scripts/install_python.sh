@@ -21,7 +21,7 @@
 #      and pip-installs it into VENV.
 #
 # The build reuses target/: the library crates are built with the same features as by `make test`
-# and `make demo` (crates/testkit/tests/one_build.rs), so after either only pyo3 and the extension
+# and `make demo` (crates/testkit/tests/it/one_build.rs), so after either only pyo3 and the extension
 # are compiled, and a second run after a change only rebuilds the extension. Cost and wheel size:
 # see docs/python.md.
 set -euo pipefail

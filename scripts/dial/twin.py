@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Python twin of promptdt's reconstructed `dial` environment (docs/dial.md), on the raw Python
 bindings `mujoco==3.17.0`, the build the Rust crate links. It computes every quantity in the same
-order as crates/envs/src/dial.rs, so that the two agree bit for bit; crates/envs/tests/dial_parity.rs
+order as crates/envs/src/dial.rs, so that the two agree bit for bit; crates/envs/tests/it/dial_parity.rs
 replays the fixtures this script writes and requires equal observations, rewards and flags.
 
 Usage:
@@ -326,7 +326,7 @@ def cmd_expert(args):
 
 
 # ------------------------------------------------------------------------------------------------
-# Fixtures for crates/envs/tests/dial_parity.rs
+# Fixtures for crates/envs/tests/it/dial_parity.rs
 # ------------------------------------------------------------------------------------------------
 def fnv1a64(data):
     h = 0xCBF29CE484222325

@@ -6,7 +6,7 @@
 Both directories hold the files of `make_prompt_dt_fixtures.py`. Prints, per group of expected
 tensors, the largest absolute difference, the largest difference relative to the tensor's own
 largest magnitude (`max|a-b| / max|b|`), and how many values differ at all. These numbers are what
-the tolerances of `crates/train/tests/parity.rs` (`CrossCpu`) are derived from: see
+the tolerances of `crates/train/tests/it/parity.rs` (`CrossCpu`) are derived from: see
 testdata/golden/README.md, "Across CPUs".
 
 Needs numpy and safetensors only (no torch).

@@ -4,7 +4,7 @@ there against the official code with `higher` to ~1e-15 in float64.
 
 It is the reference the Rust implementation (crates/macaw) is compared with, operation for
 operation: the same ops in the same order, so that on one CPU with one thread the two agree bit for
-bit (scripts/golden/make_macaw_fixtures.py, crates/macaw/tests/parity.rs), and the PyTorch side of
+bit (scripts/golden/make_macaw_fixtures.py, crates/macaw/tests/it/parity.rs), and the PyTorch side of
 `promptdt bench` (scripts/bench/macaw_bench.py).
 
 Parameters are plain tensors (no nn.Module), in the official order: per WLinear layer

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Write the PyTorch golden fixtures for the MACAW parity test (crates/macaw/tests/parity.rs).
+"""Write the PyTorch golden fixtures for the MACAW parity test (crates/macaw/tests/it/parity.rs).
 
     .venv/bin/python scripts/golden/make_macaw_fixtures.py [--out testdata/golden] [--threads 1]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Write the PyTorch golden fixtures for the Rust parity test (crates/train/tests/parity.rs).
+"""Write the PyTorch golden fixtures for the Rust parity test (crates/train/tests/it/parity.rs).
 
     .venv/bin/python scripts/golden/make_prompt_dt_fixtures.py [--out testdata/golden] [--threads 1]
 

@@ -1,6 +1,6 @@
 """Prompt-DT reference model in PyTorch, written from shared/reference/promptdt-reference.md (a), (c.2).
 
-This module is the Python side of the Rust/PyTorch parity test (crates/train/tests/parity.rs) and of the
+This module is the Python side of the Rust/PyTorch parity test (crates/train/tests/it/parity.rs) and of the
 speed benchmark (scripts/bench/bench_torch.py). It follows the op sequence of the reference
 (HF transformers 4.5.1 GPT-2 without position embedding + the Prompt-DT wrapper) op for op, because the
 Rust side mirrors the same ATen calls and we want bitwise agreement. Do not "simplify" an expression here

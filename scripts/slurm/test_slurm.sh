@@ -3,7 +3,7 @@
 # slurmd and munged started here as plain daemons, no systemd, no configuration in /etc) runs the array
 # that `promptdt reproduce fig4 --budget smoke --emit jobs` writes; `--report-only` then merges it,
 # and the report must equal the same sweep run locally by `reproduce`, every file of it byte for
-# byte (crates/cli/tests/reproduce.rs compares the xargs path's cells.csv and curves.csv so).
+# byte (crates/cli/tests/it/reproduce.rs compares the xargs path's cells.csv and curves.csv so).
 #
 #   bash scripts/slurm/test_slurm.sh        (as root: slurmd runs the jobs; a container is fine)
 #

@@ -758,7 +758,7 @@ mod tests {
 
     #[test]
     fn tf32_check_sees_no_effect_on_the_cpu() {
-        // cuBLAS's switch leaves CPU products alone (crates/model/tests/matmul.rs checks more).
+        // cuBLAS's switch leaves CPU products alone (crates/model/tests/it/matmul.rs checks more).
         let e = tf32_effect(Device::Cpu).unwrap();
         pdt_model::device::set_cublas_tf32(false).unwrap();
         assert_eq!(e, 0.0);

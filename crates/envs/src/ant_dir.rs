@@ -381,7 +381,7 @@ mod tests {
 /// rotation `R` to `S R S⁻¹` (a rotation about `det(S) S n`: quaternion `(w, v)` to
 /// `(w, det(S) S v)`), linear velocity `v` to `S v`, and the (body-frame) angular velocity `ω` to
 /// `det(S) S ω`; `det(S) = -1` for the reflections, +1 for the half turn. Checked by
-/// stepping a mirrored state with mirrored actions (`tests/ant_symmetry.rs`).
+/// stepping a mirrored state with mirrored actions (`tests/it/ant_symmetry.rs`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Symmetry {
     /// `y -> -y`: legs 1 <-> 4, 2 <-> 3; hip angles change sign, ankles keep it; goal `g -> -g`.

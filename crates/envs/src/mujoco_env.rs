@@ -344,7 +344,7 @@ impl MujocoEnv {
             return Err(EnvError::NonFiniteAction { env: env.into(), index, value });
         }
         // The control cost sums the squares in f64 and the reward is stored in f32: beyond this
-        // bound a finite action could give an infinite reward (found by tests/replay_fuzz.rs).
+        // bound a finite action could give an infinite reward (found by tests/it/replay_fuzz.rs).
         if let Some((index, &value)) =
             action.iter().enumerate().find(|(_, v)| v.abs() > MAX_ACTION_MAGNITUDE)
         {
@@ -462,7 +462,7 @@ mod tests {
 
     #[test]
     fn an_action_whose_cost_would_overflow_the_reward_is_refused_and_changes_nothing() {
-        // tests/replay_fuzz.rs found it: ctrl 1.34e33 gave a reward of -inf in f32.
+        // tests/it/replay_fuzz.rs found it: ctrl 1.34e33 gave a reward of -inf in f32.
         let mut env = cheetah();
         let obs = env.reset(0);
         let err = env.step(&[0.0, 0.0, 1.342_946_4e33, -1e10, 0.0, 0.0]).expect_err("refused");

@@ -1,5 +1,6 @@
 //! MuJoCo's warnings go to the `log` crate, never to `MUJOCO_LOG.TXT` in the working directory.
-//! (A test binary of its own: the logger must be installed before the first model is loaded.)
+//! (A test binary of its own, not a module of `tests/it`: the logger must be installed before the
+//! first model is loaded, and the other tests load models.)
 
 use std::sync::Mutex;
 

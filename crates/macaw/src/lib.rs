@@ -7,7 +7,7 @@
 //! by line; its section numbers are cited below as "spec 4" etc.). Parameters are explicit tensors,
 //! so the inner step is `p - softplus(rho) * grad(loss, p, create_graph)`: no `higher`, no modules.
 //! The PyTorch twin of this file is `scripts/golden/macaw_torch.py`: the same ops in the same order,
-//! which the parity test (`tests/parity.rs`) checks bit for bit on one CPU thread.
+//! which the parity test (`tests/it/parity.rs`) checks bit for bit on one CPU thread.
 //!
 //! Deliberate differences from the official code are marked `DIFFERENCE` where they live and listed
 //! in `docs/macaw.md`.

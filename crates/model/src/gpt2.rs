@@ -544,7 +544,7 @@ impl Gpt2 {
         // The last layer runs for the last LAST_ROWS positions, not one: BLAS picks its kernels by
         // matrix size, and with one or two rows per sequence an episode alone (a 1- or 2-row
         // product) got other bits than the same episode batched with others. Measured on AVX2:
-        // 2 or 3 rows differ, 4 and more are batch-invariant (`tests/act.rs`); 8 leaves margin.
+        // 2 or 3 rows differ, 4 and more are batch-invariant (`tests/it/act.rs`); 8 leaves margin.
         let tail = l.min(LAST_ROWS);
         let (all, last) = (rows_of(l), rows_of(tail));
         let mut x = embeds.shallow_clone();

@@ -411,7 +411,7 @@ impl PromptDt {
     }
 
     /// The action of the last history step (eval mode): what the evaluator and a deployed policy
-    /// need, `[B, da]`, equal to `forward(history, prompt, false)[:, K-1]` (`tests/act.rs`) with
+    /// need, `[B, da]`, equal to `forward(history, prompt, false)[:, K-1]` (`tests/it/act.rs`) with
     /// less work: the prompt's keys and values come from `prompt` (computed once by
     /// [`PromptDt::prefix`], one row per sequence via [`PrefixCache::select`]), the trailing
     /// action token is not fed, and the last layer runs for the last few positions only.

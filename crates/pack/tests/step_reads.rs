@@ -3,10 +3,11 @@
 //! next step). The run loops read an iteration's statistics once, after its last step
 //! (`PendingStats::read_all`), and get the values reading each step at once gives, bit for bit.
 //! In its own binary, one test: libtorch's profiler sees every thread's operators and is started
-//! from one thread.
+//! from one thread. (So not a module of `tests/it`, whose other tests would run operators beside
+//! it: a second integration-test binary of this crate, kept apart on purpose.)
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
-#[path = "support/pack_fixture.rs"]
+#[path = "it/support/pack_fixture.rs"]
 mod fixture;
 
 use fixture::*;

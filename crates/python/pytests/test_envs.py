@@ -129,7 +129,7 @@ def test_dial_from_python(tmp_path):
 
 def test_family_knowledge_comes_from_rust(tmp_path):
     """Every family's action box, success rule and collection route are pdt-envs' answers: the
-    package names no family (crates/cli/tests/families.rs checks its sources)."""
+    package names no family (crates/cli/tests/it/families.rs checks its sources)."""
     fams = promptdt.families()
     assert set(fams) == {"point_robot", "cheetah_dir", "cheetah_vel", "ant_dir", "metaworld_reach", "dial"}
     for name, f in fams.items():

@@ -60,7 +60,7 @@ pub const REFERENCE_ENVS: [&str; 2] = ["cheetah_dir", "cheetah_vel"];
 
 /// `[reference_experts.<env>]`: the reference release's expert returns, committed as numbers so a
 /// report is complete without the release's files. Generated from the files (`cargo run -p
-/// pdt-repro --example reference_experts`), never typed by hand; `tests/reference_experts.rs`
+/// pdt-repro --example reference_experts`), never typed by hand; `tests/it/reference_experts.rs`
 /// recomputes them when the files are present.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -1,6 +1,6 @@
 //! `RESULTS.md` and the README's headline block, generated from the results registry
 //! ([`crate::registry`]) alone: every number in them is an archived run's, read by the same report
-//! `reproduce --report-only` writes. `crates/repro/tests/results_md.rs` regenerates both and fails
+//! `reproduce --report-only` writes. `crates/repro/tests/it/results_md.rs` regenerates both and fails
 //! when the committed files differ.
 
 use crate::manifest::{Manifest, BUILTIN};

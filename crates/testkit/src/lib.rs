@@ -13,8 +13,12 @@
 //! [`cpu`]: the CPU fingerprint that decides whether two float results can be compared bit for bit
 //! (the parity fixtures record it), and whether batching changes a row's bits. Test-only: it lived
 //! in `pdt_model`'s public API before, though no library code asks it.
+//!
+//! [`process`]: one lock for libtorch's process-wide state, shared by the modules of a crate's one
+//! integration-test binary.
 
 pub mod cpu;
 pub mod fs;
 pub mod golden;
+pub mod process;
 pub mod reference;

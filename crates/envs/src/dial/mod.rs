@@ -23,7 +23,7 @@
 //!   from a perturbed pose and lets the controller settle back first (data collection, as the
 //!   original's collector did).
 //!
-//! `scripts/dial/twin.py` is a Python twin on the `mujoco` bindings; `tests/dial_parity.rs`
+//! `scripts/dial/twin.py` is a Python twin on the `mujoco` bindings; `tests/it/dial_parity.rs`
 //! replays its fixtures and requires bit-equal observations, rewards and flags.
 //!
 //! Its datasets are collected by the scripted policies of `collect.rs` (`DialPolicies`:

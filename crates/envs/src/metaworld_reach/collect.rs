@@ -128,7 +128,7 @@ impl ScriptedPolicies for ReachPolicies {
         episodes: usize,
     ) -> Result<(Vec<Trajectory>, Option<f64>), CollectError> {
         // One simulator for the whole set: every reset restores the same start state, so the
-        // episodes do not depend on what ran before them (tests/metaworld_parity.rs).
+        // episodes do not depend on what ran before them (tests/it/metaworld_parity.rs).
         let mut sim = MetaWorldReachFamily::default().make_env(task)?;
         let noise = cfg.reach_action_noise;
         play_set(cfg, task, mode, set, episodes, true, |rng| {

@@ -6,7 +6,7 @@
 //! (the 2021 reach-v2 reward), patched for MuJoCo 3.17 as the spec §2.4 says. This module follows
 //! its code paths (spec §2), not those of the 2021 mujoco-py code that Prompt-DT ran; the
 //! deliberate differences from that legacy code are marked `LEGACY DIFFERENCE` where they live.
-//! `scripts/metaworld/replay.py` is a Python twin; `tests/metaworld_parity.rs` replays its
+//! `scripts/metaworld/replay.py` is a Python twin; `tests/it/metaworld_parity.rs` replays its
 //! fixtures and requires bit-equal observations and rewards, and the twin was checked bit for bit
 //! against metaworld 3.1.1 itself (`replay.py check`).
 //!

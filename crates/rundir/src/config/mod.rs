@@ -226,7 +226,7 @@ pub struct EvalSection {
     pub finetune_lr: f64,
     /// `cached` (default): the prompt's keys and values once per task and evaluation, the last
     /// layer for the last 8 positions only; `full`: the reference's full forward at every step.
-    /// Equal within 1e-6, not bit for bit (`crates/model/tests/act.rs`).
+    /// Equal within 1e-6, not bit for bit (`crates/model/tests/it/act.rs`).
     pub inference: Inference,
     /// `[eval.prompt]`: the test-time prompt strategy and length (`docs/prompt-control.md`).
     /// Written only when it differs from the default (`reference`, the training length), so the
