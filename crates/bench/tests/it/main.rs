@@ -4,4 +4,5 @@
 //! modules' tests are threads of one process: a test that seeds libtorch's generator or sets its
 //! process-wide state takes `pdt_testkit::process::LIBTORCH`.
 
+mod benchmarks_md;
 mod profile;

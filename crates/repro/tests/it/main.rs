@@ -4,5 +4,6 @@
 //! modules' tests are threads of one process: a test that seeds libtorch's generator or sets its
 //! process-wide state takes `pdt_testkit::process::LIBTORCH`.
 
+mod bootstrap_python;
 mod reference_experts;
 mod results_md;
