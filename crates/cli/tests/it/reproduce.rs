@@ -243,12 +243,12 @@ fn emitted_slurm_script_asks_for_what_the_runs_use() {
     // sbatch reads #SBATCH lines up to the first command only.
     let first_command = slurm.lines().position(|l| !l.starts_with('#')).unwrap();
     assert!(slurm.lines().skip(first_command).all(|l| !l.starts_with("#SBATCH")), "{slurm}");
-    // Packs of 3 seeds: the solo engine on the CPU computes a pack's runs at once, each on its
-    // threads; the batched engine as one computation on them.
+    // Packs of 3 seeds: the solo engine steps a pack's runs one after another, the batched
+    // engine as one computation: either uses one run's threads.
     let pack = ["--seeds", "3", "--pack", "3", "--threads", "2", "--device", "cpu"];
     let (slurm, jobs) = emit(&[&pack[..], &["--pack-engine", "solo"]].concat());
     assert!(jobs.lines().any(|l| l.matches(",").count() == 2), "no pack of 3:\n{jobs}");
-    assert!(slurm.contains("\n#SBATCH --cpus-per-task=6\n"), "{slurm}");
+    assert!(slurm.contains("\n#SBATCH --cpus-per-task=2\n"), "{slurm}");
     let (slurm, _) = emit(&[&pack[..], &["--pack-engine", "batched"]].concat());
     assert!(slurm.contains("\n#SBATCH --cpus-per-task=2\n"), "{slurm}");
 
