@@ -25,7 +25,8 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
     // evaluations take could differ, which measured the same (docs/packs.md).
     if a.pack_eval.as_deref() == Some("together") {
         eprintln!(
-            "note: --pack-eval together is no longer an option: a pack's runs evaluate apart,              each with its own model (docs/packs.md)"
+            "note: --pack-eval together is no longer an option: a pack's runs evaluate apart, each \
+             with its own model (docs/packs.md)"
         );
     }
     let multi = MultiProgress::new();
