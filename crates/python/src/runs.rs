@@ -139,8 +139,8 @@ pub(crate) fn evaluate(
     let adapt = match adapt {
         None => None,
         Some(kind) => {
-            let d = pdt_eval::adapt::AdaptConfig::default();
-            Some(pdt_eval::adapt::AdaptConfig {
+            let d = pdt_eval::testtime::AdaptConfig::default();
+            Some(pdt_eval::testtime::AdaptConfig {
                 kind: kind.parse().map_err(lib_error)?,
                 steps: adapt_steps.unwrap_or(d.steps),
                 batch: adapt_batch.unwrap_or(d.batch),
@@ -159,14 +159,17 @@ pub(crate) fn evaluate(
             ..Default::default()
         }),
     };
-    let req = pdt_train::run::EvalRequest {
+    // The strategy and adaptation asked for, as the evaluation's test time (read from the run's
+    // configuration in the evaluation's thread, whose errors it reports).
+    let test_time = || {
+        pdt_train::run::asked_test_time(&run_dir, data.as_deref(), prompt.as_ref(), adapt.as_ref())
+    };
+    let req = |test_time: Option<pdt_train::config::TestTime>| pdt_train::run::EvalRequest {
         episodes,
         split: split.into(),
         device,
-        data,
-        prompt,
-        adapt,
-        ..Default::default()
+        data: data.clone(),
+        test_time,
     };
     // The episodes end in the library's rollouts, which count them in the watch; the waiting
     // thread reports the count. `None`: the run's configuration is unreadable, which the
@@ -187,7 +190,9 @@ pub(crate) fn evaluate(
     };
     let r = interruptible_ticking(py, &watch.stop, tick, || {
         pdt_envs::rollout::watching(&watch, || {
-            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| Failure::of(&e))
+            test_time()
+                .and_then(|t| pdt_train::run::evaluate_run_as(&run_dir, &req(t)))
+                .map_err(|e| Failure::of(&e))
         })
     })?
     .map_err(|e| stopped_or(&report, e))?;
