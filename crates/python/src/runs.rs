@@ -159,18 +159,6 @@ pub(crate) fn evaluate(
             ..Default::default()
         }),
     };
-    // The strategy and adaptation asked for, as the evaluation's test time (read from the run's
-    // configuration in the evaluation's thread, whose errors it reports).
-    let test_time = || {
-        pdt_train::run::asked_test_time(&run_dir, data.as_deref(), prompt.as_ref(), adapt.as_ref())
-    };
-    let req = |test_time: Option<pdt_train::config::TestTime>| pdt_train::run::EvalRequest {
-        episodes,
-        split: split.into(),
-        device,
-        data: data.clone(),
-        test_time,
-    };
     // The episodes end in the library's rollouts, which count them in the watch; the waiting
     // thread reports the count. `None`: the run's configuration is unreadable, which the
     // evaluation reports itself before any episode.
@@ -190,9 +178,19 @@ pub(crate) fn evaluate(
     };
     let r = interruptible_ticking(py, &watch.stop, tick, || {
         pdt_envs::rollout::watching(&watch, || {
-            test_time()
-                .and_then(|t| pdt_train::run::evaluate_run_as(&run_dir, &req(t)))
-                .map_err(|e| Failure::of(&e))
+            // The strategy and adaptation asked for, as the evaluation's test time (read from
+            // the run's configuration, whose errors this thread reports as the evaluation's).
+            let (prompt, adapt, dir) = (prompt.as_ref(), adapt.as_ref(), &run_dir);
+            let test_time = pdt_train::run::asked_test_time(dir, data.as_deref(), prompt, adapt)
+                .map_err(|e| Failure::of(&e))?;
+            let req = pdt_train::run::EvalRequest {
+                episodes,
+                split: split.into(),
+                device,
+                data: data.clone(),
+                test_time,
+            };
+            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| Failure::of(&e))
         })
     })?
     .map_err(|e| stopped_or(&report, e))?;

@@ -88,8 +88,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     // Written into the configuration as the run's own: `Setup::new` checks its settings as a
     // run's, and the files below are named from it.
     if let Some(t) = test_time {
-        t.apply_to(&mut cfg)
-            .map_err(|e| RunError::Invalid(format!("{}: {e}", dir.display())))?;
+        t.apply_to(&mut cfg).map_err(|e| RunError::Invalid(format!("{}: {e}", dir.display())))?;
     }
     let setup = Setup::new(cfg)?;
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the

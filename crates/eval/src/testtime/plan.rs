@@ -105,8 +105,7 @@ impl SplitEval<'_> {
         seeds: &[u64],
         prompt: Option<SegmentBatch>,
     ) -> Result<EvalTask, TestTimeError> {
-        let envs =
-            seeds.iter().map(|_| self.family.make(plan.index)).collect::<Result<_, _>>()?;
+        let envs = seeds.iter().map(|_| self.family.make(plan.index)).collect::<Result<_, _>>()?;
         let (name, index, seeds) = (plan.name.clone(), plan.index, seeds.to_vec());
         Ok(EvalTask { name, index, envs, seeds, prompt })
     }

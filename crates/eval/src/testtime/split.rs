@@ -33,7 +33,8 @@ pub struct SplitResult {
 /// The reference rule: each task's planned prompt for all its episodes.
 pub fn evaluate_reference(ev: &SplitEval<'_>, rng: &mut Rng) -> Result<SplitResult, TestTimeError> {
     let plans = ev.plan_tasks(rng)?;
-    let tasks = plans.iter().map(|p| ev.task(p, &p.seeds, p.prompt.clone())).collect::<Result<_, _>>()?;
+    let tasks =
+        plans.iter().map(|p| ev.task(p, &p.seeds, p.prompt.clone())).collect::<Result<_, _>>()?;
     let eps = evaluate(ev.model, tasks, ev.settings)?;
     Ok(SplitResult { results: summarise_plans(&plans, &eps), ..Default::default() })
 }
@@ -117,7 +118,9 @@ fn bandit_rounds(
         .enumerate()
         .map(|(i, p)| {
             SegmentBandit::new(strategy.bandit.clone(), sampler.candidate_segments(i, stride), j)
-                .ok_or_else(|| TestTimeError::Input(format!("task {}: no candidate segment", p.name)))
+                .ok_or_else(|| {
+                    TestTimeError::Input(format!("task {}: no candidate segment", p.name))
+                })
         })
         .collect::<Result<Vec<_>, _>>()?;
     let per_round = strategy.bandit.episodes_per_round;
@@ -239,8 +242,10 @@ impl PromptScore for ReturnScore<'_> {
         rng: &mut Rng,
     ) -> Result<Vec<f64>, EvalError> {
         let seeds: Vec<u64> = (0..self.episodes).map(|_| rng.next_u64()).collect();
-        let setup_err =
-            |e: TestTimeError| EvalError::Setup { task: self.plan.name.clone(), why: e.to_string() };
+        let setup_err = |e: TestTimeError| EvalError::Setup {
+            task: self.plan.name.clone(),
+            why: e.to_string(),
+        };
         let tasks = candidates
             .iter()
             .map(|c| self.ev.task(self.plan, &seeds, Some(c.clone())))

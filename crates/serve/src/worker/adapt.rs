@@ -6,8 +6,8 @@
 
 use super::{Episode, Worker};
 use crate::{ApiError, OpenRequest, StatusCode};
-use pdt_model::PrefixCache;
 use pdt_eval::testtime::TaskAdaptation;
+use pdt_model::PrefixCache;
 use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
 use pdt_rundir::config::{Adaptation, TestTime};
@@ -93,10 +93,8 @@ impl Worker {
                 ApiError::bad(format!("adapt: {e}"))
             })?;
         }
-        let adapt = |cfg| TestTime::Adapt {
-            from: strategy.clone(),
-            adaptation: Adaptation::Prompt(cfg),
-        };
+        let adapt =
+            |cfg| TestTime::Adapt { from: strategy.clone(), adaptation: Adaptation::Prompt(cfg) };
         match (cfg.is_none(), req.task, req.adapt.is_some()) {
             (true, ..) => Ok(None),
             (false, Some(_), _) => Ok(Some(adapt(cfg))),

@@ -57,7 +57,12 @@ fn adapted(cfg: AdaptConfig) -> TestTime {
 }
 
 /// The evaluator's actions for one episode of `task` from `seed` with an adaptation.
-fn evaluated(run: &Policy, task: usize, seed: u64, a: &pdt_eval::testtime::TaskAdaptation) -> Vec<f32> {
+fn evaluated(
+    run: &Policy,
+    task: usize,
+    seed: u64,
+    a: &pdt_eval::testtime::TaskAdaptation,
+) -> Vec<f32> {
     let settings = run.eval_settings();
     let t = point_task(task, seed, None);
     tch::set_num_threads(1);
