@@ -58,45 +58,78 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
     Ok(())
 }
 
-/// The budget of the run's own adaptation (MACAW's, MT-BC-Finetune's) the flags ask for, checked
-/// against the run's test time: `--adapt macaw` / `--adapt finetune` with the run that has it,
-/// or (the older form, with a note on stderr) `--adapt-steps` / `--adapt-batch` without
-/// `--adapt`. `None`: the flags ask for none (the run's own budget, or an `[eval.adapt]` kind).
-pub(crate) fn own_budget(
+/// The test time `promptdt eval`'s flags ask for: the run's own ([`TestTime::of`] its
+/// configuration) with the prompt strategy, the `[eval.adapt]` adaptation or the budget of the
+/// run's own adaptation the flags change; `None` when no flag changes it. Reads the run's
+/// configuration only then.
+///
+/// [`TestTime::of`]: pdt_rundir::config::TestTime::of
+pub(crate) fn eval_test_time(
+    a: &crate::args::EvalArgs,
+) -> anyhow::Result<Option<pdt_rundir::config::TestTime>> {
+    use pdt_rundir::config::TestTime;
+    let prompt = eval_prompt(a);
+    let budget = a.adapt_steps.is_some() || a.adapt_batch.is_some();
+    if prompt.is_none() && a.adaptation.adapt.is_none() && !budget {
+        return Ok(None);
+    }
+    let run = pdt_rundir::RunDir::at(&a.run);
+    let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
+    let adapt = eval_adapt(a, &cfg.eval.adapt);
+    let mut test_time = TestTime::with_settings(&cfg, prompt.as_ref(), adapt.as_ref());
+    if own_budget(a, &TestTime::of(&cfg), cfg.run.method).map_err(anyhow::Error::msg)? {
+        if let TestTime::Adapt { adaptation, .. } = &mut test_time {
+            *adaptation = adaptation.with_budget(a.adapt_steps, a.adapt_batch);
+        }
+    }
+    Ok(Some(test_time))
+}
+
+/// Whether the flags change the budget of the run's own adaptation (MACAW's, MT-BC-Finetune's),
+/// checked against the run's test time: `--adapt macaw` / `--adapt finetune` with the run that
+/// has it, or (the older form, with a note on stderr) `--adapt-steps` / `--adapt-batch` without
+/// `--adapt`. `false`: they ask for none (the run's own budget, or an `[eval.adapt]` kind's).
+fn own_budget(
     a: &crate::args::EvalArgs,
     test_time: &pdt_rundir::config::TestTime,
     method: pdt_rundir::config::Method,
-) -> Result<Option<pdt_train::run::MacawAdaptation>, String> {
+) -> Result<bool, String> {
     use crate::prompt_args::AdaptArg;
     use pdt_rundir::config::Adaptation;
-    let budget = pdt_train::run::MacawAdaptation { steps: a.adapt_steps, batch: a.adapt_batch };
+    let budget = a.adapt_steps.is_some() || a.adapt_batch.is_some();
     let own = match test_time.adaptation() {
         Some(Adaptation::Macaw { .. }) => Some(AdaptArg::Macaw),
         Some(Adaptation::Finetune { .. }) => Some(AdaptArg::Finetune),
         Some(Adaptation::Prompt(_)) | None => None,
     };
-    match a.adaptation.adapt {
-        Some(AdaptArg::Prompt(_)) => Ok(None),
-        Some(asked @ (AdaptArg::Macaw | AdaptArg::Finetune)) if Some(asked) != own => Err(format!(
-            "--adapt {}: this run is {}, whose own adaptation is {}",
-            asked.name(),
-            method.name(),
-            own.map_or("none", AdaptArg::name)
-        )),
-        Some(_) => Ok(Some(budget)),
-        None if budget == pdt_train::run::MacawAdaptation::default() => Ok(None),
-        None => {
-            // The older spelling: the budget without the kind meant MACAW's. Still read, so
-            // scripts keep working; the evaluation refuses it for a run without its own.
-            if let Some(own) = own {
-                eprintln!(
-                    "note: --adapt-steps / --adapt-batch without --adapt set the run's own \
-                     adaptation; write --adapt {} --adapt-steps N",
-                    own.name()
-                );
-            }
-            Ok(Some(budget))
+    match (a.adaptation.adapt, own) {
+        (Some(AdaptArg::Prompt(_)), _) => Ok(false),
+        (Some(asked @ (AdaptArg::Macaw | AdaptArg::Finetune)), _) if Some(asked) != own => {
+            Err(format!(
+                "--adapt {}: this run is {}, whose own adaptation is {}",
+                asked.name(),
+                method.name(),
+                own.map_or("none", AdaptArg::name)
+            ))
         }
+        (Some(_), _) => Ok(budget),
+        (None, _) if !budget => Ok(false),
+        (None, Some(own)) => {
+            // The older spelling: the budget without the kind meant MACAW's. Still read, so
+            // scripts keep working.
+            eprintln!(
+                "note: --adapt-steps / --adapt-batch without --adapt set the run's own \
+                 adaptation; write --adapt {} --adapt-steps N",
+                own.name()
+            );
+            Ok(true)
+        }
+        (None, None) => Err(format!(
+            "{}: --adapt-steps / --adapt-batch without --adapt change a MACAW or MT-BC-Finetune \
+             run's own adaptation; this run is {} (name an adaptation: --adapt KIND)",
+            a.run.display(),
+            method.name()
+        )),
     }
 }
 

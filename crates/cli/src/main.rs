@@ -215,27 +215,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(a) => train(&a)?,
         Command::Eval(a) => {
             eval_flags::check_eval_flags(&a).map_err(anyhow::Error::msg)?;
-            // --adapt-steps / --adapt-batch are the budget of the adaptation --adapt names: an
-            // [eval.adapt] kind's, or the run's own (MACAW's, MT-BC-Finetune's).
-            let (adapt, macaw) = match (a.adaptation.adapt, a.adapt_steps.or(a.adapt_batch)) {
-                (None, None) => (None, Default::default()),
-                _ => {
-                    let run = pdt_rundir::RunDir::at(&a.run);
-                    let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
-                    let test_time = pdt_rundir::config::TestTime::of(&cfg);
-                    let own = eval_flags::own_budget(&a, &test_time, cfg.run.method)
-                        .map_err(anyhow::Error::msg)?;
-                    (eval_flags::eval_adapt(&a, &cfg.eval.adapt), own.unwrap_or_default())
-                }
-            };
             let req = pdt_train::run::EvalRequest {
                 episodes: a.episodes,
                 split: a.split.clone(),
                 device: a.device,
                 data: a.data.clone(),
-                macaw,
-                prompt: eval_flags::eval_prompt(&a),
-                adapt,
+                test_time: eval_flags::eval_test_time(&a)?,
             };
             let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
             let r = &prompted.eval;

@@ -9,11 +9,14 @@
 //! the states so far (normalised in f32), the actions taken (a zero placeholder for the current
 //! one), returns-to-go starting at G*/scale and decreasing by r/scale, timesteps from 0; the model
 //! sees the last K steps, left-padded with zeros (mask 0), and the task's prompt.
+//!
+//! What test time changes of that (another prompt strategy, an adaptation to each task) is
+//! [`testtime`]'s: this crate is evaluation, test time included; it never trains a run's weights.
 
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, StepResult};
-pub mod adapt;
+pub mod testtime;
 
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};

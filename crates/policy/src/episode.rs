@@ -204,7 +204,7 @@ impl Policy {
     }
 
     /// [`Policy::act`] through a task's LoRA adapters (`prefix` made with the same adapters:
-    /// [`crate::TaskAdaptation::prefix`]).
+    /// `pdt_eval::testtime::TaskAdaptation::prefix`).
     pub fn act_with(
         &self,
         episodes: &[&Episode],

@@ -3,14 +3,13 @@
 //!
 //! - [`Policy`] ([`policy`]): a run's latest weights loaded to act, with its normalisation, return
 //!   tokens and K; prompts from arrays ([`PromptArrays`]) or drawn from the run's data as its
-//!   evaluation draws them; evaluation plans ([`TaskPlan`]).
+//!   evaluation draws them; its evaluation's plans ([`Policy::eval_plan`]).
 //! - [`Episode`] ([`episode`]): one episode's history and checks (observation, reward, target
 //!   return, `max_ep_len`, return-to-go overflow), and the undo of a step whose action is not
 //!   finite.
-//! - [`strategy`]: test-time prompt strategies for an acting policy ([`Policy::strategy_prompt`],
-//!   the per-task [`TaskBandit`]).
-//! - [`adapt`]: one test task adapted from its demonstrations (soft prompt, Prompt-Tuning DT,
-//!   LoRA), for `promptdt eval --adapt`, serve and Python ([`Policy::adapt`], [`TaskAdaptation`]).
+//! - Test time for an acting policy (`testtime.rs`): the prompt a strategy picks
+//!   ([`Policy::strategy_prompt`]), a task's bandit ([`Policy::task_bandit`]) and a task's
+//!   adaptation ([`Policy::adapt`]), each through `pdt_eval::testtime`, which owns them.
 //! - [`RunData`] ([`data`]): a configuration's data loaded and checked, with the state
 //!   normalisation and the statistics a run records.
 //! - [`video`]: a prompted episode rendered as an animated GIF (`promptdt render`).
@@ -21,7 +20,6 @@
 // Errors carry the offending path or value; they are returned on the cold path only.
 #![allow(clippy::result_large_err)]
 
-pub mod adapt;
 pub mod data;
 pub mod episode;
 mod error;
@@ -29,14 +27,12 @@ pub mod files;
 mod font;
 mod inputs;
 pub mod policy;
-pub mod strategy;
+mod testtime;
 pub mod video;
 
-pub use adapt::{Adapted, TaskAdaptation};
 pub use data::RunData;
 pub use episode::{Episode, Observation, Step, Target};
 pub use error::PolicyError;
 pub use inputs::{Inputs, MAX_RETURN};
 pub use pdt_rundir::RunStats;
-pub use policy::{eval_returns, plan_task, Policy, PromptArrays, TaskPlan};
-pub use strategy::{ChosenPrompt, TaskBandit};
+pub use policy::{eval_returns, Policy, PromptArrays};

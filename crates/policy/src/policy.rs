@@ -5,7 +5,7 @@ use crate::files;
 use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
 use pdt_base::seed::derive_seed;
-use pdt_data::MultiTaskDataset;
+use pdt_eval::testtime::{plan_task, TaskPlan};
 use pdt_eval::{EvalReturns, History, ToModelConfig};
 use pdt_model::checkpoint;
 use pdt_model::device::DeviceSpec;
@@ -13,7 +13,7 @@ use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
 use pdt_rundir::config::{Method, MtBcEval, TrainConfig};
 use pdt_rundir::{RunDir, RunStats};
-use rand::{RngCore, SeedableRng};
+use rand::SeedableRng;
 use serde::Deserialize;
 use std::path::Path;
 use tch::{nn::VarStore, Device};
@@ -64,46 +64,12 @@ pub struct PromptArrays {
     pub timesteps: Vec<i64>,
 }
 
-/// What an evaluation draws for one task: the prompt its episodes share and their reset seeds.
-#[derive(Debug, Clone)]
-pub struct TaskPlan {
-    /// `cheetah_vel-2`
-    pub name: String,
-    /// Task index in its family.
-    pub index: usize,
-    /// `None` for the methods without a prompt.
-    pub prompt: Option<SegmentBatch>,
-    /// Reset seed of each episode.
-    pub seeds: Vec<u64>,
-}
-
 /// The return tokens an acting policy feeds (Prompt-MT-BC and MT-BC-Finetune: constant or zero).
 pub fn eval_returns(cfg: &TrainConfig) -> EvalReturns {
     match (cfg.run.method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
         (false, _) => EvalReturns::Decreasing,
         (true, MtBcEval::Reference) => EvalReturns::Constant,
         (true, MtBcEval::Paper) => EvalReturns::Zero,
-    }
-}
-
-/// Draws task `i`'s prompt (once per task and evaluation call, shared by its episodes, as the
-/// reference does), then its episodes' seeds, from `rng`.
-pub fn plan_task(
-    method: Method,
-    sampler: &BatchSampler,
-    data: &MultiTaskDataset,
-    i: usize,
-    episodes: usize,
-    rng: &mut Rng,
-) -> TaskPlan {
-    let t = &data.tasks[i];
-    let prompt = sampler.eval_prompt(i, rng);
-    let seeds = (0..episodes).map(|_| rng.next_u64()).collect();
-    TaskPlan {
-        name: t.id.to_string(),
-        index: t.id.index,
-        prompt: method.uses_prompt().then_some(prompt),
-        seeds,
     }
 }
 

@@ -270,7 +270,7 @@ impl<'a> BatchSampler<'a> {
     /// `n` history segments of K steps from task `task`'s demonstrations (its prompt set P_i,
     /// the data a test task has): per segment a uniformly drawn demonstration and a uniformly
     /// drawn start, as training draws histories. What the evaluation-time adaptations learn from
-    /// (`pdt_eval::adapt`); returns-to-go zeroed where the sampler zeroes the history's.
+    /// (`pdt_eval::testtime::adapt`); returns-to-go zeroed where the sampler zeroes the history's.
     pub fn demo_segments(&self, task: usize, n: usize, rng: &mut Rng) -> SegmentBatch {
         let demos = &self.tasks[task].data.prompts.trajectories;
         let k = self.cfg.k;

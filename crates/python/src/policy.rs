@@ -25,7 +25,7 @@ pub(crate) struct PromptBandit {
 }
 
 struct BanditState {
-    bandit: pdt_policy::TaskBandit,
+    bandit: pdt_eval::testtime::TaskBandit,
     /// The arms of the prompt chosen last, until its return is reported.
     pending: Option<pdt_prompt::bandit::BanditChoice>,
 }
@@ -38,7 +38,7 @@ impl PromptBandit {
         let policy = self.policy.bind(py).get();
         let st = lock(&policy.state)?;
         let mut b = lock(&self.state)?;
-        let (chosen, choice) = b.bandit.choose(&st.run).map_err(lib_error)?;
+        let (chosen, choice) = st.run.bandit_prompt(&mut b.bandit).map_err(lib_error)?;
         b.pending = Some(choice);
         Ok(Prompt { inner: chosen.prompt, segments: chosen.segments })
     }
@@ -448,11 +448,11 @@ impl Policy {
         let task = usize_arg("task", task, "a task index of the run's family")?;
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
-        let mut cfg = pdt_eval::adapt::AdaptConfig {
+        let mut cfg = pdt_eval::testtime::AdaptConfig {
             kind: adapt.parse().map_err(lib_error)?,
             ..Default::default()
         };
-        if cfg.kind == pdt_eval::adapt::AdaptKind::None {
+        if cfg.kind == pdt_eval::testtime::AdaptKind::None {
             return Err(value_error("adapt: name an adaptation (soft-prompt, ptdt, lora)"));
         }
         if let Some(s) = steps {
@@ -466,11 +466,13 @@ impl Policy {
             strategy: prompt_strategy.unwrap_or("reference").parse().map_err(lib_error)?,
             ..Default::default()
         };
+        let adaptation = pdt_eval::testtime::Adaptation::Prompt(cfg);
+        let test_time = pdt_eval::testtime::TestTime::Adapt { from: strategy, adaptation };
         let mut st = lock(&slf.get().state)?;
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;
         let a = py
-            .detach(move || run.adapt(task, seed, &strategy, &cfg).map_err(|e| Failure::of(&e)))
+            .detach(move || run.adapt(task, seed, &test_time).map_err(|e| Failure::of(&e)))
             .map_err(Failure::into_py)?;
         drop(st);
         let policy = slf.get() as *const Policy as usize;

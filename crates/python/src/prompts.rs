@@ -105,7 +105,7 @@ pub(crate) struct Adaptation {
     /// The task adapted to.
     #[pyo3(get)]
     pub(crate) task: usize,
-    pub(crate) inner: Mutex<pdt_policy::TaskAdaptation>,
+    pub(crate) inner: Mutex<pdt_eval::testtime::TaskAdaptation>,
     /// The `Policy` that made it (its address): its tensors fit that model only.
     pub(crate) policy: usize,
     /// That `Policy`, kept alive while the adaptation is, so no other takes its address.

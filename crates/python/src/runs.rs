@@ -139,8 +139,8 @@ pub(crate) fn evaluate(
     let adapt = match adapt {
         None => None,
         Some(kind) => {
-            let d = pdt_eval::adapt::AdaptConfig::default();
-            Some(pdt_eval::adapt::AdaptConfig {
+            let d = pdt_eval::testtime::AdaptConfig::default();
+            Some(pdt_eval::testtime::AdaptConfig {
                 kind: kind.parse().map_err(lib_error)?,
                 steps: adapt_steps.unwrap_or(d.steps),
                 batch: adapt_batch.unwrap_or(d.batch),
@@ -158,15 +158,6 @@ pub(crate) fn evaluate(
             length,
             ..Default::default()
         }),
-    };
-    let req = pdt_train::run::EvalRequest {
-        episodes,
-        split: split.into(),
-        device,
-        data,
-        prompt,
-        adapt,
-        ..Default::default()
     };
     // The episodes end in the library's rollouts, which count them in the watch; the waiting
     // thread reports the count. `None`: the run's configuration is unreadable, which the
@@ -187,6 +178,18 @@ pub(crate) fn evaluate(
     };
     let r = interruptible_ticking(py, &watch.stop, tick, || {
         pdt_envs::rollout::watching(&watch, || {
+            // The strategy and adaptation asked for, as the evaluation's test time (read from
+            // the run's configuration, whose errors this thread reports as the evaluation's).
+            let (prompt, adapt, dir) = (prompt.as_ref(), adapt.as_ref(), &run_dir);
+            let test_time = pdt_train::run::asked_test_time(dir, data.as_deref(), prompt, adapt)
+                .map_err(|e| Failure::of(&e))?;
+            let req = pdt_train::run::EvalRequest {
+                episodes,
+                split: split.into(),
+                device,
+                data: data.clone(),
+                test_time,
+            };
             pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| Failure::of(&e))
         })
     })?

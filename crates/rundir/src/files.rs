@@ -253,7 +253,9 @@ pub struct FinalEval {
     pub tasks: Vec<TaskResult>,
     #[serde(deserialize_with = "f64_or_null")]
     pub mean_return: f64,
-    /// MACAW runs: the test-time adaptation used.
+    /// The budget of the test-time adaptation of the learner's own weights, for those that
+    /// record one here (`Adaptation::recorded`: MACAW's, "2 steps on 4 transitions"); absent
+    /// otherwise (`[eval.adapt]`'s is in `eval_adapt_<kind>.json`, fine-tuning's in the config).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptation: Option<String>,
 }
@@ -298,15 +300,19 @@ pub struct EvalLine {
     /// Only families with a success criterion (Meta-World) have the column.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub success_rate: Option<f64>,
-    /// MACAW runs: how the test-time adaptation went.
+    /// How a test-time adaptation of the learner's own weights went on this task (the steps it
+    /// took and the episodes a non-finite action ended), for the adaptations that record them
+    /// (today MACAW's, the one that adapts on training tasks too); absent otherwise.
     #[serde(flatten)]
     pub adaptation: Option<AdaptationStats>,
 }
 
-/// A MACAW evaluation's adaptation, per task (columns of its `eval.jsonl` lines).
+/// A test-time adaptation's record of one task (columns of its `eval.jsonl` line): how far its
+/// gradient steps went and what its episodes met.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct AdaptationStats {
-    /// Adaptation steps taken: fewer than `macaw.adapt_steps` where the adaptation diverged.
+    /// Adaptation steps taken (of the value function, then of the policy): fewer than the budget
+    /// (MACAW's `macaw.adapt_steps`) where the adaptation diverged.
     pub adapt_value_steps: usize,
     pub adapt_policy_steps: usize,
     /// Episodes ended by a non-finite action.

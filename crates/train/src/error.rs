@@ -55,3 +55,18 @@ pub enum RunError {
 pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RunError + '_ {
     move |source| RunError::Io { path: path.into(), source }
 }
+
+/// Test time's refusals and failures (`pdt_eval::testtime`) as a run's: each by its kind, the
+/// message unchanged.
+impl From<pdt_eval::testtime::TestTimeError> for RunError {
+    fn from(e: pdt_eval::testtime::TestTimeError) -> Self {
+        use pdt_eval::testtime::TestTimeError as T;
+        match e {
+            T::Input(m) | T::Failed(m) => RunError::Invalid(m),
+            T::Sampler(e) => RunError::Sampler(e),
+            T::Strategy(e) => RunError::Strategy(e),
+            T::Env(e) => RunError::Env(e),
+            T::Eval(e) => RunError::Eval(e),
+        }
+    }
+}

@@ -3,7 +3,7 @@
 //! written to `eval_final.json`.
 
 use crate::error::RunError;
-use crate::methods::{self, MacawAdaptation};
+use crate::methods;
 use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
@@ -24,27 +24,17 @@ pub struct EvalRequest {
     pub device: Option<pdt_model::device::DeviceSpec>,
     /// Where the run's data are now, if they moved.
     pub data: Option<PathBuf>,
-    /// The budget of the run's own adaptation, MACAW's or MT-BC-Finetune's (`--adapt macaw` /
-    /// `--adapt finetune` with `--adapt-steps`, `--adapt-batch`); refused for the other methods.
-    pub macaw: MacawAdaptation,
-    /// A test-time prompt strategy (`None`: the run's `[eval.prompt]`, `reference` unless set).
-    pub prompt: Option<PromptStrategy>,
-    /// An evaluation-time adaptation of the test tasks (`None`: the run's `[eval.adapt]`, none
-    /// unless set; docs/prompt-control.md).
-    pub adapt: Option<AdaptConfig>,
+    /// What the evaluation does at test time (`None`: the run's own, [`TestTime::of`] its
+    /// configuration): another prompt strategy, an `[eval.adapt]` adaptation, or the run's own
+    /// adaptation with another budget (`TestTime::with_settings`, `Adaptation::with_budget`).
+    /// Its settings are checked as the run's own would be; one the run's method cannot have is
+    /// refused (`TestTime::apply_to`).
+    pub test_time: Option<TestTime>,
 }
 
 impl Default for EvalRequest {
     fn default() -> Self {
-        Self {
-            episodes: None,
-            split: "test".into(),
-            device: None,
-            data: None,
-            macaw: MacawAdaptation::default(),
-            prompt: None,
-            adapt: None,
-        }
+        Self { episodes: None, split: "test".into(), device: None, data: None, test_time: None }
     }
 }
 
@@ -56,27 +46,30 @@ pub fn evaluate_run(
     device: Option<pdt_model::device::DeviceSpec>,
     data: Option<&Path>,
 ) -> Result<FinalEval, RunError> {
-    evaluate_run_with(dir, episodes, split, device, data, &MacawAdaptation::default())
-}
-
-/// [`evaluate_run`] with a MACAW run's adaptation changed (refused for the methods without one).
-pub fn evaluate_run_with(
-    dir: &Path,
-    episodes: Option<usize>,
-    split: &str,
-    device: Option<pdt_model::device::DeviceSpec>,
-    data: Option<&Path>,
-    adaptation: &MacawAdaptation,
-) -> Result<FinalEval, RunError> {
     let req = EvalRequest {
         episodes,
         split: split.into(),
         device,
         data: data.map(Path::to_path_buf),
-        macaw: adaptation.clone(),
-        ..Default::default()
+        test_time: None,
     };
     evaluate_run_as(dir, &req).map(|e| e.eval)
+}
+
+/// The test time of an evaluation of the run in `dir` (its data in `data` if they moved) with
+/// another prompt strategy or `[eval.adapt]` adaptation, each `None` for the run's own
+/// ([`TestTime::with_settings`] of its configuration); `None` when neither is given.
+pub fn asked_test_time(
+    dir: &Path,
+    data: Option<&Path>,
+    prompt: Option<&PromptStrategy>,
+    adapt: Option<&AdaptConfig>,
+) -> Result<Option<TestTime>, RunError> {
+    if prompt.is_none() && adapt.is_none() {
+        return Ok(None);
+    }
+    let cfg = run_config(&RunDir::at(dir), None, data)?;
+    Ok(Some(TestTime::with_settings(&cfg, prompt, adapt)))
 }
 
 /// The evaluation of the run in `dir` that `req` asks for. The default strategy without an
@@ -85,20 +78,17 @@ pub fn evaluate_run_with(
 /// `eval_adapt_<kind>.json` with each task's adaptation log, leaving `eval_final.json` to the
 /// reference rule.
 pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunError> {
-    let EvalRequest { episodes, split, device, data, macaw: adaptation, prompt, adapt } = req;
+    let EvalRequest { episodes, split, device, data, test_time } = req;
     let (episodes, split, device, data) = (*episodes, split.as_str(), *device, data.as_deref());
-    let (prompt, adapt) = (prompt.as_ref(), adapt.as_ref());
     let run = RunDir::at(dir);
     let mut cfg = run_config(&run, device, data)?;
     if let Some(e) = episodes {
         cfg.eval.episodes = e;
     }
-    if let Some(p) = prompt {
-        cfg.eval.prompt = p.clone();
-    }
-    if let Some(a) = adapt {
-        a.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
-        cfg.eval.adapt = a.clone();
+    // Written into the configuration as the run's own: `Setup::new` checks its settings as a
+    // run's, and the files below are named from it.
+    if let Some(t) = test_time {
+        t.apply_to(&mut cfg).map_err(|e| RunError::Invalid(format!("{}: {e}", dir.display())))?;
     }
     let setup = Setup::new(cfg)?;
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
@@ -123,33 +113,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;
-    let mut test_time = TestTime::of(&setup.cfg);
-    if adaptation != &MacawAdaptation::default() {
-        // The changed budget is checked as the run's own would be (`[macaw]`'s, `[eval]`'s ranges).
-        let mut changed = setup.cfg.clone();
-        match test_time.adaptation() {
-            Some(Adaptation::Macaw { .. }) => {
-                let m = &mut changed.macaw;
-                m.adapt_steps = adaptation.steps.unwrap_or(m.adapt_steps);
-                m.adapt_batch = adaptation.batch.unwrap_or(m.adapt_batch);
-            }
-            Some(Adaptation::Finetune { .. }) => {
-                let e = &mut changed.eval;
-                e.finetune_steps = adaptation.steps.map_or(e.finetune_steps, |n| n as u64);
-                e.finetune_batch = adaptation.batch.unwrap_or(e.finetune_batch);
-            }
-            Some(Adaptation::Prompt(_)) | None => {
-                return Err(RunError::Invalid(format!(
-                    "{}: --adapt-steps / --adapt-batch without --adapt change a MACAW or \
-                     MT-BC-Finetune run's own adaptation; this run is {}",
-                    dir.display(),
-                    setup.cfg.run.method.name()
-                )));
-            }
-        }
-        changed.validate()?;
-        test_time = TestTime::of(&changed);
-    }
+    let test_time = TestTime::of(&setup.cfg);
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.

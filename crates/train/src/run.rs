@@ -8,10 +8,8 @@
 //! would, and evaluation never disturbs training.
 
 pub use crate::error::RunError;
-pub use crate::evaluate::{evaluate_run, evaluate_run_as, evaluate_run_with, EvalRequest};
-pub use crate::methods::MacawAdaptation;
+pub use crate::evaluate::{asked_test_time, evaluate_run, evaluate_run_as, EvalRequest};
 pub use crate::run_loop::{
     run_config_for, train, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
 };
-pub use pdt_policy::TaskPlan;
 pub use pdt_rundir::{FinalEval, RunInfo, TaskStats};

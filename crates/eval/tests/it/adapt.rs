@@ -1,11 +1,10 @@
-//! The evaluation-time adaptations (`pdt_eval::adapt`) on a small model and a fixed
+//! The evaluation-time adaptations (`pdt_eval::testtime::adapt`) on a small model and a fixed
 //! demonstration set: each moves the demonstrations' action loss down; LoRA at step 0 is the
 //! frozen model bit for bit; the zeroth-order update prefers the better candidate.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code
 
-use pdt_eval::adapt::{
-    self, demo_loss, rank_direction, ActionLossScore, AdaptConfig, AdaptKind, PromptScore,
-};
+use pdt_eval::testtime::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
+use pdt_eval::testtime::{AdaptConfig, AdaptKind};
 use pdt_eval::{prompt_batch, to_vec, EvalError};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_prompt::{Rng, SegmentBatch};

@@ -1,6 +1,6 @@
 //! `[eval.adapt]`: an evaluation-time adaptation to each test task from its few demonstrations,
 //! the backbone frozen (`docs/prompt-control.md`). The algorithms are
-//! `pdt_eval::adapt`'s; this is their configuration, read without libtorch.
+//! `pdt_eval::testtime::adapt`'s; this is their configuration, read without libtorch.
 
 use serde::{Deserialize, Serialize};
 use std::fmt;

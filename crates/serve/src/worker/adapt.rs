@@ -1,14 +1,16 @@
 //! Episodes that act after an evaluation-time adaptation (an opening request's `adapt`;
 //! docs/serve.md, docs/prompt-control.md). One adaptation per task, seed, prompt strategy and
-//! kind, made by `pdt_policy` when the first such episode opens (it takes the model thread for
-//! the adaptation's time) and kept for the next ones, which then cost what any episode costs.
+//! kind, made by `pdt_policy` (`pdt_eval::testtime`'s) when the first such episode opens (it takes
+//! the model thread for the adaptation's time) and kept for the next ones, which then cost what
+//! any episode costs. The request's settings become a [`TestTime`]; the library does the rest.
 
 use super::{Episode, Worker};
 use crate::{ApiError, OpenRequest, StatusCode};
+use pdt_eval::testtime::TaskAdaptation;
 use pdt_model::PrefixCache;
-use pdt_policy::{Policy, TaskAdaptation};
+use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
-use pdt_rundir::config::AdaptConfig;
+use pdt_rundir::config::{Adaptation, TestTime};
 use std::collections::{HashMap, HashSet};
 
 /// Adaptations kept at most; one more evicts those no open episode acts with.
@@ -19,13 +21,13 @@ pub const MAX_ADAPTATIONS: usize = 64;
 pub(crate) struct AdaptKey {
     pub(crate) task: usize,
     pub(crate) seed: u64,
-    /// The strategy and the adaptation's settings, written out (both are plain data).
+    /// The test time (its strategy and the adaptation's settings), written out (plain data).
     settings: String,
 }
 
 impl AdaptKey {
-    pub(crate) fn new(task: usize, seed: u64, s: &PromptStrategy, cfg: &AdaptConfig) -> Self {
-        Self { task, seed, settings: format!("{s:?} {cfg:?}") }
+    pub(crate) fn new(task: usize, seed: u64, test_time: &TestTime) -> Self {
+        Self { task, seed, settings: format!("{test_time:?}") }
     }
 }
 
@@ -52,8 +54,7 @@ impl Adaptations {
         &mut self,
         run: &Policy,
         key: &AdaptKey,
-        strategy: &PromptStrategy,
-        cfg: &AdaptConfig,
+        test_time: &TestTime,
         in_use: &HashSet<&AdaptKey>,
     ) -> Result<&Kept, ApiError> {
         if !self.kept.contains_key(key) {
@@ -70,7 +71,7 @@ impl Adaptations {
                     ),
                 ));
             }
-            let adaptation = run.adapt(key.task, key.seed, strategy, cfg)?;
+            let adaptation = run.adapt(key.task, key.seed, test_time)?;
             let prefix = adaptation.prefix(&run.model);
             self.kept.insert(key.clone(), Kept { adaptation, prefix });
         }
@@ -79,20 +80,24 @@ impl Adaptations {
 }
 
 impl Worker {
-    /// The adaptation an opening request asks for (its own `adapt`, else the server's), or `None`.
+    /// The adaptation an opening request asks for (its own `adapt`, else the server's), from the
+    /// prompt `strategy` picks, as a test time; `None` without one.
     pub(crate) fn adaptation(
         &self,
         req: &OpenRequest,
-    ) -> Result<Option<pdt_rundir::config::AdaptConfig>, ApiError> {
+        strategy: &PromptStrategy,
+    ) -> Result<Option<TestTime>, ApiError> {
         let mut cfg = self.opts.adapt.clone();
         if let Some(name) = &req.adapt {
             cfg.kind = name.parse().map_err(|e: pdt_rundir::config::AdaptError| {
                 ApiError::bad(format!("adapt: {e}"))
             })?;
         }
+        let adapt =
+            |cfg| TestTime::Adapt { from: strategy.clone(), adaptation: Adaptation::Prompt(cfg) };
         match (cfg.is_none(), req.task, req.adapt.is_some()) {
             (true, ..) => Ok(None),
-            (false, Some(_), _) => Ok(Some(cfg)),
+            (false, Some(_), _) => Ok(Some(adapt(cfg))),
             (false, None, true) => Err(ApiError::bad(
                 "adapt learns from a `task`'s demonstrations: send a `task` (not `prompt`)",
             )),
@@ -106,14 +111,13 @@ impl Worker {
         &mut self,
         req: OpenRequest,
         obs: pdt_policy::Observation,
-        strategy: pdt_prompt::PromptStrategy,
-        cfg: pdt_rundir::config::AdaptConfig,
+        test_time: TestTime,
     ) -> Result<u64, ApiError> {
         let task = req.task.ok_or_else(|| ApiError::bad("adapt needs a `task`"))?;
-        let key = AdaptKey::new(task, req.prompt_seed.unwrap_or(0), &strategy, &cfg);
+        let key = AdaptKey::new(task, req.prompt_seed.unwrap_or(0), &test_time);
         let in_use: HashSet<&AdaptKey> =
             self.episodes.values().filter_map(|e| e.adapted.as_ref()).collect();
-        let kept = self.adaptations.obtain(&self.run, &key, &strategy, &cfg, &in_use)?;
+        let kept = self.adaptations.obtain(&self.run, &key, &test_time, &in_use)?;
         let prefix = PrefixCache::cat(&[&kept.prefix]);
         let adapt_log = Some(kept.adaptation.log.clone());
         let target = self.run.target(req.target_return)?;

@@ -56,7 +56,7 @@ pub(crate) struct Worker {
     episodes: HashMap<u64, Episode>,
     next_id: u64,
     /// `bandit` prompts: one bandit per task, across its episodes.
-    bandits: HashMap<usize, pdt_policy::TaskBandit>,
+    bandits: HashMap<usize, pdt_eval::testtime::TaskBandit>,
     /// Adapted tasks, kept for their next episodes.
     adaptations: adapt::Adaptations,
 }
@@ -198,8 +198,8 @@ impl Worker {
         }
         let mut obs = self.run.observation(&req.observation)?;
         let strategy = self.strategy(&req)?;
-        if let Some(cfg) = self.adaptation(&req)? {
-            return self.open_adapted(req, obs, strategy, cfg);
+        if let Some(test_time) = self.adaptation(&req, &strategy)? {
+            return self.open_adapted(req, obs, test_time);
         }
         let (mut segments, mut bandit) = (None, None);
         let prompt = match (self.run.method.uses_prompt(), req.prompt, req.task) {
@@ -233,7 +233,7 @@ impl Worker {
                             b.strategy()
                         )));
                     }
-                    let (chosen, choice) = b.choose(&self.run)?;
+                    let (chosen, choice) = self.run.bandit_prompt(b)?;
                     bandit = Some((task, choice));
                     chosen
                 } else {

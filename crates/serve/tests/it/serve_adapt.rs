@@ -5,7 +5,7 @@
 //! adaptation requests get clear errors.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::adapt::{AdaptConfig, AdaptKind};
+use pdt_eval::testtime::{AdaptConfig, AdaptKind, Adaptation, TestTime};
 use pdt_eval::{evaluate_given, GivenPrompts};
 use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
@@ -51,8 +51,18 @@ fn serve_episode(
     (actions, log)
 }
 
+/// The test time of `cfg`'s adaptation from the reference prompt.
+fn adapted(cfg: AdaptConfig) -> TestTime {
+    TestTime::Adapt { from: PromptStrategy::default(), adaptation: Adaptation::Prompt(cfg) }
+}
+
 /// The evaluator's actions for one episode of `task` from `seed` with an adaptation.
-fn evaluated(run: &Policy, task: usize, seed: u64, a: &pdt_policy::TaskAdaptation) -> Vec<f32> {
+fn evaluated(
+    run: &Policy,
+    task: usize,
+    seed: u64,
+    a: &pdt_eval::testtime::TaskAdaptation,
+) -> Vec<f32> {
     let settings = run.eval_settings();
     let t = point_task(task, seed, None);
     tch::set_num_threads(1);
@@ -71,7 +81,7 @@ fn adapted_episodes_act_as_the_evaluator_with_the_tasks_adaptation() {
         let open = serde_json::json!({ "task": task, "prompt_seed": 7, "adapt": kind.name() });
         let (served, log) = serve_episode(server.addr, open.clone(), task, seed);
         let cfg = AdaptConfig { kind, ..budget.clone() };
-        let a = run.adapt(task, 7, &PromptStrategy::default(), &cfg).unwrap();
+        let a = run.adapt(task, 7, &adapted(cfg)).unwrap();
         assert_eq!(log["task"], a.log.task, "{kind}: {log}");
         assert_eq!(log["steps"], 3, "{kind}: {log}");
         assert_eq!(log["trainable"].as_u64().unwrap() as usize, a.log.trainable, "{kind}");
@@ -134,8 +144,8 @@ fn bad_adaptation_requests_get_clear_errors() {
 #[test]
 fn a_return_scored_ptdt_is_refused_where_no_environment_is_stepped() {
     let mut cfg = AdaptConfig { kind: AdaptKind::Ptdt, steps: 2, batch: 2, ..Default::default() };
-    cfg.ptdt.score = pdt_eval::adapt::PtdtScore::Return;
+    cfg.ptdt.score = pdt_eval::testtime::PtdtScore::Return;
     let run = Policy::load(&tiny_run().1, None, None).unwrap();
-    let e = run.adapt(2, 0, &PromptStrategy::default(), &cfg).unwrap_err().to_string();
+    let e = run.adapt(2, 0, &adapted(cfg)).unwrap_err().to_string();
     assert!(e.contains("ptdt.score = \"return\"") && e.contains("action-loss"), "{e}");
 }

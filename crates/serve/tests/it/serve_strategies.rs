@@ -108,7 +108,7 @@ fn a_bandit_learns_from_the_returns_of_its_tasks_closed_episodes() {
     let strategy = PromptStrategy::named("bandit").unwrap();
     let mut b = run.task_bandit(task, 3, &strategy).unwrap();
     for s in &served {
-        let (chosen, choice) = b.choose(&run).unwrap();
+        let (chosen, choice) = run.bandit_prompt(&mut b).unwrap();
         assert_eq!(s.segments, chosen.segments);
         b.update(&choice, s.ret);
     }

@@ -14,16 +14,6 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
 
-/// A change of the budget of a run's own test-time adaptation for one evaluation (`promptdt eval
-/// --adapt macaw|finetune --adapt-steps --adapt-batch`): e.g. MACAW's official protocol (1 step
-/// on 256 transitions) for a run trained with the Prompt-DT one. `None` keeps the run's. (Named
-/// for MACAW, its first user; MT-BC-Finetune's fine-tuning takes it too.)
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct MacawAdaptation {
-    pub steps: Option<usize>,
-    pub batch: Option<usize>,
-}
-
 /// Where one training iteration stands, for [`Learner::train_iteration`].
 #[derive(Debug, Clone, Copy)]
 pub struct IterationAt<'a> {
@@ -90,7 +80,7 @@ pub struct Evaluation {
     /// methods without a prompt.
     pub(crate) picks: Vec<pdt_prompt::PromptPick>,
     /// What `[eval.adapt]`'s adaptation did per test task; empty without one.
-    pub(crate) adapt_log: Vec<pdt_eval::adapt::AdaptLog>,
+    pub(crate) adapt_log: Vec<pdt_eval::testtime::AdaptLog>,
 }
 
 impl Evaluation {

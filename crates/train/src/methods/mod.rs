@@ -1,19 +1,19 @@
 //! The trainable methods, each behind [`Learner`], and the registry that maps a configuration's
 //! `run.method` to one. The loop (`run_loop`) and the final evaluation (`evaluate`) own everything
 //! a run has whatever its method (cadence, logs, checkpoint commits, resume points, RNG restore,
-//! progress); a learner owns its model, optimiser, sampling, evaluation and tensor files.
+//! progress); a learner owns its model, optimiser, sampling, evaluation and tensor files. Test time
+//! (prompt strategies, `[eval.adapt]`) is `pdt_eval::testtime`'s, which a learner's `evaluate`
+//! calls with its model; the adaptations of a learner's own weights are its own (`finetune`,
+//! MT-BC-Finetune's; `macaw`).
 //!
 //! A new method: its module here, one line in [`learner`] (and in [`steppable`] if it packs), and
 //! its section of the configuration (`docs/adding-a-method.md`).
 
-mod adapt;
+mod finetune;
 mod learner;
 pub(crate) mod macaw;
-mod planned;
 pub(crate) mod prompt_dt;
-mod prompt_strategy;
 
-pub use learner::MacawAdaptation;
 pub use learner::{
     CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner, SavedSteps, Steppable,
     TaskEval,

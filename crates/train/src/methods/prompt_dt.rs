@@ -6,20 +6,17 @@ use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
     IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
-use super::prompt_strategy::evaluate_strategy;
 use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
 use crate::error::RunError;
-use crate::optim::{AdamWConfig, Optimizer, ParamState, SlotState};
+use crate::optim::{Optimizer, ParamState, SlotState};
 use crate::setup::{Setup, Split};
-use crate::step::{
-    train_step, train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats,
-};
+use crate::step::{train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats};
 use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
-use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
+use pdt_eval::testtime::{self, SplitEval};
+use pdt_eval::EvalSettings;
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
-use pdt_policy::plan_task;
 use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -82,19 +79,6 @@ impl<'s> PromptDtLearner<'s> {
             setup.cfg.optim.clone(),
         );
         Ok(Self { setup, variant, vs, model, opt, sampler })
-    }
-}
-
-impl PromptDtLearner<'_> {
-    /// The evaluation of every task of `split` as `test_time` says, with its prompt picks and
-    /// adaptation log.
-    fn evaluate_with(
-        &mut self,
-        split: Split,
-        test_time: &TestTime,
-        rng: &mut Rng,
-    ) -> Result<Evaluation, RunError> {
-        eval_tasks(self, split, test_time, rng)
     }
 }
 
@@ -200,7 +184,7 @@ impl Learner for PromptDtLearner<'_> {
         test_time: &TestTime,
         rng: &mut Rng,
     ) -> Result<Evaluation, RunError> {
-        self.evaluate_with(split, test_time, rng)
+        eval_tasks(self, split, test_time, rng)
     }
 
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
@@ -255,32 +239,50 @@ impl Learner for PromptDtLearner<'_> {
     }
 }
 
-/// Evaluates the tasks of `split`, each with its own prompt, all episodes together, as
-/// `test_time` says: the reference rule, a prompt strategy, or an adaptation to each test task
-/// (`[eval.adapt]`'s, or fine-tuning a copy of the weights on its data).
+/// Evaluates the tasks of `split` as `test_time` says, through `pdt_eval::testtime` (the
+/// reference rule, a prompt strategy, an `[eval.adapt]` adaptation) or, for MT-BC-Finetune's
+/// fine-tuning, this learner's own weights ([`super::finetune`]). An adaptation is of the test
+/// tasks; training tasks are evaluated with its strategy alone.
 fn eval_tasks(
-    learner: &mut PromptDtLearner<'_>,
+    learner: &PromptDtLearner<'_>,
     split: Split,
     test_time: &TestTime,
     rng: &mut Rng,
 ) -> Result<Evaluation, RunError> {
     let setup = learner.setup;
-    let data = setup.data(split);
-    let sampler = setup.sampler(data)?;
-    let make = |i: usize, rng: &mut Rng| -> Result<EvalTask, RunError> {
-        let plan = plan_task(setup.cfg.run.method, &sampler, data, i, setup.cfg.eval.episodes, rng);
-        let envs = (0..plan.seeds.len())
-            .map(|_| setup.family.make(plan.index))
-            .collect::<Result<Vec<_>, _>>()?;
-        Ok(EvalTask {
-            name: plan.name,
-            index: plan.index,
-            envs,
-            seeds: plan.seeds,
-            prompt: plan.prompt,
-        })
+    let settings = eval_settings(setup);
+    let ev = split_eval(setup, &learner.model, &settings, split);
+    let on_test = split == Split::Test;
+    let done = match test_time {
+        TestTime::Adapt { from, adaptation: Adaptation::Prompt(cfg) } if on_test => {
+            testtime::evaluate_adapted(&ev, from, cfg, rng)?
+        }
+        &TestTime::Adapt { adaptation: Adaptation::Finetune { steps, batch, lr }, .. }
+            if on_test =>
+        {
+            let tune = super::finetune::Finetune { steps, batch, lr };
+            super::finetune::finetune_each(&learner.vs, &ev, &tune, setup, rng)?
+        }
+        TestTime::Adapt { adaptation: Adaptation::Macaw { .. }, .. } if on_test => {
+            return Err(RunError::Invalid(format!(
+                "MACAW's adaptation is MACAW's own; this run is {}",
+                setup.cfg.run.method.name()
+            )))
+        }
+        TestTime::Strategy(s) | TestTime::Adapt { from: s, .. } if !s.is_default() => {
+            testtime::evaluate_strategy(&ev, s, rng)?
+        }
+        TestTime::Reference | TestTime::Strategy(_) | TestTime::Adapt { .. } => {
+            testtime::evaluate_reference(&ev, rng)?
+        }
     };
-    let settings = EvalSettings {
+    let tasks = done.results.into_iter().map(|result| TaskEval { result, adaptation: None });
+    Ok(Evaluation { tasks: tasks.collect(), picks: done.picks, adapt_log: done.adapt_log })
+}
+
+/// The settings of the run's evaluations.
+fn eval_settings(setup: &Setup) -> EvalSettings {
+    EvalSettings {
         k: setup.run_data.sampler_cfg.k,
         horizon: setup.preset.horizon,
         rtg_scale: setup.run_data.sampler_cfg.rtg_scale,
@@ -291,131 +293,28 @@ fn eval_tasks(
         device: setup.device,
         env_threads: setup.env_threads,
         inference: setup.cfg.eval.inference,
-    };
-    // An adaptation is of the test tasks; training tasks are evaluated with its strategy alone.
-    let (select, adaptation) = match test_time {
-        TestTime::Reference => (None, None),
-        TestTime::Strategy(s) => (Some(s), None),
-        TestTime::Adapt { from, adaptation } => (Some(from), Some(adaptation)),
-    };
-    let adaptation = adaptation.filter(|_| split == Split::Test);
-    let select = select.filter(|s| !s.is_default());
-    match adaptation {
-        // `[eval.adapt]`: its own evaluation, starting from the strategy's prompt.
-        Some(Adaptation::Prompt(adapt_cfg)) => {
-            let strategy = select.cloned().unwrap_or_default();
-            let a = super::adapt::evaluate_adapted(
-                &learner.model,
-                setup,
-                data,
-                &settings,
-                &strategy,
-                adapt_cfg,
-                rng,
-            )?;
-            return Ok(Evaluation {
-                tasks: plain(a.results),
-                adapt_log: a.log,
-                ..Default::default()
-            });
-        }
-        Some(&Adaptation::Finetune { steps, batch, lr }) => {
-            let tune = Finetune { steps, batch, lr };
-            return finetune_each(learner, &sampler, &settings, &tune, rng, &make);
-        }
-        Some(Adaptation::Macaw { .. }) => {
-            return Err(RunError::Invalid(format!(
-                "MACAW's adaptation is MACAW's own; this run is {}",
-                setup.cfg.run.method.name()
-            )))
-        }
-        None => {}
     }
-    // A prompt strategy other than the reference rule: its own evaluation.
-    if let Some(strategy) = select {
-        let s = evaluate_strategy(&learner.model, setup, data, &settings, strategy, rng)?;
-        return Ok(Evaluation { tasks: plain(s.results), picks: s.picks, ..Default::default() });
+}
+
+/// What an evaluation of `split` needs of the run, for `pdt_eval::testtime`.
+fn split_eval<'a>(
+    setup: &'a Setup,
+    model: &'a PromptDt,
+    settings: &'a EvalSettings,
+    split: Split,
+) -> SplitEval<'a> {
+    let rd = &setup.run_data;
+    SplitEval {
+        model,
+        settings,
+        data: setup.data(split),
+        sampler_cfg: &rd.sampler_cfg,
+        norm: &rd.norm,
+        n_positions: rd.model_cfg.n_positions,
+        method: setup.cfg.run.method,
+        episodes: setup.cfg.eval.episodes,
+        family: setup.family.as_ref(),
     }
-    let tasks = (0..data.tasks.len()).map(|i| make(i, rng)).collect::<Result<Vec<_>, _>>()?;
-    let eps = evaluate(&learner.model, tasks, &settings)?;
-    let positions: Vec<usize> = (0..data.tasks.len()).collect();
-    Ok(Evaluation::of_tasks(plain(summarise_all(data, &positions, &eps))))
-}
-
-/// MT-BC-Finetune's fine-tuning before each test task: its steps, segments per step and
-/// learning rate.
-struct Finetune {
-    steps: u64,
-    batch: usize,
-    lr: f64,
-}
-
-/// Per task: adapts a copy of the weights on the task's demonstrations with a fresh optimiser,
-/// evaluates, restores. (The reference shares one optimiser across the test tasks of an
-/// evaluation, leaking Adam moments between them: pitfall 13, fixed here.)
-fn finetune_each(
-    learner: &mut PromptDtLearner<'_>,
-    sampler: &BatchSampler<'_>,
-    settings: &EvalSettings,
-    tune: &Finetune,
-    rng: &mut Rng,
-    make: &dyn Fn(usize, &mut Rng) -> Result<EvalTask, RunError>,
-) -> Result<Evaluation, RunError> {
-    let setup = learner.setup;
-    let data = setup.data(Split::Test);
-    let snapshot: Vec<(String, Tensor)> =
-        learner.vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect();
-    let mut results = Vec::new();
-    for i in 0..data.tasks.len() {
-        let task = make(i, rng)?;
-        let ocfg =
-            AdamWConfig { learning_rate: tune.lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
-        let mut opt =
-            Optimizer::new(&learner.vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
-        // The tuning's dropout comes from libtorch's generator (a packed run holds it for the
-        // whole evaluation: `pdt-pack`); its episodes draw nothing from it.
-        for s in 0..tune.steps {
-            let seg =
-                sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
-            let history = crate::step::to_segments(&seg, setup.device);
-            let batch = DeviceBatch { history, prompt: None };
-            train_step(&learner.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
-        }
-        let eps = evaluate(&learner.model, vec![task], settings)?;
-        results.extend(summarise_all(data, &[i], &eps));
-        tch::no_grad(|| {
-            let vars = learner.vs.variables();
-            for (n, saved) in &snapshot {
-                if let Some(v) = vars.get(n) {
-                    v.shallow_clone().copy_(saved);
-                }
-            }
-        });
-    }
-    Ok(Evaluation::of_tasks(plain(results)))
-}
-
-/// The results of the tasks at `positions` (indices into `data.tasks`): the k-th task passed to
-/// `evaluate` is `data.tasks[positions[k]]`, whose episodes carry `task_index == k`.
-fn summarise_all(
-    data: &pdt_data::MultiTaskDataset,
-    positions: &[usize],
-    eps: &[pdt_eval::EpisodeRecord],
-) -> Vec<TaskResult> {
-    positions
-        .iter()
-        .enumerate()
-        .map(|(k, &i)| {
-            let id = &data.tasks[i].id;
-            let mine: Vec<_> = eps.iter().filter(|e| e.task_index == k).collect();
-            summarise(&id.to_string(), id.index, &mine)
-        })
-        .collect()
-}
-
-/// Results of a rule without a per-task adaptation record.
-fn plain(results: Vec<TaskResult>) -> Vec<TaskEval> {
-    results.into_iter().map(|result| TaskEval { result, adaptation: None }).collect()
 }
 
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.

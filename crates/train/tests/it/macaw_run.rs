@@ -4,8 +4,9 @@
 
 use crate::runs;
 
+use pdt_train::config::{Adaptation, TestTime};
 use pdt_train::config::{Method, TrainConfig};
-use pdt_train::run::{evaluate_run, evaluate_run_with, MacawAdaptation};
+use pdt_train::run::{evaluate_run, evaluate_run_as, EvalRequest};
 use runs::{lines, run, tiny_data};
 use std::path::Path;
 
@@ -68,8 +69,7 @@ fn killed_and_resumed_macaw_run_equals_uninterrupted_run() {
     let own = evaluate_run(&full, Some(1), "test", None, None).unwrap();
     assert_eq!(own.tasks.len(), 5);
     assert_eq!(own.adaptation.as_deref(), Some("2 steps on 4 transitions"));
-    let official = MacawAdaptation { steps: Some(1), batch: Some(8) };
-    let r = evaluate_run_with(&full, Some(1), "test", None, None, &official).unwrap();
+    let r = evaluate_run_as(&full, &with_macaw(1, 8)).unwrap().eval;
     assert_eq!(r.adaptation.as_deref(), Some("1 steps on 8 transitions"));
     // serving a MACAW run is refused with the reason
     let e = pdt_policy::Policy::load(&full, None, None).err().unwrap().to_string();
@@ -124,18 +124,19 @@ fn a_checkpoint_of_another_method_is_a_clear_error() {
     assert!(e.contains("not MACAW weights"), "{e}");
     let e = evaluate_run(&other, Some(1), "test", None, None).unwrap_err().to_string();
     assert!(e.contains("step_4.safetensors"), "{e}");
-    // a non-MACAW run refuses MACAW's adaptation settings
-    let e = evaluate_run_with(
-        &other,
-        Some(1),
-        "test",
-        None,
-        None,
-        &MacawAdaptation { steps: Some(1), batch: None },
-    )
-    .unwrap_err()
-    .to_string();
-    assert!(e.contains("--adapt-steps") && e.contains("mt-orl"), "{e}");
+    // a non-MACAW run refuses MACAW's adaptation, naming both
+    let e = evaluate_run_as(&other, &with_macaw(1, 4)).unwrap_err().to_string();
+    assert!(e.contains("macaw") && e.contains("mt-orl"), "{e}");
+}
+
+/// A one-episode evaluation with MACAW's adaptation at `steps` steps on `batch` transitions.
+fn with_macaw(steps: usize, batch: usize) -> EvalRequest {
+    let adaptation = Adaptation::Macaw { steps, batch };
+    EvalRequest {
+        episodes: Some(1),
+        test_time: Some(TestTime::Adapt { from: Default::default(), adaptation }),
+        ..Default::default()
+    }
 }
 
 #[test]

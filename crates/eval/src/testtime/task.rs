@@ -1,19 +1,17 @@
 //! One test task adapted from its demonstrations, the backbone frozen (`[eval.adapt]`,
-//! docs/prompt-control.md): the owner of what an adaptation does with a task, for every caller:
-//! `promptdt eval --adapt` (pdt-train's adapted evaluation), `promptdt serve` (episodes opened with
-//! `adapt`) and the Python `Policy.adapt`. The algorithms are `pdt_eval::adapt`'s; this picks the
-//! demonstrations, measures the probe loss before and after, and keeps what the task's episodes
-//! then act with ([`TaskAdaptation`]).
+//! docs/prompt-control.md): what an adaptation does with a task, for every caller: `promptdt
+//! eval --adapt` (pdt-train's adapted evaluation), `promptdt serve` (episodes opened with `adapt`)
+//! and the Python `Policy.adapt` (both through `pdt_policy::Policy::adapt`). The algorithms are
+//! [`super::adapt`]'s; this picks the start prompt and the demonstrations, measures the probe loss
+//! before and after, and keeps what the task's episodes then act with ([`TaskAdaptation`]).
 
-use crate::{Policy, PolicyError};
-use pdt_eval::adapt::{
-    self, demo_loss, ActionLossScore, AdaptConfig, AdaptKind, AdaptLog, PromptScore, PtdtScore,
-};
-use pdt_eval::to_segments;
+use super::adapt::{self, demo_loss, ActionLossScore, PromptScore};
+use super::{AdaptConfig, AdaptKind, AdaptLog, PtdtScore, TestTimeError};
+use crate::to_segments;
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, PromptTokens};
 use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
 use pdt_rundir::config::Method;
-use rand::{RngCore, SeedableRng};
+use rand::SeedableRng;
 use std::time::Instant;
 
 /// What an adaptation made of a task's prompt.
@@ -76,7 +74,7 @@ pub fn adapt_task(
     start: &SegmentBatch,
     return_score: Option<&mut dyn PromptScore>,
     rng: &mut Rng,
-) -> Result<TaskAdaptation, PolicyError> {
+) -> Result<TaskAdaptation, TestTimeError> {
     let AdaptTask { model, sampler, index, name, cfg, probe_seed } = *task;
     let device = model.device();
     let prompt = to_segments(start, device);
@@ -89,7 +87,7 @@ pub fn adapt_task(
     let start_tokens = tch::no_grad(|| model.prompt_tokens(&prompt));
     let loss_before = loss_of(&start_tokens, None);
     let clock = Instant::now();
-    let fail = |e: adapt::AdaptError| PolicyError::Invalid(format!("task {name}: {e}"));
+    let fail = |e: super::AdaptError| TestTimeError::Failed(format!("task {name}: {e}"));
     let (adapted, trainable) = match cfg.kind {
         AdaptKind::SoftPrompt => {
             let t = adapt::soft_prompt(model, &prompt, cfg, &mut demos, rng).map_err(fail)?;
@@ -104,7 +102,7 @@ pub fn adapt_task(
                 }
                 (PtdtScore::Return, Some(score)) => adapt::ptdt(start, cfg, score, rng)?,
                 (PtdtScore::Return, None) => {
-                    return Err(PolicyError::Input(format!(
+                    return Err(TestTimeError::Input(format!(
                         "task {name}: eval.adapt.ptdt.score = \"return\" ranks prompts by \
                          episodes in the task's environment, which only `promptdt eval` steps; \
                          use score = \"action-loss\" here"
@@ -119,7 +117,7 @@ pub fn adapt_task(
             (Adapted::Lora { prompt: start_tokens, adapters: a }, n)
         }
         AdaptKind::None => {
-            return Err(PolicyError::Input("no adaptation asked for (eval.adapt.kind)".into()))
+            return Err(TestTimeError::Input("no adaptation asked for (eval.adapt.kind)".into()))
         }
     };
     let seconds = clock.elapsed().as_secs_f64();
@@ -151,7 +149,7 @@ pub fn start_prompt(
     strategy: &PromptStrategy,
     default_draw: Option<SegmentBatch>,
     rng: &mut Rng,
-) -> Result<SegmentBatch, PolicyError> {
+) -> Result<SegmentBatch, TestTimeError> {
     Ok(match strategy.strategy {
         PromptStrategyKind::Reference if strategy.is_default() => match default_draw {
             Some(p) => p,
@@ -173,9 +171,9 @@ pub fn check_adaptable(
     method: Method,
     strategy: &PromptStrategy,
     cfg: &AdaptConfig,
-) -> Result<(), PolicyError> {
+) -> Result<(), TestTimeError> {
     if !method.uses_prompt() {
-        return Err(PolicyError::Input(format!(
+        return Err(TestTimeError::Input(format!(
             "adaptation `{}`: {} takes no prompt; the adaptations apply to {} runs",
             cfg.kind,
             method.name(),
@@ -183,39 +181,11 @@ pub fn check_adaptable(
         )));
     }
     if strategy.strategy.per_episode() || strategy.strategy.learns_from_returns() {
-        return Err(PolicyError::Input(format!(
+        return Err(TestTimeError::Input(format!(
             "an adaptation starts from one prompt per task; prompt strategy `{}` picks one per \
              episode or round (use reference, random-segment or best-return)",
             strategy.strategy
         )));
     }
-    cfg.validate().map_err(|e| PolicyError::Input(e.to_string()))
-}
-
-impl Policy {
-    /// Adapts to task `task` from its demonstrations (`cfg`), starting from the prompt `strategy`
-    /// picks; `seed` seeds the start prompt's draw, the adaptation and its probe batch.
-    pub fn adapt(
-        &self,
-        task: usize,
-        seed: u64,
-        strategy: &PromptStrategy,
-        cfg: &AdaptConfig,
-    ) -> Result<TaskAdaptation, PolicyError> {
-        check_adaptable(self.method, strategy, cfg)?;
-        let sampler = self.task_sampler(task, Some(strategy))?;
-        let mut rng = Rng::seed_from_u64(seed);
-        let start = start_prompt(&sampler, 0, strategy, None, &mut rng)?;
-        let mut arng = Rng::seed_from_u64(rng.next_u64());
-        let name = format!("{}-{task}", self.env);
-        let t = AdaptTask {
-            model: &self.model,
-            sampler: &sampler,
-            index: 0,
-            name: &name,
-            cfg,
-            probe_seed: rng.next_u64(),
-        };
-        adapt_task(&t, &start, None, &mut arng)
-    }
+    cfg.validate().map_err(|e| TestTimeError::Input(e.to_string()))
 }

@@ -1,22 +1,20 @@
-//! Evaluation-time adaptation to a test task from its few demonstrations, the backbone frozen
-//! (`docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT
+//! The algorithms of the `[eval.adapt]` adaptations to a test task from its few demonstrations,
+//! the backbone frozen (`docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT
 //! update and LoRA adapters. `[eval.adapt]` ([`AdaptConfig`]) says which and its budget.
 //!
 //! Every adaptation learns from the action loss (the reference's masked MSE) on K-step segments
 //! of the task's demonstrations (`BatchSampler::demo_segments`), with the model in eval mode (no
 //! dropout: the only randomness is the caller's generator). Gradients are taken with respect to
-//! the adapted tensors only (`Tensor::run_backward` on them), so the model's weights neither
-//! change nor accumulate gradients.
+//! the adapted tensors only (`Tensor::run_backward` on them, stepped by [`super::optim::Adam`]),
+//! so the model's weights neither change nor accumulate gradients.
 
+use super::optim::Adam;
+use super::{AdaptConfig, AdaptError, LoraConfig};
 use crate::EvalError;
 use pdt_model::{LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
 use rand::Rng as _;
 use tch::{Kind, Tensor};
-
-pub use pdt_rundir::config::{
-    AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore,
-};
 
 /// Demonstration segments of one task, drawn on demand from the caller's sampler and stream.
 pub type DemoSource<'a> = dyn FnMut(usize, &mut Rng) -> Segments + 'a;
@@ -43,39 +41,6 @@ pub fn demo_loss(
 
 fn scalar(t: &Tensor) -> f64 {
     t.to_kind(Kind::Double).double_value(&[])
-}
-
-/// Adam (Kingma & Ba) over a few tensors, written out: the adapted tensors live outside any
-/// `VarStore`, and their gradients come from `run_backward`.
-struct Adam {
-    lr: f64,
-    t: i32,
-    m: Vec<Tensor>,
-    v: Vec<Tensor>,
-}
-
-impl Adam {
-    const B1: f64 = 0.9;
-    const B2: f64 = 0.999;
-    const EPS: f64 = 1e-8;
-
-    fn new(params: &[&Tensor], lr: f64) -> Self {
-        let zeros = || params.iter().map(|p| p.zeros_like()).collect();
-        Self { lr, t: 0, m: zeros(), v: zeros() }
-    }
-
-    fn step(&mut self, params: &[&Tensor], grads: &[Tensor]) {
-        self.t += 1;
-        let (c1, c2) = (1.0 - Self::B1.powi(self.t), 1.0 - Self::B2.powi(self.t));
-        tch::no_grad(|| {
-            for (i, (p, g)) in params.iter().zip(grads).enumerate() {
-                self.m[i] = &self.m[i] * Self::B1 + g * (1.0 - Self::B1);
-                self.v[i] = &self.v[i] * Self::B2 + g.square() * (1.0 - Self::B2);
-                let update = (&self.m[i] / c1) / ((&self.v[i] / c2).sqrt() + Self::EPS) * self.lr;
-                let _ = p.shallow_clone().f_sub_(&update);
-            }
-        });
-    }
 }
 
 /// `cfg.steps` Adam steps of the demonstrations' action loss on `params`; `loss` builds the loss
