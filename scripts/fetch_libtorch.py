@@ -223,7 +223,7 @@ def install_cpu():
 # --cuda: the CUDA part of the same libtorch 2.11.0, for `promptdt ... --device cuda` on a GPU machine.
 #
 # A promptdt binary links only libtorch_cpu.so (from third_party/libtorch, through its RUNPATH). With
-# --device cuda|auto it dlopen()s "libtorch_cuda.so" by name (crates/model/src/device.rs), which
+# --device cuda|auto it dlopen()s "libtorch_cuda.so" by name (crates/torch/src/device.rs), which
 # registers the CUDA backend with the already-loaded libtorch_cpu.so. So the CUDA install is a separate
 # directory with the wheel's layout (torch/lib + nvidia/<pkg>/lib: the torch libraries' DT_RPATH,
 # $ORIGIN/../../nvidia/{cudnn,nvshmem,nccl,cusparselt,cu13}/lib, then finds the NVIDIA libraries without

@@ -107,7 +107,7 @@ def main():
     ap.add_argument("--matmul", default="fp32", choices=["fp32", "tf32"])
     ap.add_argument("--profile", action="store_true")
     args = ap.parse_args()
-    # The legacy switch, as promptdt sets it (crates/model/csrc/matmul.cpp): it keeps PyTorch's two
+    # The legacy switch, as promptdt sets it (crates/torch/csrc/matmul.cpp): it keeps PyTorch's two
     # records of the setting in agreement. CUDA matmuls only.
     torch.backends.cuda.matmul.allow_tf32 = args.matmul == "tf32"
 

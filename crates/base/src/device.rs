@@ -1,5 +1,5 @@
 //! A device request as a configuration names it: `cpu`, `cuda`, or `auto` (CUDA when present).
-//! Resolving it to a libtorch device is `pdt_model::device::resolve`; the request itself carries no
+//! Resolving it to a libtorch device is `pdt_torch::device::resolve`; the request itself carries no
 //! libtorch, so a run's configuration can be read without it.
 
 use serde::{Deserialize, Serialize};

@@ -11,8 +11,9 @@
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
+use pdt_base::device::Matmul;
 use pdt_base::table::{Rule, Table};
-use pdt_model::device::Matmul;
+use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 pub mod pack;
 pub mod profile;
@@ -125,9 +126,9 @@ pub enum BenchError {
     #[error("render case `{case}`: {why}")]
     Render { case: String, why: String },
     #[error(transparent)]
-    Matmul(#[from] pdt_model::device::MatmulError),
+    Matmul(#[from] pdt_torch::device::MatmulError),
     #[error(transparent)]
-    Profiler(#[from] pdt_model::profiler::ProfilerError),
+    Profiler(#[from] pdt_torch::profiler::ProfilerError),
 }
 
 /// The evaluation case: the whole few-shot protocol on the point robot's 5 held-out goals.
@@ -146,8 +147,8 @@ enum Mode {
     TrainFlatAll,
     /// `infer_b<N>`: one rollout step by the reference's path, the full forward.
     Infer,
-    /// `act_b<N>`: one rollout step by `PromptDt::act` with the prompt's keys and values cached
-    /// (promptdt only; compare with `infer_b<N>` of the same run).
+    /// `act_b<N>`: one rollout step by `PromptDt::forward` (`Act`) with the prompt's keys and
+    /// values cached (promptdt only; compare with `infer_b<N>` of the same run).
     Act,
 }
 
@@ -272,21 +273,23 @@ fn time_case(
     let prompt = random_segments(b, 5, 20, 6, true, dev);
     // As in an evaluation: the prompts' keys and values once (5 tasks), then rows per step.
     let tasks = random_segments(5, 5, 20, 6, true, dev);
-    let cache = tch::no_grad(|| model.prefix(&tasks));
+    let cache = tch::no_grad(|| model.prefix(&tasks, None));
     let rows = Tensor::arange(b, (Kind::Int64, dev)).remainder(5);
     let mut run = || {
         if mode == Mode::Act {
-            let a = tch::no_grad(|| model.act(&history, Some(&cache.select(&rows))));
+            let a = tch::no_grad(|| {
+                model.forward(&history, Act { prompt: Some(&cache.select(&rows)), lora: None })
+            });
             let _ = a.to_device(Device::Cpu);
         } else if matches!(mode, Mode::Train | Mode::TrainFlat | Mode::TrainFlatAll) {
-            let preds = model.forward(&history, Some(&prompt), true);
+            let preds = model.forward(&history, Sequence::train(Some(&prompt)));
             let loss = PromptDt::action_loss(&preds, &history.actions, &history.mask);
             let mut grads = opt.backward(&loss);
             // The norm is not read (as PyTorch's bench: reading would wait for the device).
             let _ = opt.clip_grad_norm(&mut grads, 0.25);
             opt.step(&grads, 1e-4);
         } else {
-            let preds = tch::no_grad(|| model.forward(&history, Some(&prompt), false));
+            let preds = tch::no_grad(|| model.forward(&history, Sequence::eval(Some(&prompt))));
             // Acting needs the action on the host: include the copy, as a rollout would.
             let _ = preds.select(1, -1).to_device(Device::Cpu);
         }
@@ -552,7 +555,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         });
     }
     tch::set_num_threads(cfg.threads as i32);
-    pdt_model::device::set_matmul(cfg.device, cfg.matmul)?;
+    pdt_torch::device::set_matmul(cfg.device, cfg.matmul)?;
     tch::manual_seed(0);
     let mcfg = PromptDtConfig::reference(20, 6);
     let vs = VarStore::new(cfg.device);
@@ -691,9 +694,9 @@ pub fn tf32_effect(device: Device) -> Result<f64, BenchError> {
         Tensor::randn([n, m], (Kind::Float, Device::Cpu)).to_device(device)
     };
     let (a, b) = (gen(512, 1024, 1), gen(1024, 512, 2));
-    pdt_model::device::set_cublas_tf32(false)?;
+    pdt_torch::device::set_cublas_tf32(false)?;
     let exact = a.mm(&b);
-    pdt_model::device::set_cublas_tf32(true)?;
+    pdt_torch::device::set_cublas_tf32(true)?;
     let tf32 = a.mm(&b);
     let diff = (&tf32 - &exact).abs().max().double_value(&[]);
     Ok(diff / exact.abs().max().double_value(&[]))
@@ -758,9 +761,9 @@ mod tests {
 
     #[test]
     fn tf32_check_sees_no_effect_on_the_cpu() {
-        // cuBLAS's switch leaves CPU products alone (crates/model/tests/it/matmul.rs checks more).
+        // cuBLAS's switch leaves CPU products alone (crates/torch/tests/it/matmul.rs checks more).
         let e = tf32_effect(Device::Cpu).unwrap();
-        pdt_model::device::set_cublas_tf32(false).unwrap();
+        pdt_torch::device::set_cublas_tf32(false).unwrap();
         assert_eq!(e, 0.0);
     }
 

@@ -1,5 +1,5 @@
 //! `bench --profile`: what one iteration of a case runs, counted by libtorch's profiler
-//! (`pdt_model::profiler`): host operators and, on CUDA, kernels, copies and runtime calls, with
+//! (`pdt_torch::profiler`): host operators and, on CUDA, kernels, copies and runtime calls, with
 //! where their time goes. Issue 30 asks where a step's time goes (kernels per step) on the GPU,
 //! which no profiler on those machines could say.
 //!
@@ -11,7 +11,7 @@
 //! ones).
 
 use crate::{BenchConfig, BenchError, CaseTiming, EngineReport};
-use pdt_model::profiler::{self, Event, EventKind};
+use pdt_torch::profiler::{self, Event, EventKind};
 use serde::Serialize;
 use std::collections::BTreeMap;
 

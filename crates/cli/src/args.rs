@@ -3,7 +3,7 @@
 use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags, ServeAdaptFlags};
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
-use pdt_model::device::DeviceSpec;
+use pdt_base::device::DeviceSpec;
 use std::path::PathBuf;
 
 #[derive(Debug, Parser)]
@@ -311,11 +311,11 @@ pub struct ReproduceArgs {
     #[arg(long, value_parser = count(1, 1024))]
     pub threads: Option<usize>,
     #[arg(long, default_value = "auto")]
-    pub device: pdt_model::device::DeviceSpec,
+    pub device: pdt_base::device::DeviceSpec,
     /// Each run's run.matmul: float32 products on CUDA in `fp32` or `tf32` (part of a run's
     /// identity; docs/implementation-details.md, C.8).
     #[arg(long, default_value = "fp32")]
-    pub matmul: pdt_model::device::Matmul,
+    pub matmul: pdt_base::device::Matmul,
     /// Output directory: data/, runs/, configs/, logs/, reports/.
     #[arg(long, default_value = "runs/repro")]
     pub out: PathBuf,
@@ -636,7 +636,7 @@ pub struct TrainArgs {
     /// Override run.matmul: float32 products on CUDA in `fp32` or `tf32` (docs/
     /// implementation-details.md, C.8). Not with --resume: a run keeps its own.
     #[arg(long, conflicts_with = "resume")]
-    pub matmul: Option<pdt_model::device::Matmul>,
+    pub matmul: Option<pdt_base::device::Matmul>,
     /// Override data.dir; with --resume, where the run's data moved (their content must be the
     /// same: the run recorded a fingerprint).
     #[arg(long)]

@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand};
-use pdt_model::device::DeviceSpec;
+use pdt_base::device::DeviceSpec;
 use std::path::PathBuf;
 
 #[derive(Debug, Args)]
@@ -18,7 +18,7 @@ pub struct BenchArgs {
     pub device: DeviceSpec,
     /// Float32 products on CUDA in `fp32` or `tf32` (PyTorch's baseline gets the same).
     #[arg(long, default_value = "fp32")]
-    pub matmul: pdt_model::device::Matmul,
+    pub matmul: pdt_base::device::Matmul,
     /// Also count what one iteration of each case runs with libtorch's profiler: host operators
     /// and, on CUDA, kernels and copies, and where their time goes (not the evaluation cases).
     #[arg(long)]
@@ -117,7 +117,7 @@ impl BenchArgs {
             threads,
             iters: self.iters,
             warmup: self.warmup,
-            device: pdt_model::device::resolve(self.device)?,
+            device: pdt_torch::device::resolve(self.device)?,
             matmul: self.matmul,
             profile: self.profile,
             cases: self

@@ -238,7 +238,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
     if let Some(t) = a.threads {
         tch::set_num_threads(t as i32);
     }
-    let device = pdt_model::device::resolve(a.device)?;
+    let device = pdt_torch::device::resolve(a.device)?;
     let out = a.out.clone().unwrap_or_else(|| PathBuf::from("data").join(family));
     let agent_dir = match a.from_pretrained {
         true => {
@@ -436,11 +436,11 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
     // Measured on 2 cores (`benchmarks/14-omp-wait-policy.json`): 2 runs of 1 thread each finish
     // a set of runs 1.36x sooner than 1 run of 2 threads. On an H200, two Cheetah-Dir runs at once
     // made 1.7x the iterations per hour of one alone, and four no more.
-    let on_gpu = matches!(pdt_model::device::resolve(a.device), Ok(d) if d.is_cuda());
+    let on_gpu = matches!(pdt_torch::device::resolve(a.device), Ok(d) if d.is_cuda());
     // Refused here rather than by each run after its data are collected. Emitted jobs and reports
     // may be made on a machine without the GPU that will run them.
     let trains_here = !(a.report_only || a.status || a.emit.is_some());
-    if a.matmul == pdt_model::device::Matmul::Tf32 && trains_here && !on_gpu {
+    if a.matmul == pdt_base::device::Matmul::Tf32 && trains_here && !on_gpu {
         bail!(
             "--matmul tf32 needs a CUDA device, and --device {} is the CPU here (the CPU computes \
              float32 products in fp32 only)",
@@ -519,7 +519,7 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
                 "--omp-wait-policy".into(),
                 a.omp_wait_policy.clone(),
             ];
-            if a.matmul != pdt_model::device::Matmul::default() {
+            if a.matmul != pdt_base::device::Matmul::default() {
                 extra.extend(["--matmul".into(), a.matmul.as_str().into()]);
             }
             if a.data_root.is_some() {

@@ -47,8 +47,8 @@ impl std::error::Error for StdoutError {}
 fn main() -> ExitCode {
     // Before any tensor exists: a large-batch training step otherwise spends much of its CPU
     // time faulting in and zero-filling pages the allocator gave back after the previous step
-    // (pdt_model::host_memory; 4.4 s -> 2.8 s per step at batch 560). Results do not change.
-    let _ = pdt_model::host_memory::keep_freed_memory();
+    // (pdt_torch::host_memory; 4.4 s -> 2.8 s per step at batch 560). Results do not change.
+    let _ = pdt_torch::host_memory::keep_freed_memory();
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
@@ -159,7 +159,7 @@ fn run(cli: Cli) -> Result<()> {
                 Some(t) => tch::set_num_threads(i32::try_from(t).unwrap_or(i32::MAX)),
                 None => {}
             }
-            let device = pdt_model::device::resolve(a.device)?;
+            let device = pdt_torch::device::resolve(a.device)?;
             let run = pdt_policy::files::run_architecture_of(&a.weights)?;
             let s = pdt_model::forward_file::forward_file(
                 &a.weights,
@@ -179,7 +179,7 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Agent(AgentCommand::Combine(a)) => {
-            let device = pdt_model::device::resolve(a.device)?;
+            let device = pdt_torch::device::resolve(a.device)?;
             let cfg = pdt_rl::combine::CombineConfig {
                 base: a.base.clone(),
                 candidates: a.snapshots.clone(),
@@ -320,7 +320,7 @@ fn run(cli: Cli) -> Result<()> {
                 None => r?,
             };
             let text = serde_json::to_string(&r)?;
-            pdt_model::checkpoint::write_atomic(&a.out, text.as_bytes())
+            pdt_base::fs::write_atomic(&a.out, text.as_bytes())
                 .with_context(|| format!("writing {}", a.out.display()))?;
             let ret: f64 = r.rewards.iter().map(|&x| x as f64).sum();
             out!(
@@ -434,7 +434,7 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Demo(a) if a.smoke => {
-            let device = pdt_model::device::resolve(a.device)?;
+            let device = pdt_torch::device::resolve(a.device)?;
             for (i, s) in pdt_train::smoke::run(0, 20, device)?.iter().enumerate() {
                 out!(
                     "step {i:>3}  loss {:.5}  grad-norm {:.4}  lr {:.2e}",

@@ -18,6 +18,7 @@ use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, StepResult};
 pub mod testtime;
 
+use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use serde::{Deserialize, Serialize};
@@ -337,27 +338,32 @@ impl Batch<'_> {
                 let rows: Vec<i64> = rows.iter().map(|&r| r as i64).collect();
                 let rows = Tensor::from_slice(&rows).to_device(cfg.device);
                 let c = self.episode_prefix.as_ref().map(|c| c.select(&rows));
-                tch::no_grad(|| model.act(history, c.as_ref())) // [A, da]
+                tch::no_grad(|| model.forward(history, Act { prompt: c.as_ref(), lora: None }))
+                // [A, da]
             }
             (_, _, Some(rows)) => {
                 let p: Vec<&SegmentBatch> =
                     rows.iter().map(|&r| &self.episode_prompts[r]).collect();
                 let prompt = prompt_batch(&p, cfg.device);
-                let preds = tch::no_grad(|| model.forward(history, Some(&prompt), false)); // [A, K, da]
+                let preds = tch::no_grad(|| model.forward(history, Sequence::eval(Some(&prompt)))); // [A, K, da]
                 preds.select(1, cfg.k as i64 - 1) // [A, da]
             }
             (Inference::Cached, Some(c), None) => {
                 let rows: Vec<i64> = eps.iter().map(|e| e.task as i64).collect();
                 let rows = Tensor::from_slice(&rows).to_device(cfg.device);
-                tch::no_grad(|| model.act_with(history, Some(&c.select(&rows)), self.lora))
+                tch::no_grad(|| {
+                    model.forward(history, Act { prompt: Some(&c.select(&rows)), lora: self.lora })
+                })
                 // [A, da]
             }
             (Inference::Cached, None, None) if self.prompts.iter().all(Option::is_none) => {
-                tch::no_grad(|| model.act(history, None)) // [A, da]
+                tch::no_grad(|| model.forward(history, Act { prompt: None, lora: None }))
+                // [A, da]
             }
             _ => {
                 let prompt = self.task_prompts(eps);
-                let preds = tch::no_grad(|| model.forward(history, prompt.as_ref(), false)); // [A, K, da]
+                let preds =
+                    tch::no_grad(|| model.forward(history, Sequence::eval(prompt.as_ref()))); // [A, K, da]
                 preds.select(1, cfg.k as i64 - 1) // [A, da]
             }
         }
@@ -547,7 +553,7 @@ fn evaluate_inner(
     let prefix = match (cfg.inference, all_prompts) {
         _ if given.is_some() => given.map(|g| g.prefix),
         (Inference::Cached, Some(all)) if !all.is_empty() && chooser.is_none() => {
-            Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device))))
+            Some(tch::no_grad(|| model.prefix(&prompt_batch(&all, cfg.device), None)))
         }
         _ => None,
     };
@@ -598,7 +604,7 @@ fn evaluate_inner(
             let refs: Vec<&SegmentBatch> = chosen.iter().collect();
             batch.episode_prefix = match cfg.inference {
                 Inference::Cached => {
-                    Some(tch::no_grad(|| model.prefix(&prompt_batch(&refs, cfg.device))))
+                    Some(tch::no_grad(|| model.prefix(&prompt_batch(&refs, cfg.device), None)))
                 }
                 Inference::Full => None,
             };

@@ -323,8 +323,5 @@ pub fn save(vs: &VarStore, path: &Path, cfg: &PromptDtConfig) -> Result<(), Chec
         [(ARCHITECTURE_KEY.to_string(), arch.to_string())].into_iter().collect();
     let bytes = safetensors::serialize(views, &Some(meta))
         .map_err(|e| CheckpointError::Format { path: path.into(), message: e.to_string() })?;
-    write_atomic(path, &bytes).map_err(io)
+    pdt_base::fs::write_atomic(path, &bytes).map_err(io)
 }
-
-/// Atomic writes (temp file, fsync, rename), shared by every crate.
-pub use pdt_base::fs::write_atomic;

@@ -39,33 +39,8 @@ pub fn dropout_sites(cfg: &PromptDtConfig) -> Vec<DropoutSite> {
 /// `bernoulli_(1 - p)` then `div_(1 - p)`, drawn from libtorch's generator in memory order, so a
 /// contiguous tensor (or contiguous rows of one) gets what a fresh tensor of its shape gets.
 pub fn draw_noise(noise: &mut Tensor, p: f64) {
-    bernoulli_(noise, 1.0 - p);
+    pdt_torch::bernoulli::bernoulli_(noise, 1.0 - p);
     let _ = noise.g_div_scalar_(1.0 - p);
-}
-
-/// `t.bernoulli_(p)`: the same bits, through [`bernoulli_cpu`] where it draws them.
-pub fn bernoulli_(t: &mut Tensor, p: f64) {
-    if !bernoulli_cpu(t, p) {
-        let _ = t.bernoulli_float_(p);
-    }
-}
-
-/// `noise.bernoulli_(p)` for a contiguous float tensor on the CPU, libtorch's own bits drawn a block
-/// of its MT19937 state at a time (`csrc/bernoulli.cpp`, 5x faster: libtorch's element-by-element
-/// loop on a CPU other than Intel's was a tenth of a training step). False, with nothing drawn,
-/// where that is not what `bernoulli_` draws on this machine (an Intel CPU draws through MKL) or
-/// for any other tensor: then call `bernoulli_`.
-pub fn bernoulli_cpu(noise: &mut Tensor, p: f64) -> bool {
-    if noise.device() != Device::Cpu || noise.kind() != Kind::Float {
-        return false;
-    }
-    // SAFETY: `noise.as_mut_ptr()` is a live tch tensor handle (`at::Tensor*`) for the call; the
-    // C++ side checks it is a contiguous float CPU tensor and writes its elements only.
-    #[allow(unsafe_code)]
-    let fill =
-        |err, len| unsafe { crate::ffi::pdt_bernoulli_cpu(noise.as_mut_ptr().cast(), p, err, len) };
-    // An error (none is expected: the C++ side only checks and fills) leaves the draw to libtorch.
-    matches!(crate::ffi::call(fill), Ok(1))
 }
 
 /// `at::dropout(x, p, train = true)` on the CPU: `x * noise` with [`draw_noise`]'s noise, the ops

@@ -15,9 +15,9 @@
 //! `rewards` / `prompt_rewards` may be present and are ignored (the model does not read rewards).
 //! Output: `action_preds` `[B, K, act_dim]` float32, eval mode (dropout off).
 
-use crate::checkpoint::{self, write_atomic, CheckpointError};
+use crate::checkpoint::{self, CheckpointError};
 use crate::config::PromptDtConfig;
-use crate::prompt_dt::{ForwardError, PromptDt, Segments};
+use crate::prompt_dt::{ForwardError, PromptDt, Segments, Sequence};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -441,8 +441,8 @@ pub fn forward_file(
     model
         .check_inputs(&history, prompt.as_ref())
         .map_err(|source| ForwardFileError::Forward { path: inputs.into(), source })?;
-    let preds =
-        tch::no_grad(|| model.forward(&history, prompt.as_ref(), false)).to_device(Device::Cpu);
+    let preds = tch::no_grad(|| model.forward(&history, Sequence::eval(prompt.as_ref())))
+        .to_device(Device::Cpu);
     let shape: Vec<usize> = preds.size().iter().map(|&d| d as usize).collect();
     let mut values = vec![0f32; preds.numel()];
     preds.contiguous().view([-1]).copy_data(&mut values, preds.numel());
@@ -453,7 +453,7 @@ pub fn forward_file(
     meta.insert("producer".to_string(), "promptdt model forward".to_string());
     let bytes = safetensors::serialize([("action_preds", view)], &Some(meta.into_iter().collect()))
         .map_err(|e| ForwardFileError::Format { path: out.into(), message: e.to_string() })?;
-    write_atomic(out, &bytes)
+    pdt_base::fs::write_atomic(out, &bytes)
         .map_err(|source| ForwardFileError::Io { path: out.into(), source })?;
     Ok(ForwardSummary {
         batch: history.batch_size(),

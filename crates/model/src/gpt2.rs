@@ -388,59 +388,14 @@ impl Gpt2 {
         }
     }
 
+    /// The whole sequence through every block, with `drop`'s dropout and LoRA adapters where
+    /// given (one per layer; none runs the same ops as without LoRA). With `last` as
+    /// [`LastBlock::StateTokens`] the last block computes the state tokens only.
+    ///
     /// # Shapes
     /// `inputs_embeds`: `[B, L, H]`; `token_mask`: `[B, L]` (1 = real token, 0 = padding), float.
-    /// Returns `[B, L, H]`.
-    pub fn forward(&self, inputs_embeds: &Tensor, token_mask: &Tensor, train: bool) -> Tensor {
-        self.forward_impl(
-            inputs_embeds,
-            token_mask,
-            Dropout::train(train),
-            None,
-            LastBlock::AllTokens,
-        )
-    }
-
-    /// [`Self::forward`] with its dropout as given (masks drawn beforehand, see
-    /// [`crate::dropout`]).
-    pub fn forward_with(
-        &self,
-        inputs_embeds: &Tensor,
-        token_mask: &Tensor,
-        drop: Dropout<'_>,
-    ) -> Tensor {
-        self.forward_impl(inputs_embeds, token_mask, drop, None, LastBlock::AllTokens)
-    }
-
-    /// [`Self::forward`] with LoRA adapters on the attention projections (one per layer).
-    pub fn forward_lora(
-        &self,
-        inputs_embeds: &Tensor,
-        token_mask: &Tensor,
-        train: bool,
-        lora: Option<&[LoraLayer]>,
-    ) -> Tensor {
-        self.forward_impl(
-            inputs_embeds,
-            token_mask,
-            Dropout::train(train),
-            lora,
-            LastBlock::AllTokens,
-        )
-    }
-
-    /// [`Self::forward_with`] with the last block as [`LastBlock::StateTokens`]: the outputs at
-    /// the state tokens only, `[B, L/3, H]` (`L` a multiple of 3).
-    pub fn forward_states_with(
-        &self,
-        inputs_embeds: &Tensor,
-        token_mask: &Tensor,
-        drop: Dropout<'_>,
-    ) -> Tensor {
-        self.forward_impl(inputs_embeds, token_mask, drop, None, LastBlock::StateTokens)
-    }
-
-    fn forward_impl(
+    /// Returns `[B, L, H]`, or `[B, L/3, H]` for [`LastBlock::StateTokens`] (`L` a multiple of 3).
+    pub fn forward(
         &self,
         inputs_embeds: &Tensor,
         token_mask: &Tensor,
@@ -470,16 +425,12 @@ impl Gpt2 {
         self.ln_f.forward(&x)
     }
 
-    /// The keys and values of a prefix at every layer (eval mode), for [`Self::forward_last`].
+    /// The keys and values of a prefix at every layer (eval mode, through LoRA adapters where
+    /// given), for [`Self::forward_last`].
     ///
     /// # Shapes
     /// `embeds`: `[P, Lp, H]`; `token_mask`: `[P, Lp]` float (1 real, 0 padding).
-    pub fn prefix(&self, embeds: &Tensor, token_mask: &Tensor) -> PrefixCache {
-        self.prefix_lora(embeds, token_mask, None)
-    }
-
-    /// [`Self::prefix`] with LoRA adapters (one per layer).
-    pub fn prefix_lora(
+    pub fn prefix(
         &self,
         embeds: &Tensor,
         token_mask: &Tensor,
@@ -500,24 +451,15 @@ impl Gpt2 {
         PrefixCache { layers, pad_bias }
     }
 
-    /// Eval mode: the outputs at the last (at most [`LAST_ROWS`]) positions of `[prefix ‖ embeds]`, with the prefix's
-    /// keys and values taken from `prefix` (one row per sequence, see [`PrefixCache::select`]).
+    /// Eval mode: the outputs at the last (at most [`LAST_ROWS`]) positions of `[prefix ‖ embeds]`,
+    /// with the prefix's keys and values taken from `prefix` (one row per sequence, see
+    /// [`PrefixCache::select`]), through LoRA adapters where given (one per layer).
     /// Every layer but the last runs on all positions of `embeds` (their keys and values are
     /// needed); the last runs attention and MLP for the last position only.
     ///
     /// # Shapes
     /// `embeds`: `[B, L, H]`; `token_mask`: `[B, L]`. Returns `[B, min(L, LAST_ROWS), H]`.
     pub fn forward_last(
-        &self,
-        prefix: Option<&PrefixCache>,
-        embeds: &Tensor,
-        token_mask: &Tensor,
-    ) -> Tensor {
-        self.forward_last_lora(prefix, embeds, token_mask, None)
-    }
-
-    /// [`Self::forward_last`] with LoRA adapters (one per layer).
-    pub fn forward_last_lora(
         &self,
         prefix: Option<&PrefixCache>,
         embeds: &Tensor,

@@ -5,10 +5,12 @@
 //! - [`prompt_dt`]: embeddings, token interleaving, prompt concatenation, heads, masked MSE loss.
 //! - [`lora`]: LoRA adapters on the attention projections, held apart from the weights.
 //! - [`checkpoint`]: weights as safetensors with the reference `state_dict` names, both ways.
-//! - [`device`]: CPU/CUDA selection.
 //! - [`dropout`]: the trunk's dropout sites and masks (drawn in the forward or beforehand).
 //! - [`tokens`]: the `(R, s, a)` token layout (the state tokens' rows).
-//! - [`host_memory`]: keeps the memory libtorch frees on the CPU for reuse (no page-fault churn).
+//! - [`forward_file`]: `promptdt model forward` on inputs stored in safetensors.
+//!
+//! libtorch's plumbing (devices, uploads, the C++ shims, the profiler, the host allocator) is
+//! `pdt-torch`'s.
 //!
 //! Parameter names equal the reference `state_dict` keys (`transformer.h.0.attn.c_attn.weight`, ...)
 //! so a checkpoint moves between promptdt and PyTorch without renaming.
@@ -19,14 +21,10 @@
 
 pub mod checkpoint;
 pub mod config;
-pub mod device;
 pub mod dropout;
-mod ffi;
 pub mod forward_file;
 pub mod gpt2;
-pub mod host_memory;
 pub mod lora;
-pub mod profiler;
 pub mod prompt_dt;
 pub mod tokens;
 

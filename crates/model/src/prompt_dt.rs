@@ -5,7 +5,7 @@
 //! *state* token, so it sees R_t and s_t but not a_t (causal attention).
 
 use crate::config::PromptDtConfig;
-use crate::dropout::{Dropout, DropoutMasks};
+use crate::dropout::Dropout;
 use crate::gpt2::{Gpt2, LastBlock, PrefixCache};
 use crate::lora::LoraAdapters;
 use tch::nn::{self, Init, Module};
@@ -53,13 +53,13 @@ impl Segments {
         // (Sizes that do not fit take the plain path, whose `view` refuses them as before.)
         if device.is_cuda() && sizes_fit {
             // Two uploads (one per dtype) instead of five, neither making the host wait for the
-            // stream (`crate::device::upload`); the fields are views of the float buffer.
+            // stream (`pdt_torch::device::upload`); the fields are views of the float buffer.
             let mut floats =
                 Vec::with_capacity(states.len() + actions.len() + returns_to_go.len() + mask.len());
             for v in [states, actions, returns_to_go, mask] {
                 floats.extend_from_slice(v);
             }
-            let buf = crate::device::upload(&floats, device);
+            let buf = pdt_torch::device::upload(&floats, device);
             let mut at = 0i64;
             let mut take = |shape: &[i64]| {
                 let n: i64 = shape.iter().product();
@@ -72,7 +72,7 @@ impl Segments {
                 actions: take(&[b, t, da]),
                 returns_to_go: take(&[b, t, 1]),
                 mask: take(&[b, t]),
-                timesteps: crate::device::upload(timesteps, device).view([b, t]),
+                timesteps: pdt_torch::device::upload(timesteps, device).view([b, t]),
             };
         }
         let f = |v: &[f32], shape: &[i64]| Tensor::from_slice(v).view(shape).to_device(device);
@@ -170,7 +170,8 @@ impl Embeddings {
 
 /// A prompt already embedded: the tokens the trunk sees before the history, as
 /// [`PromptDt::prompt_tokens`] makes them from segments, or as an adaptation tuned them (soft
-/// prompt tuning learns `tokens` directly).
+/// prompt tuning learns `tokens` directly). With `prompt_tokens(p)` a forward runs the same ops
+/// as with `p` itself.
 ///
 /// # Shapes
 /// `tokens [P, 3Lp, H]`, `mask [P, 3Lp]` (float, 1 = real token).
@@ -178,6 +179,110 @@ impl Embeddings {
 pub struct PromptTokens {
     pub tokens: Tensor,
     pub mask: Tensor,
+}
+
+/// How a prompt is given to [`PromptDt::forward`] and [`PromptDt::prefix`].
+#[derive(Debug, Clone, Copy)]
+pub enum Prompt<'a> {
+    /// Segments, embedded by the prompt's own embeddings (no LayerNorm: reference pitfall 1).
+    Segments(&'a Segments),
+    /// Already embedded ([`PromptDt::prompt_tokens`], or as an adaptation tuned them).
+    Tokens(&'a PromptTokens),
+}
+
+impl<'a> From<&'a Segments> for Prompt<'a> {
+    fn from(p: &'a Segments) -> Self {
+        Prompt::Segments(p)
+    }
+}
+
+impl<'a> From<&'a PromptTokens> for Prompt<'a> {
+    fn from(p: &'a PromptTokens) -> Self {
+        Prompt::Tokens(p)
+    }
+}
+
+/// Which steps' actions a [`Sequence`] forward returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Steps {
+    /// The history's, `[B, K, da]`: the reference's output and loss.
+    History,
+    /// Every step of the sequence, prompt steps first, `[B, Lp+K, da]`: the paper's loss also
+    /// supervises the prompt's.
+    All,
+}
+
+/// A forward pass of every token through every block: training (with dropout), fine-tuning,
+/// evaluation-time adaptation and the reference's evaluation.
+#[derive(Debug, Clone, Copy)]
+pub struct Sequence<'a> {
+    /// `None`: no prompt, the reference's `--no-prompt` (MT-ORL / MT-BC).
+    pub prompt: Option<Prompt<'a>>,
+    /// LoRA adapters on the attention projections; `None` runs the same ops as without LoRA.
+    pub lora: Option<&'a LoraAdapters>,
+    /// Off (evaluation), drawn at each site (training), or masks drawn beforehand
+    /// ([`crate::dropout::DropoutMasks::draw`] for [`PromptDt::token_count`] tokens, the same
+    /// bits on the CPU as the ones the forward would draw).
+    pub dropout: Dropout<'a>,
+    /// What the last block computes; `None`: the model's ([`PromptDt::set_last_block`]).
+    pub last_block: Option<LastBlock>,
+    pub steps: Steps,
+}
+
+impl<'a> Sequence<'a> {
+    /// The history's actions with `prompt` given as segments and dropout as `dropout`, the
+    /// model's last block, no LoRA.
+    pub fn new(prompt: Option<&'a Segments>, dropout: Dropout<'a>) -> Self {
+        let prompt = prompt.map(Prompt::Segments);
+        Self { prompt, lora: None, dropout, last_block: None, steps: Steps::History }
+    }
+
+    /// [`Self::new`] in evaluation mode (no dropout).
+    pub fn eval(prompt: Option<&'a Segments>) -> Self {
+        Self::new(prompt, Dropout::Off)
+    }
+
+    /// [`Self::new`] in training mode (dropout drawn at each site, as the reference).
+    pub fn train(prompt: Option<&'a Segments>) -> Self {
+        Self::new(prompt, Dropout::Draw)
+    }
+
+    /// The same pass, returning every step's actions ([`Steps::All`]).
+    pub fn all_steps(self) -> Self {
+        Self { steps: Steps::All, ..self }
+    }
+}
+
+/// The acting path (evaluation mode): the action of the last history step only, `[B, da]`, the
+/// prompt's keys and values read from a cache instead of recomputed each step.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Act<'a> {
+    /// The prompt's cache ([`PromptDt::prefix`], one row per sequence: [`PrefixCache::select`]);
+    /// `None`: no prompt.
+    pub prompt: Option<&'a PrefixCache>,
+    /// LoRA adapters (the cache made with the same ones); `None` runs the same ops as without.
+    pub lora: Option<&'a LoraAdapters>,
+}
+
+/// What [`PromptDt::forward`] runs. Two kinds rather than one set of options, so that no
+/// combination is left undefined: a cached prompt exists only in evaluation mode and yields only
+/// the last step's action.
+#[derive(Debug, Clone, Copy)]
+pub enum Forward<'a> {
+    Sequence(Sequence<'a>),
+    Act(Act<'a>),
+}
+
+impl<'a> From<Sequence<'a>> for Forward<'a> {
+    fn from(s: Sequence<'a>) -> Self {
+        Forward::Sequence(s)
+    }
+}
+
+impl<'a> From<Act<'a>> for Forward<'a> {
+    fn from(a: Act<'a>) -> Self {
+        Forward::Act(a)
+    }
 }
 
 /// Why a forward pass was refused. (Shapes are checked up front because libtorch would otherwise
@@ -233,8 +338,9 @@ impl PromptDt {
         }
     }
 
-    /// What the last block of [`Self::forward_all_steps`] computes (by default
-    /// [`LastBlock::default_for`] the device the model was built on).
+    /// What the last block of a [`Sequence`] forward computes unless it says
+    /// ([`Sequence::last_block`]; by default [`LastBlock::default_for`] the device the model was
+    /// built on).
     pub fn set_last_block(&mut self, last: LastBlock) {
         self.last_block = last;
     }
@@ -315,75 +421,84 @@ impl PromptDt {
         Ok(())
     }
 
-    /// Predicted actions for the history steps, `[B, K, da]`.
-    ///
-    /// `prompt = None` is the reference's `--no-prompt` (MT-ORL / MT-BC). `train` turns dropout on.
-    /// The caller must have checked the inputs with [`PromptDt::check_inputs`] (or built them with
-    /// the sampler, which guarantees it).
+    /// The model's forward pass: predicted actions, `[B, K, da]`, `[B, Lp+K, da]` or `[B, da]`
+    /// as `how` asks ([`Sequence`] for every token through every block, as training, fine-tuning,
+    /// adaptation and the reference's evaluation run it; [`Act`] for the acting path over a cached
+    /// prompt). The caller must have checked the inputs with [`PromptDt::check_inputs`] (or built
+    /// them with the sampler, which guarantees it).
     ///
     /// Deliberate differences from the reference code (`promptdt-reference.md` h.6, h.7): when the
     /// prompt has exactly as many steps as the history, the reference flattens all prompts of the
     /// batch into one row shared by every sample (mixing tasks, and crashing for B > 16); and when
     /// the prompt length is 1, 11, 21, ... it drops the last prompt return-to-go and crashes. Here
     /// every sample always gets its own prompt, whatever the lengths.
-    pub fn forward(&self, history: &Segments, prompt: Option<&Segments>, train: bool) -> Tensor {
-        self.forward_with(history, prompt, Dropout::train(train))
+    pub fn forward<'a>(&self, history: &Segments, how: impl Into<Forward<'a>>) -> Tensor {
+        match how.into() {
+            Forward::Sequence(s) => self.sequence(history, &s),
+            Forward::Act(a) => self.act(history, &a),
+        }
     }
 
-    /// [`Self::forward`] with its dropout as given (see [`Self::forward_all_steps_with`]).
-    pub fn forward_with(
-        &self,
-        history: &Segments,
-        prompt: Option<&Segments>,
-        dropout: Dropout<'_>,
-    ) -> Tensor {
-        let k = history.len();
-        let all = self.forward_all_steps_with(history, prompt, dropout); // [B, Lp+K, da]
-        let steps = all.size()[1];
-        all.narrow(1, steps - k, k) // [B, K, da]
-    }
-
-    /// Predicted actions at every step of the sequence, prompt steps first: `[B, Lp+K, da]`.
-    /// The reference only uses the last K; the paper's loss also supervises the prompt's.
-    pub fn forward_all_steps(
-        &self,
-        history: &Segments,
-        prompt: Option<&Segments>,
-        train: bool,
-    ) -> Tensor {
-        self.forward_all_steps_with(history, prompt, Dropout::train(train))
-    }
-
-    /// [`Self::forward_all_steps`] with its dropout as given: [`Dropout::Given`] takes masks drawn
-    /// beforehand ([`DropoutMasks::draw`] for [`Self::token_count`] tokens), the same bits on the
-    /// CPU as the masks the forward would draw itself.
-    pub fn forward_all_steps_with(
-        &self,
-        history: &Segments,
-        prompt: Option<&Segments>,
-        dropout: Dropout<'_>,
-    ) -> Tensor {
+    /// [`Forward::Sequence`]: embeddings, `[prompt ; history]` tokens through the trunk, the head
+    /// at the state tokens.
+    fn sequence(&self, history: &Segments, s: &Sequence<'_>) -> Tensor {
         let hidden = self.cfg.hidden_size as i64;
         let b = history.batch_size();
         let (tokens, mask) = self.history.tokens(history, hidden);
         let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
-        let (tokens, mask) = match prompt {
-            Some(p) => {
+        let (tokens, mask) = match s.prompt {
+            None => (tokens, mask),
+            Some(Prompt::Segments(p)) => {
                 let (p_tokens, p_mask) = self.prompt.tokens(p, hidden); // [B, 3Lp, H], no LayerNorm
                 (Tensor::cat(&[p_tokens, tokens], 1), Tensor::cat(&[p_mask, mask], 1))
-                // [B, 3(Lp+K), H]
             }
-            None => (tokens, mask),
-        };
-        let state_hidden = match self.last_block {
+            Some(Prompt::Tokens(p)) => {
+                (Tensor::cat(&[&p.tokens, &tokens], 1), Tensor::cat(&[&p.mask, &mask], 1))
+            }
+        }; // [B, 3(Lp+K), H]
+        let last = s.last_block.unwrap_or(self.last_block);
+        let lora = s.lora.map(|a| a.layers.as_slice());
+        let x = self.transformer.forward(&tokens, &mask, s.dropout, lora, last);
+        let state_hidden = match last {
             LastBlock::AllTokens => {
-                let x = self.transformer.forward_with(&tokens, &mask, dropout); // [B, 3(Lp+K), H]
-                let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
-                x.select(1, 1) // [B, Lp+K, H]: hidden state at each state token
+                // [B, 3(Lp+K), H] -> [B, 3, Lp+K, H]: the hidden state at each state token.
+                x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]).select(1, 1)
             }
-            LastBlock::StateTokens => self.transformer.forward_states_with(&tokens, &mask, dropout), // [B, Lp+K, H]
+            LastBlock::StateTokens => x, // [B, Lp+K, H] already
         };
-        let actions = self.predict_action.forward(&state_hidden); // [B, Lp+K, da]
+        let actions = self.head(&state_hidden); // [B, Lp+K, da]
+        match s.steps {
+            Steps::All => actions,
+            Steps::History => {
+                let (k, steps) = (history.len(), actions.size()[1]);
+                actions.narrow(1, steps - k, k) // [B, K, da]
+            }
+        }
+    }
+
+    /// [`Forward::Act`]: the action of the last history step, `[B, da]`, equal to the full
+    /// forward's at step `K-1` in eval mode (`tests/it/act.rs`) with less work: the prompt's keys
+    /// and values come from the cache (computed once by [`PromptDt::prefix`], one row per sequence
+    /// via [`PrefixCache::select`]), the trailing action token is not fed, and the last layer runs
+    /// for the last few positions only.
+    fn act(&self, history: &Segments, a: &Act<'_>) -> Tensor {
+        let hidden = self.cfg.hidden_size as i64;
+        let (tokens, mask) = self.history.tokens(history, hidden);
+        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
+        let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
+        let lora = a.lora.map(|l| l.layers.as_slice());
+        let (tokens, mask) = (tokens.narrow(1, 0, n), mask.narrow(1, 0, n));
+        let tail = self.transformer.forward_last(a.prompt, &tokens, &mask, lora); // [B, R, H]
+
+        // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
+        // the last, the state token of the last step.
+        let rows = tail.size()[1];
+        self.head(&tail).select(1, rows - 1) // [B, da]
+    }
+
+    /// The action head (with the reference's optional tanh).
+    fn head(&self, hidden: &Tensor) -> Tensor {
+        let actions = self.predict_action.forward(hidden);
         if self.cfg.action_tanh {
             actions.tanh()
         } else {
@@ -391,46 +506,28 @@ impl PromptDt {
         }
     }
 
-    /// The trunk's sequence length for these inputs: 3 tokens per prompt and history step.
+    /// The trunk's sequence length for these inputs: 3 tokens per prompt and history step (what
+    /// [`crate::dropout::DropoutMasks::draw`] needs for masks drawn beforehand).
     pub fn token_count(history: &Segments, prompt: Option<&Segments>) -> i64 {
         3 * (history.len() + prompt.map_or(0, Segments::len))
     }
 
-    /// The masks a training forward of these inputs draws ([`crate::dropout`]), drawn now from
-    /// libtorch's generator as it stands.
-    pub fn draw_dropout(&self, history: &Segments, prompt: Option<&Segments>) -> DropoutMasks {
-        let len = Self::token_count(history, prompt);
-        DropoutMasks::draw(&self.cfg, history.batch_size(), len, history.states.device())
-    }
-
-    /// The prompt's keys and values at every layer, once per prompt (eval mode), for
-    /// [`PromptDt::act`]. One row per prompt of `prompt` (`[P, Lp, ...]`).
-    pub fn prefix(&self, prompt: &Segments) -> PrefixCache {
-        let (tokens, mask) = self.prompt.tokens(prompt, self.cfg.hidden_size as i64); // [P, 3Lp, H]
-        self.transformer.prefix(&tokens, &mask)
-    }
-
-    /// The action of the last history step (eval mode): what the evaluator and a deployed policy
-    /// need, `[B, da]`, equal to `forward(history, prompt, false)[:, K-1]` (`tests/it/act.rs`) with
-    /// less work: the prompt's keys and values come from `prompt` (computed once by
-    /// [`PromptDt::prefix`], one row per sequence via [`PrefixCache::select`]), the trailing
-    /// action token is not fed, and the last layer runs for the last few positions only.
-    pub fn act(&self, history: &Segments, prompt: Option<&PrefixCache>) -> Tensor {
-        let hidden = self.cfg.hidden_size as i64;
-        let (tokens, mask) = self.history.tokens(history, hidden);
-        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
-        let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
-        let tail =
-            self.transformer.forward_last(prompt, &tokens.narrow(1, 0, n), &mask.narrow(1, 0, n)); // [B, R, H]
-
-        // The head on all R rows (a matrix of R*B rows, whose kernel does not depend on B), then
-        // the last, the state token of the last step.
-        let rows = tail.size()[1];
-        let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
-        if self.cfg.action_tanh {
-            actions.tanh()
-        } else {
-            actions
+    /// The prompt's keys and values at every layer (eval mode, through `lora`'s adapters where
+    /// given), once per prompt, for [`Act`]: one row per prompt of `prompt` (`[P, Lp, ...]`). Not
+    /// a [`PromptDt::forward`] mode because it returns no actions but the cache the acting path
+    /// reads.
+    pub fn prefix<'a>(
+        &self,
+        prompt: impl Into<Prompt<'a>>,
+        lora: Option<&LoraAdapters>,
+    ) -> PrefixCache {
+        let lora = lora.map(|a| a.layers.as_slice());
+        match prompt.into() {
+            Prompt::Segments(p) => {
+                let (tokens, mask) = self.prompt.tokens(p, self.cfg.hidden_size as i64); // [P, 3Lp, H]
+                self.transformer.prefix(&tokens, &mask, lora)
+            }
+            Prompt::Tokens(t) => self.transformer.prefix(&t.tokens, &t.mask, lora),
         }
     }
 
@@ -439,72 +536,11 @@ impl PromptDt {
         self.predict_action.ws.device()
     }
 
-    /// The prompt's embedded tokens (no LayerNorm, as in [`PromptDt::forward_all_steps`]).
+    /// The prompt's embedded tokens (no LayerNorm, as in the full forward): what
+    /// [`Prompt::Tokens`] takes and soft prompt tuning starts from.
     pub fn prompt_tokens(&self, prompt: &Segments) -> PromptTokens {
         let (tokens, mask) = self.prompt.tokens(prompt, self.cfg.hidden_size as i64);
         PromptTokens { tokens, mask }
-    }
-
-    /// [`PromptDt::forward_all_steps`] with the prompt given as tokens and optional LoRA
-    /// adapters: the hook of the evaluation-time adaptations (`pdt_eval::adapt`). With
-    /// `prompt_tokens(p)` and no adapters it runs the same ops as `forward_all_steps(h, Some(p))`.
-    pub fn forward_all_steps_tokens(
-        &self,
-        history: &Segments,
-        prompt: Option<&PromptTokens>,
-        train: bool,
-        lora: Option<&LoraAdapters>,
-    ) -> Tensor {
-        let hidden = self.cfg.hidden_size as i64;
-        let b = history.batch_size();
-        let (tokens, mask) = self.history.tokens(history, hidden);
-        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
-        let (tokens, mask) = match prompt {
-            Some(p) => (Tensor::cat(&[&p.tokens, &tokens], 1), Tensor::cat(&[&p.mask, &mask], 1)),
-            None => (tokens, mask),
-        }; // [B, 3(Lp+K), H]
-        let layers = lora.map(|a| a.layers.as_slice());
-        let x = self.transformer.forward_lora(&tokens, &mask, train, layers); // [B, 3(Lp+K), H]
-        let x = x.reshape([b, -1, 3, hidden]).permute([0, 2, 1, 3]); // [B, 3, Lp+K, H]
-        let actions = self.predict_action.forward(&x.select(1, 1)); // [B, Lp+K, da]
-        if self.cfg.action_tanh {
-            actions.tanh()
-        } else {
-            actions
-        }
-    }
-
-    /// [`PromptDt::prefix`] of an embedded prompt, with optional LoRA adapters.
-    pub fn prefix_with(&self, prompt: &PromptTokens, lora: Option<&LoraAdapters>) -> PrefixCache {
-        let layers = lora.map(|a| a.layers.as_slice());
-        self.transformer.prefix_lora(&prompt.tokens, &prompt.mask, layers)
-    }
-
-    /// [`PromptDt::act`] with optional LoRA adapters (the prefix made with the same adapters).
-    pub fn act_with(
-        &self,
-        history: &Segments,
-        prompt: Option<&PrefixCache>,
-        lora: Option<&LoraAdapters>,
-    ) -> Tensor {
-        let hidden = self.cfg.hidden_size as i64;
-        let (tokens, mask) = self.history.tokens(history, hidden);
-        let tokens = self.embed_ln.forward(&tokens); // [B, 3K, H]
-        let n = tokens.size()[1] - 1; // drop the last action token: [B, 3K-1, H]
-        let layers = lora.map(|a| a.layers.as_slice());
-        let tail = self.transformer.forward_last_lora(
-            prompt,
-            &tokens.narrow(1, 0, n),
-            &mask.narrow(1, 0, n),
-            layers,
-        ); // [B, R, H]
-        let rows = tail.size()[1];
-        let actions = self.predict_action.forward(&tail).select(1, rows - 1); // [B, da]
-        if self.cfg.action_tanh {
-            actions.tanh()
-        } else {
-            actions
-        }
     }
 
     /// The reference's loss (`train_step_mix`): mean squared error over the real (unpadded) history

@@ -16,6 +16,7 @@ use crate::model::{
 };
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_train::run::RunError;
 use pdt_train::step::{LossOn, PendingStats};
@@ -46,7 +47,7 @@ pub struct BatchedEngine {
     /// fix it for the pack's life).
     supervise: Tensor,
     /// The patterns of stepped runs.
-    active: pdt_model::device::BoolUploads,
+    active: pdt_torch::device::BoolUploads,
 }
 
 fn invalid(e: PackedError) -> RunError {
@@ -124,7 +125,7 @@ impl BatchedEngine {
             .iter()
             .map(|s| f32::from(u8::from(s.uses_prompt && s.loss_on == LossOn::PromptAndHistory)))
             .collect();
-        let supervise = pdt_model::device::upload(&supervise, device);
+        let supervise = pdt_torch::device::upload(&supervise, device);
         Ok(Self { specs, layout, model, opt, supervise, active: Default::default() })
     }
 
@@ -281,6 +282,6 @@ fn read_parameters(cfg: &PromptDtConfig, uses_prompt: bool, device: Device) -> B
         Segments::from_host(1, t, ds, da, &s, &a, &rtg, &ts, &mask, device)
     };
     let prompt = uses_prompt.then(|| one(1));
-    model.forward(&one(1), prompt.as_ref(), false).sum(Kind::Float).backward();
+    model.forward(&one(1), Sequence::eval(prompt.as_ref())).sum(Kind::Float).backward();
     vs.variables().into_iter().filter(|(_, t)| t.grad().defined()).map(|(n, _)| n).collect()
 }

@@ -54,7 +54,7 @@ pub fn train_pack_dir(
         Some(e) => e,
         None => {
             let first = configs.first().map(|c| c.run.device);
-            let device = first.map(pdt_model::device::resolve).transpose()?;
+            let device = first.map(pdt_torch::device::resolve).transpose()?;
             Engine::default_for(device.is_some_and(|d| d != tch::Device::Cpu))
         }
     };

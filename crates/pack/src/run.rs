@@ -84,9 +84,9 @@ pub(crate) fn prepare_pack(
     opts: &PackOptions<'_>,
 ) -> Result<ReadyPack, RunError> {
     let members = members(runs, opts)?;
-    let device = pdt_model::device::resolve(members[0].cfg.run.device)?;
+    let device = pdt_torch::device::resolve(members[0].cfg.run.device)?;
     // One setting for the process: the runs agree on it (checked where their configurations are).
-    pdt_model::device::set_matmul(device, members[0].cfg.run.matmul)?;
+    pdt_torch::device::set_matmul(device, members[0].cfg.run.matmul)?;
     let engine_kind =
         opts.engine.unwrap_or_else(|| Engine::default_for(device != tch::Device::Cpu));
     let specs: Vec<SlotSpec> = members

@@ -12,8 +12,8 @@ mod fixture;
 
 use fixture::*;
 use pdt_model::dropout::Dropout;
-use pdt_model::profiler;
 use pdt_pack::PackEngine;
+use pdt_torch::profiler;
 use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
 use pdt_train::step::{train_step, train_step_with, PendingStats, StepStats};
 

@@ -18,7 +18,7 @@ pub enum PolicyError {
     #[error(transparent)]
     Checkpoint(#[from] pdt_model::checkpoint::CheckpointError),
     #[error(transparent)]
-    Device(#[from] pdt_model::device::DeviceError),
+    Device(#[from] pdt_torch::device::DeviceError),
     #[error(transparent)]
     RunDir(#[from] pdt_rundir::RunDirError),
     #[error("{path}: {message}")]

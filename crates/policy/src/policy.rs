@@ -4,11 +4,12 @@ use crate::data::RunData;
 use crate::files;
 use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
+use pdt_base::device::DeviceSpec;
 use pdt_base::seed::derive_seed;
 use pdt_eval::testtime::{plan_task, TaskPlan};
 use pdt_eval::{EvalReturns, History, ToModelConfig};
 use pdt_model::checkpoint;
-use pdt_model::device::DeviceSpec;
+use pdt_model::prompt_dt::Act;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
 use pdt_rundir::config::{Method, MtBcEval, TrainConfig};
@@ -93,7 +94,7 @@ impl Policy {
         let preset = family.preset();
         let model_cfg = cfg.model.to_model_config(stats.obs_dim, stats.act_dim);
         model_cfg.validate().map_err(PolicyError::Invalid)?;
-        let device = pdt_model::device::resolve(cfg.run.device)?;
+        let device = pdt_torch::device::resolve(cfg.run.device)?;
         let mut vs = VarStore::new(device);
         let model = PromptDt::new(&vs.root(), &model_cfg);
         let latest = files::latest_checkpoint(&run)?;
@@ -285,7 +286,7 @@ impl Policy {
                 first.steps, p.steps
             )));
         }
-        Ok(tch::no_grad(|| self.model.prefix(&pdt_eval::prompt_batch(prompts, self.device))))
+        Ok(tch::no_grad(|| self.model.prefix(&pdt_eval::prompt_batch(prompts, self.device), None)))
     }
 
     /// The next action of each history, `[A * act_dim]`: one forward of them (with `prefix`, one
@@ -304,7 +305,7 @@ impl Policy {
     ) -> Vec<f32> {
         let (ds, da) = (self.stats.obs_dim, self.stats.act_dim);
         let history = pdt_eval::history_batch(histories, self.k, ds, da, self.device);
-        let out = tch::no_grad(|| self.model.act_with(&history, prefix, lora))
+        let out = tch::no_grad(|| self.model.forward(&history, Act { prompt: prefix, lora }))
             .to_kind(tch::Kind::Float)
             .to_device(Device::Cpu); // [A, da]
         let n = histories.len() * da;

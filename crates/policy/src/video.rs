@@ -6,8 +6,8 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+use pdt_base::device::DeviceSpec;
 use pdt_envs::render::{render, Frame, FrameSize, RenderError};
-use pdt_model::device::DeviceSpec;
 
 use crate::font::{draw_text, text_width};
 use crate::{Policy, PolicyError};

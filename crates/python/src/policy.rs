@@ -180,7 +180,7 @@ impl Policy {
         threads: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         existing(&run_dir, "run directory")?;
-        let device: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
+        let device: pdt_base::device::DeviceSpec = device.parse().map_err(value_error)?;
         if let Some(t) = threads {
             let t = usize_arg("threads", t, "a number of libtorch threads")?;
             if t == 0 {

@@ -36,9 +36,9 @@ pub(crate) fn train<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     use pdt_train::config::{Method, Overrides, TrainConfig};
-    let device: Option<pdt_model::device::DeviceSpec> =
+    let device: Option<pdt_base::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
-    let matmul: Option<pdt_model::device::Matmul> =
+    let matmul: Option<pdt_base::device::Matmul> =
         matmul.map(str::parse).transpose().map_err(|e| value_error(format!("matmul: {e}")))?;
     if resume && matmul.is_some() {
         return Err(value_error("matmul: not with resume=True (a run keeps its own)"));
@@ -148,7 +148,7 @@ pub(crate) fn evaluate(
             })
         }
     };
-    let device: Option<pdt_model::device::DeviceSpec> =
+    let device: Option<pdt_base::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
     let prompt = match (prompt_strategy, prompt_episodes, prompt_length) {
         (None, None, None) => None,
@@ -335,8 +335,8 @@ pub(crate) fn collect_from_agent(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<usize> {
     existing(&agent_dir, "agent directory")?;
-    let spec: pdt_model::device::DeviceSpec = device.parse().map_err(value_error)?;
-    let device = pdt_model::device::resolve(spec).map_err(lib_error)?;
+    let spec: pdt_base::device::DeviceSpec = device.parse().map_err(value_error)?;
+    let device = pdt_torch::device::resolve(spec).map_err(lib_error)?;
     let mut cfg = pdt_rl::datasets::DatasetConfig { seed, ..Default::default() };
     if let Some(e) = episodes {
         cfg.episodes = e;

@@ -25,9 +25,9 @@ pub enum RunError {
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
-    Device(#[from] pdt_model::device::DeviceError),
+    Device(#[from] pdt_torch::device::DeviceError),
     #[error(transparent)]
-    Matmul(#[from] pdt_model::device::MatmulError),
+    Matmul(#[from] pdt_torch::device::MatmulError),
     /// A run-directory file unreadable, malformed or unwritable (the error names it).
     #[error(transparent)]
     RunDir(#[from] pdt_rundir::RunDirError),

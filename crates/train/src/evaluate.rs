@@ -21,7 +21,7 @@ pub struct EvalRequest {
     pub episodes: Option<usize>,
     /// `test` (the held-out tasks) or `train`.
     pub split: String,
-    pub device: Option<pdt_model::device::DeviceSpec>,
+    pub device: Option<pdt_base::device::DeviceSpec>,
     /// Where the run's data are now, if they moved.
     pub data: Option<PathBuf>,
     /// What the evaluation does at test time (`None`: the run's own, [`TestTime::of`] its
@@ -43,7 +43,7 @@ pub fn evaluate_run(
     dir: &Path,
     episodes: Option<usize>,
     split: &str,
-    device: Option<pdt_model::device::DeviceSpec>,
+    device: Option<pdt_base::device::DeviceSpec>,
     data: Option<&Path>,
 ) -> Result<FinalEval, RunError> {
     let req = EvalRequest {
@@ -94,7 +94,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
     // run trained with (its checkpoints stay usable there).
     if setup.device.is_cuda() {
-        pdt_model::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
+        pdt_torch::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
     }
     let stats_path = run.stats_path();
     let recorded = read_stats(&run)?;

@@ -57,7 +57,7 @@ pub struct ResumeWith {
     /// Extend `train.iterations` (at least the iterations already done); written to `config.toml`.
     pub iterations: Option<u64>,
     /// Run on this device this time (the results of a CPU and a GPU run differ in rounding only).
-    pub device: Option<pdt_model::device::DeviceSpec>,
+    pub device: Option<pdt_base::device::DeviceSpec>,
     /// The data moved: read it from here; it must have the fingerprint the run recorded. Written
     /// to `config.toml`.
     pub data: Option<PathBuf>,
@@ -106,7 +106,7 @@ pub fn train(
     cfg.validate()?;
     // Training computes as the run says, or not at all (`tf32` on the CPU is refused), before the
     // data are read.
-    pdt_model::device::set_matmul(pdt_model::device::resolve(cfg.run.device)?, cfg.run.matmul)?;
+    pdt_torch::device::set_matmul(pdt_torch::device::resolve(cfg.run.device)?, cfg.run.matmul)?;
     let toml = cfg.to_toml()?;
     let setup = Setup::new(cfg)?;
     let _rng = torch_rng_lock();

@@ -51,7 +51,7 @@ impl Setup {
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
         let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
-        let device = pdt_model::device::resolve(cfg.run.device)?;
+        let device = pdt_torch::device::resolve(cfg.run.device)?;
         let env_threads = pdt_base::threads(cfg.eval.env_threads);
         Ok(Self { cfg, family, preset, run_data, device, env_threads })
     }
@@ -70,7 +70,7 @@ impl Setup {
         cfg.validate()?;
         let family = pdt_envs::family(&cfg.env.name)?;
         let preset = family.preset();
-        let device = pdt_model::device::resolve(cfg.run.device)?;
+        let device = pdt_torch::device::resolve(cfg.run.device)?;
         let cores = pdt_base::threads::available_cores();
         let env_threads = env_threads_in_pack(cfg.eval.env_threads, cores, pack_size);
         Ok(Self { cfg, family, preset, run_data, device, env_threads })

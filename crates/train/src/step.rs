@@ -3,6 +3,7 @@
 
 use crate::optim::Optimizer;
 use pdt_model::dropout::Dropout;
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::PromptDtBatch;
 use tch::{Device, Kind, Tensor};
@@ -145,8 +146,9 @@ pub fn train_step(
 }
 
 /// [`train_step`] with its dropout as given: [`Dropout::Given`] masks drawn beforehand
-/// (`PromptDt::draw_dropout` for this batch) make the step draw nothing from libtorch's generator,
-/// so steps of several models can run at once in threads (the pack's solo engine).
+/// (`DropoutMasks::draw` for this batch's `PromptDt::token_count`) make the step draw nothing from
+/// libtorch's generator, so steps of several models can run at once in threads (the pack's solo
+/// engine).
 pub fn train_step_with(
     model: &PromptDt,
     opt: &mut Optimizer,
@@ -158,12 +160,14 @@ pub fn train_step_with(
     let (h, p) = (&batch.history, batch.prompt.as_ref());
     let loss = match (loss_on, p) {
         (LossOn::PromptAndHistory, Some(p)) => {
-            let preds = model.forward_all_steps_with(h, Some(p), dropout); // [B, Lp+K, da]
+            let preds = model.forward(h, Sequence::new(Some(p), dropout).all_steps()); // [B, Lp+K, da]
             let targets = Tensor::cat(&[&p.actions, &h.actions], 1);
             let mask = Tensor::cat(&[&p.mask, &h.mask], 1);
             PromptDt::action_loss(&preds, &targets, &mask)
         }
-        _ => PromptDt::action_loss(&model.forward_with(h, p, dropout), &h.actions, &h.mask),
+        _ => {
+            PromptDt::action_loss(&model.forward(h, Sequence::new(p, dropout)), &h.actions, &h.mask)
+        }
     };
     let mut grads = opt.backward(&loss);
     let grad_norm = opt.clip_grad_norm(&mut grads, opt.cfg().grad_clip_norm); // [] (not read)

@@ -8,8 +8,8 @@
 //! `pdt_testkit::process::LIBTORCH`).
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
+use pdt_base::device::Matmul;
 use pdt_bench::{run, BenchConfig};
-use pdt_model::device::Matmul;
 use tch::Device;
 
 #[test]

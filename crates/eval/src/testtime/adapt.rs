@@ -11,7 +11,8 @@
 use super::optim::Adam;
 use super::{AdaptConfig, AdaptError, LoraConfig};
 use crate::EvalError;
-use pdt_model::{LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
+use pdt_model::prompt_dt::{Prompt, Sequence};
+use pdt_model::{LastBlock, LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
 use rand::Rng as _;
 use tch::{Kind, Tensor};
@@ -33,7 +34,18 @@ pub fn demo_loss(
         tokens: prompt.tokens.expand([b, -1, -1], false), // [B, 3Lp, H]
         mask: prompt.mask.expand([b, -1], false),         // [B, 3Lp]
     };
-    let all = model.forward_all_steps_tokens(demos, Some(&p), false, lora); // [B, Lp+K, da]
+    // Every token through the last block (the reference's ops), whatever the model's own setting:
+    // the adaptation's loss has always been computed so.
+    let all = model.forward(
+        demos,
+        Sequence {
+            prompt: Some(Prompt::Tokens(&p)),
+            lora,
+            last_block: Some(LastBlock::AllTokens),
+            ..Sequence::eval(None)
+        }
+        .all_steps(),
+    ); // [B, Lp+K, da]
     let steps = all.size()[1];
     let preds = all.narrow(1, steps - k, k); // [B, K, da]
     PromptDt::action_loss(&preds, &demos.actions, &demos.mask)

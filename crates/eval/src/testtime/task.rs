@@ -37,9 +37,9 @@ impl TaskAdaptation {
     /// The prompt's keys and values (one row) the task's episodes act with.
     pub fn prefix(&self, model: &PromptDt) -> PrefixCache {
         tch::no_grad(|| match &self.adapted {
-            Adapted::Tokens(t) => model.prefix_with(t, None),
-            Adapted::Prompt(p) => model.prefix(&to_segments(p, model.device())),
-            Adapted::Lora { prompt, adapters } => model.prefix_with(prompt, Some(adapters)),
+            Adapted::Tokens(t) => model.prefix(t, None),
+            Adapted::Prompt(p) => model.prefix(&to_segments(p, model.device()), None),
+            Adapted::Lora { prompt, adapters } => model.prefix(prompt, Some(adapters)),
         })
     }
 

@@ -6,7 +6,8 @@
 use pdt_eval::testtime::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
 use pdt_eval::testtime::{AdaptConfig, AdaptKind};
 use pdt_eval::{prompt_batch, to_vec, EvalError};
-use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_model::prompt_dt::{Act, Prompt, Sequence};
+use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
 use rand::{Rng as _, SeedableRng};
 use tch::nn::VarStore;
@@ -135,18 +136,27 @@ fn lora_at_step_zero_is_the_frozen_model_and_training_moves_the_loss_down() {
     tch::no_grad(|| {
         // Full forward: prompt repeated per row, as the loss feeds it.
         let rows = prompt_batch(&[&prompt; 8], Device::Cpu);
-        let frozen = m.forward_all_steps(&demos, Some(&rows), false);
+        let frozen = m.forward(&demos, Sequence::eval(Some(&rows)).all_steps());
         let tokens = m.prompt_tokens(&rows);
-        let adapted = m.forward_all_steps_tokens(&demos, Some(&tokens), false, Some(&fresh));
+        let adapted = m.forward(
+            &demos,
+            Sequence {
+                prompt: Some(Prompt::Tokens(&tokens)),
+                lora: Some(&fresh),
+                last_block: Some(LastBlock::AllTokens),
+                ..Sequence::eval(None)
+            }
+            .all_steps(),
+        );
         assert_eq!(to_vec(&frozen), to_vec(&adapted));
         // Cached acting: prefix and last-step action.
         let one = m.prompt_tokens(&p);
         let index = tch::Tensor::from_slice(&[0i64; 8]);
-        let plain = m.act(&demos, Some(&m.prefix(&p).select(&index)));
-        let with = m.act_with(
+        let plain =
+            m.forward(&demos, Act { prompt: Some(&m.prefix(&p, None).select(&index)), lora: None });
+        let with = m.forward(
             &demos,
-            Some(&m.prefix_with(&one, Some(&fresh)).select(&index)),
-            Some(&fresh),
+            Act { prompt: Some(&m.prefix(&one, Some(&fresh)).select(&index)), lora: Some(&fresh) },
         );
         assert_eq!(to_vec(&plain), to_vec(&with));
     });

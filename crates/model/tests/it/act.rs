@@ -1,8 +1,9 @@
-//! `PromptDt::act` (cached prompt keys and values, no trailing action token, last layer for the
-//! last position only) against the reference path `forward(..)[:, K-1]`.
+//! `PromptDt::forward` with `Act` (cached prompt keys and values, no trailing action token, last
+//! layer for the last position only) against the reference path, a `Sequence` forward at `K-1`.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use crate::support;
+use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use support::segments;
 use tch::{nn::VarStore, Device, Kind, Tensor};
@@ -38,9 +39,9 @@ fn max_diff(cfg: &PromptDtConfig, b: i64, k: i64, prompt_steps: Option<i64>, see
     let per_sample = prompts.as_ref().map(|p| rows(p, &task_of));
     model.check_inputs(&history, per_sample.as_ref()).unwrap();
     let (full, fast) = tch::no_grad(|| {
-        let full = model.forward(&history, per_sample.as_ref(), false).select(1, k - 1); // [B, da]
-        let cache = prompts.as_ref().map(|p| model.prefix(p).select(&task_of));
-        (full, model.act(&history, cache.as_ref()))
+        let full = model.forward(&history, Sequence::eval(per_sample.as_ref())).select(1, k - 1); // [B, da]
+        let cache = prompts.as_ref().map(|p| model.prefix(p, None).select(&task_of));
+        (full, model.forward(&history, Act { prompt: cache.as_ref(), lora: None }))
     });
     assert_eq!(fast.size(), vec![b, da]);
     (full - fast).abs().max().double_value(&[])
@@ -89,17 +90,18 @@ fn act_is_the_same_alone_or_batched() {
     let prompts = segments(b, 5, 2, 2);
     let all = Tensor::arange(b, (Kind::Int64, Device::Cpu));
     let (batched, full_batched) = tch::no_grad(|| {
-        let c = model.prefix(&prompts);
+        let c = model.prefix(&prompts, None);
         (
-            model.act(&history, Some(&c.select(&all))),
-            model.forward(&history, Some(&prompts), false).select(1, k - 1),
+            model.forward(&history, Act { prompt: Some(&c.select(&all)), lora: None }),
+            model.forward(&history, Sequence::eval(Some(&prompts))).select(1, k - 1),
         )
     });
-    let np = tch::no_grad(|| model.act(&history, None));
+    let np = tch::no_grad(|| model.forward(&history, Act { prompt: None, lora: None }));
     let mut same_np = 0;
     for i in 0..b {
         let one = Tensor::from_slice(&[i]);
-        let alone = tch::no_grad(|| model.act(&rows(&history, &one), None));
+        let alone =
+            tch::no_grad(|| model.forward(&rows(&history, &one), Act { prompt: None, lora: None }));
         same_np += i64::from(alone.equal(&np.get(i).unsqueeze(0)));
     }
     eprintln!("no prompt: {same_np} of {b}");
@@ -111,8 +113,8 @@ fn act_is_the_same_alone_or_batched() {
         let p = rows(&prompts, &one);
         let (alone, full_alone) = tch::no_grad(|| {
             (
-                model.act(&h, Some(&model.prefix(&p))),
-                model.forward(&h, Some(&p), false).select(1, k - 1),
+                model.forward(&h, Act { prompt: Some(&model.prefix(&p, None)), lora: None }),
+                model.forward(&h, Sequence::eval(Some(&p))).select(1, k - 1),
             )
         });
         same += i64::from(alone.equal(&batched.get(i).unsqueeze(0)));
@@ -127,7 +129,9 @@ fn act_is_the_same_alone_or_batched() {
             let one = Tensor::from_slice(&[i]);
             let h = rows(&history, &one);
             let p = rows(&prompts, &one);
-            let alone = tch::no_grad(|| model.act(&h, Some(&model.prefix(&p))));
+            let alone = tch::no_grad(|| {
+                model.forward(&h, Act { prompt: Some(&model.prefix(&p, None)), lora: None })
+            });
             let d = (alone - batched.get(i).unsqueeze(0)).abs().max().double_value(&[]);
             assert!(d <= f64::from(pdt_testkit::cpu::BATCH_TOLERANCE), "row {i}: {d:e}");
         }

@@ -5,7 +5,8 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use crate::support;
-use pdt_model::dropout::Dropout;
+use pdt_model::dropout::{Dropout, DropoutMasks};
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig};
 use support::segments;
 use tch::{nn::VarStore, Device, Kind, Tensor};
@@ -37,9 +38,10 @@ fn run(last: LastBlock, prompt: bool, train: bool) -> Outcome {
     model.set_last_block(last);
     let history = segments(6, 20, 5, 3);
     let prompt = prompt.then(|| segments(6, 5, 5, 3));
-    let masks = train.then(|| model.draw_dropout(&history, prompt.as_ref()));
+    let len = PromptDt::token_count(&history, prompt.as_ref());
+    let masks = train.then(|| DropoutMasks::draw(&model.cfg, 6, len, Device::Cpu));
     let drop = masks.as_ref().map_or(Dropout::Off, Dropout::Given);
-    let preds = model.forward_all_steps_with(&history, prompt.as_ref(), drop); // [B, Lp+K, da]
+    let preds = model.forward(&history, Sequence::new(prompt.as_ref(), drop).all_steps()); // [B, Lp+K, da]
     let target = Tensor::rand_like(&preds);
     let loss = (&preds - target).pow_tensor_scalar(2).mean(None::<Kind>);
     loss.backward();
@@ -100,7 +102,8 @@ fn drawn_dropout_on_the_cpu_is_the_full_forwards() {
     let mut run = |last: LastBlock| {
         model.set_last_block(last);
         tch::manual_seed(11);
-        let preds = tch::no_grad(|| model.forward_all_steps(&history, Some(&prompt), true));
+        let preds =
+            tch::no_grad(|| model.forward(&history, Sequence::train(Some(&prompt)).all_steps()));
         let next = Tensor::rand([1], (Kind::Float, Device::Cpu)).double_value(&[0]);
         (preds, next)
     };
@@ -111,7 +114,7 @@ fn drawn_dropout_on_the_cpu_is_the_full_forwards() {
     eprintln!("drawn masks: max |pred diff| {d:e}");
     assert!(d <= 1e-6, "predictions differ by {d:e}: other masks?");
     assert_eq!(full_next, states_next, "the generator ends in the same state");
-    let eval = tch::no_grad(|| model.forward_all_steps(&history, Some(&prompt), false));
+    let eval = tch::no_grad(|| model.forward(&history, Sequence::eval(Some(&prompt)).all_steps()));
     assert!(max_abs(&states, &eval) > 1e-3, "dropout changed nothing");
 }
 

@@ -4,14 +4,11 @@
 //! modules' tests are threads of one process: a test that seeds libtorch's generator or sets its
 //! process-wide state takes `pdt_testkit::process::LIBTORCH`.
 //!
-//! Kept a test binary of its own, where a fresh process is the point: `tests/host_memory.rs` (no
-//! libtest harness: it measures the main thread's allocations).
+//! libtorch's plumbing (the C++ shims, the profiler, the host allocator) is tested in `pdt-torch`.
 
 #[path = "support/segments.rs"]
 mod support;
 
 mod act;
-mod bernoulli_cpu;
+mod forward_options;
 mod last_block;
-mod matmul;
-mod profiler;

@@ -98,7 +98,7 @@ struct Reused {
     /// Per sequence length L: the causal mask's `[1, 1, L, L]` (contiguous).
     causal: std::collections::HashMap<i64, Tensor>,
     /// The patterns of which runs have a prompt.
-    has_prompt: pdt_model::device::BoolUploads,
+    has_prompt: pdt_torch::device::BoolUploads,
 }
 
 /// A leaf view `[N, 1, d]` of a stacked one-dimensional parameter (a bias, a LayerNorm weight),
@@ -353,7 +353,7 @@ impl PackedPromptDt {
         let n = self.slots as i64;
         let flags = match self.reused.lock() {
             Ok(mut r) => r.has_prompt.get(has, self.device),
-            Err(_) => pdt_model::device::upload(has, self.device),
+            Err(_) => pdt_torch::device::upload(has, self.device),
         };
         flags.view([n, 1, 1])
     }
@@ -481,12 +481,12 @@ impl PackedPromptDt {
             let mut row = noise.get(slot as i64);
             match drawn.first() {
                 Some(&(p, _)) if one_p => {
-                    pdt_model::dropout::bernoulli_(&mut row, 1.0 - p);
+                    pdt_torch::bernoulli::bernoulli_(&mut row, 1.0 - p);
                 }
                 _ => {
                     let mut off = 0;
                     for &(p, attn) in &drawn {
-                        pdt_model::dropout::bernoulli_(
+                        pdt_torch::bernoulli::bernoulli_(
                             &mut row.narrow(0, off, size(attn)),
                             1.0 - p,
                         );

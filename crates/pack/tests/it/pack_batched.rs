@@ -8,6 +8,8 @@
 
 use crate::fixture;
 use pdt_base::seed::derive_seed;
+use pdt_model::dropout::Dropout;
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::model::{DropoutSeeds, PackedBatch, PackedRow};
 use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
@@ -88,8 +90,12 @@ fn each_run_of_a_pack_predicts_as_solo() {
             if train {
                 tch::manual_seed(derive_seed(RUNS[run].seed, STREAM_DROPOUT, 3) as i64);
             }
-            let want =
-                tch::no_grad(|| model.forward_all_steps(&b.history, b.prompt.as_ref(), train));
+            let want = tch::no_grad(|| {
+                model.forward(
+                    &b.history,
+                    Sequence::new(b.prompt.as_ref(), Dropout::train(train)).all_steps(),
+                )
+            });
             // Real steps only: a padded step's prediction is read by nothing (the loss masks it,
             // attention gives it weight 0), and it differs, since a padded query attends to the
             // pack's extra padding as well (every key of its row is masked).
@@ -375,7 +381,7 @@ fn time_pack_of_three_against_three_solo_steps() {
             for (r, (_, m)) in solos.iter().enumerate() {
                 tch::manual_seed(r as i64 + step as i64);
                 let x = &batches[r];
-                let _ = tch::no_grad(|| m.forward(&x.history, x.prompt.as_ref(), true));
+                let _ = tch::no_grad(|| m.forward(&x.history, Sequence::train(x.prompt.as_ref())));
             }
             solo_fwd.push((t0.elapsed().as_secs_f64() * 1e3, on_cpu_ms() - c0));
         }

@@ -9,7 +9,8 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_base::seed::derive_seed;
-use pdt_model::dropout::Dropout;
+use pdt_model::dropout::{Dropout, DropoutMasks};
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine};
 use pdt_train::optim::{AdamWConfig, Optimizer};
@@ -211,13 +212,15 @@ fn masks_drawn_beforehand_are_the_masks_the_forward_draws() {
     let b = batch(0, 0);
     let (h, p) = (&b.history, b.prompt.as_ref());
     tch::manual_seed(5);
-    let drawn = s.model.forward(h, p, true);
+    let drawn = s.model.forward(h, Sequence::train(p));
+    let len = PromptDt::token_count(h, p);
+    let draw = || DropoutMasks::draw(&s.model.cfg, h.batch_size(), len, h.states.device());
     tch::manual_seed(5);
-    let masks = s.model.draw_dropout(h, p);
-    let given = s.model.forward_with(h, p, Dropout::Given(&masks));
+    let masks = draw();
+    let given = s.model.forward(h, Sequence::new(p, Dropout::Given(&masks)));
     assert!(bit_equal(&drawn, &given));
     // Dropout is on: another seed's masks give other predictions.
     tch::manual_seed(6);
-    let other = s.model.draw_dropout(h, p);
-    assert!(!bit_equal(&drawn, &s.model.forward_with(h, p, Dropout::Given(&other))));
+    let other = draw();
+    assert!(!bit_equal(&drawn, &s.model.forward(h, Sequence::new(p, Dropout::Given(&other)))));
 }

@@ -536,7 +536,7 @@ mod tests {
         assert!(t.to_toml().unwrap().contains("matmul = \"tf32\""));
         t.validate().unwrap();
         // A TF32 run's configuration stays valid on the CPU, where its checkpoints are evaluated
-        // and served in fp32; training refuses it there (`pdt_model::device::set_matmul`).
+        // and served in fp32; training refuses it there (`pdt_torch::device::set_matmul`).
         let cpu: TrainConfig =
             toml::from_str("[run]\ndevice = \"cpu\"\nmatmul = \"tf32\"\n").unwrap();
         cpu.validate().unwrap();

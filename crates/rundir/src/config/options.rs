@@ -136,8 +136,8 @@ pub enum LossOn {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Inference {
-    /// `PromptDt::act`: the prompt's keys and values computed once per task and evaluation, the
-    /// last layer for the last 8 positions only. Equal to `Full` within 1e-6 (a few f32 ulps:
+    /// `PromptDt::forward` with `Act`: the prompt's keys and values computed once per task and
+    /// evaluation, the last layer for the last 8 positions only. Equal to `Full` within 1e-6 (a few f32 ulps:
     /// other kernel paths), not bit for bit. Not in the reference.
     #[default]
     Cached,

@@ -114,7 +114,7 @@ fn concurrent_episodes_batched_take_their_sequential_actions() {
         bitwise += usize::from(a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
     eprintln!("64 episodes: {bitwise} bit-identical to their sequential runs, largest difference {worst:e}");
-    // One libtorch thread on an AVX2 CPU: batching changes no bit (PromptDt::act's last layer,
+    // One libtorch thread on an AVX2 CPU: batching changes no bit (the acting forward's last layer,
     // LAST_ROWS). AVX-512 libtorch kernels depend on the batch size: measured 0 of 64 bit-identical,
     // largest difference 2.98e-7 (Intel Xeon, 2026-11-24), so there the bound is 1e-6.
     if pdt_testkit::cpu::batch_invariant() {

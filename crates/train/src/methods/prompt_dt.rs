@@ -16,6 +16,7 @@ use pdt_base::seed::derive_seed;
 use pdt_eval::testtime::{self, SplitEval};
 use pdt_eval::EvalSettings;
 use pdt_model::checkpoint;
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::PromptDt;
 use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
@@ -111,10 +112,10 @@ impl Steppable for PromptDtLearner<'_> {
             let (h, p) = (&batch.history, batch.prompt.as_ref());
             tch::no_grad(|| match (self.setup.cfg.train.loss_on, p) {
                 (LossOn::PromptAndHistory, Some(p)) => {
-                    let _ = self.model.forward_all_steps(h, Some(p), true);
+                    let _ = self.model.forward(h, Sequence::train(Some(p)).all_steps());
                 }
                 _ => {
-                    let _ = self.model.forward(h, p, true);
+                    let _ = self.model.forward(h, Sequence::train(p));
                 }
             });
         }

@@ -13,6 +13,7 @@
 use crate::golden;
 
 use golden::{bounds, Golden};
+use pdt_model::prompt_dt::Sequence;
 use pdt_model::{checkpoint, PromptDt, PromptDtConfig, Segments};
 use pdt_train::optim::{AdamW, AdamWConfig};
 use std::collections::HashMap;
@@ -147,9 +148,9 @@ fn eval_forward_matches_pytorch() {
         m.check_inputs(&h, Some(&p)).expect("valid inputs");
         let mut check = Check::new(&set);
         let actions = Bound::Abs(bounds::ACTION_ABS);
-        let preds = tch::no_grad(|| m.forward(&h, Some(&p), false));
+        let preds = tch::no_grad(|| m.forward(&h, Sequence::eval(Some(&p))));
         check.close("eval.action_preds", &preds, &exp["eval.action_preds"], actions);
-        let preds = tch::no_grad(|| m.forward(&h, None, false));
+        let preds = tch::no_grad(|| m.forward(&h, Sequence::eval(None)));
         check.close(
             "eval_no_prompt.action_preds",
             &preds,
@@ -178,7 +179,7 @@ fn training_steps(set: &Golden) {
     let scalar = |t: &Tensor| t.double_value(&[]);
     tch::manual_seed(1234);
     for k in 1..=2u64 {
-        let preds = m.forward(&h, Some(&p), true);
+        let preds = m.forward(&h, Sequence::train(Some(&p)));
         let name = format!("train.{k}.action_preds");
         check.close(&name, &preds, &exp[&name], Bound::Abs(bounds::ACTION_ABS));
         let loss = PromptDt::action_loss(&preds, &h.actions, &h.mask);

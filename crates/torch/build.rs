@@ -1,11 +1,11 @@
 //! Compiles what promptdt needs of libtorch that tch 0.24 does not bind, against the headers of the
 //! libtorch that torch-sys links: `LIBTORCH` (set by `.cargo/config.toml` to
 //! `third_party/libtorch/torch`, installed by `scripts/fetch_libtorch.py`), with torch-sys's own
-//! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_model::device::Matmul`);
-//! `csrc/profiler.cpp`: libtorch's profiler (`pdt_model::profiler`, `promptdt bench --profile`);
-//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_model::device::upload`);
-//! `csrc/bernoulli.cpp`: dropout's Bernoulli noise on the CPU, libtorch's bits drawn faster
-//! (`pdt_model::dropout::draw_noise`).
+//! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_torch::device::set_matmul`);
+//! `csrc/profiler.cpp`: libtorch's profiler (`pdt_torch::profiler`, `promptdt bench --profile`);
+//! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_torch::device::upload`);
+//! `csrc/bernoulli.cpp`: Bernoulli bits on the CPU, libtorch's drawn faster
+//! (`pdt_torch::bernoulli`, for dropout's noise).
 
 use std::path::PathBuf;
 

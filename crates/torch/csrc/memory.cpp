@@ -1,6 +1,6 @@
 // Pinned host memory without the deprecated device argument. tch 0.24 binds only
 // `pin_memory(device)`, and libtorch 2.11 prints a warning each time a device is passed (TORCH_WARN,
-// not once): every upload of a CUDA run (`pdt_model::device::upload`) printed two lines, megabytes
+// not once): every upload of a CUDA run (`pdt_torch::device::upload`) printed two lines, megabytes
 // of stderr in a long run. `Tensor::pin_memory()` with no device pins for the current accelerator.
 
 #include <ATen/core/Tensor.h>

@@ -1,10 +1,10 @@
-//! libtorch's profiler through `pdt_model::profiler` (csrc/profiler.cpp): it sees exactly the
+//! libtorch's profiler through `pdt_torch::profiler` (csrc/profiler.cpp): it sees exactly the
 //! operators run between start and stop, and a second profiler at once is refused, not a crash. The
 //! profiler is process-wide: the test holds the test binary's libtorch lock (`pdt_testkit::process`),
 //! so no other test runs an operator meanwhile.
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
-use pdt_model::profiler::{start, EventKind};
+use pdt_torch::profiler::{start, EventKind};
 use tch::{Device, Kind, Tensor};
 
 #[test]

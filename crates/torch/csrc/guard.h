@@ -1,6 +1,6 @@
 // What every function of csrc/ shares: none may let a C++ exception unwind into Rust. `guarded`
 // runs `f` (which returns 0 or a non-negative answer) and turns any exception into -1 with its
-// message copied into `err` (NUL-terminated, cut to `err_len`), which `pdt_model::ffi` reads.
+// message copied into `err` (NUL-terminated, cut to `err_len`), which `pdt_torch::ffi` reads.
 #pragma once
 
 #include <cstring>

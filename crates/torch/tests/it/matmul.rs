@@ -5,7 +5,8 @@
 //! meanwhile.
 #![allow(clippy::unwrap_used)] // test: a failed unwrap is a failed test
 
-use pdt_model::device::{cuda_matmul, set_cublas_tf32, set_matmul, Matmul, MatmulError};
+use pdt_base::device::Matmul;
+use pdt_torch::device::{cuda_matmul, set_cublas_tf32, set_matmul, MatmulError};
 use tch::{Device, Kind, Tensor};
 
 /// CPU products of the shapes a training step computes (a linear layer, attention's batched

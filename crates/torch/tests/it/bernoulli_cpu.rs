@@ -1,11 +1,11 @@
-//! `pdt_model::dropout::bernoulli_cpu` (`csrc/bernoulli.cpp`): libtorch's `bernoulli_` bits on the
-//! CPU, drawn in one loop. Where it draws (a CPU whose libtorch does not draw through MKL), the
+//! `pdt_torch::bernoulli::bernoulli_cpu` (`csrc/bernoulli.cpp`): libtorch's `bernoulli_` bits on
+//! the CPU, drawn in one loop. Where it draws (a CPU whose libtorch does not draw through MKL), the
 //! mask and the generator's state afterwards must be libtorch's own; where it declines, nothing is
 //! drawn. The process's generator is drawn from by this test alone: it holds the test binary's
 //! libtorch lock (`pdt_testkit::process`).
 #![allow(clippy::unwrap_used)] // a failed unwrap is a failed test
 
-use pdt_model::dropout::bernoulli_cpu;
+use pdt_torch::bernoulli::bernoulli_cpu;
 use tch::{Device, Kind, Tensor};
 
 fn empty(n: i64) -> Tensor {

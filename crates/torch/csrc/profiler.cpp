@@ -1,6 +1,6 @@
 // libtorch's own profiler (Kineto), which tch 0.24 does not bind: `promptdt bench --profile` counts
 // the operators a step runs and, on CUDA, the kernels it launches (and where their time goes).
-// Compiled by crates/model/build.rs; called only through `pdt_model::profiler`.
+// Compiled by crates/torch/build.rs; called only through `pdt_torch::profiler`.
 //
 // 0 is success, -1 a failure with libtorch's message in `err` (guard.h).
 
@@ -17,7 +17,7 @@ using torch::profiler::impl::ActivityType;
 using torch::profiler::impl::ProfilerConfig;
 using torch::profiler::impl::ProfilerState;
 
-// What an event is, as `pdt_model::profiler::EventKind` numbers it.
+// What an event is, as `pdt_torch::profiler::EventKind` numbers it.
 int kind_of(uint8_t activity) {
   switch (static_cast<libkineto::ActivityType>(activity)) {
     case libkineto::ActivityType::CPU_OP:

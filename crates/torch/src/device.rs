@@ -5,8 +5,9 @@
 //! time registers the CUDA backend with the already-loaded `libtorch_cpu`, so the same binary runs
 //! on either.
 
-// The request types are tch-free, so a run's configuration can name them without libtorch.
-pub use pdt_base::device::{DeviceSpec, Matmul};
+// The request types are tch-free (`pdt_base::device`), so a run's configuration names them
+// without libtorch; this module turns them into libtorch's settings.
+use pdt_base::device::{DeviceSpec, Matmul};
 use tch::Device;
 
 #[derive(Debug, thiserror::Error)]

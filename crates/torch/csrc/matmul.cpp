@@ -1,6 +1,6 @@
 // The one libtorch setting promptdt needs that tch 0.24 does not bind: whether cuBLAS may compute
 // float32 matrix products in TF32 (PyTorch's `torch.backends.cuda.matmul.allow_tf32`). Called only
-// through `pdt_model::device` (see its `Matmul` docs for why and when).
+// through `pdt_torch::device` (see its `Matmul` docs for why and when).
 
 #include <ATen/Context.h>
 
