@@ -24,6 +24,7 @@ mod commands;
 mod eval_flags;
 mod packs;
 mod prompt_args;
+mod video;
 
 use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
@@ -160,7 +161,7 @@ fn run(cli: Cli) -> Result<()> {
                 None => {}
             }
             let device = pdt_model::device::resolve(a.device)?;
-            let run = pdt_policy::files::run_architecture_of(&a.weights)?;
+            let run = pdt_run::files::run_architecture_of(&a.weights)?;
             let s = pdt_model::forward_file::forward_file(
                 &a.weights,
                 &a.inputs,
@@ -221,7 +222,7 @@ fn run(cli: Cli) -> Result<()> {
                 (None, None) => (None, Default::default()),
                 _ => {
                     let run = pdt_rundir::RunDir::at(&a.run);
-                    let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
+                    let cfg = pdt_run::files::run_config(&run, None, a.data.as_deref())?;
                     let test_time = pdt_rundir::config::TestTime::of(&cfg);
                     let own = eval_flags::own_budget(&a, &test_time, cfg.run.method)
                         .map_err(anyhow::Error::msg)?;
@@ -359,7 +360,7 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Render(a) => {
-            let mut cfg = pdt_policy::video::VideoConfig::new(
+            let mut cfg = video::VideoConfig::new(
                 a.run,
                 a.task,
                 a.out,
@@ -370,7 +371,7 @@ fn run(cli: Cli) -> Result<()> {
                 a.seed,
             )?;
             (cfg.device, cfg.data) = (a.device, a.data);
-            let v = pdt_policy::video::record_episode(&cfg)?;
+            let v = video::record_episode(&cfg)?;
             out!(
                 "{}: {} task {}, {} steps, return {:.2} ({} frames)",
                 v.out.display(),

@@ -21,8 +21,9 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::collect_scripted::{
-    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedFamily, ScriptedPolicies, Set,
+    play_set, CollectConfig, CollectError, EpisodeLog, ScriptedFamily, ScriptedPolicies,
 };
+use pdt_data::mode::{Mode, Set};
 use crate::mujoco_env::standard_normal;
 use crate::replay::{replay_from_reset, ReplayResult};
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};

@@ -12,11 +12,8 @@ use crate::EvalError;
 use pdt_model::{LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
 use rand::Rng as _;
+use pdt_rundir::config::{AdaptConfig, AdaptError, LoraConfig};
 use tch::{Kind, Tensor};
-
-pub use pdt_rundir::config::{
-    AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtConfig, PtdtScore,
-};
 
 /// Demonstration segments of one task, drawn on demand from the caller's sampler and stream.
 pub type DemoSource<'a> = dyn FnMut(usize, &mut Rng) -> Segments + 'a;

@@ -6,13 +6,11 @@
 //! then act with ([`TaskAdaptation`]).
 
 use crate::{Policy, PolicyError};
-use pdt_eval::adapt::{
-    self, demo_loss, ActionLossScore, AdaptConfig, AdaptKind, AdaptLog, PromptScore, PtdtScore,
-};
+use pdt_eval::adapt::{self, demo_loss, ActionLossScore, PromptScore};
+use pdt_rundir::config::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, Method, PtdtScore};
 use pdt_eval::to_segments;
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, PromptTokens};
 use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
-use pdt_rundir::config::Method;
 use rand::{RngCore, SeedableRng};
 use std::time::Instant;
 
@@ -89,7 +87,7 @@ pub fn adapt_task(
     let start_tokens = tch::no_grad(|| model.prompt_tokens(&prompt));
     let loss_before = loss_of(&start_tokens, None);
     let clock = Instant::now();
-    let fail = |e: adapt::AdaptError| PolicyError::Invalid(format!("task {name}: {e}"));
+    let fail = |e: AdaptError| PolicyError::Invalid(format!("task {name}: {e}"));
     let (adapted, trainable) = match cfg.kind {
         AdaptKind::SoftPrompt => {
             let t = adapt::soft_prompt(model, &prompt, cfg, &mut demos, rng).map_err(fail)?;

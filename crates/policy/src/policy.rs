@@ -1,28 +1,21 @@
 //! [`Policy`]: a trained run loaded to act, and the prompts it acts with.
 
-use crate::data::RunData;
-use crate::files;
 use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
+use pdt_run::streams::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_run::{eval_returns, files, plan_task, RunData, TaskPlan};
 use pdt_base::seed::derive_seed;
-use pdt_data::MultiTaskDataset;
 use pdt_eval::{EvalReturns, History, ToModelConfig};
 use pdt_model::checkpoint;
 use pdt_model::device::DeviceSpec;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
-use pdt_rundir::config::{Method, MtBcEval, TrainConfig};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_rundir::{RunDir, RunStats};
-use rand::{RngCore, SeedableRng};
+use rand::SeedableRng;
 use serde::Deserialize;
 use std::path::Path;
 use tch::{nn::VarStore, Device};
-
-/// The evaluation's random streams, derived from the run seed (`pdt_base::seed::derive_seed`):
-/// the trainer's evaluations of the test and training tasks draw from them, and so does a plan,
-/// which draws what a final evaluation of the split draws. The trainer's other streams are 1-3.
-pub const STREAM_EVAL_TEST: u64 = 4;
-pub const STREAM_EVAL_TRAIN: u64 = 5;
 
 /// A trained run, loaded to act (`promptdt serve`, the Python `Policy`): the model with its latest
 /// weights and everything an episode needs besides (normalisation, return tokens, K), and, when the
@@ -62,49 +55,6 @@ pub struct PromptArrays {
     pub actions: Vec<Vec<f64>>,
     pub returns_to_go: Vec<f64>,
     pub timesteps: Vec<i64>,
-}
-
-/// What an evaluation draws for one task: the prompt its episodes share and their reset seeds.
-#[derive(Debug, Clone)]
-pub struct TaskPlan {
-    /// `cheetah_vel-2`
-    pub name: String,
-    /// Task index in its family.
-    pub index: usize,
-    /// `None` for the methods without a prompt.
-    pub prompt: Option<SegmentBatch>,
-    /// Reset seed of each episode.
-    pub seeds: Vec<u64>,
-}
-
-/// The return tokens an acting policy feeds (Prompt-MT-BC and MT-BC-Finetune: constant or zero).
-pub fn eval_returns(cfg: &TrainConfig) -> EvalReturns {
-    match (cfg.run.method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
-        (false, _) => EvalReturns::Decreasing,
-        (true, MtBcEval::Reference) => EvalReturns::Constant,
-        (true, MtBcEval::Paper) => EvalReturns::Zero,
-    }
-}
-
-/// Draws task `i`'s prompt (once per task and evaluation call, shared by its episodes, as the
-/// reference does), then its episodes' seeds, from `rng`.
-pub fn plan_task(
-    method: Method,
-    sampler: &BatchSampler,
-    data: &MultiTaskDataset,
-    i: usize,
-    episodes: usize,
-    rng: &mut Rng,
-) -> TaskPlan {
-    let t = &data.tasks[i];
-    let prompt = sampler.eval_prompt(i, rng);
-    let seeds = (0..episodes).map(|_| rng.next_u64()).collect();
-    TaskPlan {
-        name: t.id.to_string(),
-        index: t.id.index,
-        prompt: method.uses_prompt().then_some(prompt),
-        seeds,
-    }
 }
 
 impl Policy {
@@ -202,7 +152,7 @@ impl Policy {
             max_batch: 1,
             device: self.device,
             env_threads: 1,
-            inference: pdt_eval::Inference::Cached,
+            inference: pdt_rundir::config::Inference::Cached,
         }
     }
 

@@ -448,11 +448,11 @@ impl Policy {
         let task = usize_arg("task", task, "a task index of the run's family")?;
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
-        let mut cfg = pdt_eval::adapt::AdaptConfig {
+        let mut cfg = pdt_rundir::config::AdaptConfig {
             kind: adapt.parse().map_err(lib_error)?,
             ..Default::default()
         };
-        if cfg.kind == pdt_eval::adapt::AdaptKind::None {
+        if cfg.kind == pdt_rundir::config::AdaptKind::None {
             return Err(value_error("adapt: name an adaptation (soft-prompt, ptdt, lora)"));
         }
         if let Some(s) = steps {

@@ -6,7 +6,8 @@
 use crate::manifest::{Manifest, BUILTIN};
 use crate::plan::{self, PlanOptions};
 use crate::registry;
-use crate::report::{self, Report, Stat};
+use crate::report::{self, Report};
+use pdt_report::Stat;
 use crate::stats;
 use crate::ReproError;
 use std::collections::{BTreeMap, BTreeSet};

@@ -7,7 +7,7 @@ use crate::methods::{self, MacawAdaptation};
 use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
-use pdt_policy::files::{latest_checkpoint, read_stats, run_config};
+use pdt_run::files::{latest_checkpoint, read_stats, run_config};
 use pdt_prompt::PromptStrategy;
 use pdt_rundir::config::{AdaptConfig, Adaptation, TestTime};
 use pdt_rundir::{FinalEval, PromptEval, RunDir};

@@ -1,8 +1,10 @@
 //! A tiny end-to-end check that needs no data on disk: two synthetic tasks, one sampled batch, a
 //! few training steps. (The full demo, with environments, comes with the evaluation crate.)
 
-use crate::optim::{AdamWConfig, Optimizer};
-use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
+use crate::optim::Optimizer;
+use pdt_rundir::config::AdamWConfig;
+use crate::step::{train_step, DeviceBatch, StepStats};
+use pdt_rundir::config::LossOn;
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{BatchSampler, Rng, SamplerConfig, StateNorm};

@@ -5,9 +5,8 @@ use rand_chacha::ChaCha8Rng;
 
 use pdt_data::Trajectory;
 
-use crate::collect_scripted::{
-    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
-};
+use crate::collect_scripted::{play_set, CollectConfig, CollectError, EpisodeLog, ScriptedPolicies};
+use pdt_data::mode::{Mode, Set};
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
 use crate::mujoco_env::standard_normal;
 use crate::{Env, EnvFamily};

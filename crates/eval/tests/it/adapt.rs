@@ -3,9 +3,8 @@
 //! frozen model bit for bit; the zeroth-order update prefers the better candidate.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code
 
-use pdt_eval::adapt::{
-    self, demo_loss, rank_direction, ActionLossScore, AdaptConfig, AdaptKind, PromptScore,
-};
+use pdt_eval::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
+use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use pdt_eval::{prompt_batch, to_vec, EvalError};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_prompt::{Rng, SegmentBatch};

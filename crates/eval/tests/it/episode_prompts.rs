@@ -5,8 +5,8 @@
 
 use pdt_eval::{
     evaluate, evaluate_with, EpisodePrompts, EvalError, EvalReturns, EvalSettings, EvalTask,
-    Inference,
 };
+use pdt_rundir::config::Inference;
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use tch::{nn::VarStore, Device};

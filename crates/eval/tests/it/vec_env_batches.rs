@@ -4,7 +4,8 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::{Env, EnvError, StepResult};
-use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask};
+use pdt_rundir::config::Inference;
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::StateNorm;
 use tch::{nn::VarStore, Device};

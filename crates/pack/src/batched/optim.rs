@@ -20,7 +20,8 @@
 //! between parameters (a state imported from elsewhere) takes the per-tensor loop over the views.
 
 use pdt_model::device::upload;
-use pdt_train::optim::{AdamWConfig, ParamState};
+use pdt_rundir::config::AdamWConfig;
+use pdt_train::optim::ParamState;
 use std::collections::{BTreeMap, HashMap};
 use tch::{Device, Kind, Tensor};
 

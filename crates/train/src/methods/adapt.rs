@@ -12,14 +12,16 @@ use super::planned::{eval_task, plan_tasks, strategy_sampler, summarise_plans};
 use crate::error::RunError;
 use crate::setup::Setup;
 use pdt_data::MultiTaskDataset;
-use pdt_eval::adapt::{AdaptConfig, AdaptKind, AdaptLog, PromptScore};
+use pdt_eval::adapt::PromptScore;
+use pdt_rundir::config::{AdaptConfig, AdaptKind, AdaptLog};
 use pdt_eval::{
     evaluate, evaluate_given, EpisodeRecord, EvalError, EvalSettings, EvalTask, GivenPrompts,
-    TaskResult,
 };
+use pdt_rundir::TaskResult;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_policy::adapt::{adapt_task, check_adaptable, start_prompt, AdaptTask};
-use pdt_policy::{Adapted, TaskPlan};
+use pdt_policy::Adapted;
+use pdt_run::TaskPlan;
 use pdt_prompt::{PromptStrategy, Rng, SegmentBatch};
 use rand::{RngCore, SeedableRng};
 

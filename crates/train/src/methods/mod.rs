@@ -20,7 +20,7 @@ pub use learner::{
 };
 pub use prompt_dt::read_iteration;
 
-use crate::config::Method;
+use pdt_rundir::config::Method;
 use crate::error::RunError;
 use crate::setup::Setup;
 
@@ -62,7 +62,7 @@ pub fn cannot_pack(method: Method) -> RunError {
 #[cfg(test)]
 mod tests {
     use super::learner;
-    use crate::config::{Method, TrainConfig};
+    use pdt_rundir::config::{Method, TrainConfig};
     use crate::setup::Setup;
 
     /// The registry builds a learner for every method of `Method::ALL` (its `match` has no `_`

@@ -6,8 +6,9 @@
 use crate::error::RunError;
 use crate::setup::Setup;
 use pdt_data::{MultiTaskDataset, TaskData};
-use pdt_eval::{summarise, EpisodeRecord, EvalTask, TaskResult};
-use pdt_policy::{plan_task, TaskPlan};
+use pdt_eval::{summarise, EpisodeRecord, EvalTask};
+use pdt_rundir::TaskResult;
+use pdt_run::{plan_task, TaskPlan};
 use pdt_prompt::strategy::check_fits;
 use pdt_prompt::{BatchSampler, PromptStrategy, Rng, SegmentBatch};
 

@@ -7,19 +7,22 @@ use super::learner::{
     IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
-use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
+use pdt_base::num::compact;
+use pdt_rundir::config::{Adaptation, Method, TestTime, TrainConfig};
 use crate::error::RunError;
-use crate::optim::{AdamWConfig, Optimizer, ParamState, SlotState};
+use crate::optim::{Optimizer, ParamState, SlotState};
+use pdt_rundir::config::AdamWConfig;
 use crate::setup::{Setup, Split};
 use crate::step::{
     train_step, train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats,
 };
-use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_base::seed::derive_seed;
-use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask, TaskResult};
+use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask};
+use pdt_rundir::TaskResult;
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
-use pdt_policy::plan_task;
+use pdt_run::plan_task;
 use pdt_prompt::{BatchSampler, Rng};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -377,7 +380,7 @@ fn finetune_each(
         for s in 0..tune.steps {
             let seg =
                 sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
-            let history = crate::step::to_segments(&seg, setup.device);
+            let history = pdt_eval::to_segments(&seg, setup.device);
             let batch = DeviceBatch { history, prompt: None };
             train_step(&learner.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
         }

@@ -12,10 +12,10 @@ use crate::setup::Setup;
 use pdt_data::MultiTaskDataset;
 use pdt_eval::{
     evaluate, evaluate_with, EpisodePrompts, EpisodeRecord, EvalError, EvalSettings, EvalTask,
-    TaskResult,
 };
+use pdt_rundir::TaskResult;
 use pdt_model::PromptDt;
-use pdt_policy::TaskPlan;
+use pdt_run::TaskPlan;
 use pdt_prompt::bandit::SegmentBandit;
 use pdt_prompt::{
     BatchSampler, PromptPick, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch, SegmentChoice,

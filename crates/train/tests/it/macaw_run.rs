@@ -4,7 +4,7 @@
 
 use crate::runs;
 
-use pdt_train::config::{Method, TrainConfig};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_train::run::{evaluate_run, evaluate_run_with, MacawAdaptation};
 use runs::{lines, run, tiny_data};
 use std::path::Path;
