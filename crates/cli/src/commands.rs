@@ -98,8 +98,12 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 .transpose()
                 .map_err(|e| anyhow::anyhow!("--method {e}"))?;
             let macaw_preset = a.macaw_preset.map(|p| match p {
-                crate::args::MacawPresetArg::Official => pdt_rundir::config::macaw::Preset::Official,
-                crate::args::MacawPresetArg::Promptdt => pdt_rundir::config::macaw::Preset::Promptdt,
+                crate::args::MacawPresetArg::Official => {
+                    pdt_rundir::config::macaw::Preset::Official
+                }
+                crate::args::MacawPresetArg::Promptdt => {
+                    pdt_rundir::config::macaw::Preset::Promptdt
+                }
             });
             let overrides = Overrides {
                 seed: a.seed,

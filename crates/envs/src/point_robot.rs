@@ -23,10 +23,10 @@ use rand_chacha::ChaCha8Rng;
 use crate::collect_scripted::{
     play_set, CollectConfig, CollectError, EpisodeLog, ScriptedFamily, ScriptedPolicies,
 };
-use pdt_data::mode::{Mode, Set};
 use crate::mujoco_env::standard_normal;
 use crate::replay::{replay_from_reset, ReplayResult};
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
+use pdt_data::mode::{Mode, Set};
 
 /// Family name, as used in file names (`point_robot-3-expert.safetensors`).
 pub const ENV_NAME: &str = "point_robot";

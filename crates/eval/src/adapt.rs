@@ -11,8 +11,8 @@
 use crate::EvalError;
 use pdt_model::{LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
-use rand::Rng as _;
 use pdt_rundir::config::{AdaptConfig, AdaptError, LoraConfig};
+use rand::Rng as _;
 use tch::{Kind, Tensor};
 
 /// Demonstration segments of one task, drawn on demand from the caller's sampler and stream.

@@ -15,8 +15,8 @@ use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, StepResult};
 pub mod adapt;
 
-use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_base::num::compact;
+use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
 use pdt_rundir::config::Inference;
 use pdt_rundir::files::TaskResult;

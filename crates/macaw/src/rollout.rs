@@ -3,10 +3,10 @@
 //! per environment step.
 
 use crate::{act, Dims, MacawError};
-use pdt_rundir::config::macaw::MacawConfig;
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{EnvError, EnvFamily, StepResult};
+use pdt_rundir::config::macaw::MacawConfig;
 use tch::{Device, Kind, Tensor};
 
 /// One finished episode.

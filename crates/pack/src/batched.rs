@@ -11,17 +11,17 @@
 mod optim;
 
 use crate::engine::{PackEngine, SlotSpec, SlotStep};
-use pdt_train::optim::SlotState;
 use crate::model::{
     DropoutSeeds, LayerNormPlan, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
 };
 use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_train::run::RunError;
-use pdt_rundir::config::LossOn;
-use pdt_train::step::PendingStats;
 use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
+use pdt_train::run::RunError;
+use pdt_train::step::PendingStats;
 use std::collections::BTreeSet;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 

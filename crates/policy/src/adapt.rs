@@ -7,10 +7,10 @@
 
 use crate::{Policy, PolicyError};
 use pdt_eval::adapt::{self, demo_loss, ActionLossScore, PromptScore};
-use pdt_rundir::config::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, Method, PtdtScore};
 use pdt_eval::to_segments;
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, PromptTokens};
 use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
+use pdt_rundir::config::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, Method, PtdtScore};
 use rand::{RngCore, SeedableRng};
 use std::time::Instant;
 

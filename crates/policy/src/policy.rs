@@ -2,14 +2,14 @@
 
 use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
-use pdt_run::streams::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
-use pdt_run::{eval_returns, files, plan_task, RunData, TaskPlan};
 use pdt_base::seed::derive_seed;
 use pdt_eval::{EvalReturns, History, ToModelConfig};
 use pdt_model::checkpoint;
 use pdt_model::device::DeviceSpec;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
+use pdt_run::streams::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_run::{eval_returns, files, plan_task, RunData, TaskPlan};
 use pdt_rundir::config::{Method, TrainConfig};
 use pdt_rundir::{RunDir, RunStats};
 use rand::SeedableRng;

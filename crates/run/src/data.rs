@@ -7,13 +7,13 @@
 //! evaluation's.
 
 use crate::LoadError;
+use pdt_base::num::compact;
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::{MultiTaskDataset, TaskData};
 use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::ToModelConfig;
 use pdt_model::PromptDtConfig;
 use pdt_prompt::{BatchSampler, NormalizationScope, SamplerConfig, StateNorm};
-use pdt_base::num::compact;
 use pdt_rundir::config::{within, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
 use pdt_rundir::RunStats;
 

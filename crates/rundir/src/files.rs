@@ -10,8 +10,8 @@ use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
 use crate::config::{within, MAX_STATE_STAT};
-use pdt_base::num::compact;
 pub use crate::config::{LEGACY_LOSS_METRIC, LEGACY_MACAW_LOSS_METRIC};
+use pdt_base::num::compact;
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

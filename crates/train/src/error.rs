@@ -1,11 +1,11 @@
 //! The error of a run: its set-up, training, checkpoints and evaluation.
 
-use pdt_rundir::config::ConfigError;
 use pdt_data::DataError;
 use pdt_envs::EnvError;
 use pdt_eval::EvalError;
 use pdt_model::checkpoint::CheckpointError;
 use pdt_prompt::SamplerError;
+use pdt_rundir::config::ConfigError;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]

@@ -5,7 +5,6 @@
 //! iterations (an interruption, in tests). The method is a [`Learner`]; the directory's layout is
 //! `docs/run-directory.md`.
 
-use pdt_rundir::config::{TestTime, TrainConfig};
 use crate::error::{io_err, RunError};
 use crate::methods::{
     self, CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
@@ -15,11 +14,12 @@ use crate::run_dir::{
 };
 use crate::setup::{absolute, Setup, Split};
 use crate::streams::torch_rng_lock;
-use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
 use pdt_base::fs::write_atomic;
 use pdt_base::seed::derive_seed;
-use pdt_rundir::TaskResult;
 use pdt_prompt::Rng;
+use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_rundir::config::{TestTime, TrainConfig};
+use pdt_rundir::TaskResult;
 use pdt_rundir::{
     read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
 };

@@ -2,14 +2,14 @@
 //! and checked by `pdt_run::RunData` (the loader a served policy draws its prompts with, so that
 //! training, evaluation and serving see the same data), and the device.
 
-use pdt_rundir::config::{Method, TrainConfig};
 use crate::error::RunError;
 use crate::run_dir::EvalSchedule;
 use pdt_data::MultiTaskDataset;
 use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::EvalReturns;
-use pdt_run::RunData;
 use pdt_prompt::BatchSampler;
+use pdt_run::RunData;
+use pdt_rundir::config::{Method, TrainConfig};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tch::Device;

@@ -2,12 +2,12 @@
 //! few training steps. (The full demo, with environments, comes with the evaluation crate.)
 
 use crate::optim::Optimizer;
-use pdt_rundir::config::AdamWConfig;
 use crate::step::{train_step, DeviceBatch, StepStats};
-use pdt_rundir::config::LossOn;
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{BatchSampler, Rng, SamplerConfig, StateNorm};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::LossOn;
 use rand::{Rng as _, SeedableRng};
 use tch::{nn::VarStore, Device};
 

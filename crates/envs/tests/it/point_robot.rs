@@ -4,10 +4,10 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+use pdt_data::mode::{Mode, Set};
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::native::{self, read_card, read_file_meta, read_task_dataset, FileMeta};
 use pdt_data::TaskDataset;
-use pdt_data::mode::{Mode, Set};
 use pdt_envs::collect_scripted::{
     collect, episode_rng, generate_for, CollectConfig, CollectError, ScriptedFamily,
 };

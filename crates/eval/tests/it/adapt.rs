@@ -4,10 +4,10 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code
 
 use pdt_eval::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
-use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use pdt_eval::{prompt_batch, to_vec, EvalError};
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
+use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use rand::{Rng as _, SeedableRng};
 use tch::nn::VarStore;
 use tch::Device;

@@ -6,9 +6,9 @@
 use pdt_eval::{
     evaluate, evaluate_with, EpisodePrompts, EvalError, EvalReturns, EvalSettings, EvalTask,
 };
-use pdt_rundir::config::Inference;
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{SegmentBatch, StateNorm};
+use pdt_rundir::config::Inference;
 use tch::{nn::VarStore, Device};
 
 /// A 4-step prompt made from a start observation (so episodes with other starts get other

@@ -5,9 +5,9 @@
 
 use pdt_envs::{Env, EnvError, StepResult};
 use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask};
-use pdt_rundir::config::Inference;
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::StateNorm;
+use pdt_rundir::config::Inference;
 use tch::{nn::VarStore, Device};
 
 /// A point robot whose episode ends (terminates) after `3 + seed % 7` steps, or that refuses its

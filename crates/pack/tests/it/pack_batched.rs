@@ -11,10 +11,10 @@ use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::model::{DropoutSeeds, PackedBatch, PackedRow};
 use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
-use pdt_train::optim::SlotState;
 use pdt_rundir::config::AdamWConfig;
-use pdt_train::optim::{AdamW, Optimizer};
 use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
+use pdt_train::optim::{AdamW, Optimizer};
 use pdt_train::step::{train_step, DeviceBatch, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 

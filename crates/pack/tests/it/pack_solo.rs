@@ -12,10 +12,10 @@ use pdt_base::seed::derive_seed;
 use pdt_model::dropout::Dropout;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::{PackEngine, SlotSpec, SlotStep, SoloEngine};
-use pdt_train::optim::SlotState;
 use pdt_rundir::config::AdamWConfig;
-use pdt_train::optim::Optimizer;
 use pdt_rundir::config::LossOn;
+use pdt_train::optim::Optimizer;
+use pdt_train::optim::SlotState;
 use pdt_train::step::{train_step, DeviceBatch, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 

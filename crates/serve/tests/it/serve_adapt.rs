@@ -5,10 +5,10 @@
 //! adaptation requests get clear errors.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use pdt_eval::{evaluate_given, GivenPrompts};
 use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
+use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 

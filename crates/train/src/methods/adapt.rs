@@ -13,16 +13,16 @@ use crate::error::RunError;
 use crate::setup::Setup;
 use pdt_data::MultiTaskDataset;
 use pdt_eval::adapt::PromptScore;
-use pdt_rundir::config::{AdaptConfig, AdaptKind, AdaptLog};
 use pdt_eval::{
     evaluate, evaluate_given, EpisodeRecord, EvalError, EvalSettings, EvalTask, GivenPrompts,
 };
-use pdt_rundir::TaskResult;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_policy::adapt::{adapt_task, check_adaptable, start_prompt, AdaptTask};
 use pdt_policy::Adapted;
-use pdt_run::TaskPlan;
 use pdt_prompt::{PromptStrategy, Rng, SegmentBatch};
+use pdt_run::TaskPlan;
+use pdt_rundir::config::{AdaptConfig, AdaptKind, AdaptLog};
+use pdt_rundir::TaskResult;
 use rand::{RngCore, SeedableRng};
 
 /// An adapted evaluation's per-task results and what each adaptation did.

@@ -1,15 +1,15 @@
 //! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in; and
 //! [`Steppable`], what a pack asks of a method besides.
 
-use pdt_rundir::config::TestTime;
 use crate::error::{io_err, RunError};
 use crate::optim::SlotState;
 use crate::run_dir::temp_name;
 use crate::setup::Split;
 use crate::step::DeviceBatch;
-use pdt_rundir::TaskResult;
 use pdt_prompt::Rng;
+use pdt_rundir::config::TestTime;
 use pdt_rundir::AdaptationStats;
+use pdt_rundir::TaskResult;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;

@@ -7,10 +7,10 @@ use crate::error::RunError;
 use crate::setup::Setup;
 use pdt_data::{MultiTaskDataset, TaskData};
 use pdt_eval::{summarise, EpisodeRecord, EvalTask};
-use pdt_rundir::TaskResult;
-use pdt_run::{plan_task, TaskPlan};
 use pdt_prompt::strategy::check_fits;
 use pdt_prompt::{BatchSampler, PromptStrategy, Rng, SegmentBatch};
+use pdt_run::{plan_task, TaskPlan};
+use pdt_rundir::TaskResult;
 
 /// Every task of `data` planned as the reference evaluation plans it (draws from `rng`).
 pub(crate) fn plan_tasks(

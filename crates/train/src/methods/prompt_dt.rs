@@ -7,23 +7,21 @@ use super::learner::{
     IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
-use pdt_base::num::compact;
-use pdt_rundir::config::{Adaptation, Method, TestTime, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{Optimizer, ParamState, SlotState};
-use pdt_rundir::config::AdamWConfig;
 use crate::setup::{Setup, Split};
-use crate::step::{
-    train_step, train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats,
-};
-use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
+use crate::step::{train_step, train_step_with, unreadable, DeviceBatch, PendingStats, StepStats};
+use pdt_base::num::compact;
 use pdt_base::seed::derive_seed;
 use pdt_eval::{evaluate, summarise, EvalSettings, EvalTask};
-use pdt_rundir::TaskResult;
 use pdt_model::checkpoint;
 use pdt_model::PromptDt;
-use pdt_run::plan_task;
 use pdt_prompt::{BatchSampler, Rng};
+use pdt_run::plan_task;
+use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::{Adaptation, LossOn, Method, TestTime, TrainConfig};
+use pdt_rundir::TaskResult;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};

@@ -13,13 +13,13 @@ use pdt_data::MultiTaskDataset;
 use pdt_eval::{
     evaluate, evaluate_with, EpisodePrompts, EpisodeRecord, EvalError, EvalSettings, EvalTask,
 };
-use pdt_rundir::TaskResult;
 use pdt_model::PromptDt;
-use pdt_run::TaskPlan;
 use pdt_prompt::bandit::SegmentBandit;
 use pdt_prompt::{
     BatchSampler, PromptPick, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch, SegmentChoice,
 };
+use pdt_run::TaskPlan;
+use pdt_rundir::TaskResult;
 use rand::{RngCore, SeedableRng};
 
 /// What an evaluation with a strategy gives: per-task results and the strategy's choices.

@@ -159,7 +159,10 @@ fn shipped_macaw_configs_are_the_promptdt_preset() {
         assert_eq!(cfg.run.method, pdt_rundir::config::Method::Macaw);
         assert_eq!(
             cfg.macaw,
-            pdt_rundir::config::macaw::MacawConfig::preset(pdt_rundir::config::macaw::Preset::Promptdt, 5),
+            pdt_rundir::config::macaw::MacawConfig::preset(
+                pdt_rundir::config::macaw::Preset::Promptdt,
+                5
+            ),
             "{env}"
         );
     }

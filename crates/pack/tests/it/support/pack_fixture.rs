@@ -6,10 +6,10 @@
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
-use pdt_train::optim::SlotState;
 use pdt_rundir::config::AdamWConfig;
-use pdt_train::optim::{AdamW, Optimizer};
 use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
+use pdt_train::optim::{AdamW, Optimizer};
 use pdt_train::step::{DeviceBatch, PendingStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
