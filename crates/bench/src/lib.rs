@@ -21,7 +21,8 @@ pub mod record;
 pub mod render;
 pub mod serve;
 
-use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
+use pdt_rundir::config::{AdamWConfig, FlatOptim};
+use pdt_train::optim::Optimizer;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::Command;
@@ -179,7 +180,7 @@ fn parse_case(name: &str) -> Result<(Mode, i64), BenchError> {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct EvalCase {
     env: &'static str,
-    inference: pdt_eval::Inference,
+    inference: pdt_rundir::config::Inference,
     max_batch: usize,
 }
 
@@ -192,8 +193,8 @@ fn parse_eval_case(name: &str) -> Option<EvalCase> {
         .filter_map(|&f| rest.strip_prefix(f).map(|r| (f, r)))
         .max_by_key(|(f, _)| f.len())?;
     let (inference, rest) = match rest.strip_prefix("_full") {
-        Some(r) => (pdt_eval::Inference::Full, r),
-        None => (pdt_eval::Inference::Cached, rest),
+        Some(r) => (pdt_rundir::config::Inference::Full, r),
+        None => (pdt_rundir::config::Inference::Cached, rest),
     };
     let max_batch = match rest {
         "" => 1 << 20,
@@ -780,7 +781,7 @@ mod tests {
     #[test]
     fn eval_cases_name_any_family() {
         let case = |n: &str| parse_eval_case(n).map(|c| (c.env, c.inference, c.max_batch));
-        use pdt_eval::Inference::{Cached, Full};
+        use pdt_rundir::config::Inference::{Cached, Full};
         assert_eq!(case("eval_point_robot"), Some(("point_robot", Cached, 1 << 20)));
         assert_eq!(case("eval_cheetah_vel_full_b1"), Some(("cheetah_vel", Full, 1)));
         assert_eq!(case("eval_dial_b4"), Some(("dial", Cached, 4)));

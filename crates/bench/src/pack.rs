@@ -16,8 +16,10 @@ use pdt_base::seed::derive_seed;
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 use pdt_pack::model::{LayerNormPlan, MaskDraw};
 use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
-use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
-use pdt_train::step::{train_step_with, DeviceBatch, LossOn};
+use pdt_rundir::config::LossOn;
+use pdt_rundir::config::{AdamWConfig, FlatOptim};
+use pdt_train::optim::Optimizer;
+use pdt_train::step::{train_step_with, DeviceBatch};
 use std::time::Instant;
 use tch::{nn::VarStore, Device};
 
@@ -158,7 +160,7 @@ fn specs(runs: usize, cfg: &PromptDtConfig, optim: &AdamWConfig) -> Vec<SlotSpec
             uses_prompt: true,
             loss_on: LossOn::History,
             optim: optim.clone(),
-            last_block: pdt_train::step::LastBlockChoice::Auto,
+            last_block: pdt_rundir::config::LastBlockChoice::Auto,
             seed,
         })
         .collect()

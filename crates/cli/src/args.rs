@@ -762,6 +762,6 @@ fn count(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone
 
 /// `--method`'s help: every method's name, from `Method::ALL`.
 fn method_help() -> String {
-    let names: Vec<&str> = pdt_train::config::Method::ALL.iter().map(|m| m.name()).collect();
+    let names: Vec<&str> = pdt_rundir::config::Method::ALL.iter().map(|m| m.name()).collect();
     format!("Override run.method ({})", names.join(", "))
 }

@@ -14,7 +14,8 @@ pub fn bar(len: u64, template: &str) -> ProgressBar {
 }
 
 pub fn collect(a: &CollectArgs) -> Result<()> {
-    use pdt_envs::collect_scripted::{CollectConfig, Mode, ScriptedFamily};
+    use pdt_data::mode::Mode;
+    use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
     // The families named in messages come from pdt-envs, so a new family needs no edit here.
     let families_where = |keep: fn(ScriptedFamily) -> bool| {
         ScriptedFamily::all().into_iter().filter(|f| keep(*f)).map(|f| f.name()).collect::<Vec<_>>()
@@ -81,7 +82,7 @@ pub fn collect(a: &CollectArgs) -> Result<()> {
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
-    use pdt_train::config::{Overrides, TrainConfig};
+    use pdt_rundir::config::{Overrides, TrainConfig};
     // (A pack, `--pack` or `--resume` of a pack directory, goes to `crate::packs` from `main`.)
     if a.engine.is_some() || a.pack_eval.is_some() {
         bail!("--engine and --pack-eval are for packs (--pack, or --resume of a pack directory)");
@@ -97,8 +98,12 @@ pub fn train(a: &TrainArgs) -> Result<()> {
                 .transpose()
                 .map_err(|e| anyhow::anyhow!("--method {e}"))?;
             let macaw_preset = a.macaw_preset.map(|p| match p {
-                crate::args::MacawPresetArg::Official => pdt_macaw::Preset::Official,
-                crate::args::MacawPresetArg::Promptdt => pdt_macaw::Preset::Promptdt,
+                crate::args::MacawPresetArg::Official => {
+                    pdt_rundir::config::macaw::Preset::Official
+                }
+                crate::args::MacawPresetArg::Promptdt => {
+                    pdt_rundir::config::macaw::Preset::Promptdt
+                }
             });
             let overrides = Overrides {
                 seed: a.seed,
@@ -158,7 +163,7 @@ const DEMO_CONFIG: &str = include_str!("../../../configs/point_robot/demo.toml")
 
 /// collect -> train Prompt-DT and MT-ORL -> evaluate on the held-out goals -> report.
 pub fn demo(a: &DemoArgs) -> Result<()> {
-    use pdt_train::config::{Method, TrainConfig};
+    use pdt_rundir::config::{Method, TrainConfig};
     let started = std::time::Instant::now();
     let out = &a.out;
     if out.exists() {
@@ -382,7 +387,7 @@ fn collect_rl(a: &CollectArgs, family: &str) -> Result<()> {
             format!("{:.1}", e.dataset.mean)
         })
     };
-    use pdt_envs::collect_scripted::Mode;
+    use pdt_data::mode::Mode;
     for &t in &tasks {
         let p =
             summary.get(t, Mode::Expert).map_or("-".into(), |e| format!("{:.1}", e.prompts.mean));

@@ -74,7 +74,7 @@ pub(crate) fn eval_test_time(
         return Ok(None);
     }
     let run = pdt_rundir::RunDir::at(&a.run);
-    let cfg = pdt_policy::files::run_config(&run, None, a.data.as_deref())?;
+    let cfg = pdt_run::files::run_config(&run, None, a.data.as_deref())?;
     let adapt = eval_adapt(a, &cfg.eval.adapt);
     let mut test_time = TestTime::with_settings(&cfg, prompt.as_ref(), adapt.as_ref());
     if own_budget(a, &TestTime::of(&cfg), cfg.run.method).map_err(anyhow::Error::msg)? {

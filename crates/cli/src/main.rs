@@ -24,6 +24,7 @@ mod commands;
 mod eval_flags;
 mod packs;
 mod prompt_args;
+mod video;
 
 use anyhow::{bail, Context, Result};
 use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
@@ -160,7 +161,7 @@ fn run(cli: Cli) -> Result<()> {
                 None => {}
             }
             let device = pdt_torch::device::resolve(a.device)?;
-            let run = pdt_policy::files::run_architecture_of(&a.weights)?;
+            let run = pdt_run::files::run_architecture_of(&a.weights)?;
             let s = pdt_model::forward_file::forward_file(
                 &a.weights,
                 &a.inputs,
@@ -344,7 +345,7 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
         Command::Render(a) => {
-            let mut cfg = pdt_policy::video::VideoConfig::new(
+            let mut cfg = video::VideoConfig::new(
                 a.run,
                 a.task,
                 a.out,
@@ -355,7 +356,7 @@ fn run(cli: Cli) -> Result<()> {
                 a.seed,
             )?;
             (cfg.device, cfg.data) = (a.device, a.data);
-            let v = pdt_policy::video::record_episode(&cfg)?;
+            let v = video::record_episode(&cfg)?;
             out!(
                 "{}: {} task {}, {} steps, return {:.2} ({} frames)",
                 v.out.display(),

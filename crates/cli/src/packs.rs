@@ -11,8 +11,8 @@ pub fn is_pack(a: &TrainArgs) -> bool {
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
 use pdt_pack::PackOptions;
+use pdt_rundir::config::{Overrides, TrainConfig};
 use pdt_rundir::pack::Engine;
-use pdt_train::config::{Overrides, TrainConfig};
 use pdt_train::run::{Progress, ResumeWith, TrainSummary};
 
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,

@@ -26,6 +26,7 @@ use serde::{Deserialize, Serialize};
 use crate::ant_dir::{AntDirFamily, ContactCost};
 use crate::vec_env::VecEnv;
 use crate::{family, Env, EnvError, EnvFamily, StepResult};
+use pdt_base::threads::available_cores;
 
 /// At most this many steps' worth of actions are drawn per environment; longer runs cycle them.
 pub const ACTION_POOL_STEPS: usize = 4096;
@@ -144,9 +145,6 @@ pub fn run(cfg: &EnvBenchConfig) -> Result<Vec<EnvBenchResult>, EnvError> {
     }
     Ok(results)
 }
-
-/// Number of cores this process may use (one definition for the workspace, in `pdt-base`).
-pub use pdt_base::threads::available_cores;
 
 /// The 1-minute load average from `/proc/loadavg` (Linux), to record how busy the machine was.
 pub fn load_avg_1m() -> Option<f64> {

@@ -15,6 +15,7 @@
 //! are generated, on thread count, or on which other tasks and modes are collected in the same run.
 //! `docs/point-robot.md` and `docs/metaworld-reach.md` describe the policies and the file layout.
 
+use pdt_data::mode::{Mode, Set};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
@@ -166,9 +167,6 @@ impl<'de> Deserialize<'de> for ScriptedFamily {
         Self::named(&name).map_err(serde::de::Error::custom)
     }
 }
-
-// The datasets' vocabulary lives in pdt-data; re-exported here, where it was first defined.
-pub use pdt_data::mode::{Mode, Set, UnknownMode};
 
 /// What to collect ([`CollectConfig::for_family`] gives a family's defaults).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

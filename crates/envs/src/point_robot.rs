@@ -21,11 +21,12 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::collect_scripted::{
-    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedFamily, ScriptedPolicies, Set,
+    play_set, CollectConfig, CollectError, EpisodeLog, ScriptedFamily, ScriptedPolicies,
 };
 use crate::mujoco_env::standard_normal;
 use crate::replay::{replay_from_reset, ReplayResult};
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset, StepResult};
+use pdt_data::mode::{Mode, Set};
 
 /// Family name, as used in file names (`point_robot-3-expert.safetensors`).
 pub const ENV_NAME: &str = "point_robot";

@@ -18,9 +18,12 @@ use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, StepResult};
 pub mod testtime;
 
+use pdt_base::num::compact;
 use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{LoraAdapters, PrefixCache, PromptDt, Segments};
 use pdt_prompt::{SegmentBatch, StateNorm};
+use pdt_rundir::config::Inference;
+use pdt_rundir::files::TaskResult;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
@@ -87,9 +90,6 @@ impl ToModelConfig for pdt_rundir::config::ModelSection {
     }
 }
 
-// An option of a run's configuration, which is read without libtorch.
-pub use pdt_rundir::config::Inference;
-
 #[derive(Debug, Clone)]
 pub struct EvalSettings {
     /// History length K the model sees.
@@ -125,9 +125,6 @@ pub struct EpisodeRecord {
     pub actions: Vec<f32>,
 }
 
-/// Per-task summary: a row of `eval_final.json`, defined with the run directory's files.
-pub use pdt_rundir::files::TaskResult;
-
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
     #[error("task {task}: {source}")]
@@ -139,9 +136,6 @@ pub enum EvalError {
     #[error("task {task}, {detail}")]
     NonFiniteAction { task: String, detail: String },
 }
-
-/// Messages print numbers through one helper (re-exported for the crates that use it from here).
-pub use pdt_base::num::compact;
 
 /// What a prompted policy remembers of one episode, as the reference's
 /// `prompt_evaluate_episode_rtg` keeps it: the normalised states, the actions taken, the

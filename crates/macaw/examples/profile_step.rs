@@ -2,6 +2,7 @@
 //! graphs or the optimisers bound a meta-step.
 //! `cargo run --release -p pdt-macaw --example profile_step -- [width] [tasks] [threads]`
 use pdt_macaw::*;
+use pdt_rundir::config::macaw::MacawConfig;
 use std::time::Instant;
 use tch::{Device, Kind, Tensor};
 

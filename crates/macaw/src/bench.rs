@@ -4,7 +4,8 @@
 //! width W. Its PyTorch twin is `scripts/bench/bench_macaw_torch.py` (the functional reference
 //! `scripts/golden/macaw_torch.py`, same inputs).
 
-use crate::{meta_step, Batch, Dims, MacawConfig, Optimisers, Params};
+use crate::{meta_step, Batch, Dims, Optimisers, Params};
+use pdt_rundir::config::macaw::MacawConfig;
 use std::time::Instant;
 use tch::{Device, Kind, Tensor};
 

@@ -42,7 +42,7 @@ pub enum MacawError {
 
 // The hyper-parameters are part of a run's configuration (`[macaw]` of config.toml), which is read
 // without libtorch, so they are defined in `pdt_rundir`.
-pub use pdt_rundir::config::macaw::{Activation, AdaptOrder, InvalidMacaw, MacawConfig, Preset};
+use pdt_rundir::config::macaw::{Activation, AdaptOrder, InvalidMacaw, MacawConfig};
 
 impl From<InvalidMacaw> for MacawError {
     fn from(e: InvalidMacaw) -> Self {
@@ -639,6 +639,7 @@ pub fn act(policy: &[Tensor], dims: &Dims, obs: &Tensor, cfg: &MacawConfig) -> T
 #[cfg(test)]
 mod tests {
     use super::*;
+    use pdt_rundir::config::macaw::Preset;
 
     #[test]
     fn parameter_counts_equal_the_official_networks() {

@@ -2,10 +2,11 @@
 //! (the official `sample_mode`), all episodes of a task stepped together with one batched forward
 //! per environment step.
 
-use crate::{act, Dims, MacawConfig, MacawError};
+use crate::{act, Dims, MacawError};
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{EnvError, EnvFamily, StepResult};
+use pdt_rundir::config::macaw::MacawConfig;
 use tch::{Device, Kind, Tensor};
 
 /// One finished episode.

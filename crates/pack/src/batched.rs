@@ -10,7 +10,7 @@
 
 mod optim;
 
-use crate::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+use crate::engine::{PackEngine, SlotSpec, SlotStep};
 use crate::model::{
     DropoutSeeds, LayerNormPlan, MaskDraw, PackedBatch, PackedError, PackedPromptDt, PackedRow,
 };
@@ -18,9 +18,11 @@ use optim::PackedAdamW;
 use pdt_base::seed::derive_seed;
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
+use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
 use pdt_train::run::RunError;
-use pdt_train::step::{LossOn, PendingStats};
-use pdt_train::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_train::step::PendingStats;
 use std::collections::BTreeSet;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 

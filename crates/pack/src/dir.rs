@@ -5,8 +5,8 @@
 
 use crate::run::{prepare_pack, run_pack, train_pack, PackOptions, PackRun};
 use pdt_base::fs::write_atomic;
+use pdt_rundir::config::TrainConfig;
 use pdt_rundir::pack::{is_pack_dir, Engine, PackRecord, PackRecordRun, PACK_JSON};
-use pdt_train::config::TrainConfig;
 use pdt_train::run::{RunError, TrainSummary};
 use std::path::{Component, Path, PathBuf};
 

@@ -13,11 +13,11 @@
 
 use pdt_train::run::RunError;
 // A slot's state is a solo run's, so the optimiser owns its type (the solo learner hands it over).
-pub use pdt_train::optim::SlotState;
+use pdt_train::optim::SlotState;
 
 use pdt_model::PromptDtConfig;
-use pdt_train::optim::AdamWConfig;
-use pdt_train::step::{DeviceBatch, LastBlockChoice, LossOn, PendingStats};
+use pdt_rundir::config::{AdamWConfig, LastBlockChoice, LossOn};
+use pdt_train::step::{DeviceBatch, PendingStats};
 
 /// What an engine knows about one run of the pack, fixed for the pack's life.
 #[derive(Debug, Clone)]

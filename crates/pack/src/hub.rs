@@ -3,7 +3,8 @@
 //! engine steps them all (by the pack's stepper thread, [`Hub::stepper`], or a waiting run if it
 //! gets there first) and each run gets its own result.
 
-use crate::engine::{PackEngine, SlotState, SlotStep};
+use crate::engine::{PackEngine, SlotStep};
+use pdt_train::optim::SlotState;
 use pdt_train::run::RunError;
 use pdt_train::step::PendingStats;
 use pdt_train::streams::torch_rng_lock;
@@ -187,8 +188,8 @@ mod tests {
     use super::*;
     use crate::{BatchedEngine, PackLayout, SlotSpec};
     use pdt_model::{PromptDtConfig, Segments};
-    use pdt_train::config::AdamWConfig;
-    use pdt_train::step::{LossOn, PendingStats};
+    use pdt_rundir::config::{AdamWConfig, LossOn};
+    use pdt_train::step::PendingStats;
     use tch::Device;
 
     const K: usize = 3;
@@ -212,7 +213,7 @@ mod tests {
                 uses_prompt: false,
                 loss_on: LossOn::History,
                 optim: AdamWConfig::default(),
-                last_block: pdt_train::step::LastBlockChoice::Auto,
+                last_block: pdt_rundir::config::LastBlockChoice::Auto,
                 seed,
             })
             .collect();

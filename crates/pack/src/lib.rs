@@ -33,6 +33,6 @@ pub mod solo;
 
 pub use batched::{BatchedEngine, PackLayout};
 pub use dir::{resume_pack_dir, train_pack_dir};
-pub use engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+pub use engine::{PackEngine, SlotSpec, SlotStep};
 pub use run::{train_pack, PackOptions, PackRun};
 pub use solo::SoloEngine;

@@ -11,7 +11,7 @@
 use crate::engine::SlotStep;
 use crate::hub::Hub;
 use pdt_prompt::Rng;
-use pdt_train::config::TestTime;
+use pdt_rundir::config::TestTime;
 use pdt_train::methods::{
     read_iteration, CheckpointFiles, Evaluation, IterationAt, IterationMetrics, Learner,
     SavedSteps, Steppable,

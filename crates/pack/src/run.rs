@@ -7,10 +7,10 @@ use crate::engine::{PackEngine, SlotSpec};
 use crate::hub::Hub;
 use crate::member::PackMember;
 use crate::solo::SoloEngine;
-use pdt_policy::RunData;
+use pdt_run::RunData;
+use pdt_rundir::config::TrainConfig;
 use pdt_rundir::pack::Engine;
 use pdt_rundir::PackInfo;
-use pdt_train::config::TrainConfig;
 use pdt_train::methods::Learner;
 use pdt_train::run::{
     run_config_for, train_learner, Progress, ResumeWith, RunError, TrainOptions, TrainSummary,

@@ -4,14 +4,15 @@
 //! batched engine is tested against. (On the CPU a pack of N runs so takes about the time of its
 //! runs one after another; `reproduce --jobs` runs them as processes at once instead.)
 
-use crate::engine::{PackEngine, SlotSpec, SlotState, SlotStep};
+use crate::engine::{PackEngine, SlotSpec, SlotStep};
 use pdt_base::seed::derive_seed;
 use pdt_model::dropout::Dropout;
 use pdt_model::PromptDt;
+use pdt_run::streams::STREAM_DROPOUT;
 use pdt_train::optim::Optimizer;
+use pdt_train::optim::SlotState;
 use pdt_train::run::RunError;
 use pdt_train::step::{train_step_with, PendingStats};
-use pdt_train::streams::STREAM_DROPOUT;
 use tch::{nn::VarStore, Device};
 
 /// One run of the pack: its model and optimiser, as a solo run holds them.

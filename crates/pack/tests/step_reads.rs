@@ -13,8 +13,9 @@ mod fixture;
 use fixture::*;
 use pdt_model::dropout::Dropout;
 use pdt_pack::PackEngine;
+use pdt_rundir::config::{AdamWConfig, FlatOptim};
 use pdt_torch::profiler;
-use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer};
+use pdt_train::optim::Optimizer;
 use pdt_train::step::{train_step, train_step_with, PendingStats, StepStats};
 
 /// The operators that read a tensor's value to the host (`double_value`, `.item()`).

@@ -6,8 +6,6 @@ pub enum PolicyError {
     #[error(transparent)]
     Config(#[from] pdt_rundir::config::ConfigError),
     #[error(transparent)]
-    Data(#[from] pdt_data::DataError),
-    #[error(transparent)]
     Env(#[from] pdt_envs::EnvError),
     #[error(transparent)]
     Sampler(#[from] pdt_prompt::SamplerError),
@@ -21,12 +19,10 @@ pub enum PolicyError {
     Device(#[from] pdt_torch::device::DeviceError),
     #[error(transparent)]
     RunDir(#[from] pdt_rundir::RunDirError),
-    #[error("{path}: {message}")]
-    Corrupt { path: PathBuf, message: String },
-    #[error("{}: not a run directory (no config.toml)", .0.display())]
-    NotARunDir(PathBuf),
-    #[error("{}: no checkpoint yet (train first)", .0.display())]
-    NoCheckpoint(PathBuf),
+    /// The run's configuration, data or files (`pdt_run`: not a run directory, no checkpoint
+    /// yet, a corrupt `task_stats.json`, data that do not fit the configuration).
+    #[error(transparent)]
+    Load(#[from] pdt_run::LoadError),
     /// A run of a method without the Decision Transformer (MACAW): it has no policy here.
     #[error(
         "{}: a {method} run adapts to a task's data before it acts and has no Decision \

@@ -1,7 +1,5 @@
 //! [`Policy`]: a trained run loaded to act, and the prompts it acts with.
 
-use crate::data::RunData;
-use crate::files;
 use crate::inputs::{finite_f32, Inputs, MAX_RETURN};
 use crate::PolicyError;
 use pdt_base::device::DeviceSpec;
@@ -12,18 +10,14 @@ use pdt_model::checkpoint;
 use pdt_model::prompt_dt::Act;
 use pdt_model::{PrefixCache, PromptDt};
 use pdt_prompt::{BatchSampler, Rng, SegmentBatch, StateNorm};
-use pdt_rundir::config::{Method, MtBcEval, TrainConfig};
+use pdt_run::streams::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_run::{eval_returns, files, RunData};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_rundir::{RunDir, RunStats};
 use rand::SeedableRng;
 use serde::Deserialize;
 use std::path::Path;
 use tch::{nn::VarStore, Device};
-
-/// The evaluation's random streams, derived from the run seed (`pdt_base::seed::derive_seed`):
-/// the trainer's evaluations of the test and training tasks draw from them, and so does a plan,
-/// which draws what a final evaluation of the split draws. The trainer's other streams are 1-3.
-pub const STREAM_EVAL_TEST: u64 = 4;
-pub const STREAM_EVAL_TRAIN: u64 = 5;
 
 /// A trained run, loaded to act (`promptdt serve`, the Python `Policy`): the model with its latest
 /// weights and everything an episode needs besides (normalisation, return tokens, K), and, when the
@@ -63,15 +57,6 @@ pub struct PromptArrays {
     pub actions: Vec<Vec<f64>>,
     pub returns_to_go: Vec<f64>,
     pub timesteps: Vec<i64>,
-}
-
-/// The return tokens an acting policy feeds (Prompt-MT-BC and MT-BC-Finetune: constant or zero).
-pub fn eval_returns(cfg: &TrainConfig) -> EvalReturns {
-    match (cfg.run.method.zeroes_history_returns(), cfg.eval.mt_bc_returns) {
-        (false, _) => EvalReturns::Decreasing,
-        (true, MtBcEval::Reference) => EvalReturns::Constant,
-        (true, MtBcEval::Paper) => EvalReturns::Zero,
-    }
 }
 
 impl Policy {
@@ -169,7 +154,7 @@ impl Policy {
             max_batch: 1,
             device: self.device,
             env_threads: 1,
-            inference: pdt_eval::Inference::Cached,
+            inference: pdt_rundir::config::Inference::Cached,
         }
     }
 

@@ -4,9 +4,9 @@
 
 use crate::{Policy, PolicyError};
 use pdt_eval::testtime::{self, ChosenPrompt, TaskAdaptation, TaskBandit, TestTimeError};
-use pdt_eval::testtime::{Adaptation, TestTime};
 use pdt_prompt::bandit::BanditChoice;
 use pdt_prompt::{PromptStrategy, Rng};
+use pdt_rundir::config::{Adaptation, TestTime};
 use rand::{RngCore, SeedableRng};
 
 impl From<TestTimeError> for PolicyError {

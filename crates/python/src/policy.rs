@@ -448,11 +448,11 @@ impl Policy {
         let task = usize_arg("task", task, "a task index of the run's family")?;
         let seed =
             seed.map(|s| uint_arg("seed", s, "a seed in [0, 2**64)")).transpose()?.unwrap_or(0);
-        let mut cfg = pdt_eval::testtime::AdaptConfig {
+        let mut cfg = pdt_rundir::config::AdaptConfig {
             kind: adapt.parse().map_err(lib_error)?,
             ..Default::default()
         };
-        if cfg.kind == pdt_eval::testtime::AdaptKind::None {
+        if cfg.kind == pdt_rundir::config::AdaptKind::None {
             return Err(value_error("adapt: name an adaptation (soft-prompt, ptdt, lora)"));
         }
         if let Some(s) = steps {
@@ -466,8 +466,8 @@ impl Policy {
             strategy: prompt_strategy.unwrap_or("reference").parse().map_err(lib_error)?,
             ..Default::default()
         };
-        let adaptation = pdt_eval::testtime::Adaptation::Prompt(cfg);
-        let test_time = pdt_eval::testtime::TestTime::Adapt { from: strategy, adaptation };
+        let adaptation = pdt_rundir::config::Adaptation::Prompt(cfg);
+        let test_time = pdt_rundir::config::TestTime::Adapt { from: strategy, adaptation };
         let mut st = lock(&slf.get().state)?;
         // `&mut` to hand the (Send, not Sync) policy to the GIL-free closure.
         let run = &mut st.run;

@@ -35,7 +35,7 @@ pub(crate) fn train<'py>(
     data: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use pdt_train::config::{Method, Overrides, TrainConfig};
+    use pdt_rundir::config::{Method, Overrides, TrainConfig};
     let device: Option<pdt_base::device::DeviceSpec> =
         device.map(str::parse).transpose().map_err(value_error)?;
     let matmul: Option<pdt_base::device::Matmul> =
@@ -139,8 +139,8 @@ pub(crate) fn evaluate(
     let adapt = match adapt {
         None => None,
         Some(kind) => {
-            let d = pdt_eval::testtime::AdaptConfig::default();
-            Some(pdt_eval::testtime::AdaptConfig {
+            let d = pdt_rundir::config::AdaptConfig::default();
+            Some(pdt_rundir::config::AdaptConfig {
                 kind: kind.parse().map_err(lib_error)?,
                 steps: adapt_steps.unwrap_or(d.steps),
                 batch: adapt_batch.unwrap_or(d.batch),
@@ -205,7 +205,7 @@ pub(crate) fn evaluate(
 /// The episodes an evaluation of the run in `dir` plays: each task of `split`, `episodes` (else
 /// the run's `eval.episodes`) each; `None` where the run's configuration cannot be read.
 fn planned_episodes(dir: &std::path::Path, episodes: Option<usize>, split: &str) -> Option<usize> {
-    let cfg = pdt_train::config::TrainConfig::from_file(&dir.join("config.toml")).ok()?;
+    let cfg = pdt_rundir::config::TrainConfig::from_file(&dir.join("config.toml")).ok()?;
     let (train, test) = pdt_envs::family(&cfg.env.name).ok()?.split(&cfg.env.split).ok()?;
     let tasks = if split == "train" { train.len() } else { test.len() };
     Some(tasks * episodes.unwrap_or(cfg.eval.episodes))

@@ -539,7 +539,7 @@ pub fn emit_jobs(
     let n = groups.len();
     let unit = if pack > 1 { "pack" } else { "run" };
     let cpus = groups.iter().map(|g| task_cpus(g)).max().unwrap_or(1);
-    let gpu = runs.iter().any(|r| r.config.run.device == pdt_rundir::config::DeviceSpec::Cuda);
+    let gpu = runs.iter().any(|r| r.config.run.device == pdt_base::device::DeviceSpec::Cuda);
     // A site names its GPUs, partitions and accounts its own way: the one line to edit is marked.
     let gres = match gpu {
         true => {

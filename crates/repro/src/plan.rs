@@ -17,8 +17,8 @@
 
 use crate::manifest::{Cell, Manifest};
 use crate::ReproError;
+use pdt_base::device::{DeviceSpec, Matmul};
 use pdt_rundir::config::TrainConfig;
-use pdt_rundir::config::{DeviceSpec, Matmul};
 use pdt_rundir::RunDir;
 use std::path::{Path, PathBuf};
 

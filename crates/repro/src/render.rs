@@ -6,9 +6,10 @@
 use crate::manifest::{Manifest, BUILTIN};
 use crate::plan::{self, PlanOptions};
 use crate::registry;
-use crate::report::{self, Report, Stat};
+use crate::report::{self, Report};
 use crate::stats;
 use crate::ReproError;
+use pdt_report::Stat;
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -61,7 +61,7 @@ pub enum RlError {
     Interrupted,
 }
 
-pub use pdt_base::seed::derive_seed;
+use pdt_base::seed::derive_seed;
 
 /// A ChaCha8 generator for `(seed, stream, counter)`.
 pub fn stream_rng(seed: u64, stream: u64, counter: u64) -> rand_chacha::ChaCha8Rng {

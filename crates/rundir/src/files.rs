@@ -9,8 +9,9 @@
 use serde::{Deserialize, Deserializer, Serialize};
 use std::collections::BTreeMap;
 
-use crate::config::{compact, within, MAX_STATE_STAT};
+use crate::config::{within, MAX_STATE_STAT};
 pub use crate::config::{LEGACY_LOSS_METRIC, LEGACY_MACAW_LOSS_METRIC};
+use pdt_base::num::compact;
 
 /// The run's identity (`run.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -49,7 +50,10 @@ pub struct PackInfo {
     /// The run's position in the pack (0-based).
     pub slot: usize,
     /// The engine that stepped the pack: `batched` (one batched computation for all runs) or
-    /// `solo` (each run's ordinary step, one after another).
+    /// `solo` (each run's ordinary step: the run is the one trained alone, file for file). Today's
+    /// solo engine takes the runs' steps one after another; a record written by an earlier
+    /// version may say `solo` for a CPU pack whose steps were taken at once, one thread per run,
+    /// which was exact as well, so the record means the same of the run's files either way.
     pub engine: String,
 }
 

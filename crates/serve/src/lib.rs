@@ -126,9 +126,7 @@ pub enum ServeError {
 // The wire format
 // ------------------------------------------------------------------------------------------------
 
-/// A prompt sent by the client (the same arrays a Python `Policy` takes).
-pub use wire::PromptArrays;
-pub use wire::{ActionReply, Info, OpenRequest, StepRequest, MAX_RETURN};
+pub use wire::{ActionReply, Info, OpenRequest, StepRequest};
 
 /// An error reply: `{"error": "..."}` with its status.
 #[derive(Debug, Clone)]

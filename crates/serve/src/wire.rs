@@ -3,11 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
-/// A prompt sent by the client (the same arrays a Python `Policy` takes).
-pub use pdt_policy::PromptArrays;
-
-/// The largest return and return-to-go accepted (raw, in reward units).
-pub use pdt_policy::MAX_RETURN;
+// A prompt sent by the client is the arrays a Python `Policy` takes: one type, the policy's.
+use pdt_policy::PromptArrays;
 
 /// `POST /v1/episodes`.
 #[derive(Debug, Clone, Deserialize)]

@@ -1,11 +1,11 @@
 //! The error of a run: its set-up, training, checkpoints and evaluation.
 
-use crate::config::ConfigError;
 use pdt_data::DataError;
 use pdt_envs::EnvError;
 use pdt_eval::EvalError;
 use pdt_model::checkpoint::CheckpointError;
 use pdt_prompt::SamplerError;
+use pdt_rundir::config::ConfigError;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
@@ -31,8 +31,10 @@ pub enum RunError {
     /// A run-directory file unreadable, malformed or unwritable (the error names it).
     #[error(transparent)]
     RunDir(#[from] pdt_rundir::RunDirError),
-    /// The run's data, configuration or files as a policy reads them (`pdt_policy::RunData`,
-    /// `pdt_policy::files`).
+    /// The run's data, configuration or files (`pdt_run::RunData`, `pdt_run::files`).
+    #[error(transparent)]
+    Load(#[from] pdt_run::LoadError),
+    /// A test task's adaptation, made by the acting policy's runtime (`pdt_policy::adapt`).
     #[error(transparent)]
     Policy(#[from] pdt_policy::PolicyError),
     #[error("{path}: {source}")]

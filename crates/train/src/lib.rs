@@ -7,12 +7,12 @@
 //!   [`Steppable`](methods::Steppable), the learner a pack (`pdt-pack`, above this crate) takes
 //!   the gradient steps of.
 //! - [`setup`]: the configuration checked against its environment and data, the data loaded
-//!   (`pdt_policy::RunData`).
+//!   (`pdt_run::RunData`).
 //! - `run_dir`: the trainer's bookkeeping of the run directory (logs cut back on resume, checkpoint
 //!   commits, clean-up after a kill) over `pdt_rundir`'s typed files.
 //! - `evaluate`: the final evaluation of a run (`eval_final.json`).
-//! - [`streams`]: the run seed's independent random streams, and the lock on libtorch's one
-//!   random generator that runs sharing a process take turns at.
+//! - [`streams`]: the lock on libtorch's one random generator that runs sharing a process take
+//!   turns at (the run seed's streams are numbered in `pdt_run::streams`).
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
 //!   PyTorch's `torch.optim.AdamW` (single-tensor CPU path), `LambdaLR` and `clip_grad_norm_`
 //!   bit for bit, with a state that can be saved and restored for resumable runs; `FlatAdamW`,
@@ -24,7 +24,6 @@
 // on the cold path only (a failed run), where their size costs nothing.
 #![allow(clippy::result_large_err)]
 
-pub mod config;
 mod error;
 mod evaluate;
 pub mod methods;

@@ -1,7 +1,7 @@
-//! The public face of a run: [`train`] (the loop in `run_loop`, the methods in `methods`),
-//! [`evaluate_run`] (the final evaluation, `evaluate`) and the run directory's records (owned by
-//! `pdt_rundir`, re-exported here).
-//! A trained run loaded to act is `pdt_policy::Policy`.
+//! The public face of a run: [`train`] (the loop in `run_loop`, the methods in `methods`) and
+//! [`evaluate_run`] (the final evaluation, `evaluate`). The run directory's records are
+//! `pdt_rundir`'s, its data, files, streams and evaluation plans `pdt_run`'s; a trained run loaded
+//! to act is `pdt_policy::Policy`.
 //!
 //! Randomness: one seed, split into independent streams (model init, batch sampling, dropout per
 //! gradient step, evaluation per iteration), so a resumed run draws exactly what an uninterrupted one
@@ -12,4 +12,3 @@ pub use crate::evaluate::{asked_test_time, evaluate_run, evaluate_run_as, EvalRe
 pub use crate::run_loop::{
     run_config_for, train, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
 };
-pub use pdt_rundir::{FinalEval, RunInfo, TaskStats};

@@ -5,7 +5,6 @@
 //! iterations (an interruption, in tests). The method is a [`Learner`]; the directory's layout is
 //! `docs/run-directory.md`.
 
-use crate::config::{TestTime, TrainConfig};
 use crate::error::{io_err, RunError};
 use crate::methods::{
     self, CheckpointFiles, IterationAt, IterationMetrics, Learner, SavedSteps, TaskEval,
@@ -14,11 +13,13 @@ use crate::run_dir::{
     check_log_counts, commit_checkpoint, lock_run_dir, now_utc, remove_orphans, Log,
 };
 use crate::setup::{absolute, Setup, Split};
-use crate::streams::{torch_rng_lock, STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use crate::streams::torch_rng_lock;
 use pdt_base::fs::write_atomic;
 use pdt_base::seed::derive_seed;
-use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
+use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_rundir::config::{TestTime, TrainConfig};
+use pdt_rundir::TaskResult;
 use pdt_rundir::{
     read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
 };
@@ -218,7 +219,7 @@ fn prepare_run_dir(
         }
         run.write_stats(&setup.run_data.stats)?;
     } else if resume {
-        let recorded = pdt_policy::files::read_stats(&run)?;
+        let recorded = pdt_run::files::read_stats(&run)?;
         setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
             RunError::Invalid(format!(
                 "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \

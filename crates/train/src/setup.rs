@@ -1,15 +1,15 @@
 //! A run's set-up: the configuration checked against its environment and data, the data loaded
-//! and checked by `pdt_policy::RunData` (the loader a served policy draws its prompts with, so that
+//! and checked by `pdt_run::RunData` (the loader a served policy draws its prompts with, so that
 //! training, evaluation and serving see the same data), and the device.
 
-use crate::config::{Method, TrainConfig};
 use crate::error::RunError;
 use crate::run_dir::EvalSchedule;
 use pdt_data::MultiTaskDataset;
 use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::EvalReturns;
-use pdt_policy::RunData;
 use pdt_prompt::BatchSampler;
+use pdt_run::RunData;
+use pdt_rundir::config::{Method, TrainConfig};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tch::Device;
@@ -102,7 +102,7 @@ impl Setup {
     }
 
     pub(crate) fn eval_returns(&self) -> EvalReturns {
-        pdt_policy::eval_returns(&self.cfg)
+        pdt_run::eval_returns(&self.cfg)
     }
 
     /// The tasks of `split` and their data.

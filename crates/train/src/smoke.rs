@@ -1,11 +1,13 @@
 //! A tiny end-to-end check that needs no data on disk: two synthetic tasks, one sampled batch, a
 //! few training steps. (The full demo, with environments, comes with the evaluation crate.)
 
-use crate::optim::{AdamWConfig, Optimizer};
-use crate::step::{train_step, DeviceBatch, LossOn, StepStats};
+use crate::optim::Optimizer;
+use crate::step::{train_step, DeviceBatch, StepStats};
 use pdt_data::{TaskData, TaskDataset, TaskId, Trajectory};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{BatchSampler, Rng, SamplerConfig, StateNorm};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::LossOn;
 use rand::{Rng as _, SeedableRng};
 use tch::{nn::VarStore, Device};
 

@@ -2,13 +2,13 @@
 //! history actions, backward, global clipping, AdamW at the scheduled learning rate.
 
 use crate::optim::Optimizer;
+use pdt_eval::to_segments;
 use pdt_model::dropout::Dropout;
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, Segments};
 use pdt_prompt::PromptDtBatch;
+use pdt_rundir::config::{LastBlockChoice, LossOn};
 use tch::{Device, Kind, Tensor};
-
-pub use pdt_eval::to_segments;
 
 /// What one step measured.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -95,8 +95,6 @@ impl PendingStats {
 pub(crate) fn unreadable(e: tch::TchError) -> crate::error::RunError {
     crate::error::RunError::Invalid(format!("reading the steps' losses from the device: {e}"))
 }
-
-pub use pdt_rundir::config::{LastBlockChoice, LossOn};
 
 /// The model's last block for a run's `train.last_block` on `device` (`batched`: in a batched
 /// pack, where `auto` means the state tokens on any device; docs/implementation-details.md, C.9).

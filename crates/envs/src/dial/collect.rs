@@ -6,11 +6,12 @@ use rand_chacha::ChaCha8Rng;
 use pdt_data::Trajectory;
 
 use crate::collect_scripted::{
-    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
+    play_set, CollectConfig, CollectError, EpisodeLog, ScriptedPolicies,
 };
 use crate::dial::{self, Dial, DialExpert, DialFamily};
 use crate::mujoco_env::standard_normal;
 use crate::{Env, EnvFamily};
+use pdt_data::mode::{Mode, Set};
 
 /// Dial: the expert's per-episode DART noise amounts (the original collector's, spec §3.2), drawn
 /// uniformly; the noise on joint j is N(0, (|c_low[j]| amount)^2), plus U(0, 0.1) on joint 1's

@@ -6,11 +6,12 @@ use rand_chacha::ChaCha8Rng;
 use pdt_data::Trajectory;
 
 use crate::collect_scripted::{
-    play_set, CollectConfig, CollectError, EpisodeLog, Mode, ScriptedPolicies, Set,
+    play_set, CollectConfig, CollectError, EpisodeLog, ScriptedPolicies,
 };
 use crate::metaworld_reach::{self as reach, MetaWorldReach, MetaWorldReachFamily};
 use crate::mujoco_env::standard_normal;
 use crate::{Env, EnvFamily};
+use pdt_data::mode::{Mode, Set};
 
 /// Meta-World reach: standard deviation of the expert's (and medium policy's) action noise on
 /// every dimension, Meta-World's test-harness model `a ~ N(a, (pct * 2)^2)` at pct 0.1, under which

@@ -148,7 +148,7 @@ fn full_size() {
         serde_json::json!({
             "engine": "pdt-envs",
             "config": cfg,
-            "cores": bench::available_cores(),
+            "cores": pdt_base::threads::available_cores(),
             "load_avg_1m_before": load_before,
             "load_avg_1m_after": bench::load_avg_1m(),
         })

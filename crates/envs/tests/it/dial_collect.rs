@@ -4,8 +4,9 @@
 //! step that ends within L1 0.1 of the digit's press point, terminated there; 0 before), and the
 //! same configuration gives the same bytes.
 
+use pdt_data::mode::Mode;
 use pdt_data::native;
-use pdt_envs::collect_scripted::{collect, CollectConfig, Mode};
+use pdt_envs::collect_scripted::{collect, CollectConfig};
 use pdt_envs::dial::{
     run_dial_episode, Dial, DialExpert, DialFamily, ACT_DIM, C_HIGH, C_LOW, HORIZON, NUM_TASKS,
     SUCCESS_L1,

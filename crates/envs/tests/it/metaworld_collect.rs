@@ -3,8 +3,9 @@
 //! `promptdt data report` uses for success agrees with the environment's flag, and the same
 //! configuration gives the same bytes.
 
+use pdt_data::mode::Mode;
 use pdt_data::native;
-use pdt_envs::collect_scripted::{collect, CollectConfig, CollectError, Mode, ScriptedFamily};
+use pdt_envs::collect_scripted::{collect, CollectConfig, CollectError, ScriptedFamily};
 use pdt_envs::metaworld_reach::{
     MetaWorldReachFamily, ENV_NAME, HORIZON, OBS_DIM, REACH_ACTION_NOISE, SUCCESS_REWARD,
 };

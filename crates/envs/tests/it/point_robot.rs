@@ -4,11 +4,12 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+use pdt_data::mode::{Mode, Set};
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::native::{self, read_card, read_file_meta, read_task_dataset, FileMeta};
 use pdt_data::TaskDataset;
 use pdt_envs::collect_scripted::{
-    collect, episode_rng, generate_for, CollectConfig, CollectError, Mode, ScriptedFamily, Set,
+    collect, episode_rng, generate_for, CollectConfig, CollectError, ScriptedFamily,
 };
 use pdt_envs::point_robot::{
     self, run_episode, PointRobotFamily, DEFAULT_TEST_TASKS, HORIZON, OOD_TEST_TASKS,

@@ -9,11 +9,11 @@
 //! so the model's weights neither change nor accumulate gradients.
 
 use super::optim::Adam;
-use super::{AdaptConfig, AdaptError, LoraConfig};
 use crate::EvalError;
 use pdt_model::prompt_dt::{Prompt, Sequence};
 use pdt_model::{LastBlock, LoraAdapters, LoraShape, PromptDt, PromptTokens, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
+use pdt_rundir::config::{AdaptConfig, AdaptError, LoraConfig};
 use rand::Rng as _;
 use tch::{Kind, Tensor};
 

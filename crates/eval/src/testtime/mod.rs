@@ -26,10 +26,7 @@ pub mod select;
 pub mod split;
 pub mod task;
 
-pub use pdt_rundir::config::{
-    AdaptConfig, AdaptError, AdaptKind, AdaptLog, Adaptation, LoraConfig, PtdtConfig, PtdtScore,
-    TestTime,
-};
+use pdt_rundir::config::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, PtdtScore};
 pub use plan::{plan_task, summarise_plans, SplitEval, TaskPlan};
 pub use select::{choose_prompt, ChosenPrompt, NearestStart, TaskBandit};
 pub use split::{evaluate_adapted, evaluate_reference, evaluate_strategy, SplitResult};

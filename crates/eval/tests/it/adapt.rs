@@ -4,11 +4,11 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code
 
 use pdt_eval::testtime::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
-use pdt_eval::testtime::{AdaptConfig, AdaptKind};
 use pdt_eval::{prompt_batch, to_vec, EvalError};
 use pdt_model::prompt_dt::{Act, Prompt, Sequence};
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 use pdt_prompt::{Rng, SegmentBatch};
+use pdt_rundir::config::{AdaptConfig, AdaptKind};
 use rand::{Rng as _, SeedableRng};
 use tch::nn::VarStore;
 use tch::Device;

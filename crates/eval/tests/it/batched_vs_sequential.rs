@@ -3,9 +3,10 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::EnvFamily;
-use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalReturns, EvalSettings, EvalTask};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{SegmentBatch, StateNorm};
+use pdt_rundir::config::Inference;
 use tch::{nn::VarStore, Device};
 
 fn prompt_for(goal: [f32; 2]) -> SegmentBatch {

@@ -5,10 +5,10 @@
 
 use pdt_eval::{
     evaluate, evaluate_with, EpisodePrompts, EvalError, EvalReturns, EvalSettings, EvalTask,
-    Inference,
 };
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::{SegmentBatch, StateNorm};
+use pdt_rundir::config::Inference;
 use tch::{nn::VarStore, Device};
 
 /// A 4-step prompt made from a start observation (so episodes with other starts get other

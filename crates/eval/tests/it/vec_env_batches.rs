@@ -4,9 +4,10 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
 use pdt_envs::{Env, EnvError, StepResult};
-use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask, Inference};
+use pdt_eval::{evaluate, EvalError, EvalReturns, EvalSettings, EvalTask};
 use pdt_model::{PromptDt, PromptDtConfig};
 use pdt_prompt::StateNorm;
+use pdt_rundir::config::Inference;
 use tch::{nn::VarStore, Device};
 
 /// A point robot whose episode ends (terminates) after `3 + seed % 7` steps, or that refuses its

@@ -8,7 +8,8 @@
 //! libtorch thread. The committed fixtures, made on another machine, are compared within bounds
 //! (see `bound`), whatever CPU they record (`pdt_testkit::golden`).
 
-use pdt_macaw::{adapt, meta_task, Batch, Dims, MacawConfig, Optimisers, Params};
+use pdt_macaw::{adapt, meta_task, Batch, Dims, Optimisers, Params};
+use pdt_rundir::config::macaw::MacawConfig;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{Kind, Tensor};

@@ -19,8 +19,9 @@
 //! (as the solo flat optimiser's, `pdt_train::optim::flat`). A step whose runs' step counts differ
 //! between parameters (a state imported from elsewhere) takes the per-tensor loop over the views.
 
+use pdt_rundir::config::AdamWConfig;
 use pdt_torch::device::upload;
-use pdt_train::optim::{AdamWConfig, ParamState};
+use pdt_train::optim::ParamState;
 use std::collections::{BTreeMap, HashMap};
 use tch::{Device, Kind, Tensor};
 

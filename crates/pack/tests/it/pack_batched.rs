@@ -12,9 +12,12 @@ use pdt_model::dropout::Dropout;
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
 use pdt_pack::model::{DropoutSeeds, PackedBatch, PackedRow};
-use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
-use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
-use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
+use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
+use pdt_train::optim::{AdamW, Optimizer};
+use pdt_train::step::{train_step, DeviceBatch, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
 use fixture::*;
@@ -265,11 +268,11 @@ fn mismatched_inputs_are_refused() {
     // One computation for the pack: its runs' `train.last_block` must resolve alike (`auto`
     // resolves to the state tokens in a batched pack, so it goes with `state_tokens`).
     let mut mixed = specs();
-    mixed[1].last_block = pdt_train::step::LastBlockChoice::AllTokens;
+    mixed[1].last_block = pdt_rundir::config::LastBlockChoice::AllTokens;
     let e = BatchedEngine::new(mixed, layout(), Device::Cpu).err().unwrap().to_string();
     assert!(e.contains("run 1's train.last_block (all_tokens) differs from run 0's (auto)"), "{e}");
     let mut alike = specs();
-    alike[1].last_block = pdt_train::step::LastBlockChoice::StateTokens;
+    alike[1].last_block = pdt_rundir::config::LastBlockChoice::StateTokens;
     assert!(BatchedEngine::new(alike, layout(), Device::Cpu).is_ok());
 }
 
@@ -319,7 +322,7 @@ fn time_pack_of_three_against_three_solo_steps() {
                 uses_prompt: true,
                 loss_on: LossOn::History,
                 optim: AdamWConfig::default(),
-                last_block: pdt_train::step::LastBlockChoice::Auto,
+                last_block: pdt_rundir::config::LastBlockChoice::Auto,
                 seed,
             })
             .collect();

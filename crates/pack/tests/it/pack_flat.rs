@@ -8,8 +8,9 @@ use crate::fixture;
 
 use fixture::*;
 use pdt_pack::model::MaskDraw;
-use pdt_pack::{BatchedEngine, PackEngine, SlotSpec, SlotState};
-use pdt_train::optim::FlatOptim;
+use pdt_pack::{BatchedEngine, PackEngine, SlotSpec};
+use pdt_rundir::config::FlatOptim;
+use pdt_train::optim::SlotState;
 use pdt_train::step::PendingStats;
 use tch::{Device, Tensor};
 

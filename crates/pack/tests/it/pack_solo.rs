@@ -12,9 +12,12 @@ use pdt_base::seed::derive_seed;
 use pdt_model::dropout::{Dropout, DropoutMasks};
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_pack::{PackEngine, SlotSpec, SlotState, SlotStep, SoloEngine};
-use pdt_train::optim::{AdamWConfig, Optimizer};
-use pdt_train::step::{train_step, DeviceBatch, LossOn, PendingStats, StepStats};
+use pdt_pack::{PackEngine, SlotSpec, SlotStep, SoloEngine};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::LossOn;
+use pdt_train::optim::Optimizer;
+use pdt_train::optim::SlotState;
+use pdt_train::step::{train_step, DeviceBatch, PendingStats, StepStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
 // libtorch's generator is global: the tests of this binary take turns.
@@ -55,7 +58,7 @@ fn specs() -> Vec<SlotSpec> {
             uses_prompt: prompt > 0,
             loss_on,
             optim: AdamWConfig { learning_rate: 1e-3, warmup_steps: 10, ..AdamWConfig::default() },
-            last_block: pdt_train::step::LastBlockChoice::Auto,
+            last_block: pdt_rundir::config::LastBlockChoice::Auto,
             seed,
         })
         .collect()

@@ -9,8 +9,8 @@
 use crate::runs;
 
 use pdt_pack::{train_pack, PackOptions, PackRun};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_rundir::pack::Engine;
-use pdt_train::config::{Method, TrainConfig};
 use pdt_train::run::{RunError, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;

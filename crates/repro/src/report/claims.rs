@@ -99,7 +99,7 @@ fn not_measured(c: &Claim, detail: String) -> ClaimResult {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::report::Stat;
+    use pdt_report::Stat;
 
     fn cell(id: &str, scores: Vec<Vec<f64>>) -> CellResult {
         let means: Vec<f64> =

@@ -27,9 +27,9 @@ pub use claims::{ClaimResult, DEFAULT_MARGIN};
 pub(crate) use render::PaperText;
 use render::{cells_csv, curves_csv, markdown};
 
-/// Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out
-/// and `n` says how many seeds were used), the rule of `promptdt report`.
-pub use pdt_report::Stat;
+// Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out
+// and `n` says how many seeds were used): the rule of `promptdt report`, so one definition.
+use pdt_report::Stat;
 
 /// One cell's result.
 #[derive(Debug, Clone, Serialize)]

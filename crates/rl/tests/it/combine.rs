@@ -2,7 +2,7 @@
 //! (`combine`), on tiny Cheetah-Dir runs.
 #![allow(clippy::unwrap_used)] // tests: a failed unwrap is a failed test
 
-use pdt_envs::collect_scripted::Mode;
+use pdt_data::mode::Mode;
 use pdt_rl::agent::{Algorithm, Noise};
 use pdt_rl::combine::{combine, evaluate_policy, CombineConfig};
 use pdt_rl::datasets::{generate, DatasetConfig};

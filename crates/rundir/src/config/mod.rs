@@ -13,8 +13,8 @@ pub use adapt::{AdaptConfig, AdaptError, AdaptKind, AdaptLog, LoraConfig, PtdtCo
 pub use method::Method;
 pub use options::{AdamWConfig, FlatOptim, Inference, LastBlockChoice, LossOn};
 pub use overrides::{Overrides, UnknownMethod};
-pub use pdt_base::device::{DeviceSpec, Matmul};
-pub use pdt_base::num::compact;
+use pdt_base::device::{DeviceSpec, Matmul};
+use pdt_base::num::compact;
 use pdt_data::multitask::DataFormat;
 use pdt_prompt::{NormalizationScope, PromptPosition, PromptStrategy, TrajectoryRanking};
 use serde::{Deserialize, Serialize};

@@ -5,10 +5,10 @@
 //! adaptation requests get clear errors.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_eval::testtime::{AdaptConfig, AdaptKind, Adaptation, TestTime};
 use pdt_eval::{evaluate_given, GivenPrompts};
 use pdt_policy::Policy;
 use pdt_prompt::PromptStrategy;
+use pdt_rundir::config::{AdaptConfig, AdaptKind, Adaptation, TestTime};
 use pdt_serve::ServeOptions;
 use std::net::SocketAddr;
 
@@ -144,7 +144,7 @@ fn bad_adaptation_requests_get_clear_errors() {
 #[test]
 fn a_return_scored_ptdt_is_refused_where_no_environment_is_stepped() {
     let mut cfg = AdaptConfig { kind: AdaptKind::Ptdt, steps: 2, batch: 2, ..Default::default() };
-    cfg.ptdt.score = pdt_eval::testtime::PtdtScore::Return;
+    cfg.ptdt.score = pdt_rundir::config::PtdtScore::Return;
     let run = Policy::load(&tiny_run().1, None, None).unwrap();
     let e = run.adapt(2, 0, &adapted(cfg)).unwrap_err().to_string();
     assert!(e.contains("ptdt.score = \"return\"") && e.contains("action-loss"), "{e}");

@@ -4,12 +4,13 @@
 //! are planned and evaluated as every test time's are (`pdt_eval::testtime`).
 
 use crate::error::RunError;
-use crate::optim::{AdamWConfig, Optimizer};
+use crate::optim::Optimizer;
 use crate::setup::Setup;
-use crate::step::{train_step, unreadable, DeviceBatch, LossOn};
+use crate::step::{train_step, unreadable, DeviceBatch};
 use pdt_eval::evaluate;
 use pdt_eval::testtime::{summarise_plans, SplitEval, SplitResult};
 use pdt_prompt::Rng;
+use pdt_rundir::config::{AdamWConfig, LossOn};
 use tch::{nn::VarStore, Tensor};
 
 /// The fine-tuning before each test task: its steps, segments per step and learning rate.
@@ -46,7 +47,7 @@ pub(super) fn finetune_each(
         for s in 0..tune.steps {
             let seg =
                 sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
-            let history = crate::step::to_segments(&seg, setup.device);
+            let history = pdt_eval::to_segments(&seg, setup.device);
             let batch = DeviceBatch { history, prompt: None };
             train_step(ev.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
         }

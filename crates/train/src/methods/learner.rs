@@ -1,15 +1,15 @@
 //! The [`Learner`] trait: what the run loop asks of a method, and the types it speaks in; and
 //! [`Steppable`], what a pack asks of a method besides.
 
-use crate::config::TestTime;
 use crate::error::{io_err, RunError};
 use crate::optim::SlotState;
 use crate::run_dir::temp_name;
 use crate::setup::Split;
 use crate::step::DeviceBatch;
-use pdt_eval::TaskResult;
 use pdt_prompt::Rng;
+use pdt_rundir::config::TestTime;
 use pdt_rundir::AdaptationStats;
+use pdt_rundir::TaskResult;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::Tensor;
@@ -80,7 +80,7 @@ pub struct Evaluation {
     /// methods without a prompt.
     pub(crate) picks: Vec<pdt_prompt::PromptPick>,
     /// What `[eval.adapt]`'s adaptation did per test task; empty without one.
-    pub(crate) adapt_log: Vec<pdt_eval::testtime::AdaptLog>,
+    pub(crate) adapt_log: Vec<pdt_rundir::config::AdaptLog>,
 }
 
 impl Evaluation {

@@ -11,15 +11,17 @@ use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
     IterationMetrics, Learner, SavedSteps, TaskEval,
 };
-use crate::config::{compact, Adaptation, TestTime};
 use crate::error::RunError;
 use crate::setup::{Setup, Split};
-use crate::streams::STREAM_INIT;
+use pdt_base::num::compact;
 use pdt_base::seed::derive_seed;
 use pdt_eval::{summarise, EpisodeRecord};
-use pdt_macaw::{Batch, Dims, MacawConfig, Optimisers, Params, StepStats, TaskBuffer};
+use pdt_macaw::{Batch, Dims, Optimisers, Params, StepStats, TaskBuffer};
 use pdt_model::checkpoint;
 use pdt_prompt::Rng;
+use pdt_run::streams::STREAM_INIT;
+use pdt_rundir::config::macaw::MacawConfig;
+use pdt_rundir::config::{Adaptation, TestTime};
 use pdt_rundir::AdaptationStats;
 use rand::{RngCore, SeedableRng};
 use std::collections::BTreeMap;

@@ -20,9 +20,9 @@ pub use learner::{
 };
 pub use prompt_dt::read_iteration;
 
-use crate::config::Method;
 use crate::error::RunError;
 use crate::setup::Setup;
+use pdt_rundir::config::Method;
 
 /// The registry: the learner of the run's method, its model initialised from the run seed.
 /// Call it with libtorch's generator held (`streams::torch_rng_lock`).
@@ -62,8 +62,8 @@ pub fn cannot_pack(method: Method) -> RunError {
 #[cfg(test)]
 mod tests {
     use super::learner;
-    use crate::config::{Method, TrainConfig};
     use crate::setup::Setup;
+    use pdt_rundir::config::{Method, TrainConfig};
 
     /// The registry builds a learner for every method of `Method::ALL` (its `match` has no `_`
     /// arm, so a new variant does not compile without one), on a tiny point-robot dataset, and

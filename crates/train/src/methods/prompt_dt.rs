@@ -6,12 +6,11 @@ use super::learner::{
     adam_steps_of, adam_steps_value, write_tensors, CheckpointFiles, Evaluation, IterationAt,
     IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
-use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{Optimizer, ParamState, SlotState};
 use crate::setup::{Setup, Split};
-use crate::step::{train_step_with, unreadable, DeviceBatch, LossOn, PendingStats, StepStats};
-use crate::streams::{STREAM_DROPOUT, STREAM_INIT};
+use crate::step::{train_step_with, unreadable, DeviceBatch, PendingStats, StepStats};
+use pdt_base::num::compact;
 use pdt_base::seed::derive_seed;
 use pdt_eval::testtime::{self, SplitEval};
 use pdt_eval::EvalSettings;
@@ -19,6 +18,8 @@ use pdt_model::checkpoint;
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::PromptDt;
 use pdt_prompt::{BatchSampler, Rng};
+use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
+use pdt_rundir::config::{Adaptation, LossOn, Method, TestTime, TrainConfig};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};

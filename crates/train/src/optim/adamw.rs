@@ -6,11 +6,9 @@
 //! be saved, which resumable runs need, and (b) libtorch's C++ AdamW orders its float ops
 //! differently from the Python one the reference runs.
 
+use pdt_rundir::config::AdamWConfig;
 use std::collections::BTreeMap;
 use tch::{nn::VarStore, Tensor};
-
-// The settings are part of a run's configuration, which is read without libtorch.
-pub use pdt_rundir::config::AdamWConfig;
 
 /// Per-parameter AdamW state, created the first time the parameter has a gradient (as PyTorch does).
 #[derive(Debug)]

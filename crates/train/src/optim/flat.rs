@@ -28,7 +28,8 @@
 //! element-wise update itself is the same ops). See docs/reproducibility.md for the measured
 //! tolerance.
 
-use super::adamw::{adamw_update, optimised_params, AdamWConfig, Grads, Moments, ParamState};
+use super::adamw::{adamw_update, optimised_params, Grads, Moments, ParamState};
+use pdt_rundir::config::AdamWConfig;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use tch::{nn::VarStore, Tensor};

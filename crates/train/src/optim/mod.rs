@@ -6,10 +6,10 @@
 pub mod adamw;
 pub mod flat;
 
-pub use adamw::{AdamW, AdamWConfig, Grads, ParamState};
+pub use adamw::{AdamW, Grads, ParamState};
 pub use flat::{FlatAdamW, FlatGrads, OptimError, CPU_CHUNK};
-pub use pdt_rundir::config::FlatOptim;
 
+use pdt_rundir::config::AdamWConfig;
 use std::collections::BTreeMap;
 use tch::{nn::VarStore, Tensor};
 

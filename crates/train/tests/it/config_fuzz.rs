@@ -2,7 +2,7 @@
 //! fails validation (naming the setting), or is a configuration that writes back to itself.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_train::config::TrainConfig;
+use pdt_rundir::config::TrainConfig;
 use proptest::prelude::*;
 
 /// Every setting a user can write, as (section, key).
@@ -156,10 +156,13 @@ fn shipped_macaw_configs_are_the_promptdt_preset() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
     for env in ["cheetah_dir", "cheetah_vel", "ant_dir"] {
         let cfg = TrainConfig::from_file(&root.join(env).join("macaw.toml")).unwrap();
-        assert_eq!(cfg.run.method, pdt_train::config::Method::Macaw);
+        assert_eq!(cfg.run.method, pdt_rundir::config::Method::Macaw);
         assert_eq!(
             cfg.macaw,
-            pdt_macaw::MacawConfig::preset(pdt_macaw::Preset::Promptdt, 5),
+            pdt_rundir::config::macaw::MacawConfig::preset(
+                pdt_rundir::config::macaw::Preset::Promptdt,
+                5
+            ),
             "{env}"
         );
     }

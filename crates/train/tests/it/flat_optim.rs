@@ -7,9 +7,11 @@
 use crate::runs;
 
 use pdt_model::{checkpoint, PromptDt, PromptDtConfig, Segments};
-use pdt_train::config::{Method, TrainConfig};
-use pdt_train::optim::{AdamWConfig, FlatOptim, Optimizer, ParamState};
-use pdt_train::step::{train_step, DeviceBatch, LossOn};
+use pdt_rundir::config::LossOn;
+use pdt_rundir::config::{AdamWConfig, FlatOptim};
+use pdt_rundir::config::{Method, TrainConfig};
+use pdt_train::optim::{Optimizer, ParamState};
+use pdt_train::step::{train_step, DeviceBatch};
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Kind, Tensor};

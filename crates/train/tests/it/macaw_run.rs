@@ -4,8 +4,7 @@
 
 use crate::runs;
 
-use pdt_train::config::{Adaptation, TestTime};
-use pdt_train::config::{Method, TrainConfig};
+use pdt_rundir::config::{Adaptation, Method, TestTime, TrainConfig};
 use pdt_train::run::{evaluate_run, evaluate_run_as, EvalRequest};
 use runs::{lines, run, tiny_data};
 use std::path::Path;

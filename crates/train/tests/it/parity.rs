@@ -15,7 +15,8 @@ use crate::golden;
 use golden::{bounds, Golden};
 use pdt_model::prompt_dt::Sequence;
 use pdt_model::{checkpoint, PromptDt, PromptDtConfig, Segments};
-use pdt_train::optim::{AdamW, AdamWConfig};
+use pdt_rundir::config::AdamWConfig;
+use pdt_train::optim::AdamW;
 use std::collections::HashMap;
 use tch::{nn::VarStore, Device, Kind, Tensor};
 

@@ -3,7 +3,7 @@
 
 use crate::runs;
 
-use pdt_train::config::{Method, TrainConfig};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_train::run::{train, TrainOptions, TrainSummary};
 use runs::{lines, tiny_data};
 use std::path::Path;

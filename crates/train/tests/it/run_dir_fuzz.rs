@@ -5,8 +5,8 @@
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 #![allow(clippy::result_large_err)] // the library's error type, returned as is
 
+use pdt_rundir::config::TrainConfig;
 use pdt_testkit::fs::copy_dir;
-use pdt_train::config::TrainConfig;
 use pdt_train::run::{evaluate_run, train, ResumeWith, TrainOptions};
 use proptest::prelude::*;
 use std::path::{Path, PathBuf};

@@ -5,9 +5,12 @@
 
 use pdt_base::seed::derive_seed;
 use pdt_model::{PromptDt, PromptDtConfig, Segments};
-use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotState, SlotStep};
-use pdt_train::optim::{AdamW, AdamWConfig, Optimizer};
-use pdt_train::step::{DeviceBatch, LossOn, PendingStats};
+use pdt_pack::{BatchedEngine, PackEngine, PackLayout, SlotSpec, SlotStep};
+use pdt_rundir::config::AdamWConfig;
+use pdt_rundir::config::LossOn;
+use pdt_train::optim::SlotState;
+use pdt_train::optim::{AdamW, Optimizer};
+use pdt_train::step::{DeviceBatch, PendingStats};
 use tch::{nn::VarStore, Device, Kind, Tensor};
 
 // libtorch's generator is global: the tests of this binary take turns.
@@ -67,7 +70,7 @@ pub fn specs() -> Vec<SlotSpec> {
             uses_prompt: r.prompt > 0,
             loss_on: r.loss_on,
             optim: optim(),
-            last_block: pdt_train::step::LastBlockChoice::Auto,
+            last_block: pdt_rundir::config::LastBlockChoice::Auto,
             seed: r.seed,
         })
         .collect()

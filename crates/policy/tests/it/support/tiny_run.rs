@@ -2,7 +2,7 @@
 //! (pdt-policy's own, and pdt-serve's, which include this file): neither links the trainer.
 #![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
 
-use pdt_policy::RunData;
+use pdt_run::RunData;
 use pdt_rundir::config::TrainConfig;
 use pdt_rundir::{Latest, RunDir};
 use std::path::PathBuf;

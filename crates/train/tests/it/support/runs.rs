@@ -3,7 +3,7 @@
 //! and its logs without wall-clock fields.
 #![allow(dead_code, clippy::unwrap_used, clippy::result_large_err)] // each including test uses its part
 
-use pdt_train::config::{Method, TrainConfig};
+use pdt_rundir::config::{Method, TrainConfig};
 use pdt_train::run::{train, RunError, TrainOptions, TrainSummary};
 use std::path::{Path, PathBuf};
 

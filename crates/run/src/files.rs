@@ -1,9 +1,11 @@
-//! The run-directory files a policy reads, through `pdt-rundir`'s typed readers: `config.toml`
-//! (with this invocation's device and data place), `task_stats.json` and
-//! `checkpoints/latest.json`, each with what a missing or bad one means for acting.
+//! The run-directory files that using a finished or interrupted run reads, through `pdt-rundir`'s
+//! typed readers: `config.toml` (with this invocation's device and data place), `task_stats.json`
+//! and `checkpoints/latest.json`, each with what a missing or bad one means. An acting policy, the
+//! trainer's final evaluation and its resume read them here, so all three refuse alike.
 
-use crate::PolicyError;
-use pdt_rundir::config::{DeviceSpec, TrainConfig};
+use crate::LoadError;
+use pdt_base::device::DeviceSpec;
+use pdt_rundir::config::TrainConfig;
 use pdt_rundir::{Latest, RunDir, RunDirError, RunStats};
 use std::path::Path;
 
@@ -13,9 +15,9 @@ pub fn run_config(
     dir: &RunDir,
     device: Option<DeviceSpec>,
     data: Option<&Path>,
-) -> Result<TrainConfig, PolicyError> {
+) -> Result<TrainConfig, LoadError> {
     if !dir.config_path().is_file() {
-        return Err(PolicyError::NotARunDir(dir.path().into()));
+        return Err(LoadError::NotARunDir(dir.path().into()));
     }
     let mut cfg = dir.config()?;
     if let Some(d) = device {
@@ -31,7 +33,7 @@ pub fn run_config(
 
 /// Reads a run's `task_stats.json`, saying what a missing one means, and checks its values (a
 /// hand-edited or corrupt file must not normalise states by NaN or 0).
-pub fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
+pub fn read_stats(dir: &RunDir) -> Result<RunStats, LoadError> {
     let path = dir.stats_path();
     if !path.exists() {
         let why = if dir.latest_path().exists() {
@@ -42,18 +44,18 @@ pub fn read_stats(dir: &RunDir) -> Result<RunStats, PolicyError> {
             "the run directory was interrupted while being created (killed before writing it); \
              `promptdt train --resume` recreates it and starts the run, or delete the directory"
         };
-        return Err(PolicyError::Invalid(format!("{} is missing, {why}", path.display())));
+        return Err(LoadError::Invalid(format!("{} is missing, {why}", path.display())));
     }
     let stats = dir.stats()?;
-    stats.check().map_err(|message| PolicyError::Corrupt { path, message })?;
+    stats.check().map_err(|message| LoadError::Corrupt { path, message })?;
     Ok(stats)
 }
 
 /// The latest checkpoint of the run (its weights must be the ones of its step).
-pub fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
+pub fn latest_checkpoint(dir: &RunDir) -> Result<Latest, LoadError> {
     match dir.latest() {
         Ok(Some(latest)) => Ok(latest),
-        Ok(None) | Err(RunDirError::Io { .. }) => Err(PolicyError::NoCheckpoint(dir.path().into())),
+        Ok(None) | Err(RunDirError::Io { .. }) => Err(LoadError::NoCheckpoint(dir.path().into())),
         Err(e) => Err(e.into()),
     }
 }
@@ -63,7 +65,7 @@ pub fn latest_checkpoint(dir: &RunDir) -> Result<Latest, PolicyError> {
 /// shapes; the run's configuration can be); `None` for a file outside a run directory.
 pub fn run_architecture_of(
     weights: &Path,
-) -> Result<Option<pdt_model::forward_file::RunArchitecture>, PolicyError> {
+) -> Result<Option<pdt_model::forward_file::RunArchitecture>, LoadError> {
     let Some(checkpoints) = weights.parent() else { return Ok(None) };
     if checkpoints.file_name() != Some("checkpoints".as_ref()) {
         return Ok(None);

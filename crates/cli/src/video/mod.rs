@@ -1,16 +1,24 @@
 //! A prompted policy's episode as an animated GIF (`promptdt render`, `docs/rendering.md`): the
 //! run's policy acts on one task, prompted as its evaluation prompts it, and every state of the
 //! episode is rendered ([`pdt_envs::render`]) with the return so far drawn in the corner.
+//!
+//! Here, beside its one caller, rather than in the policy runtime: filming is a use of a policy,
+//! like serving, and its GIF encoder and bitmap font ([`font`]) are needed by nothing else (the
+//! Python package's `render` returns bare frames from `pdt_envs::render`).
+
+// Errors carry the policy's (with the offending path or value); returned on the cold path only.
+#![allow(clippy::result_large_err)]
 
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+mod font;
+
+use font::{draw_text, text_width};
 use pdt_base::device::DeviceSpec;
 use pdt_envs::render::{render, Frame, FrameSize, RenderError};
-
-use crate::font::{draw_text, text_width};
-use crate::{Policy, PolicyError};
+use pdt_policy::{Policy, PolicyError};
 
 /// What to film (checked by [`VideoConfig::new`]).
 #[derive(Debug, Clone)]

@@ -6,14 +6,15 @@
 //! The trainer builds its setup from the same loader, so that a served policy's prompts are the
 //! evaluation's.
 
-use crate::PolicyError;
+use crate::LoadError;
+use pdt_base::num::compact;
 use pdt_data::multitask::{load_multitask, DatasetSpec};
 use pdt_data::{MultiTaskDataset, TaskData};
 use pdt_envs::{EnvFamily, EnvPreset};
 use pdt_eval::ToModelConfig;
 use pdt_model::PromptDtConfig;
 use pdt_prompt::{BatchSampler, NormalizationScope, SamplerConfig, StateNorm};
-use pdt_rundir::config::{compact, within, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
+use pdt_rundir::config::{within, TrainConfig, MAX_RETURN_TOKEN, MAX_STATE_STAT};
 use pdt_rundir::RunStats;
 
 /// Everything built from a configuration's data section and its data.
@@ -29,7 +30,7 @@ pub struct RunData {
 
 impl RunData {
     /// Loads the data of `cfg` (a validated configuration) for `family` and checks them.
-    pub fn load(cfg: &TrainConfig, family: &dyn EnvFamily) -> Result<Self, PolicyError> {
+    pub fn load(cfg: &TrainConfig, family: &dyn EnvFamily) -> Result<Self, LoadError> {
         let preset = family.preset();
         let (train_tasks, test_tasks) = family.split(&cfg.env.split)?;
         let env_name = family.name().to_string();
@@ -52,7 +53,7 @@ impl RunData {
         if (ds, da) != (preset.obs_dim, preset.act_dim)
             || (test_data.obs_dim, test_data.act_dim) != (ds, da)
         {
-            return Err(PolicyError::Invalid(format!(
+            return Err(LoadError::Invalid(format!(
                 "data in {} has obs/act dims {ds}/{da} (test {}/{}), but {} has {}/{}",
                 cfg.data.dir.display(),
                 test_data.obs_dim,
@@ -101,14 +102,14 @@ impl RunData {
             .unwrap_or(0)
             .max(preset.horizon);
         if cfg.model.max_ep_len < longest {
-            return Err(PolicyError::Invalid(format!(
+            return Err(LoadError::Invalid(format!(
                 "model.max_ep_len = {} is below the longest episode ({longest} steps: {}'s \
                  horizon or its data); timesteps would index past the embedding table",
                 cfg.model.max_ep_len, env_name
             )));
         }
         let model_cfg = cfg.model.to_model_config(ds, da);
-        model_cfg.validate().map_err(PolicyError::Invalid)?;
+        model_cfg.validate().map_err(LoadError::Invalid)?;
         sampler_cfg.validate(model_cfg.n_positions)?;
         let stats = RunStats {
             obs_dim: ds,
@@ -127,7 +128,7 @@ impl RunData {
     }
 
     /// The sampler over `data`'s tasks (one of this run's two sets).
-    pub fn sampler<'a>(&self, data: &'a MultiTaskDataset) -> Result<BatchSampler<'a>, PolicyError> {
+    pub fn sampler<'a>(&self, data: &'a MultiTaskDataset) -> Result<BatchSampler<'a>, LoadError> {
         let tasks: Vec<&TaskData> = data.tasks.iter().collect();
         Ok(BatchSampler::new(
             self.sampler_cfg.clone(),
@@ -174,7 +175,7 @@ fn check_return_tokens(
     env: &str,
     train: &MultiTaskDataset,
     test: &MultiTaskDataset,
-) -> Result<(), PolicyError> {
+) -> Result<(), LoadError> {
     let scale = cfg.sampler.rtg_scale.unwrap_or(preset.rtg_scale);
     let scale_name = setting("sampler.rtg_scale", "rtg scale", cfg.sampler.rtg_scale, scale, env);
     let target = cfg.eval.target_return.unwrap_or(preset.target_return);
@@ -182,7 +183,7 @@ fn check_return_tokens(
     if !within(token, MAX_RETURN_TOKEN) {
         let target_name =
             setting("eval.target_return", "target return", cfg.eval.target_return, target, env);
-        return Err(PolicyError::Invalid(format!(
+        return Err(LoadError::Invalid(format!(
             "{target_name} over {scale_name} gives the return token {}, beyond {} in magnitude: \
              the model cannot represent it (its return embedding overflows f32 and the actions \
              come out NaN). Lower eval.target_return or raise sampler.rtg_scale",
@@ -216,7 +217,7 @@ fn check_return_tokens(
     if let Some((rtg, t, mode, k, step)) = worst {
         let token = rtg / f64::from(scale);
         if !within(token, MAX_RETURN_TOKEN) {
-            return Err(PolicyError::Invalid(format!(
+            return Err(LoadError::Invalid(format!(
                 "the return-to-go {} of {} (trajectory {k}, from step {step}) over {scale_name} \
                  gives the return token {}, beyond {} in magnitude: the model cannot represent \
                  it. Raise sampler.rtg_scale",
@@ -239,7 +240,7 @@ fn check_state_stats(
     norm: &StateNorm,
     train: &MultiTaskDataset,
     test: &MultiTaskDataset,
-) -> Result<(), PolicyError> {
+) -> Result<(), LoadError> {
     let bad = |x: f32| !within(f64::from(x), MAX_STATE_STAT);
     let Some(j) = (0..norm.mean.len()).find(|&j| bad(norm.mean[j]) || bad(norm.std[j])) else {
         return Ok(());
@@ -272,7 +273,7 @@ fn check_state_stats(
         }
         None => String::new(),
     };
-    Err(PolicyError::Invalid(format!(
+    Err(LoadError::Invalid(format!(
         "the state statistics (data.normalization = {}) have state_mean[{j}] = {} and \
          state_std[{j}] = {}: each must be finite and within {} in magnitude{at}. Normalising by \
          them would map every ordinary state to about 0 (or NaN); fix the data",
