@@ -97,7 +97,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
         cfg.eval.prompt = p.clone();
     }
     if let Some(a) = adapt {
-        a.validate().map_err(|e| RunError::Invalid(e.to_string()))?;
+        a.validate()?;
         cfg.eval.adapt = a.clone();
     }
     let setup = Setup::new(cfg)?;
@@ -109,17 +109,21 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     let stats_path = run.stats_path();
     let recorded = read_stats(&run)?;
     setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
-        RunError::Invalid(format!(
-            "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
-             where it moved)",
+        let dir = setup.cfg.data.dir.display();
+        RunError::invalid(
             stats_path.display(),
-            setup.cfg.data.dir.display()
-        ))
+            format!(
+                "{m}; data.dir is {dir}. Evaluate with the data the run trained on (--data DIR \
+                 where it moved)"
+            ),
+        )
     })?;
     let which = match split {
         "test" => Split::Test,
         "train" => Split::Train,
-        other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
+        other => {
+            return Err(RunError::invalid("split", format!("unknown `{other}` (test or train)")))
+        }
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;
@@ -139,12 +143,14 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
                 e.finetune_batch = adaptation.batch.unwrap_or(e.finetune_batch);
             }
             Some(Adaptation::Prompt(_)) | None => {
-                return Err(RunError::Invalid(format!(
-                    "{}: --adapt-steps / --adapt-batch without --adapt change a MACAW or \
-                     MT-BC-Finetune run's own adaptation; this run is {}",
+                return Err(RunError::invalid(
                     dir.display(),
-                    setup.cfg.run.method.name()
-                )));
+                    format!(
+                        "--adapt-steps / --adapt-batch without --adapt change a MACAW or \
+                         MT-BC-Finetune run's own adaptation; this run is {}",
+                        setup.cfg.run.method.name()
+                    ),
+                ));
             }
         }
         changed.validate()?;

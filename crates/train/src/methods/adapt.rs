@@ -86,7 +86,7 @@ pub(crate) fn evaluate_adapted(
         AdaptKind::SoftPrompt => {
             let refs: Vec<&PrefixCache> = prefixes.iter().collect();
             let prefix = PrefixCache::cat(&refs)
-                .ok_or_else(|| RunError::Invalid("tuned prompts of different lengths".into()))?;
+                .ok_or_else(|| RunError::Internal("tuned prompts of different lengths".into()))?;
             let tasks =
                 plans.iter().map(|p| make(p, &p.seeds, None)).collect::<Result<Vec<_>, _>>()?;
             all = evaluate_given(model, tasks, settings, GivenPrompts { prefix, lora: None })?;

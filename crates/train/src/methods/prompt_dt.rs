@@ -111,7 +111,7 @@ impl Steppable for PromptDtLearner<'_> {
     fn import(&mut self, state: SlotState) -> Result<(), RunError> {
         state
             .copy_into(&self.vs, &mut self.opt)
-            .map_err(|e| RunError::Invalid(format!("a pack's run state: {e}")))
+            .map_err(|e| RunError::invalid("a pack's run state", e))
     }
 
     /// MT-BC-Finetune's test evaluation fine-tunes, drawing its dropout from where the last
@@ -324,10 +324,13 @@ fn eval_tasks(
             return finetune_each(learner, &sampler, &settings, &tune, rng, &make);
         }
         Some(Adaptation::Macaw { .. }) => {
-            return Err(RunError::Invalid(format!(
-                "MACAW's adaptation is MACAW's own; this run is {}",
-                setup.cfg.run.method.name()
-            )))
+            return Err(RunError::invalid(
+                "test time",
+                format!(
+                    "MACAW's adaptation is MACAW's own; this run is {}",
+                    setup.cfg.run.method.name()
+                ),
+            ))
         }
         None => {}
     }
@@ -420,16 +423,18 @@ fn plain(results: Vec<TaskResult>) -> Vec<TaskEval> {
 
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.
 fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepStats) -> RunError {
-    RunError::Invalid(format!(
-        "{}: training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
+    RunError::Diverged {
+        dir: dir.into(),
+        message: format!(
+            "training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
          norm {}. Likely causes: optim.learning_rate = {} too high, optim.eps = {} too small, or \
          extreme values in the data (data.dir {}). Resuming would repeat the same steps: fix the \
          configuration and train again.",
-        dir.display(),
-        compact(st.loss),
-        compact(st.grad_norm),
-        compact(cfg.optim.learning_rate),
-        compact(cfg.optim.eps),
-        cfg.data.dir.display()
-    ))
+            compact(st.loss),
+            compact(st.grad_norm),
+            compact(cfg.optim.learning_rate),
+            compact(cfg.optim.eps),
+            cfg.data.dir.display()
+        ),
+    }
 }

@@ -40,11 +40,10 @@ pub(crate) fn evaluate_strategy(
 ) -> Result<StrategyEval, RunError> {
     let method = setup.cfg.run.method;
     if !method.uses_prompt() {
-        return Err(RunError::Invalid(format!(
-            "prompt strategy `{}`: {} takes no prompt",
-            strategy.strategy,
-            method.name()
-        )));
+        return Err(RunError::invalid(
+            format!("prompt strategy `{}`", strategy.strategy),
+            format!("{} takes no prompt", method.name()),
+        ));
     }
     let plans = plan_tasks(setup, data, rng)?;
     let mut srng = Rng::seed_from_u64(rng.next_u64());
@@ -175,7 +174,9 @@ fn bandit_rounds(
         .enumerate()
         .map(|(i, p)| {
             SegmentBandit::new(strategy.bandit.clone(), sampler.candidate_segments(i, stride), j)
-                .ok_or_else(|| RunError::Invalid(format!("task {}: no candidate segment", p.name)))
+                .ok_or_else(|| {
+                    RunError::invalid(format!("task {}", p.name), "no candidate segment")
+                })
         })
         .collect::<Result<Vec<_>, _>>()?;
     let per_round = strategy.bandit.episodes_per_round;
