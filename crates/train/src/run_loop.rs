@@ -171,11 +171,11 @@ pub fn run_config_for(
                 // while creating the directory, before anything that could resume it was written.
                 if dir.join("checkpoints").join("latest.json").exists() {
                     return Err(RunError::invalid(
-                        path.display(),
+                        dir.display(),
                         format!(
-                            "missing, but the run in {} has a checkpoint: restore config.toml \
+                            "{} is missing, but the run has a checkpoint: restore config.toml \
                              from a copy of the run (it cannot be guessed), or delete the run",
-                            dir.display()
+                            path.display()
                         ),
                     ));
                 }
