@@ -11,10 +11,12 @@
 //! `infer_b1` / `infer_b50` (eval-mode forward without autograd: one rollout step for 1 or 50
 //! episodes). Inputs are random but shaped like the reference's batches: left-padded histories.
 
+use cases::{is_eval, is_macaw, is_pack, is_render, is_rl, is_serve, pytorch_report, serve_cases};
 use pdt_base::device::Matmul;
 use pdt_base::table::{Rule, Table};
 use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
+mod cases;
 pub mod pack;
 pub mod profile;
 pub mod record;
@@ -522,39 +524,12 @@ fn run_pytorch_eval(
 
 /// Runs the benchmark: promptdt first, then (if asked) PyTorch on the same cases.
 pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
-    let is_rl = |c: &String| pdt_rl::bench::parse_case(c).is_some();
-    let is_macaw = |c: &String| pdt_macaw::bench::parse_case(c).is_some();
-    let is_eval = |c: &String| parse_eval_case(c).is_some();
-    // `pack<N>_b<B>` / `solo<N>_b<B>`: promptdt only (`pack.rs`).
-    let is_pack = |c: &String| pack::parse_case(c).is_some();
-    let serve_clients = |c: &String| -> Option<usize> {
-        c.strip_prefix("serve_c")?.parse().ok().filter(|&n: &usize| n > 0)
-    };
-    let is_serve = |c: &String| serve_clients(c).is_some();
-    // `render_<family>_<W>x<H>`: promptdt only (`render.rs`).
-    let is_render = |c: &String| render::parse_case(c).is_some();
     for c in cfg.cases.iter().filter(|c| {
         !is_eval(c) && !is_rl(c) && !is_serve(c) && !is_macaw(c) && !is_pack(c) && !is_render(c)
     }) {
         parse_case(c)?;
     }
-    let mut serve = Vec::new();
-    for c in cfg.cases.iter().filter(|c| is_serve(c)) {
-        let n = serve_clients(c).unwrap_or(1);
-        let run = cfg.serve_run.as_ref().ok_or_else(|| BenchError::Baseline {
-            cmd: c.clone(),
-            why: "serve cases need --serve-run DIR (a trained run)".into(),
-        })?;
-        let t = serve::time_serve(run, n, cfg.serve_steps.max(2), cfg.serve_episodes.max(1))?;
-        serve.push(ServeCase {
-            name: c.clone(),
-            clients: n,
-            p50_ms: t.p50_ms,
-            p99_ms: t.p99_ms,
-            actions_per_s: t.actions_per_s,
-            requests: t.requests,
-        });
-    }
+    let serve = serve_cases(cfg)?;
     tch::set_num_threads(cfg.threads as i32);
     pdt_torch::device::set_matmul(cfg.device, cfg.matmul)?;
     tch::manual_seed(0);
@@ -583,57 +558,7 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
         threads: cfg.threads,
         results,
     };
-    // PyTorch runs the reference's paths only: training steps and full forwards.
-    let train_cases: Vec<String> = cfg
-        .cases
-        .iter()
-        .filter(|c| {
-            !is_eval(c)
-                && !is_rl(c)
-                && !is_macaw(c)
-                && !is_serve(c)
-                && !is_pack(c)
-                && !is_render(c)
-                && !c.starts_with("act_b")
-        })
-        .cloned()
-        .collect();
-    let rl_cases: Vec<String> = cfg.cases.iter().filter(|c| is_rl(c)).cloned().collect();
-    let macaw_cases: Vec<String> = cfg.cases.iter().filter(|c| is_macaw(c)).cloned().collect();
-    let mut pytorch = match &cfg.pytorch {
-        Some(b) if !train_cases.is_empty() => {
-            Some(run_pytorch(b, &BenchConfig { cases: train_cases, ..cfg.clone() })?)
-        }
-        _ => None,
-    };
-    if let (Some(b), Some(script), true) =
-        (&cfg.pytorch, &cfg.pytorch_eval_script, cfg.cases.iter().any(|c| c == EVAL_CASE))
-    {
-        let t = run_pytorch_eval(&b.python, script, cfg)?;
-        let report = pytorch.get_or_insert_with(|| EngineReport {
-            engine: "pytorch".into(),
-            torch_version: None,
-            threads: cfg.threads,
-            results: vec![],
-        });
-        report.results.push(t);
-    }
-    // The SAC / TD3 and MACAW cases each have their own PyTorch script.
-    for (script, cases) in
-        [(&cfg.pytorch_rl_script, rl_cases), (&cfg.pytorch_macaw_script, macaw_cases)]
-    {
-        if let (Some(b), Some(script), false) = (&cfg.pytorch, script, cases.is_empty()) {
-            let base = PyTorchBaseline { python: b.python.clone(), script: script.clone() };
-            let t = run_pytorch(&base, &BenchConfig { cases, ..cfg.clone() })?;
-            let report = pytorch.get_or_insert_with(|| EngineReport {
-                engine: "pytorch".into(),
-                torch_version: t.torch_version.clone(),
-                threads: cfg.threads,
-                results: vec![],
-            });
-            report.results.extend(t.results);
-        }
-    }
+    let pytorch = pytorch_report(cfg)?;
     let speedup = match &pytorch {
         Some(p) => promptdt
             .results

@@ -325,6 +325,14 @@ pub struct ConvertedFile {
     pub act_dim: usize,
 }
 
+/// `promptdt data convert`'s line for the file: where from, where to, how much.
+impl std::fmt::Display for ConvertedFile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (from, to) = (self.source.display(), self.dest.display());
+        write!(f, "{from} -> {to} ({} trajectories, {} steps)", self.trajectories, self.steps)
+    }
+}
+
 /// Converts every `*.pkl` file directly in `src` (not in subdirectories) into
 /// `dst/{same stem}.safetensors`, with the metadata parsed from the name `{env}-{index}-{mode}`.
 /// Creates `dst` if needed; `dst` may equal `src`. Files are processed in name order and each is

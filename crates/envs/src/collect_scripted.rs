@@ -301,6 +301,28 @@ impl CollectSummary {
     }
 }
 
+/// `promptdt collect`'s table: per (task, mode) the mean return of D_i and P_i (and the success
+/// rate where the family has one); of many tasks (the point robot's 40) every eighth, so the table
+/// stays readable. Ends with what was written, without a newline.
+impl std::fmt::Display for CollectSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let success = self.entries.iter().any(|e| e.success_rate.is_some());
+        write!(f, "{:<6} {:<8} {:>14} {:>14}", "task", "mode", "D_i return", "P_i return")?;
+        writeln!(f, "{}", if success { format!(" {:>10}", "success") } else { String::new() })?;
+        let mut tasks: Vec<usize> = self.entries.iter().map(|e| e.task).collect();
+        tasks.sort_unstable();
+        tasks.dedup();
+        let many = tasks.len() > 20;
+        for e in self.entries.iter().filter(|e| !many || e.task % 8 == 2) {
+            let (d, p) = (e.dataset.mean, e.prompts.mean);
+            write!(f, "{:<6} {:<8} {d:>14.2} {p:>14.2}", e.task, e.mode.name())?;
+            let rate = e.success_rate.map_or(String::new(), |r| format!(" {:>9.1}%", 100.0 * r));
+            writeln!(f, "{rate}")?;
+        }
+        write!(f, "wrote {} datasets and {}", self.entries.len() * 2, self.card.display())
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum CollectError {
     #[error("invalid collection config: {0}")]

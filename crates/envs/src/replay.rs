@@ -79,6 +79,16 @@ impl ReplayResult {
     }
 }
 
+/// One line: the task, the steps taken, the return and whether the episode terminated.
+impl std::fmt::Display for ReplayResult {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ret: f64 = self.rewards.iter().map(|&x| x as f64).sum();
+        let terminated = self.terminated.iter().any(|&t| t);
+        let (family, task, steps) = (&self.family, self.task, self.rewards.len());
+        write!(f, "{family} task {task}: {steps} steps, return {ret:.3}, terminated {terminated}")
+    }
+}
+
 /// Sets task `task` of `family` to `(init_qpos, init_qvel)` and applies `actions` until they run
 /// out or the episode ends. Errors on an unknown family or task, a state of the wrong size or with
 /// non-finite values, and an action of the wrong size or with non-finite values (naming the step).

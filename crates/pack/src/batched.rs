@@ -53,7 +53,7 @@ pub struct BatchedEngine {
 }
 
 fn invalid(e: PackedError) -> RunError {
-    RunError::Invalid(format!("pack: {e}"))
+    RunError::invalid("pack", e)
 }
 
 impl BatchedEngine {
@@ -61,25 +61,29 @@ impl BatchedEngine {
     /// generator seeded with `derive_seed(seed, STREAM_INIT, 0)`, then `PromptDt::new`), with empty
     /// moments. Every run must have the same model configuration.
     pub fn new(specs: Vec<SlotSpec>, layout: PackLayout, device: Device) -> Result<Self, RunError> {
-        let first = specs.first().ok_or_else(|| RunError::Invalid("pack: no runs".into()))?;
+        let first = specs.first().ok_or_else(|| RunError::invalid("pack", "no runs"))?;
         let cfg = first.model.clone();
-        cfg.validate().map_err(|e| RunError::Invalid(format!("pack: {e}")))?;
+        cfg.validate().map_err(|e| RunError::invalid("pack", e))?;
         if let Some((i, _)) = specs.iter().enumerate().find(|(_, s)| s.model != cfg) {
-            return Err(RunError::Invalid(format!(
-                "pack: run {i}'s model configuration differs from run 0's (a pack shares one shape)"
-            )));
+            return Err(RunError::invalid(
+                "pack",
+                format!(
+                    "run {i}'s model configuration differs from run 0's (a pack shares one shape)"
+                ),
+            ));
         }
         let (p, k) = (layout.prompt_len, layout.history_len);
         if specs.iter().any(|s| s.uses_prompt) && p == 0 {
-            return Err(RunError::Invalid(
-                "pack: a run uses a prompt, layout.prompt_len is 0".into(),
-            ));
+            return Err(RunError::invalid("pack", "a run uses a prompt, layout.prompt_len is 0"));
         }
         if layout.batch_size == 0 || k == 0 || 3 * (p + k) > cfg.n_positions {
-            return Err(RunError::Invalid(format!(
-                "pack: layout {layout:?} (3 x (prompt + history) tokens must fit n_positions = {})",
-                cfg.n_positions
-            )));
+            return Err(RunError::invalid(
+                "pack",
+                format!(
+                    "layout {layout:?} (3 x (prompt + history) tokens must fit n_positions = {})",
+                    cfg.n_positions
+                ),
+            ));
         }
         let mut model = PackedPromptDt::new(&cfg, specs.len(), device).map_err(invalid)?;
         // `train.last_block` (`auto`: the state tokens), one for the pack's computation.
@@ -89,11 +93,14 @@ impl BatchedEngine {
             .enumerate()
             .find(|(_, s)| pdt_train::step::last_block(s.last_block, device, true) != last)
         {
-            return Err(RunError::Invalid(format!(
-                "pack: run {i}'s train.last_block ({}) differs from run 0's ({})",
-                s.last_block.as_str(),
-                first.last_block.as_str()
-            )));
+            return Err(RunError::invalid(
+                "pack",
+                format!(
+                    "run {i}'s train.last_block ({}) differs from run 0's ({})",
+                    s.last_block.as_str(),
+                    first.last_block.as_str()
+                ),
+            ));
         }
         model.set_last_block(last);
         // Which parameters each run's loss reads, as its solo model says (one set with a prompt,
@@ -174,7 +181,7 @@ impl PackEngine for BatchedEngine {
     ) -> Result<Vec<Option<PendingStats>>, RunError> {
         let n = self.specs.len();
         if steps.len() != n {
-            return Err(RunError::Invalid(format!(
+            return Err(RunError::Internal(format!(
                 "pack: {} slot steps for a pack of {n} runs",
                 steps.len()
             )));
@@ -186,7 +193,7 @@ impl PackEngine for BatchedEngine {
         for (slot, (st, spec)) in steps.iter().zip(&self.specs).enumerate() {
             let Some(st) = st else { continue };
             if st.batch.prompt.is_some() != spec.uses_prompt {
-                return Err(RunError::Invalid(format!(
+                return Err(RunError::Internal(format!(
                     "pack: run {slot} {}, its batch {}",
                     if spec.uses_prompt { "uses a prompt" } else { "uses no prompt" },
                     if st.batch.prompt.is_some() { "has one" } else { "has none" }
@@ -264,7 +271,7 @@ impl PackEngine for BatchedEngine {
         self.model.set_slot(slot, &state.weights).map_err(invalid)?;
         self.opt
             .import(slot, &state.moments)
-            .map_err(|e| RunError::Invalid(format!("pack: run {slot}: {e}")))
+            .map_err(|e| RunError::invalid(format!("pack: run {slot}"), e))
     }
 }
 

@@ -18,23 +18,27 @@ pub fn train_pack_dir(
     opts: PackOptions<'_>,
 ) -> Result<Vec<Result<TrainSummary, RunError>>, RunError> {
     if is_pack_dir(out) {
-        return Err(RunError::Invalid(format!(
-            "{} already holds a pack; resume it (`promptdt train --resume {}`) or pick another \
-             --out",
+        return Err(RunError::invalid(
             out.display(),
-            out.display()
-        )));
+            format!(
+                "already holds a pack; resume it (`promptdt train --resume {}`) or pick another \
+                 --out",
+                out.display()
+            ),
+        ));
     }
     // A pack directory holds its runs in subdirectories; one that is itself a run's directory
     // would mix the two (`train --config` refuses the same --out).
     let solo = pdt_rundir::RunDir::at(out);
     if let Some(file) = [solo.info_path(), solo.config_path()].into_iter().find(|f| f.is_file()) {
-        return Err(RunError::Invalid(format!(
-            "{} holds a run ({} is there): a pack directory holds its runs in subdirectories of \
-             its own; pick another --out",
+        return Err(RunError::invalid(
             out.display(),
-            file.display()
-        )));
+            format!(
+                "holds a run ({} is there): a pack directory holds its runs in subdirectories \
+                 of its own; pick another --out",
+                file.display()
+            ),
+        ));
     }
     let mut runs = Vec::with_capacity(configs.len());
     for cfg in &mut configs {
@@ -43,10 +47,13 @@ pub fn train_pack_dir(
         let family = pdt_envs::family(&cfg.env.name)?;
         let name = cfg.run_name(family.name());
         if runs.iter().any(|r: &PackRecordRun| r.dir == name) {
-            return Err(RunError::Invalid(format!(
+            return Err(RunError::invalid(
+                "the pack's runs",
+                format!(
                 "two runs of the pack are {name} (method, environment and seed): each run of a \
                  pack needs its own; give them different seeds or train them in separate packs"
-            )));
+            ),
+            ));
         }
         runs.push(PackRecordRun { dir: name, config: cfg.to_toml()? });
     }

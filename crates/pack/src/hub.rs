@@ -43,7 +43,7 @@ impl Table {
             // rather than leaving the others waiting for results that never come.
             let engine = &mut self.engine;
             std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| engine.step(steps)))
-                .unwrap_or_else(|_| Err(RunError::Invalid("the engine panicked".into())))
+                .unwrap_or_else(|_| Err(RunError::Internal("the engine panicked".into())))
         };
         for i in (0..submitted.len()).filter(|&i| submitted[i]) {
             self.results[i] = Some(match &mut out {
@@ -90,10 +90,10 @@ impl Hub {
     pub(crate) fn submit(&self, slot: usize, step: SlotStep) -> Result<(), RunError> {
         let mut t = self.lock();
         if !t.active.get(slot).copied().unwrap_or(false) {
-            return Err(RunError::Invalid(format!("slot {slot} is not training in this pack")));
+            return Err(RunError::Internal(format!("slot {slot} is not training in this pack")));
         }
         if t.pending[slot].is_some() || t.results[slot].is_some() {
-            return Err(RunError::Invalid(format!(
+            return Err(RunError::Internal(format!(
                 "slot {slot} submitted a step before taking its last one's result"
             )));
         }
@@ -111,13 +111,13 @@ impl Hub {
         let mut t = self.lock();
         loop {
             if let Some(r) = t.results.get_mut(slot).and_then(Option::take) {
-                return r.map_err(RunError::Invalid);
+                return r.map_err(RunError::Internal);
             }
             if self.step_if_ready(&mut t) {
                 continue;
             }
             if t.pending.get(slot).is_none_or(Option::is_none) {
-                return Err(RunError::Invalid(format!("slot {slot} waits for no submitted step")));
+                return Err(RunError::Internal(format!("slot {slot} waits for no submitted step")));
             }
             t = self.stepped.wait(t).unwrap_or_else(|e| e.into_inner());
         }

@@ -105,7 +105,7 @@ impl Learner for PackMember<'_> {
         let mut next = (at.steps > 0).then(|| learner.sample_batch(rng));
         let stats = at.each_step(|step| {
             let batch = next.take().ok_or_else(|| {
-                RunError::Invalid(format!("pack slot {slot}: no batch for step {step}"))
+                RunError::Internal(format!("pack slot {slot}: no batch for step {step}"))
             })?;
             last = Some((step, batch.shallow_clone()));
             hub.submit(slot, SlotStep { step, batch })?;

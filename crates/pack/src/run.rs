@@ -147,7 +147,7 @@ pub(crate) fn run_pack(
             Ok(s) => s,
             Err(e) => {
                 let message = format!("could not start the pack's stepper thread: {e}");
-                return (0..size).map(|_| Err(RunError::Invalid(message.clone()))).collect();
+                return (0..size).map(|_| Err(RunError::Internal(message.clone()))).collect();
             }
         };
         let handles: Vec<_> = members
@@ -175,7 +175,7 @@ pub(crate) fn run_pack(
                 // A run whose thread did not start has left: the others do not wait for it.
                 spawned.map_err(|e| {
                     hub.leave(slot);
-                    RunError::Invalid(format!(
+                    RunError::Internal(format!(
                         "could not start the thread of the pack's run {slot}: {e}"
                     ))
                 })
@@ -185,7 +185,7 @@ pub(crate) fn run_pack(
             .into_iter()
             .map(|h| {
                 h?.join().unwrap_or_else(|_| {
-                    Err(RunError::Invalid("a run of the pack panicked (see above)".into()))
+                    Err(RunError::Internal("a run of the pack panicked (see above)".into()))
                 })
             })
             .collect();
@@ -243,28 +243,30 @@ fn make_engine(
 /// their data loaded once per data setting.
 fn members(runs: Vec<PackRun>, opts: &PackOptions<'_>) -> Result<Vec<Member>, RunError> {
     if runs.is_empty() {
-        return Err(RunError::Invalid("a pack needs at least one run".into()));
+        return Err(RunError::invalid("pack", "needs at least one run"));
     }
     let mut seen = BTreeMap::new();
     let mut picked = Vec::with_capacity(runs.len());
     for (i, run) in runs.into_iter().enumerate() {
         let dir = absolute(&run.dir);
         if let Some(j) = seen.insert(dir.clone(), i) {
-            return Err(RunError::Invalid(format!(
-                "runs {j} and {i} of the pack would both write {}; give them different \
-                 directories (or seeds)",
-                dir.display()
-            )));
+            return Err(RunError::invalid(
+                format!("runs {j} and {i} of the pack"),
+                format!(
+                    "would both write {}; give them different directories (or seeds)",
+                    dir.display()
+                ),
+            ));
         }
         let resume = opts.resume && dir.join("config.toml").is_file();
         let cfg = if resume {
             run_config_for(None, &dir, true, &opts.resume_with)?
         } else {
             if dir.join("checkpoints").join("latest.json").exists() && !opts.resume {
-                return Err(RunError::Invalid(format!(
-                    "{} already holds a run; resume the pack or pick other directories",
-                    dir.display()
-                )));
+                return Err(RunError::invalid(
+                    dir.display(),
+                    "already holds a run; resume the pack or pick other directories",
+                ));
             }
             let mut cfg = run.config;
             if opts.resume {
@@ -308,7 +310,7 @@ fn members(runs: Vec<PackRun>, opts: &PackOptions<'_>) -> Result<Vec<Member>, Ru
 
 /// `e`, naming the run directory it is about.
 fn in_run(dir: &std::path::Path, e: RunError) -> RunError {
-    RunError::Invalid(format!("run {} of the pack: {e}", dir.display()))
+    RunError::InPack { dir: dir.into(), source: Box::new(e) }
 }
 
 /// Refuses runs that cannot share a pack, naming the setting: one environment family, one model
@@ -317,18 +319,21 @@ fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
     for (cfg, dir, _) in runs {
         if !cfg.run.method.packs() {
             let e = pdt_train::methods::cannot_pack(cfg.run.method);
-            return Err(RunError::Invalid(format!("run {}: {e}", dir.display())));
+            return Err(RunError::InPack { dir: dir.clone(), source: Box::new(e) });
         }
     }
     let (first, first_dir, _) = &runs[0];
     let model = section(&first.model)?;
     for (cfg, dir, _) in &runs[1..] {
         let differ = |field: &str, a: String, b: String| {
-            RunError::Invalid(format!(
-                "the runs of a pack must agree on {field}: {} has {a}, {} has {b}",
-                first_dir.display(),
-                dir.display()
-            ))
+            RunError::invalid(
+                "the runs of a pack",
+                format!(
+                    "must agree on {field}: {} has {a}, {} has {b}",
+                    first_dir.display(),
+                    dir.display()
+                ),
+            )
         };
         if cfg.env.name != first.env.name {
             return Err(differ("env.name", first.env.name.clone(), cfg.env.name.clone()));
@@ -362,5 +367,5 @@ fn check_fits(runs: &[(TrainConfig, PathBuf, bool)]) -> Result<(), RunError> {
 /// A configuration section's fields by name.
 fn section<T: serde::Serialize>(s: &T) -> Result<toml::Table, RunError> {
     toml::Table::try_from(s)
-        .map_err(|e| RunError::Invalid(format!("a configuration section as TOML: {e}")))
+        .map_err(|e| RunError::Internal(format!("a configuration section as TOML: {e}")))
 }

@@ -49,7 +49,7 @@ impl SoloEngine {
 
     fn slot(&self, slot: usize) -> Result<&Slot, RunError> {
         self.slots.get(slot).ok_or_else(|| {
-            RunError::Invalid(format!(
+            RunError::Internal(format!(
                 "pack engine: slot {slot} out of range (the pack has {} runs)",
                 self.slots.len()
             ))
@@ -67,7 +67,7 @@ impl PackEngine for SoloEngine {
         steps: Vec<Option<SlotStep>>,
     ) -> Result<Vec<Option<PendingStats>>, RunError> {
         if steps.len() != self.slots.len() {
-            return Err(RunError::Invalid(format!(
+            return Err(RunError::Internal(format!(
                 "pack engine: {} slot inputs for a pack of {} runs",
                 steps.len(),
                 self.slots.len()
@@ -77,7 +77,7 @@ impl PackEngine for SoloEngine {
         for (i, (slot, input)) in self.slots.iter().zip(&steps).enumerate() {
             let Some(input) = input else { continue };
             if input.batch.prompt.is_some() != slot.spec.uses_prompt {
-                return Err(RunError::Invalid(format!(
+                return Err(RunError::Internal(format!(
                     "pack engine: slot {i}'s batch {} a prompt, but its run {}",
                     if input.batch.prompt.is_some() { "has" } else { "lacks" },
                     if slot.spec.uses_prompt { "uses one" } else { "uses none" }
@@ -115,6 +115,6 @@ impl PackEngine for SoloEngine {
         let s = &mut self.slots[slot];
         state
             .copy_into(&s.vs, &mut s.opt)
-            .map_err(|e| RunError::Invalid(format!("pack engine: slot {slot}: {e}")))
+            .map_err(|e| RunError::Internal(format!("pack engine: slot {slot}: {e}")))
     }
 }

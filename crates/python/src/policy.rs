@@ -117,6 +117,122 @@ enum Next {
     End(f64),
 }
 
+/// One value per episode of `n`: a scalar or an [n, 1] column is refused rather than broadcast.
+fn per_episode(name: &str, shape: &[usize], n: usize) -> PyResult<()> {
+    match shape {
+        [m] if *m == n => Ok(()),
+        [m] => Err(value_error(format!("{name}: {m} values for {n} episodes"))),
+        _ => Err(value_error(format!("{name}: shape {shape:?}, expected [{n}] (one per episode)"))),
+    }
+}
+
+impl PolicyState {
+    /// What `act` does with each episode, every input checked before any episode changes, so an
+    /// error leaves the state as it was.
+    fn next_steps(
+        &self,
+        obs: numpy::ndarray::ArrayViewD<'_, f64>,
+        reward: Option<&[f64]>,
+        done: &[bool],
+    ) -> PyResult<Vec<Next>> {
+        let at = |i: usize| move |e: PolicyError| value_error(format!("episode {i}: {e}"));
+        let mut steps = Vec::with_capacity(self.episodes.len());
+        for (i, row) in obs.rows().into_iter().enumerate() {
+            let o = self.run.observation(&row.to_vec()).map_err(at(i))?;
+            let Some(e) = &self.episodes[i] else {
+                if done[i] {
+                    return Err(value_error(format!(
+                        "done[{i}] is true, but episode {i} is at its first observation (an \
+                         episode ends on a step after its first act)"
+                    )));
+                }
+                steps.push(Next::Start(o));
+                continue;
+            };
+            let Some(r) = reward.map(|r| r[i]) else {
+                return Err(value_error(format!(
+                    "episode {i} is under way: pass the rewards of the last actions"
+                )));
+            };
+            let step = self.run.step(r, o).map_err(at(i))?;
+            if done[i] {
+                // Its final observation is not recorded: no action is taken from it.
+                steps.push(Next::End(e.ret() + r));
+                continue;
+            }
+            match self.run.check(e, &step) {
+                Err(PolicyError::EpisodeFull { max_ep_len }) => {
+                    return Err(value_error(format!(
+                        "episode {i} has reached the model's max_ep_len ({max_ep_len} steps): reset or restart it"
+                    )))
+                }
+                Err(e) => return Err(at(i)(e)),
+                Ok(()) => steps.push(Next::Step(step)),
+            }
+        }
+        Ok(steps)
+    }
+
+    /// Starts, steps and ends the episodes as `steps` say; returns the episodes ended, kept until
+    /// the call is accepted.
+    fn apply(&mut self, steps: Vec<Next>) -> PyResult<Vec<(usize, Episode)>> {
+        let mut finished = Vec::new();
+        for (i, next) in steps.into_iter().enumerate() {
+            let slot = &mut self.episodes[i];
+            let internal = || value_error(format!("internal: episode {i} has no state"));
+            match next {
+                Next::Start(o) => {
+                    *slot = Some(self.run.start(o, self.target));
+                    self.ended[i] = None;
+                }
+                Next::Step(step) => {
+                    let e = slot.as_mut().ok_or_else(internal)?;
+                    self.run.record(e, step).map_err(lib_error)?;
+                }
+                Next::End(ret) => {
+                    finished.push((i, slot.take().ok_or_else(internal)?));
+                    self.ended[i] = Some(ret);
+                }
+            }
+        }
+        Ok(finished)
+    }
+
+    /// Refuses a call whose action of episode `bad` is not finite: every episode goes back to
+    /// where it was before the call (`flat`: the actions of the `active` episodes; `starts`: the
+    /// episodes the call started; `finished`, `ended_before`: what it ended). Returns why.
+    fn roll_back(
+        &mut self,
+        bad: usize,
+        active: &[usize],
+        flat: &[f32],
+        starts: &[bool],
+        finished: Vec<(usize, Episode)>,
+        ended_before: Vec<Option<f64>>,
+    ) -> String {
+        let da = flat.len() / active.len().max(1);
+        let mut why = None;
+        for (&i, a) in active.iter().zip(flat.chunks_exact(da.max(1))) {
+            let slot = &mut self.episodes[i];
+            let Some(e) = slot else { continue };
+            if i == bad {
+                why = e.accept(a).err();
+            } else {
+                e.take_back();
+            }
+            // An episode started by this call is not started.
+            if starts[i] {
+                *slot = None;
+            }
+        }
+        for (i, e) in finished {
+            self.episodes[i] = Some(e);
+        }
+        self.ended = ended_before;
+        why.map_or_else(String::new, |e| e.to_string())
+    }
+}
+
 impl Policy {
     /// `set_prompt(adaptation)`: the adapted prompt's keys and values for every episode, and
     /// LoRA's adapters.
@@ -547,20 +663,10 @@ impl Policy {
                 self.obs_dim
             )));
         }
-        // One value per episode: a scalar or an [n, 1] column is refused rather than broadcast.
-        let per_episode = |name: &str, shape: &[usize]| -> PyResult<()> {
-            match shape {
-                [m] if *m == n => Ok(()),
-                [m] => Err(value_error(format!("{name}: {m} values for {n} episodes"))),
-                _ => Err(value_error(format!(
-                    "{name}: shape {shape:?}, expected [{n}] (one per episode)"
-                ))),
-            }
-        };
         let reward: Option<Vec<f64>> = match reward {
             Some(r) => {
                 let r = r.as_array();
-                per_episode("reward", r.shape())?;
+                per_episode("reward", r.shape(), n)?;
                 Some(r.iter().copied().collect())
             }
             None => None,
@@ -568,75 +674,17 @@ impl Policy {
         let done: Vec<bool> = match done {
             Some(d) => {
                 let d = d.as_array();
-                per_episode("done", d.shape())?;
+                per_episode("done", d.shape(), n)?;
                 d.iter().copied().collect()
             }
             None => vec![false; n],
         };
-        // Check everything before changing any episode, so an error leaves the state as it was.
-        let at = |i: usize| move |e: PolicyError| value_error(format!("episode {i}: {e}"));
-        let mut steps = Vec::with_capacity(n);
-        for (i, row) in obs.rows().into_iter().enumerate() {
-            let o = st.run.observation(&row.to_vec()).map_err(at(i))?;
-            let Some(e) = &st.episodes[i] else {
-                if done[i] {
-                    return Err(value_error(format!(
-                        "done[{i}] is true, but episode {i} is at its first observation (an \
-                         episode ends on a step after its first act)"
-                    )));
-                }
-                steps.push(Next::Start(o));
-                continue;
-            };
-            let r = match &reward {
-                None => {
-                    return Err(value_error(format!(
-                        "episode {i} is under way: pass the rewards of the last actions"
-                    )))
-                }
-                Some(r) => r[i],
-            };
-            let step = st.run.step(r, o).map_err(at(i))?;
-            if done[i] {
-                // Its final observation is not recorded: no action is taken from it.
-                steps.push(Next::End(e.ret() + r));
-                continue;
-            }
-            match st.run.check(e, &step) {
-                Err(PolicyError::EpisodeFull { max_ep_len }) => {
-                    return Err(value_error(format!(
-                        "episode {i} has reached the model's max_ep_len ({max_ep_len} steps): reset or restart it"
-                    )))
-                }
-                Err(e) => return Err(at(i)(e)),
-                Ok(()) => steps.push(Next::Step(step)),
-            }
-        }
+        let steps = st.next_steps(obs, reward.as_deref(), &done)?;
         let starts: Vec<bool> = steps.iter().map(|s| matches!(s, Next::Start(_))).collect();
         let active: Vec<usize> = (0..n).filter(|&i| !done[i]).collect();
         let prefix = if active.is_empty() { None } else { Self::batch_prefix(st, n, &active)? };
-        let target = st.target;
-        // The episodes `done` ends and the returns of ended ones, kept until the call is accepted.
-        let mut finished: Vec<(usize, Episode)> = Vec::new();
         let ended_before = st.ended.clone();
-        for (i, next) in steps.into_iter().enumerate() {
-            let slot = &mut st.episodes[i];
-            let internal = || value_error(format!("internal: episode {i} has no state"));
-            match next {
-                Next::Start(o) => {
-                    *slot = Some(st.run.start(o, target));
-                    st.ended[i] = None;
-                }
-                Next::Step(step) => {
-                    let e = slot.as_mut().ok_or_else(internal)?;
-                    st.run.record(e, step).map_err(lib_error)?;
-                }
-                Next::End(ret) => {
-                    finished.push((i, slot.take().ok_or_else(internal)?));
-                    st.ended[i] = Some(ret);
-                }
-            }
-        }
+        let finished = st.apply(steps)?;
         let flat = if active.is_empty() {
             Vec::new()
         } else {
@@ -650,28 +698,9 @@ impl Policy {
         let da = self.act_dim;
         // An action that is not finite (inputs each representable can still overflow inside the
         // model) refuses the whole call: every episode goes back to where it was before it.
-        let bad = flat.chunks_exact(da).position(|a| a.iter().any(|x| !x.is_finite()));
-        if let Some(b) = bad {
+        if let Some(b) = flat.chunks_exact(da).position(|a| a.iter().any(|x| !x.is_finite())) {
             let b = active[b];
-            let mut why = None;
-            for (&i, a) in active.iter().zip(flat.chunks_exact(da)) {
-                let slot = &mut st.episodes[i];
-                let Some(e) = slot else { continue };
-                if i == b {
-                    why = e.accept(a).err();
-                } else {
-                    e.take_back();
-                }
-                // An episode started by this call is not started.
-                if starts[i] {
-                    *slot = None;
-                }
-            }
-            for (i, e) in finished {
-                st.episodes[i] = Some(e);
-            }
-            st.ended = ended_before;
-            let why = why.map_or_else(String::new, |e| e.to_string());
+            let why = st.roll_back(b, &active, &flat, &starts, finished, ended_before);
             return Err(value_error(format!(
                 "episode {b}: {why}. The call is refused and every episode is as it was before it"
             )));

@@ -216,27 +216,9 @@ fn planned_episodes(dir: &std::path::Path, episodes: Option<usize>, split: &str)
 /// hours, note}]}`).
 #[pyfunction]
 pub(crate) fn experiments() -> PyResult<String> {
+    // The library's own struct, serialised: the fields are the library's, not a copy kept here.
     let list = pdt_repro::list().map_err(lib_error)?;
-    let v: Vec<serde_json::Value> = list
-        .iter()
-        .map(|e| {
-            let budgets: Vec<serde_json::Value> = e
-                .budgets
-                .iter()
-                .map(|b| {
-                    serde_json::json!({
-                        "budget": b.budget, "runs": b.runs, "iterations": b.iterations,
-                        "hours": b.hours, "note": b.note,
-                    })
-                })
-                .collect();
-            serde_json::json!({
-                "name": e.name, "title": e.title, "cells": e.cells, "pending": e.pending,
-                "budgets": budgets,
-            })
-        })
-        .collect();
-    serde_json::to_string(&v).map_err(lib_error)
+    serde_json::to_string(&list).map_err(lib_error)
 }
 
 /// Whether `family` (any spelling [`pdt_envs::family`] takes) collects its datasets with scripted

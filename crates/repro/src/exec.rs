@@ -6,12 +6,14 @@
 //! Child processes rather than threads: libtorch's random generator and thread pool are global to a
 //! process, so runs in one process could not be seeded independently or given their own cores.
 
+mod schedule;
+
 pub use crate::exec_types::{ExecOptions, ExecSummary, Progress, Stage, DIE_WITH_PARENT};
 use crate::plan::{self, DataSpec, Plan, RunSpec, RunState};
 use crate::ReproError;
+use schedule::Scheduler;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
 
 /// Collects `d` unless its `dataset.json` is there: into a temporary directory beside it, renamed
 /// into place at the end, so a killed collection leaves nothing half-written and two processes
@@ -269,18 +271,7 @@ pub fn execute(
     opts: &ExecOptions,
     progress: &mut dyn FnMut(&Progress),
 ) -> Result<ExecSummary, ReproError> {
-    let runs: Vec<&RunSpec> = match only {
-        Some(keys) => keys
-            .split(',')
-            .map(|k| {
-                plan.runs.iter().find(|r| r.key == k).ok_or_else(|| ReproError::UnknownRun {
-                    key: k.into(),
-                    known: plan.runs.iter().map(|r| r.key.clone()).collect(),
-                })
-            })
-            .collect::<Result<_, _>>()?,
-        None => plan.runs.iter().collect(),
-    };
+    let runs = selected(plan, only)?;
     // Variants are evaluated once the training is done: they need their base runs' weights.
     let (variants, runs): (Vec<&RunSpec>, Vec<&RunSpec>) =
         runs.into_iter().partition(|r| r.base.is_some());
@@ -289,32 +280,45 @@ pub fn execute(
     }
     // Check every existing run before starting anything: a mismatch is an error up front.
     let states = runs.iter().map(|r| plan::state(r)).collect::<Result<Vec<_>, _>>()?;
-    let total: u64 = runs.iter().map(|r| r.config.train.iterations).sum();
-    let mut summary = ExecSummary::default();
-    // Iterations done per run: read once here, then only for the runs in progress (a paper sweep
-    // has dozens of metrics files of thousands of lines; the finished ones do not change).
-    let mut done: Vec<u64> = runs.iter().map(|r| iterations_done(r)).collect();
-    let report = |stage: Stage,
-                  finished: usize,
-                  running: Vec<String>,
-                  waiting: Vec<String>,
-                  done: &[u64]| Progress {
-        stage,
-        runs_total: runs.len(),
-        runs_finished: finished,
-        iterations_done: done.iter().sum(),
-        iterations_total: total,
-        running,
-        waiting,
-    };
+    let done: Vec<u64> = runs.iter().map(|r| iterations_done(r)).collect();
+    let removed_temps = prepare_data(plan, &runs, &states, opts, &done, progress)?;
+    let mut s = Scheduler::new(plan, opts, &runs, &states, done);
+    s.summary.removed_temps = removed_temps;
+    s.run(progress)?;
+    crate::variant::evaluate(plan, &variants, opts, &mut s.summary)?;
+    progress(&s.progress(Stage::Done));
+    Ok(s.summary)
+}
 
+/// The plan's runs `only` names (keys separated by commas), or all of them.
+fn selected<'p>(plan: &'p Plan, only: Option<&str>) -> Result<Vec<&'p RunSpec>, ReproError> {
+    let Some(keys) = only else { return Ok(plan.runs.iter().collect()) };
+    keys.split(',')
+        .map(|k| {
+            plan.runs.iter().find(|r| r.key == k).ok_or_else(|| ReproError::UnknownRun {
+                key: k.into(),
+                known: plan.runs.iter().map(|r| r.key.clone()).collect(),
+            })
+        })
+        .collect()
+}
+
+/// Removes what a killed `reproduce` left of its collections (its `collect` child died with it),
+/// then collects the data of the unfinished runs, each once. Returns the temporaries removed.
+fn prepare_data(
+    plan: &Plan,
+    runs: &[&RunSpec],
+    states: &[RunState],
+    opts: &ExecOptions,
+    done: &[u64],
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<Vec<PathBuf>, ReproError> {
     let mut data: Vec<DataSpec> = Vec::new();
-    for (r, s) in runs.iter().zip(&states) {
+    for (r, s) in runs.iter().zip(states) {
         if *s != RunState::Finished && !data.contains(&r.data) {
             data.push(r.data.clone());
         }
     }
-    // What a killed `reproduce` left of its collections (its `collect` child died with it).
     let mut roots: Vec<PathBuf> = Vec::new();
     for d in plan.data() {
         if let Some(root) = d.dir.parent() {
@@ -323,173 +327,23 @@ pub fn execute(
             }
         }
     }
+    let mut removed = Vec::new();
     for root in &roots {
-        summary.removed_temps.extend(remove_stale_data_temps(root)?);
+        removed.extend(remove_stale_data_temps(root)?);
     }
     for d in &data {
-        progress(&report(Stage::Data(d.env.clone()), 0, Vec::new(), Vec::new(), &done));
+        progress(&Progress {
+            stage: Stage::Data(d.env.clone()),
+            runs_total: runs.len(),
+            runs_finished: 0,
+            iterations_done: done.iter().sum(),
+            iterations_total: runs.iter().map(|r| r.config.train.iterations).sum(),
+            running: Vec::new(),
+            waiting: Vec::new(),
+        });
         ensure_data(d, opts)?;
     }
-
-    // Runs to do, in plan order; a run another process holds goes to `waiting` and is tried
-    // again every poll.
-    let mut queue: std::collections::VecDeque<(usize, &RunSpec)> =
-        std::collections::VecDeque::new();
-    for (i, (r, s)) in runs.iter().zip(&states).enumerate() {
-        match s {
-            RunState::Finished => summary.already_finished += 1,
-            RunState::Partial { .. } | RunState::New => queue.push_back((i, r)),
-        }
-    }
-    let mut waiting: Vec<(usize, &RunSpec)> = Vec::new();
-    let mut waited: Vec<String> = Vec::new();
-    let mut running: Vec<Job<'_>> = Vec::new();
-    let mut finished = summary.already_finished;
-    let mut last = Instant::now() - Duration::from_secs(10);
-    loop {
-        // The runs that waited come first: they are the older ones in plan order.
-        let mut candidates: std::collections::VecDeque<(usize, &RunSpec)> =
-            waiting.drain(..).collect();
-        while running.len() < opts.jobs.max(1) {
-            let Some((index, spec)) = candidates.pop_front().or_else(|| queue.pop_front()) else {
-                break;
-            };
-            // The run, then (with packs) the compatible runs after it, each claimed and read.
-            let mut picked = vec![(index, spec)];
-            if let Some(key) = crate::packs::pack_key(spec).filter(|_| opts.pack > 1) {
-                for deque in [&mut candidates, &mut queue] {
-                    let mut i = 0;
-                    while i < deque.len() && picked.len() < opts.pack {
-                        if crate::packs::pack_key(deque[i].1).as_ref() == Some(&key) {
-                            picked.extend(deque.remove(i));
-                        } else {
-                            i += 1;
-                        }
-                    }
-                }
-            }
-            let mut members: Vec<Member<'_>> = Vec::new();
-            for (index, spec) in picked {
-                let Some(claimed) = claim(spec)? else {
-                    if !waited.contains(&spec.key) {
-                        waited.push(spec.key.clone());
-                    }
-                    waiting.push((index, spec));
-                    continue;
-                };
-                // Read again now that it is ours: another process may have finished or advanced it.
-                let state = match plan::state(spec) {
-                    Ok(s) => s,
-                    Err(e) => {
-                        summary.failed.push((spec.key.clone(), e.to_string()));
-                        finished += 1;
-                        continue;
-                    }
-                };
-                match state {
-                    RunState::Finished => {
-                        summary.finished_elsewhere += 1;
-                        finished += 1;
-                        done[index] = iterations_done(spec);
-                        continue;
-                    }
-                    RunState::Partial { .. } => summary.resumed += 1,
-                    RunState::New => {
-                        summary.started += 1;
-                        let text = spec
-                            .config
-                            .to_toml()
-                            .map_err(|e| ReproError::Invalid(format!("run {}: {e}", spec.key)))?;
-                        write_atomic(&spec.config_path, &text)?;
-                    }
-                }
-                members.push(Member { index, spec, state, _claim: claimed });
-            }
-            let Some(first) = members.first() else { continue };
-            // A pack writes one log: its first run's.
-            let log_path = first.spec.log_path.clone();
-            if let Some(p) = log_path.parent() {
-                std::fs::create_dir_all(p)
-                    .map_err(|e| ReproError::Io { path: p.into(), source: e })?;
-            }
-            let log = std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&log_path)
-                .map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
-            let err = log
-                .try_clone()
-                .map_err(|e| ReproError::Io { path: log_path.clone(), source: e })?;
-            let (stdin, parent_end) = parent_pipe(&opts.exe)?;
-            let mut cmd = match members.as_slice() {
-                [one] => command(one.spec, one.state, opts)?,
-                many => pack_command(&plan.out, many, opts)?,
-            };
-            let child = cmd
-                .stdin(stdin)
-                .stdout(log)
-                .stderr(err)
-                .spawn()
-                .map_err(|e| ReproError::Io { path: opts.exe.clone(), source: e })?;
-            running.push(Job { members, child, log_path, _parent_end: parent_end });
-        }
-        // Runs not reached this time (every job slot busy) wait their turn again.
-        waiting.extend(candidates);
-        if running.is_empty() && waiting.is_empty() && queue.is_empty() {
-            break;
-        }
-        let mut i = 0;
-        while i < running.len() {
-            match running[i].child.try_wait() {
-                Ok(Some(status)) => {
-                    let job = running.swap_remove(i);
-                    for m in &job.members {
-                        done[m.index] = iterations_done(m.spec);
-                        finished += 1;
-                    }
-                    if !status.success() {
-                        let tail = std::fs::read_to_string(&job.log_path).unwrap_or_default();
-                        let tail: Vec<&str> = tail.lines().rev().take(5).collect();
-                        let message = format!(
-                            "{status}; last lines of {}: {}",
-                            job.log_path.display(),
-                            tail.into_iter().rev().collect::<Vec<_>>().join(" | ")
-                        );
-                        // In a pack, the runs that did not finish are the failed ones.
-                        for m in &job.members {
-                            let whole = job.members.len() == 1;
-                            if whole || !matches!(plan::state(m.spec), Ok(RunState::Finished)) {
-                                summary.failed.push((m.spec.key.clone(), message.clone()));
-                            }
-                        }
-                    }
-                }
-                Ok(None) => i += 1,
-                Err(e) => {
-                    let dir = running[i].members.first().map(|m| m.spec.dir.clone());
-                    return Err(ReproError::Io { path: dir.unwrap_or_default(), source: e });
-                }
-            }
-        }
-        if last.elapsed() >= Duration::from_secs(2) {
-            for m in running.iter().flat_map(|j| &j.members) {
-                done[m.index] = iterations_done(m.spec);
-            }
-            progress(&report(
-                Stage::Training,
-                finished,
-                running.iter().flat_map(|j| &j.members).map(|m| m.spec.key.clone()).collect(),
-                waiting.iter().map(|(_, s)| s.key.clone()).collect(),
-                &done,
-            ));
-            last = Instant::now();
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    summary.waited = waited;
-    crate::variant::evaluate(plan, &variants, opts, &mut summary)?;
-    progress(&report(Stage::Done, finished, Vec::new(), Vec::new(), &done));
-    Ok(summary)
+    Ok(removed)
 }
 
 /// Writes one self-contained command per run (`jobs.txt`, for `xargs -P` or any scheduler) and a

@@ -69,3 +69,92 @@ pub struct ExecSummary {
 /// SIGKILL): no `collect` or `train` child outlives a killed `reproduce`. (A pipe rather than
 /// `prctl(PR_SET_PDEATHSIG)`, which needs unsafe code.)
 pub const DIE_WITH_PARENT: &str = "--die-with-parent";
+
+impl Progress {
+    /// The progress bar's message: which family's data are being collected, or how many runs are
+    /// done, which are running and which another process holds.
+    pub fn message(&self) -> String {
+        if let Stage::Data(env) = &self.stage {
+            return format!("collecting the {env} datasets");
+        }
+        let mut m = format!("runs {}/{} done", self.runs_finished, self.runs_total);
+        if !self.running.is_empty() {
+            m.push_str(&format!(", running {}", self.running.join(" ")));
+        }
+        if !self.waiting.is_empty() {
+            let held = self.waiting.join(" ");
+            m.push_str(&format!(", waiting for {held} (another process has it)"));
+        }
+        m
+    }
+}
+
+/// What was done: the count of runs per outcome; then the variants evaluated and the runs another
+/// process had (a second `reproduce` on the same `--out`, or a `train` on the run: not failed,
+/// and not run twice), where there were any. No newline at the end.
+impl std::fmt::Display for ExecSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} runs already finished, {} started, {} resumed, {} failed",
+            self.already_finished,
+            self.started,
+            self.resumed,
+            self.failed.len()
+        )?;
+        if self.evaluated > 0 {
+            let n = self.evaluated;
+            write!(f, "\n{n} variant runs evaluated (docs/reproduce.md, \"Variants\")")?;
+        }
+        if !self.waited.is_empty() {
+            write!(
+                f,
+                "\nwaited for {} runs another process had ({} finished there): {}",
+                self.waited.len(),
+                self.finished_elsewhere,
+                self.waited.join(" ")
+            )?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_summary_says_each_outcome_and_only_the_extra_lines_that_apply() {
+        let mut s = ExecSummary { already_finished: 2, started: 1, ..Default::default() };
+        assert_eq!(s.to_string(), "2 runs already finished, 1 started, 0 resumed, 0 failed");
+        s.evaluated = 3;
+        s.waited = vec!["a/cpu/seed0".into(), "b/cpu/seed1".into()];
+        s.finished_elsewhere = 1;
+        let text = s.to_string();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 3, "{text}");
+        assert_eq!(lines[1], "3 variant runs evaluated (docs/reproduce.md, \"Variants\")");
+        assert_eq!(
+            lines[2],
+            "waited for 2 runs another process had (1 finished there): a/cpu/seed0 b/cpu/seed1"
+        );
+    }
+
+    #[test]
+    fn the_progress_message_names_the_data_or_the_runs() {
+        let mut p = Progress {
+            stage: Stage::Data("some_family".into()),
+            runs_total: 4,
+            runs_finished: 1,
+            iterations_done: 0,
+            iterations_total: 10,
+            running: vec!["x".into()],
+            waiting: vec![],
+        };
+        assert_eq!(p.message(), "collecting the some_family datasets");
+        p.stage = Stage::Training;
+        assert_eq!(p.message(), "runs 1/4 done, running x");
+        p.waiting = vec!["y".into()];
+        assert_eq!(p.message(), "runs 1/4 done, running x, waiting for y (another process has it)");
+    }
+}

@@ -12,6 +12,7 @@
 //!   read by the report where a run directory is absent.
 //! - [`render`]: `RESULTS.md` and the README's headline block from the registry.
 //! - [`status`]: `--status`, where each run of a plan stands (finished, archived, part-way).
+//! - [`sweep`]: runs at once, threads per run, runs per pack and their engine, by device.
 //!
 //! The library prints nothing; progress goes through a callback.
 
@@ -26,6 +27,7 @@ pub mod render;
 pub mod report;
 pub mod stats;
 pub mod status;
+pub mod sweep;
 pub mod task_blind;
 pub mod variant;
 pub mod variant_spec;
@@ -34,6 +36,7 @@ pub use exec::{ExecOptions, ExecSummary, Progress, Stage};
 pub use manifest::{Manifest, BUILTIN};
 pub use plan::{Plan, PlanOptions, RunSpec, RunState};
 pub use report::Report;
+pub use sweep::{Sweep, SweepAsk, SweepDefaults};
 
 use std::path::PathBuf;
 
@@ -63,8 +66,9 @@ pub enum ReproError {
     RunDir(#[from] pdt_rundir::RunDirError),
 }
 
-/// One line of `promptdt reproduce --list`.
-#[derive(Debug, Clone)]
+/// One experiment of `promptdt reproduce --list` (and of the Python package's `experiments()`, as
+/// JSON).
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct ListEntry {
     pub name: String,
     pub title: String,
@@ -74,7 +78,7 @@ pub struct ListEntry {
 }
 
 /// What an experiment costs at one budget.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct BudgetCost {
     pub budget: String,
     pub runs: usize,
@@ -83,6 +87,22 @@ pub struct BudgetCost {
     /// Wall time, where the manifest states it.
     pub hours: Option<f64>,
     pub note: String,
+}
+
+/// The experiment's line, then one line per budget (runs, iterations, the wall time the manifest
+/// states). No newline at the end.
+impl std::fmt::Display for ListEntry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let pending =
+            if self.pending > 0 { format!(", {} pending", self.pending) } else { String::new() };
+        write!(f, "{:<30} {} ({} cells{pending})", self.name, self.title, self.cells)?;
+        for b in &self.budgets {
+            let h = b.hours.map_or(String::new(), |h| format!(", ~{h} h here"));
+            let (budget, runs, iterations, note) = (&b.budget, b.runs, b.iterations, &b.note);
+            write!(f, "\n    {budget:<6} {runs:>3} runs x {iterations} iterations{h}: {note}")?;
+        }
+        Ok(())
+    }
 }
 
 /// Every committed experiment with its cost per budget.

@@ -98,6 +98,13 @@ pub struct Added {
     pub bytes: u64,
 }
 
+/// `promptdt results add`'s line for the run.
+impl std::fmt::Display for Added {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "archived {} into {} ({} bytes)", self.key, self.dir.display(), self.bytes)
+    }
+}
+
 fn refuse(dir: &Path, why: impl std::fmt::Display) -> ReproError {
     ReproError::Invalid(format!("{}: not archived: {why}", dir.display()))
 }
@@ -224,49 +231,75 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     };
 
     let target = o.registry.join(&spec.key);
-    let parent = target.parent().unwrap_or(&o.registry);
-    std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
-    let tmp = parent.join(format!(".tmp-seed{seed}-{}", std::process::id()));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| io(&tmp, e))?;
-    }
-    let out = RunDir::at(&tmp);
-    out.create_dir()?;
-    std::fs::create_dir_all(out.checkpoints_dir()).map_err(|e| io(&tmp, e))?;
-    // Copied byte for byte: an old run's files keep their old names, which RunDir reads.
-    let copies = [
-        (run.config_path(), out.config_path()),
-        (run.info_path(), out.info_path()),
-        (run.stats_path(), out.stats_path()),
-        (run.eval_path(), out.eval_path()),
-        (run.latest_path(), out.latest_path()),
-        (run.final_eval_path(), out.final_eval_path()),
-    ];
-    for (from, to) in copies {
-        if from == run.final_eval_path() && !from.exists() {
-            continue;
+    let archive = Archive {
+        run: &run,
+        variant: variant.as_ref(),
+        metrics: thin(&metrics, &eval_iters),
+        norm: &norm,
+        prov: &prov,
+    };
+    let bytes = archive.write_to(&target, seed)?;
+    Ok(Added { key: spec.key.clone(), dir: target, bytes })
+}
+
+/// A run's archive: its small files copied, its curve thinned, its normalisation and provenance.
+struct Archive<'a> {
+    run: &'a RunDir,
+    variant: Option<&'a crate::variant_spec::VariantRecord>,
+    metrics: Vec<MetricsLine>,
+    norm: &'a Normalisation,
+    prov: &'a Provenance,
+}
+
+impl Archive<'_> {
+    /// Writes the archive into a temporary directory beside `target`, then renames it into place
+    /// (replacing an earlier archive of the run). Returns its size in bytes.
+    fn write_to(&self, target: &Path, seed: u32) -> Result<u64, ReproError> {
+        let (run, dir) = (self.run, self.run.path());
+        let parent = target.parent().unwrap_or(Path::new("."));
+        std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
+        let tmp = parent.join(format!(".tmp-seed{seed}-{}", std::process::id()));
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).map_err(|e| io(&tmp, e))?;
         }
-        std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
-    }
-    if let Some(v) = &variant {
-        for name in [crate::variant_spec::VARIANT_JSON, v.result_file.as_str()] {
-            let (from, to) = (dir.join(name), tmp.join(name));
+        let out = RunDir::at(&tmp);
+        out.create_dir()?;
+        std::fs::create_dir_all(out.checkpoints_dir()).map_err(|e| io(&tmp, e))?;
+        // Copied byte for byte: an old run's files keep their old names, which RunDir reads.
+        let copies = [
+            (run.config_path(), out.config_path()),
+            (run.info_path(), out.info_path()),
+            (run.stats_path(), out.stats_path()),
+            (run.eval_path(), out.eval_path()),
+            (run.latest_path(), out.latest_path()),
+            (run.final_eval_path(), out.final_eval_path()),
+        ];
+        for (from, to) in copies {
+            if from == run.final_eval_path() && !from.exists() {
+                continue;
+            }
             std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
         }
+        if let Some(v) = self.variant {
+            for name in [crate::variant_spec::VARIANT_JSON, v.result_file.as_str()] {
+                let (from, to) = (dir.join(name), tmp.join(name));
+                std::fs::copy(&from, &to).map_err(|e| io(&from, e))?;
+            }
+        }
+        out.append_metrics(&self.metrics)?;
+        pdt_rundir::write_json(&tmp.join(NORMALISATION_JSON), self.norm)?;
+        pdt_rundir::write_json(&tmp.join(PROVENANCE_JSON), self.prov)?;
+        let bytes = dir_bytes(&tmp);
+        if target.exists() {
+            let old = parent.join(format!(".old-seed{seed}-{}", std::process::id()));
+            std::fs::rename(target, &old).map_err(|e| io(target, e))?;
+            std::fs::rename(&tmp, target).map_err(|e| io(target, e))?;
+            std::fs::remove_dir_all(&old).map_err(|e| io(&old, e))?;
+        } else {
+            std::fs::rename(&tmp, target).map_err(|e| io(target, e))?;
+        }
+        Ok(bytes)
     }
-    out.append_metrics(&thin(&metrics, &eval_iters))?;
-    pdt_rundir::write_json(&tmp.join(NORMALISATION_JSON), &norm)?;
-    pdt_rundir::write_json(&tmp.join(PROVENANCE_JSON), &prov)?;
-    let bytes = dir_bytes(&tmp);
-    if target.exists() {
-        let old = parent.join(format!(".old-seed{seed}-{}", std::process::id()));
-        std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
-        std::fs::rename(&tmp, &target).map_err(|e| io(&target, e))?;
-        std::fs::remove_dir_all(&old).map_err(|e| io(&old, e))?;
-    } else {
-        std::fs::rename(&tmp, &target).map_err(|e| io(&target, e))?;
-    }
-    Ok(Added { key: spec.key.clone(), dir: target, bytes })
 }
 
 /// Why `metrics` (the rows of `path`) do not reach iteration `done`, if they do not.

@@ -252,40 +252,7 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
         stats::MIN_SEEDS
     );
     for sec in &sections {
-        let r = &sec.report;
-        let _ = writeln!(s, "## {} — `{}` budget\n", r.title, r.budget);
-        let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
-        let _ = writeln!(s, "{}\n", archive_text(sec));
-        let _ = writeln!(
-            s,
-            "| cell | budget | seeds | iterations | device | ours | ours normalised | {:.0} % \
-             interval | IQM | ours, ratio of means | paper | paper normalised |",
-            100.0 * stats::CONFIDENCE
-        );
-        let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
-        for c in &r.cells {
-            let Some(seeds) = sec.seeds.get(&c.id).filter(|_| c.seeds > 0) else { continue };
-            let ours = match c.success {
-                Some(sr) => format!("{}, success {}", stat(c.ours, 1), stat(Some(sr), 2)),
-                None => stat(c.ours, 1),
-            };
-            let report::PaperText { raw: p, normalised: pn } = report::PaperText::of(c);
-            let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
-            let devices = devices.map_or("-".into(), |d| d.join(", "));
-            let (norm, ci, iqm) = normalised_text(c);
-            let _ = writeln!(
-                s,
-                "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} | {p} | {pn} |",
-                c.label,
-                c.id,
-                r.budget,
-                seeds_text(seeds),
-                c.iteration.map_or("-".into(), |i| i.to_string()),
-                devices,
-                stat(c.ours_normalised_rom, 1),
-            );
-        }
-        let _ = writeln!(s);
+        cells_table(&mut s, sec);
     }
     let _ = writeln!(s, "## What reproduces\n");
     let _ = writeln!(
@@ -303,58 +270,7 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
         stats::MIN_SEEDS
     );
     for sec in &sections {
-        let r = &sec.report;
-        let measured: Vec<_> = r.claims.iter().filter(|c| c.verdict != "not measured").collect();
-        let unmeasured = r.claims.len() - measured.len();
-        let _ = writeln!(s, "- **{} (`{}`)**:", r.experiment, r.budget);
-        let order = |v: &str| match v {
-            "holds" => 0,
-            "fails" => 1,
-            "undecided" => 2,
-            _ => 3,
-        };
-        let mut measured = measured;
-        measured.sort_by_key(|c| order(&c.verdict));
-        for c in &measured {
-            let _ = writeln!(s, "  - {}: {} ({})", c.verdict, c.text, c.detail);
-        }
-        // Ours against the paper's value, normalised alike (ratio of means over the test tasks),
-        // where the paper's can be normalised.
-        for c in r.cells.iter().filter(|c| sec.seeds.contains_key(&c.id) && c.seeds > 0) {
-            let (Some(o), Some(p)) = (c.ours_normalised_rom, c.paper_normalised) else { continue };
-            let gap = o.mean - p;
-            let how = if gap.abs() <= report::DEFAULT_MARGIN {
-                format!("within {} normalised points of the paper", report::DEFAULT_MARGIN)
-            } else if gap < 0.0 {
-                "below the paper".into()
-            } else {
-                "above the paper".into()
-            };
-            let at = c.iteration.map_or(String::new(), |i| format!(", ours at iteration {i}"));
-            // Below the paper: whether the run was still improving when its budget ended.
-            let trend = match gap < -report::DEFAULT_MARGIN {
-                true => trend(&c.curve).map_or(String::new(), |t| format!("; {t}")),
-                false => String::new(),
-            };
-            let _ = writeln!(
-                s,
-                "  - {how}: {} `{}`, {:.1} (ratio of means; per-task mean of ratios {}) vs the \
-                 paper's {p:.1} at the paper's budget{at} ({} seed{}){trend}",
-                c.label,
-                c.id,
-                o.mean,
-                opt(c.ours_normalised.map(|x| x.mean)),
-                o.n,
-                if o.n == 1 { "" } else { "s" }
-            );
-        }
-        if unmeasured > 0 {
-            let _ = writeln!(
-                s,
-                "  - not measured: {unmeasured} of {} claims (their cells have no archived run)",
-                r.claims.len()
-            );
-        }
+        verdicts(&mut s, sec);
     }
     if let Some(blind) = crate::task_blind::section(registry)? {
         let _ = writeln!(s, "\n## Why MT-ORL rises and then falls\n");
@@ -367,6 +283,101 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
          not archived are in this file's and README.md's git history."
     );
     Ok(Rendered { results_md: s, readme_block: headline(&sections) })
+}
+
+/// A registry section's table: one row per archived cell.
+fn cells_table(s: &mut String, sec: &Section) {
+    let r = &sec.report;
+    let _ = writeln!(s, "## {} — `{}` budget\n", r.title, r.budget);
+    let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
+    let _ = writeln!(s, "{}\n", archive_text(sec));
+    let _ = writeln!(
+        s,
+        "| cell | budget | seeds | iterations | device | ours | ours normalised | {:.0} % \
+         interval | IQM | ours, ratio of means | paper | paper normalised |",
+        100.0 * stats::CONFIDENCE
+    );
+    let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
+    for c in &r.cells {
+        let Some(seeds) = sec.seeds.get(&c.id).filter(|_| c.seeds > 0) else { continue };
+        let ours = match c.success {
+            Some(sr) => format!("{}, success {}", stat(c.ours, 1), stat(Some(sr), 2)),
+            None => stat(c.ours, 1),
+        };
+        let report::PaperText { raw: p, normalised: pn } = report::PaperText::of(c);
+        let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
+        let devices = devices.map_or("-".into(), |d| d.join(", "));
+        let (norm, ci, iqm) = normalised_text(c);
+        let _ = writeln!(
+            s,
+            "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} | {p} | {pn} |",
+            c.label,
+            c.id,
+            r.budget,
+            seeds_text(seeds),
+            c.iteration.map_or("-".into(), |i| i.to_string()),
+            devices,
+            stat(c.ours_normalised_rom, 1),
+        );
+    }
+    let _ = writeln!(s);
+}
+
+/// A registry section's verdicts: the claims measured (holds first), then each cell against the
+/// paper's value where the paper's can be normalised, then how many claims were not measured.
+fn verdicts(s: &mut String, sec: &Section) {
+    let r = &sec.report;
+    let measured: Vec<_> = r.claims.iter().filter(|c| c.verdict != "not measured").collect();
+    let unmeasured = r.claims.len() - measured.len();
+    let _ = writeln!(s, "- **{} (`{}`)**:", r.experiment, r.budget);
+    let order = |v: &str| match v {
+        "holds" => 0,
+        "fails" => 1,
+        "undecided" => 2,
+        _ => 3,
+    };
+    let mut measured = measured;
+    measured.sort_by_key(|c| order(&c.verdict));
+    for c in &measured {
+        let _ = writeln!(s, "  - {}: {} ({})", c.verdict, c.text, c.detail);
+    }
+    // Ours against the paper's value, normalised alike (ratio of means over the test tasks),
+    // where the paper's can be normalised.
+    for c in r.cells.iter().filter(|c| sec.seeds.contains_key(&c.id) && c.seeds > 0) {
+        let (Some(o), Some(p)) = (c.ours_normalised_rom, c.paper_normalised) else { continue };
+        let gap = o.mean - p;
+        let how = if gap.abs() <= report::DEFAULT_MARGIN {
+            format!("within {} normalised points of the paper", report::DEFAULT_MARGIN)
+        } else if gap < 0.0 {
+            "below the paper".into()
+        } else {
+            "above the paper".into()
+        };
+        let at = c.iteration.map_or(String::new(), |i| format!(", ours at iteration {i}"));
+        // Below the paper: whether the run was still improving when its budget ended.
+        let trend = match gap < -report::DEFAULT_MARGIN {
+            true => trend(&c.curve).map_or(String::new(), |t| format!("; {t}")),
+            false => String::new(),
+        };
+        let _ = writeln!(
+            s,
+            "  - {how}: {} `{}`, {:.1} (ratio of means; per-task mean of ratios {}) vs the \
+             paper's {p:.1} at the paper's budget{at} ({} seed{}){trend}",
+            c.label,
+            c.id,
+            o.mean,
+            opt(c.ours_normalised.map(|x| x.mean)),
+            o.n,
+            if o.n == 1 { "" } else { "s" }
+        );
+    }
+    if unmeasured > 0 {
+        let _ = writeln!(
+            s,
+            "  - not measured: {unmeasured} of {} claims (their cells have no archived run)",
+            r.claims.len()
+        );
+    }
 }
 
 /// The last three evaluations of a cell's curve (mean test return over seeds) and which way they

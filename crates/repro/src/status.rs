@@ -93,6 +93,31 @@ impl Tally {
         }
         t
     }
+
+    /// Whether a run is left to do (part-way, not started, or one that cannot be resumed).
+    pub fn unfinished(&self) -> bool {
+        self.partial + self.not_started + self.problems > 0
+    }
+
+    /// `--status`'s closing line: how many runs of `plan` stand where, with the registry read.
+    pub fn summary(&self, plan: &Plan, registry: &Path) -> String {
+        let problems = match self.problems {
+            0 => String::new(),
+            n => format!(", {n} cannot be resumed as they are"),
+        };
+        format!(
+            "{} runs of {} at the {} budget: {} done ({} archived in {}), {} part-way, {} not \
+             started{problems}",
+            self.runs,
+            plan.experiment,
+            plan.budget,
+            self.done,
+            self.archived,
+            registry.display(),
+            self.partial,
+            self.not_started,
+        )
+    }
 }
 
 /// A run's state as the status table prints it.

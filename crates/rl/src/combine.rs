@@ -24,6 +24,7 @@ use crate::rollout::Behaviour;
 use crate::train::{evaluate_tasks, read_agent_card, AgentCard, TaskExpert};
 use crate::{write_atomic, RlError};
 use pdt_envs::EnvFamily;
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use tch::Device;
@@ -132,9 +133,66 @@ pub fn combine(
     }
     let base = read_agent_card(&cfg.base)?;
     let family = pdt_envs::family(&base.family)?;
-    let n_tasks = family.num_tasks();
+    let cands = candidates(cfg, &base.family, family.num_tasks(), device)?;
 
-    // Candidates: the base expert first, then every policy file given, in name order.
+    // Variants: every candidate as it is, and (Ant-Dir) mirrored by each of the body's symmetries.
+    let mirrors = if cfg.mirrors { Mirror::for_family(&base.family) } else { vec![] };
+    let mut variants: Vec<Variant> = Vec::new();
+    for c in 0..cands.len() {
+        variants.push(Variant { cand: c, mirror: None });
+        for m in &mirrors {
+            variants.push(Variant { cand: c, mirror: Some(m.clone()) });
+        }
+    }
+    let pool = Pool { cands: &cands, variants: &variants, family: family.as_ref() };
+    let chosen = pool.choose(cfg, device, progress)?;
+    let (main, file_of) = pool.write_experts(&chosen, out)?;
+    let medium = pool.medium(cfg, &base, &chosen, device)?;
+    write_atomic(&out.join("medium.safetensors"), &medium.bytes)?;
+
+    let task_experts: Vec<TaskExpert> = chosen
+        .iter()
+        .enumerate()
+        .map(|(task, &(v, r))| TaskExpert {
+            task,
+            file: file_of[&v].clone(),
+            source: cands[variants[v].cand].path.display().to_string(),
+            mirror: variants[v].mirror.as_ref().map(|m| m.name.clone()),
+            step: cands[variants[v].cand].policy.meta.step,
+            eval_return: r,
+        })
+        .collect();
+    let mut card = base.clone();
+    card.expert_step = cands[variants[main].cand].policy.meta.step;
+    card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
+    card.task_experts = task_experts;
+    card.medium_step = medium.meta.step;
+    card.medium_eval = medium.meta.eval_returns.clone();
+    card.why_medium = format!(
+        "of the base agent's medium and the {} candidate snapshots, the one whose deterministic \
+         returns are on average closest ({:.2}) to each task's halfway point between uniform \
+         random actions and its expert ({})",
+        cands.len(),
+        medium.gap,
+        medium.path.display()
+    );
+    if cfg.dataset_noise.is_some() {
+        card.dataset_noise = cfg.dataset_noise;
+    }
+    let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
+    write_atomic(&out.join("agent.json"), format!("{text}\n").as_bytes())?;
+    Ok(card)
+}
+
+/// The candidates: the base expert first, then every policy file given, in name order (a
+/// directory's `*.safetensors`), each once, each checked to be of the family with one recorded
+/// return per task.
+fn candidates(
+    cfg: &CombineConfig,
+    family: &str,
+    n_tasks: usize,
+    device: Device,
+) -> Result<Vec<Candidate>, RlError> {
     let mut paths = vec![cfg.base.join("expert.safetensors")];
     for c in &cfg.candidates {
         if c.is_dir() {
@@ -166,10 +224,10 @@ pub fn combine(
         }
         let policy = policy::from_bytes(&bytes, &path, device)?;
         let bad = |message: String| RlError::File { path: path.clone(), message };
-        if policy.meta.family != base.family {
+        if policy.meta.family != family {
             return Err(bad(format!(
-                "a {} policy, but the base agent is {}",
-                policy.meta.family, base.family
+                "a {} policy, but the base agent is {family}",
+                policy.meta.family
             )));
         }
         if policy.meta.eval_returns.len() != n_tasks {
@@ -180,160 +238,166 @@ pub fn combine(
         }
         cands.push(Candidate { path, bytes, policy });
     }
+    Ok(cands)
+}
 
-    // Variants: every candidate as it is, and (Ant-Dir) mirrored by each of the body's symmetries.
-    let mirrors = if cfg.mirrors { Mirror::for_family(&base.family) } else { vec![] };
-    let mut variants: Vec<Variant> = Vec::new();
-    for c in 0..cands.len() {
-        variants.push(Variant { cand: c, mirror: None });
-        for m in &mirrors {
-            variants.push(Variant { cand: c, mirror: Some(m.clone()) });
-        }
+/// The candidates and their variants, of one family.
+struct Pool<'a> {
+    cands: &'a [Candidate],
+    variants: &'a [Variant],
+    family: &'a dyn EnvFamily,
+}
+
+/// The medium policy chosen: its file, as read, and how far its returns are from halfway.
+struct Medium<'a> {
+    path: PathBuf,
+    bytes: Cow<'a, [u8]>,
+    meta: Cow<'a, policy::PolicyMeta>,
+    gap: f64,
+}
+
+impl Pool<'_> {
+    /// A variant's recorded evaluation on `task`. A mirrored variant's is taken to be the
+    /// candidate's on the task whose feature is nearest to the mirrored feature (a proxy used for
+    /// ranking only).
+    fn recorded(&self, v: &Variant, task: usize) -> f64 {
+        let features = &self.cands[0].policy.meta.encoder.task_features;
+        let r = &self.cands[v.cand].policy.meta.eval_returns;
+        let Some(m) = &v.mirror else { return r[task] };
+        let f: Vec<f32> =
+            features[task].iter().zip(&m.task_feature_sign).map(|(x, s)| x * s).collect();
+        let dist =
+            |k: usize| -> f32 { features[k].iter().zip(&f).map(|(a, b)| (a - b) * (a - b)).sum() };
+        let n_tasks = self.family.num_tasks();
+        let nearest = (0..n_tasks).min_by(|&a, &b| dist(a).total_cmp(&dist(b))).unwrap_or(task);
+        r[nearest]
     }
-    let features = &cands[0].policy.meta.encoder.task_features;
-    // A mirrored variant's recorded evaluation on a task is taken to be the candidate's on the
-    // task whose feature is nearest to the mirrored feature (a proxy used for ranking only).
-    let recorded = |v: &Variant, task: usize| -> f64 {
-        let r = &cands[v.cand].policy.meta.eval_returns;
-        match &v.mirror {
-            None => r[task],
-            Some(m) => {
-                let f: Vec<f32> =
-                    features[task].iter().zip(&m.task_feature_sign).map(|(x, s)| x * s).collect();
-                let dist = |k: usize| -> f32 {
-                    features[k].iter().zip(&f).map(|(a, b)| (a - b) * (a - b)).sum()
-                };
-                let nearest =
-                    (0..n_tasks).min_by(|&a, &b| dist(a).total_cmp(&dist(b))).unwrap_or(task);
-                r[nearest]
+
+    /// Per task, the variant chosen and its mean return: the `top_k` variants by their recorded
+    /// evaluation evaluated again, the best mean winning (ties to the earlier variant).
+    fn choose(
+        &self,
+        cfg: &CombineConfig,
+        device: Device,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<Vec<(usize, f64)>, RlError> {
+        let (variants, n_tasks) = (self.variants, self.family.num_tasks());
+        let mut to_eval: BTreeMap<usize, Vec<usize>> = BTreeMap::new(); // variant -> tasks
+        for task in 0..n_tasks {
+            let mut order: Vec<usize> = (0..variants.len()).collect();
+            order.sort_by(|&a, &b| {
+                let (ra, rb) =
+                    (self.recorded(&variants[a], task), self.recorded(&variants[b], task));
+                rb.total_cmp(&ra).then(a.cmp(&b))
+            });
+            for &v in order.iter().take(cfg.top_k) {
+                to_eval.entry(v).or_default().push(task);
             }
         }
-    };
-
-    // Per task, the top_k variants by their recorded evaluation.
-    let mut to_eval: BTreeMap<usize, Vec<usize>> = BTreeMap::new(); // variant -> tasks
-    for task in 0..n_tasks {
-        let mut order: Vec<usize> = (0..variants.len()).collect();
-        order.sort_by(|&a, &b| {
-            recorded(&variants[b], task).total_cmp(&recorded(&variants[a], task)).then(a.cmp(&b))
-        });
-        for &v in order.iter().take(cfg.top_k) {
-            to_eval.entry(v).or_default().push(task);
+        // (task) -> [(variant, mean return)]
+        let mut scores: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n_tasks];
+        let total = to_eval.len();
+        for (done, (&v, tasks)) in to_eval.iter().enumerate() {
+            let p = &self.cands[variants[v].cand].policy;
+            let encoder =
+                TaskEncoder { mirror: variants[v].mirror.clone(), ..p.meta.encoder.clone() };
+            let (episodes, seed) = (cfg.eval_episodes, cfg.seed);
+            let returns =
+                evaluate_through(p, &encoder, self.family, tasks, episodes, seed, device)?;
+            for (&t, r) in tasks.iter().zip(returns) {
+                scores[t].push((v, r));
+            }
+            progress(done + 1, total);
         }
+        scores
+            .iter()
+            .enumerate()
+            .map(|(t, s)| {
+                s.iter()
+                    .copied()
+                    .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+                    .ok_or_else(|| RlError::Config(format!("no candidate evaluated for task {t}")))
+            })
+            .collect()
     }
-    // (task) -> [(variant, mean return)]
-    let mut scores: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n_tasks];
-    let total = to_eval.len();
-    for (done, (&v, tasks)) in to_eval.iter().enumerate() {
-        let p = &cands[variants[v].cand].policy;
-        let encoder = TaskEncoder { mirror: variants[v].mirror.clone(), ..p.meta.encoder.clone() };
-        let returns = evaluate_through(
-            p,
-            &encoder,
-            family.as_ref(),
-            tasks,
-            cfg.eval_episodes,
-            cfg.seed,
-            device,
-        )?;
-        for (&t, r) in tasks.iter().zip(returns) {
-            scores[t].push((v, r));
-        }
-        progress(done + 1, total);
-    }
-    let chosen: Vec<(usize, f64)> = scores
-        .iter()
-        .enumerate()
-        .map(|(t, s)| {
-            s.iter()
-                .copied()
-                .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
-                .ok_or_else(|| RlError::Config(format!("no candidate evaluated for task {t}")))
-        })
-        .collect::<Result<_, _>>()?;
 
-    // Files: the variant chosen for most tasks is `expert.safetensors`, the others
-    // `expert-1.safetensors`, ... in the order of their first task.
-    let mut uses: BTreeMap<usize, usize> = BTreeMap::new();
-    for &(v, _) in &chosen {
-        *uses.entry(v).or_default() += 1;
-    }
-    let main =
-        uses.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(&v, _)| v).unwrap_or(0);
-    let mut file_of: BTreeMap<usize, String> =
-        BTreeMap::from([(main, "expert.safetensors".into())]);
-    for &(v, _) in &chosen {
-        let k = file_of.len();
-        file_of.entry(v).or_insert_with(|| format!("expert-{k}.safetensors"));
-    }
-    std::fs::create_dir_all(out)
-        .map_err(|source| RlError::Io { path: out.to_path_buf(), source })?;
-    for (&v, name) in &file_of {
-        let c = &cands[variants[v].cand];
-        match &variants[v].mirror {
-            // As it is: a byte copy of the snapshot.
-            None => write_atomic(&out.join(name), &c.bytes)?,
-            // Mirrored: the same actor, with the mirror in its encoder.
-            Some(m) => {
-                let mut meta = c.policy.meta.clone();
-                meta.encoder.mirror = Some(m.clone());
-                policy::save(&out.join(name), &c.policy.actor, &meta)?;
+    /// Writes the chosen experts: the variant chosen for most tasks is `expert.safetensors`, the
+    /// others `expert-1.safetensors`, ... in the order of their first task. Returns the main
+    /// variant and each chosen variant's file.
+    fn write_experts(
+        &self,
+        chosen: &[(usize, f64)],
+        out: &Path,
+    ) -> Result<(usize, BTreeMap<usize, String>), RlError> {
+        let mut uses: BTreeMap<usize, usize> = BTreeMap::new();
+        for &(v, _) in chosen {
+            *uses.entry(v).or_default() += 1;
+        }
+        let by_use = |a: &(&usize, &usize), b: &(&usize, &usize)| a.1.cmp(b.1).then(b.0.cmp(a.0));
+        let main = uses.iter().max_by(by_use).map(|(&v, _)| v).unwrap_or(0);
+        let mut file_of: BTreeMap<usize, String> =
+            BTreeMap::from([(main, "expert.safetensors".into())]);
+        for &(v, _) in chosen {
+            let k = file_of.len();
+            file_of.entry(v).or_insert_with(|| format!("expert-{k}.safetensors"));
+        }
+        std::fs::create_dir_all(out)
+            .map_err(|source| RlError::Io { path: out.to_path_buf(), source })?;
+        for (&v, name) in &file_of {
+            let c = &self.cands[self.variants[v].cand];
+            match &self.variants[v].mirror {
+                // As it is: a byte copy of the snapshot.
+                None => write_atomic(&out.join(name), &c.bytes)?,
+                // Mirrored: the same actor, with the mirror in its encoder.
+                Some(m) => {
+                    let mut meta = c.policy.meta.clone();
+                    meta.encoder.mirror = Some(m.clone());
+                    policy::save(&out.join(name), &c.policy.actor, &meta)?;
+                }
             }
         }
+        Ok((main, file_of))
     }
-    // The medium policy keeps its definition (halfway in evaluated return between uniform random
-    // actions and the expert), now against the per-task experts, task by task: of the base agent's
-    // medium and the candidates as they are, the one whose recorded returns are on average closest
-    // to each task's halfway point (a policy that walks well in half of the directions and not at
-    // all in the others is not medium data).
-    let half: Vec<f64> =
-        base.random_eval.iter().zip(&chosen).map(|(r, c)| 0.5 * (r + c.1)).collect();
-    let gap = |r: &[f64]| -> f64 {
-        r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>() / half.len().max(1) as f64
-    };
-    let base_medium_path = cfg.base.join("medium.safetensors");
-    let base_medium_bytes =
-        pdt_base::fs::read_limited(&base_medium_path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
-            .map_err(|source| RlError::Io { path: base_medium_path.clone(), source })?;
-    let base_medium = policy::from_bytes(&base_medium_bytes, &base_medium_path, device)?;
-    let mut medium = (&base_medium_path, &base_medium_bytes, &base_medium.meta);
-    for c in &cands {
-        if gap(&c.policy.meta.eval_returns) < gap(&medium.2.eval_returns) {
-            medium = (&c.path, &c.bytes, &c.policy.meta);
-        }
-    }
-    write_atomic(&out.join("medium.safetensors"), medium.1)?;
 
-    let task_experts: Vec<TaskExpert> = chosen
-        .iter()
-        .enumerate()
-        .map(|(task, &(v, r))| TaskExpert {
-            task,
-            file: file_of[&v].clone(),
-            source: cands[variants[v].cand].path.display().to_string(),
-            mirror: variants[v].mirror.as_ref().map(|m| m.name.clone()),
-            step: cands[variants[v].cand].policy.meta.step,
-            eval_return: r,
+    /// The medium policy keeps its definition (halfway in evaluated return between uniform random
+    /// actions and the expert), now against the per-task experts, task by task: of the base
+    /// agent's medium and the candidates as they are, the one whose recorded returns are on
+    /// average closest to each task's halfway point (a policy that walks well in half of the
+    /// directions and not at all in the others is not medium data).
+    fn medium<'b>(
+        &'b self,
+        cfg: &CombineConfig,
+        base: &AgentCard,
+        chosen: &[(usize, f64)],
+        device: Device,
+    ) -> Result<Medium<'b>, RlError> {
+        let half: Vec<f64> =
+            base.random_eval.iter().zip(chosen).map(|(r, c)| 0.5 * (r + c.1)).collect();
+        let gap = |r: &[f64]| -> f64 {
+            r.iter().zip(&half).map(|(a, h)| (a - h).abs()).sum::<f64>() / half.len().max(1) as f64
+        };
+        let path = cfg.base.join("medium.safetensors");
+        let bytes = pdt_base::fs::read_limited(&path, pdt_base::fs::MAX_TENSOR_FILE_BYTES)
+            .map_err(|source| RlError::Io { path: path.clone(), source })?;
+        let meta = policy::from_bytes(&bytes, &path, device)?.meta;
+        let mut best: Option<&Candidate> = None;
+        let mut best_gap = gap(&meta.eval_returns);
+        for c in self.cands {
+            let g = gap(&c.policy.meta.eval_returns);
+            if g < best_gap {
+                (best, best_gap) = (Some(c), g);
+            }
+        }
+        Ok(match best {
+            Some(c) => Medium {
+                path: c.path.clone(),
+                bytes: Cow::Borrowed(&c.bytes),
+                meta: Cow::Borrowed(&c.policy.meta),
+                gap: best_gap,
+            },
+            None => {
+                Medium { path, bytes: Cow::Owned(bytes), meta: Cow::Owned(meta), gap: best_gap }
+            }
         })
-        .collect();
-    let mut card = base.clone();
-    card.expert_step = cands[variants[main].cand].policy.meta.step;
-    card.expert_eval = chosen.iter().map(|&(_, r)| r).collect();
-    card.task_experts = task_experts;
-    card.medium_step = medium.2.step;
-    card.medium_eval = medium.2.eval_returns.clone();
-    card.why_medium = format!(
-        "of the base agent's medium and the {} candidate snapshots, the one whose deterministic \
-         returns are on average closest ({:.2}) to each task's halfway point between uniform \
-         random actions and its expert ({})",
-        cands.len(),
-        gap(&medium.2.eval_returns),
-        medium.0.display()
-    );
-    if cfg.dataset_noise.is_some() {
-        card.dataset_noise = cfg.dataset_noise;
     }
-    let text = serde_json::to_string_pretty(&card).map_err(|e| RlError::Config(e.to_string()))?;
-    write_atomic(&out.join("agent.json"), format!("{text}\n").as_bytes())?;
-    Ok(card)
 }

@@ -18,7 +18,7 @@
 use crate::agent::Noise;
 use crate::policy::{self, Policy};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
-use crate::train::read_agent_card;
+use crate::train::{read_agent_card, AgentCard};
 use crate::RlError;
 use pdt_data::mode::{Mode, Set};
 use pdt_data::native::{
@@ -110,106 +110,28 @@ pub fn generate(
 ) -> Result<DatasetSummary, RlError> {
     let card = read_agent_card(agent_dir)?;
     let family = pdt_envs::family(&card.family)?;
-    let n_tasks = family.num_tasks();
-    let tasks: Vec<usize> =
-        if cfg.tasks.is_empty() { (0..n_tasks).collect() } else { cfg.tasks.clone() };
-    if let Some(&t) = tasks.iter().find(|&&t| t >= n_tasks) {
-        return Err(pdt_envs::EnvError::UnknownTask {
-            env: card.family.clone(),
-            task: t,
-            n: n_tasks,
-        }
-        .into());
-    }
-    if cfg.episodes == 0 || cfg.prompt_episodes == 0 || cfg.modes.is_empty() {
-        return Err(RlError::Config(
-            "episodes, prompt_episodes and modes must not be empty".into(),
-        ));
-    }
+    let tasks = checked_tasks(cfg, &card.family, family.num_tasks())?;
     std::fs::create_dir_all(out_dir)
         .map_err(|source| RlError::Io { path: out_dir.to_path_buf(), source })?;
-    let load = |file: &str| -> Result<Policy, RlError> {
-        // `task_experts` names files inside the agent directory, never elsewhere.
-        if file.contains(['/', '\\']) || file.starts_with('.') {
-            return Err(RlError::File {
-                path: agent_dir.join("agent.json"),
-                message: format!("expert file `{file}` is not a file name in the agent directory"),
-            });
-        }
-        let p = policy::load(&agent_dir.join(file), device)?;
-        if p.meta.family != card.family {
-            return Err(RlError::File {
-                path: agent_dir.join(file),
-                message: format!("a {} policy in a {} agent directory", p.meta.family, card.family),
-            });
-        }
-        Ok(p)
-    };
     let noise = cfg.noise.or(card.dataset_noise).unwrap_or(Noise::Explore);
     let per_task = cfg.episodes + cfg.prompt_episodes;
-    let total = tasks.len() * per_task * cfg.modes.len();
-    let mut done_before = 0;
+    let mut play = Play {
+        card: &card,
+        agent_dir,
+        family: family.as_ref(),
+        cfg,
+        tasks: &tasks,
+        noise,
+        device,
+        done: 0,
+        total: tasks.len() * per_task * cfg.modes.len(),
+        progress,
+    };
     let mut entries = Vec::new();
     let mut card_files: Vec<Vec<CardFile>> = vec![Vec::new(); tasks.len()];
     let (mut files, mut steps) = (0, 0);
     for &mode in &cfg.modes {
-        // Which policy acts on which tasks: one group, except for the expert of a combined agent
-        // (see `combine`), whose expert file may differ by task.
-        let mut groups: Vec<(Option<String>, Vec<usize>)> = Vec::new();
-        for &task in &tasks {
-            let file = match mode {
-                Mode::Expert => Some(card.expert_file(task).to_string()),
-                Mode::Medium => Some("medium.safetensors".to_string()),
-                Mode::Random => None,
-            };
-            match groups.iter_mut().find(|(f, _)| *f == file) {
-                Some((_, ts)) => ts.push(task),
-                None => groups.push((file, vec![task])),
-            }
-        }
-        let mut by_task: Vec<Vec<pdt_data::Trajectory>> = vec![Vec::new(); tasks.len()];
-        for (file, group_tasks) in &groups {
-            let policy = match file {
-                Some(f) => Some(load(f)?),
-                None => None,
-            };
-            let behaviour = match &policy {
-                Some(p) => Behaviour::Actor {
-                    actor: &p.actor,
-                    head: p.meta.head,
-                    encoder: &p.meta.encoder,
-                    noise,
-                    device,
-                },
-                None => Behaviour::Uniform,
-            };
-            let mut specs = Vec::with_capacity(group_tasks.len() * per_task);
-            for &task in group_tasks {
-                for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
-                    for e in 0..n {
-                        let mut rng = episode_rng(cfg.seed, task, mode, set, e);
-                        let reset_seed = rng.random();
-                        specs.push(EpisodeSpec { task, reset_seed, rng });
-                    }
-                }
-            }
-            let trajs = run_episodes(
-                family.as_ref(),
-                behaviour,
-                specs,
-                cfg.chunk,
-                cfg.threads,
-                &mut |d| progress(done_before + d, total),
-                &cfg.interrupt,
-            )?;
-            done_before += trajs.len();
-            let mut trajs = trajs.into_iter();
-            for &task in group_tasks {
-                if let Some(k) = tasks.iter().position(|&t| t == task) {
-                    by_task[k] = trajs.by_ref().take(per_task).collect();
-                }
-            }
-        }
+        let by_task = play.mode(mode)?;
         let mut trajs = by_task.into_iter().flatten();
         for (k, &task) in tasks.iter().enumerate() {
             let mut stats = Vec::new();
@@ -240,7 +162,6 @@ pub fn generate(
             entries.push(TaskModeStats { task, mode, dataset: stats[0], prompts: stats[1] });
         }
     }
-    let preset = family.preset();
     let card_tasks = tasks
         .iter()
         .zip(card_files)
@@ -248,7 +169,153 @@ pub fn generate(
             Ok(CardTask { index: task, params: family.task_params(task)?, files })
         })
         .collect::<Result<Vec<_>, RlError>>()?;
-    let dataset_card = DatasetCard {
+    let dataset_card = dataset_card(&card, family.as_ref(), cfg, &tasks, noise, card_tasks);
+    native::write_card(out_dir, &dataset_card)
+        .map_err(|source| RlError::Data { path: out_dir.join(CARD_FILE_NAME), source })?;
+    Ok(DatasetSummary {
+        family: card.family,
+        entries,
+        card: out_dir.join(CARD_FILE_NAME),
+        files,
+        steps,
+    })
+}
+
+/// The tasks `cfg` names (all of the family's where it names none), each checked to be one of
+/// the family's; and episodes and modes checked not to be empty.
+fn checked_tasks(cfg: &DatasetConfig, env: &str, n_tasks: usize) -> Result<Vec<usize>, RlError> {
+    let tasks: Vec<usize> =
+        if cfg.tasks.is_empty() { (0..n_tasks).collect() } else { cfg.tasks.clone() };
+    if let Some(&t) = tasks.iter().find(|&&t| t >= n_tasks) {
+        return Err(
+            pdt_envs::EnvError::UnknownTask { env: env.to_string(), task: t, n: n_tasks }.into()
+        );
+    }
+    if cfg.episodes == 0 || cfg.prompt_episodes == 0 || cfg.modes.is_empty() {
+        return Err(RlError::Config(
+            "episodes, prompt_episodes and modes must not be empty".into(),
+        ));
+    }
+    Ok(tasks)
+}
+
+/// The policy file `file` of the agent directory, checked to be one of `family`'s.
+fn load_policy(
+    agent_dir: &Path,
+    family: &str,
+    file: &str,
+    device: Device,
+) -> Result<Policy, RlError> {
+    // `task_experts` names files inside the agent directory, never elsewhere.
+    if file.contains(['/', '\\']) || file.starts_with('.') {
+        return Err(RlError::File {
+            path: agent_dir.join("agent.json"),
+            message: format!("expert file `{file}` is not a file name in the agent directory"),
+        });
+    }
+    let p = policy::load(&agent_dir.join(file), device)?;
+    if p.meta.family != family {
+        return Err(RlError::File {
+            path: agent_dir.join(file),
+            message: format!("a {} policy in a {family} agent directory", p.meta.family),
+        });
+    }
+    Ok(p)
+}
+
+/// The episodes of every mode, counted as they are played.
+struct Play<'a> {
+    card: &'a AgentCard,
+    agent_dir: &'a Path,
+    family: &'a dyn pdt_envs::EnvFamily,
+    cfg: &'a DatasetConfig,
+    tasks: &'a [usize],
+    noise: Noise,
+    device: Device,
+    /// Episodes played so far, of `total`.
+    done: usize,
+    total: usize,
+    progress: &'a mut dyn FnMut(usize, usize),
+}
+
+impl Play<'_> {
+    /// The episodes of `mode`, per task of `tasks` (its dataset's, then its prompt set's), each
+    /// acted by the mode's policy: uniform random actions, the medium snapshot, or the expert
+    /// (which may differ by task: the expert of a combined agent).
+    fn mode(&mut self, mode: Mode) -> Result<Vec<Vec<pdt_data::Trajectory>>, RlError> {
+        let cfg = self.cfg;
+        let per_task = cfg.episodes + cfg.prompt_episodes;
+        // Which policy acts on which tasks: one group, except for the expert of a combined agent.
+        let mut groups: Vec<(Option<String>, Vec<usize>)> = Vec::new();
+        for &task in self.tasks {
+            let file = match mode {
+                Mode::Expert => Some(self.card.expert_file(task).to_string()),
+                Mode::Medium => Some("medium.safetensors".to_string()),
+                Mode::Random => None,
+            };
+            match groups.iter_mut().find(|(f, _)| *f == file) {
+                Some((_, ts)) => ts.push(task),
+                None => groups.push((file, vec![task])),
+            }
+        }
+        let mut by_task: Vec<Vec<pdt_data::Trajectory>> = vec![Vec::new(); self.tasks.len()];
+        for (file, group_tasks) in &groups {
+            let load = |f: &str| load_policy(self.agent_dir, &self.card.family, f, self.device);
+            let policy = file.as_deref().map(load).transpose()?;
+            let behaviour = match &policy {
+                Some(p) => Behaviour::Actor {
+                    actor: &p.actor,
+                    head: p.meta.head,
+                    encoder: &p.meta.encoder,
+                    noise: self.noise,
+                    device: self.device,
+                },
+                None => Behaviour::Uniform,
+            };
+            let mut specs = Vec::with_capacity(group_tasks.len() * per_task);
+            for &task in group_tasks {
+                for (set, n) in [(Set::Dataset, cfg.episodes), (Set::Prompt, cfg.prompt_episodes)] {
+                    for e in 0..n {
+                        let mut rng = episode_rng(cfg.seed, task, mode, set, e);
+                        let reset_seed = rng.random();
+                        specs.push(EpisodeSpec { task, reset_seed, rng });
+                    }
+                }
+            }
+            let (done, total) = (self.done, self.total);
+            let progress = &mut *self.progress;
+            let trajs = run_episodes(
+                self.family,
+                behaviour,
+                specs,
+                cfg.chunk,
+                cfg.threads,
+                &mut |d| progress(done + d, total),
+                &cfg.interrupt,
+            )?;
+            self.done += trajs.len();
+            let mut trajs = trajs.into_iter();
+            for &task in group_tasks {
+                if let Some(k) = self.tasks.iter().position(|&t| t == task) {
+                    by_task[k] = trajs.by_ref().take(per_task).collect();
+                }
+            }
+        }
+        Ok(by_task)
+    }
+}
+
+/// The card of the datasets written: the family, the tasks' files and how they were made.
+fn dataset_card(
+    card: &AgentCard,
+    family: &dyn pdt_envs::EnvFamily,
+    cfg: &DatasetConfig,
+    tasks: &[usize],
+    noise: Noise,
+    card_tasks: Vec<CardTask>,
+) -> DatasetCard {
+    let preset = family.preset();
+    DatasetCard {
         format: CARD_FORMAT_NAME.to_owned(),
         format_version: FORMAT_VERSION.to_owned(),
         env: card.family.clone(),
@@ -279,14 +346,5 @@ pub fn generate(
             })).collect::<Vec<_>>(),
             "rng": "ChaCha8, one generator per episode keyed by (seed, task, mode, set, episode): reset seed, then action noise",
         }),
-    };
-    native::write_card(out_dir, &dataset_card)
-        .map_err(|source| RlError::Data { path: out_dir.join(CARD_FILE_NAME), source })?;
-    Ok(DatasetSummary {
-        family: card.family,
-        entries,
-        card: out_dir.join(CARD_FILE_NAME),
-        files,
-        steps,
-    })
+    }
 }

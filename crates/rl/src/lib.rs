@@ -12,12 +12,14 @@
 //! - [`train`]: the training loop, checkpoints, snapshots.
 //! - [`combine`]: per-task experts picked from the snapshots of one or more runs.
 //! - [`datasets`]: expert / medium / random datasets and prompt sets from exported actors.
+//! - [`display`]: the summaries `promptdt collect` and `promptdt agent combine` print.
 
 pub mod agent;
 pub mod bench;
 pub mod buffer;
 pub mod combine;
 pub mod datasets;
+pub mod display;
 pub mod nets;
 pub mod overrides;
 pub mod policy;

@@ -14,21 +14,23 @@
 //! - `agent/`: at the end, `expert.safetensors`, `medium.safetensors` and `agent.json` — what
 //!   `pretrained/<family>/` holds.
 
-use crate::agent::{
-    actor_raw, Agent, AgentConfig, Algorithm, CollectPreset, Noise, TaskEncoder, UpdateStats,
-};
-use crate::buffer::{BufferArrays, ReplayBuffer, Transition};
+use crate::agent::{Agent, AgentConfig, Algorithm, CollectPreset, Noise, TaskEncoder, UpdateStats};
+use crate::buffer::{BufferArrays, ReplayBuffer};
 use crate::policy::{self, PolicyMeta, POLICY_FORMAT};
 use crate::rollout::{run_episodes, Behaviour, EpisodeSpec};
 use crate::{stream_rng, write_atomic, RlError};
 use pdt_base::tensor_file::describe_safetensors_error;
-use pdt_envs::{Env, EnvFamily};
+use pdt_envs::EnvFamily;
 use rand::Rng;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
 use tch::Device;
+
+mod episode;
+
+use episode::{Learning, Played, World};
 
 const STREAM_INIT: u64 = 1;
 const STREAM_EPISODE: u64 = 2;
@@ -291,47 +293,14 @@ pub fn train(
     progress: &mut dyn FnMut(&TrainProgress<'_>),
 ) -> Result<Option<AgentCard>, RlError> {
     let ckpt_path = dir.join(CHECKPOINT_FILE);
-    let io = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| RlError::Io { path, source }
-    };
-    let (cfg, loaded) = match start {
-        Start::Resume { total_steps, tasks, sample_recent } => {
-            if !ckpt_path.exists() {
-                return Err(RlError::NoCheckpoint { path: dir.to_path_buf() });
-            }
-            let (state, tensors) = read_checkpoint(&ckpt_path)?;
-            let mut c = state.config.clone();
-            if let Some(t) = total_steps {
-                if t < state.step {
-                    return Err(RlError::Config(format!(
-                        "the run already has {} steps; cannot shrink it to {t}",
-                        state.step
-                    )));
-                }
-                c.total_steps = t;
-            }
-            if let Some(t) = tasks {
-                c.tasks = t.to_vec();
-            }
-            if let Some(w) = sample_recent {
-                c.sample_recent = w;
-            }
-            (c, Some((state, tensors)))
-        }
-        Start::New(c) => {
-            if ckpt_path.exists() || dir.join("config.json").exists() {
-                return Err(RlError::Exists { path: dir.to_path_buf() });
-            }
-            (c.clone(), None)
-        }
-    };
+    let (cfg, loaded) = open(start, dir, &ckpt_path)?;
     let family = pdt_envs::family(&cfg.family)?;
     cfg.validate(family.as_ref())?;
     let encoder = TaskEncoder::for_family(family.as_ref())?;
     let preset = family.preset();
     let (in_dim, act_dim) = (encoder.input_dim(), preset.act_dim);
-    std::fs::create_dir_all(dir.join("snapshots")).map_err(io(dir))?;
+    std::fs::create_dir_all(dir.join("snapshots"))
+        .map_err(|source| RlError::Io { path: dir.to_path_buf(), source })?;
     let cfg_text =
         serde_json::to_string_pretty(&cfg).map_err(|e| RlError::Config(e.to_string()))?;
     write_atomic(&dir.join("config.json"), cfg_text.as_bytes())?;
@@ -344,141 +313,43 @@ pub fn train(
         &mut stream_rng(cfg.seed, STREAM_INIT, 0),
         device,
     );
-    let capacity = cfg.total_steps as usize;
-    let (mut state, mut buffer) = match loaded {
-        Some((state, tensors)) => {
-            let bad = |message: String| RlError::File { path: ckpt_path.clone(), message };
-            let get = |n: &str| tensors.get(n).cloned();
-            let steps: HashMap<String, u64> = state.optimiser_steps.iter().cloned().collect();
-            agent.load_state(&get, &|n| steps.get(n).copied()).map_err(bad)?;
-            let take = |n: &str| {
-                tensors.get(n).cloned().ok_or_else(|| bad(format!("missing tensor `{n}`")))
-            };
-            let arrays = BufferArrays {
-                obs: take("buffer.obs")?,
-                actions: take("buffer.actions")?,
-                rewards: take("buffer.rewards")?,
-                next_obs: take("buffer.next_obs")?,
-                terminated: take("buffer.terminated")?,
-            };
-            let buffer = ReplayBuffer::from_parts(
-                in_dim,
-                act_dim,
-                capacity.max(state.step as usize),
-                arrays,
-            )
-            .map_err(bad)?;
-            if buffer.len() as u64 != state.step {
-                return Err(bad(format!(
-                    "buffer has {} transitions but the state says {} steps",
-                    buffer.len(),
-                    state.step
-                )));
-            }
-            (state, buffer)
-        }
-        None => (
-            TrainState {
-                config: cfg.clone(),
-                step: 0,
-                episode: 0,
-                updates: 0,
-                episodes: vec![],
-                snapshots: vec![],
-                optimiser_steps: vec![],
-                wall_seconds: 0.0,
-            },
-            ReplayBuffer::new(in_dim, act_dim, capacity),
-        ),
-    };
+    let (mut state, buffer) = restore(loaded, &mut agent, &cfg, (in_dim, act_dim), &ckpt_path)?;
     state.config = cfg.clone();
 
     let tasks = cfg.train_tasks(family.as_ref());
-    let mut envs: Vec<Option<Box<dyn Env>>> = (0..family.num_tasks()).map(|_| None).collect();
     let mut recent: Vec<VecDeque<f64>> = vec![VecDeque::new(); tasks.len()];
     for log in &state.episodes {
         if let Some(k) = tasks.iter().position(|&t| t == log.task) {
             push_recent(&mut recent[k], log.episode_return);
         }
     }
-    let head = agent.policy_head();
     let snapshot_steps = cfg.snapshot_steps();
     let mut next_ckpt = (state.step / cfg.checkpoint_every + 1) * cfg.checkpoint_every;
     let start_step = state.step;
     let started = std::time::Instant::now();
     let wall_before = state.wall_seconds;
-    let mut last_update = UpdateStats::default();
-    let mut x = Vec::with_capacity(in_dim);
-    let mut x_next = Vec::with_capacity(in_dim);
-    let mut action = Vec::with_capacity(act_dim);
+    let world = World {
+        cfg: &cfg,
+        family: family.as_ref(),
+        encoder: &encoder,
+        tasks: &tasks,
+        act_dim,
+        device,
+    };
+    let mut l = Learning {
+        agent,
+        buffer,
+        state,
+        last_update: UpdateStats::default(),
+        envs: (0..family.num_tasks()).map(|_| None).collect(),
+        x: Vec::with_capacity(in_dim),
+        x_next: Vec::with_capacity(in_dim),
+        action: Vec::with_capacity(act_dim),
+    };
 
-    while state.step < cfg.total_steps {
-        // One episode.
-        let mut erng = stream_rng(cfg.seed, STREAM_EPISODE, state.episode);
-        let task = tasks[erng.random_range(0..tasks.len())];
-        let reset_seed: u64 = erng.random();
-        let env = match &mut envs[task] {
-            Some(e) => e,
-            slot => slot.insert(family.make(task)?),
-        };
-        let obs = env.reset(reset_seed);
-        x.clear();
-        encoder.encode(&obs, task, &mut x);
-        let (mut ret, mut len) = (0.0f64, 0usize);
-        loop {
-            let mut arng = stream_rng(cfg.seed, STREAM_ACT, state.step);
-            action.clear();
-            if state.step < cfg.learning_starts {
-                for _ in 0..act_dim {
-                    action.push(arng.random_range(-1.0f32..=1.0));
-                }
-            } else {
-                let raw = actor_raw(agent.actor(), &x, 1, device);
-                head.action(&raw, act_dim, Noise::Explore, &mut arng, &mut action);
-            }
-            let step = env.step(&action)?;
-            if !step.reward.is_finite() || step.obs.iter().any(|v| !v.is_finite()) {
-                return Err(RlError::Diverged(format!(
-                    "{} task {task}: non-finite observation or reward at step {}",
-                    cfg.family, state.step
-                )));
-            }
-            x_next.clear();
-            encoder.encode(&step.obs, task, &mut x_next);
-            buffer.push(Transition {
-                obs: &x,
-                action: &action,
-                reward: step.reward,
-                next_obs: &x_next,
-                terminated: step.terminated,
-            });
-            state.step += 1;
-            ret += step.reward as f64;
-            len += 1;
-            if state.step >= cfg.learning_starts {
-                for _ in 0..cfg.updates_per_step {
-                    let mut brng = stream_rng(cfg.seed, STREAM_BATCH, state.updates);
-                    let batch = buffer.sample_recent(
-                        cfg.batch_size,
-                        cfg.sample_recent as usize,
-                        &mut brng,
-                        device,
-                    );
-                    last_update = agent.update(&batch, &mut brng);
-                    state.updates += 1;
-                }
-                if !last_update.critic_loss.is_finite() {
-                    return Err(RlError::Diverged(format!(
-                        "critic loss {} at step {}",
-                        last_update.critic_loss, state.step
-                    )));
-                }
-            }
-            std::mem::swap(&mut x, &mut x_next);
-            if step.terminated || step.truncated || state.step >= cfg.total_steps {
-                break;
-            }
-        }
+    while l.state.step < cfg.total_steps {
+        let Played { task, ret, len } = l.episode(&world)?;
+        let state = &mut l.state;
         state.episodes.push(EpisodeLog {
             episode: state.episode,
             step: state.step,
@@ -499,7 +370,7 @@ pub fn train(
         if let Some(&due) = snapshot_steps.iter().find(|&&s| s > last_snap) {
             if state.step >= due {
                 let info =
-                    snapshot(&cfg, family.as_ref(), &encoder, &agent, state.step, dir, device)?;
+                    snapshot(&cfg, family.as_ref(), &encoder, &l.agent, state.step, dir, device)?;
                 state.snapshots.push(info);
                 snap = state.snapshots.last();
             }
@@ -514,26 +385,114 @@ pub fn train(
             episode: state.episode,
             updates: state.updates,
             recent: &recent_means,
-            last_update,
+            last_update: l.last_update,
             snapshot: snap,
         });
-        if state.step >= next_ckpt || state.step >= cfg.total_steps {
+        let stop = stop_after.is_some_and(|m| state.step - start_step >= m);
+        if state.step >= next_ckpt || state.step >= cfg.total_steps || stop {
             state.wall_seconds = wall_before + started.elapsed().as_secs_f64();
-            write_checkpoint(&ckpt_path, &mut state, &agent, &buffer)?;
-            write_episodes_csv(&dir.join("episodes.csv"), &state.episodes)?;
-            next_ckpt = (state.step / cfg.checkpoint_every + 1) * cfg.checkpoint_every;
-        } else if stop_after.is_some_and(|m| state.step - start_step >= m) {
-            state.wall_seconds = wall_before + started.elapsed().as_secs_f64();
-            write_checkpoint(&ckpt_path, &mut state, &agent, &buffer)?;
+            write_checkpoint(&ckpt_path, state, &l.agent, &l.buffer)?;
             write_episodes_csv(&dir.join("episodes.csv"), &state.episodes)?;
         }
-        if stop_after.is_some_and(|m| state.step - start_step >= m) && state.step < cfg.total_steps
-        {
+        if state.step >= next_ckpt || state.step >= cfg.total_steps {
+            next_ckpt = (state.step / cfg.checkpoint_every + 1) * cfg.checkpoint_every;
+        }
+        if stop && state.step < cfg.total_steps {
             return Ok(None);
         }
     }
+    let state = &mut l.state;
     state.wall_seconds = wall_before + started.elapsed().as_secs_f64();
-    finish(&cfg, family.as_ref(), &state, dir).map(Some)
+    finish(&cfg, family.as_ref(), state, dir).map(Some)
+}
+
+/// The run's configuration, and its checkpoint where it resumes (with the budget, tasks and window
+/// a resume may change); a new run refused where `dir` already holds one.
+#[allow(clippy::type_complexity)]
+fn open(
+    start: Start<'_>,
+    dir: &Path,
+    ckpt_path: &Path,
+) -> Result<(RlConfig, Option<(TrainState, Tensors)>), RlError> {
+    match start {
+        Start::Resume { total_steps, tasks, sample_recent } => {
+            if !ckpt_path.exists() {
+                return Err(RlError::NoCheckpoint { path: dir.to_path_buf() });
+            }
+            let (state, tensors) = read_checkpoint(ckpt_path)?;
+            let mut c = state.config.clone();
+            if let Some(t) = total_steps {
+                if t < state.step {
+                    return Err(RlError::Config(format!(
+                        "the run already has {} steps; cannot shrink it to {t}",
+                        state.step
+                    )));
+                }
+                c.total_steps = t;
+            }
+            if let Some(t) = tasks {
+                c.tasks = t.to_vec();
+            }
+            if let Some(w) = sample_recent {
+                c.sample_recent = w;
+            }
+            Ok((c, Some((state, tensors))))
+        }
+        Start::New(c) => {
+            if ckpt_path.exists() || dir.join("config.json").exists() {
+                return Err(RlError::Exists { path: dir.to_path_buf() });
+            }
+            Ok((c.clone(), None))
+        }
+    }
+}
+
+/// The state and replay buffer of a resumed run, its weights and moments loaded into `agent`;
+/// or a new run's (an empty buffer of the whole budget).
+fn restore(
+    loaded: Option<(TrainState, Tensors)>,
+    agent: &mut Agent,
+    cfg: &RlConfig,
+    (in_dim, act_dim): (usize, usize),
+    ckpt_path: &Path,
+) -> Result<(TrainState, ReplayBuffer), RlError> {
+    let capacity = cfg.total_steps as usize;
+    let Some((state, tensors)) = loaded else {
+        let state = TrainState {
+            config: cfg.clone(),
+            step: 0,
+            episode: 0,
+            updates: 0,
+            episodes: vec![],
+            snapshots: vec![],
+            optimiser_steps: vec![],
+            wall_seconds: 0.0,
+        };
+        return Ok((state, ReplayBuffer::new(in_dim, act_dim, capacity)));
+    };
+    let bad = |message: String| RlError::File { path: ckpt_path.to_path_buf(), message };
+    let get = |n: &str| tensors.get(n).cloned();
+    let steps: HashMap<String, u64> = state.optimiser_steps.iter().cloned().collect();
+    agent.load_state(&get, &|n| steps.get(n).copied()).map_err(bad)?;
+    let take =
+        |n: &str| tensors.get(n).cloned().ok_or_else(|| bad(format!("missing tensor `{n}`")));
+    let arrays = BufferArrays {
+        obs: take("buffer.obs")?,
+        actions: take("buffer.actions")?,
+        rewards: take("buffer.rewards")?,
+        next_obs: take("buffer.next_obs")?,
+        terminated: take("buffer.terminated")?,
+    };
+    let capacity = capacity.max(state.step as usize);
+    let buffer = ReplayBuffer::from_parts(in_dim, act_dim, capacity, arrays).map_err(bad)?;
+    if buffer.len() as u64 != state.step {
+        return Err(bad(format!(
+            "buffer has {} transitions but the state says {} steps",
+            buffer.len(),
+            state.step
+        )));
+    }
+    Ok((state, buffer))
 }
 
 fn push_recent(r: &mut VecDeque<f64>, v: f64) {

@@ -135,12 +135,10 @@ impl RunStats {
 
     /// Compares the statistics recomputed from the data now with those recorded in a run;
     /// `Err` says what differs. Fingerprints are compared when the run recorded them.
-    pub fn check_same_as(&self, recorded: &RunStats) -> Result<(), String> {
-        let fp = |now: &str, then: &str, which: &str| {
+    pub fn check_same_as(&self, recorded: &RunStats) -> Result<(), DataMismatch> {
+        let fp = |now: &str, then: &str, which: &'static str| {
             if !then.is_empty() && now != then {
-                Err(format!(
-                    "the {which} data differ from what the run trained on ({then}, now {now})"
-                ))
+                Err(DataMismatch::Fingerprint { which, then: then.into(), now: now.into() })
             } else {
                 Ok(())
             }
@@ -151,12 +149,23 @@ impl RunStats {
         mine.train_data_fingerprint.clone_from(&recorded.train_data_fingerprint);
         mine.test_data_fingerprint.clone_from(&recorded.test_data_fingerprint);
         if &mine != recorded {
-            return Err("the state statistics, tasks or return settings recomputed from the \
-                        configuration and data differ from those the run recorded"
-                .into());
+            return Err(DataMismatch::Statistics);
         }
         Ok(())
     }
+}
+
+/// How the data a run is resumed or evaluated with differ from what it trained on: other files
+/// (their fingerprint), or other statistics, tasks or return settings (another configuration).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum DataMismatch {
+    #[error("the {which} data differ from what the run trained on ({then}, now {now})")]
+    Fingerprint { which: &'static str, then: String, now: String },
+    #[error(
+        "the state statistics, tasks or return settings recomputed from the configuration and \
+         data differ from those the run recorded"
+    )]
+    Statistics,
 }
 
 /// The commit point of a checkpoint (`checkpoints/latest.json`).

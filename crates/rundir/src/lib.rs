@@ -8,10 +8,12 @@
 //! - [`files`]: the other files (`run.json`, `task_stats.json`, `checkpoints/latest.json`,
 //!   `eval_final.json`) and the lines of the logs (`eval.jsonl`, `metrics.jsonl`) as structs.
 //! - [`pack`]: a pack directory's `pack.json` ([`pack::PackRecord`]) and its engine's name.
+//! - `display`: what `promptdt eval` prints of an evaluation (`Display` of its files).
 //! - [`RunDir`]: where each file lies, with typed readers and writers; errors name the file.
 
 pub mod config;
 mod dir;
+mod display;
 pub mod files;
 pub mod pack;
 
@@ -21,6 +23,6 @@ pub use dir::{
     METRICS_CSV, METRICS_JSONL, RUN_JSON, TASK_STATS_JSON,
 };
 pub use files::{
-    AdaptationStats, EvalLine, FinalEval, Latest, MetricsLine, PackInfo, PromptEval, RunInfo,
-    RunStats, TaskResult, TaskStats, TrainState,
+    AdaptationStats, DataMismatch, EvalLine, FinalEval, Latest, MetricsLine, PackInfo, PromptEval,
+    RunInfo, RunStats, TaskResult, TaskStats, TrainState,
 };

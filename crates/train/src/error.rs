@@ -22,6 +22,12 @@ pub enum RunError {
     Eval(#[from] EvalError),
     #[error(transparent)]
     Strategy(#[from] pdt_prompt::StrategyError),
+    /// An `[eval.adapt]` setting out of range (the message names it).
+    #[error(transparent)]
+    Adapt(#[from] pdt_rundir::config::AdaptError),
+    /// MACAW's configuration or step refused (the message names the setting).
+    #[error(transparent)]
+    Macaw(#[from] pdt_macaw::MacawError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
     #[error(transparent)]
@@ -41,8 +47,30 @@ pub enum RunError {
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
+    /// A setting, flag, file or part of a run refused: `what` names it (`--iterations`,
+    /// `eval.adapt`, a run directory, `pack`), `why` says what is wrong with it and what to do.
+    #[error("{what}: {why}")]
+    Invalid { what: String, why: String },
+    /// Another promptdt process holds the run directory (`lock` is its lock file): wait for it,
+    /// or train elsewhere.
+    #[error(
+        "{} is in use by another promptdt process (it holds {}); wait for it to finish, or pick \
+         another --out",
+        dir.display(),
+        lock.display()
+    )]
+    Busy { dir: PathBuf, lock: PathBuf },
+    /// Training diverged (a non-finite loss or gradient norm): resuming would repeat the same
+    /// steps, so the configuration must change.
+    #[error("{}: {message}", dir.display())]
+    Diverged { dir: PathBuf, message: String },
+    /// A broken promise inside the library (a pack engine's protocol, a thread that panicked),
+    /// not a fault of the input.
     #[error("{0}")]
-    Invalid(String),
+    Internal(String),
+    /// A run of a pack failed: `dir` is the run, `source` why.
+    #[error("run {} of the pack: {source}", dir.display())]
+    InPack { dir: PathBuf, source: Box<RunError> },
     /// A stop was asked for ([`crate::run::TrainOptions::interrupt`]) during `iteration`; nothing
     /// of it was written.
     #[error(
@@ -64,11 +92,18 @@ impl From<pdt_eval::testtime::TestTimeError> for RunError {
     fn from(e: pdt_eval::testtime::TestTimeError) -> Self {
         use pdt_eval::testtime::TestTimeError as T;
         match e {
-            T::Input(m) | T::Failed(m) => RunError::Invalid(m),
+            T::Input(m) | T::Failed(m) => RunError::invalid("test time", m),
             T::Sampler(e) => RunError::Sampler(e),
             T::Strategy(e) => RunError::Strategy(e),
             T::Env(e) => RunError::Env(e),
             T::Eval(e) => RunError::Eval(e),
         }
+    }
+}
+
+impl RunError {
+    /// [`RunError::Invalid`]: `what` refused because `why`.
+    pub fn invalid(what: impl std::fmt::Display, why: impl std::fmt::Display) -> Self {
+        RunError::Invalid { what: what.to_string(), why: why.to_string() }
     }
 }

@@ -88,7 +88,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     // Written into the configuration as the run's own: `Setup::new` checks its settings as a
     // run's, and the files below are named from it.
     if let Some(t) = test_time {
-        t.apply_to(&mut cfg).map_err(|e| RunError::Invalid(format!("{}: {e}", dir.display())))?;
+        t.apply_to(&mut cfg).map_err(|e| RunError::invalid(dir.display(), e))?;
     }
     let setup = Setup::new(cfg)?;
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
@@ -99,17 +99,21 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     let stats_path = run.stats_path();
     let recorded = read_stats(&run)?;
     setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
-        RunError::Invalid(format!(
-            "{}: {m}; data.dir is {}. Evaluate with the data the run trained on (--data DIR \
-             where it moved)",
+        let dir = setup.cfg.data.dir.display();
+        RunError::invalid(
             stats_path.display(),
-            setup.cfg.data.dir.display()
-        ))
+            format!(
+                "{m}; data.dir is {dir}. Evaluate with the data the run trained on (--data DIR \
+                 where it moved)"
+            ),
+        )
     })?;
     let which = match split {
         "test" => Split::Test,
         "train" => Split::Train,
-        other => return Err(RunError::Invalid(format!("unknown split `{other}` (test or train)"))),
+        other => {
+            return Err(RunError::invalid("split", format!("unknown `{other}` (test or train)")))
+        }
     };
     let _rng = torch_rng_lock();
     let mut learner = methods::learner(&setup)?;

@@ -303,12 +303,7 @@ pub(crate) fn remove_orphans(ck: &Path) -> Result<Vec<String>, RunError> {
 pub(crate) fn lock_run_dir(dir: &Path) -> Result<pdt_base::fs::DirLock, RunError> {
     pdt_base::fs::DirLock::try_acquire(dir).map_err(|e| {
         if e.kind() == std::io::ErrorKind::WouldBlock {
-            RunError::Invalid(format!(
-                "{} is in use by another promptdt process (it holds {}); wait for it to finish, \
-                 or pick another --out",
-                dir.display(),
-                dir.join(".lock").display()
-            ))
+            RunError::Busy { dir: dir.into(), lock: dir.join(".lock") }
         } else {
             RunError::Io { path: dir.join(".lock"), source: e }
         }

@@ -73,6 +73,26 @@ pub struct TrainSummary {
     pub last_test: Option<Vec<TaskResult>>,
 }
 
+impl TrainSummary {
+    /// The mean return over the held-out tasks at the last evaluation, if there was one.
+    pub fn held_out_mean(&self) -> Option<f64> {
+        let tasks = self.last_test.as_ref()?;
+        Some(tasks.iter().map(|t| t.return_mean).sum::<f64>() / tasks.len().max(1) as f64)
+    }
+}
+
+/// One line: where the run stopped, its last held-out return, its directory.
+impl std::fmt::Display for TrainSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let state = if self.finished { "finished" } else { "stopped" };
+        write!(f, "{state} after iteration {}", self.iterations_done)?;
+        if let Some(mean) = self.held_out_mean() {
+            write!(f, ", held-out average return {mean:.2}")?;
+        }
+        write!(f, ": {}", self.dir.display())
+    }
+}
+
 /// The identity of a new run (`run.json`); `pack` where it trains in one.
 fn run_info(setup: &Setup, loss_metric: &str, pack: Option<&PackInfo>) -> RunInfo {
     RunInfo {
@@ -151,26 +171,30 @@ pub fn run_config_for(
                 // `run.json` is written first: with it and no `config.toml`, a `train` was killed
                 // while creating the directory, before anything that could resume it was written.
                 if dir.join("checkpoints").join("latest.json").exists() {
-                    return Err(RunError::Invalid(format!(
-                        "{} is missing, but the run in {} has a checkpoint: restore config.toml \
-                         from a copy of the run (it cannot be guessed), or delete the run",
-                        path.display(),
-                        dir.display()
-                    )));
+                    return Err(RunError::invalid(
+                        dir.display(),
+                        format!(
+                            "{} is missing, but the run has a checkpoint: restore config.toml \
+                             from a copy of the run (it cannot be guessed), or delete the run",
+                            path.display()
+                        ),
+                    ));
                 }
                 if dir.join("run.json").is_file() {
-                    return Err(RunError::Invalid(format!(
-                        "run directory {} was interrupted while being created: it has run.json \
-                         but no config.toml, so there is nothing to resume; delete it or rerun \
-                         `promptdt train --config <experiment> --out {}`",
-                        dir.display(),
-                        dir.display()
-                    )));
+                    return Err(RunError::invalid(
+                        format!("run directory {}", dir.display()),
+                        format!(
+                            "interrupted while being created: it has run.json but no \
+                             config.toml, so there is nothing to resume; delete it or rerun \
+                             `promptdt train --config <experiment> --out {}`",
+                            dir.display()
+                        ),
+                    ));
                 }
-                return Err(RunError::Invalid(format!(
-                    "{}: no run to resume here (no config.toml)",
-                    dir.display()
-                )));
+                return Err(RunError::invalid(
+                    dir.display(),
+                    "no run to resume here (no config.toml)",
+                ));
             }
             let mut c = TrainConfig::from_file(&path)?;
             if let Some(n) = with.iterations {
@@ -189,7 +213,12 @@ pub fn run_config_for(
             c.data.dir = absolute(&c.data.dir);
             c
         }
-        (false, None) => return Err(RunError::Invalid("no configuration given".into())),
+        (false, None) => {
+            return Err(RunError::invalid(
+                "the run's configuration",
+                "none given, and not resuming",
+            ))
+        }
     })
 }
 
@@ -221,19 +250,21 @@ fn prepare_run_dir(
     } else if resume {
         let recorded = pdt_run::files::read_stats(&run)?;
         setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
-            RunError::Invalid(format!(
-                "{}: {m}; data.dir is {}. Resume with the data the run trained on (--data DIR \
-                 where it moved)",
+            let dir = setup.cfg.data.dir.display();
+            RunError::invalid(
                 run.stats_path().display(),
-                setup.cfg.data.dir.display()
-            ))
+                format!(
+                    "{m}; data.dir is {dir}. Resume with the data the run trained on (--data DIR \
+                     where it moved)"
+                ),
+            )
         })?;
     } else {
         if has_checkpoint {
-            return Err(RunError::Invalid(format!(
-                "{} already holds a run; use --resume to continue it or pick another --out",
-                dir.display()
-            )));
+            return Err(RunError::invalid(
+                dir.display(),
+                "already holds a run; use --resume to continue it or pick another --out",
+            ));
         }
         run.write_info(&run_info(setup, loss_metric, pack))?;
         let config = run.config_path();
@@ -285,12 +316,14 @@ fn run_loop(
     let state = if opts.resume { load_checkpoint(dir, setup, learner)? } else { None };
     let (mut iteration, mut step) = state.as_ref().map_or((0, 0), |s| (s.iteration, s.step));
     if opts.resume && with.iterations.is_some() && iteration > cfg.train.iterations {
-        return Err(RunError::Invalid(format!(
-            "--iterations {}: the run in {} has already done {iteration} iterations; give at \
-             least that many to extend it",
-            cfg.train.iterations,
-            dir.display()
-        )));
+        return Err(RunError::invalid(
+            format!("--iterations {}", cfg.train.iterations),
+            format!(
+                "the run in {} has already done {iteration} iterations; give at least that many \
+                 to extend it",
+                dir.display()
+            ),
+        ));
     }
     let run = RunDir::at(dir);
     let mut metrics = Log::open(

@@ -93,7 +93,7 @@ impl PendingStats {
 
 /// A failed read of step statistics, as a run's error.
 pub(crate) fn unreadable(e: tch::TchError) -> crate::error::RunError {
-    crate::error::RunError::Invalid(format!("reading the steps' losses from the device: {e}"))
+    crate::error::RunError::Internal(format!("reading the steps' losses from the device: {e}"))
 }
 
 /// The model's last block for a run's `train.last_block` on `device` (`batched`: in a batched

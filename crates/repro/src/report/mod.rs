@@ -261,11 +261,259 @@ pub fn build(
     reference_dir: Option<&Path>,
 ) -> Result<Report, ReproError> {
     let budget = m.budget(&plan.budget)?;
-    let mut cells = Vec::new();
-    let mut base_cache: BTreeMap<PathBuf, Result<Baselines, String>> = BTreeMap::new();
-    let mut data_check = plan::DataCheck::default();
-    for (i, cell) in m.cells.iter().enumerate() {
-        let mut res = CellResult {
+    let mut reader = CellReader {
+        m,
+        plan,
+        reference_dir,
+        base_cache: BTreeMap::new(),
+        data_check: plan::DataCheck::default(),
+    };
+    let cells: Vec<CellResult> =
+        m.cells.iter().enumerate().filter_map(|(i, cell)| reader.cell(i, cell)).collect();
+    let claims = m.claims.iter().map(|c| check_claim(c, &cells)).collect();
+    let mut rep = Report {
+        experiment: m.name.clone(),
+        title: m.title.clone(),
+        budget: plan.budget.clone(),
+        budget_note: budget.note.clone(),
+        cells,
+        claims,
+        markdown: String::new(),
+        files: Vec::new(),
+    };
+    rep.markdown = markdown(m, &rep);
+    Ok(rep)
+}
+
+/// Reads the cells of a plan, the datasets' baselines read once per data directory.
+struct CellReader<'a> {
+    m: &'a Manifest,
+    plan: &'a Plan,
+    reference_dir: Option<&'a Path>,
+    base_cache: BTreeMap<PathBuf, Result<Baselines, String>>,
+    data_check: plan::DataCheck,
+}
+
+/// A cell's seeds as read: per seed its last evaluation's mean, scores and curve.
+#[derive(Default)]
+struct Seeds<'r> {
+    finals: Vec<f64>,
+    norms: Vec<f64>,
+    norms_rom: Vec<f64>,
+    successes: Vec<f64>,
+    curves: Vec<BTreeMap<u64, f64>>,
+    losses: Vec<&'r Loss>,
+    /// The earliest of the seeds' last evaluated iterations.
+    last_iter: Option<u64>,
+}
+
+impl CellReader<'_> {
+    /// Cell `i`'s result; `None` for a cell the plan has no run of.
+    fn cell(&mut self, i: usize, cell: &crate::manifest::Cell) -> Option<CellResult> {
+        let mut res = CellResult::empty(cell);
+        if let Some(s) = self.plan.skipped.iter().find(|s| s.cell == i) {
+            res.status = s.reason.clone();
+            return Some(res);
+        }
+        let runs: Vec<&plan::RunSpec> = self.plan.runs.iter().filter(|r| r.cell == i).collect();
+        let first = runs.first()?;
+        res.iterations_planned = Some(first.config.train.iterations);
+        let (base, base_missing) = self.baselines(&runs);
+        // While a sweep runs, its finished seeds are the cell's result and the seeds still running
+        // are left out (their last evaluation is from an earlier iteration: mixing them in would
+        // average a 2000-iteration model with a 1-iteration one). With no seed finished yet, the
+        // running ones are shown, marked partial. A run that cannot be read (a half-written or
+        // half-copied tree) is neither: it is left out and named.
+        let seen: Vec<Seen> = runs.iter().map(|r| classify(r, &mut self.data_check)).collect();
+        let n_finished = seen.iter().filter(|s| matches!(s, Seen::Finished(_))).count();
+        let n_waiting =
+            seen.iter().filter(|s| matches!(s, Seen::Running(_) | Seen::NotStarted)).count();
+        for (r, s) in runs.iter().zip(&seen) {
+            if let Seen::Problem(why) = s {
+                res.problems.push(format!("{}: {why}", r.key));
+            }
+        }
+        let used: Vec<(&plan::RunSpec, &RunRecord)> = runs
+            .iter()
+            .zip(&seen)
+            .filter_map(|(r, s)| match s {
+                Seen::Finished(e) => Some((*r, e)),
+                Seen::Running(e) if n_finished == 0 => Some((*r, e)),
+                _ => None,
+            })
+            .collect();
+        let seeds = read_seeds(&mut res, &used, base.as_ref());
+        res.seeds = seeds.finals.len();
+        if let (Some(why), false) = (base_missing, seeds.finals.is_empty()) {
+            res.problems
+                .push(format!("no normalised score: {why} (--data-root names where the data are)"));
+        }
+        res.seeds_finished = n_finished;
+        res.iteration = seeds.last_iter;
+        res.ours = Stat::of(&seeds.finals);
+        res.ours_normalised = Stat::of(&seeds.norms);
+        res.ours_normalised_rom = Stat::of(&seeds.norms_rom);
+        res.normalised_stats = crate::stats::cell_stats(&res.seed_task_scores);
+        // Only where every seed's run reports a success rate.
+        if seeds.successes.len() == seeds.finals.len() {
+            res.success = Stat::of(&seeds.successes);
+        }
+        res.status = status(runs.len(), n_finished, n_waiting, res.seeds);
+        curves(&mut res, &seeds);
+        if let Some(b) = &base {
+            self.paper_normalised(&mut res, cell, b);
+        }
+        Some(res)
+    }
+
+    /// The random and expert returns the cell's runs are scored with, or why there are none.
+    fn baselines(&mut self, runs: &[&plan::RunSpec]) -> (Option<Baselines>, Option<String>) {
+        let dir = &runs[0].data.dir;
+        let base = match self.base_cache.get(dir) {
+            Some(b) => b.clone(),
+            None => {
+                let b = baselines(dir).map_err(|e| e.to_string());
+                self.base_cache.insert(dir.clone(), b.clone());
+                b
+            }
+        };
+        // Without the dataset card there is no normalised score: say which card is missing (a
+        // tree copied without its data, or a `--data-root` that names another place).
+        // An archived run (the results registry) carries the card's returns it was scored with.
+        let base =
+            base.or_else(|why| runs.iter().find_map(|r| archived_baselines(&r.dir)).ok_or(why));
+        match base {
+            Ok(b) => (Some(b), None),
+            Err(why) => (None, Some(why)),
+        }
+    }
+
+    /// The paper's number normalised as ours are (with the reference's experts where known), and
+    /// whether ours is within the paper's spread of it.
+    fn paper_normalised(&self, res: &mut CellResult, cell: &crate::manifest::Cell, b: &Baselines) {
+        let test_tasks = pdt_envs::family(&cell.env)
+            .and_then(|f| f.split(cell.split.as_deref().unwrap_or("default")))
+            .map(|(_, test)| test)
+            .unwrap_or_default();
+        if let Some(p) = cell.paper {
+            let randoms: Option<Vec<f64>> =
+                test_tasks.iter().map(|t| b.random.get(t).copied()).collect();
+            let experts = reference_experts(self.m, self.reference_dir, &cell.env, &test_tasks);
+            if let (Some(rand), Some(exp)) = (randoms, experts) {
+                let (r, e) = (mean(&rand), mean(&exp));
+                res.paper_normalised = Some(normalise(p, e, r));
+                res.paper_normalised_std = cell.paper_std.map(|s| 100.0 * s / (e - r));
+            }
+        }
+        if let (Some(o), Some(p), Some(s)) =
+            (res.ours_normalised_rom, res.paper_normalised, res.paper_normalised_std)
+        {
+            res.within_paper_std = Some((o.mean - p).abs() <= s);
+        }
+    }
+}
+
+/// Per seed: the last evaluation (its mean, normalised scores and success rate), every evaluation
+/// for the curve, and the loss; the per-task scores go into `res`, problems too.
+fn read_seeds<'r>(
+    res: &mut CellResult,
+    used: &[(&plan::RunSpec, &'r RunRecord)],
+    base: Option<&Baselines>,
+) -> Seeds<'r> {
+    let mut s = Seeds::default();
+    for &(r, record) in used {
+        let evals = &record.evals;
+        let Some((&it, last)) = evals.iter().next_back() else { continue };
+        s.last_iter = Some(s.last_iter.map_or(it, |l: u64| l.min(it)));
+        let avg = last.values().sum::<f64>() / last.len() as f64;
+        s.finals.push(avg);
+        s.successes.extend(record.last_success);
+        // Not prefixed by the run's key: the run is not left out, only its loss is not shown.
+        match &record.loss {
+            Ok(l) => s.losses.push(l),
+            Err(why) => res.problems.push(format!("no loss curve for {}: {why}", r.key)),
+        }
+        if let Some(b) = base {
+            let n: Option<Vec<f64>> = last
+                .iter()
+                .map(|(t, r)| Some(normalise(*r, *b.expert.get(t)?, *b.random.get(t)?)))
+                .collect();
+            if let Some(n) = n {
+                s.norms.push(n.iter().sum::<f64>() / n.len() as f64);
+                res.seed_task_scores.push(n);
+            }
+            let cards: Option<(Vec<f64>, Vec<f64>)> = last
+                .keys()
+                .map(|t| Some((*b.expert.get(t)?, *b.random.get(t)?)))
+                .collect::<Option<Vec<_>>>()
+                .map(|v| v.into_iter().unzip());
+            if let Some((e, r)) = cards {
+                s.norms_rom.push(normalise(avg, mean(&e), mean(&r)));
+            }
+        }
+        s.curves.push(
+            evals
+                .iter()
+                .map(|(it, tasks)| (*it, tasks.values().sum::<f64>() / tasks.len() as f64))
+                .collect(),
+        );
+    }
+    s
+}
+
+/// A cell's status from its seeds: `partial` only while a seed is still to run (a finished run is
+/// never called partial, and one that cannot be read is counted apart and named in `problems`).
+fn status(runs: usize, n_finished: usize, n_waiting: usize, seeds: usize) -> String {
+    let n_problems = runs - n_finished - n_waiting;
+    if n_finished == runs {
+        "ran".into()
+    } else if n_finished > 0 && n_waiting == 0 {
+        format!("ran: {n_finished} of {runs} seeds read")
+    } else if n_finished > 0 {
+        format!("partial: {n_finished} of {runs} seeds finished")
+    } else if seeds > 0 {
+        "partial".into()
+    } else if n_problems > 0 {
+        format!("not read: {n_problems} of {runs} seeds")
+    } else {
+        "no results yet".into()
+    }
+}
+
+/// The cell's learning curve (at the iterations every seed evaluated), and the loss beside it
+/// where every seed read has it under one column name.
+fn curves(res: &mut CellResult, s: &Seeds<'_>) {
+    if let Some(first_curve) = s.curves.first() {
+        for it in first_curve.keys() {
+            let v: Vec<f64> = s.curves.iter().filter_map(|c| c.get(it).copied()).collect();
+            if v.len() == s.curves.len() {
+                if let Some(st) = Stat::of(&v) {
+                    res.curve.push((*it, st.mean, st.std));
+                }
+            }
+        }
+    }
+    let metric = s.losses.first().map(|l| l.metric.clone());
+    if s.losses.len() == s.curves.len()
+        && s.losses.iter().all(|l| Some(&l.metric) == metric.as_ref())
+    {
+        for &(it, _, _) in &res.curve {
+            let v: Vec<f64> =
+                s.losses.iter().filter_map(|l| l.by_iteration.get(&it).copied()).collect();
+            if v.len() == s.losses.len() {
+                if let Some(st) = Stat::of(&v) {
+                    res.loss_curve.push((it, st.mean, st.std));
+                }
+            }
+        }
+        res.loss_metric = metric;
+    }
+}
+
+impl CellResult {
+    /// The cell as the manifest states it, with nothing read yet.
+    fn empty(cell: &crate::manifest::Cell) -> Self {
+        CellResult {
             id: cell.id(),
             env: cell.env.clone(),
             label: cell.label(),
@@ -292,191 +540,8 @@ pub fn build(
             loss_metric: None,
             loss_curve: Vec::new(),
             problems: Vec::new(),
-        };
-        let test_tasks = pdt_envs::family(&cell.env)
-            .and_then(|f| f.split(cell.split.as_deref().unwrap_or("default")))
-            .map(|(_, test)| test)
-            .unwrap_or_default();
-        if let Some(s) = plan.skipped.iter().find(|s| s.cell == i) {
-            res.status = s.reason.clone();
-            cells.push(res);
-            continue;
         }
-        let runs: Vec<&plan::RunSpec> = plan.runs.iter().filter(|r| r.cell == i).collect();
-        let Some(first) = runs.first() else { continue };
-        res.iterations_planned = Some(first.config.train.iterations);
-        let base = match base_cache.get(&first.data.dir) {
-            Some(b) => b.clone(),
-            None => {
-                let b = baselines(&first.data.dir).map_err(|e| e.to_string());
-                base_cache.insert(first.data.dir.clone(), b.clone());
-                b
-            }
-        };
-        // Without the dataset card there is no normalised score: say which card is missing (a
-        // tree copied without its data, or a `--data-root` that names another place).
-        // An archived run (the results registry) carries the card's returns it was scored with.
-        let base =
-            base.or_else(|why| runs.iter().find_map(|r| archived_baselines(&r.dir)).ok_or(why));
-        let (base, base_missing) = match base {
-            Ok(b) => (Some(b), None),
-            Err(why) => (None, Some(why)),
-        };
-        // While a sweep runs, its finished seeds are the cell's result and the seeds still running
-        // are left out (their last evaluation is from an earlier iteration: mixing them in would
-        // average a 2000-iteration model with a 1-iteration one). With no seed finished yet, the
-        // running ones are shown, marked partial. A run that cannot be read (a half-written or
-        // half-copied tree) is neither: it is left out and named.
-        let seen: Vec<Seen> = runs.iter().map(|r| classify(r, &mut data_check)).collect();
-        let n_finished = seen.iter().filter(|s| matches!(s, Seen::Finished(_))).count();
-        let n_waiting =
-            seen.iter().filter(|s| matches!(s, Seen::Running(_) | Seen::NotStarted)).count();
-        for (r, s) in runs.iter().zip(&seen) {
-            if let Seen::Problem(why) = s {
-                res.problems.push(format!("{}: {why}", r.key));
-            }
-        }
-        let used: Vec<(&plan::RunSpec, &RunRecord)> = runs
-            .iter()
-            .zip(&seen)
-            .filter_map(|(r, s)| match s {
-                Seen::Finished(e) => Some((*r, e)),
-                Seen::Running(e) if n_finished == 0 => Some((*r, e)),
-                _ => None,
-            })
-            .collect();
-        // Per seed: the last evaluation, and every evaluation for the curve.
-        let mut finals = Vec::new();
-        let mut norms = Vec::new();
-        let mut norms_rom = Vec::new();
-        let mut successes = Vec::new();
-        let mut curves: Vec<BTreeMap<u64, f64>> = Vec::new();
-        let mut losses: Vec<&Loss> = Vec::new();
-        let mut last_iter: Option<u64> = None;
-        for (r, record) in &used {
-            let evals = &record.evals;
-            let Some((&it, last)) = evals.iter().next_back() else { continue };
-            last_iter = Some(last_iter.map_or(it, |l: u64| l.min(it)));
-            let avg = last.values().sum::<f64>() / last.len() as f64;
-            finals.push(avg);
-            successes.extend(record.last_success);
-            // Not prefixed by the run's key: the run is not left out, only its loss is not shown.
-            match &record.loss {
-                Ok(l) => losses.push(l),
-                Err(why) => res.problems.push(format!("no loss curve for {}: {why}", r.key)),
-            }
-            if let Some(b) = &base {
-                let n: Option<Vec<f64>> = last
-                    .iter()
-                    .map(|(t, r)| Some(normalise(*r, *b.expert.get(t)?, *b.random.get(t)?)))
-                    .collect();
-                if let Some(n) = n {
-                    norms.push(n.iter().sum::<f64>() / n.len() as f64);
-                    res.seed_task_scores.push(n);
-                }
-                let cards: Option<(Vec<f64>, Vec<f64>)> = last
-                    .keys()
-                    .map(|t| Some((*b.expert.get(t)?, *b.random.get(t)?)))
-                    .collect::<Option<Vec<_>>>()
-                    .map(|v| v.into_iter().unzip());
-                if let Some((e, r)) = cards {
-                    norms_rom.push(normalise(avg, mean(&e), mean(&r)));
-                }
-            }
-            curves.push(
-                evals
-                    .iter()
-                    .map(|(it, tasks)| (*it, tasks.values().sum::<f64>() / tasks.len() as f64))
-                    .collect(),
-            );
-        }
-        res.seeds = finals.len();
-        if let (Some(why), false) = (base_missing, finals.is_empty()) {
-            res.problems
-                .push(format!("no normalised score: {why} (--data-root names where the data are)"));
-        }
-        res.seeds_finished = n_finished;
-        res.iteration = last_iter;
-        res.ours = Stat::of(&finals);
-        res.ours_normalised = Stat::of(&norms);
-        res.ours_normalised_rom = Stat::of(&norms_rom);
-        res.normalised_stats = crate::stats::cell_stats(&res.seed_task_scores);
-        // Only where every seed's run reports a success rate.
-        if successes.len() == finals.len() {
-            res.success = Stat::of(&successes);
-        }
-        // `partial` only while a seed is still to run: a finished run is never called partial,
-        // and one that cannot be read is counted apart (and named in `problems`).
-        let n_problems = runs.len() - n_finished - n_waiting;
-        res.status = if n_finished == runs.len() {
-            "ran".into()
-        } else if n_finished > 0 && n_waiting == 0 {
-            format!("ran: {n_finished} of {} seeds read", runs.len())
-        } else if n_finished > 0 {
-            format!("partial: {n_finished} of {} seeds finished", runs.len())
-        } else if res.seeds > 0 {
-            "partial".into()
-        } else if n_problems > 0 {
-            format!("not read: {n_problems} of {} seeds", runs.len())
-        } else {
-            "no results yet".into()
-        };
-        if let Some(first_curve) = curves.first() {
-            for it in first_curve.keys() {
-                let v: Vec<f64> = curves.iter().filter_map(|c| c.get(it).copied()).collect();
-                if v.len() == curves.len() {
-                    if let Some(s) = Stat::of(&v) {
-                        res.curve.push((*it, s.mean, s.std));
-                    }
-                }
-            }
-        }
-        // The loss beside the returns, where every seed read has it under one column name.
-        let metric = losses.first().map(|l| l.metric.clone());
-        if losses.len() == curves.len() && losses.iter().all(|l| Some(&l.metric) == metric.as_ref())
-        {
-            for &(it, _, _) in &res.curve {
-                let v: Vec<f64> =
-                    losses.iter().filter_map(|l| l.by_iteration.get(&it).copied()).collect();
-                if v.len() == losses.len() {
-                    if let Some(s) = Stat::of(&v) {
-                        res.loss_curve.push((it, s.mean, s.std));
-                    }
-                }
-            }
-            res.loss_metric = metric;
-        }
-        if let (Some(p), Some(b)) = (cell.paper, &base) {
-            let randoms: Option<Vec<f64>> =
-                test_tasks.iter().map(|t| b.random.get(t).copied()).collect();
-            if let (Some(rand), Some(exp)) =
-                (randoms, reference_experts(m, reference_dir, &cell.env, &test_tasks))
-            {
-                let (r, e) = (mean(&rand), mean(&exp));
-                res.paper_normalised = Some(normalise(p, e, r));
-                res.paper_normalised_std = cell.paper_std.map(|s| 100.0 * s / (e - r));
-            }
-        }
-        if let (Some(o), Some(p), Some(s)) =
-            (res.ours_normalised_rom, res.paper_normalised, res.paper_normalised_std)
-        {
-            res.within_paper_std = Some((o.mean - p).abs() <= s);
-        }
-        cells.push(res);
     }
-    let claims = m.claims.iter().map(|c| check_claim(c, &cells)).collect();
-    let mut rep = Report {
-        experiment: m.name.clone(),
-        title: m.title.clone(),
-        budget: plan.budget.clone(),
-        budget_note: budget.note.clone(),
-        cells,
-        claims,
-        markdown: String::new(),
-        files: Vec::new(),
-    };
-    rep.markdown = markdown(m, &rep);
-    Ok(rep)
 }
 
 /// Writes `rep`'s files (Markdown, CSV, JSON, curves) into `plan`'s report directory.

@@ -28,12 +28,6 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{Device, Kind, Tensor};
 
-impl From<pdt_macaw::MacawError> for RunError {
-    fn from(e: pdt_macaw::MacawError) -> Self {
-        RunError::Invalid(e.to_string())
-    }
-}
-
 /// The model of a MACAW run with its outer optimisers, and the training and test tasks' buffers.
 pub(crate) struct MacawLearner<'s> {
     setup: &'s Setup,
@@ -132,10 +126,10 @@ impl Learner for MacawLearner<'_> {
                 (m.adapt_steps, m.adapt_batch) = (steps, batch)
             }
             Some(Adaptation::Prompt(_) | Adaptation::Finetune { .. }) | None => {
-                return Err(RunError::Invalid(
+                return Err(RunError::invalid(
+                    "test time",
                     "MACAW evaluates through its own adaptation ([macaw]'s adapt_steps and \
-                     adapt_batch), not a prompt strategy or another adaptation"
-                        .into(),
+                     adapt_batch), not a prompt strategy or another adaptation",
                 ))
             }
         }
@@ -349,17 +343,19 @@ fn draw(
 }
 
 fn diverged(dir: &Path, iteration: u64, step: u64, st: &StepStats, m: &MacawConfig) -> RunError {
-    RunError::Invalid(format!(
-        "{}: MACAW training diverged at iteration {iteration}, meta-step {step}: losses {:?}, \
+    RunError::Diverged {
+        dir: dir.into(),
+        message: format!(
+            "MACAW training diverged at iteration {iteration}, meta-step {step}: losses {:?}, \
          gradient norms {} (value) {} (policy). Likely causes: macaw.outer_value_lr = {} / \
          outer_policy_lr = {} / lrlr = {} too high, or extreme returns in the data. Resuming would \
          repeat the same steps: fix the configuration and train again.",
-        dir.display(),
-        st.losses,
-        compact(st.value_grad_norm),
-        compact(st.policy_grad_norm),
-        compact(m.outer_value_lr),
-        compact(m.outer_policy_lr),
-        compact(m.lrlr)
-    ))
+            st.losses,
+            compact(st.value_grad_norm),
+            compact(st.policy_grad_norm),
+            compact(m.outer_value_lr),
+            compact(m.outer_policy_lr),
+            compact(m.lrlr)
+        ),
+    }
 }

@@ -51,12 +51,11 @@ pub fn steppable<'s>(setup: &'s Setup) -> Result<Box<dyn Steppable + 's>, RunErr
 
 /// The error of a method that cannot train in a pack, naming it.
 pub fn cannot_pack(method: Method) -> RunError {
-    RunError::Invalid(format!(
-        "run.method = \"{}\" cannot train in a pack: only a method whose learner gives the pack \
-         its gradient steps can (docs/packs.md; MACAW trains alone); train it with `promptdt \
-         train --config`",
-        method.name()
-    ))
+    RunError::invalid(
+        format!("run.method = \"{}\"", method.name()),
+        "cannot train in a pack: only a method whose learner gives the pack its gradient steps \
+         can (docs/packs.md; MACAW trains alone); train it with `promptdt train --config`",
+    )
 }
 
 #[cfg(test)]

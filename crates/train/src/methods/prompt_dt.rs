@@ -97,7 +97,7 @@ impl Steppable for PromptDtLearner<'_> {
     fn import(&mut self, state: SlotState) -> Result<(), RunError> {
         state
             .copy_into(&self.vs, &mut self.opt)
-            .map_err(|e| RunError::Invalid(format!("a pack's run state: {e}")))
+            .map_err(|e| RunError::invalid("a pack's run state", e))
     }
 
     /// MT-BC-Finetune's test evaluation fine-tunes, drawing its dropout from where the last
@@ -266,10 +266,13 @@ fn eval_tasks(
             super::finetune::finetune_each(&learner.vs, &ev, &tune, setup, rng)?
         }
         TestTime::Adapt { adaptation: Adaptation::Macaw { .. }, .. } if on_test => {
-            return Err(RunError::Invalid(format!(
-                "MACAW's adaptation is MACAW's own; this run is {}",
-                setup.cfg.run.method.name()
-            )))
+            return Err(RunError::invalid(
+                "test time",
+                format!(
+                    "MACAW's adaptation is MACAW's own; this run is {}",
+                    setup.cfg.run.method.name()
+                ),
+            ))
         }
         TestTime::Strategy(s) | TestTime::Adapt { from: s, .. } if !s.is_default() => {
             testtime::evaluate_strategy(&ev, s, rng)?
@@ -321,16 +324,18 @@ fn split_eval<'a>(
 
 /// The error of a non-finite loss or gradient: the step, the values and the likely causes.
 fn diverged(dir: &Path, cfg: &TrainConfig, iteration: u64, step: u64, st: &StepStats) -> RunError {
-    RunError::Invalid(format!(
-        "{}: training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
+    RunError::Diverged {
+        dir: dir.into(),
+        message: format!(
+            "training diverged at iteration {iteration}, gradient step {step}: loss {}, gradient \
          norm {}. Likely causes: optim.learning_rate = {} too high, optim.eps = {} too small, or \
          extreme values in the data (data.dir {}). Resuming would repeat the same steps: fix the \
          configuration and train again.",
-        dir.display(),
-        compact(st.loss),
-        compact(st.grad_norm),
-        compact(cfg.optim.learning_rate),
-        compact(cfg.optim.eps),
-        cfg.data.dir.display()
-    ))
+            compact(st.loss),
+            compact(st.grad_norm),
+            compact(cfg.optim.learning_rate),
+            compact(cfg.optim.eps),
+            cfg.data.dir.display()
+        ),
+    }
 }

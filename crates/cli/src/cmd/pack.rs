@@ -2,18 +2,18 @@
 //! display; the pack is one library call (`pdt_pack`).
 
 use crate::args::TrainArgs;
-use crate::commands::bar;
-
-/// Whether `train` is asked for a pack: `--pack`, or `--resume` of a pack directory.
-pub fn is_pack(a: &TrainArgs) -> bool {
-    !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_rundir::pack::is_pack_dir)
-}
+use crate::cmd::bar;
 use anyhow::{bail, Result};
 use indicatif::{MultiProgress, ProgressBar};
 use pdt_pack::PackOptions;
 use pdt_rundir::config::{Overrides, TrainConfig};
 use pdt_rundir::pack::Engine;
-use pdt_train::run::{Progress, ResumeWith, TrainSummary};
+use pdt_train::run::{Progress, ResumeWith};
+
+/// Whether `train` is asked for a pack: `--pack`, or `--resume` of a pack directory.
+pub fn is_pack(a: &TrainArgs) -> bool {
+    !a.pack.is_empty() || a.resume.as_deref().is_some_and(pdt_rundir::pack::is_pack_dir)
+}
 
 /// Starts (`--pack`) or resumes (`--resume` of a pack directory) a pack, one progress bar per run,
 /// then each run's outcome; fails if any run failed.
@@ -90,7 +90,7 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
     let mut failed = 0;
     for (slot, r) in results.iter().enumerate() {
         match r {
-            Ok(s) => out!("run {slot}: {}", summary_line(s)),
+            Ok(s) => out!("run {slot}: {s}"),
             Err(e) => {
                 failed += 1;
                 out!("run {slot}: failed: {e}");
@@ -102,14 +102,4 @@ pub fn train_pack(a: &TrainArgs) -> Result<()> {
         bail!("{failed} of the pack's {} runs failed (the others went on)", results.len());
     }
     Ok(())
-}
-
-/// One run's outcome: where it stopped, its last held-out return, its directory.
-fn summary_line(s: &TrainSummary) -> String {
-    let state = if s.finished { "finished" } else { "stopped" };
-    let test = s.last_test.as_ref().map_or(String::new(), |tasks| {
-        let mean = tasks.iter().map(|t| t.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
-        format!(", held-out average return {mean:.2}")
-    });
-    format!("{state} after iteration {}{test}: {}", s.iterations_done, s.dir.display())
 }

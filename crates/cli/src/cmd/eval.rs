@@ -1,0 +1,25 @@
+//! `promptdt eval`: a run's latest checkpoint on its held-out tasks (or `--split train`), with the
+//! prompt strategy and adaptation the flags ask for (`crate::eval_flags`).
+
+use crate::args::EvalArgs;
+use crate::eval_flags;
+use anyhow::Result;
+
+pub fn eval(a: &EvalArgs) -> Result<()> {
+    let req = request(a)?;
+    let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
+    out!("{prompted}; wrote {}/{}", a.run.display(), prompted.file_name());
+    Ok(())
+}
+
+/// The evaluation the flags ask for, checked.
+fn request(a: &EvalArgs) -> Result<pdt_train::run::EvalRequest> {
+    eval_flags::check_eval_flags(a).map_err(anyhow::Error::msg)?;
+    Ok(pdt_train::run::EvalRequest {
+        episodes: a.episodes,
+        split: a.split.clone(),
+        device: a.device,
+        data: a.data.clone(),
+        test_time: eval_flags::eval_test_time(a)?,
+    })
+}
