@@ -471,11 +471,6 @@ fn facades_lead_to_the_file_behind_and_parents_use_children_by_path() {
     assert_eq!(used, [path(&["p", "r"])].into_iter().collect());
 }
 
-/// Crates whose re-exports of other workspace crates' items are being removed by a change in
-/// progress (`pdt-model`'s libtorch plumbing moving to a crate of its own): drop an entry when its
-/// change has landed.
-const REEXPORTS_IN_PROGRESS: &[&str] = &["model"];
-
 /// The `pub use` statements of `code` that re-export another workspace crate's items
 /// (`pub use pdt_rundir::config::*`), each as its use tree on one line.
 fn workspace_reexports(code: &str) -> Vec<String> {
@@ -496,10 +491,6 @@ fn no_crate_re_exports_another_workspace_crates_items() {
     let root = repo_root();
     let mut found = Vec::new();
     for dir in crate_dirs(&root) {
-        let name = dir.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-        if REEXPORTS_IN_PROGRESS.contains(&name) {
-            continue;
-        }
         let mut files = Vec::new();
         rust_files(&dir.join("src"), &mut files);
         for f in files {
