@@ -20,6 +20,7 @@ pub mod render;
 pub mod replay;
 pub mod rollout;
 pub mod vec_env;
+pub mod worker;
 
 pub use replay::{replay, ReplayResult};
 
