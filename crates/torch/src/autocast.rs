@@ -58,9 +58,8 @@ impl Autocast {
         let mut prev = [0 as c_int; 3];
         // SAFETY: `prev` holds the 3 ints the C++ function writes; it catches every exception.
         #[allow(unsafe_code)]
-        let enter = |err, len| unsafe {
-            crate::ffi::pdt_autocast_enter(cuda, prev.as_mut_ptr(), err, len)
-        };
+        let enter =
+            |err, len| unsafe { crate::ffi::pdt_autocast_enter(cuda, prev.as_mut_ptr(), err, len) };
         crate::ffi::call(enter)?;
         Ok(Self { cuda, prev, _not_send: std::marker::PhantomData })
     }
@@ -71,7 +70,8 @@ impl Drop for Autocast {
         let (cuda, prev) = (self.cuda, self.prev);
         // SAFETY: as in `Autocast::bf16`; `prev` is what enter wrote.
         #[allow(unsafe_code)]
-        let exit = |err, len| unsafe { crate::ffi::pdt_autocast_exit(cuda, prev.as_ptr(), err, len) };
+        let exit =
+            |err, len| unsafe { crate::ffi::pdt_autocast_exit(cuda, prev.as_ptr(), err, len) };
         // Restoring the flags cannot fail for the CPU or CUDA (the only device types opened);
         // a drop has no caller to tell anyway.
         let _ = crate::ffi::call(exit);
@@ -180,7 +180,9 @@ fn cuda_capability() -> Result<(c_int, c_int), String> {
         s
     };
     if sym.is_null() {
-        return Err("the GPU's compute capability could not be read (no CUDA runtime loaded)".into());
+        return Err(
+            "the GPU's compute capability could not be read (no CUDA runtime loaded)".into()
+        );
     }
     // SAFETY: the symbol is the CUDA runtime's `cudaError_t cudaDeviceGetAttribute(int*,
     // cudaDeviceAttr, int)` (an int-sized enum), called with valid pointers.

@@ -116,8 +116,7 @@ impl Compare {
 #[test]
 fn bf16_training_step_matches_pytorch_autocast() {
     let _rng = pdt_testkit::process::LIBTORCH.lock().unwrap_or_else(|e| e.into_inner());
-    let sets: Vec<_> =
-        golden::sets().into_iter().filter(|s| s.file(BF16_FILE).is_file()).collect();
+    let sets: Vec<_> = golden::sets().into_iter().filter(|s| s.file(BF16_FILE).is_file()).collect();
     if sets.is_empty() {
         eprintln!(
             "bf16 parity skipped: no fixture set has {BF16_FILE} (made by make test's live-golden \
