@@ -4,6 +4,7 @@
 //! flags. `csrc/matmul.cpp`: cuBLAS's TF32 switch (`pdt_torch::device::set_matmul`);
 //! `csrc/profiler.cpp`: libtorch's profiler (`pdt_torch::profiler`, `promptdt bench --profile`);
 //! `csrc/memory.cpp`: pinned host memory without a deprecated argument (`pdt_torch::device::upload`);
+//! `csrc/autocast.cpp`: libtorch's autocast switch (`pdt_torch::autocast`, `run.matmul = "bf16"`);
 //! `csrc/bernoulli.cpp`: Bernoulli bits on the CPU, libtorch's drawn faster
 //! (`pdt_torch::bernoulli`, for dropout's noise).
 
@@ -15,6 +16,7 @@ fn main() {
     println!("cargo::rerun-if-changed=csrc/profiler.cpp");
     println!("cargo::rerun-if-changed=csrc/memory.cpp");
     println!("cargo::rerun-if-changed=csrc/bernoulli.cpp");
+    println!("cargo::rerun-if-changed=csrc/autocast.cpp");
     println!("cargo::rerun-if-changed=csrc/guard.h");
     println!("cargo::rerun-if-env-changed=LIBTORCH");
     println!("cargo::rerun-if-env-changed=LIBTORCH_CXX11_ABI");
@@ -39,6 +41,7 @@ fn main() {
         .file("csrc/profiler.cpp")
         .file("csrc/memory.cpp")
         .file("csrc/bernoulli.cpp")
+        .file("csrc/autocast.cpp")
         .include(&include)
         .include(include.join("torch").join("csrc").join("api").join("include"))
         .include(include.join("kineto"))

@@ -96,6 +96,23 @@ def profile_counts(step, device, sync):
     return {k: (y - x) / 2 for k, x, y in zip(("ops", "kernels", "copies"), a, b)}
 
 
+class Autocast:
+    """The model as promptdt's `run.matmul = "bf16"` runs it: each forward pass inside
+    torch.autocast(bfloat16), the action predictions handed back in float32 (so the loss is float32,
+    as promptdt's; crates/model/src/prompt_dt.rs, `forward`). Everything else is the model's."""
+
+    def __init__(self, model, device_type):
+        self.model, self.device_type = model, device_type
+
+    def __call__(self, *args, **kwargs):
+        with torch.autocast(device_type=self.device_type, dtype=torch.bfloat16):
+            state_preds, action_preds, return_preds = self.model(*args, **kwargs)
+        return state_preds, action_preds.float(), return_preds
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=os.cpu_count())
@@ -103,8 +120,9 @@ def main():
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--cases", default="train_b560,train_b64,infer_b1,infer_b50")
-    # promptdt's --matmul: fp32 (PyTorch's default since 1.12) or tf32 (cuBLAS on tensor cores).
-    ap.add_argument("--matmul", default="fp32", choices=["fp32", "tf32"])
+    # promptdt's --matmul: fp32 (PyTorch's default since 1.12), tf32 (cuBLAS on tensor cores) or
+    # bf16 (the forward pass in torch.autocast(bfloat16), as promptdt's run.matmul = "bf16").
+    ap.add_argument("--matmul", default="fp32", choices=["fp32", "tf32", "bf16"])
     ap.add_argument("--profile", action="store_true")
     args = ap.parse_args()
     # The legacy switch, as promptdt sets it (crates/torch/csrc/matmul.cpp): it keeps PyTorch's two
@@ -119,6 +137,8 @@ def main():
     torch.manual_seed(0)
     model = pdt.build_model(STATE_DIM, ACT_DIM).to(device)
     opt, sched = pdt.make_optimizer(model)
+    if args.matmul == "bf16":
+        model = Autocast(model, device.type)
 
     def train_case(batch):
         hist = random_segment(gen, batch, K, device)

@@ -9,6 +9,9 @@ Files (all safetensors; see testdata/golden/README.md for every name, shape and 
   prompt_dt_expected.safetensors    eval outputs (with / without prompt) and two training steps
   prompt_dt_cpu.json                the CPU and torch build that made them (the parity tests compare
                                     bit for bit only on a CPU with the same fingerprint)
+  prompt_dt_bf16.safetensors        one training step under torch.autocast(cpu, bfloat16) from the same
+                                    weights, batch and dropout seed (run.matmul = "bf16";
+                                    crates/train/tests/it/parity_bf16.rs), and the fp32 step beside it
 
 The batch imitates the reference's get_batch / get_prompt (reference (b.4), (b.5)): left padding,
 states normalised after zero-padding, actions padded with -10, rtg / timesteps padded with 0.
@@ -116,6 +119,39 @@ def snapshot(d):
     return {k: v.detach().clone(memory_format=torch.contiguous_format) for k, v in d.items()}
 
 
+def bf16_step(state_dict, batch, prompt):
+    """One training step as promptdt's `run.matmul = "bf16"` computes it: the forward pass inside
+    torch.autocast(cpu, bfloat16), its action predictions cast to float32 before the loss (promptdt's
+    one difference from plain autocast: the reference's loss is not on autocast's float32 list), the
+    backward pass, clipping and AdamW outside, in float32 master weights. Beside it the float32 step
+    from the same start and dropout seed, so the test can say how far bf16 is from fp32."""
+    out = {}
+    for tag, amp in (("bf16", True), ("fp32", False)):
+        model = pdt.build_model(STATE_DIM, ACT_DIM)
+        model.load_state_dict(state_dict)
+        opt, sched = pdt.make_optimizer(model)
+        model.train()
+        torch.manual_seed(TRAIN_SEED)
+        states, actions, rewards, rtg, timesteps, mask = batch
+        with torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=amp):
+            _, action_preds, _ = model(states, actions, rewards, rtg, timesteps, mask, prompt=prompt)
+        action_preds = action_preds.float()
+        loss = pdt.masked_action_loss(action_preds, torch.clone(actions), mask)
+        opt.zero_grad()
+        loss.backward()
+        for name, p in model.named_parameters():
+            if p.grad is not None:
+                out[f"{tag}.grad.{name}"] = p.grad.detach().clone()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), pdt.GRAD_CLIP)
+        opt.step()
+        out[f"{tag}.action_preds"] = action_preds.detach()
+        out[f"{tag}.loss"] = loss.detach()
+        out[f"{tag}.grad_norm"] = grad_norm.detach()
+        for name, p in model.named_parameters():
+            out[f"{tag}.param.{name}"] = p.detach()
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "..", "..", "testdata", "golden"))
@@ -158,7 +194,10 @@ def main():
     meta = {"generator": f"scripts/golden/make_prompt_dt_fixtures.py torch={torch.__version__} "
                          f"threads={args.threads} init_seed={INIT_SEED} train_seed={TRAIN_SEED} "
                          f"input_seed={INPUT_SEED}"}
+    # Last, so that the fp32 fixtures above are what they were before it existed.
+    bf16 = bf16_step(state_dict, batch, prompt)
     files = {
+        "prompt_dt_bf16.safetensors": snapshot(bf16),
         "prompt_dt_state_dict.safetensors": state_dict,
         "prompt_dt_inputs.safetensors": snapshot(inputs),
         "prompt_dt_expected.safetensors": snapshot(expected),

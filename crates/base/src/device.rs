@@ -36,8 +36,7 @@ impl DeviceSpec {
     }
 }
 
-/// How float32 matrix products are computed on a CUDA device (a run's `run.matmul`, the
-/// `--matmul` flag). On the CPU only `fp32` exists.
+/// How the model's matrix products are computed (a run's `run.matmul`, the `--matmul` flag).
 ///
 /// - `fp32` (the default): IEEE float32, as PyTorch >= 1.12 computes them by default; promptdt's
 ///   CUDA step matches PyTorch's within the measured tolerances of docs/reproducibility.md.
@@ -47,14 +46,24 @@ impl DeviceSpec {
 ///   default (the default became off in PyTorch 1.12). Results differ from `fp32` in about the
 ///   third significant digit of a product.
 ///
-/// It is one setting of the whole process (libtorch keeps it globally), so every run of a pack
-/// shares it.
+/// - `bf16`: mixed precision as PyTorch's `torch.autocast(dtype=torch.bfloat16)` computes it, on
+///   the CPU or CUDA: the transformer's matrix products (its linear layers and both attention
+///   products) take bfloat16 inputs (8-bit mantissa) and accumulate in float32; master weights,
+///   gradients' optimiser state, layer norms, softmax and the loss stay float32
+///   (`pdt_torch::autocast`). Only where the hardware computes bf16 natively (a CPU with AMX-BF16 or
+///   AVX512-BF16, an NVIDIA GPU of compute capability 8.0 or later); elsewhere refused, unless
+///   `PROMPTDT_BF16_EMULATED=1` asks for the (slow, but numerically the same) emulation anyway.
+///   Experimental: its speed and its fidelity on Cheetah-Dir are not yet measured on native hardware.
+///
+/// It is one setting of the whole process (libtorch keeps TF32 globally, and the autocast switch is
+/// read by every forward pass), so every run of a pack shares it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Matmul {
     #[default]
     Fp32,
     Tf32,
+    Bf16,
 }
 
 impl std::str::FromStr for Matmul {
@@ -63,17 +72,21 @@ impl std::str::FromStr for Matmul {
         match s {
             "fp32" => Ok(Self::Fp32),
             "tf32" => Ok(Self::Tf32),
-            other => Err(format!("unknown matmul precision `{other}` (expected fp32 or tf32)")),
+            "bf16" => Ok(Self::Bf16),
+            other => {
+                Err(format!("unknown matmul precision `{other}` (expected fp32, tf32 or bf16)"))
+            }
         }
     }
 }
 
 impl Matmul {
-    /// The name `from_str` takes back (`fp32` or `tf32`).
+    /// The name `from_str` takes back (`fp32`, `tf32` or `bf16`).
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Fp32 => "fp32",
             Self::Tf32 => "tf32",
+            Self::Bf16 => "bf16",
         }
     }
 

@@ -18,6 +18,7 @@ use pdt_model::prompt_dt::{Act, Sequence};
 use pdt_model::{LastBlock, PromptDt, PromptDtConfig, Segments};
 mod cases;
 pub mod pack;
+mod precision;
 pub mod profile;
 pub mod record;
 pub mod render;
@@ -40,7 +41,9 @@ pub struct BenchConfig {
     pub iters: usize,
     pub warmup: usize,
     pub device: Device,
-    /// How a CUDA device computes float32 products (`--matmul`; PyTorch's baseline gets the same).
+    /// How the model's products are computed (`--matmul`; PyTorch's baseline gets the same: TF32
+    /// through its cuBLAS switch, bf16 through `torch.autocast`). With `bf16` the run also times
+    /// both engines in fp32 on the same cases ([`BenchReport::fp32`]).
     pub matmul: Matmul,
     /// Also count what one iteration of each model, pack, RL and MACAW case runs (`profile`).
     pub profile: bool,
@@ -116,6 +119,14 @@ pub struct BenchReport {
     pub promptdt: EngineReport,
     pub pytorch: Option<EngineReport>,
     pub speedup: Vec<(String, f64)>,
+    /// With `--matmul bf16`: the same cases in fp32, in the same run (both engines), for the
+    /// bf16-over-fp32 ratios.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fp32: Option<Box<BenchReport>>,
+    /// With `--matmul bf16` on hardware without native bf16 (`PROMPTDT_BF16_EMULATED=1`): the
+    /// timings are of libtorch's emulation, not of bf16 hardware (never recorded as such).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub bf16_emulated: bool,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -529,8 +540,20 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     }) {
         parse_case(c)?;
     }
+    // bf16: first the same cases in fp32 (refused before anything is timed where bf16 is).
+    let fp32 = match cfg.matmul {
+        Matmul::Bf16 => {
+            pdt_torch::device::bf16_allowed(cfg.device)?;
+            let fp32 = BenchConfig { matmul: Matmul::Fp32, profile: false, ..cfg.clone() };
+            Some(Box::new(run(&fp32)?))
+        }
+        _ => None,
+    };
+    let bf16_emulated =
+        cfg.matmul == Matmul::Bf16 && pdt_torch::autocast::native(cfg.device).is_err();
     let serve = serve_cases(cfg)?;
     tch::set_num_threads(cfg.threads as i32);
+    // (The model below takes the setting: built after it.)
     pdt_torch::device::set_matmul(cfg.device, cfg.matmul)?;
     tch::manual_seed(0);
     let mcfg = PromptDtConfig::reference(20, 6);
@@ -574,13 +597,24 @@ pub fn run(cfg: &BenchConfig) -> Result<BenchReport, BenchError> {
     };
     let device = match cfg.matmul {
         Matmul::Fp32 => format!("{:?}", cfg.device),
+        Matmul::Bf16 if bf16_emulated => format!("{:?} (bf16 matmuls, emulated)", cfg.device),
         m => format!("{:?} ({} matmuls)", cfg.device, m.as_str()),
     };
     let tf32_effect = match cfg.matmul {
         Matmul::Tf32 if cfg.device.is_cuda() => Some(tf32_effect(cfg.device)?),
         _ => None,
     };
-    Ok(BenchReport { device, tf32_effect, profiles, serve, promptdt, pytorch, speedup })
+    Ok(BenchReport {
+        device,
+        tf32_effect,
+        profiles,
+        serve,
+        promptdt,
+        pytorch,
+        speedup,
+        fp32,
+        bf16_emulated,
+    })
 }
 
 /// Times case `c` with `cfg`'s warm-up and iterations.
@@ -648,6 +682,9 @@ pub fn render_markdown(r: &BenchReport) -> String {
         cases.push(vec![c.name.clone(), fmt(c), theirs.map_or("not run".into(), fmt), ratio]);
     }
     let mut s = cases.markdown(Rule::Tight);
+    if let Some(fp32) = &r.fp32 {
+        s.push_str(&precision::render_bf16(r, fp32));
+    }
     s.push_str(&profile::render(&r.profiles, r.pytorch.as_ref()));
     if let Some(e) = r.tf32_effect {
         s.push_str(&format!(

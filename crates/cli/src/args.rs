@@ -312,7 +312,8 @@ pub struct ReproduceArgs {
     pub threads: Option<usize>,
     #[arg(long, default_value = "auto")]
     pub device: pdt_base::device::DeviceSpec,
-    /// Each run's run.matmul: float32 products on CUDA in `fp32` or `tf32` (part of a run's
+    /// Each run's run.matmul: the model's products in `fp32`, `tf32` (CUDA) or `bf16` (mixed
+    /// precision where the hardware has native bf16; experimental) (part of a run's
     /// identity; docs/implementation-details.md, C.8).
     #[arg(long, default_value = "fp32")]
     pub matmul: pdt_base::device::Matmul,
@@ -633,7 +634,8 @@ pub struct TrainArgs {
     /// Override run.device (with --resume: for this invocation).
     #[arg(long)]
     pub device: Option<DeviceSpec>,
-    /// Override run.matmul: float32 products on CUDA in `fp32` or `tf32` (docs/
+    /// Override run.matmul: the model's products in `fp32`, `tf32` (CUDA) or `bf16` (mixed
+    /// precision where the hardware has native bf16; experimental) (docs/
     /// implementation-details.md, C.8). Not with --resume: a run keeps its own.
     #[arg(long, conflicts_with = "resume")]
     pub matmul: Option<pdt_base::device::Matmul>,

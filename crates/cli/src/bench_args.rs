@@ -16,7 +16,9 @@ pub struct BenchArgs {
     pub warmup: usize,
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
-    /// Float32 products on CUDA in `fp32` or `tf32` (PyTorch's baseline gets the same).
+    /// The model's products in `fp32`, `tf32` (CUDA) or `bf16` (mixed precision where the hardware
+    /// has native bf16, or with PROMPTDT_BF16_EMULATED=1; also times fp32 in the same run).
+    /// PyTorch's baseline gets the same (bf16: torch.autocast).
     #[arg(long, default_value = "fp32")]
     pub matmul: pdt_base::device::Matmul,
     /// Also count what one iteration of each case runs with libtorch's profiler: host operators

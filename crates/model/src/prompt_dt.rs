@@ -317,6 +317,9 @@ pub struct PromptDt {
     _predict_return: nn::Linear,
     /// What the last block of a full forward computes ([`LastBlock::default_for`] the device).
     last_block: LastBlock,
+    /// Forward passes in bf16 autocast (`run.matmul = "bf16"`): the process's setting when the
+    /// model was built ([`pdt_torch::autocast::bf16`]), or [`PromptDt::set_bf16`]'s.
+    bf16: bool,
 }
 
 impl PromptDt {
@@ -335,7 +338,19 @@ impl PromptDt {
             predict_action: torch_linear(p / "predict_action" / 0, h, cfg.act_dim),
             _predict_return: torch_linear(p / "predict_return", h, 1),
             last_block: LastBlock::default_for(p.device()),
+            bf16: pdt_torch::autocast::bf16(),
         }
+    }
+
+    /// Whether forward passes run in bf16 autocast (by default the process's `run.matmul` when the
+    /// model was built). Setting it skips `pdt_torch::device::set_matmul`'s hardware check: the
+    /// caller has made it (`pdt_torch::device::bf16_allowed`), as the parity test does.
+    pub fn set_bf16(&mut self, on: bool) {
+        self.bf16 = on;
+    }
+
+    pub fn bf16(&self) -> bool {
+        self.bf16
     }
 
     /// What the last block of a [`Sequence`] forward computes unless it says
@@ -432,10 +447,24 @@ impl PromptDt {
     /// batch into one row shared by every sample (mixing tasks, and crashing for B > 16); and when
     /// the prompt length is 1, 11, 21, ... it drops the last prompt return-to-go and crashes. Here
     /// every sample always gets its own prompt, whatever the lengths.
+    ///
+    /// Under `run.matmul = "bf16"` ([`pdt_torch::autocast`]) the pass runs inside libtorch's bf16
+    /// autocast, as `torch.autocast` around the reference's forward would, and the actions come back
+    /// in float32: the one difference from autocast, which would leave the action head's bf16
+    /// output, so the reference's loss (`((a - b)**2).mean()`, not on autocast's float32 list)
+    /// would be squared and averaged in bf16. Here the loss, and the actions an agent takes, are
+    /// float32 (PyTorch's side of the parity test casts the same way).
     pub fn forward<'a>(&self, history: &Segments, how: impl Into<Forward<'a>>) -> Tensor {
-        match how.into() {
+        let how = how.into();
+        let out = pdt_torch::autocast::scoped(self.bf16, self.device(), || match how {
             Forward::Sequence(s) => self.sequence(history, &s),
             Forward::Act(a) => self.act(history, &a),
+        });
+        // (fp32 and tf32: no op added, the bits as before.)
+        if out.kind() == Kind::BFloat16 {
+            out.to_kind(Kind::Float)
+        } else {
+            out
         }
     }
 
@@ -522,13 +551,15 @@ impl PromptDt {
         lora: Option<&LoraAdapters>,
     ) -> PrefixCache {
         let lora = lora.map(|a| a.layers.as_slice());
-        match prompt.into() {
+        let prompt = prompt.into();
+        // Under bf16 the cache is computed as the acting pass that reads it is (`Self::forward`).
+        pdt_torch::autocast::scoped(self.bf16, self.device(), || match prompt {
             Prompt::Segments(p) => {
                 let (tokens, mask) = self.prompt.tokens(p, self.cfg.hidden_size as i64); // [P, 3Lp, H]
                 self.transformer.prefix(&tokens, &mask, lora)
             }
             Prompt::Tokens(t) => self.transformer.prefix(&t.tokens, &t.mask, lora),
-        }
+        })
     }
 
     /// The device the weights live on.

@@ -89,6 +89,16 @@ pub(crate) fn prepare_pack(
     pdt_torch::device::set_matmul(device, members[0].cfg.run.matmul)?;
     let engine_kind =
         opts.engine.unwrap_or_else(|| Engine::default_for(device != tch::Device::Cpu));
+    // The batched engine's model is its own (stacked weights, its own products): bf16 autocast is
+    // entered by `PromptDt::forward` only, so a batched pack would run fp32 under a bf16 label.
+    if members[0].cfg.run.matmul == pdt_base::device::Matmul::Bf16 && engine_kind == Engine::Batched
+    {
+        return Err(RunError::invalid(
+            "pack",
+            "run.matmul = bf16 runs on the solo engine only (--engine solo): the batched engine \
+             has no bf16 path yet",
+        ));
+    }
     let specs: Vec<SlotSpec> = members
         .iter()
         .map(|m| SlotSpec {

@@ -61,23 +61,46 @@ pub enum MatmulError {
          float32 products in fp32 only)"
     )]
     NeedsCuda,
+    #[error(
+        "matmul = bf16 needs hardware that computes bf16 natively, and {0}: use --matmul fp32 \
+         (run.matmul = \"fp32\") instead, or set PROMPTDT_BF16_EMULATED=1 to emulate bf16 anyway \
+         (slower than fp32; for tests and numerical comparisons)"
+    )]
+    NoNativeBf16(String),
     #[error("libtorch refused the matmul precision setting: {0}")]
     Refused(String),
 }
 
-/// Sets how float32 matrix products are computed for a run on `device` ([`Matmul`]). libtorch keeps
-/// the setting for the whole process, so every run of a process must ask for the same one (a pack
-/// checks that its runs agree). On a CUDA device it is always set, so a `fp32` run is fp32 even
-/// where the environment asked libtorch for TF32 (`TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1`, set in
-/// NVIDIA's containers). On the CPU `fp32` changes nothing and `tf32` is refused.
+/// Sets how the model's matrix products are computed for a run on `device` ([`Matmul`]). libtorch
+/// keeps TF32 for the whole process, and [`crate::autocast::bf16`] is the process's too, so every
+/// run of a process must ask for the same one (a pack checks that its runs agree). On a CUDA device
+/// the TF32 switch is always set, so a `fp32` (or `bf16`) run is not TF32 even where the
+/// environment asked libtorch for it (`TORCH_ALLOW_TF32_CUBLAS_OVERRIDE=1`, set in NVIDIA's
+/// containers). On the CPU `tf32` is refused. `bf16` is refused where `device` has no native bf16
+/// ([`crate::autocast::native`]) unless [`crate::autocast::EMULATED_ENV`] is `1`.
 pub fn set_matmul(device: Device, matmul: Matmul) -> Result<(), MatmulError> {
-    if !device.is_cuda() {
-        return match matmul {
-            Matmul::Fp32 => Ok(()),
-            Matmul::Tf32 => Err(MatmulError::NeedsCuda),
-        };
+    if matmul == Matmul::Bf16 {
+        bf16_allowed(device)?;
     }
-    set_cublas_tf32(matmul == Matmul::Tf32)
+    if device.is_cuda() {
+        set_cublas_tf32(matmul == Matmul::Tf32)?;
+    } else if matmul == Matmul::Tf32 {
+        return Err(MatmulError::NeedsCuda);
+    }
+    crate::autocast::set_bf16(matmul == Matmul::Bf16);
+    Ok(())
+}
+
+/// Whether `bf16` may run on `device`: its hardware computes bf16 natively
+/// ([`crate::autocast::native`]), or [`crate::autocast::EMULATED_ENV`] is `1`; and libtorch's
+/// autocast opens there (once here, so that a forward pass's region, `autocast::scoped`, cannot
+/// fail later). [`set_matmul`]'s check, without its process-wide effect.
+pub fn bf16_allowed(device: Device) -> Result<(), MatmulError> {
+    if !crate::autocast::emulation_allowed() {
+        crate::autocast::native(device).map_err(MatmulError::NoNativeBf16)?;
+    }
+    drop(crate::autocast::Autocast::bf16(device).map_err(MatmulError::Refused)?);
+    Ok(())
 }
 
 /// libtorch's cuBLAS TF32 switch itself (the process-wide flag; it only changes CUDA matmuls).

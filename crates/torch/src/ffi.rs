@@ -11,6 +11,20 @@ pub(crate) type Sink = extern "C" fn(*mut c_void, *const c_char, c_int, u64);
 unsafe extern "C" {
     pub(crate) fn pdt_set_cublas_tf32(on: c_int, err: *mut u8, err_len: usize) -> c_int;
     pub(crate) fn pdt_cublas_tf32(err: *mut u8, err_len: usize) -> c_int;
+    /// `prev` receives 3 ints that `pdt_autocast_exit` takes back.
+    pub(crate) fn pdt_autocast_enter(
+        cuda: c_int,
+        prev: *mut c_int,
+        err: *mut u8,
+        err_len: usize,
+    ) -> c_int;
+    pub(crate) fn pdt_autocast_exit(
+        cuda: c_int,
+        prev: *const c_int,
+        err: *mut u8,
+        err_len: usize,
+    ) -> c_int;
+    pub(crate) fn pdt_autocast_enabled(cuda: c_int, err: *mut u8, err_len: usize) -> c_int;
     pub(crate) fn pdt_profiler_start(with_cuda: c_int, err: *mut u8, err_len: usize) -> c_int;
     pub(crate) fn pdt_profiler_stop(
         ctx: *mut c_void,

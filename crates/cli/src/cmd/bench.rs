@@ -20,6 +20,16 @@ pub fn bench(a: &BenchArgs) -> Result<()> {
         return Ok(());
     }
     let cfg = a.to_config()?;
+    // A record is rendered into BENCHMARKS.md as the hardware's speed: emulated bf16 is not that.
+    let emulated = cfg.matmul == pdt_base::device::Matmul::Bf16
+        && pdt_torch::autocast::native(cfg.device).is_err();
+    if let (Some(path), true) = (&a.json_out, emulated) {
+        anyhow::bail!(
+            "--matmul bf16 would run emulated here (no native bf16), and a record ({}) is read as \
+             the hardware's speed: run it without --json-out",
+            path.display()
+        );
+    }
     let report = pdt_bench::run(&cfg)?;
     let md = pdt_bench::render_markdown(&report);
     out_inline!("{md}");

@@ -28,6 +28,10 @@ pub fn reproduce(a: &ReproduceArgs) -> Result<()> {
             a.device.as_str()
         );
     }
+    if a.matmul == pdt_base::device::Matmul::Bf16 && trains_here {
+        let device = pdt_torch::device::resolve(a.device)?;
+        pdt_torch::device::bf16_allowed(device)?;
+    }
     let sweep = sweep(a, on_gpu)?;
     let opts = plan_options(a, sweep.threads)?;
     let p = if a.report_only {

@@ -371,3 +371,38 @@ fn a_tf32_run_evaluates_on_the_cpu_and_is_not_trained_there() {
     let e = fails(&["train", "--resume", s(&out), "--matmul", "fp32"]);
     assert!(e.contains("--matmul") && e.contains("--resume"), "{e}");
 }
+
+/// `--matmul bf16` on a CPU without native bf16 is refused by name, with the flag to use instead
+/// and the escape hatch, before anything is written; with the escape hatch (emulated bf16) the run
+/// trains and records `matmul = "bf16"` in its config.toml. Where the CPU has native bf16 only the
+/// second half applies.
+#[test]
+fn bf16_is_refused_without_native_bf16_and_recorded_when_it_runs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let out = tmp.path().join("r");
+    let args = ["train", "--config", s(&cfg), "--out", s(&out), "--quiet", "--iterations", "1"];
+    let mut args: Vec<&str> = args.to_vec();
+    args.extend(["--matmul", "bf16"]);
+    let run = |emulated: bool| {
+        let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_promptdt"));
+        c.args(&args).env_remove(pdt_torch::autocast::EMULATED_ENV);
+        if emulated {
+            c.env(pdt_torch::autocast::EMULATED_ENV, "1");
+        }
+        c.output().unwrap()
+    };
+    if pdt_torch::autocast::native_cpu().is_err() {
+        let o = run(false);
+        assert!(!o.status.success(), "bf16 without native bf16 trained");
+        let e = String::from_utf8_lossy(&o.stderr);
+        for part in ["matmul = bf16 needs", "--matmul fp32", "PROMPTDT_BF16_EMULATED=1"] {
+            assert!(e.contains(part), "the refusal names `{part}`: {e}");
+        }
+        assert!(!out.exists(), "nothing written");
+    }
+    let o = run(true);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let toml = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(toml.contains("matmul = \"bf16\""), "{toml}");
+}

@@ -98,6 +98,9 @@ pub struct Report {
     pub title: String,
     pub budget: String,
     pub budget_note: String,
+    /// How the runs computed their products (`run.matmul`, one for a plan): a report of bf16 runs
+    /// says so in its title and on every cell, so no bf16 result passes for an fp32 one.
+    pub matmul: pdt_base::device::Matmul,
     pub cells: Vec<CellResult>,
     pub claims: Vec<ClaimResult>,
     #[serde(skip)]
@@ -276,6 +279,7 @@ pub fn build(
         title: m.title.clone(),
         budget: plan.budget.clone(),
         budget_note: budget.note.clone(),
+        matmul: plan.runs.first().map(|r| r.config.run.matmul).unwrap_or_default(),
         cells,
         claims,
         markdown: String::new(),

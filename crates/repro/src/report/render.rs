@@ -2,6 +2,7 @@
 //! `cells.csv` and `curves.csv`.
 
 use super::*;
+use pdt_base::device::Matmul;
 
 fn opt(v: Option<f64>, d: usize) -> String {
     v.map_or("-".into(), |v| format!("{v:.d$}"))
@@ -17,9 +18,26 @@ fn stat(s: Option<Stat>, d: usize) -> String {
     })
 }
 
+/// ` (bf16)` for a report of bf16 runs, after its title and each cell; nothing for fp32 (whose
+/// reports read as before) or tf32.
+fn precision_tag(r: &Report) -> &'static str {
+    if r.matmul == Matmul::Bf16 {
+        " (bf16)"
+    } else {
+        ""
+    }
+}
+
 pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "# {} — `{}` budget\n", r.title, r.budget);
+    let _ = writeln!(s, "# {} — `{}` budget{}\n", r.title, r.budget, precision_tag(r));
+    if r.matmul == Matmul::Bf16 {
+        let _ = writeln!(
+            s,
+            "Trained in bf16 mixed precision (`run.matmul = \"bf16\"`, experimental: its fidelity \
+             against fp32 is not yet measured): every cell below is a bf16 result.\n"
+        );
+    }
     let _ = writeln!(s, "{}\n", m.description.trim());
     let _ = writeln!(s, "Budget: {}\n", r.budget_note.trim());
     let _ = writeln!(
@@ -46,7 +64,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
             _ => "-".into(),
         };
         table.push(vec![
-            format!("`{}`", c.id),
+            format!("`{}`{}", c.id, precision_tag(r)),
             c.seeds.to_string(),
             it,
             match c.success {

@@ -45,9 +45,11 @@ pub struct RunSection {
     pub device: DeviceSpec,
     /// libtorch intra-op threads; 0 = all cores.
     pub threads: usize,
-    /// Float32 matrix products on a CUDA device: `fp32` (default) or `tf32` (the reference's
-    /// torch 1.10 default on Ampere and later GPUs; [`Matmul`]). Training refuses `tf32` on the
-    /// CPU; evaluating and serving there compute fp32. Written only when not the default.
+    /// The model's matrix products: `fp32` (default), `tf32` on a CUDA device (the reference's
+    /// torch 1.10 default on Ampere and later GPUs) or `bf16` mixed precision (autocast; where the
+    /// hardware has native bf16, or with `PROMPTDT_BF16_EMULATED=1`) ([`Matmul`]). Training
+    /// refuses `tf32` on the CPU and `bf16` without native bf16; evaluating and serving there
+    /// compute fp32. Written only when not the default.
     #[serde(skip_serializing_if = "Matmul::is_default")]
     pub matmul: Matmul,
 }
@@ -540,8 +542,12 @@ mod tests {
         let cpu: TrainConfig =
             toml::from_str("[run]\ndevice = \"cpu\"\nmatmul = \"tf32\"\n").unwrap();
         cpu.validate().unwrap();
-        assert!(toml::from_str::<TrainConfig>("[run]\nmatmul = \"bf16\"\n").is_err());
-        for m in [Matmul::Fp32, Matmul::Tf32] {
+        // bf16 (mixed precision) is a precision of its own; fp16 is none.
+        let bf16: TrainConfig = toml::from_str("[run]\nmatmul = \"bf16\"\n").unwrap();
+        assert_eq!(bf16.run.matmul, Matmul::Bf16);
+        assert!(bf16.to_toml().unwrap().contains("matmul = \"bf16\""), "recorded in config.toml");
+        assert!(toml::from_str::<TrainConfig>("[run]\nmatmul = \"fp16\"\n").is_err());
+        for m in [Matmul::Fp32, Matmul::Tf32, Matmul::Bf16] {
             assert_eq!(m.as_str().parse::<Matmul>(), Ok(m));
         }
     }

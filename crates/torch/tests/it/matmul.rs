@@ -49,3 +49,42 @@ fn tf32_switch_reaches_libtorch_and_leaves_cpu_products_alone() {
     let differing = before.iter().zip(&during).filter(|(a, b)| a != b).count();
     assert_eq!(differing, 0, "CPU products changed with cuBLAS's TF32 flag on");
 }
+
+/// `bf16` where the CPU has no native bf16 is refused by name, with the flag to use instead and the
+/// escape hatch; the escape hatch lets it through; `fp32` afterwards turns it off. Where the CPU
+/// has native bf16, it is accepted without the escape hatch.
+#[test]
+fn bf16_refused_without_native_bf16_unless_emulation_is_asked_for() {
+    use pdt_torch::autocast::{bf16, native_cpu, EMULATED_ENV};
+    let _g = pdt_testkit::process::libtorch();
+    let before = std::env::var_os(EMULATED_ENV);
+    // The variable is the process's: set and restored under the libtorch lock.
+    std::env::remove_var(EMULATED_ENV);
+    match native_cpu() {
+        Ok(()) => {
+            set_matmul(Device::Cpu, Matmul::Bf16).unwrap();
+            assert!(bf16(), "native bf16: accepted without the escape hatch");
+        }
+        Err(why) => {
+            let e = set_matmul(Device::Cpu, Matmul::Bf16).unwrap_err();
+            assert!(matches!(e, MatmulError::NoNativeBf16(_)), "{e}");
+            let msg = e.to_string();
+            for part in ["bf16", "--matmul fp32", "PROMPTDT_BF16_EMULATED=1", why.as_str()] {
+                assert!(msg.contains(part), "the refusal names `{part}`: {msg}");
+            }
+            assert!(!bf16(), "a refused bf16 leaves the process in fp32");
+        }
+    }
+    std::env::set_var(EMULATED_ENV, "1");
+    let emulated = set_matmul(Device::Cpu, Matmul::Bf16);
+    let on = bf16();
+    set_matmul(Device::Cpu, Matmul::Fp32).unwrap();
+    let off = !bf16();
+    match before {
+        Some(v) => std::env::set_var(EMULATED_ENV, v),
+        None => std::env::remove_var(EMULATED_ENV),
+    }
+    emulated.unwrap();
+    assert!(on, "emulation asked for: bf16 on");
+    assert!(off, "fp32 turns bf16 off");
+}

@@ -13,5 +13,6 @@ mod config_fuzz;
 mod flat_optim;
 mod macaw_run;
 mod parity;
+mod parity_bf16;
 mod resume;
 mod run_dir_fuzz;
