@@ -323,6 +323,16 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
     }
 }
 
+/// The family of a run whose configuration names `name`: for a task suite whose run keeps a copy
+/// of it at `copy` (a run directory's `suite.toml`), the suite as trained
+/// ([`suite::SuiteFamily::as_trained`]); otherwise [`family`]`(name)`.
+pub fn family_of_run(name: &str, copy: &std::path::Path) -> Result<Box<dyn EnvFamily>, EnvError> {
+    if suite::is_suite_path(name) && copy.exists() {
+        return Ok(Box::new(suite::SuiteFamily::as_trained(std::path::Path::new(name), copy)?));
+    }
+    family(name)
+}
+
 /// Checks that data of `obs_dim`-sized observations and `act_dim`-sized actions can be the family
 /// `name`'s (a dataset written or imported under its name): an unknown family or other sizes are
 /// refused, each error naming both.

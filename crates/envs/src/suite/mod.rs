@@ -32,6 +32,14 @@ pub enum SuiteError {
     Syntax { path: PathBuf, message: String },
     #[error("suite file {}: `{field}` {why}", path.display())]
     Field { path: PathBuf, field: String, why: String },
+    /// The suite file a run was trained on was edited since: the run's copy and the file differ.
+    #[error(
+        "suite file {} changed since the run was trained on it (the run keeps the suite it trained \
+         on in {}): restore the file, or move it away to use the run's copy",
+        path.display(),
+        copy.display()
+    )]
+    Changed { path: PathBuf, copy: PathBuf },
 }
 
 /// One task of a suite.
@@ -95,6 +103,28 @@ impl SuiteFamily {
             message: e.to_string().trim_end().to_owned(),
         })?;
         check::check(path, text, raw)
+    }
+
+    /// The suite a run was trained on: `copy` is the run's copy of the file at `path` (the path
+    /// its configuration records). The copy is what is read, so a run evaluates, serves and
+    /// resumes without the original; relative paths inside still resolve against `path`'s
+    /// directory. An original that still exists must be unchanged ([`SuiteError::Changed`]):
+    /// an edited suite (tasks renamed, splits changed) silently used with the run's weights
+    /// and data would give numbers of another experiment.
+    pub fn as_trained(path: &Path, copy: &Path) -> Result<Self, SuiteError> {
+        let read = |p: &Path| -> Result<String, SuiteError> {
+            let bytes = pdt_base::fs::read_limited(p, MAX_FILE_BYTES)
+                .map_err(|e| SuiteError::Read { path: p.to_path_buf(), message: e.to_string() })?;
+            String::from_utf8(bytes).map_err(|_| SuiteError::Read {
+                path: p.to_path_buf(),
+                message: "not UTF-8 text".into(),
+            })
+        };
+        let text = read(copy)?;
+        if path.exists() && read(path)? != text {
+            return Err(SuiteError::Changed { path: path.to_path_buf(), copy: copy.to_path_buf() });
+        }
+        Self::parse(path, text)
     }
 
     /// The file this suite was read from.
