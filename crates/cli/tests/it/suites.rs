@@ -89,7 +89,7 @@ fn suite_setup(dir: &Path) -> (PathBuf, PathBuf) {
 }
 
 #[test]
-fn a_suite_trains_resumes_and_reports_without_an_environment() {
+fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     let tmp = tempfile::tempdir().unwrap();
     let (suite, cfg) = suite_setup(tmp.path());
     let run = tmp.path().join("run");
