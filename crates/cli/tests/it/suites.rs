@@ -113,6 +113,12 @@ fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     assert!(e.contains("changed since the run was trained") && e.contains("suite.toml"), "{e}");
     std::fs::rename(&moved, &suite).unwrap();
 
+    // Collecting needs policies the suite does not have: said, with where its data come from.
+    let e = fails(&["collect", "--env", s(&suite), "--out", s(&tmp.path().join("c"))]);
+    assert!(
+        e.contains("toy_line has neither scripted policies") && e.contains("data import"),
+        "{e}"
+    );
     // Evaluating in an environment the suite does not have is a clear error, not a panic.
     let e = fails(&["eval", "--run", s(&run), "--episodes", "1"]);
     assert!(e.contains("toy_line") && e.contains("no [environment]"), "{e}");
@@ -140,9 +146,15 @@ fn a_suite_split_and_bad_suite_are_checked_by_the_front_end() {
     assert!(!bad.join("config.toml").exists() && !bad.join("suite.toml").exists());
 }
 
+/// The arrays of a flat `.npz`: name, values (as f64), row width (0: one value a step).
+type Arrays = Vec<(&'static str, Vec<f64>, i64)>;
+
+/// A bad-data case: what it is, how it spoils the arrays, what the error must say.
+type BadCase = (&'static str, fn(&mut Arrays), &'static str);
+
 /// Every step of `tasks`' episodes as flat arrays in an `.npz` at `path`; `edit` changes them
-/// first (name, values as f64).
-fn write_flat_npz(path: &Path, tasks: &[usize], edit: impl Fn(&mut Vec<(&str, Vec<f64>, i64)>)) {
+/// first.
+fn write_flat_npz(path: &Path, tasks: &[usize], edit: impl Fn(&mut Arrays)) {
     let (mut obs, mut act, mut rew, mut term, mut tout, mut ids) =
         (vec![], vec![], vec![], vec![], vec![], vec![]);
     for &task in tasks {
@@ -155,7 +167,7 @@ fn write_flat_npz(path: &Path, tasks: &[usize], edit: impl Fn(&mut Vec<(&str, Ve
             ids.extend(std::iter::repeat_n(task as f64, t.len()));
         }
     }
-    let mut arrays = vec![
+    let mut arrays: Arrays = vec![
         ("observations", obs, 2),
         ("actions", act, 1),
         ("rewards", rew, 0),
@@ -209,7 +221,7 @@ fn flat_data_is_imported_into_a_suite_and_bad_data_writes_nothing() {
     }
 
     // Bad data: refused naming the file and the array, and nothing written.
-    let cases: [(&str, fn(&mut Vec<(&str, Vec<f64>, i64)>), &str); 4] = [
+    let cases: [BadCase; 4] = [
         (
             "unknown task",
             |a| a[5].1[40] = 7.0,

@@ -19,7 +19,7 @@ fn flat() -> FlatSteps {
 }
 
 fn error(f: &FlatSteps) -> String {
-    let e = f.split_by_task(Path::new("my.npz"), 2).err().expect("refused").to_string();
+    let e = f.split_by_task(Path::new("my.npz"), 2).expect_err("refused").to_string();
     assert!(e.contains("my.npz"), "{e}");
     e
 }
