@@ -373,6 +373,9 @@ pub enum DataCommand {
     Convert(ConvertArgs),
     /// Dataset quality: return per task and mode against the reference, with the quality bars.
     Report(DataReportArgs),
+    /// A flat `.npz` of step arrays with a `task_ids` column into per-task datasets and prompt
+    /// sets of a task suite (or family), all checked before anything is written.
+    Import(ImportArgs),
 }
 
 #[derive(Debug, Args)]
@@ -396,6 +399,27 @@ pub struct InspectArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct ImportArgs {
+    /// The family the data are of: a task suite file (`suite.toml`) or a built-in family's name.
+    #[arg(long)]
+    pub env: String,
+    /// A flat `.npz` of step arrays: observations [N, obs_dim], actions [N, act_dim], rewards
+    /// [N], terminals [N], timeouts [N], task_ids [N] (what `promptdt.flat_dataset` holds).
+    #[arg(long)]
+    pub npz: PathBuf,
+    /// Output directory for `{name}-{task}-{mode}.safetensors` and its prompt sets.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The datasets' mode (`expert`, `medium`, ...): files `{name}-{task}-{mode}` and
+    /// `{name}-{task}-prompt-{mode}`.
+    #[arg(long, default_value = "expert")]
+    pub mode: String,
+    /// How each task's prompt set is made from its data: `best:N`, its N highest-return episodes.
+    #[arg(long, default_value = "best:5")]
+    pub prompt_rule: String,
 }
 
 #[derive(Debug, Args)]

@@ -119,6 +119,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Data(DataCommand::Inspect(a)) => cmd::data::inspect(&a),
         Command::Data(DataCommand::Convert(a)) => cmd::data::convert(&a),
         Command::Data(DataCommand::Report(a)) => cmd::data::report(&a),
+        Command::Data(DataCommand::Import(a)) => cmd::data::import(&a),
         Command::Model(ModelCommand::Forward(a)) => cmd::model::forward(&a),
         Command::Agent(AgentCommand::Combine(a)) => cmd::agent::combine(&a),
         Command::Collect(a) => cmd::collect::collect(&a),

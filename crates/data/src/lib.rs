@@ -5,6 +5,7 @@
 //! - [`TaskDataset`]: the trajectories of one task (a main dataset D_i or a prompt set P_i).
 //! - [`MultiTaskDataset`]: D_i and P_i for every task, with task ids.
 //! - [`mode`]: the datasets' vocabulary ([`mode::Mode`]: expert, medium, random; [`mode::Set`]).
+//! - [`flat`]: flat step arrays with a task column cut into per-task datasets; prompt-set rules.
 //! - [`native`]: the on-disk format (safetensors arrays + a JSON manifest), readable from Python.
 //! - [`pickle`]: a reader for the reference release's `{env}-{task}-{mode}.pkl` files that never
 //!   executes code.
@@ -12,6 +13,7 @@
 //! No tensor framework here: this crate is plain `Vec<f32>`, so its tests are fast.
 
 pub mod error;
+pub mod flat;
 pub mod inspect;
 pub mod mode;
 pub mod multitask;

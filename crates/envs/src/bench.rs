@@ -162,9 +162,10 @@ fn bench_family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         return Ok(Box::new(AntDirFamily::with_contact_cost(ContactCost::Computed)));
     }
     family(name).map_err(|e| match e {
-        EnvError::UnknownEnv(name, known) => {
-            EnvError::UnknownEnv(name, format!("{known}, {ANT_DIR_CONTACT}"))
-        }
+        EnvError::UnknownEnv(name, _) => EnvError::UnknownEnv(
+            name,
+            format!("{}, {ANT_DIR_CONTACT}", crate::FAMILY_NAMES.join(", ")),
+        ),
         other => other,
     })
 }

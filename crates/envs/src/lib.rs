@@ -19,6 +19,7 @@ pub mod point_robot;
 pub mod render;
 pub mod replay;
 pub mod rollout;
+pub mod suite;
 pub mod vec_env;
 pub mod worker;
 
@@ -88,6 +89,9 @@ pub enum EnvError {
     /// A front end asked the rollouts to stop (`rollout::Watch`, its Ctrl-C).
     #[error("stopped on request before the episodes ended")]
     Interrupted,
+    /// A task suite file ([`suite`]) that cannot be read or has a bad field.
+    #[error(transparent)]
+    Suite(#[from] suite::SuiteError),
 }
 
 impl EnvError {
@@ -236,6 +240,25 @@ pub trait EnvFamily: Send + Sync {
         None
     }
 
+    /// The task's own target return G*, where it differs from the family's
+    /// ([`EnvPreset::target_return`]); `None` for the built-in families.
+    fn task_target_return(&self, _task: usize) -> Option<f32> {
+        None
+    }
+
+    /// `(expert_return, random_return)` normalising the task's scores, where the family declares
+    /// them (a suite's per-task `expert_return`/`random_return`); `None` for the built-in
+    /// families, whose reference returns come from the reference release's data.
+    fn reference_returns(&self, _task: usize) -> Option<(f64, f64)> {
+        None
+    }
+
+    /// The family as a task suite read from a file ([`suite::SuiteFamily`]), if it is one: what a
+    /// run directory keeps a copy of.
+    fn as_suite(&self) -> Option<&suite::SuiteFamily> {
+        None
+    }
+
     /// Replays `actions` on `task` from the start `init` (JSON text, the family's own format:
     /// `promptdt env replay --init`; `None`: none given) until they run out or the episode ends.
     fn replay(
@@ -272,8 +295,12 @@ pub fn success_reward(family: &str) -> Option<f32> {
     self::family(family).ok()?.success_reward()
 }
 
-/// Looks up a family by name.
+/// Looks up a family by name, or reads a task suite file: a name ending in `.toml` is the path
+/// of one ([`suite::is_suite_path`]; a relative path is taken from the working directory).
 pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
+    if suite::is_suite_path(name) {
+        return Ok(Box::new(suite::SuiteFamily::load(std::path::Path::new(name))?));
+    }
     match name {
         "point_robot" | "point-robot" => Ok(Box::new(point_robot::PointRobotFamily::default())),
         "cheetah_dir" => Ok(Box::new(cheetah::CheetahDirFamily::default())),
@@ -286,8 +313,24 @@ pub fn family(name: &str) -> Result<Box<dyn EnvFamily>, EnvError> {
         }
         // The reconstructed Jaco pin-pad: see `dial`.
         "dial" => Ok(Box::new(dial::DialFamily)),
-        other => Err(EnvError::UnknownEnv(other.to_string(), FAMILY_NAMES.join(", "))),
+        other => Err(EnvError::UnknownEnv(
+            other.to_string(),
+            format!(
+                "{}, or the path of a task suite file ending in .toml",
+                FAMILY_NAMES.join(", ")
+            ),
+        )),
     }
+}
+
+/// The family of a run whose configuration names `name`: for a task suite whose run keeps a copy
+/// of it at `copy` (a run directory's `suite.toml`), the suite as trained
+/// ([`suite::SuiteFamily::as_trained`]); otherwise [`family`]`(name)`.
+pub fn family_of_run(name: &str, copy: &std::path::Path) -> Result<Box<dyn EnvFamily>, EnvError> {
+    if suite::is_suite_path(name) && copy.exists() {
+        return Ok(Box::new(suite::SuiteFamily::as_trained(std::path::Path::new(name), copy)?));
+    }
+    family(name)
 }
 
 /// Checks that data of `obs_dim`-sized observations and `act_dim`-sized actions can be the family

@@ -75,7 +75,7 @@ impl Policy {
             });
         }
         let stats = files::read_stats(&run)?;
-        let family = pdt_envs::family(&cfg.env.name)?;
+        let family = pdt_envs::family_of_run(&cfg.env.name, &run.suite_path())?;
         let preset = family.preset();
         let model_cfg = cfg.model.to_model_config(stats.obs_dim, stats.act_dim);
         model_cfg.validate().map_err(PolicyError::Invalid)?;

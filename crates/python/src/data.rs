@@ -99,8 +99,9 @@ fn trajectory_from_py(
 
 /// Writes trajectories (dicts with the keys `load_dataset` returns) as a native `.safetensors`
 /// file, atomically (a temporary file, then a rename), after the reader's checks (finite values,
-/// flags only at an episode's last step, shapes). With `env`, the family must exist and have
-/// `obs_dim` and `act_dim` (`pdt_envs::check_dims`). The directory must exist.
+/// flags only at an episode's last step, shapes). With `env` (a family's name or a task suite
+/// file's path), the family must exist and have `obs_dim` and `act_dim`
+/// (`pdt_envs::check_dims`). The directory must exist.
 #[pyfunction]
 #[pyo3(signature = (path, trajectories, obs_dim, act_dim, env = None, task = None, mode = None))]
 #[allow(clippy::too_many_arguments)]
@@ -114,9 +115,15 @@ pub(crate) fn write_dataset(
     task: Option<usize>,
     mode: Option<String>,
 ) -> PyResult<()> {
-    if let Some(env) = &env {
-        pdt_envs::check_dims(env, obs_dim, act_dim).map_err(lib_error)?;
-    }
+    // A task suite's path (`suite.toml`) stands for the suite: its files record its name, the
+    // name the loader finds them under (`{name}-{task}-{mode}`).
+    let env = match env {
+        Some(env) => {
+            pdt_envs::check_dims(&env, obs_dim, act_dim).map_err(lib_error)?;
+            Some(pdt_envs::family(&env).map_err(lib_error)?.name().to_owned())
+        }
+        None => None,
+    };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         if !dir.is_dir() {
             return Err(NotFoundError::new_err(format!(

@@ -11,6 +11,8 @@ use crate::files::{EvalLine, FinalEval, Latest, MetricsLine, RunInfo, RunStats};
 
 pub const RUN_JSON: &str = "run.json";
 pub const CONFIG_TOML: &str = "config.toml";
+/// A run on a task suite: the suite file as the run read it (`pdt_envs::family_of_run`).
+pub const SUITE_TOML: &str = "suite.toml";
 pub const TASK_STATS_JSON: &str = "task_stats.json";
 pub const METRICS_JSONL: &str = "metrics.jsonl";
 pub const METRICS_CSV: &str = "metrics.csv";
@@ -140,6 +142,11 @@ impl RunDir {
 
     pub fn config_path(&self) -> PathBuf {
         self.root.join(CONFIG_TOML)
+    }
+
+    /// The run's copy of its task suite file (runs on a suite only).
+    pub fn suite_path(&self) -> PathBuf {
+        self.root.join(SUITE_TOML)
     }
 
     pub fn stats_path(&self) -> PathBuf {

@@ -20,7 +20,7 @@ pub mod pack;
 pub use dir::{
     append_jsonl, read_json, read_json_opt, read_jsonl, write_json, JsonLines, RunDir, RunDirError,
     SkippedLine, CHECKPOINTS, CONFIG_TOML, EVAL_CSV, EVAL_FINAL_JSON, EVAL_JSONL, LATEST_JSON,
-    METRICS_CSV, METRICS_JSONL, RUN_JSON, TASK_STATS_JSON,
+    METRICS_CSV, METRICS_JSONL, RUN_JSON, SUITE_TOML, TASK_STATS_JSON,
 };
 pub use files::{
     AdaptationStats, DataMismatch, EvalLine, FinalEval, Latest, MetricsLine, PackInfo, PromptEval,

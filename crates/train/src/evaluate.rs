@@ -90,7 +90,7 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     if let Some(t) = test_time {
         t.apply_to(&mut cfg).map_err(|e| RunError::invalid(dir.display(), e))?;
     }
-    let setup = Setup::new(cfg)?;
+    let setup = Setup::new(cfg, dir)?;
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
     // run trained with (its checkpoints stay usable there).
     if setup.device.is_cuda() {

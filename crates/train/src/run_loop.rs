@@ -71,6 +71,9 @@ pub struct TrainSummary {
     pub iterations_done: u64,
     pub finished: bool,
     pub last_test: Option<Vec<TaskResult>>,
+    /// Why the run was not evaluated in an environment while it trained, if it was not
+    /// ([`Setup::online_evaluation_note`]).
+    pub note: Option<String>,
 }
 
 impl TrainSummary {
@@ -89,7 +92,11 @@ impl std::fmt::Display for TrainSummary {
         if let Some(mean) = self.held_out_mean() {
             write!(f, ", held-out average return {mean:.2}")?;
         }
-        write!(f, ": {}", self.dir.display())
+        write!(f, ": {}", self.dir.display())?;
+        if let Some(note) = &self.note {
+            write!(f, " ({note})")?;
+        }
+        Ok(())
     }
 }
 
@@ -129,7 +136,7 @@ pub fn train(
     // data are read.
     pdt_torch::device::set_matmul(pdt_torch::device::resolve(cfg.run.device)?, cfg.run.matmul)?;
     let toml = cfg.to_toml()?;
-    let setup = Setup::new(cfg)?;
+    let setup = Setup::new(cfg, dir)?;
     let _rng = torch_rng_lock();
     let threads = pdt_base::threads(setup.cfg.run.threads);
     tch::set_num_threads(threads as i32);
@@ -211,6 +218,11 @@ pub fn run_config_for(
         (false, Some(mut c)) => {
             // Recorded absolute, so the run evaluates and resumes the same way from any directory.
             c.data.dir = absolute(&c.data.dir);
+            if pdt_envs::suite::is_suite_path(&c.env.name) {
+                if let Some(p) = absolute(Path::new(&c.env.name)).to_str() {
+                    c.env.name = p.to_owned();
+                }
+            }
             c
         }
         (false, None) => {
@@ -246,6 +258,7 @@ fn prepare_run_dir(
         if !run.info_path().is_file() {
             run.write_info(&run_info(setup, loss_metric, pack))?;
         }
+        write_suite_copy(setup, &run)?;
         run.write_stats(&setup.run_data.stats)?;
     } else if resume {
         let recorded = pdt_run::files::read_stats(&run)?;
@@ -267,6 +280,8 @@ fn prepare_run_dir(
             ));
         }
         run.write_info(&run_info(setup, loss_metric, pack))?;
+        // Before `config.toml`: a run's configuration never names a suite the run has no copy of.
+        write_suite_copy(setup, &run)?;
         let config = run.config_path();
         write_atomic(&config, toml.as_bytes()).map_err(io_err(&config))?;
         run.write_stats(&setup.run_data.stats)?;
@@ -274,6 +289,17 @@ fn prepare_run_dir(
     // Checkpoint files a killed run left unreferenced (owning the directory makes this safe).
     remove_orphans(&run.checkpoints_dir())?;
     Ok(())
+}
+
+/// A run on a task suite keeps the suite file as it read it (`suite.toml`): the run evaluates,
+/// serves and resumes from it without the original, and an edited original is refused
+/// ([`pdt_envs::family_of_run`]).
+fn write_suite_copy(setup: &Setup, run: &RunDir) -> Result<(), RunError> {
+    let (Some(suite), path) = (setup.family.as_suite(), run.suite_path()) else { return Ok(()) };
+    if path.exists() {
+        return Ok(()); // the run's own copy: the family was read from it (`Setup::new`)
+    }
+    write_atomic(&path, suite.text().as_bytes()).map_err(io_err(&path))
 }
 
 /// The evaluation stream of `split` at `counter` (the iteration; a final evaluation counts down
@@ -350,6 +376,7 @@ fn run_loop(
     let mut last_test = None;
     // The run's own test time, the same at every evaluation.
     let test_time = TestTime::of(&setup.cfg);
+    let note = setup.online_evaluation_note();
     let mut done_here = 0;
     while iteration < t.iterations {
         if opts.interrupt.is_set() {
@@ -361,6 +388,7 @@ fn run_loop(
                 iterations_done: iteration,
                 finished: false,
                 last_test,
+                note,
             });
         }
         let at = IterationAt {
@@ -380,7 +408,8 @@ fn run_loop(
         let last = iteration == t.iterations;
         let mut test_return = None;
         // Reference: evaluation after the first iteration and every `interval` after it.
-        if (iteration - 1) % t.test_eval_interval == 0 || last {
+        let evaluates = note.is_none();
+        if evaluates && ((iteration - 1) % t.test_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Test, iteration);
             let res = learner.evaluate(Split::Test, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "test", target))?;
@@ -389,7 +418,8 @@ fn run_loop(
                 Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
-        if t.train_eval_interval > 0 && ((iteration - 1) % t.train_eval_interval == 0 || last) {
+        let train_evals = t.train_eval_interval > 0 && evaluates;
+        if train_evals && ((iteration - 1) % t.train_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Train, iteration);
             let res = learner.evaluate(Split::Train, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(&res, iteration, step, "train", target))?;
@@ -410,7 +440,13 @@ fn run_loop(
         }
         (opts.progress)(&Progress { iteration, iterations: t.iterations, loss, test_return });
     }
-    Ok(TrainSummary { dir: dir.into(), iterations_done: iteration, finished: true, last_test })
+    Ok(TrainSummary {
+        dir: dir.into(),
+        iterations_done: iteration,
+        finished: true,
+        last_test,
+        note,
+    })
 }
 
 /// On resume with a longer run or moved data, what changed goes on record in `config.toml` (the

@@ -46,9 +46,12 @@ fn env_threads_in_pack(setting: usize, cores: usize, pack_size: usize) -> usize 
 }
 
 impl Setup {
-    pub(crate) fn new(cfg: TrainConfig) -> Result<Self, RunError> {
+    /// The set-up of `cfg` for the run in `dir` (its environment family as the run trained on
+    /// it: a task suite from the run's copy, [`pdt_envs::family_of_run`]).
+    pub(crate) fn new(cfg: TrainConfig, dir: &Path) -> Result<Self, RunError> {
         cfg.validate()?;
-        let family = pdt_envs::family(&cfg.env.name)?;
+        let copy = pdt_rundir::RunDir::at(dir).suite_path();
+        let family = pdt_envs::family_of_run(&cfg.env.name, &copy)?;
         let preset = family.preset();
         let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
         let device = pdt_torch::device::resolve(cfg.run.device)?;
@@ -113,11 +116,26 @@ impl Setup {
         }
     }
 
+    /// Why the run's periodic evaluation in its environment is skipped, if it is: a task suite
+    /// that declares no environment has none to act in (docs/your-own-tasks.md).
+    pub fn online_evaluation_note(&self) -> Option<String> {
+        let suite = self.family.as_suite()?;
+        suite.environment().is_none().then(|| {
+            format!(
+                "{} declares no [environment]: no evaluation in an environment during training \
+                 (the suite's tasks have data only)",
+                suite.path().display()
+            )
+        })
+    }
+
     /// How many evaluation lines the run's logs hold at least, per iteration done.
     pub(crate) fn eval_schedule(&self) -> EvalSchedule {
+        // A run with no environment to evaluate in logs no evaluation lines.
+        let evaluates = usize::from(self.online_evaluation_note().is_none());
         EvalSchedule {
-            test_tasks: self.run_data.test_data.tasks.len(),
-            train_tasks: self.run_data.train_data.tasks.len(),
+            test_tasks: self.run_data.test_data.tasks.len() * evaluates,
+            train_tasks: self.run_data.train_data.tasks.len() * evaluates,
             test_eval_interval: self.cfg.train.test_eval_interval,
             train_eval_interval: self.cfg.train.train_eval_interval,
         }

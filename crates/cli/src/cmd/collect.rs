@@ -18,6 +18,15 @@ fn families_where(keep: fn(ScriptedFamily) -> bool) -> String {
 
 pub fn collect(a: &CollectArgs) -> Result<()> {
     let family = pdt_envs::family(&a.env)?;
+    if family.scripted().is_none() && family.rl_preset().is_none() {
+        // A task suite's data come from its user (docs/your-own-tasks.md), not from promptdt.
+        bail!(
+            "{} has neither scripted policies nor an RL agent preset to collect with: write its \
+             datasets with `promptdt data import` or Python's promptdt.write_dataset \
+             (docs/your-own-tasks.md)",
+            family.name()
+        );
+    }
     let Some(scripted) = family.scripted() else {
         if a.modes.is_some() {
             bail!("--modes is for the scripted families ({})", families_where(|_| true));

@@ -1,7 +1,10 @@
-//! `promptdt data inspect | convert | report`.
+//! `promptdt data inspect | convert | report | import`.
 
-use crate::args::{ConvertArgs, DataReportArgs, InspectArgs};
-use anyhow::Result;
+use crate::args::{ConvertArgs, DataReportArgs, ImportArgs, InspectArgs};
+use anyhow::{bail, Context, Result};
+use pdt_data::flat::{FlatSteps, PromptRule};
+use pdt_data::native::{task_file_stem, write_task_dataset, FileMeta};
+use std::path::Path;
 
 /// Per file: trajectories, steps, dims, dtypes, returns; a table or JSON.
 pub fn inspect(a: &InspectArgs) -> Result<()> {
@@ -42,4 +45,107 @@ pub fn report(a: &DataReportArgs) -> Result<()> {
         out!("wrote {}", f.display());
     }
     Ok(())
+}
+
+/// A flat `.npz` of step arrays with a `task_ids` column into a suite's (or family's) per-task
+/// datasets and prompt sets: everything read and checked before the first file is written.
+pub fn import(a: &ImportArgs) -> Result<()> {
+    let family = pdt_envs::family(&a.env)?;
+    let preset = family.preset();
+    let name = family.name().to_owned();
+    let rule: PromptRule = a.prompt_rule.parse().map_err(anyhow::Error::msg)?;
+    let flat = read_flat_npz(&a.npz, preset.obs_dim, preset.act_dim)?;
+    let tasks = flat.split_by_task(&a.npz, family.num_tasks())?;
+    if !a.out.is_dir() {
+        std::fs::create_dir_all(&a.out)
+            .with_context(|| format!("creating the output directory {}", a.out.display()))?;
+    }
+    let prompt_mode = format!("prompt-{}", a.mode);
+    let mut steps = 0;
+    for (&task, ds) in &tasks {
+        for (mode, set) in [(a.mode.as_str(), ds.clone()), (prompt_mode.as_str(), rule.prompts(ds))]
+        {
+            let path = a.out.join(format!("{}.safetensors", task_file_stem(&name, task, mode)));
+            write_task_dataset(&path, &set, &FileMeta::new(&name, task, mode))?;
+        }
+        steps += ds.num_steps();
+    }
+    let missing: Vec<String> =
+        (0..family.num_tasks()).filter(|t| !tasks.contains_key(t)).map(|t| t.to_string()).collect();
+    out!(
+        "imported {steps} steps of {} tasks of {name} into {} ({} and {prompt_mode} files; prompts: {})",
+        tasks.len(),
+        a.out.display(),
+        a.mode,
+        a.prompt_rule
+    );
+    if !missing.is_empty() {
+        out!("no data for tasks {} (a split that names them cannot train yet)", missing.join(", "));
+    }
+    Ok(())
+}
+
+/// The six arrays of a flat dataset from `path`, each of the shape the suite's sizes give.
+fn read_flat_npz(path: &Path, obs_dim: usize, act_dim: usize) -> Result<FlatSteps> {
+    let arrays = tch::Tensor::read_npz(path)
+        .with_context(|| format!("{}: not a readable .npz of numeric arrays", path.display()))?;
+    let mut by_name: std::collections::BTreeMap<String, tch::Tensor> = arrays.into_iter().collect();
+    let mut take = |field: &str, width: Option<usize>| -> Result<tch::Tensor> {
+        let t = by_name.remove(field).ok_or_else(|| {
+            anyhow::anyhow!(
+                "{}: no array `{field}` (a flat dataset has observations, actions, rewards, \
+                 terminals, timeouts and task_ids)",
+                path.display()
+            )
+        })?;
+        let size = t.size();
+        let ok = match (width, size.as_slice()) {
+            (Some(w), [_, d]) => *d as usize == w,
+            (None, [_]) => true,
+            (None, [_, 1]) => true,
+            _ => false,
+        };
+        if !ok {
+            let want = width.map_or("[N]".to_owned(), |w| format!("[N, {w}]"));
+            bail!("{}: `{field}` has shape {size:?}; expected {want}", path.display());
+        }
+        Ok(t.flatten(0, -1))
+    };
+    let floats = |t: tch::Tensor| -> Result<Vec<f32>> {
+        Ok(Vec::<f32>::try_from(t.to_kind(tch::Kind::Float))?)
+    };
+    let flags = |t: tch::Tensor| -> Result<Vec<bool>> {
+        Ok(Vec::<bool>::try_from(t.to_kind(tch::Kind::Bool))?)
+    };
+    let observations = floats(take("observations", Some(obs_dim))?)?;
+    let actions = floats(take("actions", Some(act_dim))?)?;
+    let rewards = floats(take("rewards", None)?)?;
+    let terminals = flags(take("terminals", None)?)?;
+    let timeouts = flags(take("timeouts", None)?)?;
+    let ids = take("task_ids", None)?;
+    if ids.is_floating_point() {
+        bail!(
+            "{}: `task_ids` holds {:?} values; expected whole numbers",
+            path.display(),
+            ids.kind()
+        );
+    }
+    let task_ids = Vec::<i64>::try_from(ids.to_kind(tch::Kind::Int64))?;
+    if let Some(extra) = by_name.keys().next() {
+        bail!(
+            "{}: unknown array `{extra}` (a flat dataset has observations, actions, rewards, \
+             terminals, timeouts and task_ids)",
+            path.display()
+        );
+    }
+    Ok(FlatSteps {
+        obs_dim,
+        act_dim,
+        observations,
+        actions,
+        rewards,
+        terminals,
+        timeouts,
+        task_ids,
+    })
 }

@@ -49,6 +49,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         let done = summary.iterations_done;
         out!("held-out tasks after iteration {done}: average return {mean:.2}");
     }
+    if let Some(note) = &summary.note {
+        out!("note: {note}");
+    }
     out!("run directory: {}", summary.dir.display());
     Ok(())
 }

@@ -27,3 +27,4 @@ mod reproduce_variants;
 mod results;
 mod rundir_v1;
 mod serve_cli;
+mod suites;

@@ -7,6 +7,7 @@
 mod support;
 
 mod card_fuzz;
+mod flat;
 mod native_atomic;
 mod native_multitask;
 mod native_python;

@@ -18,6 +18,7 @@ mod metaworld_parity;
 mod mujoco_envs;
 mod point_robot;
 mod render;
+mod suite;
 mod replay_fuzz;
 mod replay_parity;
 mod reward_check;

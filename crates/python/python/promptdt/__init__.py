@@ -435,9 +435,10 @@ from .minari_io import export_minari, import_minari  # noqa: E402
 
 def write_dataset(path: PathLike, dataset: "Dataset") -> None:
     """Writes ``dataset`` as a native ``.safetensors`` file, atomically, after the reader's checks.
-    A dataset that names its family (``dataset.env``) must have that family's ``obs_dim`` and
-    ``act_dim`` (``ValueError`` otherwise, also for an unknown family); a missing directory raises
-    ``FileNotFoundError``."""
+    A dataset that names its family (``dataset.env``: a family's name, or the path of a task suite
+    file, ``docs/your-own-tasks.md``) must have that family's ``obs_dim`` and ``act_dim``
+    (``ValueError`` otherwise, also for an unknown family or a bad suite file); the file records
+    the family's name (a suite's ``name``). A missing directory raises ``FileNotFoundError``."""
     trajs = [
         dict(observations=t.observations, actions=t.actions, rewards=t.rewards,
              terminated=t.terminated, truncated=t.truncated)

@@ -90,7 +90,7 @@ mod tests {
                 assert_eq!(s, "macaw", "{m:?}: give its section a tiny setting here");
                 cfg.macaw.width = 8;
             }
-            let setup = Setup::new(cfg).unwrap();
+            let setup = Setup::new(cfg, std::path::Path::new("no-run-dir")).unwrap();
             let built = {
                 let _torch = crate::streams::torch_rng_lock();
                 learner(&setup).map(|l| l.loss_metric())

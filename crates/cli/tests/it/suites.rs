@@ -1,0 +1,243 @@
+//! A task suite written as a file goes through the front ends without any of them naming it
+//! (`docs/your-own-tasks.md`): the suite file and its data are all a user adds, no Rust.
+#![allow(clippy::unwrap_used)] // test helpers: a failed unwrap is a failed test
+
+use crate::cli;
+
+use cli::{fails, ok, s, TINY};
+use std::path::{Path, PathBuf};
+
+/// A suite with data only (no `[environment]`): 5 tasks on a line, 3 trained on, 2 held out.
+const SUITE: &str = r#"
+name = "toy_line"
+obs_dim = 2
+act_dim = 1
+action_bound = 1.0
+max_ep_len = 10
+rtg_scale = 10
+target_return = 10.0
+prompt_length = 3
+
+[[tasks]]
+name = "g0"
+params = { goal = 0.0 }
+[[tasks]]
+name = "g1"
+params = { goal = 0.25 }
+[[tasks]]
+name = "g2"
+params = { goal = 0.5 }
+[[tasks]]
+name = "g3"
+params = { goal = 0.75 }
+expert_return = 9.0
+random_return = 1.0
+[[tasks]]
+name = "g4"
+params = { goal = 1.0 }
+
+[splits.main]
+train = ["g0", "g1", "g2"]
+test = ["g3", "g4"]
+
+[splits.ood]
+train = ["g1", "g2", "g3"]
+test = ["g0", "g4"]
+"#;
+
+/// Episodes of task `task`: the agent moves towards its goal on a line, rewarded for closeness.
+fn episodes(task: usize, n: usize) -> pdt_data::TaskDataset {
+    let goal = task as f32 * 0.25;
+    let trajectories = (0..n)
+        .map(|e| {
+            let (mut obs, mut act, mut rew) = (vec![], vec![], vec![]);
+            let mut x = -0.5 + 0.1 * e as f32;
+            for _ in 0..10 {
+                let a = (goal - x).clamp(-1.0, 1.0) * 0.5;
+                obs.extend([x, goal - x]);
+                act.push(a);
+                x += a;
+                rew.push(1.0 - (goal - x).abs());
+            }
+            let mut truncated = vec![false; 10];
+            truncated[9] = true;
+            pdt_data::Trajectory::new(2, 1, obs, act, rew, vec![false; 10], truncated).unwrap()
+        })
+        .collect();
+    pdt_data::TaskDataset::new(trajectories).unwrap()
+}
+
+/// The suite file and its data (written as a user's script would, in the native format), and a
+/// tiny experiment file naming the suite by its path.
+fn suite_setup(dir: &Path) -> (PathBuf, PathBuf) {
+    let suite = dir.join("my_tasks.toml");
+    std::fs::write(&suite, SUITE).unwrap();
+    let data = dir.join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    for task in 0..5 {
+        for (mode, n) in [("expert", 4), ("prompt-expert", 2)] {
+            let path = data.join(format!("toy_line-{task}-{mode}.safetensors"));
+            let meta = pdt_data::native::FileMeta::new("toy_line", task, mode);
+            pdt_data::native::write_task_dataset(&path, &episodes(task, n), &meta).unwrap();
+        }
+    }
+    let cfg = dir.join("exp.toml");
+    let text = TINY.replace("name = \"point_robot\"", &format!("name = {:?}", s(&suite)));
+    assert_ne!(text, TINY);
+    std::fs::write(&cfg, format!("{text}\n[data]\ndir = {:?}\n", s(&data))).unwrap();
+    (suite, cfg)
+}
+
+#[test]
+fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (suite, cfg) = suite_setup(tmp.path());
+    let run = tmp.path().join("run");
+    let out = ok(&["train", "--config", s(&cfg), "--out", s(&run), "--quiet"]);
+    // No environment to evaluate in: said, not failed.
+    assert!(out.contains("note:") && out.contains("declares no [environment]"), "{out}");
+    let info = std::fs::read_to_string(run.join("run.json")).unwrap();
+    assert!(info.contains("\"toy_line\""), "{info}");
+    // The run keeps the suite as it read it, and records the suite's absolute path.
+    assert_eq!(std::fs::read_to_string(run.join("suite.toml")).unwrap(), SUITE);
+    let config = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(config.contains(&format!("name = {:?}", s(&suite))), "{config}");
+
+    // Without the original the run resumes from its copy.
+    let moved = tmp.path().join("moved.toml");
+    std::fs::rename(&suite, &moved).unwrap();
+    ok(&["train", "--resume", s(&run), "--iterations", "10", "--quiet"]);
+    // An edited original is refused, naming both files.
+    std::fs::write(&suite, SUITE.replace("g4", "g5")).unwrap();
+    let e = fails(&["train", "--resume", s(&run), "--iterations", "12", "--quiet"]);
+    assert!(e.contains("changed since the run was trained") && e.contains("suite.toml"), "{e}");
+    std::fs::rename(&moved, &suite).unwrap();
+
+    // Collecting needs policies the suite does not have: said, with where its data come from.
+    let e = fails(&["collect", "--env", s(&suite), "--out", s(&tmp.path().join("c"))]);
+    assert!(
+        e.contains("toy_line has neither scripted policies") && e.contains("data import"),
+        "{e}"
+    );
+    // Evaluating in an environment the suite does not have is a clear error, not a panic.
+    let e = fails(&["eval", "--run", s(&run), "--episodes", "1"]);
+    assert!(e.contains("toy_line") && e.contains("no [environment]"), "{e}");
+}
+
+#[test]
+fn a_suite_split_and_bad_suite_are_checked_by_the_front_end() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (suite, cfg) = suite_setup(tmp.path());
+    // The second split by name.
+    let ood = tmp.path().join("ood.toml");
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let text = text.replacen("[env]\n", "[env]\nsplit = \"ood\"\n", 1);
+    std::fs::write(&ood, text).unwrap();
+    let run = tmp.path().join("run-ood");
+    ok(&["train", "--config", s(&ood), "--out", s(&run), "--quiet", "--iterations", "2"]);
+    let info = std::fs::read_to_string(run.join("run.json")).unwrap();
+    assert!(info.contains("\"ood\""), "{info}");
+    // A bad field stops `train` before anything is written, naming the file and the field.
+    std::fs::write(&suite, SUITE.replace("test = [\"g3\", \"g4\"]", "test = [\"g3\", \"g9\"]"))
+        .unwrap();
+    let bad = tmp.path().join("run-bad");
+    let e = fails(&["train", "--config", s(&cfg), "--out", s(&bad), "--quiet"]);
+    assert!(e.contains("my_tasks.toml") && e.contains("splits.main.test[1]"), "{e}");
+    assert!(!bad.join("config.toml").exists() && !bad.join("suite.toml").exists());
+}
+
+/// The arrays of a flat `.npz`: name, values (as f64), row width (0: one value a step).
+type Arrays = Vec<(&'static str, Vec<f64>, i64)>;
+
+/// A bad-data case: what it is, how it spoils the arrays, what the error must say.
+type BadCase = (&'static str, fn(&mut Arrays), &'static str);
+
+/// Every step of `tasks`' episodes as flat arrays in an `.npz` at `path`; `edit` changes them
+/// first.
+fn write_flat_npz(path: &Path, tasks: &[usize], edit: impl Fn(&mut Arrays)) {
+    let (mut obs, mut act, mut rew, mut term, mut tout, mut ids) =
+        (vec![], vec![], vec![], vec![], vec![], vec![]);
+    for &task in tasks {
+        for t in episodes(task, 3).trajectories {
+            obs.extend(t.observations.iter().map(|&x| f64::from(x)));
+            act.extend(t.actions.iter().map(|&x| f64::from(x)));
+            rew.extend(t.rewards.iter().map(|&x| f64::from(x)));
+            term.extend(t.terminated.iter().map(|&x| f64::from(u8::from(x))));
+            tout.extend(t.truncated.iter().map(|&x| f64::from(u8::from(x))));
+            ids.extend(std::iter::repeat_n(task as f64, t.len()));
+        }
+    }
+    let mut arrays: Arrays = vec![
+        ("observations", obs, 2),
+        ("actions", act, 1),
+        ("rewards", rew, 0),
+        ("terminals", term, 0),
+        ("timeouts", tout, 0),
+        ("task_ids", ids, 0),
+    ];
+    edit(&mut arrays);
+    let tensors: Vec<(&str, tch::Tensor)> = arrays
+        .into_iter()
+        .map(|(name, v, width)| {
+            let t = tch::Tensor::from_slice(&v);
+            let t = if width > 0 { t.reshape([-1, width]) } else { t };
+            let t = match name {
+                // tch writes no bool arrays; numpy's `|b1` reads as well.
+                "terminals" | "timeouts" => t.to_kind(tch::Kind::Uint8),
+                "task_ids" => t.to_kind(tch::Kind::Int64),
+                _ => t.to_kind(tch::Kind::Float),
+            };
+            (name, t)
+        })
+        .collect();
+    tch::Tensor::write_npz(&tensors, path).unwrap();
+}
+
+#[test]
+fn flat_data_is_imported_into_a_suite_and_bad_data_writes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (suite, _) = suite_setup(tmp.path());
+    let npz = tmp.path().join("flat.npz");
+    write_flat_npz(&npz, &[0, 1, 2, 3], |_| {});
+    let out = tmp.path().join("imported");
+    let args = ["data", "import", "--env", s(&suite), "--npz", s(&npz), "--out", s(&out)];
+    let msg = ok(&[&args[..], &["--prompt-rule", "best:2"]].concat());
+    assert!(msg.contains("imported 120 steps of 4 tasks of toy_line"), "{msg}");
+    assert!(msg.contains("no data for tasks 4"), "{msg}");
+    for task in 0..4 {
+        let ds = pdt_data::native::read_task_dataset(
+            &out.join(format!("toy_line-{task}-expert.safetensors")),
+        )
+        .unwrap();
+        assert_eq!(ds, episodes(task, 3), "task {task}");
+        let p = pdt_data::native::read_task_dataset(
+            &out.join(format!("toy_line-{task}-prompt-expert.safetensors")),
+        )
+        .unwrap();
+        // The two best-return episodes, best first.
+        let mut returns = ds.returns();
+        returns.sort_by(|a, b| b.total_cmp(a));
+        assert_eq!(p.returns(), returns[..2].to_vec(), "task {task}");
+    }
+
+    // Bad data: refused naming the file and the array, and nothing written.
+    let cases: [BadCase; 4] = [
+        (
+            "unknown task",
+            |a| a[5].1[40] = 7.0,
+            "`task_ids` at step 40 is 7; the suite has tasks 0..5",
+        ),
+        ("NaN", |a| a[2].1[3] = f64::NAN, "`rewards` at step 3 is NaN"),
+        ("wrong width", |a| a[0].2 = 1, "`observations` has shape [240, 1]; expected [N, 2]"),
+        ("missing", |a| drop(a.remove(4)), "no array `timeouts`"),
+    ];
+    for (what, edit, want) in cases {
+        let bad = tmp.path().join("bad.npz");
+        write_flat_npz(&bad, &[0, 1, 2, 3], edit);
+        let out = tmp.path().join(format!("bad-{}", what.replace(' ', "-")));
+        let args = ["data", "import", "--env", s(&suite), "--npz", s(&bad), "--out", s(&out)];
+        let e = fails(&args);
+        assert!(e.contains("bad.npz") && e.contains(want), "{what}: {e}");
+        assert!(!out.exists() || std::fs::read_dir(&out).unwrap().next().is_none(), "{what}");
+    }
+}
