@@ -236,6 +236,7 @@ fn run(cli: Cli) -> Result<()> {
                 macaw,
                 prompt: eval_flags::eval_prompt(&a),
                 adapt,
+                repeats: a.repeats,
             };
             let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
             let r = &prompted.eval;
@@ -269,6 +270,15 @@ fn run(cli: Cli) -> Result<()> {
             );
             if let Some(how) = &r.adaptation {
                 out!("adapted to each task with {how}");
+            }
+            if let Some(rep) = &r.repeats {
+                out!(
+                    "{} repeats (the rows above: repeat 0): average {:.2} ± {:.2} (sample std over \
+                     repeats: evaluation noise)",
+                    rep.mean_returns.len(),
+                    rep.mean_returns.iter().sum::<f64>() / rep.mean_returns.len() as f64,
+                    rep.mean_return_sd
+                );
             }
             for l in &prompted.adapt_log {
                 out!(

@@ -7,7 +7,7 @@ use super::learner::{
     IterationMetrics, Learner, SavedSteps, Steppable, TaskEval,
 };
 use super::prompt_strategy::evaluate_strategy;
-use crate::config::{compact, Adaptation, Method, TestTime, TrainConfig};
+use crate::config::{compact, Adaptation, FinetuneData, Method, TestTime, TrainConfig};
 use crate::error::RunError;
 use crate::optim::{AdamWConfig, Optimizer, ParamState, SlotState};
 use crate::setup::{Setup, Split};
@@ -319,8 +319,8 @@ fn eval_tasks(
                 ..Default::default()
             });
         }
-        Some(&Adaptation::Finetune { steps, batch, lr }) => {
-            let tune = Finetune { steps, batch, lr };
+        Some(&Adaptation::Finetune { steps, batch, lr, data }) => {
+            let tune = Finetune { steps, batch, lr, data };
             return finetune_each(learner, &sampler, &settings, &tune, rng, &make);
         }
         Some(Adaptation::Macaw { .. }) => {
@@ -348,6 +348,7 @@ struct Finetune {
     steps: u64,
     batch: usize,
     lr: f64,
+    data: FinetuneData,
 }
 
 /// Per task: adapts a copy of the weights on the task's demonstrations with a fresh optimiser,
@@ -375,8 +376,16 @@ fn finetune_each(
         // The tuning's dropout comes from libtorch's generator (a packed run holds it for the
         // whole evaluation: `pdt-pack`); its episodes draw nothing from it.
         for s in 0..tune.steps {
-            let seg =
-                sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
+            let seg = match tune.data {
+                FinetuneData::Dataset => sampler.tail_segments(
+                    i,
+                    tune.batch,
+                    setup.run_data.sampler_cfg.prompt_length,
+                    rng,
+                ),
+                // The adaptations' data (P_i), for a fine-tuning matched to them.
+                FinetuneData::Prompts => sampler.demo_segments(i, tune.batch, rng),
+            };
             let history = crate::step::to_segments(&seg, setup.device);
             let batch = DeviceBatch { history, prompt: None };
             train_step(&learner.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
