@@ -144,8 +144,11 @@ struct RunRecord {
     /// The run's training loss, or why it cannot be read (it is shown beside the returns only).
     loss: Result<Loss, String>,
     /// `promptdt eval --repeats`: the tasks (their indices) and, per repeat, their mean returns.
-    repeats: Option<(Vec<usize>, Vec<Vec<f64>>)>,
+    repeats: Option<Repeats>,
 }
+
+/// The task indices of an evaluation and, per repeat, each task's mean return.
+type Repeats = (Vec<usize>, Vec<Vec<f64>>);
 
 /// A run's training loss: its column in `metrics.jsonl` and its value per iteration.
 struct Loss {
@@ -175,7 +178,7 @@ fn read_run(dir: &Path) -> Result<RunRecord, ReproError> {
 
 /// The repeats of a run's evaluation (`promptdt eval --repeats`), where it has them: in a
 /// variant's own result file (its `variant.json` names it), else in `eval_final.json`.
-fn read_repeats(dir: &Path) -> Result<Option<(Vec<usize>, Vec<Vec<f64>>)>, ReproError> {
+fn read_repeats(dir: &Path) -> Result<Option<Repeats>, ReproError> {
     let record = dir.join(crate::variant_spec::VARIANT_JSON);
     let file = match record.is_file() {
         true => {
