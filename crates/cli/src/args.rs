@@ -142,7 +142,7 @@ pub struct ResultsRenderArgs {
     /// The README whose `<!-- results:begin -->` block is rewritten.
     #[arg(long, default_value = "README.md")]
     pub readme: PathBuf,
-    /// Leave the README alone.
+    /// Leave the README (and docs/prompt-control.md's generated table beside it) alone.
     #[arg(long)]
     pub no_readme: bool,
 }
@@ -153,6 +153,9 @@ impl ResultsRenderArgs {
             registry: self.registry.clone(),
             results_md: self.out.clone(),
             readme: (!self.no_readme).then(|| self.readme.clone()),
+            // Beside the README: the checkout's docs/prompt-control.md, whose table is generated.
+            prompt_control_doc: (!self.no_readme)
+                .then(|| self.readme.with_file_name("docs").join("prompt-control.md")),
         }
     }
 }
@@ -695,12 +698,28 @@ pub struct EvalArgs {
     /// bandit: `epsilon-greedy` (default, as the bandit paper) or `ucb`.
     #[arg(long, value_parser = bandit_rule)]
     pub bandit_rule: Option<pdt_prompt::BanditRule>,
-    /// bandit: exploration probability of epsilon-greedy (default 0.1).
+    /// bandit: exploration probability of epsilon-greedy at the first round (default 0.1, this
+    /// project's setting; the cited code's is 1.0, with --bandit-explore-fraction 0.2).
     #[arg(long)]
     pub bandit_epsilon: Option<f64>,
+    /// bandit: subtracted from epsilon after every round (default 0).
+    #[arg(long)]
+    pub bandit_epsilon_decay: Option<f64>,
+    /// bandit: epsilon falls linearly to 0 over this share of the task's rounds (the cited
+    /// code's schedule: 0.2, with --bandit-epsilon 1 and --prompt-stride 1); replaces
+    /// --bandit-epsilon-decay.
+    #[arg(long)]
+    pub bandit_explore_fraction: Option<f64>,
     /// bandit: episodes per task in one round, between updates (default 1).
     #[arg(long, value_parser = count(1, 10_000))]
     pub bandit_round: Option<usize>,
+    /// Repeats the evaluation over this many independent prompt draws and reset seeds (repeat 0
+    /// is the evaluation without the flag; repeat r > 0 draws from its own stream of the run's
+    /// seed, docs/run-directory.md), and writes each repeat's per-task returns and the spread
+    /// over repeats (evaluation noise, apart from seed noise) beside the usual fields. Default 1:
+    /// one evaluation, the file as before.
+    #[arg(long, value_parser = count(1, 1000), default_value_t = 1)]
+    pub repeats: usize,
     /// Evaluation-time adaptation: --adapt and its settings.
     #[command(flatten)]
     pub adaptation: AdaptFlags,

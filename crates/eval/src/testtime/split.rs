@@ -125,6 +125,10 @@ fn bandit_rounds(
         .collect::<Result<Vec<_>, _>>()?;
     let per_round = strategy.bandit.episodes_per_round;
     let episodes = plans.first().map_or(0, |p| p.seeds.len());
+    // An epsilon schedule over a share of the rollouts (`explore_fraction`) needs their number.
+    for b in &mut bandits {
+        b.plan_rounds(episodes.div_ceil(per_round));
+    }
     let (mut all, mut picks) = (Vec::new(), Vec::new());
     for (round, first) in (0..episodes).step_by(per_round).enumerate() {
         let last = (first + per_round).min(episodes);

@@ -259,10 +259,10 @@ fn eval_tasks(
         TestTime::Adapt { from, adaptation: Adaptation::Prompt(cfg) } if on_test => {
             testtime::evaluate_adapted(&ev, from, cfg, rng)?
         }
-        &TestTime::Adapt { adaptation: Adaptation::Finetune { steps, batch, lr }, .. }
-            if on_test =>
-        {
-            let tune = super::finetune::Finetune { steps, batch, lr };
+        &TestTime::Adapt {
+            adaptation: Adaptation::Finetune { steps, batch, lr, data }, ..
+        } if on_test => {
+            let tune = super::finetune::Finetune { steps, batch, lr, data };
             super::finetune::finetune_each(&learner.vs, &ev, &tune, setup, rng)?
         }
         TestTime::Adapt { adaptation: Adaptation::Macaw { .. }, .. } if on_test => {
