@@ -43,7 +43,12 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
     let f = &a.adaptation;
     let kind = f.adapt.and_then(crate::prompt_args::AdaptArg::prompt_kind);
     let adapt = [
-        ("--adapt-lr", f.adapt_lr.is_some(), &[K::SoftPrompt, K::Lora][..], "soft-prompt or lora"),
+        (
+            "--adapt-lr",
+            f.adapt_lr.is_some(),
+            &[K::SoftPrompt, K::Lora, K::Full][..],
+            "soft-prompt, lora or full",
+        ),
         ("--ptdt-candidates", f.ptdt_candidates.is_some(), &[K::Ptdt][..], "ptdt"),
         ("--ptdt-sigma", f.ptdt_sigma.is_some(), &[K::Ptdt][..], "ptdt"),
         ("--ptdt-step", f.ptdt_step.is_some(), &[K::Ptdt][..], "ptdt"),

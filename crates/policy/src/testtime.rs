@@ -55,6 +55,8 @@ impl Policy {
             index: 0,
             name: &name,
             cfg,
+            // Full fine-tuning is refused: a policy acts with the weights as saved.
+            weights: None,
             probe_seed: rng.next_u64(),
         };
         Ok(testtime::adapt_task(&t, &start, None, &mut arng)?)
