@@ -159,7 +159,7 @@ fn flags_that_act_only_with_another_are_refused_by_name() {
         ),
         (
             &["--adapt", "ptdt", "--adapt-lr", "0.1"],
-            "--adapt-lr acts only with --adapt soft-prompt or lora",
+            "--adapt-lr acts only with --adapt soft-prompt, lora or full",
         ),
     ];
     for (flags, message) in cases {
