@@ -1,6 +1,7 @@
 //! Command-line arguments (what the user typed). Each becomes a validated library config.
 
 use crate::prompt_args::{bandit_rule, prompt_strategy, AdaptFlags, ServeAdaptFlags};
+use crate::results_args::ResultsCommand;
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use pdt_base::device::DeviceSpec;
@@ -60,101 +61,6 @@ pub enum Command {
     /// The results registry (`results/`): archive finished runs, generate RESULTS.md.
     #[command(subcommand)]
     Results(ResultsCommand),
-}
-
-#[derive(Debug, Subcommand)]
-pub enum ResultsCommand {
-    /// Archive finished runs of an experiment (their small files and provenance) into the registry.
-    Add(Box<ResultsAddArgs>),
-    /// Write RESULTS.md and the README's headline block from the registry.
-    Render(ResultsRenderArgs),
-}
-
-#[derive(Debug, Args)]
-pub struct ResultsAddArgs {
-    /// Run directories as `reproduce` lays them out (`.../<cell id>/<budget>/seed<N>`).
-    #[arg(required = true)]
-    pub runs: Vec<PathBuf>,
-    /// The experiment the runs belong to (fig2, table1, ... or a manifest file).
-    #[arg(long)]
-    pub exp: String,
-    #[arg(long)]
-    pub budget: String,
-    /// Where the runs' datasets (their `dataset.json` cards) are (default: where each run's
-    /// config.toml says).
-    #[arg(long)]
-    pub data_root: Option<PathBuf>,
-    #[arg(long, default_value = "results")]
-    pub registry: PathBuf,
-    /// The commit of the binary that trained the runs.
-    #[arg(long)]
-    pub commit: String,
-    /// The GPU (or CPU) model that ran them.
-    #[arg(long)]
-    pub device_name: String,
-    /// The machine's CPU model.
-    #[arg(long)]
-    pub cpu: String,
-    /// The libtorch build they ran with.
-    #[arg(long)]
-    pub libtorch: String,
-    /// `solo` (one run per process) or `packed`.
-    #[arg(long, default_value = "solo", value_parser = ["solo", "packed"])]
-    pub packing: String,
-    /// How many runs shared the device at once, these included.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=10_000))]
-    pub shared_with: u32,
-    /// When they ran, YYYY-MM-DD (default: the day run.json says each was created).
-    #[arg(long)]
-    pub date: Option<String>,
-    #[arg(long, default_value = "")]
-    pub note: String,
-}
-
-impl ResultsAddArgs {
-    pub fn to_options(&self) -> pdt_repro::registry::AddOptions {
-        pdt_repro::registry::AddOptions {
-            runs: self.runs.clone(),
-            experiment: self.exp.clone(),
-            budget: self.budget.clone(),
-            data_root: self.data_root.clone(),
-            registry: self.registry.clone(),
-            provenance: pdt_repro::registry::ProvenanceFlags {
-                commit: self.commit.clone(),
-                device_name: self.device_name.clone(),
-                cpu: self.cpu.clone(),
-                libtorch: self.libtorch.clone(),
-                packing: self.packing.clone(),
-                shared_with: self.shared_with,
-                date: self.date.clone(),
-                note: self.note.clone(),
-            },
-        }
-    }
-}
-
-#[derive(Debug, Args)]
-pub struct ResultsRenderArgs {
-    #[arg(long, default_value = "results")]
-    pub registry: PathBuf,
-    #[arg(long, default_value = "RESULTS.md")]
-    pub out: PathBuf,
-    /// The README whose `<!-- results:begin -->` block is rewritten.
-    #[arg(long, default_value = "README.md")]
-    pub readme: PathBuf,
-    /// Leave the README alone.
-    #[arg(long)]
-    pub no_readme: bool,
-}
-
-impl ResultsRenderArgs {
-    pub fn to_options(&self) -> pdt_repro::render::RenderOptions {
-        pdt_repro::render::RenderOptions {
-            registry: self.registry.clone(),
-            results_md: self.out.clone(),
-            readme: (!self.no_readme).then(|| self.readme.clone()),
-        }
-    }
 }
 
 #[derive(Debug, Args)]
@@ -721,12 +627,28 @@ pub struct EvalArgs {
     /// bandit: `epsilon-greedy` (default, as the bandit paper) or `ucb`.
     #[arg(long, value_parser = bandit_rule)]
     pub bandit_rule: Option<pdt_prompt::BanditRule>,
-    /// bandit: exploration probability of epsilon-greedy (default 0.1).
+    /// bandit: exploration probability of epsilon-greedy at the first round (default 0.1, this
+    /// project's setting; the cited code's is 1.0, with --bandit-explore-fraction 0.2).
     #[arg(long)]
     pub bandit_epsilon: Option<f64>,
+    /// bandit: subtracted from epsilon after every round (default 0).
+    #[arg(long)]
+    pub bandit_epsilon_decay: Option<f64>,
+    /// bandit: epsilon falls linearly to 0 over this share of the task's rounds (the cited
+    /// code's schedule: 0.2, with --bandit-epsilon 1 and --prompt-stride 1); replaces
+    /// --bandit-epsilon-decay.
+    #[arg(long)]
+    pub bandit_explore_fraction: Option<f64>,
     /// bandit: episodes per task in one round, between updates (default 1).
     #[arg(long, value_parser = count(1, 10_000))]
     pub bandit_round: Option<usize>,
+    /// Repeats the evaluation over this many independent prompt draws and reset seeds (repeat 0
+    /// is the evaluation without the flag; repeat r > 0 draws from its own stream of the run's
+    /// seed, docs/run-directory.md), and writes each repeat's per-task returns and the spread
+    /// over repeats (evaluation noise, apart from seed noise) beside the usual fields. Default 1:
+    /// one evaluation, the file as before.
+    #[arg(long, value_parser = count(1, 1000), default_value_t = 1)]
+    pub repeats: usize,
     /// Evaluation-time adaptation: --adapt and its settings.
     #[command(flatten)]
     pub adaptation: AdaptFlags,

@@ -26,6 +26,8 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
     let bandit = [
         ("--bandit-rule", a.bandit_rule.is_some()),
         ("--bandit-epsilon", a.bandit_epsilon.is_some()),
+        ("--bandit-epsilon-decay", a.bandit_epsilon_decay.is_some()),
+        ("--bandit-explore-fraction", a.bandit_explore_fraction.is_some()),
         ("--bandit-round", a.bandit_round.is_some()),
     ];
     for (flag, given) in bandit {
@@ -41,7 +43,12 @@ pub(crate) fn check_eval_flags(a: &crate::args::EvalArgs) -> Result<(), String> 
     let f = &a.adaptation;
     let kind = f.adapt.and_then(crate::prompt_args::AdaptArg::prompt_kind);
     let adapt = [
-        ("--adapt-lr", f.adapt_lr.is_some(), &[K::SoftPrompt, K::Lora][..], "soft-prompt or lora"),
+        (
+            "--adapt-lr",
+            f.adapt_lr.is_some(),
+            &[K::SoftPrompt, K::Lora, K::Full][..],
+            "soft-prompt, lora or full",
+        ),
         ("--ptdt-candidates", f.ptdt_candidates.is_some(), &[K::Ptdt][..], "ptdt"),
         ("--ptdt-sigma", f.ptdt_sigma.is_some(), &[K::Ptdt][..], "ptdt"),
         ("--ptdt-step", f.ptdt_step.is_some(), &[K::Ptdt][..], "ptdt"),
@@ -141,6 +148,8 @@ pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::Promp
         || a.prompt_stride.is_some()
         || a.bandit_rule.is_some()
         || a.bandit_epsilon.is_some()
+        || a.bandit_epsilon_decay.is_some()
+        || a.bandit_explore_fraction.is_some()
         || a.bandit_round.is_some();
     if !any {
         return None;
@@ -154,6 +163,8 @@ pub(crate) fn eval_prompt(a: &crate::args::EvalArgs) -> Option<pdt_prompt::Promp
         bandit: pdt_prompt::BanditConfig {
             rule: a.bandit_rule.unwrap_or(d.rule),
             epsilon: a.bandit_epsilon.unwrap_or(d.epsilon),
+            epsilon_decay: a.bandit_epsilon_decay.unwrap_or(d.epsilon_decay),
+            explore_fraction: a.bandit_explore_fraction,
             episodes_per_round: a.bandit_round.unwrap_or(d.episodes_per_round),
             ..d
         },

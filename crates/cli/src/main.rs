@@ -24,11 +24,13 @@ mod bench_args;
 mod cmd;
 mod eval_flags;
 mod prompt_args;
+mod results_args;
 mod video;
 
 use anyhow::Result;
-use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand, ResultsCommand};
+use args::{AgentCommand, Cli, Command, DataCommand, EnvCommand, ModelCommand};
 use clap::Parser;
+use results_args::ResultsCommand;
 use std::io::ErrorKind;
 use std::process::ExitCode;
 

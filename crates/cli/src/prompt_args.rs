@@ -19,7 +19,7 @@ pub(crate) fn bandit_rule(s: &str) -> Result<pdt_prompt::BanditRule, String> {
 /// its budget whichever it is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AdaptArg {
-    /// One of `[eval.adapt]`'s, the backbone frozen: soft-prompt, ptdt, lora (or none).
+    /// One of `[eval.adapt]`'s: soft-prompt, ptdt, lora, the backbone frozen, full (or none).
     Prompt(pdt_rundir::config::AdaptKind),
     /// MACAW's gradient steps on each task's transitions (a MACAW run's own adaptation).
     Macaw,
@@ -68,15 +68,16 @@ fn ptdt_score(s: &str) -> Result<pdt_rundir::config::PtdtScore, String> {
 #[derive(Debug, clap::Args)]
 pub struct AdaptFlags {
     /// Test-time adaptation to each test task from its demonstrations (docs/prompt-control.md):
-    /// soft-prompt, ptdt, lora (the backbone frozen); eval also takes a run's own, macaw (MACAW's
+    /// soft-prompt, ptdt, lora (the backbone frozen), full (every weight fine-tuned at their
+    /// budget; eval only, the weights restored after each task); eval also takes a run's own, macaw (MACAW's
     /// gradient steps) or finetune (MT-BC-Finetune's fine-tuning). --adapt-steps and
     /// --adapt-batch set its budget: iterations and demonstration segments (macaw:
     /// transitions) per iteration. eval: default the run's own ([eval.adapt], none unless set),
-    /// results of soft-prompt, ptdt and lora to eval_adapt_<kind>.json; serve: episodes opened
+    /// results of soft-prompt, ptdt, lora and full to eval_adapt_<kind>.json; serve: episodes opened
     /// with a `task` (default none; a request's `adapt` names one).
     #[arg(long, value_parser = adapt_kind)]
     pub adapt: Option<AdaptArg>,
-    /// --adapt soft-prompt / lora: Adam's learning rate.
+    /// --adapt soft-prompt / lora / full: Adam's learning rate.
     #[arg(long)]
     pub adapt_lr: Option<f64>,
     /// --adapt ptdt: candidates per iteration.

@@ -55,6 +55,8 @@ impl Policy {
             index: 0,
             name: &name,
             cfg,
+            // Full fine-tuning is refused: a policy acts with the weights as saved.
+            weights: None,
             probe_seed: rng.next_u64(),
         };
         Ok(testtime::adapt_task(&t, &start, None, &mut arng)?)
@@ -82,6 +84,14 @@ impl Policy {
         seed: u64,
         strategy: &PromptStrategy,
     ) -> Result<TaskBandit, PolicyError> {
+        if pdt_prompt::bandit::SegmentBandit::needs_rounds(&strategy.bandit) {
+            // A served or Python bandit plays as many rounds as episodes come: no share of them
+            // is known, so a schedule over one would be silently another schedule.
+            return Err(PolicyError::Input(format!(
+                "task {task}: bandit.explore_fraction needs the number of rollouts, which only an \
+                 evaluation knows (`promptdt eval`); use bandit.epsilon_decay here"
+            )));
+        }
         let sampler = self.task_sampler(task, Some(strategy))?;
         Ok(TaskBandit::new(&sampler, 0, task, seed, strategy)?)
     }

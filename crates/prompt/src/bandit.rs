@@ -10,7 +10,8 @@
 //! has no hyper-parameters of its own and no learning loop, and with an evaluation's few
 //! episodes per task a network over segments has little to fit. The selection rule is the
 //! paper's epsilon-greedy (all slots explore together with probability epsilon, decayed by
-//! `epsilon_decay` per round), or UCB1 as an option.
+//! `epsilon_decay` per round, or linearly to 0 over `explore_fraction` of the rounds as the cited
+//! code's schedule does), or UCB1 as an option.
 
 use crate::strategy::{BanditConfig, BanditRule, SegmentChoice};
 use crate::Rng;
@@ -46,6 +47,9 @@ pub struct SegmentBandit {
     /// `[slots][arms]`
     stats: Vec<Vec<ArmStats>>,
     epsilon: f64,
+    /// Set by [`Self::plan_rounds`] with `explore_fraction`: the number of rounds over which
+    /// epsilon falls linearly to 0 (else it falls by `epsilon_decay` per round).
+    decay_rounds: Option<f64>,
     rounds: u64,
     /// Smallest and largest reward seen (UCB scales its bonus by their difference).
     range: Option<(f64, f64)>,
@@ -58,7 +62,30 @@ impl SegmentBandit {
             return None;
         }
         let stats = vec![vec![ArmStats::default(); arms.len()]; slots];
-        Some(Self { epsilon: cfg.epsilon, cfg, arms, stats, rounds: 0, range: None })
+        Some(Self {
+            epsilon: cfg.epsilon,
+            decay_rounds: None,
+            cfg,
+            arms,
+            stats,
+            rounds: 0,
+            range: None,
+        })
+    }
+
+    /// Tells the bandit how many rounds it will play: with `explore_fraction` f set, epsilon then
+    /// falls by `epsilon / (f x rounds)` per round, reaching 0 after the first f of them (the
+    /// cited code's `epsilon_decay = 1 / (num_rollouts x 0.2)` with epsilon 1.0). Without it,
+    /// nothing changes.
+    pub fn plan_rounds(&mut self, rounds: usize) {
+        if let Some(f) = self.cfg.explore_fraction {
+            self.decay_rounds = Some((f * rounds as f64).max(1.0));
+        }
+    }
+
+    /// Whether the settings need [`Self::plan_rounds`] (`explore_fraction` is set).
+    pub fn needs_rounds(cfg: &BanditConfig) -> bool {
+        cfg.explore_fraction.is_some()
     }
 
     pub fn arms(&self) -> &[SegmentChoice] {
@@ -106,9 +133,13 @@ impl SegmentBandit {
                 let arms = (0..slots)
                     .map(|s| {
                         let stats = &self.stats[s];
-                        if let Some(a) = stats.iter().position(|st| st.pulls == 0) {
+                        // Untried arms first, a uniformly drawn one each time (a seeded random
+                        // order): by index, with more arms than rounds UCB would sweep the first
+                        // demonstration from its first step and never see the others.
+                        let untried: Vec<usize> = (0..n).filter(|&a| stats[a].pulls == 0).collect();
+                        if !untried.is_empty() {
                             explored = true;
-                            return a;
+                            return untried[rng.random_range(0..untried.len())];
                         }
                         let total: u64 = stats.iter().map(|st| st.pulls).sum();
                         let ln = (total as f64).ln();
@@ -146,7 +177,16 @@ impl SegmentBandit {
             });
         }
         self.rounds += 1;
-        self.epsilon = (self.epsilon - self.cfg.epsilon_decay).max(0.0);
+        self.epsilon = match self.decay_rounds {
+            // In closed form, so that it reaches exactly 0 where the schedule ends.
+            Some(d) => (self.cfg.epsilon * (1.0 - self.rounds as f64 / d)).max(0.0),
+            None => (self.epsilon - self.cfg.epsilon_decay).max(0.0),
+        };
+    }
+
+    /// The exploration probability of the next round.
+    pub fn epsilon(&self) -> f64 {
+        self.epsilon
     }
 
     /// Mean return of each arm in `slot` (`None`: never pulled).
@@ -211,6 +251,60 @@ mod tests {
             run(BanditRule::EpsilonGreedy, 50, 7).1,
             run(BanditRule::EpsilonGreedy, 50, 8).1
         );
+    }
+
+    #[test]
+    fn ucb_tries_untried_arms_in_a_seeded_random_order() {
+        let cfg = BanditConfig { rule: BanditRule::Ucb, ..BanditConfig::default() };
+        let order = |seed: u64| {
+            let mut b = SegmentBandit::new(cfg.clone(), arms(50), 1).unwrap();
+            let mut rng = Rng::seed_from_u64(seed);
+            (0..5)
+                .map(|_| {
+                    let c = b.choose(&mut rng);
+                    assert!(c.explored);
+                    b.update(&c, &[1.0]);
+                    c.arms[0]
+                })
+                .collect::<Vec<_>>()
+        };
+        // Reproducible from the seed, differs across seeds, and is not the index order.
+        assert_eq!(order(4), order(4));
+        assert_ne!(order(4), order(5));
+        assert!((0..8).any(|s| order(s) != vec![0, 1, 2, 3, 4]));
+        let mut first = order(6);
+        first.sort_unstable();
+        first.dedup();
+        assert_eq!(first.len(), 5, "an arm tried twice before every arm was tried: {first:?}");
+    }
+
+    #[test]
+    fn explore_fraction_decays_epsilon_to_zero_over_that_share_of_the_rounds() {
+        // The cited code: epsilon 1.0 to 0 over the first 20 % of 50 rollouts: 10 rounds.
+        let cfg =
+            BanditConfig { epsilon: 1.0, explore_fraction: Some(0.2), ..BanditConfig::default() };
+        assert!(SegmentBandit::needs_rounds(&cfg));
+        let mut b = SegmentBandit::new(cfg, arms(4), 1).unwrap();
+        b.plan_rounds(50);
+        let mut rng = Rng::seed_from_u64(0);
+        let mut eps = Vec::new();
+        for _ in 0..12 {
+            eps.push(b.epsilon());
+            let c = b.choose(&mut rng);
+            b.update(&c, &[c.arms[0] as f64]);
+        }
+        assert_eq!(eps[0], 1.0);
+        assert!((eps[5] - 0.5).abs() < 1e-12, "{eps:?}");
+        assert!(eps[9] > 0.0 && eps[10] == 0.0 && eps[11] == 0.0, "{eps:?}");
+        // Greedy from then on: the best arm tried so far, every round.
+        let picks: Vec<bool> = (0..10).map(|_| b.choose(&mut rng).explored).collect();
+        assert!(picks.iter().all(|e| !e), "{picks:?}");
+        // Without the fraction, plan_rounds changes nothing: `epsilon_decay` (0) holds.
+        let mut b = SegmentBandit::new(BanditConfig::default(), arms(4), 1).unwrap();
+        b.plan_rounds(50);
+        let c = b.choose(&mut rng);
+        b.update(&c, &[1.0]);
+        assert_eq!(b.epsilon(), BanditConfig::default().epsilon);
     }
 
     #[test]

@@ -92,7 +92,8 @@ pub enum BanditRule {
     /// best mean return so far: the bandit paper's selection (`select_segments`).
     #[default]
     EpsilonGreedy,
-    /// UCB1: untried arms first, then mean + c * range * sqrt(2 ln n / n_arm).
+    /// UCB1: untried arms first (in a random order drawn from the bandit's seeded generator),
+    /// then mean + c * range * sqrt(2 ln n / n_arm).
     Ucb,
 }
 
@@ -103,8 +104,15 @@ pub struct BanditConfig {
     pub rule: BanditRule,
     /// Exploration probability of `epsilon-greedy` at the first round.
     pub epsilon: f64,
-    /// Subtracted from epsilon after every round (the paper's `epsilon_decay`), floored at 0.
+    /// Subtracted from epsilon after every round (the cited code's `epsilon_decay`), floored at
+    /// 0. Ignored when `explore_fraction` is set.
     pub epsilon_decay: f64,
+    /// Epsilon decays linearly from `epsilon` to 0 over this fraction of the task's rounds (the
+    /// cited code: epsilon 1.0, `epsilon_decay = 1 / (0.2 x num_rollouts)`, so 0.2). The decay per
+    /// round is then `epsilon / (fraction x rounds)`, which needs the number of rounds: only an
+    /// evaluation knows it (`promptdt eval`, a run's evaluations); `None`: `epsilon_decay`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub explore_fraction: Option<f64>,
     /// `ucb`: the exploration coefficient, in units of the range of returns seen so far.
     pub ucb_c: f64,
     /// Episodes per task in one round (they share the round's prompt, run batched together, and
@@ -118,6 +126,7 @@ impl Default for BanditConfig {
             rule: BanditRule::EpsilonGreedy,
             epsilon: 0.1,
             epsilon_decay: 0.0,
+            explore_fraction: None,
             ucb_c: 1.0,
             episodes_per_round: 1,
         }
@@ -187,6 +196,11 @@ impl PromptStrategy {
         }
         if !(b.epsilon_decay.is_finite() && b.epsilon_decay >= 0.0) {
             return bad("bandit.epsilon_decay", format!("= {}: must be >= 0", b.epsilon_decay));
+        }
+        if let Some(f) = b.explore_fraction {
+            if !(f > 0.0 && f <= 1.0) {
+                return bad("bandit.explore_fraction", format!("= {f}: must be in (0, 1]"));
+            }
         }
         if !(b.ucb_c.is_finite() && b.ucb_c >= 0.0) {
             return bad("bandit.ucb_c", format!("= {}: must be >= 0", b.ucb_c));

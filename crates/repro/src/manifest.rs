@@ -132,6 +132,9 @@ pub struct Settings {
     pub steps_per_iteration: Option<u64>,
     pub batch_size_per_task: Option<usize>,
     pub eval_episodes: Option<usize>,
+    /// Variants: `promptdt eval --repeats N`, the evaluation repeated over N independent prompt
+    /// draws and reset seeds (evaluation noise, reported apart from seed noise). Default 1.
+    pub eval_repeats: Option<usize>,
     pub test_eval_interval: Option<u64>,
     pub train_eval_interval: Option<u64>,
     pub save_interval: Option<u64>,
@@ -167,6 +170,7 @@ impl Settings {
             steps_per_iteration,
             batch_size_per_task,
             eval_episodes,
+            eval_repeats,
             test_eval_interval,
             train_eval_interval,
             save_interval,
@@ -226,6 +230,10 @@ pub struct Cell {
     /// Prompts given at test time (default: the training prompts' quality).
     #[serde(default)]
     pub test_prompt: Option<String>,
+    /// Where training cuts prompt segments (`sampler.prompt_position`): `tail` (default, the
+    /// reference's) or `random` (the paper's Algorithm 2).
+    #[serde(default)]
+    pub prompt_position: Option<String>,
     /// MT-BC-Finetune: segments per fine-tuning batch and gradient steps per test task.
     #[serde(default)]
     pub finetune_batch: Option<usize>,
@@ -278,6 +286,9 @@ impl Cell {
         let p = self.test_prompt.as_deref().unwrap_or(d);
         if d != "expert" || p != "expert" {
             m.push_str(&format!("-d{d}-p{p}"));
+        }
+        if self.prompt_position.as_deref().is_some_and(|p| p != "tail") {
+            m.push_str(&format!("-pos{}", self.prompt_position.as_deref().unwrap_or_default()));
         }
         if self.finetune_batch.is_some() || self.finetune_steps.is_some() {
             m.push_str(&format!(
@@ -339,6 +350,11 @@ impl Manifest {
             if !ids.insert(c.id()) {
                 return bad(format!("cell {} appears twice", c.id()));
             }
+            if let Some(p) =
+                c.prompt_position.as_deref().filter(|p| !["tail", "random"].contains(p))
+            {
+                return bad(format!("cell {}: prompt_position {p:?}: tail or random", c.id()));
+            }
             if let Err(why) = self.check_variant(c) {
                 return bad(format!("cell {}: {why}", c.id()));
             }
@@ -363,6 +379,7 @@ impl Manifest {
             for s in std::iter::once(&b.settings).chain(b.rules.iter().map(|r| &r.settings)) {
                 let zero = [
                     ("seeds", s.seeds.map(u64::from)),
+                    ("eval_repeats", s.eval_repeats.map(|v| v as u64)),
                     ("data_episodes", s.data_episodes.map(|v| v as u64)),
                     ("prompt_set_episodes", s.prompt_set_episodes.map(|v| v as u64)),
                 ];
@@ -598,6 +615,10 @@ mod tests {
             c("env = 'cheetah_vel'\nmethod = 'prompt-dt'\nprompt = [2, 20]\ndataset = 'medium'\ntest_prompt = 'random'").id(),
             "cheetah_vel/prompt-dt-k2x20-dmedium-prandom"
         );
+        let random = c("env = 'cheetah_vel'\nmethod = 'prompt-dt'\nprompt_position = 'random'");
+        assert_eq!(random.id(), "cheetah_vel/prompt-dt-posrandom");
+        let tail = c("env = 'cheetah_vel'\nmethod = 'prompt-dt'\nprompt_position = 'tail'");
+        assert_eq!(tail.id(), "cheetah_vel/prompt-dt", "the default keeps the cell's id");
     }
 
     #[test]

@@ -156,12 +156,18 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
             if let (Some(_), Some(eval)) = (base, &cell.eval) {
                 let base_key = format!("{}/{budget}/seed{seed}", trained.id());
                 let invalid = |e: String| ReproError::Invalid(format!("cell {}: {e}", cell.id()));
+                // A rule naming the variant's cell may give it its own episode count (the cited
+                // bandit's rollouts); the base cell's settings give the rest.
+                if let Some(e) = own.eval_episodes {
+                    config.eval.episodes = e;
+                }
                 config = crate::variant_spec::with_eval(&config, eval).map_err(invalid)?;
                 config.validate().map_err(|e| invalid(e.to_string()))?;
                 variant = Some(crate::variant_spec::BaseRun {
                     dir: out.join("runs").join(&base_key),
                     key: base_key,
                     eval: eval.clone(),
+                    repeats: own.eval_repeats.unwrap_or(1),
                 });
             }
             runs.push(RunSpec {
@@ -214,6 +220,12 @@ pub fn config_for(
     if let Some([j, h]) = cell.prompt {
         c.sampler.prompt_episodes = j;
         c.sampler.prompt_length = Some(h);
+    }
+    if let Some(p) = &cell.prompt_position {
+        c.sampler.prompt_position =
+            toml::Value::String(p.clone()).try_into().map_err(|e: toml::de::Error| {
+                ReproError::Invalid(format!("cell {}: prompt_position: {e}", cell.id()))
+            })?;
     }
     if let Some(b) = cell.finetune_batch {
         c.eval.finetune_batch = b;

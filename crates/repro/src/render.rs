@@ -19,6 +19,11 @@ pub const README_BEGIN: &str = "<!-- results:begin -->";
 pub const README_END: &str = "<!-- results:end -->";
 /// The experiment whose rows the README's headline block shows.
 const HEADLINE_EXPERIMENT: &str = "fig2";
+/// The experiment whose table always has the evaluation-noise column, and whose table
+/// docs/prompt-control.md quotes (between these lines).
+const NOISE_EXPERIMENT: &str = "prompt_control";
+pub const PROMPT_CONTROL_BEGIN: &str = "<!-- prompt-control:begin -->";
+pub const PROMPT_CONTROL_END: &str = "<!-- prompt-control:end -->";
 
 /// What `promptdt results render` writes.
 #[derive(Debug, Clone)]
@@ -26,6 +31,8 @@ pub struct Rendered {
     pub results_md: String,
     /// The README's block, markers excluded.
     pub readme_block: String,
+    /// docs/prompt-control.md's block (the prompt-control table), markers excluded.
+    pub prompt_control_block: String,
 }
 
 /// One experiment at one budget, read from the registry.
@@ -246,7 +253,10 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
          scores pooled, shown where a cell has at least {} seeds. *ours, ratio of means*: per seed \
          the mean test return normalised by the mean expert and mean random returns over the test \
          tasks, the only way the paper's value (a mean over tasks) can be normalised, so the one \
-         compared with *paper normalised*.\n",
+         compared with *paper normalised*. *evaluation noise* (the prompt-control table, and any \
+         table with a cell evaluated more than once): per seed the sample SD of *ours normalised* \
+         over repeats of the same weights' evaluation (`promptdt eval --repeats`: independent \
+         prompt draws and reset seeds), pooled over seeds; `-` where the runs were evaluated once.\n",
         100.0 * stats::CONFIDENCE,
         stats::RESAMPLES,
         stats::MIN_SEEDS
@@ -282,7 +292,80 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
         "\nRows appear only for archived runs. Numbers measured earlier on machines whose runs were \
          not archived are in this file's and README.md's git history."
     );
-    Ok(Rendered { results_md: s, readme_block: headline(&sections) })
+    let prompt_control_block = prompt_control(&sections);
+    Ok(Rendered { results_md: s, readme_block: headline(&sections), prompt_control_block })
+}
+
+/// docs/prompt-control.md's table: per budget with archived runs, the prompt-control rows by
+/// column, each the normalised score (per-task mean of ratios, mean over seeds), its seeds and its
+/// evaluation noise; RESULTS.md has the rest (raw returns, intervals, devices, the claims).
+fn prompt_control(sections: &[Section]) -> String {
+    let mut s = String::new();
+    for sec in sections.iter().filter(|sec| sec.report.experiment == NOISE_EXPERIMENT) {
+        let r = &sec.report;
+        let mut rows: Vec<&str> = Vec::new();
+        let mut cols: Vec<&str> = Vec::new();
+        for c in &r.cells {
+            if let (Some(row), Some(col)) = (c.row.as_deref(), c.column.as_deref()) {
+                if !rows.contains(&row) {
+                    rows.push(row);
+                }
+                if !cols.contains(&col) {
+                    cols.push(col);
+                }
+            }
+        }
+        let _ = writeln!(
+            s,
+            "At the `{}` budget, from the registry: normalised score (100 = the task's expert \
+             data, 0 = random; per-task mean of ratios, mean over seeds), then in brackets the \
+             seeds and, where measured, the evaluation noise (SD over repeats of one run's \
+             evaluation); `-`: no archived run.\n",
+            r.budget
+        );
+        let _ = writeln!(s, "| row | {} |", cols.join(" | "));
+        let _ = writeln!(s, "|---|{}", "---:|".repeat(cols.len()));
+        for row in &rows {
+            let cells: Vec<String> = cols
+                .iter()
+                .map(|col| {
+                    let found = r.cells.iter().find(|c| {
+                        c.row.as_deref() == Some(row)
+                            && c.column.as_deref() == Some(col)
+                            && c.seeds > 0
+                            && sec.seeds.contains_key(&c.id)
+                    });
+                    let Some(c) = found else { return "-".to_string() };
+                    let mean = c.normalised_stats.as_ref().map(|st| st.mean);
+                    let mean = mean.or(c.ours_normalised.map(|st| st.mean));
+                    let noise = c.eval_noise.map_or(String::new(), |n| {
+                        format!("; noise {:.1} over {} repeats", n.sd, n.repeats)
+                    });
+                    let seeds = if c.seeds == 1 { "seed" } else { "seeds" };
+                    format!("{} ({} {seeds}{noise})", opt(mean), c.seeds)
+                })
+                .collect();
+            let _ = writeln!(s, "| {row} | {} |", cells.join(" | "));
+        }
+        let _ = writeln!(s);
+    }
+    if s.is_empty() {
+        s.push_str("No prompt-control run is archived yet.\n\n");
+    }
+    s.push_str(
+        "Generated by `promptdt results render` from `results/`; raw returns, intervals, devices \
+         and the claims' verdicts are in [RESULTS.md](../RESULTS.md) (\"Prompt control\", \"What \
+         reproduces\").\n",
+    );
+    s
+}
+
+/// `doc` with the text between `begin` and `end` replaced by `block`; an error names the markers.
+pub fn splice_block(doc: &str, begin: &str, end: &str, block: &str) -> Result<String, ReproError> {
+    let missing = || ReproError::Invalid(format!("no {begin} ... {end} block"));
+    let start = doc.find(begin).ok_or_else(missing)? + begin.len();
+    let stop = doc[start..].find(end).ok_or_else(missing)? + start;
+    Ok(format!("{}\n{block}{}", &doc[..start], &doc[stop..]))
 }
 
 /// A registry section's table: one row per archived cell.
@@ -291,13 +374,17 @@ fn cells_table(s: &mut String, sec: &Section) {
     let _ = writeln!(s, "## {} — `{}` budget\n", r.title, r.budget);
     let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
     let _ = writeln!(s, "{}\n", archive_text(sec));
+    // Evaluation noise beside seed noise: in the prompt-control table (whose rows differ by
+    // evaluation alone), and wherever a cell's runs were evaluated with repeats.
+    let noise = r.experiment == NOISE_EXPERIMENT || r.cells.iter().any(|c| c.eval_noise.is_some());
+    let (noise_head, noise_rule) = if noise { (" evaluation noise |", "---:|") } else { ("", "") };
     let _ = writeln!(
         s,
-        "| cell | budget | seeds | iterations | device | ours | ours normalised | {:.0} % \
-         interval | IQM | ours, ratio of means | paper | paper normalised |",
+        "| cell | budget | seeds | iterations | device | ours | ours normalised |{noise_head} \
+         {:.0} % interval | IQM | ours, ratio of means | paper | paper normalised |",
         100.0 * stats::CONFIDENCE
     );
-    let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|{noise_rule}---:|---:|---:|---:|---:|");
     for c in &r.cells {
         let Some(seeds) = sec.seeds.get(&c.id).filter(|_| c.seeds > 0) else { continue };
         let ours = match c.success {
@@ -308,6 +395,10 @@ fn cells_table(s: &mut String, sec: &Section) {
         let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
         let devices = devices.map_or("-".into(), |d| d.join(", "));
         let (norm, ci, iqm) = normalised_text(c);
+        let norm = match noise {
+            true => format!("{norm} | {}", report::eval_noise_text(c)),
+            false => norm,
+        };
         let _ = writeln!(
             s,
             "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} | {p} | {pn} |",
@@ -457,6 +548,9 @@ pub struct RenderOptions {
     pub results_md: PathBuf,
     /// The README whose block is rewritten; `None`: none.
     pub readme: Option<PathBuf>,
+    /// docs/prompt-control.md, whose generated table is rewritten where the file exists; `None`:
+    /// none.
+    pub prompt_control_doc: Option<PathBuf>,
 }
 
 /// Writes `RESULTS.md` and the README block (atomically). Returns the files written.
@@ -471,6 +565,14 @@ pub fn write(o: &RenderOptions) -> Result<Vec<PathBuf>, ReproError> {
         let new = splice_readme(&text, &r.readme_block)?;
         pdt_base::fs::write_atomic(readme, new.as_bytes()).map_err(|e| io(readme, e))?;
         files.push(readme.clone());
+    }
+    if let Some(doc) = o.prompt_control_doc.as_ref().filter(|d| d.is_file()) {
+        let text = std::fs::read_to_string(doc).map_err(|e| io(doc, e))?;
+        let new =
+            splice_block(&text, PROMPT_CONTROL_BEGIN, PROMPT_CONTROL_END, &r.prompt_control_block)
+                .map_err(|e| ReproError::Invalid(format!("{}: {e}", doc.display())))?;
+        pdt_base::fs::write_atomic(doc, new.as_bytes()).map_err(|e| io(doc, e))?;
+        files.push(doc.clone());
     }
     Ok(files)
 }

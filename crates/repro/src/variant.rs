@@ -192,6 +192,10 @@ fn start<'p>(
     let mut cmd = Command::new(&opts.exe);
     cmd.arg(DIE_WITH_PARENT).args(["eval", "--run"]).arg(&spec.dir);
     cmd.args(["--device", spec.config.run.device.as_str()]);
+    if base.repeats > 1 {
+        // Evaluation noise apart from seed noise: the same weights over independent draws.
+        cmd.args(["--repeats", &base.repeats.to_string()]);
+    }
     if let Some(p) = &opts.omp_wait_policy {
         cmd.env("OMP_WAIT_POLICY", p);
     }

@@ -31,6 +31,9 @@ pub struct BaseRun {
     pub key: String,
     pub dir: PathBuf,
     pub eval: toml::Table,
+    /// Independent repeats of the evaluation (`promptdt eval --repeats`; the budget's
+    /// `eval_repeats`, 1 = one evaluation as before).
+    pub repeats: usize,
 }
 
 /// `config` with `eval` merged into its `[eval]` section (tables merged key by key, other values

@@ -271,6 +271,58 @@ pub struct FinalEval {
     /// otherwise (`[eval.adapt]`'s is in `eval_adapt_<kind>.json`, fine-tuning's in the config).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptation: Option<String>,
+    /// `promptdt eval --repeats N` (N > 1): the evaluation repeated over independent prompt
+    /// draws and reset seeds, the fields above being repeat 0's (what the evaluation without the
+    /// flag gives). Absent for one evaluation, so such a file is as before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repeats: Option<EvalRepeats>,
+}
+
+/// The repeats of one evaluation (`eval_*.json`'s `repeats`): what the evaluation noise of one
+/// set of weights is, apart from the noise between training seeds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalRepeats {
+    /// Where repeat r's draws come from (the run seed's evaluation stream at a counter of its
+    /// own; docs/run-directory.md).
+    pub streams: String,
+    /// Per repeat (repeat 0 first), per task in `tasks` order: the task's mean return.
+    #[serde(deserialize_with = "f64s2_or_null")]
+    pub task_returns: Vec<Vec<f64>>,
+    /// Per repeat: the mean over tasks of `task_returns` (repeat 0's is `mean_return`).
+    #[serde(deserialize_with = "f64s_or_null")]
+    pub mean_returns: Vec<f64>,
+    /// Sample standard deviation (n - 1) of `mean_returns`: the evaluation noise of the mean.
+    #[serde(deserialize_with = "f64_or_null")]
+    pub mean_return_sd: f64,
+    /// Per task: the sample standard deviation of its mean return over the repeats.
+    #[serde(deserialize_with = "f64s_or_null")]
+    pub task_return_sd: Vec<f64>,
+}
+
+impl EvalRepeats {
+    /// The repeats' record from each repeat's per-task mean returns (repeat 0 first).
+    pub fn of(streams: String, task_returns: Vec<Vec<f64>>) -> Self {
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let sd = |v: &[f64]| {
+            if v.len() < 2 {
+                return 0.0;
+            }
+            let m = mean(v);
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+        };
+        let mean_returns: Vec<f64> = task_returns.iter().map(|r| mean(r)).collect();
+        let tasks = task_returns.first().map_or(0, Vec::len);
+        let task_return_sd = (0..tasks)
+            .map(|t| sd(&task_returns.iter().map(|r| r[t]).collect::<Vec<_>>()))
+            .collect();
+        Self {
+            streams,
+            mean_return_sd: sd(&mean_returns),
+            mean_returns,
+            task_returns,
+            task_return_sd,
+        }
+    }
 }
 
 /// A final evaluation with a prompt strategy other than the default (`promptdt eval
@@ -382,6 +434,11 @@ impl MetricsLine {
 
 fn f64_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+fn f64s2_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Vec<f64>>, D::Error> {
+    let rows = Vec::<Vec<Option<f64>>>::deserialize(d)?;
+    Ok(rows.into_iter().map(|r| r.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect()).collect())
 }
 
 fn f64s_or_null<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {

@@ -23,6 +23,6 @@ pub use dir::{
     METRICS_CSV, METRICS_JSONL, RUN_JSON, SUITE_TOML, TASK_STATS_JSON,
 };
 pub use files::{
-    AdaptationStats, DataMismatch, EvalLine, FinalEval, Latest, MetricsLine, PackInfo, PromptEval,
-    RunInfo, RunStats, TaskResult, TaskStats, TrainState,
+    AdaptationStats, DataMismatch, EvalLine, EvalRepeats, FinalEval, Latest, MetricsLine, PackInfo,
+    PromptEval, RunInfo, RunStats, TaskResult, TaskStats, TrainState,
 };

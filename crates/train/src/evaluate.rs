@@ -10,7 +10,7 @@ use crate::streams::torch_rng_lock;
 use pdt_prompt::PromptStrategy;
 use pdt_run::files::{latest_checkpoint, read_stats, run_config};
 use pdt_rundir::config::{AdaptConfig, Adaptation, TestTime};
-use pdt_rundir::{FinalEval, PromptEval, RunDir};
+use pdt_rundir::{EvalRepeats, FinalEval, PromptEval, RunDir};
 use std::path::{Path, PathBuf};
 
 /// What an evaluation of a run may change of the run's own (`promptdt eval`'s flags; each
@@ -30,12 +30,31 @@ pub struct EvalRequest {
     /// Its settings are checked as the run's own would be; one the run's method cannot have is
     /// refused (`TestTime::apply_to`).
     pub test_time: Option<TestTime>,
+    /// Independent repeats of the evaluation (`--repeats`; 1: one evaluation, as before).
+    pub repeats: usize,
 }
 
 impl Default for EvalRequest {
     fn default() -> Self {
-        Self { episodes: None, split: "test".into(), device: None, data: None, test_time: None }
+        Self {
+            episodes: None,
+            split: "test".into(),
+            device: None,
+            data: None,
+            test_time: None,
+            repeats: 1,
+        }
     }
+}
+
+/// Repeat r of a final evaluation draws from the evaluation stream at `u64::MAX - iteration -
+/// r x REPEAT_STRIDE`: repeat 0 is the evaluation without repeats, and no repeat's counter meets
+/// a training evaluation's (the iteration, below 2^40) or another repeat's.
+const REPEAT_STRIDE: u64 = 1 << 40;
+
+/// The counter of repeat `r`'s evaluation stream (see [`REPEAT_STRIDE`]).
+fn repeat_counter(iteration: u64, r: usize) -> u64 {
+    u64::MAX - iteration - (r as u64) * REPEAT_STRIDE
 }
 
 /// Evaluates the latest checkpoint of the run in `dir` on its test tasks (or train tasks).
@@ -52,6 +71,7 @@ pub fn evaluate_run(
         device,
         data: data.map(Path::to_path_buf),
         test_time: None,
+        repeats: 1,
     };
     evaluate_run_as(dir, &req).map(|e| e.eval)
 }
@@ -78,7 +98,10 @@ pub fn asked_test_time(
 /// `eval_adapt_<kind>.json` with each task's adaptation log, leaving `eval_final.json` to the
 /// reference rule.
 pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunError> {
-    let EvalRequest { episodes, split, device, data, test_time } = req;
+    let EvalRequest { episodes, split, device, data, test_time, repeats } = req;
+    if !(1..=1000).contains(repeats) {
+        return Err(RunError::invalid("repeats", format!("= {repeats}: must be in 1..=1000")));
+    }
     let (episodes, split, device, data) = (*episodes, split.as_str(), *device, data.as_deref());
     let run = RunDir::at(dir);
     let mut cfg = run_config(&run, device, data)?;
@@ -121,12 +144,36 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
-    let mut rng = eval_rng(&setup, which, u64::MAX - latest.iteration);
+    let mut rng = eval_rng(&setup, which, repeat_counter(latest.iteration, 0));
     let methods::Evaluation { tasks, picks, adapt_log } =
         learner.evaluate(which, &test_time, &mut rng)?;
     let tasks: Vec<_> = tasks.into_iter().map(|t| t.result).collect();
     let mean_return = tasks.iter().map(|r| r.return_mean).sum::<f64>() / tasks.len().max(1) as f64;
+    let repeats = match *repeats {
+        1 => None,
+        n => {
+            let mut rows = vec![tasks.iter().map(|t| t.return_mean).collect::<Vec<f64>>()];
+            for r in 1..n {
+                // From the checkpoint again: each repeat is the evaluation of the saved weights.
+                learner.load_weights(&run.checkpoint_file(&latest.model))?;
+                let mut rng = eval_rng(&setup, which, repeat_counter(latest.iteration, r));
+                let e = learner.evaluate(which, &test_time, &mut rng)?;
+                rows.push(e.tasks.iter().map(|t| t.result.return_mean).collect());
+            }
+            let stream = match which {
+                Split::Test => pdt_run::streams::STREAM_EVAL_TEST,
+                Split::Train => pdt_run::streams::STREAM_EVAL_TRAIN,
+            };
+            let streams = format!(
+                "repeat r: derive_seed(run seed {}, stream {stream}, 2^64 - 1 - iteration {} - r \
+                 x 2^40); repeat 0 is the evaluation without --repeats",
+                setup.cfg.run.seed, latest.iteration
+            );
+            Some(EvalRepeats::of(streams, rows))
+        }
+    };
     let result = FinalEval {
+        repeats,
         adaptation: test_time.adaptation().and_then(Adaptation::recorded),
         iteration: latest.iteration,
         step: latest.step,

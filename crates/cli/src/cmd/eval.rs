@@ -9,6 +9,15 @@ pub fn eval(a: &EvalArgs) -> Result<()> {
     let req = request(a)?;
     let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
     out!("{prompted}; wrote {}/{}", a.run.display(), prompted.file_name());
+    if let Some(rep) = &prompted.eval.repeats {
+        out!(
+            "{} repeats (the rows above: repeat 0): average {:.2} ± {:.2} (sample std over \
+             repeats: evaluation noise)",
+            rep.mean_returns.len(),
+            rep.mean_returns.iter().sum::<f64>() / rep.mean_returns.len() as f64,
+            rep.mean_return_sd
+        );
+    }
     Ok(())
 }
 
@@ -21,5 +30,6 @@ fn request(a: &EvalArgs) -> Result<pdt_train::run::EvalRequest> {
         device: a.device,
         data: a.data.clone(),
         test_time: eval_flags::eval_test_time(a)?,
+        repeats: a.repeats,
     })
 }

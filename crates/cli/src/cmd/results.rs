@@ -1,6 +1,6 @@
 //! `promptdt results add | render`: the results registry.
 
-use crate::args::{ResultsAddArgs, ResultsRenderArgs};
+use crate::results_args::{ResultsAddArgs, ResultsRenderArgs};
 use anyhow::Result;
 
 /// Archives finished runs, one line per run.

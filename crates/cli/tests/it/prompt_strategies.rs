@@ -159,7 +159,7 @@ fn flags_that_act_only_with_another_are_refused_by_name() {
         ),
         (
             &["--adapt", "ptdt", "--adapt-lr", "0.1"],
-            "--adapt-lr acts only with --adapt soft-prompt or lora",
+            "--adapt-lr acts only with --adapt soft-prompt, lora or full",
         ),
     ];
     for (flags, message) in cases {
@@ -186,4 +186,65 @@ fn flags_that_act_only_with_another_are_refused_by_name() {
         "--bandit-epsilon",
         "0.3",
     ]);
+}
+
+/// `promptdt eval --repeats N`: repeat 0 is the evaluation without the flag (its fields byte for
+/// byte), the others draw their own prompts and reset seeds, reproducibly from the run's seed;
+/// N = 1 writes the file exactly as before.
+#[test]
+fn eval_repeats_are_reproducible_and_one_repeat_is_todays_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = tiny_setup(tmp.path());
+    let run = tmp.path().join("run");
+    let r = run.to_str().unwrap();
+    ok(&["train", "--config", cfg.to_str().unwrap(), "--out", r, "--quiet"]);
+    let file = |name: &str| std::fs::read_to_string(run.join(name)).unwrap();
+    ok(&["eval", "--run", r, "--episodes", "2"]);
+    let today = file("eval_final.json");
+    ok(&["eval", "--run", r, "--episodes", "2", "--repeats", "1"]);
+    assert_eq!(file("eval_final.json"), today, "--repeats 1 changed eval_final.json");
+    assert!(!today.contains("repeats"), "{today}");
+
+    let out = ok(&["eval", "--run", r, "--episodes", "2", "--repeats", "5"]);
+    assert!(out.contains("5 repeats"), "{out}");
+    let five = file("eval_final.json");
+    let (v, v0) = (
+        json(&run.join("eval_final.json")),
+        serde_json::from_str::<serde_json::Value>(&today).unwrap(),
+    );
+    // Repeat 0's fields are today's.
+    for key in ["tasks", "mean_return", "iteration", "checkpoint"] {
+        assert_eq!(v[key], v0[key], "{key}");
+    }
+    let rep = &v["repeats"];
+    let rows = rep["task_returns"].as_array().unwrap();
+    assert_eq!(rows.len(), 5);
+    let tasks = v["tasks"].as_array().unwrap();
+    for (t, task) in tasks.iter().enumerate() {
+        assert_eq!(rows[0][t], task["return_mean"], "repeat 0 is the evaluation itself");
+    }
+    assert_eq!(rep["task_return_sd"].as_array().unwrap().len(), tasks.len());
+    // Reproducible from the run's seed: the same file again.
+    ok(&["eval", "--run", r, "--episodes", "2", "--repeats", "5"]);
+    assert_eq!(file("eval_final.json"), five);
+    // With a strategy, its own file carries the repeats.
+    ok(&[
+        "eval",
+        "--run",
+        r,
+        "--episodes",
+        "2",
+        "--repeats",
+        "3",
+        "--prompt-strategy",
+        "random-segment",
+    ]);
+    let s = json(&run.join("eval_prompt_random-segment.json"));
+    let rows = s["repeats"]["task_returns"].as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    // Independent draws: a random window per repeat, so the repeats' returns differ.
+    assert!(rows.iter().skip(1).any(|row| row != &rows[0]), "{s}");
+    assert!(s["repeats"]["mean_return_sd"].as_f64().unwrap() > 0.0, "{s}");
+    let e = fails(&["eval", "--run", r, "--repeats", "0"]);
+    assert!(e.contains("--repeats") && e.contains("between 1 and 1000"), "{e}");
 }

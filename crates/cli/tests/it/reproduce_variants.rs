@@ -152,3 +152,37 @@ fn variants_evaluate_the_trained_runs_and_archive_like_runs() {
     let err = check_fails(&base, promptdt_in(root, &base));
     assert!(err.contains("eval.episodes (2 vs 3)"), "{err}");
 }
+
+/// A budget's `eval_repeats`: each variant is evaluated with `promptdt eval --repeats N`, its file
+/// carries the N repeats, and the report shows the cell's evaluation noise (the spread over
+/// repeats of the normalised score), apart from its seeds.
+#[test]
+fn variants_with_eval_repeats_report_their_evaluation_noise() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    let m = root.join("variants.toml");
+    let text = manifest()
+        .replace("prompt_set_episodes = 2\n", "prompt_set_episodes = 2\neval_repeats = 3\n");
+    assert!(text.contains("eval_repeats = 3"));
+    std::fs::write(&m, text).unwrap();
+    let tree = root.join("tree");
+    let args = ["reproduce", s(&m), "--budget", "smoke", "--out", s(&tree), "--jobs", "2"];
+    check_ok(&args, promptdt_in(root, &args));
+    let v = tree.join("runs/point_robot/prompt-dt@best-return/smoke/seed0");
+    let file: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(v.join("eval_prompt_best-return.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(file["repeats"]["task_returns"].as_array().unwrap().len(), 3, "{file}");
+    let text = std::fs::read_to_string(tree.join("reports/variants-smoke/report.json")).unwrap();
+    let rep: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let cell =
+        |id: &str| rep["cells"].as_array().unwrap().iter().find(|c| c["id"] == id).unwrap().clone();
+    let noise = &cell("point_robot/prompt-dt@best-return")["eval_noise"];
+    assert_eq!(noise["repeats"], 3, "{noise}");
+    assert!(noise["sd"].as_f64().is_some_and(|sd| sd.is_finite() && sd >= 0.0), "{noise}");
+    // A trained cell's score is its training's evaluation: no repeats, no noise column value.
+    assert!(cell("point_robot/prompt-dt")["eval_noise"].is_null());
+    let md = std::fs::read_to_string(tree.join("reports/variants-smoke/report.md")).unwrap();
+    assert!(md.contains("(3 repeats)"), "{md}");
+}

@@ -1,12 +1,14 @@
-//! The algorithms of the `[eval.adapt]` adaptations to a test task from its few demonstrations,
-//! the backbone frozen (`docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT
-//! update and LoRA adapters. `[eval.adapt]` ([`AdaptConfig`]) says which and its budget.
+//! The algorithms of the `[eval.adapt]` adaptations to a test task from its few demonstrations
+//! (`docs/prompt-control.md`): soft prompt tuning, the Prompt-Tuning DT update and LoRA adapters,
+//! the backbone frozen, and full fine-tuning of every weight, their matched baseline.
+//! `[eval.adapt]` ([`AdaptConfig`]) says which and its budget.
 //!
 //! Every adaptation learns from the action loss (the reference's masked MSE) on K-step segments
 //! of the task's demonstrations (`BatchSampler::demo_segments`), with the model in eval mode (no
 //! dropout: the only randomness is the caller's generator). Gradients are taken with respect to
 //! the adapted tensors only (`Tensor::run_backward` on them, stepped by [`super::optim::Adam`]),
-//! so the model's weights neither change nor accumulate gradients.
+//! so the model's weights neither change nor accumulate gradients, except in [`full`], whose
+//! adapted tensors are the weights (changed in place; the caller restores them).
 
 use super::optim::Adam;
 use crate::EvalError;
@@ -119,6 +121,32 @@ pub fn lora(
     let loss = |b: &Segments| demo_loss(model, b, &tokens, Some(&adapters));
     gradient_steps(&params, cfg, demos, rng, &loss)?;
     Ok(adapters)
+}
+
+/// (d) Full fine-tuning: every weight of the model (`weights`: its trainable variables, changed
+/// in place, so the caller keeps a copy and restores it) by `cfg.steps` Adam steps of the action
+/// loss on the task's demonstration segments after the prompt `prompt` (`[1, J*H]`, embedded anew
+/// at every step, so the prompt embeddings learn too): the data, optimiser, learning rate, steps
+/// and batch of soft prompt tuning and LoRA, on all the weights (Prompt-Tuning DT's
+/// full-fine-tuning baseline). With 0 steps the weights are untouched.
+pub fn full(
+    model: &PromptDt,
+    weights: &[Tensor],
+    prompt: &Segments,
+    cfg: &AdaptConfig,
+    demos: &mut DemoSource<'_>,
+    rng: &mut Rng,
+) -> Result<(), AdaptError> {
+    // `run_backward` can only differentiate with respect to tensors that track gradients.
+    if let Some(i) = weights.iter().position(|w| !w.requires_grad()) {
+        return Err(AdaptError(format!(
+            "full fine-tuning: weight {i} of {} does not require gradients (a frozen model)",
+            weights.len()
+        )));
+    }
+    let params: Vec<&Tensor> = weights.iter().collect();
+    let loss = |b: &Segments| demo_loss(model, b, &model.prompt_tokens(prompt), None);
+    gradient_steps(&params, cfg, demos, rng, &loss)
 }
 
 /// An adapter set for `model` with A's values drawn from `rng`.

@@ -8,8 +8,9 @@
 //! - **selection** ([`select`]): the prompt a strategy picks per task, per episode or per bandit
 //!   round, and the log of its choices;
 //! - **adaptation** ([`adapt`], [`task`]): `[eval.adapt]`'s soft prompt, Prompt-Tuning DT and
-//!   LoRA, learned from a task's demonstrations with the backbone frozen, and their
-//!   [`optim`]iser, which steps the adaptation's own tensors only. The adaptations of a learner's
+//!   LoRA, learned from a task's demonstrations with the backbone frozen, full fine-tuning of
+//!   every weight at their budget (changed for a task's episodes, then restored bit for bit), and
+//!   their [`optim`]iser. The adaptations of a learner's
 //!   own weights ([`Adaptation::Finetune`], MT-BC-Finetune's; [`Adaptation::Macaw`], MACAW's) are
 //!   kinds of the same value, carried out by their learners (`pdt-train`), which own the weights
 //!   and the optimiser that trained them.
@@ -17,7 +18,8 @@
 //! - **a split's evaluation** ([`split`]) under the reference rule, a strategy or an
 //!   `[eval.adapt]` adaptation, which a learner's `evaluate` calls with its model.
 //!
-//! So this crate evaluates and adapts at test time; it never trains a run's weights.
+//! So this crate evaluates and adapts at test time; it never trains a run's weights (full
+//! fine-tuning changes them for one task's episodes and puts them back).
 
 pub mod adapt;
 mod optim;

@@ -1,6 +1,7 @@
-//! The adaptation optimiser: what steps an adaptation's own tensors (a soft prompt's tokens,
-//! LoRA's adapters), never a run's weights. A run's weights are trained by `pdt-train`'s AdamW;
-//! MT-BC-Finetune's fine-tuning, which changes a copy of them, uses that one.
+//! The adaptation optimiser: what steps an adaptation's tensors (a soft prompt's tokens, LoRA's
+//! adapters, or in full fine-tuning the model's weights, which the evaluation restores after each
+//! task). A run's weights are trained by `pdt-train`'s AdamW; MT-BC-Finetune's fine-tuning, which
+//! changes a copy of them, uses that one.
 
 use tch::Tensor;
 
@@ -28,6 +29,12 @@ impl Adam {
         let (c1, c2) = (1.0 - Self::B1.powi(self.t), 1.0 - Self::B2.powi(self.t));
         tch::no_grad(|| {
             for (i, (p, g)) in params.iter().zip(grads).enumerate() {
+                // A tensor the loss does not reach has no gradient (in full fine-tuning, the
+                // heads kept only for the reference's weights): left as it is, as PyTorch's Adam
+                // leaves a parameter whose grad is None.
+                if !g.defined() {
+                    continue;
+                }
                 self.m[i] = &self.m[i] * Self::B1 + g * (1.0 - Self::B1);
                 self.v[i] = &self.v[i] * Self::B2 + g.square() * (1.0 - Self::B2);
                 let update = (&self.m[i] / c1) / ((&self.v[i] / c2).sqrt() + Self::EPS) * self.lr;

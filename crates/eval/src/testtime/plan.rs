@@ -52,6 +52,10 @@ pub fn plan_task(
 /// family that makes each task's environments.
 pub struct SplitEval<'a> {
     pub model: &'a PromptDt,
+    /// `model`'s variables, where an adaptation may change them for a task's episodes (full
+    /// fine-tuning, `[eval.adapt] kind = "full"`: changed per task and restored bit for bit after
+    /// its episodes); `None`: that adaptation is refused.
+    pub weights: Option<&'a tch::nn::VarStore>,
     pub settings: &'a EvalSettings,
     pub data: &'a MultiTaskDataset,
     /// The run's sampler settings; a strategy's prompt shape is cut from them.

@@ -19,6 +19,8 @@ use pdt_model::PrefixCache;
 use pdt_prompt::bandit::SegmentBandit;
 use pdt_prompt::{BatchSampler, PromptPick, PromptStrategy, PromptStrategyKind, Rng, SegmentBatch};
 use rand::{RngCore, SeedableRng};
+use tch::nn::VarStore;
+use tch::Tensor;
 
 /// A split's evaluation: per-task results, and what the test time chose and adapted on the way.
 #[derive(Debug, Default)]
@@ -125,6 +127,10 @@ fn bandit_rounds(
         .collect::<Result<Vec<_>, _>>()?;
     let per_round = strategy.bandit.episodes_per_round;
     let episodes = plans.first().map_or(0, |p| p.seeds.len());
+    // An epsilon schedule over a share of the rollouts (`explore_fraction`) needs their number.
+    for b in &mut bandits {
+        b.plan_rounds(episodes.div_ceil(per_round));
+    }
     let (mut all, mut picks) = (Vec::new(), Vec::new());
     for (round, first) in (0..episodes).step_by(per_round).enumerate() {
         let last = (first + per_round).min(episodes);
@@ -157,7 +163,8 @@ fn bandit_rounds(
 /// `[eval.adapt]` (`promptdt eval --adapt`; docs/prompt-control.md): per task, the prompt
 /// `strategy` picks (one per task: `reference`, `random-segment` or `best-return`) is the
 /// starting point; soft prompt tuning, the Prompt-Tuning DT update or LoRA adapt from the task's
-/// demonstrations, the backbone frozen; then the task's episodes run with the result.
+/// demonstrations, the backbone frozen, or full fine-tuning tunes every weight (`ev.weights`, put
+/// back after the task's episodes); then the task's episodes run with the result.
 pub fn evaluate_adapted(
     ev: &SplitEval<'_>,
     strategy: &PromptStrategy,
@@ -172,6 +179,19 @@ pub fn evaluate_adapted(
     let probe_seed = rng.next_u64();
     let sampler = ev.strategy_sampler(strategy)?;
     let model = ev.model;
+    // Full fine-tuning changes the model's own weights: they are put back after each task.
+    let weights = match (cfg.kind, ev.weights) {
+        (AdaptKind::Full, Some(vs)) => Some(vs),
+        (AdaptKind::Full, None) => {
+            return Err(TestTimeError::Input(
+                "eval.adapt.kind = \"full\": this evaluation has no access to the model's \
+                 weights to fine-tune"
+                    .into(),
+            ))
+        }
+        _ => None,
+    };
+    let trainable = weights.map(VarStore::trainable_variables);
     let mut log = Vec::with_capacity(plans.len());
     let mut all: Vec<EpisodeRecord> = Vec::new();
     // Soft prompt and PTDT results go through one batched evaluation of all tasks; LoRA's
@@ -186,8 +206,11 @@ pub fn evaluate_adapted(
             index: i,
             name: &plan.name,
             cfg,
+            weights: trainable.as_deref(),
             probe_seed: probe_seed.wrapping_add(i as u64),
         };
+        // Restores the weights when this task is done, its episodes run or an error on the way.
+        let _restore = weights.map(Restore::of);
         let mut online = ReturnScore { ev, plan, episodes: cfg.ptdt.score_episodes };
         let a = adapt_task(&task, &start, Some(&mut online), &mut arng)?;
         log.push(a.log.clone());
@@ -198,6 +221,14 @@ pub fn evaluate_adapted(
                 let given = GivenPrompts { prefix: a.prefix(model), lora: a.lora() };
                 let one = vec![ev.task(plan, &plan.seeds, None)?];
                 let mut eps = evaluate_given(model, one, ev.settings, given)?;
+                eps.iter_mut().for_each(|e| e.task_index = i);
+                all.extend(eps);
+            }
+            // The tuned weights are this task's alone: its episodes run now, alone, with the
+            // start prompt as an ordinary prompt (as the reference rule's and PTDT's run).
+            Adapted::Full(p) => {
+                let one = vec![ev.task(plan, &plan.seeds, Some(p))?];
+                let mut eps = evaluate(model, one, ev.settings)?;
                 eps.iter_mut().for_each(|e| e.task_index = i);
                 all.extend(eps);
             }
@@ -221,9 +252,38 @@ pub fn evaluate_adapted(
                 .collect::<Result<Vec<EvalTask>, _>>()?;
             all = evaluate(model, tasks, ev.settings)?;
         }
-        AdaptKind::Lora | AdaptKind::None => {}
+        AdaptKind::Lora | AdaptKind::Full | AdaptKind::None => {}
     }
     Ok(SplitResult { results: summarise_plans(&plans, &all), picks: Vec::new(), adapt_log: log })
+}
+
+/// A copy of every variable of a model, written back into it when dropped: full fine-tuning's
+/// weights are the run's own, and each task starts from them as saved (bit for bit), whatever
+/// happened to the task before (an error included).
+struct Restore<'a> {
+    vs: &'a VarStore,
+    saved: Vec<(String, Tensor)>,
+}
+
+impl<'a> Restore<'a> {
+    fn of(vs: &'a VarStore) -> Self {
+        let saved =
+            tch::no_grad(|| vs.variables().into_iter().map(|(n, t)| (n, t.copy())).collect());
+        Self { vs, saved }
+    }
+}
+
+impl Drop for Restore<'_> {
+    fn drop(&mut self) {
+        tch::no_grad(|| {
+            let vars = self.vs.variables();
+            for (n, saved) in &self.saved {
+                if let Some(v) = vars.get(n) {
+                    v.shallow_clone().copy_(saved);
+                }
+            }
+        });
+    }
 }
 
 /// The online score: the mean return of `episodes` episodes per candidate in the task's

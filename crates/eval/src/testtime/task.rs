@@ -1,4 +1,4 @@
-//! One test task adapted from its demonstrations, the backbone frozen (`[eval.adapt]`,
+//! One test task adapted from its demonstrations (`[eval.adapt]`,
 //! docs/prompt-control.md): what an adaptation does with a task, for every caller: `promptdt
 //! eval --adapt` (pdt-train's adapted evaluation), `promptdt serve` (episodes opened with `adapt`)
 //! and the Python `Policy.adapt` (both through `pdt_policy::Policy::adapt`). The algorithms are
@@ -13,6 +13,7 @@ use pdt_prompt::{BatchSampler, PromptStrategy, PromptStrategyKind, Rng, SegmentB
 use pdt_rundir::config::Method;
 use rand::SeedableRng;
 use std::time::Instant;
+use tch::Tensor;
 
 /// What an adaptation made of a task's prompt.
 #[derive(Debug)]
@@ -23,6 +24,9 @@ pub enum Adapted {
     Prompt(SegmentBatch),
     /// LoRA: the start prompt's tokens, acted on through the task's adapters.
     Lora { prompt: PromptTokens, adapters: LoraAdapters },
+    /// Full fine-tuning: the start prompt, acted on with the model's weights as tuned (in place,
+    /// until the caller restores them).
+    Full(SegmentBatch),
 }
 
 /// One task's adaptation: what its episodes act with, and its log (probe loss before and after,
@@ -38,7 +42,9 @@ impl TaskAdaptation {
     pub fn prefix(&self, model: &PromptDt) -> PrefixCache {
         tch::no_grad(|| match &self.adapted {
             Adapted::Tokens(t) => model.prefix(t, None),
-            Adapted::Prompt(p) => model.prefix(&to_segments(p, model.device()), None),
+            Adapted::Prompt(p) | Adapted::Full(p) => {
+                model.prefix(&to_segments(p, model.device()), None)
+            }
             Adapted::Lora { prompt, adapters } => model.prefix(prompt, Some(adapters)),
         })
     }
@@ -61,6 +67,11 @@ pub struct AdaptTask<'a> {
     /// `cheetah_vel-2`, for the log and errors.
     pub name: &'a str,
     pub cfg: &'a AdaptConfig,
+    /// The model's trainable variables, which full fine-tuning changes in place (its caller keeps
+    /// a copy and restores them after the task's episodes); `None` where the weights must not
+    /// change (a served or Python policy, whose episodes of several tasks share them), and then
+    /// `full` is refused.
+    pub weights: Option<&'a [Tensor]>,
     /// Seeds the probe batch (the loss before and after), drawn apart from the adaptation's
     /// stream so that two adaptations' logs compare task by task.
     pub probe_seed: u64,
@@ -75,7 +86,7 @@ pub fn adapt_task(
     return_score: Option<&mut dyn PromptScore>,
     rng: &mut Rng,
 ) -> Result<TaskAdaptation, TestTimeError> {
-    let AdaptTask { model, sampler, index, name, cfg, probe_seed } = *task;
+    let AdaptTask { model, sampler, index, name, cfg, weights, probe_seed } = *task;
     let device = model.device();
     let prompt = to_segments(start, device);
     let mut demos =
@@ -116,6 +127,17 @@ pub fn adapt_task(
             let n = a.numel();
             (Adapted::Lora { prompt: start_tokens, adapters: a }, n)
         }
+        AdaptKind::Full => {
+            let Some(weights) = weights else {
+                return Err(TestTimeError::Input(format!(
+                    "task {name}: eval.adapt.kind = \"full\" fine-tunes the model's weights for \
+                     the task's episodes, which only `promptdt eval` does (it restores them after \
+                     each task); a policy acts with the weights as saved"
+                )));
+            };
+            adapt::full(model, weights, &prompt, cfg, &mut demos, rng).map_err(fail)?;
+            (Adapted::Full(start.clone()), weights.iter().map(Tensor::numel).sum())
+        }
         AdaptKind::None => {
             return Err(TestTimeError::Input("no adaptation asked for (eval.adapt.kind)".into()))
         }
@@ -128,6 +150,8 @@ pub fn adapt_task(
             loss_of(&tokens, None)
         }
         Adapted::Lora { prompt, adapters } => loss_of(prompt, Some(adapters)),
+        // The start prompt through the tuned weights.
+        Adapted::Full(_) => loss_of(&tch::no_grad(|| model.prompt_tokens(&prompt)), None),
     };
     let log = AdaptLog {
         task: name.to_string(),

@@ -1,6 +1,8 @@
 //! The evaluation-time adaptations (`pdt_eval::testtime::adapt`) on a small model and a fixed
 //! demonstration set: each moves the demonstrations' action loss down; LoRA at step 0 is the
-//! frozen model bit for bit; the zeroth-order update prefers the better candidate.
+//! frozen model bit for bit; the zeroth-order update prefers the better candidate; full
+//! fine-tuning changes the weights, reproducibly from the seed, and with 0 steps leaves them as
+//! they are.
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code
 
 use pdt_eval::testtime::adapt::{self, demo_loss, rank_direction, ActionLossScore, PromptScore};
@@ -172,6 +174,75 @@ fn lora_at_step_zero_is_the_frozen_model_and_training_moves_the_loss_down() {
     assert_eq!(a.numel(), 2 * (16 * 4 + 4 * 48));
 }
 
+/// Every variable of `vs`, by name, as host values.
+fn weights_of(vs: &VarStore) -> std::collections::BTreeMap<String, Vec<f32>> {
+    vs.variables().into_iter().map(|(n, t)| (n, to_vec(&t.detach()))).collect()
+}
+
+/// Writes `saved` (from [`weights_of`]) back into `vs`.
+fn restore(vs: &VarStore, saved: &std::collections::BTreeMap<String, Vec<f32>>) {
+    tch::no_grad(|| {
+        for (n, v) in vs.variables() {
+            let t = tch::Tensor::from_slice(&saved[&n]).reshape(v.size());
+            v.shallow_clone().copy_(&t);
+        }
+    });
+}
+
+#[test]
+fn full_fine_tuning_changes_the_weights_reproducibly_and_zero_steps_changes_nothing() {
+    let (vs, m) = model();
+    let (demos, prompt) = fixture();
+    let p = prompt_batch(&[&prompt], Device::Cpu);
+    let trainable = vs.trainable_variables();
+    let before = weights_of(&vs);
+    let rows = prompt_batch(&[&prompt; 8], Device::Cpu);
+    let out = |m: &PromptDt| {
+        tch::no_grad(|| to_vec(&m.forward(&demos, Sequence::eval(Some(&rows)).all_steps())))
+    };
+    let frozen = out(&m);
+
+    // 0 steps: every weight, and so every output, as trained (the reference rule's policy).
+    let mut source = |_: usize, _: &mut Rng| same(&demos);
+    let zero = config(AdaptKind::Full, 0, 1e-3);
+    adapt::full(&m, &trainable, &p, &zero, &mut source, &mut Rng::seed_from_u64(4)).unwrap();
+    assert_eq!(weights_of(&vs), before);
+    assert_eq!(out(&m), frozen);
+
+    // Tuned: the loss goes down and the weights move, the prompt embeddings and the trunk alike;
+    // the heads the loss never reaches (kept for the reference's weights) stay.
+    let loss_before = loss(&m, &demos, &prompt);
+    let cfg = config(AdaptKind::Full, 30, 1e-3);
+    let tune = |seed: u64| {
+        let mut source = |_: usize, _: &mut Rng| same(&demos);
+        adapt::full(&m, &trainable, &p, &cfg, &mut source, &mut Rng::seed_from_u64(seed)).unwrap();
+        weights_of(&vs)
+    };
+    let tuned = tune(4);
+    let loss_after = loss(&m, &demos, &prompt);
+    eprintln!("full: loss {loss_before} -> {loss_after}");
+    assert!(loss_after < 0.9 * loss_before, "full: loss {loss_before} -> {loss_after}");
+    let moved: Vec<&String> = tuned.keys().filter(|n| tuned[*n] != before[*n]).collect();
+    for part in
+        ["prompt_embed_state", "embed_state", "transformer.h.0.attn.c_attn", "predict_action"]
+    {
+        assert!(moved.iter().any(|n| n.starts_with(part)), "{part} did not move: {moved:?}");
+    }
+    // What stays is only what the loss never reaches.
+    let unused = ["predict_state.", "predict_return.", "transformer.wte."];
+    for n in before.keys().filter(|n| !moved.contains(n)) {
+        assert!(unused.iter().any(|u| n.starts_with(u)), "{n} did not move");
+    }
+
+    // Reproducible: from the same weights and seed, the same weights bit for bit; restored, the
+    // model is the one it was.
+    restore(&vs, &before);
+    assert_eq!(out(&m), frozen);
+    assert_eq!(tune(4), tuned);
+    restore(&vs, &before);
+    assert_eq!(weights_of(&vs), before);
+}
+
 #[test]
 fn ptdt_moves_the_demonstrations_loss_down() {
     let (_vs, m) = model();
@@ -237,7 +308,7 @@ fn ptdt_moves_the_prompt_towards_the_better_candidates() {
 #[test]
 fn bad_settings_are_refused_with_their_value() {
     let e = "tail".parse::<AdaptKind>().unwrap_err().to_string();
-    assert!(e.contains("`tail`") && e.contains("soft-prompt, ptdt, lora"), "{e}");
+    assert!(e.contains("`tail`") && e.contains("soft-prompt, ptdt, lora, full"), "{e}");
     let mut c = config(AdaptKind::Lora, 10, 1e-3);
     c.lora.rank = 0;
     let e = c.validate().unwrap_err().to_string();

@@ -121,6 +121,7 @@ mod tests {
             normalised_stats: stats::cell_stats(&scores),
             seed_task_scores: scores,
             success: None,
+            eval_noise: None,
             paper: None,
             paper_std: None,
             paper_source: None,

@@ -24,8 +24,8 @@ mod render;
 use crate::stats::CellStats;
 use claims::check_claim;
 pub use claims::{ClaimResult, DEFAULT_MARGIN};
-pub(crate) use render::PaperText;
 use render::{cells_csv, curves_csv, markdown};
+pub(crate) use render::{eval_noise_text, PaperText};
 
 // Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out
 // and `n` says how many seeds were used): the rule of `promptdt report`, so one definition.
@@ -70,6 +70,9 @@ pub struct CellResult {
     /// Success rate on the test tasks at the last evaluation, over seeds (families with a success
     /// criterion: Meta-World reach); `None` for the others.
     pub success: Option<Stat>,
+    /// Evaluation noise, apart from seed noise: the spread of the normalised score over repeats
+    /// of one run's evaluation (`promptdt eval --repeats`), where the cell's runs have repeats.
+    pub eval_noise: Option<EvalNoise>,
     pub paper: Option<f64>,
     pub paper_std: Option<f64>,
     pub paper_source: Option<String>,
@@ -90,6 +93,32 @@ pub struct CellResult {
     /// What could not be read, by run key and file: a run left out of the result, or the dataset
     /// card the normalised scores need.
     pub problems: Vec<String>,
+}
+
+/// A cell's evaluation noise (see [`CellResult::eval_noise`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct EvalNoise {
+    /// Per seed with repeats, the sample SD (n - 1) over its repeats of the normalised score (the
+    /// per-task mean of ratios); pooled over those seeds as the root of the mean variance.
+    pub sd: f64,
+    /// Repeats per seed (the fewest among them).
+    pub repeats: usize,
+    /// Seeds with repeats.
+    pub seeds: usize,
+}
+
+impl EvalNoise {
+    /// From each seed's normalised score per repeat (seeds with fewer than 2 repeats left out).
+    pub fn of(per_seed: &[Vec<f64>]) -> Option<Self> {
+        let used: Vec<&Vec<f64>> = per_seed.iter().filter(|r| r.len() > 1).collect();
+        let repeats = used.iter().map(|r| r.len()).min()?;
+        let var = |r: &[f64]| {
+            let m = mean(r);
+            r.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (r.len() - 1) as f64
+        };
+        let pooled = used.iter().map(|r| var(r)).sum::<f64>() / used.len() as f64;
+        Some(Self { sd: pooled.sqrt(), repeats, seeds: used.len() })
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -117,7 +146,12 @@ struct RunRecord {
     last_success: Option<f64>,
     /// The run's training loss, or why it cannot be read (it is shown beside the returns only).
     loss: Result<Loss, String>,
+    /// `promptdt eval --repeats`: the tasks (their indices) and, per repeat, their mean returns.
+    repeats: Option<Repeats>,
 }
+
+/// The task indices of an evaluation and, per repeat, each task's mean return.
+type Repeats = (Vec<usize>, Vec<Vec<f64>>);
 
 /// A run's training loss: its column in `metrics.jsonl` and its value per iteration.
 struct Loss {
@@ -141,7 +175,27 @@ fn read_run(dir: &Path) -> Result<RunRecord, ReproError> {
         let rates = rates.filter(|r| !r.is_empty())?;
         Some(rates.iter().sum::<f64>() / rates.len() as f64)
     });
-    Ok(RunRecord { evals, last_success, loss: read_loss(&run).map_err(|e| e.to_string()) })
+    let loss = read_loss(&run).map_err(|e| e.to_string());
+    Ok(RunRecord { evals, last_success, loss, repeats: read_repeats(dir)? })
+}
+
+/// The repeats of a run's evaluation (`promptdt eval --repeats`), where it has them: in a
+/// variant's own result file (its `variant.json` names it), else in `eval_final.json`.
+fn read_repeats(dir: &Path) -> Result<Option<Repeats>, ReproError> {
+    let record = dir.join(crate::variant_spec::VARIANT_JSON);
+    let file = match record.is_file() {
+        true => {
+            let v: crate::variant_spec::VariantRecord = pdt_rundir::read_json(&record)?;
+            dir.join(v.result_file)
+        }
+        false => RunDir::at(dir).final_eval_path(),
+    };
+    if !file.is_file() {
+        return Ok(None);
+    }
+    let f: pdt_rundir::FinalEval = pdt_rundir::read_json(&file)?;
+    let tasks = f.tasks.iter().map(|t| t.task_index).collect();
+    Ok(f.repeats.map(|r| (tasks, r.task_returns)))
 }
 
 fn read_loss(run: &RunDir) -> Result<Loss, RunDirError> {
@@ -307,6 +361,8 @@ struct Seeds<'r> {
     successes: Vec<f64>,
     curves: Vec<BTreeMap<u64, f64>>,
     losses: Vec<&'r Loss>,
+    /// Per seed with `promptdt eval --repeats`: the normalised score of each repeat.
+    repeat_scores: Vec<Vec<f64>>,
     /// The earliest of the seeds' last evaluated iterations.
     last_iter: Option<u64>,
 }
@@ -358,6 +414,7 @@ impl CellReader<'_> {
         res.ours_normalised = Stat::of(&seeds.norms);
         res.ours_normalised_rom = Stat::of(&seeds.norms_rom);
         res.normalised_stats = crate::stats::cell_stats(&res.seed_task_scores);
+        res.eval_noise = EvalNoise::of(&seeds.repeat_scores);
         // Only where every seed's run reports a success rate.
         if seeds.successes.len() == seeds.finals.len() {
             res.success = Stat::of(&seeds.successes);
@@ -454,6 +511,20 @@ fn read_seeds<'r>(
             if let Some((e, r)) = cards {
                 s.norms_rom.push(normalise(avg, mean(&e), mean(&r)));
             }
+            // Per repeat, the normalised score as above (the per-task mean of ratios).
+            if let Some((tasks, rows)) = &record.repeats {
+                let score = |row: &Vec<f64>| -> Option<f64> {
+                    let n: Option<Vec<f64>> = tasks
+                        .iter()
+                        .zip(row)
+                        .map(|(t, r)| Some(normalise(*r, *b.expert.get(t)?, *b.random.get(t)?)))
+                        .collect();
+                    n.map(|n| mean(&n))
+                };
+                if let Some(scores) = rows.iter().map(score).collect::<Option<Vec<f64>>>() {
+                    s.repeat_scores.push(scores);
+                }
+            }
         }
         s.curves.push(
             evals
@@ -534,6 +605,7 @@ impl CellResult {
             seed_task_scores: Vec::new(),
             normalised_stats: None,
             success: None,
+            eval_noise: None,
             paper: cell.paper,
             paper_std: cell.paper_std,
             paper_source: cell.paper_source.clone(),

@@ -51,10 +51,10 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
          returns (its prompt files) and our random returns; `-` where the reference's experts are \
          unknown. Within: |ours (ratio of means) - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
     );
-    let header =
-        "cell|seeds|iteration|ours|ours normalised|ratio of means|paper|paper normalised|within paper std|status";
+    let header = "cell|seeds|iteration|ours|ours normalised|evaluation noise|ratio of means|paper|\
+                  paper normalised|within paper std|status";
     let (text, num) = (Align::Left, Align::Right);
-    let align = vec![text, num, num, num, num, num, num, num, text, text];
+    let align = vec![text, num, num, num, num, num, num, num, num, text, text];
     let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
     for c in &r.cells {
         let PaperText { raw: paper, normalised: pn } = PaperText::of(c);
@@ -72,6 +72,7 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                 None => stat(c.ours, 2),
             },
             stat(c.ours_normalised, 1),
+            eval_noise_text(c),
             stat(c.ours_normalised_rom, 1),
             paper,
             pn,
@@ -139,19 +140,26 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
     s
 }
 
+/// A cell's evaluation noise as the tables print it: the SD over repeats of the normalised score
+/// and how many repeats (`-`: not measured, the runs were evaluated once).
+pub(crate) fn eval_noise_text(c: &CellResult) -> String {
+    c.eval_noise.map_or("-".into(), |n| format!("{:.1} ({} repeats)", n.sd, n.repeats))
+}
+
 pub(super) fn cells_csv(r: &Report) -> String {
     let mut s = String::from(
         "cell,env,label,row,column,status,seeds,iteration,iterations_planned,ours_mean,ours_std,\
          ours_normalised_mean,ours_normalised_std,paper,paper_std,paper_normalised,paper_normalised_std,within_paper_std,paper_source,success_mean,success_std,\
          ours_normalised_sample_sd,ours_normalised_ci_lo,ours_normalised_ci_hi,ours_normalised_iqm,\
-         ours_normalised_ratio_of_means_mean,ours_normalised_ratio_of_means_std\n",
+         ours_normalised_ratio_of_means_mean,ours_normalised_ratio_of_means_std,\
+         eval_noise_sd,eval_noise_repeats\n",
     );
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v}"));
     let q = |v: &str| format!("\"{}\"", v.replace('"', "\"\""));
     for c in &r.cells {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             q(&c.id),
             c.env,
             q(&c.label),
@@ -179,6 +187,8 @@ pub(super) fn cells_csv(r: &Report) -> String {
             f(c.normalised_stats.as_ref().and_then(|s| s.iqm)),
             f(c.ours_normalised_rom.map(|s| s.mean)),
             f(c.ours_normalised_rom.map(|s| s.std)),
+            f(c.eval_noise.map(|n| n.sd)),
+            c.eval_noise.map_or(String::new(), |n| n.repeats.to_string()),
         );
     }
     s

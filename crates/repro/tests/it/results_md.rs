@@ -112,3 +112,73 @@ fn readme_result_numbers_are_in_generated_blocks_only() {
         typed.join("\n")
     );
 }
+
+/// docs/prompt-control.md's table of the prompt-control rows is generated from the registry
+/// (`promptdt results render` rewrites it): regenerated here, it must be the committed one.
+#[test]
+fn the_prompt_control_docs_table_is_the_generators_output() {
+    use pdt_repro::render::{PROMPT_CONTROL_BEGIN, PROMPT_CONTROL_END};
+    let root = repo();
+    let r = render(&root.join("results")).unwrap_or_else(|e| panic!("render: {e}"));
+    let path = root.join("docs/prompt-control.md");
+    let doc = read(&path);
+    let quoted = block(&doc, PROMPT_CONTROL_BEGIN, PROMPT_CONTROL_END).unwrap_or_else(|| {
+        panic!("{}: no {PROMPT_CONTROL_BEGIN} ... {PROMPT_CONTROL_END} block", path.display())
+    });
+    // Every archived prompt-control column shows up (an empty registry would match an empty block).
+    assert!(r.prompt_control_block.contains("| row | cheetah_vel |"), "{}", r.prompt_control_block);
+    assert!(
+        quoted == r.prompt_control_block,
+        "{}: the generated table is stale; run `promptdt results render`",
+        path.display()
+    );
+}
+
+/// A table cell that is a bare measured number (`74.5`, `-22.24`, `1.5 s`): what a typed
+/// result looks like in a Markdown table. Settings quoted in prose cells (`lr 1e-3`, arXiv ids)
+/// are not bare numbers.
+fn bare_number(cell: &str) -> bool {
+    let c = cell.trim().trim_end_matches([' ', 's', '%']).trim();
+    let c = c.strip_prefix(['-', '+', '−']).unwrap_or(c);
+    c.contains('.')
+        && !c.is_empty()
+        && c.chars().all(|ch| ch.is_ascii_digit() || ch == '.' || ch == ',')
+        && c.chars().next().is_some_and(|ch| ch.is_ascii_digit())
+}
+
+/// The docs that once typed measured numbers (docs/prompt-control.md's and docs/macaw.md's
+/// tables of unarchived or hand-copied runs) have none outside their generated blocks: no table
+/// cell that is a bare decimal number, no `± number`.
+#[test]
+fn docs_type_no_measured_numbers_outside_generated_blocks() {
+    assert!(bare_number("74.5") && bare_number(" -22.24 ") && bare_number("1.5 s"));
+    assert!(!bare_number("lr 1e-3") && !bare_number("2502.04979 (arXiv)") && !bare_number("20"));
+    let blocks = [(pdt_repro::render::PROMPT_CONTROL_BEGIN, pdt_repro::render::PROMPT_CONTROL_END)];
+    let mut typed = Vec::new();
+    for name in ["docs/prompt-control.md", "docs/macaw.md"] {
+        let doc = read(&repo().join(name));
+        let mut inside = false;
+        for line in doc.lines() {
+            if blocks.iter().any(|(b, _)| line.contains(b)) {
+                inside = true;
+            } else if blocks.iter().any(|(_, e)| line.contains(e)) {
+                inside = false;
+            } else if !inside {
+                let cells = line.starts_with('|').then(|| line.split('|').any(bare_number));
+                let pm = line.match_indices('±').any(|(i, _)| {
+                    line[i + '±'.len_utf8()..]
+                        .trim_start()
+                        .starts_with(|c: char| c.is_ascii_digit())
+                });
+                if cells == Some(true) || pm {
+                    typed.push(format!("{name}: {line}"));
+                }
+            }
+        }
+    }
+    assert!(
+        typed.is_empty(),
+        "measured numbers typed outside a generated block:\n{}",
+        typed.join("\n")
+    );
+}

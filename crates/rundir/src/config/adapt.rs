@@ -1,5 +1,5 @@
 //! `[eval.adapt]`: an evaluation-time adaptation to each test task from its few demonstrations,
-//! the backbone frozen (`docs/prompt-control.md`). The algorithms are
+//! the backbone frozen, or all of it fine-tuned for the task (`docs/prompt-control.md`). The algorithms are
 //! `pdt_eval::testtime::adapt`'s; this is their configuration, read without libtorch.
 
 use serde::{Deserialize, Serialize};
@@ -19,11 +19,15 @@ pub enum AdaptKind {
     Ptdt,
     /// LoRA adapters on the attention projections.
     Lora,
+    /// Full fine-tuning: every weight of the model, with the data, optimiser, steps and batch of
+    /// the others (Prompt-Tuning DT's full-fine-tuning baseline), the weights restored after the
+    /// task's episodes.
+    Full,
 }
 
 impl AdaptKind {
-    pub const ALL: [AdaptKind; 4] =
-        [AdaptKind::None, AdaptKind::SoftPrompt, AdaptKind::Ptdt, AdaptKind::Lora];
+    pub const ALL: [AdaptKind; 5] =
+        [AdaptKind::None, AdaptKind::SoftPrompt, AdaptKind::Ptdt, AdaptKind::Lora, AdaptKind::Full];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -31,6 +35,7 @@ impl AdaptKind {
             AdaptKind::SoftPrompt => "soft-prompt",
             AdaptKind::Ptdt => "ptdt",
             AdaptKind::Lora => "lora",
+            AdaptKind::Full => "full",
         }
     }
 }
@@ -126,7 +131,7 @@ pub struct AdaptConfig {
     pub steps: usize,
     /// Demonstration segments (K steps each) per iteration.
     pub batch: usize,
-    /// Adam's learning rate (soft prompt, LoRA; PTDT has `ptdt.step`).
+    /// Adam's learning rate (soft prompt, LoRA, full fine-tuning; PTDT has `ptdt.step`).
     pub lr: f64,
     pub ptdt: PtdtConfig,
     pub lora: LoraConfig,
@@ -201,7 +206,8 @@ pub struct AdaptLog {
     pub loss_before: f64,
     pub loss_after: f64,
     pub steps: usize,
-    /// Values adapted (prompt tokens, prompt inputs or adapter weights).
+    /// Values adapted (prompt tokens, prompt inputs, adapter weights or, fine-tuned in full, the
+    /// model's weights).
     pub trainable: usize,
     /// Wall time of the adaptation (not of the episodes), seconds.
     pub seconds: f64,

@@ -37,6 +37,25 @@ pub enum MtBcEval {
     Paper,
 }
 
+/// What MT-BC-Finetune fine-tunes on, per test task.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FinetuneData {
+    /// The reference's `get_batch_finetune`: tail segments of the task's main dataset D_i.
+    #[default]
+    Dataset,
+    /// The task's demonstrations P_i (its prompt set), K-step segments from uniformly drawn
+    /// starts: the data the evaluation-time adaptations have (`[eval.adapt]`), so a fine-tuning
+    /// at their budget is matched to them in data and steps.
+    Prompts,
+}
+
+impl FinetuneData {
+    pub fn is_dataset(&self) -> bool {
+        *self == Self::Dataset
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RunSection {
@@ -226,6 +245,11 @@ pub struct EvalSection {
     /// MT-BC-Finetune: segments per fine-tuning batch (reference 256).
     pub finetune_batch: usize,
     pub finetune_lr: f64,
+    /// MT-BC-Finetune: fine-tune on the task's main dataset (`dataset`, the reference) or on its
+    /// demonstrations (`prompts`). Written only when not the reference's, so the configuration
+    /// files of runs that never set it are what they were.
+    #[serde(skip_serializing_if = "FinetuneData::is_dataset")]
+    pub finetune_data: FinetuneData,
     /// `cached` (default): the prompt's keys and values once per task and evaluation, the last
     /// layer for the last 8 positions only; `full`: the reference's full forward at every step.
     /// Equal within 1e-6, not bit for bit (`crates/model/tests/it/act.rs`).
@@ -252,6 +276,7 @@ impl Default for EvalSection {
             finetune_steps: 10,
             finetune_batch: 256,
             finetune_lr: 1e-4,
+            finetune_data: FinetuneData::Dataset,
             inference: Inference::Cached,
             prompt: PromptStrategy::default(),
             adapt: AdaptConfig::default(),

@@ -25,9 +25,10 @@ pub enum TestTime {
 pub enum Adaptation {
     /// `[eval.adapt]`: soft prompt, PTDT or LoRA, the backbone frozen (the methods with a prompt).
     Prompt(AdaptConfig),
-    /// MT-BC-Finetune: a copy of every weight fine-tuned on the task's demonstrations
-    /// (`eval.finetune_steps` steps of `eval.finetune_batch` segments at `eval.finetune_lr`).
-    Finetune { steps: u64, batch: usize, lr: f64 },
+    /// MT-BC-Finetune: a copy of every weight fine-tuned on the task's data
+    /// (`eval.finetune_steps` steps of `eval.finetune_batch` segments at `eval.finetune_lr`, of
+    /// `eval.finetune_data`).
+    Finetune { steps: u64, batch: usize, lr: f64, data: super::FinetuneData },
     /// MACAW: its value function and policy adapted with `steps` gradient steps on `batch`
     /// transitions of the task (`[macaw]`'s `adapt_steps`, `adapt_batch`).
     Macaw { steps: usize, batch: usize },
@@ -43,6 +44,7 @@ impl TestTime {
                 steps: e.finetune_steps,
                 batch: e.finetune_batch,
                 lr: e.finetune_lr,
+                data: e.finetune_data,
             }),
             Method::Macaw => Some(Adaptation::Macaw {
                 steps: cfg.macaw.adapt_steps,
@@ -106,9 +108,10 @@ impl TestTime {
                 e.prompt = from.clone();
                 match adaptation {
                     Adaptation::Prompt(a) => e.adapt = a.clone(),
-                    &Adaptation::Finetune { steps, batch, lr } => {
+                    &Adaptation::Finetune { steps, batch, lr, data } => {
                         e.adapt.kind = AdaptKind::None;
                         (e.finetune_steps, e.finetune_batch, e.finetune_lr) = (steps, batch, lr);
+                        e.finetune_data = data;
                     }
                     &Adaptation::Macaw { steps, batch } => {
                         e.adapt.kind = AdaptKind::None;

@@ -187,9 +187,28 @@ fn a_run_directory_round_trips_through_its_writers_and_readers() -> TestResult {
         tasks: vec![task(3, -2.0)],
         mean_return: -2.0,
         adaptation: Some("1 steps on 256 transitions".into()),
+        repeats: None,
     };
     dir.write_final_eval(&f)?;
-    assert_eq!(dir.final_eval()?, Some(f));
+    // One evaluation writes no `repeats` key: the file is as it was before repeats existed.
+    assert!(!fs::read_to_string(dir.final_eval_path())?.contains("repeats"));
+    assert_eq!(dir.final_eval()?, Some(f.clone()));
+    // With repeats: every repeat's per-task returns, read back (a diverged one as NaN).
+    let rows = vec![vec![-2.0, 4.0], vec![-4.0, 2.0], vec![-3.0, f64::NAN]];
+    let two = pdt_rundir::EvalRepeats::of("s".into(), rows[..2].to_vec());
+    assert_eq!(two.mean_returns, [1.0, -1.0]);
+    // Sample SD (n - 1) of 1 and -1.
+    assert!((two.mean_return_sd - 2f64.sqrt()).abs() < 1e-12, "{two:?}");
+    assert!((two.task_return_sd[0] - 2f64.sqrt()).abs() < 1e-12, "{two:?}");
+    let r = pdt_rundir::EvalRepeats::of("s".into(), rows);
+    assert!((r.task_return_sd[0] - 1.0).abs() < 1e-12, "{r:?}");
+    assert!(r.mean_return_sd.is_nan(), "{r:?}");
+    let f = FinalEval { repeats: Some(r), ..f };
+    dir.write_final_eval(&f)?;
+    let back = dir.final_eval()?.ok_or("no eval_final.json")?;
+    let (a, b) = (back.repeats.ok_or("no repeats")?, f.repeats.ok_or("no repeats")?);
+    assert_eq!(a.task_returns[..2], b.task_returns[..2]);
+    assert!(a.task_returns[2][1].is_nan() && a.mean_returns[2].is_nan());
     Ok(())
 }
 

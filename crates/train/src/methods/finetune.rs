@@ -10,7 +10,7 @@ use crate::step::{train_step, unreadable, DeviceBatch};
 use pdt_eval::evaluate;
 use pdt_eval::testtime::{summarise_plans, SplitEval, SplitResult};
 use pdt_prompt::Rng;
-use pdt_rundir::config::{AdamWConfig, LossOn};
+use pdt_rundir::config::{AdamWConfig, FinetuneData, LossOn};
 use tch::{nn::VarStore, Tensor};
 
 /// The fine-tuning before each test task: its steps, segments per step and learning rate.
@@ -18,6 +18,9 @@ pub(super) struct Finetune {
     pub(super) steps: u64,
     pub(super) batch: usize,
     pub(super) lr: f64,
+    /// What each step's segments come from: the task's main dataset (the reference) or its
+    /// demonstrations (`eval.finetune_data = "prompts"`).
+    pub(super) data: FinetuneData,
 }
 
 /// Per task of `ev` (the test split; `vs` holds `ev.model`'s weights): plans the task as the
@@ -45,8 +48,16 @@ pub(super) fn finetune_each(
         // The tuning's dropout comes from libtorch's generator (a packed run holds it for the
         // whole evaluation: `pdt-pack`); its episodes draw nothing from it.
         for s in 0..tune.steps {
-            let seg =
-                sampler.tail_segments(i, tune.batch, setup.run_data.sampler_cfg.prompt_length, rng);
+            let seg = match tune.data {
+                FinetuneData::Dataset => sampler.tail_segments(
+                    i,
+                    tune.batch,
+                    setup.run_data.sampler_cfg.prompt_length,
+                    rng,
+                ),
+                // The adaptations' data (P_i), for a fine-tuning matched to them.
+                FinetuneData::Prompts => sampler.demo_segments(i, tune.batch, rng),
+            };
             let history = pdt_eval::to_segments(&seg, setup.device);
             let batch = DeviceBatch { history, prompt: None };
             train_step(ev.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;

@@ -253,16 +253,16 @@ fn eval_tasks(
 ) -> Result<Evaluation, RunError> {
     let setup = learner.setup;
     let settings = eval_settings(setup);
-    let ev = split_eval(setup, &learner.model, &settings, split);
+    let ev = split_eval(setup, &learner.model, &learner.vs, &settings, split);
     let on_test = split == Split::Test;
     let done = match test_time {
         TestTime::Adapt { from, adaptation: Adaptation::Prompt(cfg) } if on_test => {
             testtime::evaluate_adapted(&ev, from, cfg, rng)?
         }
-        &TestTime::Adapt { adaptation: Adaptation::Finetune { steps, batch, lr }, .. }
-            if on_test =>
-        {
-            let tune = super::finetune::Finetune { steps, batch, lr };
+        &TestTime::Adapt {
+            adaptation: Adaptation::Finetune { steps, batch, lr, data }, ..
+        } if on_test => {
+            let tune = super::finetune::Finetune { steps, batch, lr, data };
             super::finetune::finetune_each(&learner.vs, &ev, &tune, setup, rng)?
         }
         TestTime::Adapt { adaptation: Adaptation::Macaw { .. }, .. } if on_test => {
@@ -305,12 +305,15 @@ fn eval_settings(setup: &Setup) -> EvalSettings {
 fn split_eval<'a>(
     setup: &'a Setup,
     model: &'a PromptDt,
+    weights: &'a VarStore,
     settings: &'a EvalSettings,
     split: Split,
 ) -> SplitEval<'a> {
     let rd = &setup.run_data;
     SplitEval {
         model,
+        // Full fine-tuning's: changed per test task and restored after its episodes.
+        weights: Some(weights),
         settings,
         data: setup.data(split),
         sampler_cfg: &rd.sampler_cfg,
