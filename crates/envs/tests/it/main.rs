@@ -22,3 +22,4 @@ mod replay_fuzz;
 mod replay_parity;
 mod reward_check;
 mod vec_env;
+mod worker;
