@@ -68,7 +68,11 @@ impl WorkerEnvs {
             "obs_dim": dims.obs_dim,
             "act_dim": dims.act_dim,
         });
-        me.call(&header, &[], START_TIMEOUT, &(0..n).collect::<Vec<_>>(), None)?;
+        let all: Vec<usize> = (0..n).collect();
+        let (reply, _) = me.call(&header, &[], START_TIMEOUT, &all, None)?;
+        if !reply.ok {
+            return Err(me.malformed(&all, None, "`init` answered without `ok`".into()));
+        }
         Ok(me)
     }
 

@@ -22,4 +22,5 @@ mod replay_fuzz;
 mod replay_parity;
 mod reward_check;
 mod vec_env;
+mod vec_env_backend;
 mod worker;
