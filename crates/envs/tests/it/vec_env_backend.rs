@@ -79,7 +79,9 @@ fn a_backend_steps_as_the_thread_pool_does() {
             (0..4).map(|i| flat[pool.action_range(i).expect("range")].to_vec()).collect();
         assert_eq!(format!("{:?}", ok(pool.step(&each))), format!("{:?}", ok(ext.step(&each))));
     }
-    // An action of the wrong size is its environment's error only.
+    // An action of the wrong size is its environment's error only (in fresh episodes: the point
+    // robot's have ended by now).
+    ok(ext.reset(&[5, 6, 7, 8]));
     let mut each: Vec<Vec<f32>> = ext.dims().iter().map(|d| vec![0.0; d.act_dim]).collect();
     each[1].push(0.0);
     let out = ok(ext.step(&each));
