@@ -43,6 +43,10 @@ pub fn make_batch(
     dims: EnvDims,
 ) -> Result<VecEnv, EnvError> {
     let n = tasks.len();
+    if n == 0 {
+        // Nothing to step: no interpreter to start.
+        return Ok(VecEnv::new(Vec::new(), 1));
+    }
     let envs = backend::WorkerEnvs::start(spec, &python(spec, dir), dir, tasks, dims)?;
     Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
 }

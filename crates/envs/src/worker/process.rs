@@ -66,7 +66,13 @@ impl Process {
         // nothing else, so they are not joined.
         let spawned =
             std::thread::Builder::new().name("promptdt-worker-err".into()).spawn(move || {
-                for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                // Read to the end whatever it holds (bytes that are not UTF-8 included): a worker
+                // whose stderr pipe were left full would block, and look hung.
+                let mut err = BufReader::new(stderr);
+                let mut raw = Vec::new();
+                while err.read_until(b'\n', &mut raw).is_ok_and(|n| n > 0) {
+                    let line = String::from_utf8_lossy(&raw).trim_end().to_owned();
+                    raw.clear();
                     log::debug!("worker: {line}");
                     if let Ok(mut t) = keep.lock() {
                         if t.len() == TAIL_LINES {

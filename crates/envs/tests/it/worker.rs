@@ -38,6 +38,7 @@ class Toy(gym.Env):
         self.t += 1
         print("a print from the environment", self.t)
         if self.t == self.exit_at:
+            sys.stderr.buffer.write(b"bytes that are not UTF-8: \xff\xfe\n")
             print("the environment gives up", file=sys.stderr, flush=True)
             os._exit(3)
         if self.t == self.hang_at:
