@@ -104,3 +104,26 @@ def test_a_request_out_of_protocol_is_an_error_not_a_crash():
     (first, _), (second, _) = replies(out)
     assert "`step` before `init`" in first["error"]
     assert "protocol 99 requested" in second["error"]
+
+
+def test_a_session_with_a_factory_answers_as_the_worker_does():
+    """In-process (``evaluate(env=factory)``), the same session answers with the factory's
+    environments: the numbers are the worker's, bit for bit."""
+    tasks = [{"index": 2, "name": "g6", "params": {"g": 6.0}}]
+    requests = [init("Pendulum-v1", tasks), ({"op": "reset", "seeds": [11]}, None),
+                ({"op": "step", "slots": [0]}, [0.75])]
+    out = io.BytesIO()
+    worker.serve(frames(*requests), out)
+    through_worker = replies(out)
+    session = worker.Session(factory=lambda task: gym.make("Pendulum-v1", **task["params"]))
+    in_process = []
+    for header, payload in requests:
+        if header["op"] == "init":
+            header = dict(header, spec=None)
+        if payload is not None:
+            header = dict(header, payload=len(payload))
+        text, values = session.handle(json.dumps(header), payload)
+        in_process.append((json.loads(text), np.zeros(0, "<f4") if values is None else values))
+    for (a, x), (b, y) in zip(through_worker, in_process):
+        assert a == b and x.tobytes() == y.tobytes()
+    assert "no factory" in worker.Session().handle(json.dumps(dict(requests[0][0], spec=None)))[0]

@@ -3,12 +3,11 @@
 //! observations), each error naming the task and the step; the episode's time limit is counted
 //! here too, so an environment that never ends its episodes is cut at the family's horizon.
 
-use std::path::Path;
 use std::time::Duration;
 
-use super::process::Process;
-use super::protocol::{Reply, VERSION};
-use super::spec::{WorkerSpec, WorkerTask};
+use super::protocol::{parse_reply, Reply, VERSION};
+use super::spec::WorkerTask;
+use super::Transport;
 use crate::vec_env::{Backend, EnvDims, StepSlot};
 use crate::{EnvError, StepResult};
 
@@ -18,7 +17,7 @@ const START_TIMEOUT: Duration = Duration::from_secs(300);
 
 /// Environments in a Python worker (see the module docs).
 pub(super) struct WorkerEnvs {
-    process: Process,
+    transport: Box<dyn Transport>,
     /// The task of each environment.
     tasks: Vec<WorkerTask>,
     dims: EnvDims,
@@ -31,35 +30,19 @@ pub(super) struct WorkerEnvs {
 }
 
 impl WorkerEnvs {
-    /// Starts the worker of `spec` (with `python`, `dir` on its path) and makes an environment of
-    /// each task in it, all of sizes `dims`.
+    /// Makes an environment of each task, all of sizes `dims`, on the Python side of `transport`:
+    /// by `spec` (a suite's `[environment]`, as JSON), or, where it is `null`, by the factory that
+    /// side was given. Each later request may take `step_timeout`.
     pub(super) fn start(
-        spec: &WorkerSpec,
-        python: &Path,
-        dir: &Path,
+        transport: Box<dyn Transport>,
+        spec: serde_json::Value,
+        step_timeout: Duration,
         tasks: Vec<WorkerTask>,
         dims: EnvDims,
     ) -> Result<Self, EnvError> {
-        let all = tasks_label(&tasks, 0..tasks.len());
-        let process = Process::spawn(python, dir).map_err(|message| EnvError::Worker {
-            task: all.clone(),
-            step: None,
-            message,
-        })?;
-        let step_timeout = Duration::try_from_secs_f64(spec.step_timeout_s)
-            .ok()
-            .filter(|t| !t.is_zero())
-            .ok_or_else(|| EnvError::Worker {
-                task: all.clone(),
-                step: None,
-                message: format!(
-                    "step_timeout_s = {} is not a positive number of seconds",
-                    spec.step_timeout_s
-                ),
-            })?;
         let n = tasks.len();
         let mut me =
-            Self { process, tasks, dims, step_timeout, steps: vec![None; n], broken: None };
+            Self { transport, tasks, dims, step_timeout, steps: vec![None; n], broken: None };
         let header = serde_json::json!({
             "op": "init",
             "protocol": VERSION,
@@ -99,14 +82,17 @@ impl WorkerEnvs {
                 message: format!("the worker is gone since an earlier failure: {why}"),
             });
         }
-        let answer = self.process.call(header, payload, timeout);
-        let (task, message) = match answer {
-            Ok((reply, values)) => match reply.error.clone() {
+        let answer = self.transport.call(&header.to_string(), payload, timeout);
+        let (task, message) = match answer.map(|(h, v)| (parse_reply(&h), v)) {
+            Ok((Ok(reply), values)) => match reply.error.clone() {
                 None => return Ok((reply, values)),
                 Some(e) => (reply.slot.map(|s| self.task(s)), e),
             },
+            Ok((Err(why), _)) => (None, format!("the worker sent a malformed reply: {why}")),
             Err(message) => (None, message),
         };
+        // Not to be asked again: a worker process is killed now, not when the VecEnv goes.
+        self.transport.abandon();
         self.broken = Some(message.lines().next().unwrap_or_default().to_owned());
         let task = task.unwrap_or_else(|| tasks_label(&self.tasks, slots.iter().copied()));
         Err(EnvError::Worker { task, step, message })
@@ -116,6 +102,7 @@ impl WorkerEnvs {
     fn malformed(&mut self, slots: &[usize], step: Option<usize>, why: String) -> EnvError {
         let message = format!("the worker sent a malformed reply: {why}");
         self.broken = Some(message.clone());
+        self.transport.abandon();
         EnvError::Worker { task: tasks_label(&self.tasks, slots.iter().copied()), step, message }
     }
 

@@ -13,9 +13,31 @@ mod spec;
 pub use spec::{WorkerSpec, WorkerTask};
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use crate::vec_env::{EnvDims, VecEnv};
 use crate::EnvError;
+
+/// How requests reach the Python side that makes and steps the environments
+/// (`promptdt.worker.Session`): a worker process, or the calling interpreter itself (the Python
+/// package's `evaluate(env=factory)`, through pyo3). Whatever the transport, the requests, the
+/// Python code answering them and the checks of the answers are the same, so an evaluation gives
+/// the same numbers either way.
+pub trait Transport: Send {
+    /// Sends one frame (`header`: one line of JSON, without its end of line; `payload`: the f32
+    /// values it announces) and returns the reply frame, waiting up to `timeout` where the
+    /// transport can. `Err`: the transport itself failed (the message says how).
+    fn call(
+        &mut self,
+        header: &str,
+        payload: &[f32],
+        timeout: Duration,
+    ) -> Result<(String, Vec<f32>), String>;
+
+    /// The other side is not to be asked again (it failed or answered nonsense): a worker
+    /// process is killed. Nothing, by default.
+    fn abandon(&mut self) {}
+}
 
 /// The variable naming the worker's Python when the spec names none.
 pub const PYTHON_VAR: &str = "PROMPTDT_PYTHON";
@@ -47,6 +69,36 @@ pub fn make_batch(
         // Nothing to step: no interpreter to start.
         return Ok(VecEnv::new(Vec::new(), 1));
     }
-    let envs = backend::WorkerEnvs::start(spec, &python(spec, dir), dir, tasks, dims)?;
+    let all = |message: String| EnvError::Worker {
+        task: format!("{n} episodes' environments"),
+        step: None,
+        message,
+    };
+    let step_timeout = Duration::try_from_secs_f64(spec.step_timeout_s)
+        .ok()
+        .filter(|t| !t.is_zero())
+        .ok_or_else(|| {
+            all(format!(
+                "step_timeout_s = {} is not a positive number of seconds",
+                spec.step_timeout_s
+            ))
+        })?;
+    let process = process::Process::spawn(&python(spec, dir), dir).map_err(all)?;
+    let spec = serde_json::to_value(spec).map_err(|e| all(e.to_string()))?;
+    let envs = backend::WorkerEnvs::start(Box::new(process), spec, step_timeout, tasks, dims)?;
+    Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
+}
+
+/// [`make_batch`] over another `transport`, whose Python side makes each task's environment with
+/// a factory of its own (the `init` request carries no spec).
+pub fn make_batch_over(
+    transport: Box<dyn Transport>,
+    tasks: Vec<WorkerTask>,
+    dims: EnvDims,
+) -> Result<VecEnv, EnvError> {
+    let n = tasks.len();
+    // In the caller's own interpreter a request cannot be timed out.
+    let wait = Duration::from_secs(u64::MAX / 4);
+    let envs = backend::WorkerEnvs::start(transport, serde_json::Value::Null, wait, tasks, dims)?;
     Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
 }

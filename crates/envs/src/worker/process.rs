@@ -14,7 +14,8 @@ use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::protocol::{read_frame, write_frame, Reply};
+use super::protocol::{read_frame, write_frame};
+use super::Transport;
 
 /// How many of the worker's last stderr lines an error quotes.
 const TAIL_LINES: usize = 12;
@@ -23,7 +24,7 @@ const TAIL_LINES: usize = 12;
 pub(super) struct Process {
     child: Child,
     stdin: BufWriter<ChildStdin>,
-    replies: Receiver<Result<(Reply, Vec<f32>), String>>,
+    replies: Receiver<Result<(String, Vec<f32>), String>>,
     tail: Arc<Mutex<VecDeque<String>>>,
     /// The interpreter, for messages.
     python: String,
@@ -104,15 +105,22 @@ impl Process {
         Ok(me)
     }
 
+    /// Kills the process: what [`Transport::abandon`] asks after a reply it cannot use.
+    fn stop(&mut self) {
+        self.kill();
+    }
+}
+
+impl Transport for Process {
     /// Sends one request and waits up to `timeout` for its reply. On any failure the process is
     /// killed and the error says what happened: it died (its exit status and last stderr lines),
-    /// hung, or answered something that is not a reply.
-    pub(super) fn call(
+    /// hung, or answered something that is not a frame.
+    fn call(
         &mut self,
-        header: &serde_json::Value,
+        header: &str,
         payload: &[f32],
         timeout: Duration,
-    ) -> Result<(Reply, Vec<f32>), String> {
+    ) -> Result<(String, Vec<f32>), String> {
         if let Err(e) =
             write_frame(&mut self.stdin, header, payload).and_then(|()| self.stdin.flush())
         {
@@ -137,6 +145,12 @@ impl Process {
         }
     }
 
+    fn abandon(&mut self) {
+        self.stop();
+    }
+}
+
+impl Process {
     /// The message for a worker that went away, with its exit status once it has one.
     fn died(&mut self, what: &str) -> String {
         let deadline = Instant::now() + Duration::from_secs(2);

@@ -43,27 +43,39 @@ pub(super) struct Reply {
     /// `[slot, message]` for each environment whose `step` raised (its payload row is zeros).
     #[serde(default)]
     pub errors: Vec<(usize, String)>,
-    /// Values in the payload that follows.
-    #[serde(default)]
-    pub payload: usize,
+    /// Values in the payload that follows (read by [`read_frame`] already).
+    #[serde(default, rename = "payload")]
+    _payload: usize,
 }
 
-/// Writes one frame.
+/// What a reader needs of any header: how many payload values follow it.
+#[derive(Deserialize)]
+struct Announce {
+    #[serde(default)]
+    payload: usize,
+}
+
+/// A reply's header, read.
+pub(super) fn parse_reply(header: &str) -> Result<Reply, String> {
+    serde_json::from_str(header)
+        .map_err(|e| format!("the header {} is not a reply ({e})", shown(header.as_bytes())))
+}
+
+/// Writes one frame (`header`: one line of JSON, without its end of line).
 pub(super) fn write_frame(
     out: &mut impl Write,
-    header: &serde_json::Value,
+    header: &str,
     payload: &[f32],
 ) -> std::io::Result<()> {
-    let mut line = serde_json::to_vec(header).map_err(std::io::Error::other)?;
-    line.push(b'\n');
-    out.write_all(&line)?;
+    out.write_all(header.as_bytes())?;
+    out.write_all(b"\n")?;
     let bytes: Vec<u8> = payload.iter().flat_map(|v| v.to_le_bytes()).collect();
     out.write_all(&bytes)
 }
 
-/// Reads one reply frame. `Err("")`: the stream ended cleanly before a frame began; any other
-/// `Err` says why what came is not a frame.
-pub(super) fn read_frame(input: &mut impl BufRead) -> Result<(Reply, Vec<f32>), String> {
+/// Reads one frame: its header (without the end of line) and payload. `Err("")`: the stream ended
+/// cleanly before a frame began; any other `Err` says why what came is not a frame.
+pub(super) fn read_frame(input: &mut impl BufRead) -> Result<(String, Vec<f32>), String> {
     let mut line = Vec::new();
     let n = input
         .by_ref()
@@ -76,15 +88,21 @@ pub(super) fn read_frame(input: &mut impl BufRead) -> Result<(Reply, Vec<f32>), 
     if line.last() != Some(&b'\n') {
         return Err(format!("a header of {n} bytes without its end of line: {}", shown(&line)));
     }
-    let reply: Reply = serde_json::from_slice(&line)
-        .map_err(|e| format!("the header {} is not a reply ({e})", shown(&line)))?;
-    let mut bytes = vec![0u8; reply.payload * 4];
+    let header = String::from_utf8(line)
+        .map_err(|e| format!("a header that is not UTF-8: {}", shown(e.as_bytes())))?;
+    let header = header.trim_end().to_owned();
+    let announce: Announce = serde_json::from_str(&header)
+        .map_err(|e| format!("the header {} is not a reply ({e})", shown(header.as_bytes())))?;
+    let mut bytes = vec![0u8; announce.payload * 4];
     input.read_exact(&mut bytes).map_err(|e| {
-        format!("the header announced {} payload values, which did not come ({e})", reply.payload)
+        format!(
+            "the header announced {} payload values, which did not come ({e})",
+            announce.payload
+        )
     })?;
     let values =
         bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-    Ok((reply, values))
+    Ok((header, values))
 }
 
 /// The start of a header, for an error message.
@@ -105,10 +123,10 @@ mod tests {
     fn a_frame_round_trips_its_numbers_bit_for_bit() {
         let values = [1.5f32, -0.0, f32::MIN_POSITIVE, 3.0e38, 0.1];
         let mut buf = Vec::new();
-        let header = serde_json::json!({"slots": [0, 2], "payload": values.len()});
+        let header = serde_json::json!({"slots": [0, 2], "payload": values.len()}).to_string();
         write_frame(&mut buf, &header, &values).unwrap();
-        let (reply, got) = read_frame(&mut buf.as_slice()).unwrap();
-        assert_eq!(reply.slots, vec![0, 2]);
+        let (header, got) = read_frame(&mut buf.as_slice()).unwrap();
+        assert_eq!(parse_reply(&header).unwrap().slots, vec![0, 2]);
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&got), bits(&values));
     }
@@ -116,6 +134,8 @@ mod tests {
     #[test]
     fn a_garbled_stream_is_named_not_parsed() {
         let err = read_frame(&mut b"hello from a print\n".as_slice()).unwrap_err();
+        let err2 = parse_reply("{\"slots\": [0], \"unknown\": 1}").unwrap_err();
+        assert!(err2.contains("unknown field `unknown`"), "{err2}");
         assert!(err.contains("`hello from a print` is not a reply"), "{err}");
         let err = read_frame(&mut b"{\"payload\": 3}\n\x00\x00".as_slice()).unwrap_err();
         assert!(err.contains("announced 3 payload values"), "{err}");

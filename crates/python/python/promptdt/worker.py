@@ -175,50 +175,30 @@ class Envs:
                 pass
 
 
-class _Channel:
-    """The framing over a pair of binary streams."""
-
-    def __init__(self, inp: Any, out: Any):
-        self.inp, self.out = inp, out
-
-    def read(self) -> Optional[Tuple[Dict[str, Any], np.ndarray]]:
-        line = self.inp.readline()
-        if not line:
-            return None
-        header = json.loads(line)
-        n = int(header.get("payload", 0))
-        data = self.inp.read(4 * n)
-        if len(data) != 4 * n:
-            raise WorkerError(f"the request announced {n} payload values, which did not come")
-        return header, np.frombuffer(data, dtype="<f4")
-
-    def write(self, header: Dict[str, Any], payload: Optional[np.ndarray] = None) -> None:
-        data = b"" if payload is None else np.ascontiguousarray(payload, dtype="<f4").tobytes()
-        if payload is not None:
-            header = dict(header, payload=len(data) // 4)
-        self.out.write(json.dumps(header).encode() + b"\n" + data)
-        self.out.flush()
-
-
-def _answer(envs: Optional[Envs], header: Dict[str, Any],
-            payload: np.ndarray) -> Tuple[Optional[Envs], Dict[str, Any], Optional[np.ndarray]]:
+def _answer(envs: Optional[Envs], header: Dict[str, Any], payload: np.ndarray,
+            factory: Optional[Callable[[Dict[str, Any]], Any]]
+            ) -> Tuple[Optional[Envs], Dict[str, Any], Optional[np.ndarray]]:
     op = header.get("op")
     if op == "init":
         if header.get("protocol") != PROTOCOL:
             raise WorkerError(f"protocol {header.get('protocol')} requested, this promptdt "
                               f"worker speaks {PROTOCOL} (install the same promptdt version)")
-        try:
-            factory = factory_from_spec(header["spec"])
-        except Exception as e:  # an import or a name in the suite's entry
-            raise WorkerError(f"the environment entry `{header['spec'].get('entry')}`: "
-                              f"{_last_line(e)}") from e
+        spec = header.get("spec")
+        if spec is not None:
+            try:
+                factory = factory_from_spec(spec)
+            except Exception as e:  # an import or a name in the suite's entry
+                raise WorkerError(f"the environment entry `{spec.get('entry')}`: "
+                                  f"{_last_line(e)}") from e
+        if factory is None:
+            raise WorkerError("`init` without a spec, and no factory was given")
         envs = Envs(factory, header["tasks"], header["obs_dim"], header["act_dim"])
         return envs, {"ok": True}, None
     if envs is None:
         raise WorkerError(f"`{op}` before `init`")
     if op == "reset":
         slots, obs = envs.reset(header["seeds"])
-        return envs, {"slots": slots}, obs
+        return envs, {"slots": slots}, obs.reshape(-1)
     if op == "step":
         out = envs.step(header["slots"], payload)
         values = np.concatenate([out.pop("obs").reshape(-1), out.pop("rewards")])
@@ -226,29 +206,57 @@ def _answer(envs: Optional[Envs], header: Dict[str, Any],
     raise WorkerError(f"unknown request `{op}`")
 
 
+class Session:
+    """The Python side of one batch of environments: answers each request (its JSON header text
+    and float32 payload) with a reply (header text, float32 payload or None). The worker process
+    (:func:`serve`) and ``promptdt.evaluate(env=factory)`` (in-process, from Rust) both answer
+    through it, so they run the same code on the same numbers. ``factory`` makes the environments
+    when ``init`` carries no spec."""
+
+    def __init__(self, factory: Optional[Callable[[Dict[str, Any]], Any]] = None):
+        self.factory = factory
+        self.envs: Optional[Envs] = None
+
+    def handle(self, header: str, payload: Any = None) -> Tuple[str, Optional[np.ndarray]]:
+        values: Optional[np.ndarray] = None
+        try:
+            request = json.loads(header)
+            data = np.asarray([] if payload is None else payload, dtype="<f4").reshape(-1)
+            self.envs, reply, values = _answer(self.envs, request, data, self.factory)
+        except WorkerError as e:
+            reply = {"error": str(e), **({} if e.slot is None else {"slot": e.slot})}
+        except Exception as e:  # a bug here, or a request this side cannot read
+            traceback.print_exc()
+            reply = {"error": f"the worker failed: {_last_line(e)}"}
+        if values is not None:
+            values = np.ascontiguousarray(values, dtype="<f4")
+            reply = dict(reply, payload=int(values.size))
+        return json.dumps(reply), values
+
+    def close(self) -> None:
+        if self.envs is not None:
+            self.envs.close()
+
+
 def serve(inp: Any, out: Any) -> None:
-    """Answers requests from ``inp`` on ``out`` (binary streams) until ``inp`` ends."""
-    channel = _Channel(inp, out)
-    envs: Optional[Envs] = None
+    """Answers requests from ``inp`` on ``out`` (binary streams, in the framing above) until
+    ``inp`` ends."""
+    session = Session()
     try:
         while True:
-            request = channel.read()
-            if request is None:
+            line = inp.readline()
+            if not line:
                 return
-            try:
-                envs, reply, values = _answer(envs, *request)
-            except WorkerError as e:
-                slot = {} if e.slot is None else {"slot": e.slot}
-                channel.write({"error": str(e), **slot})
-                continue
-            except Exception as e:  # a bug here, or a request this worker cannot read
-                traceback.print_exc()
-                channel.write({"error": f"the worker failed: {_last_line(e)}"})
-                continue
-            channel.write(reply, values)
+            n = int(json.loads(line).get("payload", 0))
+            data = inp.read(4 * n)
+            if len(data) != 4 * n:
+                raise WorkerError(f"the request announced {n} payload values, which did not come")
+            header, values = session.handle(line.decode(), np.frombuffer(data, dtype="<f4"))
+            body = b"" if values is None else values.tobytes()
+            out.write(header.encode() + b"\n" + body)
+            out.flush()
     finally:
-        if envs is not None:
-            envs.close()
+        session.close()
 
 
 def main() -> None:
