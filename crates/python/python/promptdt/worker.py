@@ -3,9 +3,9 @@
 ``python -m promptdt.worker`` is started by promptdt (the ``promptdt`` command, ``reproduce``)
 for a task suite whose ``[environment]`` table names a gymnasium id or a ``module:callable``:
 it reads requests on stdin and answers on stdout, one request per vector reset or step of all the
-episodes running together (docs/your-own-tasks-worker.md). ``promptdt.evaluate(run,
-env=factory)`` steps its environments with the same :class:`Envs` in the calling process, so
-both ways of evaluating run the same code on the same numbers.
+episodes running together (docs/your-own-tasks-worker.md). Each request is
+answered by a :class:`Session`, which an evaluation in the calling process (a factory given from
+Python) uses too, so both ways of evaluating run the same code on the same numbers.
 
 Framing, both ways: a line of JSON (the header), then, when the header has ``"payload": n``,
 ``n`` little-endian float32 values as raw bytes. Requests: ``init`` (the spec, one task per
@@ -87,7 +87,7 @@ def _flat_size(space: Any) -> Optional[int]:
 class Envs:
     """One environment per slot, each made by ``factory(task)`` for its task (a dict with
     ``index``, ``name`` and ``params``), checked against the family's sizes; reset and stepped by
-    slot. Used by the worker process and, in-process, by ``promptdt.evaluate(env=...)``."""
+    slot (what a :class:`Session` answers with)."""
 
     def __init__(self, factory: Callable[[Dict[str, Any]], Any], tasks: Sequence[Dict[str, Any]],
                  obs_dim: int, act_dim: int):
@@ -129,11 +129,12 @@ class Envs:
         slots reset and their first observations ``[n, obs_dim]``."""
         if len(seeds) != len(self.envs):
             raise WorkerError(f"{len(seeds)} seeds for {len(self.envs)} environments")
-        slots = [i for i, s in enumerate(seeds) if s is not None]
+        given = [(i, int(s)) for i, s in enumerate(seeds) if s is not None]
+        slots = [i for i, _ in given]
         obs = np.zeros((len(slots), self.obs_dim), dtype=np.float32)
-        for k, i in enumerate(slots):
+        for k, (i, seed) in enumerate(given):
             try:
-                first, _info = self.envs[i].reset(seed=int(seeds[i]))
+                first, _info = self.envs[i].reset(seed=seed)
             except Exception as e:
                 raise WorkerError(f"its environment's reset raised {_last_line(e)}", i) from e
             obs[k] = self._obs(i, first)
@@ -209,9 +210,9 @@ def _answer(envs: Optional[Envs], header: Dict[str, Any], payload: np.ndarray,
 class Session:
     """The Python side of one batch of environments: answers each request (its JSON header text
     and float32 payload) with a reply (header text, float32 payload or None). The worker process
-    (:func:`serve`) and ``promptdt.evaluate(env=factory)`` (in-process, from Rust) both answer
-    through it, so they run the same code on the same numbers. ``factory`` makes the environments
-    when ``init`` carries no spec."""
+    (:func:`serve`) and an evaluation in the calling process (from Rust, with a factory given in
+    Python) both answer through it, so they run the same code on the same numbers. ``factory``
+    makes the environments when ``init`` carries no spec."""
 
     def __init__(self, factory: Optional[Callable[[Dict[str, Any]], Any]] = None):
         self.factory = factory
