@@ -184,6 +184,8 @@ pub fn evaluate_run_in(
 /// The run's family with its batches of environments made by a caller's [`EnvMaker`]; all else
 /// (tasks, splits, constants) is the family's. The evaluations make their environments only
 /// through `make_batch`; a single environment (`make`: rendering, replay) stays the family's.
+/// Every method of [`EnvFamily`] is forwarded, so a method added to the trait with a default
+/// must be forwarded here too.
 struct MadeBy {
     inner: Box<dyn EnvFamily>,
     maker: Arc<dyn EnvMaker>,
@@ -222,5 +224,30 @@ impl EnvFamily for MadeBy {
     }
     fn success_reward(&self) -> Option<f32> {
         self.inner.success_reward()
+    }
+    // The rest forwarded too, though no evaluation asks: the family stays the family in all but
+    // where its environments are made.
+    fn scripted(&self) -> Option<pdt_envs::collect_scripted::ScriptedFamily> {
+        self.inner.scripted()
+    }
+    fn rl_preset(&self) -> Option<&'static str> {
+        self.inner.rl_preset()
+    }
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        self.inner.task_features(task)
+    }
+    fn symmetries(&self) -> Vec<pdt_envs::BodySymmetry> {
+        self.inner.symmetries()
+    }
+    fn dataset_bar(&self) -> Option<pdt_envs::DatasetBar> {
+        self.inner.dataset_bar()
+    }
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<pdt_envs::ReplayResult, EnvError> {
+        self.inner.replay(task, init, actions)
     }
 }
