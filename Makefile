@@ -73,6 +73,9 @@ python:
 python-test:
 	PROMPTDT_PY_EXTRAS=minari bash scripts/install_python.sh $(PY_VENV)
 	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} $(PY_VENV)/bin/python -m pytest -q crates/python/pytests
+	# The environment worker's Rust tests (gymnasium through `python -m promptdt.worker`), against
+	# the venv just built: `make test` skips them where no such Python is found.
+	PROMPTDT_PYTHON=$(abspath $(PY_VENV))/bin/python PROMPTDT_REQUIRE_WORKER_PYTHON=1 $(CARGO) test --release -p pdt-envs --test it worker::
 
 # Side-by-side with PyTorch (needs a Python with torch 2.11: see scripts/requirements-torch.txt).
 bench: setup

@@ -86,12 +86,22 @@ pub enum EnvError {
     /// A replay's initial state (`promptdt env replay --init`) is missing, unwanted or unreadable.
     #[error("{message}")]
     ReplayInit { message: String },
+    /// A Python worker's environment or the worker itself failed ([`worker`]): `task` names the
+    /// task (`name (task i)`, or the batch's tasks when the whole worker failed), `step` the
+    /// episode step (`None`: while making or resetting the environments).
+    #[error("{task}{}: {message}", at_step(*.step))]
+    Worker { task: String, step: Option<usize>, message: String },
     /// A front end asked the rollouts to stop (`rollout::Watch`, its Ctrl-C).
     #[error("stopped on request before the episodes ended")]
     Interrupted,
     /// A task suite file ([`suite`]) that cannot be read or has a bad field.
     #[error(transparent)]
     Suite(#[from] suite::SuiteError),
+}
+
+/// `, step N` for [`EnvError::Worker`]'s message, where a step is known.
+fn at_step(step: Option<usize>) -> String {
+    step.map(|s| format!(", step {s}")).unwrap_or_default()
 }
 
 impl EnvError {
@@ -198,6 +208,17 @@ pub trait EnvFamily: Send + Sync {
     /// The task's parameters, as recorded in dataset cards (e.g. `{"goal": [x, y]}`).
     fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError>;
     fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError>;
+
+    /// The environments of a batch of episodes, environment `i` one of task `tasks[i]`; `threads`
+    /// is how many threads may step those that live in this process. By default each is
+    /// [`Self::make`]'s, on a [`vec_env::VecEnv`]'s thread pool. A family whose environments live
+    /// elsewhere (a user's gymnasium environments in a Python worker: [`worker`]) makes them all
+    /// at once behind one [`vec_env::Backend`], so the evaluations, which make their environments
+    /// here, step them with one message per vector step and never know the difference.
+    fn make_batch(&self, tasks: &[usize], threads: usize) -> Result<vec_env::VecEnv, EnvError> {
+        let envs = tasks.iter().map(|&t| self.make(t)).collect::<Result<Vec<_>, _>>()?;
+        Ok(vec_env::VecEnv::new(envs, threads))
+    }
 
     /// Environment steps per second of the family's simulated time (gymnasium's `render_fps`, what
     /// a video of its episodes plays at): 1 / (frame skip x the simulator's timestep).

@@ -14,6 +14,11 @@
 //! contiguous chunks keeps the threads evenly loaded when only a window of the environments is
 //! stepped (the batched evaluation steps one batch of episodes at a time).
 //!
+//! Elsewhere. A `VecEnv` made by [`VecEnv::external`] has no threads: its environments live behind
+//! a [`Backend`] (a Python worker process, [`crate::worker`]), which gets one call per vector reset
+//! or step (all the environments concerned at once), not one per environment. The same methods
+//! step either kind, so the rollouts and evaluations above do not know where the environments are.
+//!
 //! Panics. An environment that panics on a worker thread ends that thread. The caller sees its
 //! reply channel disconnect, joins it and re-raises its panic (`resume_unwind`) once the other
 //! workers have answered; a panic in chunk 0 is re-raised the same way. The `VecEnv` is then broken
@@ -42,9 +47,31 @@ pub struct EnvDims {
     pub horizon: usize,
 }
 
+/// Environments that live outside this process's threads, stepped by one call per vector reset or
+/// step. Each call answers one slot per environment, in order (`None` where the environment was not
+/// concerned); a failure of one environment goes in its slot, a failure of the whole backend (it
+/// died, hung, or answered nonsense) is the call's error, after which the backend is unusable.
+pub trait Backend: Send {
+    /// Resets environment `i` with `seeds[i]` where that is given (one entry per environment);
+    /// answers its first observation there.
+    fn reset(&mut self, seeds: &[Option<u64>]) -> Result<Vec<Option<Vec<f32>>>, EnvError>;
+
+    /// Steps the environments whose `mask` entry is true, each with its slice
+    /// ([`VecEnv::action_range`]) of `actions`.
+    fn step(&mut self, actions: &[f32], mask: &[bool]) -> Result<Vec<StepSlot>, EnvError>;
+}
+
+/// Where a [`VecEnv`]'s environments are.
+enum Envs {
+    /// On this process's threads.
+    Pool(Pool),
+    /// Behind a [`Backend`].
+    External(Box<dyn Backend>),
+}
+
 /// A batch of environments (possibly of different tasks) stepped in parallel.
 pub struct VecEnv {
-    pool: Pool,
+    envs: Envs,
     dims: Vec<EnvDims>,
     /// `act_offsets[i]..act_offsets[i + 1]`: environment `i`'s action in a flat action buffer.
     act_offsets: Vec<usize>,
@@ -60,14 +87,13 @@ impl VecEnv {
             .iter()
             .map(|e| EnvDims { obs_dim: e.obs_dim(), act_dim: e.act_dim(), horizon: e.horizon() })
             .collect();
-        let mut act_offsets = Vec::with_capacity(dims.len() + 1);
-        act_offsets.push(0);
-        let mut end = 0;
-        for d in &dims {
-            end += d.act_dim;
-            act_offsets.push(end);
-        }
-        Self { pool: Pool::new(envs, threads), dims, act_offsets }
+        let act_offsets = offsets(&dims);
+        Self { envs: Envs::Pool(Pool::new(envs, threads)), dims, act_offsets }
+    }
+
+    /// Environments of sizes `dims` (in order) that live behind `backend`.
+    pub fn external(backend: Box<dyn Backend>, dims: Vec<EnvDims>) -> Self {
+        Self { envs: Envs::External(backend), act_offsets: offsets(&dims), dims }
     }
 
     pub fn len(&self) -> usize {
@@ -78,9 +104,13 @@ impl VecEnv {
         self.dims.is_empty()
     }
 
-    /// Threads stepping the environments, the calling thread included (1 to `len()`).
+    /// Threads stepping the environments, the calling thread included (1 to `len()`; 1 for
+    /// environments behind a [`Backend`]).
     pub fn threads(&self) -> usize {
-        self.pool.threads()
+        match &self.envs {
+            Envs::Pool(pool) => pool.threads(),
+            Envs::External(_) => 1,
+        }
     }
 
     /// Each environment's sizes, in order.
@@ -101,7 +131,7 @@ impl VecEnv {
     /// Resets environment `i` with `seeds[i]`; returns the first observations, in order.
     pub fn reset(&mut self, seeds: &[u64]) -> Result<Vec<Vec<f32>>, EnvError> {
         self.check_len("seeds", seeds.len())?;
-        let obs = self.pool.reset_with(|i| seeds.get(i).copied())?;
+        let obs = self.reset_with(|i| seeds.get(i).copied())?;
         obs.into_iter().collect::<Option<Vec<_>>>().ok_or_else(|| missing("reset"))
     }
 
@@ -123,7 +153,7 @@ impl VecEnv {
                 Some(slot) => *slot = Some(seed),
             }
         }
-        let mut obs = self.pool.reset_with(|i| seeds.get(i).copied().flatten())?;
+        let mut obs = self.reset_with(|i| seeds.get(i).copied().flatten())?;
         resets
             .iter()
             .map(|&(i, _)| obs.get_mut(i).and_then(Option::take))
@@ -139,7 +169,10 @@ impl VecEnv {
         actions: &[Vec<f32>],
     ) -> Result<Vec<Result<StepResult, EnvError>>, EnvError> {
         self.check_len("actions", actions.len())?;
-        let out = self.pool.step_with(|i| actions.get(i).map(Vec::as_slice))?;
+        let out = match &mut self.envs {
+            Envs::Pool(pool) => pool.step_with(|i| actions.get(i).map(Vec::as_slice))?,
+            Envs::External(_) => self.step_external_each(actions)?,
+        };
         out.into_iter().collect::<Option<Vec<_>>>().ok_or_else(|| missing("stepped"))
     }
 
@@ -164,11 +197,25 @@ impl VecEnv {
             self.check_len("mask entries", mask.len())?;
         }
         let offsets = &self.act_offsets;
-        self.pool.step_with(|i| {
-            let wanted = mask.is_none_or(|m| m.get(i) == Some(&true));
-            let range = *offsets.get(i)?..*offsets.get(i + 1)?;
-            wanted.then(|| actions.get(range)).flatten()
-        })
+        match &mut self.envs {
+            Envs::Pool(pool) => pool.step_with(|i| {
+                let wanted = mask.is_none_or(|m| m.get(i) == Some(&true));
+                let range = *offsets.get(i)?..*offsets.get(i + 1)?;
+                wanted.then(|| actions.get(range)).flatten()
+            }),
+            Envs::External(backend) => {
+                let all;
+                let mask = match mask {
+                    Some(m) => m,
+                    None => {
+                        all = vec![true; self.dims.len()];
+                        &all
+                    }
+                };
+                let out = backend.step(actions, mask)?;
+                check_answer(out, self.dims.len(), |i| mask[i], "stepped")
+            }
+        }
     }
 
     /// Renders environment `i`'s current state ([`crate::render::render`]), on the thread that owns
@@ -180,8 +227,52 @@ impl VecEnv {
                 self.len()
             ))));
         }
-        let mut out = self.pool.render_one(i, size)?;
+        let Envs::Pool(pool) = &mut self.envs else {
+            let env = "an environment outside this process".to_owned();
+            return Err(RenderError::Env(EnvError::Unsupported { env, what: "rendering" }));
+        };
+        let mut out = pool.render_one(i, size)?;
         out.swap_remove(i).ok_or_else(|| RenderError::Env(missing("rendered")))?
+    }
+
+    fn reset_with(
+        &mut self,
+        seed_of: impl Fn(usize) -> Option<u64>,
+    ) -> Result<Vec<Option<Vec<f32>>>, EnvError> {
+        match &mut self.envs {
+            Envs::Pool(pool) => pool.reset_with(seed_of),
+            Envs::External(backend) => {
+                let seeds: Vec<Option<u64>> = (0..self.dims.len()).map(&seed_of).collect();
+                let out = backend.reset(&seeds)?;
+                check_answer(out, self.dims.len(), |i| seeds[i].is_some(), "reset")
+            }
+        }
+    }
+
+    /// [`VecEnv::step`] behind a [`Backend`]: the actions packed into one buffer; an action of the
+    /// wrong size is refused in its environment's slot, as the thread pool's environments do.
+    fn step_external_each(&mut self, actions: &[Vec<f32>]) -> Result<Vec<StepSlot>, EnvError> {
+        let mut flat = vec![0f32; self.flat_action_len()];
+        let mut mask = vec![true; self.len()];
+        let mut refused: Vec<Option<EnvError>> = (0..self.len()).map(|_| None).collect();
+        for (i, a) in actions.iter().enumerate() {
+            let range = self.action_range(i).ok_or_else(|| missing("stepped"))?;
+            if a.len() == range.len() {
+                flat[range].copy_from_slice(a);
+            } else {
+                let (got, expected) = (a.len(), range.len());
+                refused[i] =
+                    Some(EnvError::ActionDim { env: format!("environment {i}"), got, expected });
+                mask[i] = false;
+            }
+        }
+        let mut out = self.step_flat(&flat, Some(&mask))?;
+        for (slot, error) in out.iter_mut().zip(refused) {
+            if let Some(e) = error {
+                *slot = Some(Err(e));
+            }
+        }
+        Ok(out)
     }
 
     fn check_len(&self, what: &str, got: usize) -> Result<(), EnvError> {
@@ -190,6 +281,34 @@ impl VecEnv {
         } else {
             Err(vec_error(format!("{got} {what} for {} environments", self.len())))
         }
+    }
+}
+
+/// `act_offsets` of environments of sizes `dims`: where each one's action starts, then the end.
+fn offsets(dims: &[EnvDims]) -> Vec<usize> {
+    let mut out = Vec::with_capacity(dims.len() + 1);
+    out.push(0);
+    let mut end = 0;
+    for d in dims {
+        end += d.act_dim;
+        out.push(end);
+    }
+    out
+}
+
+/// A [`Backend`]'s answer checked: one slot per environment, filled exactly where `asked`.
+fn check_answer<T>(
+    out: Vec<Option<T>>,
+    len: usize,
+    asked: impl Fn(usize) -> bool,
+    what: &str,
+) -> Result<Vec<Option<T>>, EnvError> {
+    if out.len() != len {
+        return Err(vec_error(format!("{} answers {what} for {len} environments", out.len())));
+    }
+    match out.iter().enumerate().find(|(i, slot)| slot.is_some() != asked(*i)) {
+        None => Ok(out),
+        Some((i, _)) => Err(vec_error(format!("environment {i}: answer {what} out of turn"))),
     }
 }
 

@@ -15,7 +15,7 @@
 
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
-use pdt_envs::{Env, EnvError, StepResult};
+use pdt_envs::{Env, EnvError, EnvFamily, StepResult};
 pub mod testtime;
 
 use pdt_base::num::compact;
@@ -44,7 +44,8 @@ pub enum EvalReturns {
 pub struct EvalTask {
     pub name: String,
     pub index: usize,
-    /// One environment per episode (episodes of a task may run at the same time).
+    /// One environment per episode (episodes of a task may run at the same time); empty where the
+    /// evaluation makes them from the family ([`evaluate_in`]).
     pub envs: Vec<Box<dyn Env>>,
     /// Reset seed of each episode.
     pub seeds: Vec<u64>,
@@ -466,7 +467,28 @@ pub fn evaluate_with(
     cfg: &EvalSettings,
     chooser: Option<&mut dyn EpisodePrompts>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
-    evaluate_inner(model, tasks, cfg, chooser, None)
+    evaluate_inner(model, tasks, cfg, chooser, None, None)
+}
+
+/// An evaluation whose episodes' environments `family` makes, all at once, when it starts
+/// ([`EnvFamily::make_batch`]: on this process's threads for the built-in families, in a Python
+/// worker for a suite's own environment); the tasks' `envs` are then empty and their `index` is
+/// the family's task. With `chooser` and `given` as in [`evaluate_with`] and [`evaluate_given`].
+pub fn evaluate_in(
+    family: &dyn EnvFamily,
+    model: &PromptDt,
+    tasks: Vec<EvalTask>,
+    cfg: &EvalSettings,
+    chooser: Option<&mut dyn EpisodePrompts>,
+    given: Option<GivenPrompts<'_>>,
+) -> Result<Vec<EpisodeRecord>, EvalError> {
+    match given {
+        None => evaluate_inner(model, tasks, cfg, chooser, None, Some(family)),
+        Some(given) => {
+            let cfg = given_settings(&given, tasks.len(), cfg)?;
+            evaluate_inner(model, tasks, &cfg, chooser, Some(given), Some(family))
+        }
+    }
 }
 
 /// What an adapted evaluation acts with in place of the tasks' prompts: the prompts' keys and
@@ -485,16 +507,22 @@ pub fn evaluate_given(
     cfg: &EvalSettings,
     given: GivenPrompts<'_>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
-    if given.prefix.rows() != tasks.len() as i64 {
-        let why = format!(
-            "{} given prompt rows for {} tasks (internal error)",
-            given.prefix.rows(),
-            tasks.len()
-        );
+    let cfg = given_settings(&given, tasks.len(), cfg)?;
+    evaluate_inner(model, tasks, &cfg, None, Some(given), None)
+}
+
+/// The settings of an evaluation with `given` prompts for `tasks` tasks: the cached path.
+fn given_settings(
+    given: &GivenPrompts<'_>,
+    tasks: usize,
+    cfg: &EvalSettings,
+) -> Result<EvalSettings, EvalError> {
+    if given.prefix.rows() != tasks as i64 {
+        let why =
+            format!("{} given prompt rows for {tasks} tasks (internal error)", given.prefix.rows());
         return Err(EvalError::Setup { task: String::new(), why });
     }
-    let cfg = EvalSettings { inference: Inference::Cached, ..cfg.clone() };
-    evaluate_inner(model, tasks, &cfg, None, Some(given))
+    Ok(EvalSettings { inference: Inference::Cached, ..cfg.clone() })
 }
 
 fn evaluate_inner(
@@ -503,31 +531,33 @@ fn evaluate_inner(
     cfg: &EvalSettings,
     mut chooser: Option<&mut dyn EpisodePrompts>,
     given: Option<GivenPrompts<'_>>,
+    family: Option<&dyn EnvFamily>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
     let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
     let mut names: Vec<String> = Vec::with_capacity(tasks.len());
     let mut prompts: Vec<Option<SegmentBatch>> = Vec::with_capacity(tasks.len());
     let mut envs: Vec<Box<dyn Env>> = Vec::new();
+    // With a family: the family's task of each episode, whose environment it makes.
+    let mut family_tasks: Vec<usize> = Vec::new();
     let mut queue: Vec<Running> = Vec::new();
     for (ti, task) in tasks.into_iter().enumerate() {
-        if task.envs.len() != task.seeds.len() {
-            return Err(EvalError::Setup {
-                task: task.name,
-                why: "one seed per environment is needed".into(),
-            });
+        let wanted = if family.is_some() { 0 } else { task.seeds.len() };
+        if task.envs.len() != wanted {
+            let why = match family {
+                None => "one seed per environment is needed",
+                Some(_) => "environments given where the family makes them (internal error)",
+            };
+            return Err(EvalError::Setup { task: task.name, why: why.into() });
         }
-        for (episode, (env, seed)) in task.envs.into_iter().zip(task.seeds).enumerate() {
-            if env.obs_dim() != ds || env.act_dim() != da {
-                let why = format!(
-                    "environment dims {}/{} differ from the model's {ds}/{da}",
-                    env.obs_dim(),
-                    env.act_dim()
-                );
-                return Err(EvalError::Setup { task: task.name, why });
-            }
+        for env in &task.envs {
+            check_dims(&task.name, env.obs_dim(), env.act_dim(), ds, da)?;
+        }
+        envs.extend(task.envs);
+        for (episode, seed) in task.seeds.into_iter().enumerate() {
+            let id = queue.len();
             queue.push(Running {
-                id: envs.len(),
+                id,
                 task: ti,
                 episode,
                 seed,
@@ -535,12 +565,14 @@ fn evaluate_inner(
                 success: None,
                 row: None,
             });
-            envs.push(env);
+            if family.is_some() {
+                family_tasks.push(task.index);
+            }
         }
         names.push(task.name);
         prompts.push(task.prompt);
     }
-    let n = envs.len();
+    let n = queue.len();
     // The prompts' keys and values, once per task (all tasks have a prompt or none does).
     let all_prompts: Option<Vec<&SegmentBatch>> = prompts.iter().map(Option::as_ref).collect();
     let lora = given.as_ref().and_then(|g| g.lora);
@@ -551,7 +583,18 @@ fn evaluate_inner(
         }
         _ => None,
     };
-    let mut venv = VecEnv::new(envs, cfg.env_threads);
+    let mut venv = match family {
+        None => VecEnv::new(envs, cfg.env_threads),
+        Some(f) => {
+            let all: Vec<usize> = (0..n).collect();
+            let charge = |source| EvalError::Env { task: task_names(&names, &queue, &all), source };
+            let venv = f.make_batch(&family_tasks, cfg.env_threads).map_err(charge)?;
+            for (d, ep) in venv.dims().iter().zip(&queue) {
+                check_dims(&names[ep.task], d.obs_dim, d.act_dim, ds, da)?;
+            }
+            venv
+        }
+    };
     let mut batch = Batch {
         model,
         cfg,
@@ -610,6 +653,23 @@ fn evaluate_inner(
     // Episodes of a batch end in any order; report them in (task, episode) order.
     done.sort_by_key(|(id, _)| *id);
     Ok(done.into_iter().map(|(_, r)| r).collect())
+}
+
+/// Refuses an environment of other sizes than the model's.
+fn check_dims(task: &str, obs: usize, act: usize, ds: usize, da: usize) -> Result<(), EvalError> {
+    if (obs, act) == (ds, da) {
+        return Ok(());
+    }
+    let why = format!("environment dims {obs}/{act} differ from the model's {ds}/{da}");
+    Err(EvalError::Setup { task: task.to_owned(), why })
+}
+
+/// The distinct names of the tasks of `episodes` (queue positions), joined.
+fn task_names(names: &[String], queue: &[Running], episodes: &[usize]) -> String {
+    let mut out: Vec<&str> =
+        episodes.iter().filter_map(|&i| queue.get(i)).map(|e| names[e.task].as_str()).collect();
+    out.dedup();
+    out.join(", ")
 }
 
 /// Mean, population std and mean length of a task's episodes.

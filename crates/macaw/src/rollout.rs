@@ -4,7 +4,6 @@
 
 use crate::{act, Dims, MacawError};
 use pdt_envs::rollout::{run_batch, BatchPolicy};
-use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{EnvError, EnvFamily, StepResult};
 use pdt_rundir::config::macaw::MacawConfig;
 use tch::{Device, Kind, Tensor};
@@ -98,18 +97,18 @@ pub fn run_episodes(
     threads: usize,
     device: Device,
 ) -> Result<Vec<Episode>, MacawError> {
-    let envs = seeds.iter().map(|_| family.make(task)).collect::<Result<Vec<_>, _>>()?;
+    // Made by the family, wherever its environments live (`EnvFamily::make_batch`).
+    let mut venv = family.make_batch(&vec![task; seeds.len()], threads)?;
     let (o, a) = (dims.obs as usize, dims.act as usize);
-    if let Some(e) = envs.iter().find(|e| e.obs_dim() != o || e.act_dim() != a) {
+    if let Some(e) = venv.dims().iter().find(|e| e.obs_dim != o || e.act_dim != a) {
         return Err(MacawError::Config(format!(
             "{} task {task} has obs/act dims {}/{}, the policy {o}/{a}",
             family.name(),
-            e.obs_dim(),
-            e.act_dim()
+            e.obs_dim,
+            e.act_dim
         )));
     }
     let kind = policy.first().map_or(Kind::Float, Tensor::kind);
-    let mut venv = VecEnv::new(envs, threads);
     let n = seeds.len();
     let obs = venv.reset(seeds)?;
     let mut run = Running {

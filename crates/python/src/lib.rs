@@ -159,6 +159,8 @@ mod data;
 mod envs;
 /// The library's errors as `promptdt.Error`s.
 mod errors;
+/// `evaluate(run, env=factory)`: environments made by a Python factory, answered in-process.
+mod factory;
 /// `Policy`, `PromptBandit`: a trained run acting through `pdt_policy`.
 mod policy;
 /// `Prompt`, `TaskPlan`, `Adaptation`: what a `Policy` acts with.

@@ -115,10 +115,13 @@ pub(crate) fn train<'py>(
 /// `progress`: called with `{"done", "total", "unit": "episodes", "elapsed_s"}` as episodes end
 /// (at most every 50 ms); Ctrl-C (or an exception of `progress`) stops the episodes at their next
 /// step and raises, and nothing is written.
+/// `env`: a Python `factory(task)` making each episode's environment (`crate::factory`) in place
+/// of the run's family's; the result is returned and not written (`evaluate_run_in`).
 #[pyfunction]
 #[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None,
                     prompt_strategy = None, prompt_episodes = None, prompt_length = None,
-                    adapt = None, adapt_steps = None, adapt_batch = None, progress = None))]
+                    adapt = None, adapt_steps = None, adapt_batch = None, progress = None,
+                    env = None))]
 #[allow(clippy::too_many_arguments)] // the keywords of `promptdt.evaluate`
 pub(crate) fn evaluate(
     py: Python<'_>,
@@ -134,8 +137,13 @@ pub(crate) fn evaluate(
     adapt_steps: Option<usize>,
     adapt_batch: Option<usize>,
     progress: Option<Py<PyAny>>,
+    env: Option<Py<PyAny>>,
 ) -> PyResult<String> {
     existing(&run_dir, "run directory")?;
+    let envs = env.map(|factory| {
+        std::sync::Arc::new(crate::factory::FactoryEnvs { factory })
+            as std::sync::Arc<dyn pdt_train::run::EnvMaker>
+    });
     let adapt = match adapt {
         None => None,
         Some(kind) => {
@@ -189,8 +197,10 @@ pub(crate) fn evaluate(
                 device,
                 data: data.clone(),
                 test_time,
+                repeats: 1,
             };
-            pdt_train::run::evaluate_run_as(&run_dir, &req).map_err(|e| Failure::of(&e))
+            pdt_train::run::evaluate_run_in(&run_dir, &req, envs.clone())
+                .map_err(|e| Failure::of(&e))
         })
     })?
     .map_err(|e| stopped_or(&report, e))?;

@@ -14,6 +14,9 @@
 //! (the parity fixtures record it), and whether batching changes a row's bits. Test-only: it lived
 //! in `pdt_model`'s public API before, though no library code asks it.
 //!
+//! [`python`]: the Python that runs the environment worker (`promptdt.worker` with gymnasium), or
+//! the test's skip, recorded as the reference data's are.
+//!
 //! [`process`]: one lock for libtorch's process-wide state, shared by the modules of a crate's one
 //! integration-test binary.
 
@@ -21,4 +24,5 @@ pub mod cpu;
 pub mod fs;
 pub mod golden;
 pub mod process;
+pub mod python;
 pub mod reference;

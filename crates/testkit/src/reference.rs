@@ -86,19 +86,24 @@ fn decide(path: PathBuf, test: &str, required: bool, log: Option<&Path>) -> Opti
     }
     eprintln!("skipped: {} not found (reference release's data; see {DATA_VAR})", path.display());
     if let Some(log) = log {
-        // One short line per write with O_APPEND: test binaries running side by side do not
-        // interleave their lines. A log that cannot be written must not fail the test it reports.
-        let line = format!("{test}\n");
-        let written = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(log)
-            .and_then(|mut f| f.write_all(line.as_bytes()));
-        if let Err(e) = written {
-            eprintln!("{}: {e}", log.display());
-        }
+        append_skip(log, test);
     }
     None
+}
+
+/// Appends `line` to the skip log `log`.
+pub(crate) fn append_skip(log: &Path, line: &str) {
+    // One short line per write with O_APPEND: test binaries running side by side do not
+    // interleave their lines. A log that cannot be written must not fail the test it reports.
+    let line = format!("{line}\n");
+    let written = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(log)
+        .and_then(|mut f| f.write_all(line.as_bytes()));
+    if let Err(e) = written {
+        eprintln!("{}: {e}", log.display());
+    }
 }
 
 #[cfg(test)]

@@ -7,11 +7,14 @@ use crate::methods;
 use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
+use pdt_envs::vec_env::VecEnv;
+use pdt_envs::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset};
 use pdt_prompt::PromptStrategy;
 use pdt_run::files::{latest_checkpoint, read_stats, run_config};
 use pdt_rundir::config::{AdaptConfig, Adaptation, TestTime};
 use pdt_rundir::{EvalRepeats, FinalEval, PromptEval, RunDir};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// What an evaluation of a run may change of the run's own (`promptdt eval`'s flags; each
 /// `None` or default: the run's).
@@ -98,6 +101,28 @@ pub fn asked_test_time(
 /// `eval_adapt_<kind>.json` with each task's adaptation log, leaving `eval_final.json` to the
 /// reference rule.
 pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunError> {
+    evaluate_run_in(dir, req, None)
+}
+
+/// Makes the environments of a batch of episodes in place of the run's family
+/// ([`EnvFamily::make_batch`]): a caller's own environments, e.g. the Python package's
+/// `evaluate(run, env=factory)`, whose factory's environments answer through
+/// `pdt_envs::worker::make_batch_over`.
+pub trait EnvMaker: Send + Sync {
+    /// The environments of episodes of the run's family `family`, environment `i` one of task
+    /// `tasks[i]` (the family's index).
+    fn make_batch(&self, family: &dyn EnvFamily, tasks: &[usize]) -> Result<VecEnv, EnvError>;
+}
+
+/// [`evaluate_run_as`], the episodes played in the environments `envs` makes when given. Such an
+/// evaluation writes no file: what the run directory records is what `promptdt eval` reproduces
+/// from the run alone, and a caller's environments are not part of the run (its result is
+/// returned only).
+pub fn evaluate_run_in(
+    dir: &Path,
+    req: &EvalRequest,
+    envs: Option<Arc<dyn EnvMaker>>,
+) -> Result<PromptEval, RunError> {
     let EvalRequest { episodes, split, device, data, test_time, repeats } = req;
     if !(1..=1000).contains(repeats) {
         return Err(RunError::invalid("repeats", format!("= {repeats}: must be in 1..=1000")));
@@ -113,7 +138,14 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     if let Some(t) = test_time {
         t.apply_to(&mut cfg).map_err(|e| RunError::invalid(dir.display(), e))?;
     }
-    let setup = Setup::new(cfg, dir)?;
+    let mut setup = Setup::new(cfg, dir)?;
+    let write = envs.is_none();
+    if let Some(maker) = envs {
+        // The same family again, as the set-up found it (a suite from the run's copy), to wrap
+        // (the setup's is boxed in place).
+        let inner = pdt_envs::family_of_run(&setup.cfg.env.name, &run.suite_path())?;
+        setup.family = Box::new(MadeBy { inner, maker });
+    }
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
     // run trained with (its checkpoints stay usable there).
     if setup.device.is_cuda() {
@@ -187,10 +219,92 @@ pub fn evaluate_run_as(dir: &Path, req: &EvalRequest) -> Result<PromptEval, RunE
     let adapt =
         if which == Split::Test { setup.cfg.eval.adapt.clone() } else { Default::default() };
     let out = PromptEval { eval: result, prompt_strategy, picks, adapt, adapt_log };
-    if out.prompt_strategy.is_default() && out.adapt.is_none() {
+    if !write {
+        // Returned only (see `evaluate_run_in`).
+    } else if out.prompt_strategy.is_default() && out.adapt.is_none() {
         run.write_final_eval(&out.eval)?;
     } else {
         run.write_prompt_eval(&out)?;
     }
     Ok(out)
+}
+
+/// The run's family with its batches of environments made by a caller's [`EnvMaker`]; all else
+/// (tasks, splits, constants) is the family's. The evaluations make their environments only
+/// through `make_batch`; a single environment (`make`: rendering, replay) stays the family's.
+/// Every method of [`EnvFamily`] is forwarded, so a method added to the trait with a default
+/// must be forwarded here too.
+struct MadeBy {
+    inner: Box<dyn EnvFamily>,
+    maker: Arc<dyn EnvMaker>,
+}
+
+impl EnvFamily for MadeBy {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn num_tasks(&self) -> usize {
+        self.inner.num_tasks()
+    }
+    fn preset(&self) -> EnvPreset {
+        self.inner.preset()
+    }
+    fn split_names(&self) -> Vec<String> {
+        self.inner.split_names()
+    }
+    fn split(&self, name: &str) -> Result<(Vec<usize>, Vec<usize>), EnvError> {
+        self.inner.split(name)
+    }
+    fn task_params(&self, task: usize) -> Result<serde_json::Value, EnvError> {
+        self.inner.task_params(task)
+    }
+    fn make(&self, task: usize) -> Result<Box<dyn Env>, EnvError> {
+        self.inner.make(task)
+    }
+    fn make_batch(&self, tasks: &[usize], _threads: usize) -> Result<VecEnv, EnvError> {
+        self.maker.make_batch(self.inner.as_ref(), tasks)
+    }
+    fn render_fps(&self) -> u32 {
+        self.inner.render_fps()
+    }
+    fn action_bounds(&self) -> ActionBounds {
+        self.inner.action_bounds()
+    }
+    fn success_reward(&self) -> Option<f32> {
+        self.inner.success_reward()
+    }
+    // The rest forwarded too, though no evaluation asks: the family stays the family in all but
+    // where its environments are made.
+    fn scripted(&self) -> Option<pdt_envs::collect_scripted::ScriptedFamily> {
+        self.inner.scripted()
+    }
+    fn rl_preset(&self) -> Option<&'static str> {
+        self.inner.rl_preset()
+    }
+    fn task_features(&self, task: usize) -> Result<Vec<f32>, EnvError> {
+        self.inner.task_features(task)
+    }
+    fn symmetries(&self) -> Vec<pdt_envs::BodySymmetry> {
+        self.inner.symmetries()
+    }
+    fn dataset_bar(&self) -> Option<pdt_envs::DatasetBar> {
+        self.inner.dataset_bar()
+    }
+    fn replay(
+        &self,
+        task: usize,
+        init: Option<&str>,
+        actions: &[Vec<f32>],
+    ) -> Result<pdt_envs::ReplayResult, EnvError> {
+        self.inner.replay(task, init, actions)
+    }
+    fn task_target_return(&self, task: usize) -> Option<f32> {
+        self.inner.task_target_return(task)
+    }
+    fn reference_returns(&self, task: usize) -> Option<(f64, f64)> {
+        self.inner.reference_returns(task)
+    }
+    fn as_suite(&self) -> Option<&pdt_envs::suite::SuiteFamily> {
+        self.inner.as_suite()
+    }
 }

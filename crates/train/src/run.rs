@@ -8,7 +8,9 @@
 //! would, and evaluation never disturbs training.
 
 pub use crate::error::RunError;
-pub use crate::evaluate::{asked_test_time, evaluate_run, evaluate_run_as, EvalRequest};
+pub use crate::evaluate::{
+    asked_test_time, evaluate_run, evaluate_run_as, evaluate_run_in, EnvMaker, EvalRequest,
+};
 pub use crate::run_loop::{
     run_config_for, train, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
 };

@@ -14,6 +14,7 @@
 mod check;
 mod file;
 
+use crate::vec_env::{EnvDims, VecEnv};
 use crate::worker::{WorkerSpec, WorkerTask};
 use crate::{ActionBounds, Env, EnvError, EnvFamily, EnvPreset};
 use std::path::{Path, PathBuf};
@@ -216,9 +217,27 @@ impl EnvFamily for SuiteFamily {
                 Some(_) => {
                     "in-process environment (the suite's [environment] runs in a Python worker)"
                 }
-                None => "environment (the suite declares no [environment]: evaluate it offline)",
+                None => "environment (the suite declares no [environment]: a run trains without evaluations)",
             },
         })
+    }
+
+    /// The episodes' environments in one Python worker process (the suite's `[environment]`),
+    /// one message per vector step ([`crate::worker::make_batch`]); refused as [`Self::make`]
+    /// refuses when the suite declares no environment.
+    fn make_batch(&self, tasks: &[usize], _threads: usize) -> Result<VecEnv, EnvError> {
+        let Some(spec) = &self.environment else {
+            return Err(EnvError::Unsupported {
+                env: self.name.clone(),
+                what: "environment (the suite declares no [environment]: a run trains without \
+                       evaluations)",
+            });
+        };
+        let slots = tasks.iter().map(|&t| self.worker_task(t)).collect::<Result<Vec<_>, _>>()?;
+        let p = &self.preset;
+        let dims = EnvDims { obs_dim: p.obs_dim, act_dim: p.act_dim, horizon: p.horizon };
+        let dir = self.path.parent().unwrap_or(Path::new("."));
+        crate::worker::make_batch(spec, dir, slots, dims)
     }
 
     /// The suite's `render_fps`, else 30 (what a video of its episodes plays at).

@@ -26,7 +26,7 @@ pub struct WorkerSpec {
     pub imports: Vec<String>,
     /// The Python interpreter that runs the worker; it must import `promptdt` and the
     /// environment's package. `None`: `$PROMPTDT_PYTHON`, else `python3` on `PATH`. A relative path
-    /// is taken from the suite file's directory.
+    /// is taken from the suite file's directory; a bare name (`python3.11`) is looked up on `PATH`.
     #[serde(default)]
     pub python: Option<PathBuf>,
     /// Seconds one vector step (or reset) may take before the worker counts as hung.

@@ -23,3 +23,5 @@ mod replay_parity;
 mod reward_check;
 mod suite;
 mod vec_env;
+mod vec_env_backend;
+mod worker;

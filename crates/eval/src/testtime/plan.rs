@@ -4,7 +4,8 @@
 //! the reference rule meet the same start states, and their returns compare episode by episode.
 
 use super::TestTimeError;
-use crate::{summarise, EpisodeRecord, EvalSettings, EvalTask, TaskResult};
+use crate::{summarise, EpisodePrompts, EpisodeRecord, EvalError, EvalSettings, EvalTask};
+use crate::{GivenPrompts, TaskResult};
 use pdt_data::{MultiTaskDataset, TaskData};
 use pdt_envs::EnvFamily;
 use pdt_model::PromptDt;
@@ -101,17 +102,25 @@ impl SplitEval<'_> {
         Ok((0..self.data.tasks.len()).map(|i| self.plan(&reference, i, rng)).collect())
     }
 
-    /// A task's evaluation: an environment per reset seed, and its prompt (`None`: the
-    /// evaluation's given prompts, or none for the methods without a prompt).
-    pub fn task(
-        &self,
-        plan: &TaskPlan,
-        seeds: &[u64],
-        prompt: Option<SegmentBatch>,
-    ) -> Result<EvalTask, TestTimeError> {
-        let envs = seeds.iter().map(|_| self.family.make(plan.index)).collect::<Result<_, _>>()?;
+    /// A task's evaluation: an episode per reset seed, and its prompt (`None`: the evaluation's
+    /// given prompts, or none for the methods without a prompt). Its environments are made by the
+    /// family when [`SplitEval::evaluate`] starts, all tasks' at once.
+    pub fn task(&self, plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>) -> EvalTask {
         let (name, index, seeds) = (plan.name.clone(), plan.index, seeds.to_vec());
-        Ok(EvalTask { name, index, envs, seeds, prompt })
+        EvalTask { name, index, envs: Vec::new(), seeds, prompt }
+    }
+
+    /// Plays the episodes of `tasks` (made by [`SplitEval::task`]) with `model` in the family's
+    /// environments ([`crate::evaluate_in`]), each episode's prompt chosen by `chooser` or the
+    /// prompts `given` where set.
+    pub fn evaluate(
+        &self,
+        model: &PromptDt,
+        tasks: Vec<EvalTask>,
+        chooser: Option<&mut dyn EpisodePrompts>,
+        given: Option<GivenPrompts<'_>>,
+    ) -> Result<Vec<EpisodeRecord>, EvalError> {
+        crate::evaluate_in(self.family, model, tasks, self.settings, chooser, given)
     }
 }
 

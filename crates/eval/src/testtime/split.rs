@@ -13,7 +13,7 @@ use super::select::{choose_prompt, pick, NearestStart};
 use super::task::{adapt_task, check_adaptable, start_prompt, AdaptTask, Adapted};
 use super::{AdaptConfig, AdaptKind, AdaptLog, TestTimeError};
 use crate::testtime::adapt::PromptScore;
-use crate::{evaluate, evaluate_given, evaluate_with, EpisodeRecord, EvalError, GivenPrompts};
+use crate::{EpisodeRecord, EvalError, GivenPrompts};
 use crate::{EvalTask, TaskResult};
 use pdt_model::PrefixCache;
 use pdt_prompt::bandit::SegmentBandit;
@@ -35,9 +35,8 @@ pub struct SplitResult {
 /// The reference rule: each task's planned prompt for all its episodes.
 pub fn evaluate_reference(ev: &SplitEval<'_>, rng: &mut Rng) -> Result<SplitResult, TestTimeError> {
     let plans = ev.plan_tasks(rng)?;
-    let tasks =
-        plans.iter().map(|p| ev.task(p, &p.seeds, p.prompt.clone())).collect::<Result<_, _>>()?;
-    let eps = evaluate(ev.model, tasks, ev.settings)?;
+    let tasks = plans.iter().map(|p| ev.task(p, &p.seeds, p.prompt.clone())).collect();
+    let eps = ev.evaluate(ev.model, tasks, None, None)?;
     Ok(SplitResult { results: summarise_plans(&plans, &eps), ..Default::default() })
 }
 
@@ -72,9 +71,9 @@ pub fn evaluate_strategy(
                 if strategy.strategy != PromptStrategyKind::Reference {
                     picks.push(pick(&plan.name, 0, chosen.segments, None));
                 }
-                tasks.push(ev.task(plan, &plan.seeds, Some(chosen.prompt))?);
+                tasks.push(ev.task(plan, &plan.seeds, Some(chosen.prompt)));
             }
-            let results = summarise_plans(&plans, &evaluate(ev.model, tasks, ev.settings)?);
+            let results = summarise_plans(&plans, &ev.evaluate(ev.model, tasks, None, None)?);
             for p in &mut picks {
                 if let Some(r) = results.iter().find(|r| r.task == p.task) {
                     p.episode_return = r.return_mean;
@@ -83,11 +82,10 @@ pub fn evaluate_strategy(
             (results, picks)
         }
         PromptStrategyKind::NearestStart => {
-            let tasks =
-                plans.iter().map(|p| ev.task(p, &p.seeds, None)).collect::<Result<_, _>>()?;
+            let tasks = plans.iter().map(|p| ev.task(p, &p.seeds, None)).collect();
             let names: Vec<String> = plans.iter().map(|p| p.name.clone()).collect();
             let mut chooser = NearestStart::new(&sampler, stride, &names);
-            let eps = evaluate_with(ev.model, tasks, ev.settings, Some(&mut chooser))?;
+            let eps = ev.evaluate(ev.model, tasks, Some(&mut chooser), None)?;
             let mut picks = chooser.into_picks();
             for (p, k) in picks.iter_mut() {
                 let ep = eps.iter().filter(|e| e.task_index == *k).nth(p.episode);
@@ -140,11 +138,11 @@ fn bandit_rounds(
             let c = bandits[i].choose(rng);
             let segments = bandits[i].segments(&c);
             let prompt = sampler.prompt_from_choices(i, &segments)?;
-            tasks.push(ev.task(plan, &plan.seeds[first..last], Some(prompt))?);
+            tasks.push(ev.task(plan, &plan.seeds[first..last], Some(prompt)));
             picks.push(pick(&plan.name, first, segments, Some((round, c.explored))));
             choices.push(c);
         }
-        let eps = evaluate(ev.model, tasks, ev.settings)?;
+        let eps = ev.evaluate(ev.model, tasks, None, None)?;
         let n = picks.len();
         for (i, c) in choices.iter().enumerate() {
             let returns: Vec<f64> =
@@ -219,16 +217,16 @@ pub fn evaluate_adapted(
             Adapted::Prompt(p) => tuned.push(p),
             Adapted::Lora { .. } => {
                 let given = GivenPrompts { prefix: a.prefix(model), lora: a.lora() };
-                let one = vec![ev.task(plan, &plan.seeds, None)?];
-                let mut eps = evaluate_given(model, one, ev.settings, given)?;
+                let one = vec![ev.task(plan, &plan.seeds, None)];
+                let mut eps = ev.evaluate(model, one, None, Some(given))?;
                 eps.iter_mut().for_each(|e| e.task_index = i);
                 all.extend(eps);
             }
             // The tuned weights are this task's alone: its episodes run now, alone, with the
             // start prompt as an ordinary prompt (as the reference rule's and PTDT's run).
             Adapted::Full(p) => {
-                let one = vec![ev.task(plan, &plan.seeds, Some(p))?];
-                let mut eps = evaluate(model, one, ev.settings)?;
+                let one = vec![ev.task(plan, &plan.seeds, Some(p))];
+                let mut eps = ev.evaluate(model, one, None, None)?;
                 eps.iter_mut().for_each(|e| e.task_index = i);
                 all.extend(eps);
             }
@@ -240,17 +238,16 @@ pub fn evaluate_adapted(
             let prefix = PrefixCache::cat(&refs).ok_or_else(|| {
                 TestTimeError::Failed("tuned prompts of different lengths".into())
             })?;
-            let tasks =
-                plans.iter().map(|p| ev.task(p, &p.seeds, None)).collect::<Result<_, _>>()?;
-            all = evaluate_given(model, tasks, ev.settings, GivenPrompts { prefix, lora: None })?;
+            let tasks = plans.iter().map(|p| ev.task(p, &p.seeds, None)).collect();
+            all = ev.evaluate(model, tasks, None, Some(GivenPrompts { prefix, lora: None }))?;
         }
         AdaptKind::Ptdt => {
             let tasks = plans
                 .iter()
                 .zip(tuned)
                 .map(|(p, t)| ev.task(p, &p.seeds, Some(t)))
-                .collect::<Result<Vec<EvalTask>, _>>()?;
-            all = evaluate(model, tasks, ev.settings)?;
+                .collect::<Vec<EvalTask>>();
+            all = ev.evaluate(model, tasks, None, None)?;
         }
         AdaptKind::Lora | AdaptKind::Full | AdaptKind::None => {}
     }
@@ -302,16 +299,9 @@ impl PromptScore for ReturnScore<'_> {
         rng: &mut Rng,
     ) -> Result<Vec<f64>, EvalError> {
         let seeds: Vec<u64> = (0..self.episodes).map(|_| rng.next_u64()).collect();
-        let setup_err = |e: TestTimeError| EvalError::Setup {
-            task: self.plan.name.clone(),
-            why: e.to_string(),
-        };
-        let tasks = candidates
-            .iter()
-            .map(|c| self.ev.task(self.plan, &seeds, Some(c.clone())))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(setup_err)?;
-        let eps = evaluate(self.ev.model, tasks, self.ev.settings)?;
+        let tasks =
+            candidates.iter().map(|c| self.ev.task(self.plan, &seeds, Some(c.clone()))).collect();
+        let eps = self.ev.evaluate(self.ev.model, tasks, None, None)?;
         Ok((0..candidates.len())
             .map(|k| {
                 let r: Vec<f64> =

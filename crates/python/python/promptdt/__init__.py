@@ -246,6 +246,7 @@ def evaluate(
     adapt_steps: Optional[int] = None,
     adapt_batch: Optional[int] = None,
     progress: ProgressArg = True,
+    env: Optional[Callable[[dict], Any]] = None,
 ) -> dict:
     """``promptdt eval``: the final evaluation of a run's latest checkpoint, also written to the
     run's ``eval_final.json``; returns its content.
@@ -264,7 +265,19 @@ def evaluate(
     ``progress``: True (default) shows a line on stderr (episodes done, time left), False shows
     nothing, a callable gets ``{"done", "total", "unit": "episodes", "elapsed_s"}`` as episodes end
     (an exception it raises stops the evaluation and propagates). Ctrl-C stops the episodes at
-    their next step and raises ``KeyboardInterrupt``; nothing is written then."""
+    their next step and raises ``KeyboardInterrupt``; nothing is written then.
+
+    ``env``: a ``factory(task)`` returning a new ``gymnasium.Env`` for one episode, ``task`` a dict
+    ``{"index", "name", "params"}`` of the run's family: the episodes are played in its
+    environments, in this process, with the run's protocol (episodes, reset seeds, prompts,
+    target return, success) and batched across episodes, each request answered by
+    ``promptdt.worker.Session(factory)`` as the CLI's worker answers it (docs/python.md). The
+    result is returned and nothing is written to the run directory (its files are what the run
+    alone reproduces). A factory that raises, spaces of other sizes than the family's, a
+    non-finite observation or a ``reset``/``step`` that raises: an ``InvalidInputError`` naming
+    the task (and the step)."""
+    if env is not None and not callable(env):
+        raise ArgumentTypeError(f"env: expected a callable factory(task) -> gymnasium.Env, got {env!r}")
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
     adapt_steps = _opt_uint("adapt_steps", adapt_steps, "a number of iterations", low=1)
     adapt_batch = _opt_uint("adapt_batch", adapt_batch, "a number of segments", low=1)
@@ -283,6 +296,7 @@ def evaluate(
         adapt_steps=adapt_steps,
         adapt_batch=adapt_batch,
         progress=report,
+        env=env,
     ))
     return _json.loads(text)
 

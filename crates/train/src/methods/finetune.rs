@@ -7,7 +7,6 @@ use crate::error::RunError;
 use crate::optim::Optimizer;
 use crate::setup::Setup;
 use crate::step::{train_step, unreadable, DeviceBatch};
-use pdt_eval::evaluate;
 use pdt_eval::testtime::{summarise_plans, SplitEval, SplitResult};
 use pdt_prompt::Rng;
 use pdt_rundir::config::{AdamWConfig, FinetuneData, LossOn};
@@ -41,7 +40,7 @@ pub(super) fn finetune_each(
     let mut results = Vec::new();
     for i in 0..ev.data.tasks.len() {
         let plan = ev.plan(&sampler, i, rng);
-        let task = ev.task(&plan, &plan.seeds, plan.prompt.clone())?;
+        let task = ev.task(&plan, &plan.seeds, plan.prompt.clone());
         let ocfg =
             AdamWConfig { learning_rate: tune.lr, warmup_steps: 1, ..setup.cfg.optim.clone() };
         let mut opt = Optimizer::new(vs, &setup.run_data.model_cfg.parameter_names(), ocfg);
@@ -62,7 +61,7 @@ pub(super) fn finetune_each(
             let batch = DeviceBatch { history, prompt: None };
             train_step(ev.model, &mut opt, &batch, LossOn::History, s).map_err(unreadable)?;
         }
-        let eps = evaluate(ev.model, vec![task], ev.settings)?;
+        let eps = ev.evaluate(ev.model, vec![task], None, None)?;
         results.extend(summarise_plans(std::slice::from_ref(&plan), &eps));
         tch::no_grad(|| {
             let vars = vs.variables();
