@@ -52,7 +52,8 @@ impl Drop for SessionTransport {
 }
 
 /// Makes each batch of an evaluation's environments by the Python `factory(task)` (`task`:
-/// `{"index", "name", "params"}` of the run's family).
+/// `{"index", "name", "params"}` of the run's family; of a suite, its task's name and `params`
+/// table, what its worker gets).
 pub(crate) struct FactoryEnvs {
     pub(crate) factory: Py<PyAny>,
 }
@@ -70,10 +71,15 @@ impl pdt_train::run::EnvMaker for FactoryEnvs {
         })?;
         let tasks = tasks
             .iter()
-            .map(|&index| {
-                // Named as the evaluation names its tasks (`TaskId`'s `family-index`).
-                let name = format!("{}-{index}", family.name());
-                Ok(WorkerTask { index, name, params: family.task_params(index)? })
+            .map(|&index| match family.as_suite() {
+                // A suite's task as its CLI worker gets it: its name and `params` table, so a
+                // factory serves both ways of evaluating.
+                Some(suite) => suite.worker_task(index),
+                // Named as the evaluation names a built-in family's tasks (`family-index`).
+                None => {
+                    let name = format!("{}-{index}", family.name());
+                    Ok(WorkerTask { index, name, params: family.task_params(index)? })
+                }
             })
             .collect::<Result<Vec<_>, EnvError>>()?;
         let p = family.preset();
