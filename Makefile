@@ -29,6 +29,8 @@ demo: setup
 # beside the checkout in CI, or where PROMPTDT_REFERENCE_DATA points. A clone without it skips the
 # tests that read it (each appends its name to REFERENCE_SKIPS), and the list is printed once after
 # the run. CI sets PROMPTDT_REQUIRE_REFERENCE_DATA=1, which makes a missing directory a failure.
+# The environment worker's tests, which need a Python with promptdt and gymnasium, log their skips
+# there too; `make python-test` then runs them against the venv it builds.
 REFERENCE_SKIPS := target/reference-data-skipped.txt
 
 # --no-fail-fast: every test binary runs even when one fails, so a failure report is complete.
@@ -40,9 +42,9 @@ test: setup setup-render live-golden
 	@status=0; OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} PROMPTDT_LIVE_GOLDEN=$(abspath $(LIVE_GOLDEN)) PROMPTDT_REFERENCE_SKIP_LOG=$(abspath $(REFERENCE_SKIPS)) $(CARGO) test --release --workspace --no-fail-fast || status=$$?; \
 	if [ -s $(REFERENCE_SKIPS) ]; then \
 		echo; \
-		echo "note: $$(sort -u $(REFERENCE_SKIPS) | wc -l) tests skipped what needs the reference release's data (the whole test, or the part that reads it):"; \
-		echo "  it is not at $${PROMPTDT_REFERENCE_DATA:-../shared/data}."; \
-		echo "  Put it there or set PROMPTDT_REFERENCE_DATA=DIR to run them (docs/reproduce.md, 'Reference data')."; \
+		echo "note: $$(sort -u $(REFERENCE_SKIPS) | wc -l) tests skipped what they need from outside (the whole test, or the part that needs it; each line says what):"; \
+		echo "  the reference release's data, looked for at $${PROMPTDT_REFERENCE_DATA:-../shared/data} (PROMPTDT_REFERENCE_DATA=DIR;"; \
+		echo "  docs/reproduce.md, 'Reference data'), or a Python with promptdt and gymnasium (PROMPTDT_PYTHON; make python)."; \
 		sort -u $(REFERENCE_SKIPS) | sed 's/^/  - /'; \
 	fi; \
 	exit $$status

@@ -61,7 +61,7 @@ CASES = {
     "scalar reward": (lambda run: policy_under_way(run).act(np.zeros((1, 2)), 0.5), ValueError, r"reward: shape \[\], expected \[1\] \(one per episode\)"),
     "train seed=-1": (lambda run: promptdt.train(run, seed=-1, progress=False), ValueError, r"seed: -1 given, expected a seed"),
     "train iterations=-3": (lambda run: promptdt.train(run, iterations=-3, progress=False), ValueError, r"iterations: -3 given, expected a number of iterations"),
-    "train matmul=bf16": (lambda run: promptdt.train(run.parent / "m", run.parent / "tiny.toml", matmul="bf16", progress=False), ValueError, r"matmul: unknown matmul precision `bf16` \(expected fp32 or tf32\)"),
+    "train matmul=fp16": (lambda run: promptdt.train(run.parent / "m", run.parent / "tiny.toml", matmul="fp16", progress=False), ValueError, r"matmul: unknown matmul precision `fp16` \(expected fp32, tf32 or bf16\)"),
     "train matmul=tf32 on the cpu": (lambda run: promptdt.train(run.parent / "m", run.parent / "tiny.toml", matmul="tf32", progress=False), ValueError, r"matmul = tf32 needs a CUDA device, and the device is the CPU"),
     "train resume matmul": (lambda run: promptdt.train(run, resume=True, matmul="tf32", progress=False), ValueError, r"matmul: not with resume=True"),
     "evaluate episodes=-1": (lambda run: promptdt.evaluate(run, episodes=-1), ValueError, r"episodes: -1 given, expected a number of episodes"),

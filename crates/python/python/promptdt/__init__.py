@@ -207,8 +207,8 @@ def train(
     ``out`` exactly where it stopped (``resume=True``; ``iterations`` then sets the run's length).
     Returns ``{"dir", "iterations_done", "finished", "last_test_mean"}``.
 
-    ``matmul``: ``"fp32"`` or ``"tf32"``, how a CUDA device computes float32 products (the run's
-    ``run.matmul``; docs/implementation-details.md, C.8). Not with ``resume=True``.
+    ``matmul``: ``"fp32"``, ``"tf32"`` or ``"bf16"``, how the run computes its matrix products
+    (the run's ``run.matmul``; docs/implementation-details.md, C.8). Not with ``resume=True``.
 
     ``progress``: True (default) shows a line on stderr (iteration, loss, time left), False shows
     nothing, a callable is called after every iteration with ``{"iteration", "iterations",
