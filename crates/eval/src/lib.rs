@@ -585,15 +585,7 @@ fn evaluate_inner(
     };
     let mut venv = match family {
         None => VecEnv::new(envs, cfg.env_threads),
-        Some(f) => {
-            let all: Vec<usize> = (0..n).collect();
-            let charge = |source| EvalError::Env { task: task_names(&names, &queue, &all), source };
-            let venv = f.make_batch(&family_tasks, cfg.env_threads).map_err(charge)?;
-            for (d, ep) in venv.dims().iter().zip(&queue) {
-                check_dims(&names[ep.task], d.obs_dim, d.act_dim, ds, da)?;
-            }
-            venv
-        }
+        Some(f) => family_batch(f, &family_tasks, &names, &queue, cfg, (ds, da))?,
     };
     let mut batch = Batch {
         model,
@@ -631,20 +623,7 @@ fn evaluate_inner(
             }
         }
         if !chosen.is_empty() {
-            if let Some(p) = chosen.iter().find(|p| p.steps != chosen[0].steps || p.batch != 1) {
-                let why = format!(
-                    "per-episode prompts of {} and {} steps: one length is needed",
-                    chosen[0].steps, p.steps
-                );
-                return Err(EvalError::Setup { task: String::new(), why });
-            }
-            let refs: Vec<&SegmentBatch> = chosen.iter().collect();
-            batch.episode_prefix = match cfg.inference {
-                Inference::Cached => {
-                    Some(tch::no_grad(|| model.prefix(&prompt_batch(&refs, cfg.device), None)))
-                }
-                Inference::Full => None,
-            };
+            batch.episode_prefix = episode_prefix(model, cfg, &chosen)?;
             batch.episode_prompts = chosen;
         }
         run_batch(&mut venv, slots, &mut batch)?;
@@ -653,6 +632,48 @@ fn evaluate_inner(
     // Episodes of a batch end in any order; report them in (task, episode) order.
     done.sort_by_key(|(id, _)| *id);
     Ok(done.into_iter().map(|(_, r)| r).collect())
+}
+
+/// The prefix of the prompts `chosen` for a batch's episodes (one each, all of one length), on the
+/// cached path; `None` on the full one.
+fn episode_prefix(
+    model: &PromptDt,
+    cfg: &EvalSettings,
+    chosen: &[SegmentBatch],
+) -> Result<Option<PrefixCache>, EvalError> {
+    if let Some(p) = chosen.iter().find(|p| p.steps != chosen[0].steps || p.batch != 1) {
+        let why = format!(
+            "per-episode prompts of {} and {} steps: one length is needed",
+            chosen[0].steps, p.steps
+        );
+        return Err(EvalError::Setup { task: String::new(), why });
+    }
+    let refs: Vec<&SegmentBatch> = chosen.iter().collect();
+    Ok(match cfg.inference {
+        Inference::Cached => {
+            Some(tch::no_grad(|| model.prefix(&prompt_batch(&refs, cfg.device), None)))
+        }
+        Inference::Full => None,
+    })
+}
+
+/// The family's environments of the episodes `queue` (`tasks[i]`: episode `i`'s task), each of
+/// the model's sizes `(obs, act)`; an error names the tasks of the batch.
+fn family_batch(
+    family: &dyn EnvFamily,
+    tasks: &[usize],
+    names: &[String],
+    queue: &[Running],
+    cfg: &EvalSettings,
+    (ds, da): (usize, usize),
+) -> Result<VecEnv, EvalError> {
+    let all: Vec<usize> = (0..queue.len()).collect();
+    let charge = |source| EvalError::Env { task: task_names(names, queue, &all), source };
+    let venv = family.make_batch(tasks, cfg.env_threads).map_err(charge)?;
+    for (d, ep) in venv.dims().iter().zip(queue) {
+        check_dims(&names[ep.task], d.obs_dim, d.act_dim, ds, da)?;
+    }
+    Ok(venv)
 }
 
 /// Refuses an environment of other sizes than the model's.
