@@ -33,7 +33,7 @@ import tomllib
 import warnings
 from multiprocessing import Pool
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, Tuple
 
 import numpy as np
 
@@ -153,9 +153,8 @@ def main() -> None:
     with Pool(a.jobs) as pool:
         for k, line in enumerate(pool.imap(collect_task, jobs), 1):
             print(f"[{time.time() - start:6.0f} s] {k}/{len(jobs)} {line}", flush=True)
-    import metaworld
-
     from importlib.metadata import version
+
     write_card(suite, out, {
         "policy": f"metaworld.policies ({mw_envs.scripted_policy(suite['environment']['kwargs']['env_name']).__class__.__name__})",
         "metaworld": version("metaworld"), "mujoco": version("mujoco"),
