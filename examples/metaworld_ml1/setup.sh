@@ -7,7 +7,9 @@
 #
 # The promptdt wheel: PROMPTDT_WHEEL=path/to/promptdt-*.whl installs that one; otherwise
 # scripts/install_python.sh builds it from this checkout and installs it (minutes, once).
-# PYTHON picks the interpreter (Meta-World 3.1.1 needs Python 3.10 to 3.13).
+# PYTHON picks the interpreter (Meta-World 3.1.1 needs Python 3.10 to 3.13). A promptdt already in
+# VENV is kept: after updating the checkout, remove VENV (or pip-install the new wheel) so that the
+# worker speaks the `promptdt` binary's protocol (it refuses another, saying so).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
