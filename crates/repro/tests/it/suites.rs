@@ -172,3 +172,28 @@ fn bad_suites_are_refused_by_name() {
     let err = Manifest::load(&path).expect_err("built-in name").to_string();
     assert!(err.contains("suites.point_robot") && err.contains("built-in"), "{err}");
 }
+
+#[test]
+fn the_metaworld_example_manifest_plans_on_its_committed_suites() {
+    // Read from the checkout (its suite files are committed; its data and venv are not needed to
+    // plan): docs/your-own-tasks.md's worked example stays a manifest `reproduce` accepts.
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/metaworld_ml1/experiment.toml");
+    let m = Manifest::load(&path.to_string_lossy()).expect("the example manifest loads");
+    let d = tempfile::tempdir().expect("tempdir");
+    let plan =
+        pdt_repro::plan::plan(&m, &PlanOptions { budget: "cpu".into(), ..options(d.path()) })
+            .expect("plans");
+    assert_eq!(plan.runs.len(), 12, "2 suites x 2 methods x 3 seeds");
+    for r in &plan.runs {
+        assert!(r.config.env.name.ends_with("-v3.toml"), "{}", r.config.env.name);
+        assert!(
+            r.data.prepared.is_some()
+                && r.data.dir.ends_with(r.config.data.dir.file_name().unwrap_or_default())
+        );
+    }
+    for env in ["ml1_push", "ml1_pick_place"] {
+        let family = m.family(env).expect("suite");
+        assert_eq!((family.num_tasks(), family.split("default").expect("split").1.len()), (50, 5));
+    }
+}
