@@ -23,6 +23,9 @@ use std::process::{Child, Command, Stdio};
 /// directory: a later `reproduce` removes a temporary directory whose lock is free (its collector
 /// is dead, [`remove_stale_data_temps`]) and leaves a live one alone.
 pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError> {
+    if let Some(p) = &d.prepared {
+        return check_prepared(d, p).map(|()| false);
+    }
     if d.dir.join("dataset.json").is_file() {
         return Ok(false);
     }
@@ -43,6 +46,30 @@ pub fn ensure_data(d: &DataSpec, opts: &ExecOptions) -> Result<bool, ReproError>
     let _ = std::fs::remove_file(&lock_path);
     drop(lock);
     result
+}
+
+/// A suite's data, made by the user's collection step, are there (at least one dataset file; the
+/// training checks every file it reads, naming it); else an error saying what makes them.
+fn check_prepared(d: &DataSpec, p: &crate::plan::Prepared) -> Result<(), ReproError> {
+    let present = std::fs::read_dir(&d.dir).is_ok_and(|entries| {
+        entries.flatten().any(|e| e.file_name().to_string_lossy().ends_with(".safetensors"))
+    });
+    if present {
+        return Ok(());
+    }
+    let how = match &p.collect {
+        Some(c) => format!("make them first: {c}"),
+        None => "make them first with your collection step (promptdt.write_dataset, or \
+                 `promptdt data import`)"
+            .to_string(),
+    };
+    Err(ReproError::Invalid(format!(
+        "suite {}: no datasets in {} (the manifest's suites.{}.data): reproduce does not collect \
+         a suite's data; {how}",
+        d.env,
+        d.dir.display(),
+        d.env
+    )))
 }
 
 fn collect_into(d: &DataSpec, tmp: &Path, opts: &ExecOptions) -> Result<bool, ReproError> {
@@ -320,7 +347,8 @@ fn prepare_data(
         }
     }
     let mut roots: Vec<PathBuf> = Vec::new();
-    for d in plan.data() {
+    // A suite's data directory is the user's: nothing of reproduce's is ever left there.
+    for d in plan.data().into_iter().filter(|d| d.prepared.is_none()) {
         if let Some(root) = d.dir.parent() {
             if !roots.iter().any(|r| r == root) {
                 roots.push(root.to_path_buf());
@@ -442,7 +470,7 @@ fn task_cpus(group: &[&RunSpec]) -> usize {
 pub fn check_agents(plan: &Plan, pretrained_root: &Path) -> Result<(), ReproError> {
     for d in plan.data() {
         let scripted = pdt_envs::family(&d.env).is_ok_and(|f| f.scripted().is_some());
-        if scripted || d.dir.join("dataset.json").is_file() {
+        if scripted || d.prepared.is_some() || d.dir.join("dataset.json").is_file() {
             continue;
         }
         let agent = pretrained_root.join(&d.env).join("agent.json");

@@ -26,6 +26,7 @@ pub mod registry;
 pub mod render;
 pub mod report;
 pub mod stats;
+pub mod suites;
 pub mod status;
 pub mod sweep;
 pub mod task_blind;

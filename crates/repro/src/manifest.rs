@@ -3,12 +3,14 @@
 //! many iterations and seeds, and the reduced settings of the `cpu` and `smoke` budgets).
 //!
 //! The committed manifests are compiled in ([`builtin`]), so `promptdt reproduce fig2` works from
-//! any directory; a path to another manifest file works too.
+//! any directory; a path to another manifest file works too. A manifest file may name a user's task
+//! suites (`[suites.<name>]`, [`crate::suites`]) as its cells' environments.
 
+use crate::suites::SuiteRef;
 use crate::ReproError;
 use serde::Deserialize;
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// The committed manifests, in the order `--list` shows them.
 pub const BUILTIN: &[(&str, &str)] = &[
@@ -53,6 +55,10 @@ pub struct Manifest {
     /// [`ReferenceExperts`]), keyed by environment: what normalises the paper's values.
     #[serde(default)]
     pub reference_experts: BTreeMap<String, ReferenceExperts>,
+    /// A user's task suites the cells may name as their `env` (`[suites.<name>]`): their paths
+    /// taken from the manifest file's directory once read ([`Manifest::load`]).
+    #[serde(default)]
+    pub suites: BTreeMap<String, SuiteRef>,
 }
 
 /// The families the reference release has expert prompt files for (`official-prompts/`).
@@ -148,6 +154,12 @@ pub struct Settings {
     /// shrinks them).
     pub finetune_batch: Option<usize>,
     pub finetune_steps: Option<u64>,
+    /// The optimiser's peak learning rate and linear warm-up (`[optim]`; default the reference's
+    /// 1e-4 over 10000 steps): a short budget of a few hundred steps would otherwise end its
+    /// warm-up at a few percent of the peak rate (a user's experiment sets them; the paper's keep
+    /// the reference's).
+    pub learning_rate: Option<f64>,
+    pub warmup_steps: Option<u64>,
     /// MACAW cells: the preset (`official` or `promptdt`, default `promptdt`: the paper's table),
     /// then its width, its inner and outer batch size and its buffer stride (the smaller budgets
     /// shrink them).
@@ -178,6 +190,8 @@ impl Settings {
             data_episodes,
             prompt_set_episodes,
             finetune_batch,
+            learning_rate,
+            warmup_steps,
             macaw_preset,
             macaw_width,
             macaw_batch,
@@ -325,7 +339,11 @@ impl Manifest {
         if path.is_file() {
             let text = pdt_base::fs::read_text_limited(path, pdt_base::fs::MAX_TEXT_BYTES)
                 .map_err(|e| ReproError::Io { path: path.to_path_buf(), source: e })?;
-            return Self::parse(&text, name_or_path);
+            // A suite's paths are the manifest's neighbours wherever `reproduce` runs from.
+            let dir = std::path::absolute(path)
+                .map_err(|e| ReproError::Io { path: path.to_path_buf(), source: e })?;
+            let base = dir.parent().unwrap_or(Path::new("/")).to_path_buf();
+            return Self::parse_in(&text, name_or_path, &base);
         }
         Err(ReproError::UnknownExperiment {
             name: name_or_path.to_string(),
@@ -333,11 +351,34 @@ impl Manifest {
         })
     }
 
+    /// A manifest's text; its suites' relative paths are taken from the working directory.
     pub fn parse(text: &str, origin: &str) -> Result<Self, ReproError> {
-        let m: Manifest = toml::from_str(text)
+        let cwd = std::env::current_dir()
+            .map_err(|e| ReproError::Io { path: PathBuf::from("."), source: e })?;
+        Self::parse_in(text, origin, &cwd)
+    }
+
+    /// A manifest's text whose suites' relative paths are taken from `base` (the manifest file's
+    /// directory).
+    pub fn parse_in(text: &str, origin: &str, base: &Path) -> Result<Self, ReproError> {
+        let mut m: Manifest = toml::from_str(text)
             .map_err(|e| ReproError::Manifest { origin: origin.into(), message: e.to_string() })?;
+        for s in m.suites.values_mut() {
+            *s = s.resolved(base);
+        }
         m.check(origin)?;
         Ok(m)
+    }
+
+    /// The family name a cell's `env` stands for: a suite's file path for a suite of
+    /// `[suites]`, the name itself for a built-in family.
+    pub fn family_name(&self, env: &str) -> String {
+        self.suites.get(env).map_or_else(|| env.to_string(), SuiteRef::family_name)
+    }
+
+    /// The environment family a cell's `env` names (a suite read from its file).
+    pub fn family(&self, env: &str) -> Result<Box<dyn pdt_envs::EnvFamily>, pdt_envs::EnvError> {
+        pdt_envs::family(&self.family_name(env))
     }
 
     fn check(&self, origin: &str) -> Result<(), ReproError> {
@@ -359,8 +400,19 @@ impl Manifest {
                 return bad(format!("cell {}: {why}", c.id()));
             }
             if c.pending.is_none() {
-                if pdt_envs::family(&c.env).is_err() {
-                    return bad(format!("cell {}: unknown environment {:?}", c.id(), c.env));
+                if let Err(e) = self.family(&c.env) {
+                    // A suite's own error names its file and field; a name is either a suite of
+                    // `[suites]` or a built-in family.
+                    return bad(match self.suites.contains_key(&c.env) {
+                        true => format!("cell {}: suites.{}: {e}", c.id(), c.env),
+                        false => format!(
+                            "cell {}: unknown environment {:?} (a built-in family, or a suite \
+                             named in [suites]: {})",
+                            c.id(),
+                            c.env,
+                            self.suites.keys().cloned().collect::<Vec<_>>().join(", ")
+                        ),
+                    });
                 }
                 if c.method.parse::<pdt_rundir::config::Method>().is_err() {
                     return bad(format!("cell {}: unknown method {:?}", c.id(), c.method));
@@ -394,6 +446,11 @@ impl Manifest {
                 if !ids.contains(c) {
                     return bad(format!("claim {:?} names unknown cell {c}", claim.text));
                 }
+            }
+        }
+        for name in self.suites.keys() {
+            if let Err(why) = crate::suites::check_name(name) {
+                return bad(why);
             }
         }
         for (env, r) in &self.reference_experts {

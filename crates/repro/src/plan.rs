@@ -4,7 +4,8 @@
 //! Layout under the output directory (`--out`, default `runs/repro`):
 //!
 //! ```text
-//! data/<env>[-e<episodes>]/          datasets (collect --from-pretrained, or scripted for point_robot)
+//! data/<env>[-e<episodes>]/          datasets (collect --from-pretrained, or scripted for point_robot;
+//!                                    a manifest's suite names its own data directory instead)
 //! runs/<cell id>/<budget>/seed<N>/   one ordinary run directory per (cell, budget, seed)
 //! configs/<cell id>__<budget>__seed<N>.toml   the configuration each run was started from
 //! logs/<same name>.log               the run's own output
@@ -29,6 +30,16 @@ pub struct DataSpec {
     pub dir: PathBuf,
     pub episodes: Option<usize>,
     pub prompt_episodes: Option<usize>,
+    /// A suite's data (`[suites.<env>]`): made by the user's own collection step, which this
+    /// names (its `collect`, if given); never collected by `reproduce`, only checked to be there.
+    pub prepared: Option<Prepared>,
+}
+
+/// Data a manifest's suite names (`[suites.<name>] data`), made before `reproduce` runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prepared {
+    /// The manifest's `[suites.<name>] collect`: the command that makes them, in words.
+    pub collect: Option<String>,
 }
 
 /// One run of the plan.
@@ -136,20 +147,33 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
             skipped.push(Skipped { cell: i, reason: format!("not run at the {budget} budget") });
             continue;
         }
-        let data = DataSpec {
-            env: cell.env.clone(),
-            dir: data_root.join(match s.data_episodes {
-                Some(e) => format!("{}-e{e}", cell.env),
-                None => cell.env.clone(),
-            }),
-            episodes: s.data_episodes,
-            prompt_episodes: s.prompt_set_episodes,
+        let data = match m.suites.get(&cell.env) {
+            // A suite's data are where the manifest says: the user's collection step made them
+            // (episode counts are that step's, so `data_episodes` does not apply).
+            Some(suite) => DataSpec {
+                env: cell.env.clone(),
+                dir: suite.data.clone(),
+                episodes: None,
+                prompt_episodes: None,
+                prepared: Some(Prepared { collect: suite.collect.clone() }),
+            },
+            None => DataSpec {
+                env: cell.env.clone(),
+                dir: data_root.join(match s.data_episodes {
+                    Some(e) => format!("{}-e{e}", cell.env),
+                    None => cell.env.clone(),
+                }),
+                episodes: s.data_episodes,
+                prompt_episodes: s.prompt_set_episodes,
+                prepared: None,
+            },
         };
+        let family = m.family_name(&cell.env);
         let n = o.seeds.or(s.seeds).unwrap_or(3);
         for seed in 0..u64::from(n) {
             let key = format!("{}/{budget}/seed{seed}", cell.id());
             let flat = key.replace('/', "__");
-            let mut config = config_for(trained, &s, seed, o.threads, &data.dir)?;
+            let mut config = config_for(trained, &family, &s, seed, o.threads, &data.dir)?;
             config.run.device = o.device;
             config.run.matmul = o.matmul;
             let mut variant = None;
@@ -193,9 +217,11 @@ pub fn plan(m: &Manifest, o: &PlanOptions) -> Result<Plan, ReproError> {
 }
 
 /// The training configuration of one run: the reference code's defaults (as `configs/` has them),
-/// the cell's variant, then the budget's settings.
+/// the cell's variant, then the budget's settings. `family` is the family the cell's `env` stands
+/// for ([`Manifest::family_name`]: a suite's file path, or the built-in family's name).
 pub fn config_for(
     cell: &Cell,
+    family: &str,
     s: &crate::manifest::Settings,
     seed: u64,
     threads: usize,
@@ -209,7 +235,7 @@ pub fn config_for(
     c.run.method = method;
     c.run.seed = seed;
     c.run.threads = threads;
-    c.env.name = cell.env.clone();
+    c.env.name = family.to_string();
     c.env.split = cell.split.clone().unwrap_or_else(|| "default".into());
     c.data.dir = data_dir.to_path_buf();
     let d = cell.dataset.clone().unwrap_or_else(|| "expert".into());
@@ -259,6 +285,12 @@ pub fn config_for(
     }
     if let Some(v) = s.finetune_batch {
         c.eval.finetune_batch = v;
+    }
+    if let Some(v) = s.learning_rate {
+        c.optim.learning_rate = v;
+    }
+    if let Some(v) = s.warmup_steps {
+        c.optim.warmup_steps = v;
     }
     if let Some(v) = s.finetune_steps {
         c.eval.finetune_steps = v;

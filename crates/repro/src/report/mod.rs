@@ -452,7 +452,9 @@ impl CellReader<'_> {
     /// The paper's number normalised as ours are (with the reference's experts where known), and
     /// whether ours is within the paper's spread of it.
     fn paper_normalised(&self, res: &mut CellResult, cell: &crate::manifest::Cell, b: &Baselines) {
-        let test_tasks = pdt_envs::family(&cell.env)
+        let test_tasks = self
+            .m
+            .family(&cell.env)
             .and_then(|f| f.split(cell.split.as_deref().unwrap_or("default")))
             .map(|(_, test)| test)
             .unwrap_or_default();

@@ -7,3 +7,4 @@
 mod bootstrap_python;
 mod reference_experts;
 mod results_md;
+mod suites;
