@@ -70,9 +70,9 @@ def test_every_front_end_takes_the_suite(example):
     assert info["env"] == "pendulum_mass", info
     assert (run / "suite.toml").read_text() == (here / "suite.toml").read_text()
     evals = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
-    # Every 10 iterations from the first, both held-out tasks (6 and 7).
+    # Every 10 iterations from the first, and at the last, both held-out tasks (6 and 7).
     assert [(e["iteration"], e["task_index"]) for e in evals] == [
-        (i, t) for i in (1, 11, 21) for t in (6, 7)], evals
+        (i, t) for i in (1, 11, 21, 30) for t in (6, 7)], evals
     # eval: the two held-out masses, 4 episodes each, 100 steps (the suite's horizon).
     final = json.loads((run / "eval_final.json").read_text())
     assert [t["task_index"] for t in final["tasks"]] == [6, 7]
@@ -87,3 +87,34 @@ def test_every_front_end_takes_the_suite(example):
     m = re.search(r"served prompt-dt \(iteration 30\): one episode of task 6 \{'mass': 1.1\}, "
                   r"100 steps, return (-?[0-9.]+)", stdout)
     assert m, stdout
+
+
+def test_reproduce_reads_a_users_manifest_naming_the_suite(example, repo):
+    """`promptdt reproduce` takes a manifest file naming the suite, and gets as far as its data:
+    it collects each cell's data itself, and a suite has no policy to collect with yet, so it
+    stops there with the reason (issue 53 items 4 and 5, collection from a Python policy and
+    user manifests, are what take it further; this test is then to run the cell to its report)."""
+    here, _ = example
+    manifest = here / "smoke.toml"
+    manifest.write_text("""
+name = "pendulum_mass_smoke"
+title = "Prompt-DT on the pendulum_mass suite"
+description = "A user's experiment: one cell, the example's suite."
+layout = "table"
+[budgets.smoke]
+note = "seconds"
+seeds = 1
+iterations = 2
+steps_per_iteration = 2
+eval_episodes = 1
+[[cells]]
+env = "suite.toml"
+method = "prompt-dt"
+row = "Prompt-DT"
+column = "pendulum_mass"
+""")
+    out = subprocess.run([str(promptdt_exe(repo)), "reproduce", str(manifest), "--budget", "smoke",
+                          "--out", "repro"], cwd=here, capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0, out.stdout
+    assert "pendulum_mass has neither scripted policies nor an RL agent preset" in out.stderr, out.stderr
+    assert "write_dataset" in out.stderr, out.stderr
