@@ -19,10 +19,10 @@ pytest.importorskip("gymnasium")
 EXAMPLE = "examples/pendulum_tasks"
 
 
-def readme_block(repo):
-    text = (repo / "README.md").read_text()
+def readme_block(repo, doc="README.md"):
+    text = (repo / doc).read_text()
     m = re.search(r"<!-- tasks-example[^>]*-->\n```sh\n(.*?)```", text, re.S)
-    assert m, "README has no tasks-example block"
+    assert m, f"{doc} has no tasks-example block"
     return m.group(1)
 
 
@@ -60,6 +60,8 @@ def test_readme_block_is_the_whole_pipeline(repo):
     assert [c[:2] for c in commands] == [
         ["cd", EXAMPLE], ["python", "collect.py"], ["promptdt", "train"], ["promptdt", "eval"],
         ["python", "evaluate.py"], ["promptdt", "report"], ["python", "serve_episode.py"]]
+    # docs/your-own-tasks.md shows the same lines: the copy there cannot drift either.
+    assert readme_block(repo, "docs/your-own-tasks.md") == block
 
 
 def test_every_front_end_takes_the_suite(example):
