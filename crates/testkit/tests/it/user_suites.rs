@@ -82,7 +82,9 @@ fn no_rust_source_names_a_user_suite() {
     let suites = example_suites(&root);
     // The worked example is one of them: an empty list would check nothing.
     assert!(
-        suites.iter().any(|(p, n)| p == "examples/pendulum_tasks/suite.toml" && n == "pendulum_mass"),
+        suites
+            .iter()
+            .any(|(p, n)| p == "examples/pendulum_tasks/suite.toml" && n == "pendulum_mass"),
         "{suites:?}"
     );
     let sources = non_test_sources(&root);
