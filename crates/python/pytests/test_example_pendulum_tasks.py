@@ -117,6 +117,8 @@ column = "pendulum_mass"
 """)
     out = subprocess.run([str(promptdt_exe(repo)), "reproduce", str(manifest), "--budget", "smoke",
                           "--out", "repro"], cwd=here, capture_output=True, text=True, timeout=300)
+    # Refused with a reason naming the suite (today `collect`'s: no policy to collect it with), not
+    # a crash. When reproduce gets through, this fails: extend it to the cell's report then.
     assert out.returncode != 0, out.stdout
-    assert "pendulum_mass has neither scripted policies nor an RL agent preset" in out.stderr, out.stderr
-    assert "write_dataset" in out.stderr, out.stderr
+    assert "pendulum_mass" in out.stderr and "collect" in out.stderr, out.stderr
+    assert "panicked" not in out.stderr, out.stderr
