@@ -3,7 +3,7 @@ commands: a user's gymnasium task family (Pendulum-v1, the pole mass as the task
 lines of Python, its data written with ``promptdt.write_dataset``, Prompt-DT trained through the
 CLI (evaluations in the user's environments through the worker), evaluated from the CLI and from
 Python with equal returns, reported, and served for one episode; no front end names the suite
-(``crates/testkit/tests/it/structure.rs`` checks that no Rust source does)."""
+(``crates/testkit/tests/it/user_suites.rs`` checks that no Rust source does)."""
 import json
 import os
 import pathlib
