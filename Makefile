@@ -74,6 +74,9 @@ python:
 
 python-test:
 	PROMPTDT_PY_EXTRAS=minari bash scripts/install_python.sh $(PY_VENV)
+	# The promptdt command, for the tests that drive it (examples/pendulum_tasks by the README's
+	# commands, reproduce): nothing to build after `make test` (CI), which built it already.
+	$(CARGO) build --release -p promptdt
 	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} $(PY_VENV)/bin/python -m pytest -q crates/python/pytests
 	# The environment worker's Rust tests (gymnasium through `python -m promptdt.worker`), against
 	# the venv just built: `make test` skips them where no such Python is found.

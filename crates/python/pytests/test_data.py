@@ -104,32 +104,16 @@ def test_flat_dataset_is_every_step_in_task_order(point_data):
     np.testing.assert_array_equal(again.task_ids, flat.task_ids)
 
 
-_SUITE = """
-name = "toy_line"
-obs_dim = 2
-act_dim = 1
-action_bound = 1.0
-max_ep_len = 10
-rtg_scale = 10
-target_return = 10.0
-prompt_length = 3
-[[tasks]]
-name = "near"
-params = { goal = 0.0 }
-[[tasks]]
-name = "far"
-params = { goal = 1.0 }
-[splits.default]
-train = ["near"]
-test = ["far"]
-"""
+# The toy suite the front ends' tests share (5 goals on a line, data only).
+_SUITE_FILE = "examples/toy_line/suite.toml"
 
 
-def test_write_dataset_for_a_task_suite(tmp_path):
+def test_write_dataset_for_a_task_suite(repo, tmp_path):
     """A suite file's path is a family like a built-in name: its sizes checked, its name recorded
     (the name the loader finds the files under); a bad suite file is refused naming the field."""
+    text = (repo / _SUITE_FILE).read_text()
     suite = tmp_path / "suite.toml"
-    suite.write_text(_SUITE)
+    suite.write_text(text)
     good = promptdt.Dataset(obs_dim=2, act_dim=1, trajectories=[_one_trajectory(2, 1)], env=str(suite),
                             task=1, mode="expert")
     promptdt.write_dataset(tmp_path / "toy_line-1-expert.safetensors", good)
@@ -138,7 +122,8 @@ def test_write_dataset_for_a_task_suite(tmp_path):
                              task=0, mode="expert")
     with pytest.raises(ValueError, match=r"cannot be toy_line's"):
         promptdt.write_dataset(tmp_path / "toy_line-0-expert.safetensors", wrong)
-    suite.write_text(_SUITE.replace('test = ["far"]', 'test = ["farther"]'))
-    with pytest.raises(ValueError, match=r"suite.toml.*splits.default.test\[0\].* names no task"):
+    assert 'test = ["g3", "g4"]' in text
+    suite.write_text(text.replace('test = ["g3", "g4"]', 'test = ["g3", "g9"]'))
+    with pytest.raises(ValueError, match=r"suite.toml.*splits.main.test\[1\].* names no task"):
         promptdt.write_dataset(tmp_path / "toy_line-0-expert.safetensors", good)
     assert not (tmp_path / "toy_line-0-expert.safetensors").exists()

@@ -7,43 +7,9 @@ use crate::cli;
 use cli::{fails, ok, s, TINY};
 use std::path::{Path, PathBuf};
 
-/// A suite with data only (no `[environment]`): 5 tasks on a line, 3 trained on, 2 held out.
-const SUITE: &str = r#"
-name = "toy_line"
-obs_dim = 2
-act_dim = 1
-action_bound = 1.0
-max_ep_len = 10
-rtg_scale = 10
-target_return = 10.0
-prompt_length = 3
-
-[[tasks]]
-name = "g0"
-params = { goal = 0.0 }
-[[tasks]]
-name = "g1"
-params = { goal = 0.25 }
-[[tasks]]
-name = "g2"
-params = { goal = 0.5 }
-[[tasks]]
-name = "g3"
-params = { goal = 0.75 }
-expert_return = 9.0
-random_return = 1.0
-[[tasks]]
-name = "g4"
-params = { goal = 1.0 }
-
-[splits.main]
-train = ["g0", "g1", "g2"]
-test = ["g3", "g4"]
-
-[splits.ood]
-train = ["g1", "g2", "g3"]
-test = ["g0", "g4"]
-"#;
+/// A suite with data only (no `[environment]`): 5 tasks on a line, 3 trained on, 2 held out; the
+/// one file the tests of the front ends share.
+const SUITE: &str = include_str!("../../../../examples/toy_line/suite.toml");
 
 /// Episodes of task `task`: the agent moves towards its goal on a line, rewarded for closeness.
 fn episodes(task: usize, n: usize) -> pdt_data::TaskDataset {

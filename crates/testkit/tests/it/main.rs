@@ -7,3 +7,4 @@
 mod architecture_doc;
 mod one_build;
 mod structure;
+mod user_suites;
