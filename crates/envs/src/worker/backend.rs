@@ -193,7 +193,8 @@ impl WorkerEnvs {
             out[slot] = Some(self.observation(slot, &row[..od], 0)?);
             self.steps[slot] = Some(0);
         }
-        self.policy_actions(&reply, actions, &asked, &mut acted, |_| 1)?;
+        let going = vec![true; seeds.len()];
+        self.policy_actions(&reply, actions, &asked, &going, &mut acted, |_| 1)?;
         Ok((out, acted))
     }
 
@@ -289,37 +290,36 @@ impl WorkerEnvs {
             out[slot] = Some(result);
         }
         if let Some(names) = &names {
-            // Asked: the slots named, whose episode goes on (the worker acts for no other).
-            let going: Vec<Option<String>> = slots
-                .iter()
-                .zip(names)
-                .map(|(&i, n)| n.clone().filter(|_| self.steps[i].is_some()))
-                .collect();
-            let asked = asked_slots(&slots, |k, _| going[k].is_some());
+            // Asked: the slots named. The worker acts for those whose episode goes on in its
+            // view; one this side ended (a non-finite observation) gets no action.
+            let asked = asked_slots(&slots, |k, _| names[k].is_some());
+            let going: Vec<bool> = (0..mask.len()).map(|i| self.steps[i].is_some()).collect();
             let at =
                 |slot: usize| slots.iter().position(|&s| s == slot).map_or(1, |k| before[k] + 2);
-            self.policy_actions(&reply, actions, &asked, &mut acted, at)?;
+            self.policy_actions(&reply, actions, &asked, &going, &mut acted, at)?;
         }
         Ok((out, acted))
     }
 
     /// The policies' actions of a reply into `acted` (by environment): the rows of `values`,
-    /// one per `reply.acted`, checked finite, and `reply.policy_errors`; every slot of `asked`
-    /// must have one or the other. `step(slot)`: the step the action is for, for messages.
+    /// one per `reply.acted`, checked finite, and `reply.policy_errors`, for the environments
+    /// `going` on. Each answer must be for a slot of `asked`, and every slot of `asked` still
+    /// going must have one. `step(slot)`: the step the action is for, for messages.
     fn policy_actions(
         &mut self,
         reply: &Reply,
         values: &[f32],
         asked: &[usize],
+        going: &[bool],
         acted: &mut [Acted],
         step: impl Fn(usize) -> usize,
     ) -> Result<(), EnvError> {
         let ad = self.dims.act_dim;
         let answered: Vec<usize> =
             reply.acted.iter().chain(reply.policy_errors.iter().map(|(s, _)| s)).copied().collect();
-        let mut sorted = answered.clone();
-        sorted.sort_unstable();
-        if sorted != asked {
+        let stray = answered.iter().any(|s| !asked.contains(s));
+        let missing = asked.iter().any(|s| going.get(*s) == Some(&true) && !answered.contains(s));
+        if stray || missing {
             let why = format!(
                 "policy actions were asked for environments {asked:?}; it answered {:?} and \
                  errors for {:?}",
@@ -328,7 +328,11 @@ impl WorkerEnvs {
             );
             return Err(self.malformed(asked, None, why));
         }
+        let going = |slot: &usize| going.get(*slot) == Some(&true);
         for (&slot, row) in reply.acted.iter().zip(values.chunks_exact(ad.max(1))) {
+            if !going(&slot) {
+                continue;
+            }
             let t = step(slot);
             acted[slot] = Some(match row.iter().position(|v| !v.is_finite()) {
                 None => Ok(row.to_vec()),
@@ -343,7 +347,7 @@ impl WorkerEnvs {
                 }),
             });
         }
-        for (slot, e) in &reply.policy_errors {
+        for (slot, e) in reply.policy_errors.iter().filter(|(s, _)| going(s)) {
             let message = format!("{e} (on the observation before this step)");
             let err = EnvError::Worker { task: self.task(*slot), step: Some(step(*slot)), message };
             acted[*slot] = Some(Err(err));
