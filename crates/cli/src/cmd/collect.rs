@@ -9,6 +9,7 @@ use pdt_data::mode::Mode;
 use pdt_envs::collect_policy::{PolicyCollectConfig, PolicySide};
 use pdt_envs::collect_scripted::{CollectConfig, ScriptedFamily};
 use pdt_envs::suite::SuiteFamily;
+use pdt_envs::EnvFamily;
 use std::path::PathBuf;
 
 /// The scripted families `keep` holds for, by name: messages name them from pdt-envs, so a new

@@ -43,7 +43,9 @@ fn files(dir: &Path, card: bool) -> Vec<(String, Vec<u8>)> {
         .unwrap()
         .map(|e| e.unwrap().path())
         .filter(|p| card || p.extension().is_some_and(|x| x == "safetensors"))
-        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
+        .map(|p| {
+            (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap())
+        })
         .collect();
     out.sort();
     out
@@ -60,7 +62,7 @@ fn the_cli_and_python_collect_the_same_bytes_from_a_policy() {
     collect.extend(args);
     collect.extend(["--envs-per-task", "3", "--out", s(&cli)]);
     let out = ok(&collect);
-    assert!(out.contains("wrote 6 datasets"), "{out}");
+    assert!(out.contains("wrote 12 datasets"), "{out}");
     assert_eq!(files(&cli, true).len(), 13, "2 tasks x 3 levels x (dataset, prompts) + card");
 
     // From Python: the suite's [environment] in-process, and a factory of the same environment.
@@ -85,8 +87,15 @@ fn the_cli_and_python_collect_the_same_bytes_from_a_policy() {
     // A policy that raises: the task and the step named, no card.
     let bad = tmp.path().join("bad");
     let e = fails(&[
-        "collect", "--env", s(&suite), "--policy", "pend_policy:raising", "--episodes", "2",
-        "--out", s(&bad),
+        "collect",
+        "--env",
+        s(&suite),
+        "--policy",
+        "pend_policy:raising",
+        "--episodes",
+        "2",
+        "--out",
+        s(&bad),
     ]);
     assert!(
         e.contains("heavy (task 1), step 1") && e.contains("RuntimeError: no torque today"),
@@ -94,7 +103,14 @@ fn the_cli_and_python_collect_the_same_bytes_from_a_policy() {
     );
     assert!(!bad.join("dataset.json").exists());
     // Flags of the other collections are refused for a suite.
-    let e = fails(&["collect", "--env", s(&suite), "--policy", "pend_policy:swing", "--from-pretrained"]);
+    let e = fails(&[
+        "collect",
+        "--env",
+        s(&suite),
+        "--policy",
+        "pend_policy:swing",
+        "--from-pretrained",
+    ]);
     assert!(e.contains("--from-pretrained is for the families collected by an RL agent"), "{e}");
     let e = fails(&["collect", "--env", "point_robot", "--policy", "pend_policy:swing"]);
     assert!(e.contains("--policy is for task suites"), "{e}");
