@@ -117,7 +117,10 @@ fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
         .expect("dir")
         .map(|e| {
             let p = e.expect("entry").path();
-            (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap())
+            (
+                p.file_name().expect("a name").to_string_lossy().into_owned(),
+                std::fs::read(&p).expect("read"),
+            )
         })
         .collect();
     out.sort();
@@ -221,6 +224,7 @@ fn misbehaving_policies_and_workers_are_named_and_leave_no_card() {
     let out = dir.path().join("fine");
     run(&suite, &config(&suite, "pend_policies:weak", 3, 2), &out)
         .unwrap_or_else(|e| panic!("{e}"));
-    let ds = pdt_data::native::read_task_dataset(&out.join("pend-0-random.safetensors")).unwrap();
+    let ds =
+        pdt_data::native::read_task_dataset(&out.join("pend-0-random.safetensors")).expect("read");
     assert!(ds.trajectories.iter().all(|t| t.rewards.len() == 8 && t.truncated[7]));
 }
