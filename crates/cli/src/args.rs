@@ -426,9 +426,33 @@ pub struct DemoArgs {
 #[derive(Debug, Args)]
 pub struct CollectArgs {
     /// Task family: `point_robot`, `metaworld_reach`, `dial` (scripted policies), `cheetah_dir`,
-    /// `cheetah_vel`, `ant_dir` (trains an RL agent, then writes its datasets).
+    /// `cheetah_vel`, `ant_dir` (trains an RL agent, then writes its datasets), or a task suite
+    /// file (`path/suite.toml`, with --policy: played in its [environment] by the Python worker).
     #[arg(long)]
     pub env: String,
+    /// Task suites: the expert policy, a Python `module:callable` called as `policy(obs, task)`
+    /// in the worker (the suite file's directory is on its path) returning one action; the medium
+    /// level is the expert with --medium-noise, the random level uniform actions in the bounds
+    /// (docs/your-own-tasks.md).
+    #[arg(long, value_name = "MODULE:CALLABLE")]
+    pub policy: Option<String>,
+    /// Task suites: a second policy for the medium level (with --action-noise), instead of the
+    /// expert with --medium-noise.
+    #[arg(
+        long,
+        value_name = "MODULE:CALLABLE",
+        requires = "policy",
+        conflicts_with = "medium_noise"
+    )]
+    pub medium_policy: Option<String>,
+    /// Task suites: standard deviation of the Gaussian noise on the expert's actions that makes
+    /// the medium level, in half-ranges of each action dimension (default 0.5).
+    #[arg(long, requires = "policy")]
+    pub medium_noise: Option<f64>,
+    /// Task suites: environments per task stepped together in the worker (default 10); the data
+    /// does not depend on it.
+    #[arg(long, requires = "policy", value_parser = count(1, 10_000))]
+    pub envs_per_task: Option<usize>,
     /// Output directory of the datasets (default: data/<env>).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -438,15 +462,18 @@ pub struct CollectArgs {
     /// dial, the paper's count; 100 otherwise).
     #[arg(long, value_parser = count(1, 100_000))]
     pub episodes: Option<usize>,
-    /// Scripted families only: which datasets to write (default `expert,medium,random`).
+    /// Scripted families and task suites: which datasets to write (default
+    /// `expert,medium,random`).
     #[arg(long, value_delimiter = ',')]
     pub modes: Option<Vec<String>>,
-    /// metaworld_reach only: standard deviation of the expert's (and medium policy's) Gaussian
+    /// metaworld_reach: standard deviation of the expert's (and medium policy's) Gaussian
     /// action noise, 0 to 10 (default 0.2, Meta-World's test-harness noise; 0 = the deterministic
-    /// expert, every episode of a task the same).
+    /// expert, every episode of a task the same). Task suites: the noise on --policy's (and
+    /// --medium-policy's) actions, in half-ranges of each action dimension (default 0).
     #[arg(long)]
     pub action_noise: Option<f64>,
-    /// Episodes per task in each prompt set (1 to 10000).
+    /// Episodes per task in each prompt set (1 to 10000); task suites: the prompt set is that
+    /// many of the dataset's episodes of highest return (the rule `best:N` of `data import`).
     #[arg(long, default_value_t = 5, value_parser = count(1, 10_000))]
     pub prompt_episodes: usize,
     /// Skip training: write the datasets from the committed agent (pretrained/<env>, or
@@ -484,7 +511,7 @@ pub struct CollectArgs {
     /// Train on these tasks only (e.g. `--tasks 3` for a per-task agent); default all. With
     /// --resume: go on training on these tasks only (fine-tuning on the tasks it does worst).
     /// Scripted families: collect these tasks only (default: point robot all 40, metaworld_reach
-    /// the paper's 20, tasks 1 to 20, dial all 10 digits).
+    /// the paper's 20, tasks 1 to 20, dial all 10 digits); task suites: by index (default all).
     #[arg(long, value_delimiter = ',')]
     pub tasks: Option<Vec<usize>>,
     /// Minibatches from the most recent N transitions only (0: the whole replay buffer); with

@@ -11,6 +11,7 @@
 pub mod ant_dir;
 pub mod bench;
 pub mod cheetah;
+pub mod collect_policy;
 pub mod collect_scripted;
 pub mod dial;
 pub mod metaworld_reach;

@@ -13,8 +13,22 @@ use std::time::Duration;
 
 /// The frames of one batch of environments, answered by a `promptdt.worker.Session` in this
 /// interpreter (taking the GIL for each request, as the evaluation runs on a thread of its own).
-struct SessionTransport {
+pub(crate) struct SessionTransport {
     session: Py<PyAny>,
+}
+
+impl SessionTransport {
+    /// A new `promptdt.worker.Session(factory, policies)`: a collection's (`crate::collect`)
+    /// policies by name, and the factory making its environments (`None`: the suite's
+    /// `[environment]`, which `init` then carries).
+    pub(crate) fn new(
+        py: Python<'_>,
+        factory: Option<Py<PyAny>>,
+        policies: &Bound<'_, pyo3::types::PyDict>,
+    ) -> PyResult<Self> {
+        let class = py.import("promptdt.worker")?.getattr("Session")?;
+        Ok(Self { session: class.call1((factory, policies))?.unbind() })
+    }
 }
 
 impl Transport for SessionTransport {

@@ -153,6 +153,8 @@ pub(crate) fn array2<'py, T: numpy::Element>(
     v.into_pyarray(py).reshape([rows, cols]).map_err(lib_error)
 }
 
+/// `collect(suite, policy=...)`: a suite's datasets from a Python policy.
+mod collect;
 /// Dataset files: `load_dataset`, `write_dataset`.
 mod data;
 /// Environment families and `VecEnv`.
@@ -198,6 +200,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(runs::is_scripted, m)?)?;
     m.add_function(wrap_pyfunction!(runs::experiments, m)?)?;
     m.add_function(wrap_pyfunction!(runs::collect_from_agent, m)?)?;
+    m.add_function(wrap_pyfunction!(collect::collect_policy, m)?)?;
     m.add_function(wrap_pyfunction!(set_num_threads, m)?)?;
     m.add_function(wrap_pyfunction!(runs::bench_envs, m)?)?;
     m.add_function(wrap_pyfunction!(render::render, m)?)?;

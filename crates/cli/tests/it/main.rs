@@ -12,6 +12,7 @@ mod golden;
 mod adaptations;
 mod cli_smoke;
 mod collect_rl;
+mod collect_suite;
 mod families;
 mod hardening;
 mod hardening_data;

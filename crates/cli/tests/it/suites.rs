@@ -79,12 +79,21 @@ fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     assert!(e.contains("changed since the run was trained") && e.contains("suite.toml"), "{e}");
     std::fs::rename(&moved, &suite).unwrap();
 
-    // Collecting needs policies the suite does not have: said, with where its data come from.
+    // Collecting needs a policy: said, with where its data may come from otherwise.
     let e = fails(&["collect", "--env", s(&suite), "--out", s(&tmp.path().join("c"))]);
-    assert!(
-        e.contains("toy_line has neither scripted policies") && e.contains("data import"),
-        "{e}"
-    );
+    assert!(e.contains("needs a policy, --policy") && e.contains("data import"), "{e}");
+    // With one, the suite's missing [environment] is named.
+    let e = fails(&[
+        "collect",
+        "--env",
+        s(&suite),
+        "--policy",
+        "m:f",
+        "--out",
+        s(&tmp.path().join("c")),
+    ]);
+    assert!(e.contains("declares no [environment] to collect in"), "{e}");
+    assert!(!tmp.path().join("c").exists(), "nothing written");
     // Evaluating in an environment the suite does not have is a clear error, not a panic.
     let e = fails(&["eval", "--run", s(&run), "--episodes", "1"]);
     assert!(e.contains("toy_line") && e.contains("no [environment]"), "{e}");

@@ -10,12 +10,13 @@ mod process;
 mod protocol;
 mod spec;
 
+pub use backend::{Acted, Resets};
 pub use spec::{WorkerSpec, WorkerTask};
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use crate::vec_env::{EnvDims, VecEnv};
+use crate::vec_env::{EnvDims, StepSlot, VecEnv};
 use crate::EnvError;
 
 /// How requests reach the Python side that makes and steps the environments
@@ -69,6 +70,20 @@ pub fn make_batch(
         // Nothing to step: no interpreter to start.
         return Ok(VecEnv::new(Vec::new(), 1));
     }
+    let envs = spawn(spec, dir, tasks, dims, serde_json::Value::Null)?;
+    Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
+}
+
+/// The worker process of `spec`, its environments made (and, for a collection, its `policies`
+/// named).
+fn spawn(
+    spec: &WorkerSpec,
+    dir: &Path,
+    tasks: Vec<WorkerTask>,
+    dims: EnvDims,
+    policies: serde_json::Value,
+) -> Result<backend::WorkerEnvs, EnvError> {
+    let n = tasks.len();
     let all = |message: String| EnvError::Worker {
         task: format!("{n} episodes' environments"),
         step: None,
@@ -85,9 +100,11 @@ pub fn make_batch(
         })?;
     let process = process::Process::spawn(&python(spec, dir), dir).map_err(all)?;
     let spec = serde_json::to_value(spec).map_err(|e| all(e.to_string()))?;
-    let envs = backend::WorkerEnvs::start(Box::new(process), spec, step_timeout, tasks, dims)?;
-    Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
+    backend::WorkerEnvs::start(Box::new(process), spec, step_timeout, tasks, dims, policies)
 }
+
+/// In the caller's own interpreter a request cannot be timed out.
+const NO_TIMEOUT: Duration = Duration::from_secs(u64::MAX / 4);
 
 /// [`make_batch`] over another `transport`, whose Python side makes each task's environment with
 /// a factory of its own (the `init` request carries no spec).
@@ -97,8 +114,71 @@ pub fn make_batch_over(
     dims: EnvDims,
 ) -> Result<VecEnv, EnvError> {
     let n = tasks.len();
-    // In the caller's own interpreter a request cannot be timed out.
-    let wait = Duration::from_secs(u64::MAX / 4);
-    let envs = backend::WorkerEnvs::start(transport, serde_json::Value::Null, wait, tasks, dims)?;
+    let null = serde_json::Value::Null;
+    let envs = backend::WorkerEnvs::start(transport, null.clone(), NO_TIMEOUT, tasks, dims, null)?;
     Ok(VecEnv::external(Box::new(envs), vec![dims; n]))
+}
+
+/// Environments on the Python side together with policies that act in them: what a collection
+/// from a Python policy steps (`crate::collect_policy`). Each reset or step may ask, per
+/// environment, for a named policy's action on the new observation, which comes back in the
+/// same reply: one request per vector step, as an evaluation's.
+pub struct Acting {
+    envs: backend::WorkerEnvs,
+}
+
+impl Acting {
+    /// A worker process running `spec` (see [`make_batch`]), one environment per entry of
+    /// `tasks`, and the policies `policies` names (`{"expert": "module:callable", ...}`).
+    pub fn spawn(
+        spec: &WorkerSpec,
+        dir: &Path,
+        tasks: Vec<WorkerTask>,
+        dims: EnvDims,
+        policies: &std::collections::BTreeMap<String, Option<String>>,
+    ) -> Result<Self, EnvError> {
+        Ok(Self { envs: spawn(spec, dir, tasks, dims, serde_json::json!(policies))? })
+    }
+
+    /// The same over another `transport`: its Python side makes the environments by `spec` when
+    /// given, else by its own factory, and takes each policy named without an entry (`None`)
+    /// from the callables it was given.
+    pub fn over(
+        transport: Box<dyn Transport>,
+        spec: Option<&WorkerSpec>,
+        tasks: Vec<WorkerTask>,
+        dims: EnvDims,
+        policies: &std::collections::BTreeMap<String, Option<String>>,
+    ) -> Result<Self, EnvError> {
+        let spec = serde_json::to_value(spec).map_err(|e| EnvError::Worker {
+            task: "the environments".into(),
+            step: None,
+            message: e.to_string(),
+        })?;
+        let policies = serde_json::json!(policies);
+        let envs = backend::WorkerEnvs::start(transport, spec, NO_TIMEOUT, tasks, dims, policies)?;
+        Ok(Self { envs })
+    }
+
+    /// Resets each environment whose seed is given; for each whose `act` entry names a policy,
+    /// also that policy's action on its first observation.
+    pub fn reset(
+        &mut self,
+        seeds: &[Option<u64>],
+        act: &[Option<String>],
+    ) -> Result<(Resets, Vec<Acted>), EnvError> {
+        self.envs.reset_acting(seeds, Some(act))
+    }
+
+    /// Steps the environments of `mask` with their rows of `actions` (`act_dim` values each, by
+    /// environment); for each whose `act` entry names a policy and whose episode goes on (not
+    /// ended, not at the horizon), also that policy's action on its new observation.
+    pub fn step(
+        &mut self,
+        actions: &[f32],
+        mask: &[bool],
+        act: &[Option<String>],
+    ) -> Result<(Vec<StepSlot>, Vec<Acted>), EnvError> {
+        self.envs.step_acting(actions, mask, Some(act))
+    }
 }

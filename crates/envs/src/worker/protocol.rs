@@ -43,6 +43,14 @@ pub(super) struct Reply {
     /// `[slot, message]` for each environment whose `step` raised (its payload row is zeros).
     #[serde(default)]
     pub errors: Vec<(usize, String)>,
+    /// A collection's request (`act`): the environments whose policy acted on their new
+    /// observation, in order; their actions end the payload.
+    #[serde(default)]
+    pub acted: Vec<usize>,
+    /// `[slot, message]` for each environment whose policy raised or returned an action of
+    /// another size (no action row).
+    #[serde(default)]
+    pub policy_errors: Vec<(usize, String)>,
     /// Values in the payload that follows (read by [`read_frame`] already).
     #[serde(default, rename = "payload")]
     _payload: usize,

@@ -11,6 +11,7 @@ mod support;
 
 mod ant_symmetry;
 mod bench_smoke;
+mod collect_policy;
 mod dial_collect;
 mod dial_parity;
 mod metaworld_collect;

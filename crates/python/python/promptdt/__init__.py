@@ -332,8 +332,31 @@ def collect(
     device: str = "cpu",
     action_noise: Optional[float] = None,
     progress: ProgressArg = True,
+    policy: Optional[Callable[[Any, dict], Any]] = None,
+    medium_policy: Optional[Callable[[Any, dict], Any]] = None,
+    medium_noise: Optional[float] = None,
+    factory: Optional[Callable[[dict], Any]] = None,
+    modes: Optional[Sequence[str]] = None,
+    tasks: Optional[Sequence[int]] = None,
+    envs_per_task: Optional[int] = None,
 ) -> int:
     """``promptdt collect``: datasets and prompt sets of every task of ``env`` into ``out``.
+
+    A task suite (``env`` a ``suite.toml``; docs/your-own-tasks.md) is collected in its own
+    environment from ``policy``, a callable ``policy(obs, task) -> action`` (``obs`` the float32
+    observation, ``task`` ``{"index", "name", "params"}``), as ``promptdt collect --env suite.toml
+    --policy module:callable`` does, with the same bytes: ``expert`` is the policy (with
+    ``action_noise``, in half-ranges of each action dimension, default 0), ``medium``
+    ``medium_policy`` (with ``action_noise``) or else the expert with ``medium_noise`` (default
+    0.5), ``random`` uniform actions in the suite's bounds; every action clipped into the bounds.
+    The prompt sets are each dataset's ``prompt_episodes`` (default 5) episodes of highest
+    return. ``factory(task)`` makes each environment (a new ``gymnasium.Env``); without it, the
+    suite's ``[environment]`` is made in this process (the suite file's directory first on
+    ``sys.path`` meanwhile). ``modes`` (default all three), ``tasks`` (indices, default all) and
+    ``envs_per_task`` (environments per task stepped together, default 10; the data do not
+    depend on it) choose the work. A policy that raises or returns another shape or NaN, an
+    environment that raises or returns NaN: an ``InvalidInputError`` naming the task and step,
+    with the files finished before it whole and no card.
     Families with scripted policies (``families()[env]["scripted"]``: ``point_robot``,
     ``metaworld_reach``, ``dial``) use them (reach: the paper's 20 tasks, 200 episodes each by
     default; ``action_noise`` is its expert's noise, 0.2 by default, 0 for the deterministic
@@ -353,6 +376,19 @@ def collect(
     seed = _uint("seed", seed, "a seed", high=2**64)
     episodes = _opt_uint("episodes", episodes, "a number of episodes")
     prompt_episodes = _opt_uint("prompt_episodes", prompt_episodes, "a number of episodes")
+    if str(env).endswith(".toml"):
+        return _collect_suite(env, out, seed=seed, episodes=episodes,
+                              prompt_episodes=prompt_episodes, action_noise=action_noise,
+                              progress=progress, policy=policy, medium_policy=medium_policy,
+                              medium_noise=medium_noise, factory=factory, modes=modes,
+                              tasks=tasks, envs_per_task=envs_per_task)
+    suite_only = {"policy": policy, "medium_policy": medium_policy, "medium_noise": medium_noise,
+                  "factory": factory, "modes": modes, "tasks": tasks,
+                  "envs_per_task": envs_per_task}
+    given = [k for k, v in suite_only.items() if v is not None]
+    if given:
+        raise InvalidInputError(f"{', '.join(given)}: for a task suite (a suite.toml), not for "
+                                f"{env}, which collects with its own policies")
     scripted = _native.is_scripted(env)  # raises ValueError naming an unknown family
     if scripted:
         return _with_progress(progress, f"collect {env}", lambda report: _native.collect_scripted(
@@ -374,6 +410,58 @@ def collect(
         device=device,
         progress=report,
     ))
+
+
+def _callable_name(f: Any) -> str:
+    """``module:qualname`` of a callable: what ``promptdt collect --policy`` names it by, so
+    both record the same policy in the dataset card."""
+    module = getattr(f, "__module__", None) or type(f).__module__
+    name = getattr(f, "__qualname__", None) or type(f).__qualname__
+    return f"{module}:{name}"
+
+
+def _collect_suite(suite: PathLike, out: PathLike, *, seed: int, episodes: Optional[int],
+                   prompt_episodes: Optional[int], action_noise: Optional[float],
+                   progress: ProgressArg, policy: Any, medium_policy: Any,
+                   medium_noise: Optional[float], factory: Any, modes: Optional[Sequence[str]],
+                   tasks: Optional[Sequence[int]], envs_per_task: Optional[int]) -> int:
+    for name, f in (("policy", policy), ("medium_policy", medium_policy), ("factory", factory)):
+        if f is not None and not callable(f):
+            raise ArgumentTypeError(f"{name}: expected a callable, got {f!r}")
+    if policy is None:
+        raise InvalidInputError(f"{suite} is a task suite: collecting its data needs "
+                                "policy=callable(obs, task) (docs/your-own-tasks.md)")
+    envs_per_task = _opt_uint("envs_per_task", envs_per_task, "a number of environments", low=1)
+    tasks = None if tasks is None else [_uint("tasks", t, "a task index", high=2**32) for t in tasks]
+    if isinstance(modes, str):
+        modes = modes.split(",")
+    # The suite's own `module:callable` beside the suite file imports as in a worker process.
+    where = str(_Path(suite).resolve().parent)
+    added = factory is None and where not in _sys.path
+    if added:
+        _sys.path.insert(0, where)
+    try:
+        return _with_progress(progress, f"collect {suite}", lambda report: _native.collect_policy(
+            _os.fspath(suite),
+            _os.fspath(out),
+            policy,
+            _callable_name(policy),
+            medium_policy=medium_policy,
+            medium_name=None if medium_policy is None else _callable_name(medium_policy),
+            factory=factory,
+            seed=seed,
+            episodes=episodes,
+            prompt_episodes=prompt_episodes,
+            modes=None if modes is None else list(modes),
+            tasks=tasks,
+            action_noise=action_noise,
+            medium_noise=medium_noise,
+            envs_per_task=envs_per_task,
+            progress=report,
+        ))
+    finally:
+        if added and where in _sys.path:
+            _sys.path.remove(where)
 
 
 def experiments() -> list:

@@ -24,6 +24,7 @@ __all__ = [
     "is_scripted",
     "experiments",
     "collect_from_agent",
+    "collect_policy",
     "set_num_threads",
     "bench_envs",
     "VecEnv",
@@ -88,6 +89,24 @@ def collect_from_agent(
     episodes: Optional[int] = None,
     prompt_episodes: Optional[int] = None,
     device: str = "cpu",
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+) -> int: ...
+def collect_policy(
+    suite: _Path,
+    out: _Path,
+    policy: Callable[[_F32, Dict[str, Any]], Any],
+    policy_name: str,
+    medium_policy: Optional[Callable[[_F32, Dict[str, Any]], Any]] = None,
+    medium_name: Optional[str] = None,
+    factory: Optional[Callable[[Dict[str, Any]], Any]] = None,
+    seed: int = 0,
+    episodes: Optional[int] = None,
+    prompt_episodes: Optional[int] = None,
+    modes: Optional[List[str]] = None,
+    tasks: Optional[List[int]] = None,
+    action_noise: Optional[float] = None,
+    medium_noise: Optional[float] = None,
+    envs_per_task: Optional[int] = None,
     progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> int: ...
 def set_num_threads(threads: int) -> None: ...

@@ -13,6 +13,15 @@ environment, the family's sizes), ``reset`` (``seeds``: one per environment, ``n
 not reset), ``step`` (``slots``, and their actions in the payload). Replies: ``error`` (with the
 ``slot`` it is about) for a failure of the request, else the answer (``slots``, the flags, and
 the observations then the rewards in the payload).
+
+A collection (``promptdt collect --policy``, ``promptdt.collect(policy=...)``) also names its
+policies in ``init`` (``policies``: a name, ``expert`` or ``medium``, to a ``module:callable``,
+or to ``null`` for the callable the :class:`Session` was given) and asks, with ``act`` in a
+``reset`` or ``step`` (one policy name or ``null`` per environment), for the named policy's action
+on each new observation: the reply lists the environments acted for in ``acted`` and appends
+their actions to the payload, and ``policy_errors`` (``[slot, message]``) where the policy raised
+or returned an action of another size. The policy is called here, beside its environment, so a
+vector step stays one request.
 """
 from __future__ import annotations
 
@@ -47,6 +56,17 @@ def _task_label(task: Dict[str, Any]) -> str:
     return f"{task.get('name')} (task {task.get('index')})"
 
 
+def resolve_callable(entry: str) -> Any:
+    """The object a ``module:callable`` names (``module:Class.attr`` reaches into the module)."""
+    module, _, name = entry.partition(":")
+    if not module or not name:
+        raise ValueError(f"`{entry}` is not of the form module:callable")
+    target: Any = importlib.import_module(module)
+    for part in name.split("."):
+        target = getattr(target, part)
+    return target
+
+
 def factory_from_spec(spec: Dict[str, Any]) -> Callable[[Dict[str, Any]], Any]:
     """``factory(task)`` of a suite's ``[environment]`` table: ``entry`` (a gymnasium id, or a
     ``module:callable``) called with ``kwargs`` and the task's ``params`` (under
@@ -57,11 +77,7 @@ def factory_from_spec(spec: Dict[str, Any]) -> Callable[[Dict[str, Any]], Any]:
     kwargs = dict(spec.get("kwargs") or {})
     keyword = spec.get("task_keyword")
     if ":" in entry:
-        module, _, name = entry.partition(":")
-        target: Any = importlib.import_module(module)
-        for part in name.split("."):
-            target = getattr(target, part)
-        make = target
+        make = resolve_callable(entry)
     else:
         import gymnasium
 
@@ -93,6 +109,8 @@ class Envs:
                  obs_dim: int, act_dim: int):
         self.tasks = list(tasks)
         self.obs_dim, self.act_dim = int(obs_dim), int(act_dim)
+        #: the collection's policies by name (``init``'s ``policies``); none in an evaluation
+        self.policies: Dict[str, Callable[[np.ndarray, Dict[str, Any]], Any]] = {}
         self.envs: List[Any] = []
         made: Dict[int, Any] = {}
         for slot, task in enumerate(self.tasks):
@@ -168,6 +186,43 @@ class Envs:
         return {"slots": list(slots), "terminated": terminated, "truncated": truncated,
                 "success": success, "errors": errors, "obs": obs, "rewards": rewards}
 
+    def act(self, slots: Sequence[int], names: Sequence[Optional[str]], obs: np.ndarray
+            ) -> Tuple[List[int], np.ndarray, List[List[Any]]]:
+        """The named policy's action on each observation row of ``slots`` whose name is not None
+        (``policy(obs, task)``, ``obs`` a float32 copy of what the dataset records, ``task`` the
+        slot's ``{"index", "name", "params"}``). Returns the slots acted for, their actions
+        ``[m, act_dim]`` float32, and ``[slot, message]`` where the policy raised or returned
+        something that is not ``act_dim`` numbers (promptdt checks the values themselves)."""
+        acted: List[int] = []
+        rows: List[np.ndarray] = []
+        errors: List[List[Any]] = []
+        for k, (i, name) in enumerate(zip(slots, names)):
+            if name is None:
+                continue
+            policy = self.policies.get(name)
+            if policy is None:
+                raise WorkerError(f"no policy named `{name}` (init named {sorted(self.policies)})", i)
+            try:
+                a = policy(obs[k].copy(), dict(self.tasks[i]))
+            except Exception as e:  # the user's code: its error goes back, named
+                errors.append([i, f"the {name} policy raised {_last_line(e)}"])
+                continue
+            try:
+                flat = np.asarray(a, dtype=np.float32).reshape(-1)
+            except Exception as e:
+                errors.append([i, f"the {name} policy returned {type(a).__name__}, not numbers "
+                                  f"({_last_line(e)})"])
+                continue
+            if flat.size != self.act_dim:
+                errors.append([i, f"the {name} policy returned an action of shape "
+                                  f"{np.shape(a)} ({flat.size} values), but the suite declares "
+                                  f"act_dim = {self.act_dim}"])
+                continue
+            acted.append(i)
+            rows.append(flat)
+        actions = np.stack(rows) if rows else np.zeros((0, self.act_dim), dtype=np.float32)
+        return acted, actions, errors
+
     def close(self) -> None:
         for env in self.envs:
             try:
@@ -176,8 +231,45 @@ class Envs:
                 pass
 
 
+def _policies(named: Dict[str, Optional[str]], given: Dict[str, Callable[..., Any]]
+              ) -> Dict[str, Callable[..., Any]]:
+    """``init``'s ``policies``: each name's ``module:callable`` imported, or (``null``) the
+    callable of that name the session was given."""
+    out: Dict[str, Callable[..., Any]] = {}
+    for name, entry in named.items():
+        if entry is None:
+            if name not in given:
+                raise WorkerError(f"the {name} policy was to be given to the session, and was not")
+            out[name] = given[name]
+            continue
+        try:
+            out[name] = resolve_callable(entry)
+        except Exception as e:  # an import or a name in --policy
+            raise WorkerError(f"the {name} policy `{entry}`: {_last_line(e)}") from e
+        if not callable(out[name]):
+            raise WorkerError(f"the {name} policy `{entry}` is a {type(out[name]).__name__}, "
+                              "not a callable policy(obs, task)")
+    return out
+
+
+def _with_actions(envs: Envs, reply: Dict[str, Any], values: np.ndarray, slots: Sequence[int],
+                  names: Optional[Sequence[Optional[str]]], obs: np.ndarray,
+                  ended: Sequence[bool]) -> Tuple[Dict[str, Any], np.ndarray]:
+    """``reply`` and ``values`` with the policies' actions asked for by ``names`` (one per slot;
+    none for a slot whose episode ``ended``) appended: ``acted``, ``policy_errors``, rows."""
+    if names is None:
+        return reply, values
+    if len(names) != len(slots):
+        raise WorkerError(f"`act` names {len(names)} policies for {len(slots)} environments")
+    names = [None if end else n for n, end in zip(names, ended)]
+    acted, actions, errors = envs.act(slots, names, obs)
+    reply = dict(reply, acted=acted, policy_errors=errors)
+    return reply, np.concatenate([values, actions.reshape(-1)])
+
+
 def _answer(envs: Optional[Envs], header: Dict[str, Any], payload: np.ndarray,
-            factory: Optional[Callable[[Dict[str, Any]], Any]]
+            factory: Optional[Callable[[Dict[str, Any]], Any]],
+            given: Optional[Dict[str, Callable[..., Any]]] = None
             ) -> Tuple[Optional[Envs], Dict[str, Any], Optional[np.ndarray]]:
     op = header.get("op")
     if op == "init":
@@ -193,17 +285,26 @@ def _answer(envs: Optional[Envs], header: Dict[str, Any], payload: np.ndarray,
                                   f"{_last_line(e)}") from e
         if factory is None:
             raise WorkerError("`init` without a spec, and no factory was given")
+        policies = _policies(header.get("policies") or {}, given or {})
         envs = Envs(factory, header["tasks"], header["obs_dim"], header["act_dim"])
+        envs.policies = policies
         return envs, {"ok": True}, None
     if envs is None:
         raise WorkerError(f"`{op}` before `init`")
+    act = header.get("act")
     if op == "reset":
         slots, obs = envs.reset(header["seeds"])
-        return envs, {"slots": slots}, obs.reshape(-1)
+        names = None if act is None else [act[i] for i in slots]
+        return (envs, *_with_actions(envs, {"slots": slots}, obs.reshape(-1), slots, names, obs,
+                                     [False] * len(slots)))
     if op == "step":
         out = envs.step(header["slots"], payload)
-        values = np.concatenate([out.pop("obs").reshape(-1), out.pop("rewards")])
-        return envs, out, values
+        obs = out.pop("obs")
+        values = np.concatenate([obs.reshape(-1), out.pop("rewards")])
+        failed = {i for i, _ in out["errors"]}
+        ended = [t or u or i in failed
+                 for t, u, i in zip(out["terminated"], out["truncated"], out["slots"])]
+        return (envs, *_with_actions(envs, out, values, out["slots"], act, obs, ended))
     raise WorkerError(f"unknown request `{op}`")
 
 
@@ -212,10 +313,15 @@ class Session:
     and float32 payload) with a reply (header text, float32 payload or None). The worker process
     (:func:`serve`) and an evaluation in the calling process (from Rust, with a factory given in
     Python) both answer through it, so they run the same code on the same numbers. ``factory``
-    makes the environments when ``init`` carries no spec."""
+    makes the environments when ``init`` carries no spec; ``policies`` are a collection's
+    policies (``{"expert": callable, ...}``) when ``init`` names them without an entry."""
 
-    def __init__(self, factory: Optional[Callable[[Dict[str, Any]], Any]] = None):
+    def __init__(self, factory: Optional[Callable[[Dict[str, Any]], Any]] = None,
+                 policies: Optional[Dict[str, Callable[..., Any]]] = None):
         self.factory = factory
+        #: a collection's policies by name (``expert``, ``medium``), for an ``init`` that names
+        #: them without a ``module:callable``
+        self.policies = dict(policies or {})
         self.envs: Optional[Envs] = None
 
     def handle(self, header: str, payload: Any = None) -> Tuple[str, Optional[np.ndarray]]:
@@ -223,7 +329,8 @@ class Session:
         try:
             request = json.loads(header)
             data = np.asarray([] if payload is None else payload, dtype="<f4").reshape(-1)
-            self.envs, reply, values = _answer(self.envs, request, data, self.factory)
+            self.envs, reply, values = _answer(self.envs, request, data, self.factory,
+                                               self.policies)
         except WorkerError as e:
             reply = {"error": str(e), **({} if e.slot is None else {"slot": e.slot})}
         except Exception as e:  # a bug here, or a request this side cannot read
