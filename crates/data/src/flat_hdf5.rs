@@ -34,8 +34,8 @@ pub fn read_flat_hdf5(
     act_dim: usize,
     task_field: &str,
 ) -> Result<FlatHdf5, DataError> {
-    let file = Hdf5File::open(path)
-        .map_err(|e| bad(path, format!("not a readable HDF5 file ({e})")))?;
+    let file =
+        Hdf5File::open(path).map_err(|e| bad(path, format!("not a readable HDF5 file ({e})")))?;
     let take = |field: &str, width: Option<usize>| -> Result<Dataset, DataError> {
         let ds = file.dataset(field).map_err(|_| {
             bad(
@@ -65,10 +65,8 @@ pub fn read_flat_hdf5(
     let timeouts = flags(path, "timeouts", &take("timeouts", None)?)?;
     let task_ids = whole(path, task_field, &take(task_field, None)?)?;
     let read: Vec<&str> = STEP_FIELDS.iter().copied().chain([task_field]).collect();
-    let ignored = dataset_paths(&file, path)?
-        .into_iter()
-        .filter(|p| !read.contains(&p.as_str()))
-        .collect();
+    let ignored =
+        dataset_paths(&file, path)?.into_iter().filter(|p| !read.contains(&p.as_str())).collect();
     let steps = FlatSteps {
         obs_dim,
         act_dim,
@@ -169,7 +167,10 @@ fn flags(path: &Path, field: &str, ds: &Dataset) -> Result<Vec<bool>, DataError>
 
 fn whole(path: &Path, field: &str, ds: &Dataset) -> Result<Vec<i64>, DataError> {
     if matches!(ds.dtype(), Datatype::FloatingPoint { .. }) {
-        return Err(bad(path, format!("`{field}` holds floating-point values; expected whole numbers")));
+        return Err(bad(
+            path,
+            format!("`{field}` holds floating-point values; expected whole numbers"),
+        ));
     }
     Ok(numbers(path, field, ds)?.into_iter().map(|x| x as i64).collect())
 }
