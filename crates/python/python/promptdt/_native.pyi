@@ -16,6 +16,8 @@ __all__ = [
     "write_dataset",
     "check_dims",
     "families",
+    "family_info",
+    "prompt_indices",
     "task_params",
     "render",
     "train",
