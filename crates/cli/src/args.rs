@@ -314,8 +314,24 @@ pub struct ImportArgs {
     pub env: String,
     /// A flat `.npz` of step arrays: observations [N, obs_dim], actions [N, act_dim], rewards
     /// [N], terminals [N], timeouts [N], task_ids [N] (what `promptdt.flat_dataset` holds).
+    #[arg(long, group = "source", required_unless_present_any = ["hdf5", "minari"])]
+    pub npz: Option<PathBuf>,
+    /// A flat HDF5 file of the same arrays (D4RL's layout: the step arrays at the root; other
+    /// datasets in it are listed and left out), read without libhdf5.
+    #[arg(long, group = "source")]
+    pub hdf5: Option<PathBuf>,
+    /// A Minari dataset id: read by the `minari` library in a Python with `promptdt` (the suite's
+    /// `[environment] python`, else `$PROMPTDT_PYTHON`, else `python3`).
+    #[arg(long, group = "source")]
+    pub minari: Option<String>,
+    /// Where each step's (or Minari episode's) task is: for `--npz`/`--hdf5` the array of task
+    /// indices (default `task_ids`; an HDF5 path such as `infos/task`); for `--minari` the key of
+    /// the episodes' reset options or infos holding a task index or name (default `task`).
     #[arg(long)]
-    pub npz: PathBuf,
+    pub task_field: Option<String>,
+    /// `--minari` only: every episode is of this task (an index, or a suite task's name).
+    #[arg(long, requires = "minari")]
+    pub task: Option<String>,
     /// Output directory for `{name}-{task}-{mode}.safetensors` and its prompt sets.
     #[arg(long)]
     pub out: PathBuf,

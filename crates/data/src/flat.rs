@@ -53,14 +53,19 @@ impl std::str::FromStr for PromptRule {
 impl PromptRule {
     /// The prompt set of `data` by this rule.
     pub fn prompts(&self, data: &TaskDataset) -> TaskDataset {
+        let trajectories =
+            self.pick(&data.returns()).into_iter().map(|i| data.trajectories[i].clone()).collect();
+        TaskDataset { obs_dim: data.obs_dim, act_dim: data.act_dim, trajectories }
+    }
+
+    /// Which episodes (indices into `returns`, one per episode) make the prompt set, in its order.
+    pub fn pick(&self, returns: &[f64]) -> Vec<usize> {
         let PromptRule::BestReturn { episodes } = *self;
         let mut order: Vec<(f64, usize)> =
-            data.returns().into_iter().enumerate().map(|(i, r)| (r, i)).collect();
+            returns.iter().copied().enumerate().map(|(i, r)| (r, i)).collect();
         // Highest return first; equal returns in file order.
         order.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-        let trajectories =
-            order.iter().take(episodes).map(|&(_, i)| data.trajectories[i].clone()).collect();
-        TaskDataset { obs_dim: data.obs_dim, act_dim: data.act_dim, trajectories }
+        order.into_iter().take(episodes).map(|(_, i)| i).collect()
     }
 }
 

@@ -14,6 +14,7 @@
 
 pub mod error;
 pub mod flat;
+pub mod flat_hdf5;
 pub mod inspect;
 pub mod mode;
 pub mod multitask;

@@ -182,3 +182,109 @@ def test_import_refuses_data_that_contradicts_its_family(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"unknown environment `nonsense_family` \(known: .*cheetah_vel"):
         promptdt.import_minari(dataset_id, out, env="nonsense_family", task=0, mode="expert")
     assert not out.exists() or not any(out.iterdir())
+
+
+# A user's own task family (a suite file) and Minari data of an environment promptdt does not know.
+_SUITE = """
+name = "pend_levels"
+obs_dim = 3
+act_dim = 1
+action_bound = 2.0
+max_ep_len = 50
+rtg_scale = 100
+target_return = -100.0
+prompt_length = 5
+[[tasks]]
+name = "light"
+params = { g = 5.0 }
+[[tasks]]
+name = "heavy"
+params = { g = 10.0 }
+[[tasks]]
+name = "very_heavy"
+params = { g = 15.0 }
+[splits.default]
+train = ["light", "heavy"]
+test = ["very_heavy"]
+"""
+
+
+def _labelled(tmp_path, monkeypatch, dataset_id, label, dims=(3, 1)):
+    """Four episodes of Pendulum's sizes, labelled by ``label(i, T)`` -> (options, infos)."""
+    import gymnasium as gym
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    rng = np.random.default_rng(1)
+    buffers = []
+    for i in range(4):
+        T = 5 + i
+        options, infos = label(i, T)
+        buffers.append(minari.data_collector.EpisodeBuffer(
+            id=i, observations=rng.standard_normal((T + 1, dims[0])).astype(np.float32),
+            actions=rng.uniform(-2, 2, (T, dims[1])).astype(np.float32),
+            rewards=np.full(T, -float(i + 1)), terminations=np.zeros(T, bool),
+            truncations=np.arange(T) == T - 1, options=options, infos=infos))
+    minari.create_dataset_from_buffers(
+        dataset_id, buffers, observation_space=gym.spaces.Box(-9, 9, (dims[0],), np.float32),
+        action_space=gym.spaces.Box(-2, 2, (dims[1],), np.float32), algorithm_name="x", author="x",
+        author_email="x", code_permalink="x", description="x")
+    return buffers
+
+
+def test_import_into_a_suite_labels_episodes_by_a_named_field(tmp_path, monkeypatch):
+    import warnings
+
+    suite = tmp_path / "levels.toml"
+    suite.write_text(_SUITE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Minari's notices about the test's own datasets
+        # Task names in the reset options' "level"; task indices in the infos' "task_id".
+        by_name = _labelled(tmp_path, monkeypatch, "user/pend/names-v0",
+                            lambda i, T: ({"level": ["light", "heavy"][i % 2]}, {}))
+        by_info = _labelled(tmp_path, monkeypatch, "user/pend/infos-v0",
+                            lambda i, T: ({}, {"task_id": np.full(T + 1, 2, np.int64)}))
+    out = tmp_path / "data"
+    written = promptdt.import_minari("user/pend/names-v0", out, env=str(suite), mode="expert",
+                                     task_field="level", prompt_rule="best:1")
+    assert [p.name for p in written] == [
+        "pend_levels-0-expert.safetensors", "pend_levels-0-prompt-expert.safetensors",
+        "pend_levels-1-expert.safetensors", "pend_levels-1-prompt-expert.safetensors"]
+    light = promptdt.load_dataset(out / "pend_levels-0-expert.safetensors")
+    assert (light.env, light.task, light.mode) == ("pend_levels", 0, "expert")
+    assert len(light) == 2  # episodes 0 and 2
+    assert light.trajectories[1].observations.tobytes() == by_name[2].observations[:-1].tobytes()
+    # The prompt set: the highest-return episode (episode 0, return -5), by the library's rule.
+    prompt = promptdt.load_dataset(out / "pend_levels-0-prompt-expert.safetensors")
+    assert len(prompt) == 1 and prompt.trajectories[0].rewards.sum() == -5.0
+    written = promptdt.import_minari("user/pend/infos-v0", out, env=str(suite), mode="medium",
+                                     task_field="task_id")
+    assert [p.name for p in written] == ["pend_levels-2-medium.safetensors"]
+    assert len(promptdt.load_dataset(written[0])) == 4
+    assert by_info[0].rewards[0] == -1.0
+
+
+def test_import_into_a_suite_refuses_unlabelled_or_unknown_tasks(tmp_path, monkeypatch):
+    import warnings
+
+    suite = tmp_path / "levels.toml"
+    suite.write_text(_SUITE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _labelled(tmp_path, monkeypatch, "user/pend/none-v0", lambda i, T: ({}, {}))
+        _labelled(tmp_path, monkeypatch, "user/pend/bad-v0",
+                  lambda i, T: ({"level": ["light", "medium_heavy"][i % 2]}, {}))
+        _labelled(tmp_path, monkeypatch, "user/pend/wide-v0", lambda i, T: ({"level": "light"}, {}),
+                  dims=(4, 1))
+    out = tmp_path / "data"
+    with pytest.raises(ValueError, match=r"episode 0: no task label: no 'task' in its options or infos"):
+        promptdt.import_minari("user/pend/none-v0", out, env=str(suite), mode="expert")
+    with pytest.raises(ValueError, match=r"episode 1: options\['level'\]: 'medium_heavy' is no task of .*light, heavy, very_heavy"):
+        promptdt.import_minari("user/pend/bad-v0", out, env=str(suite), mode="expert", task_field="level")
+    with pytest.raises(ValueError, match=r"obs_dim 4 and act_dim 1 cannot be"):
+        promptdt.import_minari("user/pend/wide-v0", out, env=str(suite), mode="expert", task_field="level")
+    with pytest.raises(ValueError, match=r"prompt_rule: unknown prompt rule"):
+        promptdt.import_minari("user/pend/bad-v0", out, env=str(suite), mode="expert", task="light",
+                               prompt_rule="top3")
+    with pytest.raises(ValueError, match=r"task: 7 is no task of"):
+        promptdt.import_minari("user/pend/bad-v0", out, env=str(suite), mode="expert", task=7)
+    assert not out.exists() or not any(out.iterdir())

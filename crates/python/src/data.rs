@@ -143,6 +143,15 @@ pub(crate) fn write_dataset(
     py.detach(|| pdt_data::native::write_task_dataset(&path, &ds, &meta)).map_err(lib_error)
 }
 
+/// The episodes (indices into `returns`, one return per episode) that make a task's prompt set by
+/// `rule` (`best:N`: the N highest returns, best first; `pdt_data::flat::PromptRule`), in order.
+#[pyfunction]
+pub(crate) fn prompt_indices(returns: Vec<f64>, rule: &str) -> PyResult<Vec<usize>> {
+    let rule: pdt_data::flat::PromptRule =
+        rule.parse().map_err(|e: String| value_error(format!("prompt_rule: {e}")))?;
+    Ok(rule.pick(&returns))
+}
+
 /// Checks that data of `obs_dim` x `act_dim` can be the family `env`'s (`pdt_envs::check_dims`):
 /// `ValueError` naming the family and both sizes, or the known families for an unknown one.
 #[pyfunction]

@@ -16,30 +16,52 @@ use std::sync::Mutex;
 pub(crate) fn families(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     let out = PyDict::new(py);
     for name in pdt_envs::FAMILY_NAMES {
-        let f = pdt_envs::family(name).map_err(lib_error)?;
-        let p = f.preset();
-        let d = PyDict::new(py);
-        d.set_item("num_tasks", f.num_tasks())?;
-        d.set_item("obs_dim", p.obs_dim)?;
-        d.set_item("act_dim", p.act_dim)?;
-        d.set_item("horizon", p.horizon)?;
-        d.set_item("rtg_scale", p.rtg_scale)?;
-        d.set_item("target_return", p.target_return)?;
-        d.set_item("prompt_length", p.prompt_length)?;
-        let splits = PyDict::new(py);
-        for s in f.split_names() {
-            splits.set_item(&s, f.split(&s).map_err(lib_error)?)?;
-        }
-        d.set_item("splits", splits)?;
-        let bounds = f.action_bounds();
-        d.set_item("action_low", bounds.low)?;
-        d.set_item("action_high", bounds.high)?;
-        d.set_item("success_reward", f.success_reward())?;
-        d.set_item("scripted", f.scripted().is_some())?;
-        d.set_item("render_fps", f.render_fps())?;
-        out.set_item(name, d)?;
+        out.set_item(name, family_dict(py, name)?)?;
     }
     Ok(out)
+}
+
+/// One family's sizes, splits, bounds and tasks, as [`families`] gives each: a built-in family's
+/// name or a task suite file's path (its `name` is the suite's own, the name its files carry).
+#[pyfunction]
+pub(crate) fn family_info<'py>(py: Python<'py>, env: &str) -> PyResult<Bound<'py, PyDict>> {
+    family_dict(py, env)
+}
+
+fn family_dict<'py>(py: Python<'py>, env: &str) -> PyResult<Bound<'py, PyDict>> {
+    let f = pdt_envs::family(env).map_err(lib_error)?;
+    let p = f.preset();
+    let d = PyDict::new(py);
+    d.set_item("name", f.name())?;
+    d.set_item("num_tasks", f.num_tasks())?;
+    d.set_item("obs_dim", p.obs_dim)?;
+    d.set_item("act_dim", p.act_dim)?;
+    d.set_item("horizon", p.horizon)?;
+    d.set_item("rtg_scale", p.rtg_scale)?;
+    d.set_item("target_return", p.target_return)?;
+    d.set_item("prompt_length", p.prompt_length)?;
+    let splits = PyDict::new(py);
+    for s in f.split_names() {
+        splits.set_item(&s, f.split(&s).map_err(lib_error)?)?;
+    }
+    d.set_item("splits", splits)?;
+    let bounds = f.action_bounds();
+    d.set_item("action_low", bounds.low)?;
+    d.set_item("action_high", bounds.high)?;
+    d.set_item("success_reward", f.success_reward())?;
+    d.set_item("scripted", f.scripted().is_some())?;
+    d.set_item("render_fps", f.render_fps())?;
+    // A suite's tasks have names (its splits and users' data name them); the built-in families'
+    // are their indices.
+    let names: Vec<String> = if pdt_envs::suite::is_suite_path(env) {
+        let suite =
+            pdt_envs::suite::SuiteFamily::load(std::path::Path::new(env)).map_err(lib_error)?;
+        suite.tasks().iter().map(|t| t.name.clone()).collect()
+    } else {
+        (0..f.num_tasks()).map(|t| t.to_string()).collect()
+    };
+    d.set_item("task_names", names)?;
+    Ok(d)
 }
 
 /// A task's parameters as JSON text (`{"goal": [x, y]}`, `{"velocity": v}`, ...).

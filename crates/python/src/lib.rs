@@ -193,6 +193,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(data::write_dataset, m)?)?;
     m.add_function(wrap_pyfunction!(data::check_dims, m)?)?;
     m.add_function(wrap_pyfunction!(envs::families, m)?)?;
+    m.add_function(wrap_pyfunction!(envs::family_info, m)?)?;
+    m.add_function(wrap_pyfunction!(data::prompt_indices, m)?)?;
     m.add_function(wrap_pyfunction!(envs::task_params, m)?)?;
     m.add_function(wrap_pyfunction!(runs::train, m)?)?;
     m.add_function(wrap_pyfunction!(runs::evaluate, m)?)?;

@@ -47,15 +47,30 @@ pub fn report(a: &DataReportArgs) -> Result<()> {
     Ok(())
 }
 
-/// A flat `.npz` of step arrays with a `task_ids` column into a suite's (or family's) per-task
+/// A flat `.npz` or HDF5 file of step arrays with a task column into a suite's (or family's) per-task
 /// datasets and prompt sets: everything read and checked before the first file is written.
 pub fn import(a: &ImportArgs) -> Result<()> {
     let family = pdt_envs::family(&a.env)?;
     let preset = family.preset();
     let name = family.name().to_owned();
     let rule: PromptRule = a.prompt_rule.parse().map_err(anyhow::Error::msg)?;
-    let flat = read_flat_npz(&a.npz, preset.obs_dim, preset.act_dim)?;
-    let tasks = flat.split_by_task(&a.npz, family.num_tasks())?;
+    if let Some(id) = &a.minari {
+        return import_minari(a, id);
+    }
+    let field = a.task_field.as_deref().unwrap_or("task_ids");
+    let (file, flat) = match (&a.npz, &a.hdf5) {
+        (Some(npz), _) => (npz, read_flat_npz(npz, preset.obs_dim, preset.act_dim, field)?),
+        (None, Some(h5)) => {
+            let read =
+                pdt_data::flat_hdf5::read_flat_hdf5(h5, preset.obs_dim, preset.act_dim, field)?;
+            if !read.ignored.is_empty() {
+                out!("{}: left out (not step arrays): {}", h5.display(), read.ignored.join(", "));
+            }
+            (h5, read.steps)
+        }
+        (None, None) => bail!("give the data: --npz FILE, --hdf5 FILE or --minari ID"),
+    };
+    let tasks = flat.split_by_task(file, family.num_tasks())?;
     if !a.out.is_dir() {
         std::fs::create_dir_all(&a.out)
             .with_context(|| format!("creating the output directory {}", a.out.display()))?;
@@ -85,8 +100,56 @@ pub fn import(a: &ImportArgs) -> Result<()> {
     Ok(())
 }
 
+/// A Minari dataset through `promptdt.minari_io` in Python (Minari is a Python library; its one
+/// reader is `promptdt.import_minari`, which checks and writes through this library's code).
+fn import_minari(a: &ImportArgs, id: &str) -> Result<()> {
+    let mut python = pdt_envs::worker::default_python();
+    if pdt_envs::suite::is_suite_path(&a.env) {
+        let suite = pdt_envs::suite::SuiteFamily::load(Path::new(&a.env))?;
+        if let Some(spec) = suite.environment() {
+            python =
+                pdt_envs::worker::python(spec, suite.path().parent().unwrap_or(Path::new(".")));
+        }
+    }
+    let mut cmd = std::process::Command::new(&python);
+    cmd.args(["-m", "promptdt.minari_io", id]).arg(&a.out).args(["--env", &a.env]);
+    cmd.args(["--mode", &a.mode, "--prompt-rule", &a.prompt_rule]);
+    if let Some(f) = &a.task_field {
+        cmd.args(["--task-field", f]);
+    }
+    if let Some(t) = &a.task {
+        cmd.args(["--task", t]);
+    }
+    let run = cmd.output().with_context(|| {
+        format!(
+            "starting {} (a Python with promptdt and minari reads Minari datasets)",
+            python.display()
+        )
+    })?;
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    if !run.status.success() {
+        let why = stderr.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
+        bail!(
+            "importing Minari dataset {id} with {}: {}",
+            python.display(),
+            why.trim_start_matches("error: ")
+        );
+    }
+    let files = String::from_utf8_lossy(&run.stdout);
+    for f in files.lines() {
+        out!("{f}");
+    }
+    out!("imported Minari dataset {id} into {} ({} files)", a.out.display(), files.lines().count());
+    Ok(())
+}
+
 /// The six arrays of a flat dataset from `path`, each of the shape the suite's sizes give.
-fn read_flat_npz(path: &Path, obs_dim: usize, act_dim: usize) -> Result<FlatSteps> {
+fn read_flat_npz(
+    path: &Path,
+    obs_dim: usize,
+    act_dim: usize,
+    task_field: &str,
+) -> Result<FlatSteps> {
     let arrays = tch::Tensor::read_npz(path)
         .with_context(|| format!("{}: not a readable .npz of numeric arrays", path.display()))?;
     let mut by_name: std::collections::BTreeMap<String, tch::Tensor> = arrays.into_iter().collect();
@@ -94,7 +157,7 @@ fn read_flat_npz(path: &Path, obs_dim: usize, act_dim: usize) -> Result<FlatStep
         let t = by_name.remove(field).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: no array `{field}` (a flat dataset has observations, actions, rewards, \
-                 terminals, timeouts and task_ids)",
+                 terminals, timeouts and a task column, `{task_field}`)",
                 path.display()
             )
         })?;
@@ -122,10 +185,10 @@ fn read_flat_npz(path: &Path, obs_dim: usize, act_dim: usize) -> Result<FlatStep
     let rewards = floats(take("rewards", None)?)?;
     let terminals = flags(take("terminals", None)?)?;
     let timeouts = flags(take("timeouts", None)?)?;
-    let ids = take("task_ids", None)?;
+    let ids = take(task_field, None)?;
     if ids.is_floating_point() {
         bail!(
-            "{}: `task_ids` holds {:?} values; expected whole numbers",
+            "{}: `{task_field}` holds {:?} values; expected whole numbers",
             path.display(),
             ids.kind()
         );
@@ -134,7 +197,7 @@ fn read_flat_npz(path: &Path, obs_dim: usize, act_dim: usize) -> Result<FlatStep
     if let Some(extra) = by_name.keys().next() {
         bail!(
             "{}: unknown array `{extra}` (a flat dataset has observations, actions, rewards, \
-             terminals, timeouts and task_ids)",
+             terminals, timeouts and a task column, `{task_field}`)",
             path.display()
         );
     }

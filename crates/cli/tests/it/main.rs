@@ -17,6 +17,7 @@ mod families;
 mod hardening;
 mod hardening_data;
 mod hardening_runs;
+mod import_flat;
 mod last_block;
 mod macaw_cli;
 mod packs;

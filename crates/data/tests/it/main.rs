@@ -8,6 +8,7 @@ mod support;
 
 mod card_fuzz;
 mod flat;
+mod flat_hdf5;
 mod native_atomic;
 mod native_multitask;
 mod native_python;

@@ -46,12 +46,16 @@ pub const PYTHON_VAR: &str = "PROMPTDT_PYTHON";
 /// The interpreter that runs `spec`'s worker: its `python` (relative to `dir`, the suite file's
 /// directory), else `$PROMPTDT_PYTHON`, else `python3` on `PATH`.
 pub fn python(spec: &WorkerSpec, dir: &Path) -> PathBuf {
-    match (&spec.python, std::env::var_os(PYTHON_VAR).filter(|p| !p.is_empty())) {
-        (Some(p), _) if p.is_relative() && p.components().count() > 1 => dir.join(p),
-        (Some(p), _) => p.clone(),
-        (None, Some(p)) => PathBuf::from(p),
-        (None, None) => PathBuf::from("python3"),
+    match &spec.python {
+        Some(p) if p.is_relative() && p.components().count() > 1 => dir.join(p),
+        Some(p) => p.clone(),
+        None => default_python(),
     }
+}
+
+/// The Python where nothing names one: `$PROMPTDT_PYTHON`, else `python3` on `PATH`.
+pub fn default_python() -> PathBuf {
+    std::env::var_os(PYTHON_VAR).filter(|p| !p.is_empty()).map_or("python3".into(), PathBuf::from)
 }
 
 /// Starts a worker running `spec` and makes in it one environment per entry of `tasks` (the

@@ -202,37 +202,53 @@ def import_minari(
     out: PathLike,
     *,
     env: Optional[str] = None,
-    task: Optional[int] = None,
+    task: Optional[Union[int, str]] = None,
     mode: Optional[str] = None,
+    task_field: str = "task",
+    prompt_rule: Optional[str] = None,
 ) -> List[Path]:
-    """Writes a Minari dataset (an id or a ``MinariDataset``) as native files in ``out``: one per
-    task and set, as the episodes' options say (an export of promptdt's), or one file
-    ``{env}-{task}-{mode}.safetensors`` for a dataset from elsewhere (give ``env``, ``task`` and
-    ``mode``). The observation after each episode's last action is dropped. Returns the files."""
+    """Writes a Minari dataset (an id or a ``MinariDataset``) as native files in ``out``, one per
+    task and set, for the family ``env``: a built-in family's name or a task suite file's path
+    (``suite.toml``; files are named after the suite's ``name``). The observation after each
+    episode's last action is dropped.
+
+    The task of each episode: ``task`` (an index or, for a suite, a task's name) for a dataset of
+    one task; else the episode's ``task_field`` (default ``"task"``), looked up first in its reset
+    options, then in its infos (its first step's value): an index, or a suite task's name. A
+    promptdt export carries both ``task`` and ``mode`` in its options and its family in its
+    metadata, so ``env`` may be left out. ``mode``: the sets' mode (``expert``, ...), else each
+    episode's ``mode`` option. ``prompt_rule`` (``"best:N"``): also write each task's prompt set
+    ``{name}-{task}-prompt-{mode}`` of its N highest-return episodes (as ``promptdt data import``
+    does). Everything is read and checked against the family before the first file is written.
+    Returns the files."""
     minari = _minari()
     if isinstance(dataset, str):
         dataset = minari.load_dataset(dataset)
     meta = dataset.storage.metadata
     env = env or meta.get("promptdt_env")
     if env is None:
-        raise InvalidInputError("the dataset was not exported by promptdt: give env, task and mode")
-    if env not in _native.families():
-        _native.check_dims(env, 0, 0)  # raises the library's error naming the known families
+        raise InvalidInputError(
+            "the dataset was not exported by promptdt: give env (a family or a suite file) and "
+            "the task of its episodes (task=..., or task_field=... naming their options' or infos' key)"
+        )
+    fam = _native.family_info(env)  # raises the library's error naming a bad suite or family
+    name, names = fam["name"], list(fam["task_names"])
+    fixed = None if task is None else _task_index(task, names, env, "task")
     groups: Dict[Tuple[int, str], List[dict]] = {}
     episode_meta = list(dataset.storage.get_episode_metadata(dataset.episode_indices))
     for ep, em in zip(dataset.iterate_episodes(), episode_meta):
         opts = em.get("options") or {}
-        t = task if task is not None else opts.get("task")
+        t = fixed if fixed is not None else _episode_task(ep, opts, task_field, names, env)
         m = mode or opts.get("mode")
-        if t is None or m is None:
-            raise InvalidInputError(f"episode {ep.id}: no task/mode in its options; give task and mode")
+        if m is None:
+            raise InvalidInputError(f"episode {ep.id}: no mode in its options; give mode=...")
         obs = np.asarray(ep.observations)
         if obs.ndim != 2 or len(obs) != len(ep.rewards) + 1:
             raise InvalidInputError(
                 f"episode {ep.id}: observations of shape {obs.shape} for {len(ep.rewards)} steps "
                 "(promptdt takes Box observations, T + 1 of them)"
             )
-        groups.setdefault((int(t), str(m)), []).append(
+        groups.setdefault((t, str(m)), []).append(
             {
                 "observations": obs[:-1],
                 "actions": np.asarray(ep.actions),
@@ -250,11 +266,18 @@ def import_minari(
                 "[T, dim] Box observations and actions"
             )
         _native.check_dims(env, obs.shape[1], act.shape[1])
+    writes = []
+    for (t, m), trajs in sorted(groups.items()):
+        writes.append((f"{name}-{t}-{m}.safetensors", t, m, trajs))
+        if prompt_rule is not None:
+            returns = [float(np.sum(tr["rewards"], dtype=np.float64)) for tr in trajs]
+            best = [trajs[i] for i in _native.prompt_indices(returns, prompt_rule)]
+            writes.append((f"{name}-{t}-prompt-{m}.safetensors", t, f"prompt-{m}", best))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for (t, m), trajs in sorted(groups.items()):
-        path = out / f"{env}-{t}-{m}.safetensors"
+    for file, t, m, trajs in writes:
+        path = out / file
         obs_dim = trajs[0]["observations"].shape[1]
         act_dim = trajs[0]["actions"].shape[1]
         _native.write_dataset(os.fspath(path), trajs, obs_dim, act_dim, env=env, task=t, mode=m)
@@ -262,4 +285,64 @@ def import_minari(
     return written
 
 
+def _task_index(value: Any, names: List[str], env: str, where: str) -> int:
+    """A task given by its index or (a suite's) name, checked against the family's tasks."""
+    if isinstance(value, (bool, np.bool_)):
+        value = None  # a flag is no task
+    elif isinstance(value, (int, np.integer)) and 0 <= int(value) < len(names):
+        return int(value)
+    elif isinstance(value, str) and value in names:
+        return names.index(value)
+    raise InvalidInputError(
+        f"{where}: {value!r} is no task of {env} (tasks 0..{len(names) - 1}"
+        + (f": {', '.join(names)})" if names != [str(i) for i in range(len(names))] else ")")
+    )
+
+
+def _episode_task(ep: Any, opts: Dict[str, Any], field: str, names: List[str], env: str) -> int:
+    """An episode's task from its reset options' ``field``, else its infos' (first step)."""
+    if field in opts:
+        return _task_index(opts[field], names, env, f"episode {ep.id}: options[{field!r}]")
+    infos = getattr(ep, "infos", None) or {}
+    if field in infos and len(infos[field]) > 0:
+        value = np.asarray(infos[field])[0]
+        value = value.item() if isinstance(value, np.generic) else value
+        return _task_index(value, names, env, f"episode {ep.id}: infos[{field!r}]")
+    raise InvalidInputError(
+        f"episode {ep.id}: no task label: no {field!r} in its options or infos (give task=... for a "
+        "dataset of one task, or task_field=... naming the key that holds each episode's task)"
+    )
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m promptdt.minari_io DATASET OUT --env ...``: what ``promptdt data import --minari``
+    runs (the CLI has no Minari of its own); one line per file written."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m promptdt.minari_io", description=import_minari.__doc__)
+    p.add_argument("dataset")
+    p.add_argument("out")
+    p.add_argument("--env")
+    p.add_argument("--task")
+    p.add_argument("--mode")
+    p.add_argument("--task-field", default="task")
+    p.add_argument("--prompt-rule")
+    a = p.parse_args(argv)
+    task: Optional[Union[int, str]] = a.task
+    if a.task is not None and a.task.isdigit():
+        task = int(a.task)
+    try:
+        written = import_minari(a.dataset, a.out, env=a.env, task=task, mode=a.mode,
+                                task_field=a.task_field, prompt_rule=a.prompt_rule)
+    except (ValueError, OSError, ImportError) as e:
+        print(f"error: {e}", file=__import__("sys").stderr)
+        return 2
+    for path in written:
+        print(path)
+    return 0
+
+
 __all__ = ["export_minari", "import_minari"]
+
+if __name__ == "__main__":
+    raise SystemExit(_main())
