@@ -24,13 +24,16 @@ each, reporting the median and the 10th-90th percentiles (ms, wall clock, one ev
   with the actions of ``Policy.act`` (all episodes in one batch, as the evaluator batches them).
   Its returns are checked equal, bit for bit, to the worker's (the script stops otherwise).
 - **vector steps**: the steps of the evaluation (every episode runs to the horizon: Pendulum
-  never terminates and its time limit, 200, is beyond the horizon), so the per-step columns are
-  ms / steps.
-- **(worker - in-process) per vector step**: what the process boundary adds to each vector step
-  of a real evaluation, startup included (the difference of the medians, over the steps).
+  never terminates and its time limit, 200, is beyond the horizon).
 
-Then the worker protocol alone, with ``--proto-steps`` vector steps of zero actions, 1 and 16
-environments (tasks cycling over the suite's gravities), in microseconds per vector step:
+The worker's start is a fixed cost of each evaluation through it. It is timed on its own (below)
+and not subtracted from the evaluation rows: it can overlap the evaluation's other work (on a loaded
+machine the start timed alone exceeded the worker's whole difference to in-process), so a
+difference would mislead.
+
+First (it needs no run), the worker protocol alone, with ``--proto-steps`` vector steps of zero
+actions, 1 and 16 environments (tasks cycling over the suite's gravities), in microseconds per
+vector step:
 
 - **round trip**: this script speaks the protocol to ``python -m promptdt.worker`` itself (a JSON
   header and float32 payload each way over the pipes, as the Rust side does): one ``step`` request
@@ -43,7 +46,8 @@ environments (tasks cycling over the suite's gravities), in microseconds per vec
 - **worker start**: spawning the worker, its imports, and the ``init`` request answered (ms).
 
 Ratios (computed by `promptdt bench render`): "Python alone / worker" above 1 means the worker's
-evaluation is faster than the user's Python loop.
+evaluation is faster than the user's Python loop; "in-process / worker" is what the process
+boundary (start included) costs a whole evaluation.
 """
 from __future__ import annotations
 
@@ -265,6 +269,20 @@ def main():
     load_before = os.getloadavg()[0]
     started = time.perf_counter()
     eval_rows, proto_rows, start_ms = [], [], []
+    import gymnasium as gym
+
+    for n in (1, 16):
+        trips, directs = [], []
+        for _ in range(args.repeats):
+            trip, direct, ms = protocol(gym, n, args.proto_steps)
+            trips.append(trip)
+            directs.append(direct)
+            start_ms.append(ms)
+        overhead = [a - b for a, b in zip(trips, directs)]
+        proto_rows.append({"case": f"{n} env{'s' if n > 1 else ''}",
+                           "values": [spread(trips), spread(directs), spread(overhead)]})
+        print(f"{n:>3} envs: round trip {np.median(trips):.1f} us, direct {np.median(directs):.1f} us, "
+              f"overhead {np.median(overhead):.1f} us per vector step", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         run, gym = make_run(pathlib.Path(tmp), args.horizon, max(args.episodes))
 
@@ -291,26 +309,14 @@ def main():
                     f()
                     times[name].append(1e3 * (time.perf_counter() - t0))
             steps = args.horizon
-            per_step = 1e3 * (np.median(times["worker"]) - np.median(times["in-process"])) / steps  # us
             n = len(worker)
-            eval_rows.append({"case": f"{len(TEST)} tasks x {episodes} episodes ({n} envs), {steps} steps",
+            case = f"{len(TEST)} tasks x {episodes} episode{'s' if episodes > 1 else ''} ({n} envs), {steps} steps"
+            eval_rows.append({"case": case,
                               "values": [spread(times["worker"]), spread(times["in-process"]),
-                                         spread(times["alone"]), steps, sig(per_step)]})
+                                         spread(times["alone"]), steps]})
             print(f"{n:>3} envs: worker {np.median(times['worker']):.1f} ms, in-process "
                   f"{np.median(times['in-process']):.1f} ms, Python alone {np.median(times['alone']):.1f} ms; "
                   f"returns equal ({n} episodes)", flush=True)
-    for n in (1, 16):
-        trips, directs = [], []
-        for _ in range(args.repeats):
-            trip, direct, ms = protocol(gym, n, args.proto_steps)
-            trips.append(trip)
-            directs.append(direct)
-            start_ms.append(ms)
-        overhead = [a - b for a, b in zip(trips, directs)]
-        proto_rows.append({"case": f"{n} env{'s' if n > 1 else ''}",
-                           "values": [spread(trips), spread(directs), spread(overhead)]})
-        print(f"{n:>3} envs: round trip {np.median(trips):.1f} us, direct {np.median(directs):.1f} us, "
-              f"overhead {np.median(overhead):.1f} us per vector step", flush=True)
     load_after = os.getloadavg()[0]
     wall = time.perf_counter() - started
     print(f"worker start {np.median(start_ms):.0f} ms; {wall:.0f} s in all; load {load_before:.1f} -> {load_after:.1f}")
@@ -339,10 +345,10 @@ def main():
         "conditions": conditions,
         "tables": [
             {"case": "evaluation", "columns": ["worker process ms", "in-process (`env=factory`) ms",
-                                               "Python alone ms", "vector steps",
-                                               "(worker - in-process) per vector step us"],
+                                               "Python alone ms", "vector steps"],
              "ratios": [{"label": "Python alone / worker", "num": 2, "den": 0},
-                        {"label": "Python alone / in-process", "num": 2, "den": 1}],
+                        {"label": "Python alone / in-process", "num": 2, "den": 1},
+                        {"label": "in-process / worker", "num": 1, "den": 0}],
              "rows": eval_rows},
             {"case": "worker protocol, per vector step",
              "columns": ["round trip us", "gymnasium direct us", "overhead us"],
