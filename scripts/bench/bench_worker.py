@@ -92,7 +92,7 @@ step_timeout_s = 60
 
 
 def make_run(root: pathlib.Path, horizon: int, episodes: int):
-    """The suite, its data and a Prompt-DT run trained a few steps; returns (run dir, gymnasium)."""
+    """The suite, its data and a Prompt-DT run trained a few steps; returns the run directory."""
     import gymnasium as gym
     import promptdt
 
@@ -144,7 +144,7 @@ save_interval = 1
 episodes = {episodes}
 """)
     promptdt.train(root / "run", config, progress=False)
-    return root / "run", gym
+    return root / "run"
 
 
 def python_alone(run, gym, episodes: int, horizon: int):
@@ -263,6 +263,10 @@ def main():
     ap.add_argument("--proto-steps", type=int, default=2000)
     ap.add_argument("--conditions", default="", help="what else ran on the machine (goes into the record)")
     args = ap.parse_args()
+    if not 1 <= args.horizon <= 200:
+        # Pendulum-v1's own time limit is 200 steps: beyond it episodes would end before the
+        # horizon, and the rows' vector steps (every episode at the horizon) would be wrong.
+        ap.error(f"--horizon {args.horizon}: must be 1 to 200 (Pendulum-v1's time limit)")
     import promptdt
 
     promptdt.set_num_threads(1)
@@ -284,7 +288,7 @@ def main():
         print(f"{n:>3} envs: round trip {np.median(trips):.1f} us, direct {np.median(directs):.1f} us, "
               f"overhead {np.median(overhead):.1f} us per vector step", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        run, gym = make_run(pathlib.Path(tmp), args.horizon, max(args.episodes))
+        run = make_run(pathlib.Path(tmp), args.horizon, max(args.episodes))
 
         def factory(task):
             return gym.make("Pendulum-v1", **task["params"])
