@@ -91,11 +91,10 @@ def test_every_front_end_takes_the_suite(example):
     assert m, stdout
 
 
-def test_reproduce_reads_a_users_manifest_naming_the_suite(example, repo):
-    """`promptdt reproduce` takes a manifest file naming the suite, and gets as far as its data:
-    it collects each cell's data itself, and a suite has no policy to collect with yet, so it
-    stops there with the reason (issue 53 items 4 and 5, collection from a Python policy and
-    user manifests, are what take it further; this test is then to run the cell to its report)."""
+def test_reproduce_runs_a_users_manifest_on_the_suite_to_its_report(example, repo):
+    """`promptdt reproduce` on a user's manifest naming the suite (`[suites.<name>]`, the data the
+    README's block collected): the cell trains, is evaluated in the user's environment through the
+    worker, and is reported like the paper's cells (docs/reproduce.md, "Your own experiments")."""
     here, _ = example
     manifest = here / "smoke.toml"
     manifest.write_text("""
@@ -103,22 +102,29 @@ name = "pendulum_mass_smoke"
 title = "Prompt-DT on the pendulum_mass suite"
 description = "A user's experiment: one cell, the example's suite."
 layout = "table"
+[suites.pendulum]
+file = "suite.toml"
+data = "data"
 [budgets.smoke]
 note = "seconds"
 seeds = 1
 iterations = 2
 steps_per_iteration = 2
+batch_size_per_task = 2
 eval_episodes = 1
+test_eval_interval = 1
+train_eval_interval = 0
+save_interval = 1
 [[cells]]
-env = "suite.toml"
+env = "pendulum"
 method = "prompt-dt"
 row = "Prompt-DT"
 column = "pendulum_mass"
 """)
     out = subprocess.run([str(promptdt_exe(repo)), "reproduce", str(manifest), "--budget", "smoke",
                           "--out", "repro"], cwd=here, capture_output=True, text=True, timeout=300)
-    # Refused with a reason naming the suite (today `collect`'s: no policy to collect it with), not
-    # a crash. When reproduce gets through, this fails: extend it to the cell's report then.
-    assert out.returncode != 0, out.stdout
-    assert "pendulum_mass" in out.stderr and "collect" in out.stderr, out.stderr
-    assert "panicked" not in out.stderr, out.stderr
+    assert out.returncode == 0, f"stdout:\n{out.stdout}\nstderr:\n{out.stderr}"
+    report = (here / "repro/reports/pendulum_mass_smoke-smoke/report.md").read_text()
+    assert "Prompt-DT" in report and "pendulum_mass" in report, report
+    evals = (here / "repro/runs/pendulum/prompt-dt/smoke/seed0/eval.jsonl").read_text().splitlines()
+    assert {json.loads(e)["task"] for e in evals} == {"pendulum_mass-6", "pendulum_mass-7"}, evals
