@@ -80,9 +80,10 @@ python-test:
 	OMP_WAIT_POLICY=$${OMP_WAIT_POLICY:-PASSIVE} $(PY_VENV)/bin/python -m pytest -q crates/python/pytests
 	# The environment worker's Rust tests (gymnasium through `python -m promptdt.worker`), against
 	# the venv just built: `make test` skips them where no such Python is found.
-	PROMPTDT_PYTHON=$(abspath $(PY_VENV))/bin/python PROMPTDT_REQUIRE_WORKER_PYTHON=1 $(CARGO) test --release -p pdt-envs --test it worker::
-	# `promptdt data import --minari` (Minari through that Python), against Python's own import.
-	PROMPTDT_PYTHON=$(abspath $(PY_VENV))/bin/python PROMPTDT_REQUIRE_WORKER_PYTHON=1 $(CARGO) test --release -p promptdt --test it import_flat::
+	PROMPTDT_PYTHON=$(abspath $(PY_VENV))/bin/python PROMPTDT_REQUIRE_WORKER_PYTHON=1 $(CARGO) test --release -p pdt-envs --test it -- worker:: collect_policy::
+	# `promptdt data import --minari` and `promptdt collect --policy` (through that Python), each
+	# against Python's own.
+	PROMPTDT_PYTHON=$(abspath $(PY_VENV))/bin/python PROMPTDT_REQUIRE_WORKER_PYTHON=1 $(CARGO) test --release -p promptdt --test it -- import_flat:: collect_suite::
 
 # Side-by-side with PyTorch (needs a Python with torch 2.11: see scripts/requirements-torch.txt).
 bench: setup
