@@ -200,7 +200,15 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     };
     let dataset =
         data_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let norm = Normalisation::from_baselines(dataset, &baselines(&data_dir)?);
+    // A suite's runs are scored with the suite's declared returns (none declared: no task is
+    // normalised), a built-in family's with its dataset card's.
+    let norm = match crate::baselines::suite_baselines(&config.env.name, dir) {
+        Some(b) => Normalisation::from_baselines(
+            format!("suite {} (its expert_return and random_return)", config.env.name),
+            &b.unwrap_or_default(),
+        ),
+        None => Normalisation::from_baselines(dataset, &baselines(&data_dir)?),
+    };
     let info = run.info()?;
     let date = match &o.provenance.date {
         Some(d) => d.clone(),
