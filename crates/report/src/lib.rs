@@ -137,8 +137,7 @@ pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
     let offline = offline::aggregate(&runs);
 
     let title = cfg.title.as_deref();
-    let markdown =
-        render::table_markdown(&agg, title, &warnings, &offline::markdown(&offline));
+    let markdown = render::table_markdown(&agg, title, &warnings, &offline::markdown(&offline));
     // Render every figure before writing anything, so a plotting failure leaves the output
     // directory as it was rather than half-updated.
     let mut outputs: Vec<(String, Vec<u8>)> = vec![

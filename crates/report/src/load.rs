@@ -135,7 +135,15 @@ pub(crate) fn load_run(dir: &Path, warnings: &mut Vec<String>) -> Result<Run, Re
     let final_eval = run.final_eval()?;
     let offline_evals = rows(run.offline_eval_lines()?, warnings);
     let offline_final = run.offline_final()?;
-    Ok(Run { dir: dir.to_path_buf(), info, evals, final_eval, metrics, offline_evals, offline_final })
+    Ok(Run {
+        dir: dir.to_path_buf(),
+        info,
+        evals,
+        final_eval,
+        metrics,
+        offline_evals,
+        offline_final,
+    })
 }
 
 /// The rows of a log, its skipped truncated last line (a kill's) reported in `warnings`.

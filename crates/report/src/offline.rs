@@ -37,7 +37,8 @@ pub(crate) struct OfflineRow {
 type SeedErrors = (u64, BTreeMap<String, (usize, f64)>);
 
 fn seed_errors(run: &Run) -> Option<SeedErrors> {
-    if let Some(f) = run.offline_final.as_ref().filter(|f| f.eval_on == "test" && !f.tasks.is_empty())
+    if let Some(f) =
+        run.offline_final.as_ref().filter(|f| f.eval_on == "test" && !f.tasks.is_empty())
     {
         let tasks = f.tasks.iter().map(|t| (t.task.clone(), (t.task_index, t.action_mse)));
         return Some((f.iteration, tasks.collect()));
@@ -45,7 +46,10 @@ fn seed_errors(run: &Run) -> Option<SeedErrors> {
     let mut by_iter: BTreeMap<u64, BTreeMap<String, (usize, f64)>> = BTreeMap::new();
     for l in run.offline_evals.iter().flatten().filter(|l| l.is_test()) {
         let r = &l.result;
-        by_iter.entry(l.iteration).or_default().insert(r.task.clone(), (r.task_index, r.action_mse));
+        by_iter
+            .entry(l.iteration)
+            .or_default()
+            .insert(r.task.clone(), (r.task_index, r.action_mse));
     }
     let all = by_iter.values().flat_map(|m| m.keys()).collect::<std::collections::BTreeSet<_>>();
     let n = all.len();
@@ -149,9 +153,8 @@ pub(crate) fn markdown(envs: &[OfflineEnv]) -> String {
 
 /// `offline.csv`: `env,method,task,metric,mean,std,n_seeds`, `metric` always `action_mse`.
 pub(crate) fn csv(envs: &[OfflineEnv]) -> String {
-    let mut out = csv_line(
-        &["env", "method", "task", "metric", "mean", "std", "n_seeds"].map(String::from),
-    );
+    let mut out =
+        csv_line(&["env", "method", "task", "metric", "mean", "std", "n_seeds"].map(String::from));
     for env in envs {
         for row in &env.rows {
             let cells = env

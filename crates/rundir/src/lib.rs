@@ -30,4 +30,6 @@ pub use files::{
     AdaptationStats, DataMismatch, EvalLine, EvalRepeats, FinalEval, Latest, MetricsLine, PackInfo,
     PromptEval, RunInfo, RunStats, TaskResult, TaskStats, TrainState,
 };
-pub use offline::{OfflineEval, OfflineEvalLine, OfflineTaskResult, OFFLINE_MEASURE, OFFLINE_METRIC};
+pub use offline::{
+    OfflineEval, OfflineEvalLine, OfflineTaskResult, OFFLINE_MEASURE, OFFLINE_METRIC,
+};

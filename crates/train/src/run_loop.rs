@@ -19,10 +19,10 @@ use pdt_base::seed::derive_seed;
 use pdt_prompt::Rng;
 use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
 use pdt_rundir::config::{TestTime, TrainConfig};
-use pdt_rundir::{OfflineEvalLine, OfflineTaskResult, TaskResult};
 use pdt_rundir::{
     read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
 };
+use pdt_rundir::{OfflineEvalLine, OfflineTaskResult, TaskResult};
 use rand::SeedableRng;
 use std::path::{Path, PathBuf};
 
@@ -440,7 +440,9 @@ fn run_loop(
                 Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
-        if let Some(log) = offline.as_mut().filter(|_| (iteration - 1) % t.test_eval_interval == 0 || last) {
+        if let Some(log) =
+            offline.as_mut().filter(|_| (iteration - 1) % t.test_eval_interval == 0 || last)
+        {
             // The same stream and counter as an evaluation in an environment would draw from.
             let mut rng = eval_rng(setup, Split::Test, iteration);
             if let Some(res) = learner.offline_evaluate(Split::Test, &mut rng)? {

@@ -135,7 +135,8 @@ impl Setup {
     /// (`task_stats.json`'s). What `pdt_eval::testtime::SplitEval::task_target_return` conditions
     /// the task's episodes on, and what its `eval.jsonl` lines record.
     pub fn task_target_return(&self, index: usize) -> f32 {
-        let own = self.family.task_target_return(index).filter(|_| self.cfg.eval.target_return.is_none());
+        let own =
+            self.family.task_target_return(index).filter(|_| self.cfg.eval.target_return.is_none());
         own.unwrap_or(self.run_data.stats.target_return)
     }
 

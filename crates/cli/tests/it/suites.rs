@@ -136,7 +136,9 @@ fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     let out = ok(&["eval", "--run", s(&run)]);
     assert!(out.contains("action MSE") && out.contains("not a return"), "{out}");
     let written = std::fs::read_to_string(run.join("eval_offline.json")).unwrap();
-    assert!(written.contains("\"metric\": \"action_mse\"") && written.contains("\"iteration\": 10"));
+    assert!(
+        written.contains("\"metric\": \"action_mse\"") && written.contains("\"iteration\": 10")
+    );
     ok(&["eval", "--run", s(&run)]);
     assert_eq!(std::fs::read_to_string(run.join("eval_offline.json")).unwrap(), written);
     assert!(!run.join("eval_final.json").exists());

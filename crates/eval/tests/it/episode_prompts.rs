@@ -180,8 +180,7 @@ fn a_tasks_own_target_return_conditions_its_episodes() {
         ..task(4, &[7], Some(prompt.clone()))
     };
     let cfg = settings(Inference::Full, 4096);
-    let both =
-        evaluate(&model, vec![with_target(Some(-30.0)), with_target(None)], &cfg).unwrap();
+    let both = evaluate(&model, vec![with_target(Some(-30.0)), with_target(None)], &cfg).unwrap();
     let alone = |g: f32| {
         let cfg = EvalSettings { target_return: g, ..cfg.clone() };
         evaluate(&model, vec![with_target(None)], &cfg).unwrap().remove(0).actions
