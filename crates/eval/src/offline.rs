@@ -54,8 +54,10 @@ pub fn action_error(
                 for (j, &m) in h.mask.iter().enumerate() {
                     if m > 0.0 {
                         steps += 1;
-                        for d in j * da..(j + 1) * da {
-                            sum += (f64::from(preds[d]) - f64::from(h.actions[d])).powi(2);
+                        let (p, a) =
+                            (&preds[j * da..(j + 1) * da], &h.actions[j * da..(j + 1) * da]);
+                        for (x, y) in p.iter().zip(a) {
+                            sum += (f64::from(*x) - f64::from(*y)).powi(2);
                         }
                     }
                 }
