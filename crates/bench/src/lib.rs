@@ -454,6 +454,7 @@ fn time_eval(name: &str, case: EvalCase, cfg: &BenchConfig) -> Result<CaseTiming
                     envs,
                     seeds: (0..cfg.eval_episodes as u64).collect(),
                     prompt: Some(prompt),
+                    target_return: None,
                 })
             })
             .collect()

@@ -16,6 +16,7 @@
 use pdt_envs::rollout::{run_batch, BatchPolicy};
 use pdt_envs::vec_env::VecEnv;
 use pdt_envs::{Env, EnvError, EnvFamily, StepResult};
+pub mod offline;
 pub mod testtime;
 
 use pdt_base::num::compact;
@@ -51,6 +52,9 @@ pub struct EvalTask {
     pub seeds: Vec<u64>,
     /// `[1, J*H]` prompt for all this task's episodes, or `None` (no-prompt variants).
     pub prompt: Option<SegmentBatch>,
+    /// The G* this task's episodes are conditioned on, where the task has its own (a suite's
+    /// `[[tasks]] target_return`); `None`: the settings' `target_return`.
+    pub target_return: Option<f32>,
 }
 
 /// Prompts chosen per episode when it starts (the `nearest-start` strategy): given to
@@ -287,6 +291,8 @@ struct Batch<'a> {
     episode_prompts: Vec<SegmentBatch>,
     episode_prefix: Option<PrefixCache>,
     names: &'a [String],
+    /// Each task's G* (its own, or the settings'), named when an action is not finite.
+    targets: &'a [f32],
     /// `Some` while the episode in that slot runs.
     eps: Vec<Option<Running>>,
     /// Finished episodes, by slot.
@@ -393,7 +399,7 @@ impl BatchPolicy for Batch<'_> {
                 i % da,
                 acts[i],
                 compact(ep.h.rtg.last().copied().unwrap_or(0.0)),
-                compact(cfg.target_return),
+                compact(self.targets[ep.task]),
                 compact(cfg.rtg_scale)
             );
             return Err(EvalError::NonFiniteAction { task: self.names[ep.task].clone(), detail });
@@ -534,8 +540,8 @@ fn evaluate_inner(
     family: Option<&dyn EnvFamily>,
 ) -> Result<Vec<EpisodeRecord>, EvalError> {
     let (ds, da) = (model.cfg.state_dim, model.cfg.act_dim);
-    let first_rtg = first_rtg(cfg.returns, cfg.target_return, cfg.rtg_scale);
     let mut names: Vec<String> = Vec::with_capacity(tasks.len());
+    let mut targets: Vec<f32> = Vec::with_capacity(tasks.len());
     let mut prompts: Vec<Option<SegmentBatch>> = Vec::with_capacity(tasks.len());
     let mut envs: Vec<Box<dyn Env>> = Vec::new();
     // With a family: the family's task of each episode, whose environment it makes.
@@ -571,6 +577,7 @@ fn evaluate_inner(
         }
         names.push(task.name);
         prompts.push(task.prompt);
+        targets.push(task.target_return.unwrap_or(cfg.target_return));
     }
     let n = queue.len();
     // The prompts' keys and values, once per task (all tasks have a prompt or none does).
@@ -596,6 +603,7 @@ fn evaluate_inner(
         episode_prompts: Vec::new(),
         episode_prefix: None,
         names: &names,
+        targets: &targets,
         eps: (0..n).map(|_| None).collect(),
         done: Vec::with_capacity(n),
         task_prompt_rows: Default::default(),
@@ -615,7 +623,8 @@ fn evaluate_inner(
         let mut chosen = Vec::new();
         for (&id, obs) in slots.iter().zip(first) {
             if let Some(ep) = batch.eps[id].as_mut() {
-                ep.h = History::start(&cfg.norm, &obs, first_rtg);
+                let rtg = first_rtg(cfg.returns, targets[ep.task], cfg.rtg_scale);
+                ep.h = History::start(&cfg.norm, &obs, rtg);
                 if let Some(c) = chooser.as_deref_mut() {
                     ep.row = Some(chosen.len());
                     chosen.push(c.at_reset(ep.task, ep.episode, &obs)?);

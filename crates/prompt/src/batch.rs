@@ -251,6 +251,16 @@ impl<'a> BatchSampler<'a> {
         prompt
     }
 
+    /// `n` history segments of K steps of task `task`'s dataset D_i, drawn as a training batch
+    /// draws its histories (trajectory by the history ranking, any step a start; returns-to-go
+    /// zeroed where training's are). What an offline evaluation measures the model's actions on
+    /// (`pdt_eval::offline`); consecutive calls draw what one call of their total would.
+    pub fn history_segments(&self, task: usize, n: usize, rng: &mut Rng) -> SegmentBatch {
+        let mut out = SegmentBatch::zeros(n, self.cfg.k, self.state_dim, self.act_dim);
+        self.write_histories(task, n, 0, &mut out, rng);
+        out
+    }
+
     /// `n` segments of `len` steps from the tails of task `task`'s trajectories, the reference's
     /// `get_batch_finetune`: trajectories of the main dataset D_i drawn with the history-sampling
     /// weights (the ranking above), segment `si = T - len - 1`. It is the data MT-BC-Finetune adapts

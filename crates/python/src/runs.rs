@@ -117,6 +117,8 @@ pub(crate) fn train<'py>(
 /// step and raises, and nothing is written.
 /// `env`: a Python `factory(task)` making each episode's environment (`crate::factory`) in place
 /// of the run's family's; the result is returned and not written (`evaluate_run_in`).
+/// A run with no environment to act in (a suite without `[environment]`) and no `env` is
+/// evaluated offline (`pdt_train::run::evaluate_run_offline`): `eval_offline.json`'s content.
 #[pyfunction]
 #[pyo3(signature = (run_dir, episodes = None, split = "test", device = None, data = None,
                     prompt_strategy = None, prompt_episodes = None, prompt_length = None,
@@ -167,6 +169,23 @@ pub(crate) fn evaluate(
             ..Default::default()
         }),
     };
+    // A run with no environment (a suite without `[environment]`) and no factory given plays
+    // no episodes: its offline evaluation, `eval_offline.json`'s content (an action error).
+    if envs.is_none() && pdt_train::run::evaluates_offline(&run_dir).map_err(lib_error)? {
+        let (prompt, adapt) = (prompt.as_ref(), adapt.as_ref());
+        let test_time = pdt_train::run::asked_test_time(&run_dir, data.as_deref(), prompt, adapt)
+            .map_err(lib_error)?;
+        let req = pdt_train::run::EvalRequest {
+            episodes,
+            split: split.into(),
+            device,
+            data: data.clone(),
+            test_time,
+            repeats: 1,
+        };
+        let e = pdt_train::run::evaluate_run_offline(&run_dir, &req).map_err(lib_error)?;
+        return serde_json::to_string(&e).map_err(lib_error);
+    }
     // The episodes end in the library's rollouts, which count them in the watch; the waiting
     // thread reports the count. `None`: the run's configuration is unreadable, which the
     // evaluation reports itself before any episode.

@@ -141,6 +141,8 @@ pub struct Aggregated {
     pub runs: Vec<RunSummary>,
     pub runs_used: usize,
     pub runs_skipped: usize,
+    /// Runs with offline evaluations only (action errors, `crate::offline`): in no returns table.
+    pub offline_only: usize,
 }
 
 /// Computes the whole report. Problems that do not stop the report (runs without test
@@ -152,10 +154,17 @@ pub(crate) fn aggregate(
     let mut task_index: HashMap<String, i64> = HashMap::new();
     let mut seeds: Vec<Option<SeedData>> = Vec::with_capacity(runs.len());
     let mut missing = Vec::new();
+    let mut offline_only = 0;
     for (i, run) in runs.iter().enumerate() {
         collect_task_indices(run, &mut task_index);
         match seed_data(i, run, warnings) {
             Ok(s) => seeds.push(Some(s)),
+            // Evaluated offline only (no environment): reported in the action-error table
+            // (`crate::offline`), not left out.
+            Err(_) if run.offline_evals.is_some() || run.offline_final.is_some() => {
+                offline_only += 1;
+                seeds.push(None);
+            }
             Err(why) => {
                 warnings.push(format!("{why}; run left out of the table and curves"));
                 missing.push(why);
@@ -164,7 +173,7 @@ pub(crate) fn aggregate(
         }
     }
     let runs_used = seeds.iter().filter(|s| s.is_some()).count();
-    if runs_used == 0 {
+    if runs_used + offline_only == 0 {
         return Err(ReportError::NoEvalData { details: missing });
     }
 
@@ -188,7 +197,8 @@ pub(crate) fn aggregate(
 
     let run_summaries =
         runs.iter().zip(&seeds).map(|(run, s)| run_summary(run, s.as_ref())).collect();
-    Ok(Aggregated { envs, runs: run_summaries, runs_used, runs_skipped: runs.len() - runs_used })
+    let runs_skipped = runs.len() - runs_used - offline_only;
+    Ok(Aggregated { envs, runs: run_summaries, runs_used, runs_skipped, offline_only })
 }
 
 fn collect_task_indices(run: &Run, out: &mut HashMap<String, i64>) {

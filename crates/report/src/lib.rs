@@ -7,7 +7,9 @@
 //!   (environment, method), as mean ± std over seeds, like the paper's tables;
 //! - `curves_<env>.png`, `curves_<env>.svg`, `curves.csv`: average test return against
 //!   training iteration, one line per method with a ± std band, like the paper's Figure 2;
-//! - `runs.csv`: which runs were found, which were used, and where each value came from.
+//! - `runs.csv`: which runs were found, which were used, and where each value came from;
+//! - `offline.csv` (and a section of `table.md`): the held-out action error of runs evaluated
+//!   offline (no environment), labelled as such and never among the returns.
 //!
 //! [`dataset_report`] does the same for a dataset directory written by `promptdt collect`:
 //! episode return per task and mode against the reference release, with the quality bars
@@ -21,6 +23,7 @@ mod aggregate;
 mod datasets;
 mod error;
 mod load;
+mod offline;
 mod plot;
 mod render;
 
@@ -131,8 +134,10 @@ pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
         dirs.iter().map(|d| load::load_run(d, &mut warnings)).collect::<Result<Vec<_>, _>>()?;
     let agg = aggregate::aggregate(&runs, &mut warnings)?;
 
+    let offline = offline::aggregate(&runs);
+
     let title = cfg.title.as_deref();
-    let markdown = render::table_markdown(&agg, title, &warnings);
+    let markdown = render::table_markdown(&agg, title, &warnings, &offline::markdown(&offline));
     // Render every figure before writing anything, so a plotting failure leaves the output
     // directory as it was rather than half-updated.
     let mut outputs: Vec<(String, Vec<u8>)> = vec![
@@ -141,6 +146,9 @@ pub fn run(cfg: &ReportConfig) -> Result<ReportSummary, ReportError> {
         ("curves.csv".to_string(), render::curves_csv(&agg).into_bytes()),
         ("runs.csv".to_string(), render::runs_csv(&agg).into_bytes()),
     ];
+    if !offline.is_empty() {
+        outputs.push(("offline.csv".to_string(), offline::csv(&offline).into_bytes()));
+    }
     for env in agg.envs.iter().filter(|e| !e.curves.is_empty()) {
         let fig = plot::render(env, title)?;
         outputs.push((format!("curves_{}.png", env.file_stem), fig.png));

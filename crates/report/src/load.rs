@@ -5,7 +5,10 @@ use std::collections::HashSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use pdt_rundir::{EvalLine, FinalEval, JsonLines, MetricsLine, RunDir, RunDirError, RunInfo};
+use pdt_rundir::{
+    EvalLine, FinalEval, JsonLines, MetricsLine, OfflineEval, OfflineEvalLine, RunDir, RunDirError,
+    RunInfo,
+};
 
 use crate::error::ReportError;
 
@@ -18,6 +21,10 @@ pub(crate) struct Run {
     pub evals: Option<Vec<EvalLine>>,
     pub final_eval: Option<FinalEval>,
     pub metrics: Option<Vec<MetricsLine>>,
+    /// `offline_eval.jsonl` (a run with no environment: action errors, never returns).
+    pub offline_evals: Option<Vec<OfflineEvalLine>>,
+    /// `eval_offline.json`.
+    pub offline_final: Option<OfflineEval>,
 }
 
 impl Run {
@@ -126,7 +133,17 @@ pub(crate) fn load_run(dir: &Path, warnings: &mut Vec<String>) -> Result<Run, Re
     let evals = rows(run.eval_lines()?, warnings);
     let metrics = rows(run.metrics()?, warnings);
     let final_eval = run.final_eval()?;
-    Ok(Run { dir: dir.to_path_buf(), info, evals, final_eval, metrics })
+    let offline_evals = rows(run.offline_eval_lines()?, warnings);
+    let offline_final = run.offline_final()?;
+    Ok(Run {
+        dir: dir.to_path_buf(),
+        info,
+        evals,
+        final_eval,
+        metrics,
+        offline_evals,
+        offline_final,
+    })
 }
 
 /// The rows of a log, its skipped truncated last line (a kill's) reported in `warnings`.

@@ -162,9 +162,29 @@ fn best(stats: &[Option<Stat>]) -> Option<usize> {
 
 /// `table.md`: one table per environment; rows are methods, columns the test tasks and their
 /// average. Warnings are appended so that the table is never read without its caveats.
-pub(crate) fn table_markdown(agg: &Aggregated, title: Option<&str>, warnings: &[String]) -> String {
+/// `offline` is the action-error section (`crate::offline::markdown`), after the returns' tables
+/// and before the warnings.
+pub(crate) fn table_markdown(
+    agg: &Aggregated,
+    title: Option<&str>,
+    warnings: &[String],
+    offline: &str,
+) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "# {}\n", md(title.unwrap_or("Prompt-DT results")));
+    if !agg.envs.is_empty() {
+        returns_intro(&mut out, agg);
+    }
+    for env in &agg.envs {
+        env_table(&mut out, env);
+    }
+    out.push_str(offline);
+    warnings_markdown(&mut out, warnings);
+    out
+}
+
+/// What the returns' tables show, and how many runs they use.
+fn returns_intro(out: &mut String, agg: &Aggregated) {
     let _ = writeln!(
         out,
         "Return on held-out test tasks at the end of training, mean ± std over seeds \
@@ -173,52 +193,52 @@ pub(crate) fn table_markdown(agg: &Aggregated, title: Option<&str>, warnings: &[
          tasks, then mean ± std over seeds. Best mean per column in bold; (n=k): only k seeds \
          contribute (task not evaluated, or a non-finite return).\n"
     );
-    let _ = writeln!(
-        out,
-        "{} run(s) used{}.\n",
-        agg.runs_used,
-        if agg.runs_skipped > 0 {
-            format!(", {} left out (see warnings)", agg.runs_skipped)
-        } else {
-            String::new()
-        }
-    );
-    for env in &agg.envs {
-        let _ = writeln!(out, "## {}\n", md(&env.env));
-        let mut header = vec!["method".to_string(), "seeds".to_string(), "iteration".to_string()];
-        header.extend(env.tasks.iter().map(|t| md(t)));
-        header.push("average".to_string());
-        // The method column left-aligned, the numbers right-aligned.
-        let mut table = Table::new(header);
+    let skipped = match agg.runs_skipped {
+        0 => String::new(),
+        n => format!(", {n} left out (see warnings)"),
+    };
+    // Runs without an environment have action errors, not returns: shown in their own section.
+    let offline = match agg.offline_only {
+        0 => String::new(),
+        n => format!(", {n} evaluated offline only (the action-error section below)"),
+    };
+    let _ = writeln!(out, "{} run(s) used{skipped}{offline}.\n", agg.runs_used);
+}
 
-        let best_task: Vec<Option<usize>> = (0..env.tasks.len())
-            .map(|j| best(&env.rows.iter().map(|r| r.tasks[j]).collect::<Vec<_>>()))
-            .collect();
-        let best_avg = best(&env.rows.iter().map(|r| r.average).collect::<Vec<_>>());
-        for (i, row) in env.rows.iter().enumerate() {
-            let iters = match row.iterations {
-                Some((a, b)) if a == b => a.to_string(),
-                Some((a, b)) => format!("{a}–{b}"),
-                None => "—".to_string(),
-            };
-            let mut cells = vec![md(&row.method), row.n_seeds.to_string(), iters];
-            for (j, s) in row.tasks.iter().enumerate() {
-                cells.push(match s {
-                    Some(s) => cell(s, row.n_seeds, best_task[j] == Some(i)),
-                    None => "—".to_string(),
-                });
-            }
-            cells.push(match &row.average {
-                Some(s) => cell(s, row.n_seeds, best_avg == Some(i)),
+/// One environment's table of returns.
+fn env_table(out: &mut String, env: &crate::aggregate::EnvReport) {
+    let _ = writeln!(out, "## {}\n", md(&env.env));
+    let mut header = vec!["method".to_string(), "seeds".to_string(), "iteration".to_string()];
+    header.extend(env.tasks.iter().map(|t| md(t)));
+    header.push("average".to_string());
+    // The method column left-aligned, the numbers right-aligned.
+    let mut table = Table::new(header);
+
+    let best_task: Vec<Option<usize>> = (0..env.tasks.len())
+        .map(|j| best(&env.rows.iter().map(|r| r.tasks[j]).collect::<Vec<_>>()))
+        .collect();
+    let best_avg = best(&env.rows.iter().map(|r| r.average).collect::<Vec<_>>());
+    for (i, row) in env.rows.iter().enumerate() {
+        let iters = match row.iterations {
+            Some((a, b)) if a == b => a.to_string(),
+            Some((a, b)) => format!("{a}–{b}"),
+            None => "—".to_string(),
+        };
+        let mut cells = vec![md(&row.method), row.n_seeds.to_string(), iters];
+        for (j, s) in row.tasks.iter().enumerate() {
+            cells.push(match s {
+                Some(s) => cell(s, row.n_seeds, best_task[j] == Some(i)),
                 None => "—".to_string(),
             });
-            table.push(cells);
         }
-        out.push_str(&table.markdown(Rule::Spaced));
-        out.push('\n');
+        cells.push(match &row.average {
+            Some(s) => cell(s, row.n_seeds, best_avg == Some(i)),
+            None => "—".to_string(),
+        });
+        table.push(cells);
     }
-    warnings_markdown(&mut out, warnings);
-    out
+    out.push_str(&table.markdown(Rule::Spaced));
+    out.push('\n');
 }
 
 /// A `## Warnings` section listing `warnings` (nothing when there are none).

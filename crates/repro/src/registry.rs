@@ -200,7 +200,20 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     };
     let dataset =
         data_dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let norm = Normalisation::from_baselines(dataset, &baselines(&data_dir)?);
+    // A suite's runs are scored with the suite's declared returns; where it declares none, with
+    // its data's card if there is one (none: no task is normalised); a built-in family's with its
+    // dataset card's.
+    let norm = match crate::baselines::suite_baselines(&config.env.name, dir) {
+        Some(Ok(b)) => Normalisation::from_baselines(
+            format!("suite {} (its expert_return and random_return)", config.env.name),
+            &b,
+        ),
+        Some(Err(_)) => match baselines(&data_dir) {
+            Ok(b) => Normalisation::from_baselines(dataset, &b),
+            Err(_) => Normalisation::from_baselines(dataset, &Default::default()),
+        },
+        None => Normalisation::from_baselines(dataset, &baselines(&data_dir)?),
+    };
     let info = run.info()?;
     let date = match &o.provenance.date {
         Some(d) => d.clone(),

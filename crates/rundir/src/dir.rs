@@ -19,6 +19,11 @@ pub const METRICS_CSV: &str = "metrics.csv";
 pub const EVAL_JSONL: &str = "eval.jsonl";
 pub const EVAL_CSV: &str = "eval.csv";
 pub const EVAL_FINAL_JSON: &str = "eval_final.json";
+/// The offline evaluations' log (action error on the held-out tasks' data; `crate::offline`).
+pub const OFFLINE_EVAL_JSONL: &str = "offline_eval.jsonl";
+pub const OFFLINE_EVAL_CSV: &str = "offline_eval.csv";
+/// `promptdt eval`'s offline evaluation of the latest checkpoint.
+pub const OFFLINE_FINAL_JSON: &str = "eval_offline.json";
 pub const CHECKPOINTS: &str = "checkpoints";
 pub const LATEST_JSON: &str = "latest.json";
 
@@ -173,6 +178,18 @@ impl RunDir {
         self.root.join(EVAL_FINAL_JSON)
     }
 
+    pub fn offline_eval_path(&self) -> PathBuf {
+        self.root.join(OFFLINE_EVAL_JSONL)
+    }
+
+    pub fn offline_eval_csv_path(&self) -> PathBuf {
+        self.root.join(OFFLINE_EVAL_CSV)
+    }
+
+    pub fn offline_final_path(&self) -> PathBuf {
+        self.root.join(OFFLINE_FINAL_JSON)
+    }
+
     pub fn checkpoints_dir(&self) -> PathBuf {
         self.root.join(CHECKPOINTS)
     }
@@ -223,6 +240,26 @@ impl RunDir {
     /// `eval.jsonl`; `None` when it does not exist (as opposed to existing but empty).
     pub fn eval_lines(&self) -> Result<Option<JsonLines<EvalLine>>, RunDirError> {
         read_jsonl(&self.eval_path())
+    }
+
+    /// `offline_eval.jsonl`; `None` when the run made no offline evaluation (every run before
+    /// them, and every run with an environment).
+    pub fn offline_eval_lines(
+        &self,
+    ) -> Result<Option<JsonLines<crate::offline::OfflineEvalLine>>, RunDirError> {
+        read_jsonl(&self.offline_eval_path())
+    }
+
+    /// `eval_offline.json`; `None` when the run was not evaluated offline by `promptdt eval`.
+    pub fn offline_final(&self) -> Result<Option<crate::offline::OfflineEval>, RunDirError> {
+        read_json_opt(&self.offline_final_path())
+    }
+
+    pub fn write_offline_final(
+        &self,
+        eval: &crate::offline::OfflineEval,
+    ) -> Result<(), RunDirError> {
+        write_json(&self.offline_final_path(), eval)
     }
 
     /// `metrics.jsonl`; `None` when it does not exist.

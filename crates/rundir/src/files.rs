@@ -187,6 +187,10 @@ fn keep_default() -> bool {
     true
 }
 
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
 impl Latest {
     /// The weights file name a checkpoint of `step` has.
     pub fn model_name(step: u64) -> String {
@@ -227,6 +231,10 @@ pub struct TrainState {
     /// back to them.
     pub metrics_lines: usize,
     pub eval_lines: usize,
+    /// Lines of `offline_eval.jsonl` at the checkpoint (a run evaluated offline,
+    /// `crate::offline`); absent when 0, so the files of every other run are as before.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub offline_eval_lines: usize,
     /// As `latest.json`'s `keep`: `false` for a resume point, whose files go once a later one is
     /// in force. Recorded here too, so a removal cut short by a kill is finished on the next
     /// start. Absent in runs written before it was recorded (then kept).

@@ -56,7 +56,7 @@ impl Default for EvalRequest {
 const REPEAT_STRIDE: u64 = 1 << 40;
 
 /// The counter of repeat `r`'s evaluation stream (see [`REPEAT_STRIDE`]).
-fn repeat_counter(iteration: u64, r: usize) -> u64 {
+pub(crate) fn repeat_counter(iteration: u64, r: usize) -> u64 {
     u64::MAX - iteration - (r as u64) * REPEAT_STRIDE
 }
 
@@ -151,18 +151,7 @@ pub fn evaluate_run_in(
     if setup.device.is_cuda() {
         pdt_torch::device::set_matmul(setup.device, setup.cfg.run.matmul)?;
     }
-    let stats_path = run.stats_path();
-    let recorded = read_stats(&run)?;
-    setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
-        let dir = setup.cfg.data.dir.display();
-        RunError::invalid(
-            stats_path.display(),
-            format!(
-                "{m}; data.dir is {dir}. Evaluate with the data the run trained on (--data DIR \
-                 where it moved)"
-            ),
-        )
-    })?;
+    check_recorded_stats(&setup, &run)?;
     let which = match split {
         "test" => Split::Test,
         "train" => Split::Train,
@@ -227,6 +216,23 @@ pub fn evaluate_run_in(
         run.write_prompt_eval(&out)?;
     }
     Ok(out)
+}
+
+/// Refuses data other than those the run trained on (their statistics and fingerprints against
+/// `task_stats.json`), naming the file and the data directory.
+pub(crate) fn check_recorded_stats(setup: &Setup, run: &RunDir) -> Result<(), RunError> {
+    let stats_path = run.stats_path();
+    let recorded = read_stats(run)?;
+    setup.run_data.stats.check_same_as(&recorded).map_err(|m| {
+        let dir = setup.cfg.data.dir.display();
+        RunError::invalid(
+            stats_path.display(),
+            format!(
+                "{m}; data.dir is {dir}. Evaluate with the data the run trained on (--data DIR \
+                 where it moved)"
+            ),
+        )
+    })
 }
 
 /// The run's family with its batches of environments made by a caller's [`EnvMaker`]; all else

@@ -11,6 +11,8 @@
 //! - `run_dir`: the trainer's bookkeeping of the run directory (logs cut back on resume, checkpoint
 //!   commits, clean-up after a kill) over `pdt_rundir`'s typed files.
 //! - `evaluate`: the final evaluation of a run (`eval_final.json`).
+//! - `offline`: the final evaluation of a run with no environment (`eval_offline.json`: the
+//!   action error on the tasks' data).
 //! - [`streams`]: the lock on libtorch's one random generator that runs sharing a process take
 //!   turns at (the run seed's streams are numbered in `pdt_run::streams`).
 //! - [`optim`]: AdamW, linear warm-up and global gradient-norm clipping, written to reproduce
@@ -27,6 +29,7 @@
 mod error;
 mod evaluate;
 pub mod methods;
+mod offline;
 pub mod optim;
 pub mod run;
 mod run_dir;

@@ -11,6 +11,7 @@ pub use crate::error::RunError;
 pub use crate::evaluate::{
     asked_test_time, evaluate_run, evaluate_run_as, evaluate_run_in, EnvMaker, EvalRequest,
 };
+pub use crate::offline::{evaluate_run_offline, evaluates_offline};
 pub use crate::run_loop::{
     run_config_for, train, train_learner, Progress, ResumeWith, TrainOptions, TrainSummary,
 };

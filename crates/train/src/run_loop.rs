@@ -19,10 +19,10 @@ use pdt_base::seed::derive_seed;
 use pdt_prompt::Rng;
 use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
 use pdt_rundir::config::{TestTime, TrainConfig};
-use pdt_rundir::TaskResult;
 use pdt_rundir::{
     read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
 };
+use pdt_rundir::{OfflineEvalLine, OfflineTaskResult, TaskResult};
 use rand::SeedableRng;
 use std::path::{Path, PathBuf};
 
@@ -71,6 +71,9 @@ pub struct TrainSummary {
     pub iterations_done: u64,
     pub finished: bool,
     pub last_test: Option<Vec<TaskResult>>,
+    /// The last offline evaluation of the held-out tasks (a run with no environment: the action
+    /// error on their data, `pdt_eval::offline`), if there was one. Never a return.
+    pub last_offline: Option<Vec<OfflineTaskResult>>,
     /// Why the run was not evaluated in an environment while it trained, if it was not
     /// ([`Setup::online_evaluation_note`]).
     pub note: Option<String>,
@@ -91,6 +94,10 @@ impl std::fmt::Display for TrainSummary {
         write!(f, "{state} after iteration {}", self.iterations_done)?;
         if let Some(mean) = self.held_out_mean() {
             write!(f, ", held-out average return {mean:.2}")?;
+        }
+        if let Some(tasks) = &self.last_offline {
+            let mean = pdt_rundir::OfflineEval::mean_of(tasks);
+            write!(f, ", held-out action MSE {mean:.4} (offline; lower is better)")?;
         }
         write!(f, ": {}", self.dir.display())?;
         if let Some(note) = &self.note {
@@ -313,18 +320,21 @@ pub(crate) fn eval_rng(setup: &Setup, split: Split, counter: u64) -> Rng {
 }
 
 /// The `eval.jsonl` lines of an evaluation on `eval_on` ("test" or "train"), with the learner's
-/// adaptation columns.
+/// adaptation columns and each task's target return ([`Setup::task_target_return`]).
 fn eval_lines(
+    setup: &Setup,
     res: &[TaskEval],
     iteration: u64,
     step: u64,
     eval_on: &str,
-    target: f32,
 ) -> Vec<EvalLine> {
     res.iter()
-        .map(|r| EvalLine {
-            adaptation: r.adaptation,
-            ..EvalLine::new(&r.result, iteration, step, eval_on, target)
+        .map(|r| {
+            let target = setup.task_target_return(r.result.task_index);
+            EvalLine {
+                adaptation: r.adaptation,
+                ..EvalLine::new(&r.result, iteration, step, eval_on, target)
+            }
         })
         .collect()
 }
@@ -362,6 +372,18 @@ fn run_loop(
         run.eval_csv_path(),
         state.as_ref().map_or(0, |s| s.eval_lines),
     )?;
+    // A run with no environment evaluates offline instead, into a log of its own (never
+    // `eval.jsonl`: an action error is not a return). Other runs have no such file.
+    let evaluates_offline = setup.evaluates_offline();
+    let mut offline = match evaluates_offline {
+        true => Some(Log::open(
+            run.offline_eval_path(),
+            run.offline_eval_csv_path(),
+            state.as_ref().map_or(0, |s| s.offline_eval_lines),
+        )?),
+        false => None,
+    };
+    let mut last_offline = None;
     record_resume_changes(dir, cfg, with, opts.resume)?;
     let mut batch_rng = Rng::seed_from_u64(derive_seed(cfg.run.seed, STREAM_BATCHES, 0));
     if let Some(s) = &state {
@@ -372,7 +394,6 @@ fn run_loop(
         batch_rng.set_word_pos(pos);
     }
     let (t, started) = (&cfg.train, std::time::Instant::now());
-    let target = setup.run_data.stats.target_return;
     let mut last_test = None;
     // The run's own test time, the same at every evaluation.
     let test_time = TestTime::of(&setup.cfg);
@@ -388,6 +409,7 @@ fn run_loop(
                 iterations_done: iteration,
                 finished: false,
                 last_test,
+                last_offline,
                 note,
             });
         }
@@ -412,17 +434,36 @@ fn run_loop(
         if evaluates && ((iteration - 1) % t.test_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Test, iteration);
             let res = learner.evaluate(Split::Test, &test_time, &mut rng)?.tasks;
-            evals.append(&eval_lines(&res, iteration, step, "test", target))?;
+            evals.append(&eval_lines(setup, &res, iteration, step, "test"))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
             test_return =
                 Some(res.iter().map(|r| r.return_mean).sum::<f64>() / res.len().max(1) as f64);
             last_test = Some(res);
         }
+        if let Some(log) =
+            offline.as_mut().filter(|_| (iteration - 1) % t.test_eval_interval == 0 || last)
+        {
+            // The same stream and counter as an evaluation in an environment would draw from.
+            let mut rng = eval_rng(setup, Split::Test, iteration);
+            if let Some(res) = learner.offline_evaluate(Split::Test, &mut rng)? {
+                let lines: Vec<OfflineEvalLine> = res
+                    .iter()
+                    .map(|r| OfflineEvalLine {
+                        iteration,
+                        step,
+                        eval_on: "test".into(),
+                        result: r.clone(),
+                    })
+                    .collect();
+                log.append(&lines)?;
+                last_offline = Some(res);
+            }
+        }
         let train_evals = t.train_eval_interval > 0 && evaluates;
         if train_evals && ((iteration - 1) % t.train_eval_interval == 0 || last) {
             let mut rng = eval_rng(setup, Split::Train, iteration);
             let res = learner.evaluate(Split::Train, &test_time, &mut rng)?.tasks;
-            evals.append(&eval_lines(&res, iteration, step, "train", target))?;
+            evals.append(&eval_lines(setup, &res, iteration, step, "train"))?;
         }
         let keep = iteration % t.save_interval == 0 || last;
         if keep || (t.resume_interval > 0 && iteration % t.resume_interval == 0) {
@@ -434,6 +475,7 @@ fn run_loop(
                 adam_steps: serde_json::Value::Null,
                 metrics_lines: metrics.lines,
                 eval_lines: evals.lines,
+                offline_eval_lines: offline.as_ref().map_or(0, |l| l.lines),
                 keep,
             };
             save_checkpoint(dir, learner, state)?;
@@ -445,6 +487,7 @@ fn run_loop(
         iterations_done: iteration,
         finished: true,
         last_test,
+        last_offline,
         note,
     })
 }

@@ -123,10 +123,27 @@ impl Setup {
         suite.environment().is_none().then(|| {
             format!(
                 "{} declares no [environment]: no evaluation in an environment during training \
-                 (the suite's tasks have data only)",
+                 (the suite's tasks have data only); the prompted model's action error on the \
+                 held-out tasks' data is recorded instead, in offline_eval.jsonl (not for MACAW)",
                 suite.path().display()
             )
         })
+    }
+
+    /// The G* task `index` (the family's) is evaluated with: the run's `eval.target_return` when
+    /// set, else the task's own (a suite's `[[tasks]] target_return`), else the run's
+    /// (`task_stats.json`'s). What `pdt_eval::testtime::SplitEval::task_target_return` conditions
+    /// the task's episodes on, and what its `eval.jsonl` lines record.
+    pub fn task_target_return(&self, index: usize) -> f32 {
+        let own =
+            self.family.task_target_return(index).filter(|_| self.cfg.eval.target_return.is_none());
+        own.unwrap_or(self.run_data.stats.target_return)
+    }
+
+    /// Whether the run evaluates offline (`pdt_eval::offline`, the action error on the held-out
+    /// tasks' data) in place of episodes in an environment: a suite with no environment.
+    pub fn evaluates_offline(&self) -> bool {
+        self.online_evaluation_note().is_some()
     }
 
     /// How many evaluation lines the run's logs hold at least, per iteration done.

@@ -7,6 +7,13 @@ use anyhow::Result;
 
 pub fn eval(a: &EvalArgs) -> Result<()> {
     let req = request(a)?;
+    // A run with no environment (a suite without `[environment]`) is evaluated on its tasks'
+    // data: an action error, printed and written as such, never as a return.
+    if pdt_train::run::evaluates_offline(&a.run)? {
+        let e = pdt_train::run::evaluate_run_offline(&a.run, &req)?;
+        out!("{e}; wrote {}", pdt_rundir::RunDir::at(&a.run).offline_final_path().display());
+        return Ok(());
+    }
     let prompted = pdt_train::run::evaluate_run_as(&a.run, &req)?;
     out!("{prompted}; wrote {}/{}", a.run.display(), prompted.file_name());
     if let Some(rep) = &prompted.eval.repeats {

@@ -68,11 +68,23 @@ fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     assert_eq!(std::fs::read_to_string(run.join("suite.toml")).unwrap(), SUITE);
     let config = std::fs::read_to_string(run.join("config.toml")).unwrap();
     assert!(config.contains(&format!("name = {:?}", s(&suite))), "{config}");
+    // Evaluated offline instead, at the cadence of evaluations in an environment (after
+    // iterations 1, 5 and the last, 8), into a log of its own: no return is written anywhere.
+    assert_eq!(std::fs::read_to_string(run.join("eval.jsonl")).unwrap(), "");
+    let offline = offline_lines(&run);
+    assert_eq!(offline.iter().map(|l| l.0).collect::<Vec<_>>(), [1, 1, 5, 5, 8, 8]);
+    assert_eq!(offline.iter().map(|l| l.1).collect::<Vec<_>>(), [3, 4, 3, 4, 3, 4]);
+    assert!(offline.iter().all(|l| l.2.is_finite() && l.2 > 0.0), "{offline:?}");
+    assert!(std::fs::read_to_string(run.join("offline_eval.csv")).unwrap().contains("action_mse"));
 
     // Without the original the run resumes from its copy.
     let moved = tmp.path().join("moved.toml");
     std::fs::rename(&suite, &moved).unwrap();
     ok(&["train", "--resume", s(&run), "--iterations", "10", "--quiet"]);
+    // The offline log goes on where the checkpoint left it (9 is 1 + 2 x 4, 10 the last).
+    let resumed = offline_lines(&run);
+    assert_eq!(resumed[..6], offline[..]);
+    assert_eq!(resumed.iter().map(|l| l.0).collect::<Vec<_>>(), [1, 1, 5, 5, 8, 8, 9, 9, 10, 10]);
     // An edited original is refused, naming both files.
     std::fs::write(&suite, SUITE.replace("g4", "g5")).unwrap();
     let e = fails(&["train", "--resume", s(&run), "--iterations", "12", "--quiet"]);
@@ -94,9 +106,54 @@ fn a_suite_trains_and_resumes_from_the_run_copy_without_an_environment() {
     ]);
     assert!(e.contains("declares no [environment] to collect in"), "{e}");
     assert!(!tmp.path().join("c").exists(), "nothing written");
-    // Evaluating in an environment the suite does not have is a clear error, not a panic.
+    // `promptdt eval` evaluates such a run offline: an action error, said to be one, written to
+    // its own file, the same for the same checkpoint.
+    let out = ok(&["eval", "--run", s(&run)]);
+    assert!(out.contains("action MSE") && out.contains("not a return"), "{out}");
+    let written = std::fs::read_to_string(run.join("eval_offline.json")).unwrap();
+    assert!(
+        written.contains("\"metric\": \"action_mse\"") && written.contains("\"iteration\": 10")
+    );
+    ok(&["eval", "--run", s(&run)]);
+    assert_eq!(std::fs::read_to_string(run.join("eval_offline.json")).unwrap(), written);
+    assert!(!run.join("eval_final.json").exists());
+    // Asking for episodes of it is a clear error, not a panic.
     let e = fails(&["eval", "--run", s(&run), "--episodes", "1"]);
-    assert!(e.contains("toy_line") && e.contains("no [environment]"), "{e}");
+    assert!(e.contains("evaluated offline") && e.contains("no [environment]"), "{e}");
+
+    // The report shows it as an action error, in a table of its own, never as a return.
+    let rep = tmp.path().join("report");
+    let out = ok(&["report", s(&run), "--out", s(&rep)]);
+    assert!(out.contains("Held-out action error") && out.contains("action MSE"), "{out}");
+    assert!(!out.contains("Return on held-out"), "{out}");
+    let csv = std::fs::read_to_string(rep.join("offline.csv")).unwrap();
+    assert!(csv.starts_with("env,method,task,metric,") && csv.contains(",action_mse,"), "{csv}");
+}
+
+/// A held-out task without data cannot be evaluated offline (nor trained beside): refused before
+/// anything is written, naming the task and the file looked for.
+#[test]
+fn a_held_out_task_without_data_is_refused_naming_it_and_its_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (_suite, cfg) = suite_setup(tmp.path());
+    std::fs::remove_file(tmp.path().join("data/toy_line-4-expert.safetensors")).unwrap();
+    let run = tmp.path().join("run");
+    let e = fails(&["train", "--config", s(&cfg), "--out", s(&run), "--quiet"]);
+    assert!(e.contains("task toy_line-4") && e.contains("toy_line-4-expert.safetensors"), "{e}");
+    assert!(!run.join("config.toml").exists() && !run.join("offline_eval.jsonl").exists());
+}
+
+/// `(iteration, task_index, action_mse)` of each line of the run's `offline_eval.jsonl`.
+fn offline_lines(run: &Path) -> Vec<(u64, u64, f64)> {
+    let text = std::fs::read_to_string(run.join("offline_eval.jsonl")).unwrap();
+    text.lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            assert_eq!(v["eval_on"], "test", "{l}");
+            let n = |k: &str| v[k].as_u64().unwrap();
+            (n("iteration"), n("task_index"), v["action_mse"].as_f64().unwrap())
+        })
+        .collect()
 }
 
 #[test]

@@ -68,6 +68,9 @@ pub struct SplitEval<'a> {
     /// Episodes per task (`eval.episodes`).
     pub episodes: usize,
     pub family: &'a dyn EnvFamily,
+    /// The run set its G* itself (`eval.target_return`): every task is conditioned on it, a
+    /// task's own target (`EnvFamily::task_target_return`) included.
+    pub run_target_set: bool,
 }
 
 impl SplitEval<'_> {
@@ -107,7 +110,17 @@ impl SplitEval<'_> {
     /// family when [`SplitEval::evaluate`] starts, all tasks' at once.
     pub fn task(&self, plan: &TaskPlan, seeds: &[u64], prompt: Option<SegmentBatch>) -> EvalTask {
         let (name, index, seeds) = (plan.name.clone(), plan.index, seeds.to_vec());
-        EvalTask { name, index, envs: Vec::new(), seeds, prompt }
+        let target_return = self.task_target_return(index);
+        EvalTask { name, index, envs: Vec::new(), seeds, prompt, target_return }
+    }
+
+    /// The G* task `index` (the family's) is conditioned on where it differs from the run's: its
+    /// own (a suite's `[[tasks]] target_return`) unless the run set one for every task.
+    pub fn task_target_return(&self, index: usize) -> Option<f32> {
+        if self.run_target_set {
+            return None;
+        }
+        self.family.task_target_return(index)
     }
 
     /// Plays the episodes of `tasks` (made by [`SplitEval::task`]) with `model` in the family's

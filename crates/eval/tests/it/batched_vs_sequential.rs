@@ -38,6 +38,7 @@ fn tasks(family: &dyn EnvFamily, with_prompt: bool) -> Vec<EvalTask> {
                 envs: (0..7).map(|_| family.make(i).unwrap()).collect(),
                 seeds: (0..7).collect(),
                 prompt: with_prompt.then(|| prompt_for(goal)),
+                target_return: None,
             }
         })
         .collect()

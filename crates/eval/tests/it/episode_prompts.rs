@@ -75,6 +75,7 @@ fn task(i: usize, seeds: &[u64], prompt: Option<SegmentBatch>) -> EvalTask {
         envs: seeds.iter().map(|_| family.make(i).unwrap()).collect(),
         seeds: seeds.to_vec(),
         prompt,
+        target_return: None,
     }
 }
 
@@ -161,4 +162,34 @@ fn prompts_of_different_lengths_in_one_batch_are_refused() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("4 and 3 steps"), "{e}");
+}
+
+/// A task's own target return (a suite's `[[tasks]] target_return`, `EvalTask::target_return`)
+/// is what its episodes are conditioned on: batched with a task on the settings' G*, each acts as
+/// it would alone with its G* as the settings' own.
+#[test]
+fn a_tasks_own_target_return_conditions_its_episodes() {
+    let _torch = pdt_testkit::process::libtorch();
+    tch::set_num_threads(1);
+    tch::manual_seed(5);
+    let vs = VarStore::new(Device::Cpu);
+    let model = PromptDt::new(&vs.root(), &PromptDtConfig::reference(2, 2));
+    let prompt = prompt_from(&[0.2, -0.1]);
+    let with_target = |target: Option<f32>| EvalTask {
+        target_return: target,
+        ..task(4, &[7], Some(prompt.clone()))
+    };
+    let cfg = settings(Inference::Full, 4096);
+    let both = evaluate(&model, vec![with_target(Some(-30.0)), with_target(None)], &cfg).unwrap();
+    let alone = |g: f32| {
+        let cfg = EvalSettings { target_return: g, ..cfg.clone() };
+        evaluate(&model, vec![with_target(None)], &cfg).unwrap().remove(0).actions
+    };
+    let close = |a: &[f32], b: &[f32]| {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5)
+    };
+    assert!(close(&both[0].actions, &alone(-30.0)), "the task's own G* conditions it");
+    assert!(close(&both[1].actions, &alone(cfg.target_return)), "the other keeps the run's");
+    // The return token matters to the model: the two targets give other actions.
+    assert_ne!(both[0].actions, both[1].actions);
 }

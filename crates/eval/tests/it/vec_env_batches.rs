@@ -65,6 +65,7 @@ fn tasks(refuse_in: Option<usize>) -> Vec<EvalTask> {
                 .collect(),
             seeds: (0..5).map(|e| (k * 5 + e) as u64).collect(),
             prompt: None,
+            target_return: None,
         })
         .collect()
 }

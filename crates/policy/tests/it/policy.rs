@@ -55,6 +55,7 @@ fn an_episode_takes_the_evaluators_actions() {
             envs: vec![pdt_envs::family("point_robot").unwrap().make(task).unwrap()],
             seeds: vec![seed],
             prompt: Some(p.task_prompt(task, prompt_seed).unwrap()),
+            target_return: None,
         };
         let evaluated = evaluate(&p.model, vec![t], &settings).unwrap().remove(0).actions;
         assert_eq!(stepped.len(), 40);

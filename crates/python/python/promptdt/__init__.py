@@ -275,7 +275,11 @@ def evaluate(
     result is returned and nothing is written to the run directory (its files are what the run
     alone reproduces). A factory that raises, spaces of other sizes than the family's, a
     non-finite observation or a ``reset``/``step`` that raises: an ``InvalidInputError`` naming
-    the task (and the step)."""
+    the task (and the step).
+
+    A run on a task suite with no ``[environment]`` (and no ``env`` given) plays no episodes: it is
+    evaluated offline, the prompted model's action error on the tasks' data, written to
+    ``eval_offline.json`` and returned (``metric``: ``action_mse``, lower is better; not a return)."""
     if env is not None and not callable(env):
         raise ArgumentTypeError(f"env: expected a callable factory(task) -> gymnasium.Env, got {env!r}")
     episodes = _opt_uint("episodes", episodes, "a number of episodes")

@@ -405,8 +405,13 @@ impl CellReader<'_> {
         let seeds = read_seeds(&mut res, &used, base.as_ref());
         res.seeds = seeds.finals.len();
         if let (Some(why), false) = (base_missing, seeds.finals.is_empty()) {
-            res.problems
-                .push(format!("no normalised score: {why} (--data-root names where the data are)"));
+            res.problems.push(match why.starts_with("not normalised") {
+                // A suite's own reason (`suite_baselines`): no data directory would change it.
+                true => why,
+                false => {
+                    format!("no normalised score: {why} (--data-root names where the data are)")
+                }
+            });
         }
         res.seeds_finished = n_finished;
         res.iteration = seeds.last_iter;
@@ -429,6 +434,13 @@ impl CellReader<'_> {
 
     /// The random and expert returns the cell's runs are scored with, or why there are none.
     fn baselines(&mut self, runs: &[&plan::RunSpec]) -> (Option<Baselines>, Option<String>) {
+        // A suite's runs: its own declared returns; where it declares none, its data's card (what
+        // `promptdt collect` measured), as a built-in family's; neither: "not normalised".
+        let suite_why = match crate::baselines::suite_baselines(&runs[0].config.env.name, &runs[0].dir) {
+            Some(Ok(b)) => return (Some(b), None),
+            Some(Err(why)) => Some(why),
+            None => None,
+        };
         let dir = &runs[0].data.dir;
         let base = match self.base_cache.get(dir) {
             Some(b) => b.clone(),
@@ -443,9 +455,10 @@ impl CellReader<'_> {
         // An archived run (the results registry) carries the card's returns it was scored with.
         let base =
             base.or_else(|why| runs.iter().find_map(|r| archived_baselines(&r.dir)).ok_or(why));
-        match base {
-            Ok(b) => (Some(b), None),
-            Err(why) => (None, Some(why)),
+        match (base, suite_why) {
+            (Ok(b), _) => (Some(b), None),
+            (Err(why), None) => (None, Some(why)),
+            (Err(_), Some(why)) => (None, Some(format!("{why}, and its data have no dataset card"))),
         }
     }
 

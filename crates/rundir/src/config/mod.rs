@@ -263,6 +263,20 @@ pub struct EvalSection {
     /// frozen (`docs/prompt-control.md`). Written only when one is set.
     #[serde(skip_serializing_if = "AdaptConfig::is_none")]
     pub adapt: AdaptConfig,
+    /// History segments per task of an offline evaluation (a run with no environment: the
+    /// prompted model's action error on the held-out tasks' data, `crate::offline`). Written
+    /// only when not the default, so the configuration files of runs that never set it are what
+    /// they were.
+    #[serde(skip_serializing_if = "is_default_offline_segments")]
+    pub offline_segments: usize,
+}
+
+/// `eval.offline_segments`'s default: 256 segments of K steps per task, a few thousand action
+/// errors per task (its sampling noise well below a trained model's differences between tasks).
+pub const DEFAULT_OFFLINE_SEGMENTS: usize = 256;
+
+fn is_default_offline_segments(n: &usize) -> bool {
+    *n == DEFAULT_OFFLINE_SEGMENTS
 }
 
 impl Default for EvalSection {
@@ -280,6 +294,7 @@ impl Default for EvalSection {
             inference: Inference::Cached,
             prompt: PromptStrategy::default(),
             adapt: AdaptConfig::default(),
+            offline_segments: DEFAULT_OFFLINE_SEGMENTS,
         }
     }
 }
@@ -393,6 +408,7 @@ impl TrainConfig {
             v.real("eval.target_return", f64::from(x), f64::is_finite, "finite");
         }
         v.range("eval.finetune_batch", e.finetune_batch as u64, 1, 1_000_000);
+        v.range("eval.offline_segments", e.offline_segments as u64, 1, 1_000_000);
         v.at_most("eval.finetune_steps", e.finetune_steps, 100_000_000, "");
         v.real("eval.finetune_lr", e.finetune_lr, |x| x > 0.0 && x <= 1.0, "in (0, 1]");
         if let Err(err) = e.prompt.validate() {

@@ -9,6 +9,7 @@ use crate::step::DeviceBatch;
 use pdt_prompt::Rng;
 use pdt_rundir::config::TestTime;
 use pdt_rundir::AdaptationStats;
+use pdt_rundir::OfflineTaskResult;
 use pdt_rundir::TaskResult;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -175,6 +176,17 @@ pub trait Learner {
         test_time: &TestTime,
         rng: &mut Rng,
     ) -> Result<Evaluation, RunError>;
+
+    /// The offline evaluation of `split` with the current weights (`pdt_eval::offline`: the
+    /// action error on the split's data, drawing from `rng`), for a run with no environment to
+    /// act in; `None` for a learner that has none (MACAW's policy is no prompted sequence model).
+    fn offline_evaluate(
+        &mut self,
+        _split: Split,
+        _rng: &mut Rng,
+    ) -> Result<Option<Vec<OfflineTaskResult>>, RunError> {
+        Ok(None)
+    }
 
     /// Writes the weights and optimiser moments to `files`; returns what the state file records
     /// as `adam_steps`. (`&mut`: a run of a pack takes its weights back from the pack's engine

@@ -20,6 +20,7 @@ use pdt_model::PromptDt;
 use pdt_prompt::{BatchSampler, Rng};
 use pdt_run::streams::{STREAM_DROPOUT, STREAM_INIT};
 use pdt_rundir::config::{Adaptation, LossOn, Method, TestTime, TrainConfig};
+use pdt_rundir::OfflineTaskResult;
 use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn::VarStore, Device, Tensor};
@@ -189,6 +190,20 @@ impl Learner for PromptDtLearner<'_> {
         eval_tasks(self, split, test_time, rng)
     }
 
+    /// The action error of the weights as trained (MT-BC-Finetune's: before any fine-tuning)
+    /// on `eval.offline_segments` segments of each task of `split`.
+    fn offline_evaluate(
+        &mut self,
+        split: Split,
+        rng: &mut Rng,
+    ) -> Result<Option<Vec<OfflineTaskResult>>, RunError> {
+        let setup = self.setup;
+        let sampler = setup.sampler(setup.data(split))?;
+        let (prompted, n) = (self.variant.prompt, setup.cfg.eval.offline_segments);
+        let model = &self.model;
+        Ok(Some(pdt_eval::offline::action_error(model, &sampler, prompted, n, setup.device, rng)))
+    }
+
     /// Weights with the model's shape (`pdt_model::checkpoint`), then the Adam moments per
     /// parameter name; each written under a temporary name and renamed.
     fn save(&mut self, files: &CheckpointFiles) -> Result<serde_json::Value, RunError> {
@@ -322,6 +337,7 @@ fn split_eval<'a>(
         method: setup.cfg.run.method,
         episodes: setup.cfg.eval.episodes,
         family: setup.family.as_ref(),
+        run_target_set: setup.cfg.eval.target_return.is_some(),
     }
 }
 

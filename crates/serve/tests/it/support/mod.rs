@@ -27,6 +27,7 @@ pub fn point_task(
         envs: vec![pdt_envs::family("point_robot").unwrap().make(task).unwrap()],
         seeds: vec![seed],
         prompt,
+        target_return: None,
     }
 }
 
