@@ -436,11 +436,12 @@ impl CellReader<'_> {
     fn baselines(&mut self, runs: &[&plan::RunSpec]) -> (Option<Baselines>, Option<String>) {
         // A suite's runs: its own declared returns; where it declares none, its data's card (what
         // `promptdt collect` measured), as a built-in family's; neither: "not normalised".
-        let suite_why = match crate::baselines::suite_baselines(&runs[0].config.env.name, &runs[0].dir) {
-            Some(Ok(b)) => return (Some(b), None),
-            Some(Err(why)) => Some(why),
-            None => None,
-        };
+        let suite_why =
+            match crate::baselines::suite_baselines(&runs[0].config.env.name, &runs[0].dir) {
+                Some(Ok(b)) => return (Some(b), None),
+                Some(Err(why)) => Some(why),
+                None => None,
+            };
         let dir = &runs[0].data.dir;
         let base = match self.base_cache.get(dir) {
             Some(b) => b.clone(),
@@ -458,7 +459,9 @@ impl CellReader<'_> {
         match (base, suite_why) {
             (Ok(b), _) => (Some(b), None),
             (Err(why), None) => (None, Some(why)),
-            (Err(_), Some(why)) => (None, Some(format!("{why}, and its data have no dataset card"))),
+            (Err(_), Some(why)) => {
+                (None, Some(format!("{why}, and its data have no dataset card")))
+            }
         }
     }
 
