@@ -121,8 +121,11 @@ method = "prompt-dt"
 row = "Prompt-DT"
 column = "pendulum_mass"
 """)
+    # The worker's Python: this one, with promptdt (the suite names none).
+    env = dict(os.environ, PROMPTDT_PYTHON=sys.executable)
     out = subprocess.run([str(promptdt_exe(repo)), "reproduce", str(manifest), "--budget", "smoke",
-                          "--out", "repro"], cwd=here, capture_output=True, text=True, timeout=300)
+                          "--out", "repro"], cwd=here, env=env, capture_output=True, text=True,
+                         timeout=300)
     assert out.returncode == 0, f"stdout:\n{out.stdout}\nstderr:\n{out.stderr}"
     report = (here / "repro/reports/pendulum_mass_smoke-smoke/report.md").read_text()
     assert "Prompt-DT" in report and "pendulum_mass" in report, report
