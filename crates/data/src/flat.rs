@@ -69,6 +69,27 @@ impl PromptRule {
     }
 }
 
+/// Checks one array of a flat file against the shape its field must have: `[N, width]` for
+/// observations and actions (`width`: `Some`), `[N]` or `[N, 1]` for a per-step column (`None`).
+/// One rule for every flat format (`.npz`, HDF5); `path` and `field` name the error.
+pub fn check_column_shape(
+    path: &Path,
+    field: &str,
+    shape: &[u64],
+    width: Option<usize>,
+) -> Result<(), DataError> {
+    let ok = match (width, shape) {
+        (Some(w), [_, d]) => *d as usize == w,
+        (None, [_]) | (None, [_, 1]) => true,
+        _ => false,
+    };
+    if ok {
+        return Ok(());
+    }
+    let want = width.map_or("[N]".to_owned(), |w| format!("[N, {w}]"));
+    Err(bad(path, format!("`{field}` has shape {shape:?}; expected {want}")))
+}
+
 fn bad(path: &Path, message: String) -> DataError {
     DataError::Format { path: PathBuf::from(path), message }
 }

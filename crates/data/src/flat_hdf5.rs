@@ -46,16 +46,7 @@ pub fn read_flat_hdf5(
                 ),
             )
         })?;
-        let shape = ds.shape().to_vec();
-        let ok = match (width, shape.as_slice()) {
-            (Some(w), [_, d]) => *d as usize == w,
-            (None, [_]) | (None, [_, 1]) => true,
-            _ => false,
-        };
-        if !ok {
-            let want = width.map_or("[N]".to_owned(), |w| format!("[N, {w}]"));
-            return Err(bad(path, format!("`{field}` has shape {shape:?}; expected {want}")));
-        }
+        crate::flat::check_column_shape(path, field, ds.shape(), width)?;
         Ok(ds)
     };
     let observations = floats(path, "observations", &take("observations", Some(obs_dim))?)?;

@@ -161,17 +161,8 @@ fn read_flat_npz(
                 path.display()
             )
         })?;
-        let size = t.size();
-        let ok = match (width, size.as_slice()) {
-            (Some(w), [_, d]) => *d as usize == w,
-            (None, [_]) => true,
-            (None, [_, 1]) => true,
-            _ => false,
-        };
-        if !ok {
-            let want = width.map_or("[N]".to_owned(), |w| format!("[N, {w}]"));
-            bail!("{}: `{field}` has shape {size:?}; expected {want}", path.display());
-        }
+        let shape: Vec<u64> = t.size().iter().map(|&d| d as u64).collect();
+        pdt_data::flat::check_column_shape(path, field, &shape, width)?;
         Ok(t.flatten(0, -1))
     };
     let floats = |t: tch::Tensor| -> Result<Vec<f32>> {
