@@ -179,6 +179,7 @@ pub(crate) fn run_pack(
                         progress: &mut report,
                         // A pack is the CLI's (`promptdt pack`), which Ctrl-C ends outright.
                         interrupt: Default::default(),
+                        envs: None,
                     };
                     train_member(m, slot, hub, opts, &info)
                 });

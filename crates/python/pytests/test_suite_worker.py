@@ -58,6 +58,17 @@ def episode(env, rng, seed):
         rewards=np.asarray(r, np.float32), terminated=np.zeros(20, bool), truncated=truncated)
 
 
+def pendulum(task):
+    """The factory of the suite's environments in this process: its ``[environment]``'s."""
+    return gym.make("Pendulum-v1", **task["params"])
+
+
+def eval_returns(run):
+    """Each line of the run's eval.jsonl as (iteration, task, mean return, its std)."""
+    lines = [json.loads(x) for x in (run / "eval.jsonl").read_text().splitlines()]
+    return [(x["iteration"], x["task"], x["return_mean"], x["return_std"]) for x in lines]
+
+
 @pytest.fixture(scope="module")
 def suite_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("suite")
@@ -118,3 +129,40 @@ def test_a_suite_run_evaluates_the_same_through_the_worker_and_in_process(suite_
     assert made == [{"index": 3, "name": "g11", "params": {"g": 11.0}}] * 2
     # Pendulum's rewards are at most 0 and its episodes here 20 steps long.
     assert all(r <= 0 for t in in_process["tasks"] for r in t["returns"])
+
+
+def test_train_with_a_factory_evaluates_as_the_worker_does(suite_run, tmp_path):
+    """``train(..., env=factory)``: the periodic evaluations played in this process give the
+    returns the worker gave the same run (same seed, data, suite), line for line; on the same
+    suite without ``[environment]`` too, which is then evaluated in the factory's environments
+    instead of offline."""
+    root = suite_run.parent
+    config = root / "exp.toml"
+    out = tmp_path / "run"
+    summary = promptdt.train(out, config, progress=False, env=pendulum)
+    assert summary["finished"]
+    assert eval_returns(out) == eval_returns(suite_run)
+
+    bare = tmp_path / "pendulum_g.toml"
+    bare.write_text(SUITE.split("[environment]")[0])
+    bare_config = tmp_path / "bare.toml"
+    bare_config.write_text(config.read_text().replace(json.dumps(str(root / "pendulum_g.toml")),
+                                                      json.dumps(str(bare))))
+    offline = promptdt.train(tmp_path / "offline", bare_config, progress=False)
+    logged = tmp_path / "offline" / "eval.jsonl"
+    assert not logged.exists() or not logged.read_text()
+    assert (tmp_path / "offline" / "offline_eval.jsonl").read_text()
+    assert offline["last_test_mean"] is None
+
+    played = tmp_path / "played"
+    promptdt.train(played, bare_config, progress=False, env=pendulum, iterations=1)
+    # A run evaluated in a factory's environments resumes only with environments again ...
+    with pytest.raises(promptdt.InvalidInputError, match=r"played.*eval\.jsonl.*none are given now.*env=factory"):
+        promptdt.train(played, resume=True, iterations=2, progress=False)
+    summary = promptdt.train(played, resume=True, iterations=2, progress=False, env=pendulum)
+    assert summary["finished"] and summary["last_test_mean"] is not None
+    assert eval_returns(played) == eval_returns(suite_run)
+    assert not (played / "offline_eval.jsonl").exists()
+    # ... and one evaluated offline never switches to returns.
+    with pytest.raises(promptdt.InvalidInputError, match=r"offline.*offline_eval\.jsonl.*environments are given now"):
+        promptdt.train(tmp_path / "offline", resume=True, iterations=3, progress=False, env=pendulum)

@@ -19,8 +19,10 @@ fn stopped_or(progress: &Progress, e: Failure) -> PyErr {
 /// `progress`: called after every iteration with `{"iteration", "iterations", "loss",
 /// "test_return", "elapsed_s"}`. Ctrl-C (or an exception of `progress`) stops it before the next
 /// gradient step and raises; the run resumes from its last checkpoint or resume point.
+/// `env`: a Python `factory(task)` making the environments of the run's evaluations
+/// (`crate::factory`), in place of its family's (a suite's worker, or none: offline).
 #[pyfunction]
-#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, matmul = None, data = None, progress = None))]
+#[pyo3(signature = (out, config = None, resume = false, seed = None, iterations = None, method = None, device = None, matmul = None, data = None, progress = None, env = None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn train<'py>(
     py: Python<'py>,
@@ -34,6 +36,7 @@ pub(crate) fn train<'py>(
     matmul: Option<&str>,
     data: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    env: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     use pdt_rundir::config::{Method, Overrides, TrainConfig};
     let device: Option<pdt_base::device::DeviceSpec> =
@@ -70,6 +73,7 @@ pub(crate) fn train<'py>(
             Some(cfg)
         }
     };
+    let envs = factory_envs(env);
     let interrupt = StopFlag::default();
     let report = Progress::new(progress, &interrupt);
     let started = std::time::Instant::now();
@@ -89,6 +93,7 @@ pub(crate) fn train<'py>(
             stop_after_iterations: None,
             progress: &mut progress,
             interrupt: interrupt.clone(),
+            envs: envs.clone(),
         };
         pdt_train::run::train(cfg, &out, opts).map_err(|e| Failure::of(&e))
     })?
@@ -102,6 +107,14 @@ pub(crate) fn train<'py>(
         .map(|t| t.iter().map(|r| r.return_mean).sum::<f64>() / t.len().max(1) as f64);
     d.set_item("last_test_mean", mean)?;
     Ok(d)
+}
+
+/// The environments a Python `factory(task)` makes, as the library's evaluations take them.
+fn factory_envs(env: Option<Py<PyAny>>) -> Option<std::sync::Arc<dyn pdt_train::run::EnvMaker>> {
+    env.map(|factory| {
+        std::sync::Arc::new(crate::factory::FactoryEnvs { factory })
+            as std::sync::Arc<dyn pdt_train::run::EnvMaker>
+    })
 }
 
 /// `promptdt eval`: the final evaluation of a run's latest checkpoint (written to the run's
@@ -142,10 +155,7 @@ pub(crate) fn evaluate(
     env: Option<Py<PyAny>>,
 ) -> PyResult<String> {
     existing(&run_dir, "run directory")?;
-    let envs = env.map(|factory| {
-        std::sync::Arc::new(crate::factory::FactoryEnvs { factory })
-            as std::sync::Arc<dyn pdt_train::run::EnvMaker>
-    });
+    let envs = factory_envs(env);
     let adapt = match adapt {
         None => None,
         Some(kind) => {
@@ -169,21 +179,23 @@ pub(crate) fn evaluate(
             ..Default::default()
         }),
     };
+    // The evaluation asked for, at the test time read from the run (`asked_test_time`).
+    let request = |test_time| pdt_train::run::EvalRequest {
+        episodes,
+        split: split.into(),
+        device,
+        data: data.clone(),
+        test_time,
+        repeats: 1,
+    };
     // A run with no environment (a suite without `[environment]`) and no factory given plays
     // no episodes: its offline evaluation, `eval_offline.json`'s content (an action error).
     if envs.is_none() && pdt_train::run::evaluates_offline(&run_dir).map_err(lib_error)? {
         let (prompt, adapt) = (prompt.as_ref(), adapt.as_ref());
         let test_time = pdt_train::run::asked_test_time(&run_dir, data.as_deref(), prompt, adapt)
             .map_err(lib_error)?;
-        let req = pdt_train::run::EvalRequest {
-            episodes,
-            split: split.into(),
-            device,
-            data: data.clone(),
-            test_time,
-            repeats: 1,
-        };
-        let e = pdt_train::run::evaluate_run_offline(&run_dir, &req).map_err(lib_error)?;
+        let e = pdt_train::run::evaluate_run_offline(&run_dir, &request(test_time))
+            .map_err(lib_error)?;
         return serde_json::to_string(&e).map_err(lib_error);
     }
     // The episodes end in the library's rollouts, which count them in the watch; the waiting
@@ -210,15 +222,7 @@ pub(crate) fn evaluate(
             let (prompt, adapt, dir) = (prompt.as_ref(), adapt.as_ref(), &run_dir);
             let test_time = pdt_train::run::asked_test_time(dir, data.as_deref(), prompt, adapt)
                 .map_err(|e| Failure::of(&e))?;
-            let req = pdt_train::run::EvalRequest {
-                episodes,
-                split: split.into(),
-                device,
-                data: data.clone(),
-                test_time,
-                repeats: 1,
-            };
-            pdt_train::run::evaluate_run_in(&run_dir, &req, envs.clone())
+            pdt_train::run::evaluate_run_in(&run_dir, &request(test_time), envs.clone())
                 .map_err(|e| Failure::of(&e))
         })
     })?

@@ -9,7 +9,7 @@ use pdt_base::table::{Rule, Table};
 
 use crate::aggregate::{method_rank, Stat};
 use crate::load::Run;
-use crate::render::{csv_line, md, num};
+use crate::render::{csv_line, md, num, task_cells};
 
 /// One environment's action errors: rows are methods, columns the held-out tasks.
 #[derive(Debug, Clone)]
@@ -157,13 +157,7 @@ pub(crate) fn csv(envs: &[OfflineEnv]) -> String {
         csv_line(&["env", "method", "task", "metric", "mean", "std", "n_seeds"].map(String::from));
     for env in envs {
         for row in &env.rows {
-            let cells = env
-                .tasks
-                .iter()
-                .zip(&row.tasks)
-                .filter_map(|(t, s)| s.map(|s| (t.as_str(), s)))
-                .chain(row.average.map(|s| ("average", s)));
-            for (task, s) in cells {
+            for (task, s) in task_cells(&env.tasks, &row.tasks, row.average) {
                 out.push_str(&csv_line(&[
                     env.env.clone(),
                     row.method.clone(),

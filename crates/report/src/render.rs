@@ -34,18 +34,26 @@ pub(crate) fn csv_line(fields: &[String]) -> String {
     line
 }
 
+/// A row's cells for a CSV: each task with a value (`tasks` and `stats` aligned), then the row's
+/// `average` as a task of that name.
+pub(crate) fn task_cells<'a>(
+    tasks: &'a [String],
+    stats: &'a [Option<Stat>],
+    average: Option<Stat>,
+) -> impl Iterator<Item = (&'a str, Stat)> + 'a {
+    tasks
+        .iter()
+        .zip(stats)
+        .filter_map(|(t, s)| s.map(|s| (t.as_str(), s)))
+        .chain(average.map(|s| ("average", s)))
+}
+
 /// `table.csv`: one row per (env, method, task), plus an `average` task per (env, method).
 pub(crate) fn table_csv(agg: &Aggregated) -> String {
     let mut out = csv_line(&["env", "method", "task", "mean", "std", "n_seeds"].map(String::from));
     for env in &agg.envs {
         for row in &env.rows {
-            let cells = env
-                .tasks
-                .iter()
-                .zip(&row.tasks)
-                .filter_map(|(t, s)| s.map(|s| (t.as_str(), s)))
-                .chain(row.average.map(|s| ("average", s)));
-            for (task, s) in cells {
+            for (task, s) in task_cells(&env.tasks, &row.tasks, row.average) {
                 out.push_str(&csv_line(&[
                     env.env.clone(),
                     row.method.clone(),

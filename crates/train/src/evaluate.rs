@@ -141,10 +141,7 @@ pub fn evaluate_run_in(
     let mut setup = Setup::new(cfg, dir)?;
     let write = envs.is_none();
     if let Some(maker) = envs {
-        // The same family again, as the set-up found it (a suite from the run's copy), to wrap
-        // (the setup's is boxed in place).
-        let inner = pdt_envs::family_of_run(&setup.cfg.env.name, &run.suite_path())?;
-        setup.family = Box::new(MadeBy { inner, maker });
+        setup.use_envs(dir, maker)?;
     }
     // On a GPU, as the run's own evaluations computed; on the CPU products are fp32 whatever the
     // run trained with (its checkpoints stay usable there).
@@ -233,6 +230,25 @@ pub(crate) fn check_recorded_stats(setup: &Setup, run: &RunDir) -> Result<(), Ru
             ),
         )
     })
+}
+
+impl Setup {
+    /// The run's evaluations play in the environments `maker` makes, in place of its family's
+    /// (which keeps all else: tasks, splits, constants). A task suite with no `[environment]`
+    /// is then evaluated in them like any family, not offline.
+    pub(crate) fn use_envs(
+        &mut self,
+        dir: &Path,
+        maker: Arc<dyn EnvMaker>,
+    ) -> Result<(), RunError> {
+        // The same family again, as the set-up found it (a suite from the run's copy, else the
+        // named file), to wrap (the set-up's is boxed in place).
+        let copy = RunDir::at(dir).suite_path();
+        let inner = pdt_envs::family_of_run(&self.cfg.env.name, &copy)?;
+        self.family = Box::new(MadeBy { inner, maker });
+        self.caller_envs = true;
+        Ok(())
+    }
 }
 
 /// The run's family with its batches of environments made by a caller's [`EnvMaker`]; all else

@@ -49,6 +49,11 @@ pub struct TrainOptions<'a> {
     /// then returns [`RunError::Interrupted`] and writes nothing of the iteration under way, so
     /// the run resumes from its last checkpoint or resume point. Never set by default.
     pub interrupt: pdt_base::stop::StopFlag,
+    /// The environments the run's evaluations play in, in place of its family's (`None`: the
+    /// family's): the Python package's `train(..., env=factory)`. A task suite with no
+    /// `[environment]` is then evaluated in them, not offline; a run resumes with evaluations of
+    /// the kind it began with ([`check_same_evaluations`]).
+    pub envs: Option<std::sync::Arc<dyn crate::evaluate::EnvMaker>>,
 }
 
 /// What may change when a run is resumed. Anything else (seed, method, data settings) would make
@@ -143,7 +148,10 @@ pub fn train(
     // data are read.
     pdt_torch::device::set_matmul(pdt_torch::device::resolve(cfg.run.device)?, cfg.run.matmul)?;
     let toml = cfg.to_toml()?;
-    let setup = Setup::new(cfg, dir)?;
+    let mut setup = Setup::new(cfg, dir)?;
+    if let Some(maker) = opts.envs.clone() {
+        setup.use_envs(dir, maker)?;
+    }
     let _rng = torch_rng_lock();
     let threads = pdt_base::threads(setup.cfg.run.threads);
     tch::set_num_threads(threads as i32);
@@ -492,6 +500,25 @@ fn run_loop(
     })
 }
 
+/// Refuses to resume a run with evaluations of another kind than it began with: a task suite with
+/// no `[environment]` is evaluated offline (`offline_eval.jsonl`, action errors), or in the
+/// environments a caller gives (`eval.jsonl`, returns); one run's log never switches between them.
+fn check_same_evaluations(setup: &Setup, dir: &Path, s: &TrainState) -> Result<(), RunError> {
+    let offline_now = setup.evaluates_offline();
+    let (why, how) = match (offline_now, s.eval_lines, s.offline_eval_lines) {
+        (true, n, _) if n > 0 => (
+            format!("its evaluations so far were played in environments given to it ({n} lines of eval.jsonl), and none are given now"),
+            "resume it with the same environments (promptdt.train(out, resume=True, env=factory))",
+        ),
+        (false, _, n) if n > 0 => (
+            format!("it was evaluated offline so far ({n} lines of offline_eval.jsonl), and environments are given now"),
+            "resume it without env=, or train a new run with the environments",
+        ),
+        _ => return Ok(()),
+    };
+    Err(RunError::invalid(format!("run directory {}", dir.display()), format!("{why}: {how}")))
+}
+
 /// On resume with a longer run or moved data, what changed goes on record in `config.toml` (the
 /// device is this invocation's only).
 pub(crate) fn record_resume_changes(
@@ -585,6 +612,8 @@ fn load_checkpoint(
             ),
         ));
     }
+    // Before the counts: a switch of evaluation kind would read as a corrupt state file there.
+    check_same_evaluations(setup, dir, &state)?;
     check_log_counts(&files.state, &state, &setup.eval_schedule())?;
     learner.load(&files, SavedSteps { step: state.step, adam_steps: &state.adam_steps })?;
     Ok(Some(state))

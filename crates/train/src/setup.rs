@@ -34,6 +34,9 @@ pub struct Setup {
     /// Threads stepping the evaluation's environments: `eval.env_threads` resolved (0: all cores;
     /// in a pack, the run's share of them, [`Setup::with_data`]).
     pub(crate) env_threads: usize,
+    /// Whether the evaluations play in a caller's environments ([`Setup::use_envs`], e.g.
+    /// `promptdt.train(..., env=factory)`) in place of the family's own.
+    pub(crate) caller_envs: bool,
 }
 
 /// `eval.env_threads` for one run of a pack of `pack_size` on `cores` cores: a set count as given;
@@ -56,7 +59,7 @@ impl Setup {
         let run_data = Arc::new(RunData::load(&cfg, family.as_ref())?);
         let device = pdt_torch::device::resolve(cfg.run.device)?;
         let env_threads = pdt_base::threads(cfg.eval.env_threads);
-        Ok(Self { cfg, family, preset, run_data, device, env_threads })
+        Ok(Self { cfg, family, preset, run_data, device, env_threads, caller_envs: false })
     }
 
     /// The set-up of `cfg` over data already loaded for it, as one of `pack_size` runs in a process
@@ -76,7 +79,7 @@ impl Setup {
         let device = pdt_torch::device::resolve(cfg.run.device)?;
         let cores = pdt_base::threads::available_cores();
         let env_threads = env_threads_in_pack(cfg.eval.env_threads, cores, pack_size);
-        Ok(Self { cfg, family, preset, run_data, device, env_threads })
+        Ok(Self { cfg, family, preset, run_data, device, env_threads, caller_envs: false })
     }
 
     /// What `RunData::load` reads of `cfg`, as text: two configurations with the same key load
@@ -117,8 +120,12 @@ impl Setup {
     }
 
     /// Why the run's periodic evaluation in its environment is skipped, if it is: a task suite
-    /// that declares no environment has none to act in (docs/your-own-tasks.md).
+    /// that declares no environment has none to act in (docs/your-own-tasks.md), unless a
+    /// caller gave its environments ([`Setup::use_envs`]).
     pub fn online_evaluation_note(&self) -> Option<String> {
+        if self.caller_envs {
+            return None;
+        }
         let suite = self.family.as_suite()?;
         suite.environment().is_none().then(|| {
             format!(

@@ -66,6 +66,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
                 stop_after_iterations: None,
                 progress: &mut progress,
                 interrupt: Default::default(),
+                envs: None,
             };
             pdt_train::run::train(Some(cfg), &dir, opts)?;
             pb.finish_and_clear();

@@ -42,6 +42,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         stop_after_iterations: a.stop_after_iterations,
         progress: &mut progress,
         interrupt: Default::default(),
+        envs: None,
     };
     let summary = pdt_train::run::train(cfg, &dir, opts)?;
     pb.finish_and_clear();

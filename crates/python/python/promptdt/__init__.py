@@ -202,6 +202,7 @@ def train(
     matmul: Optional[str] = None,
     data: Optional[PathLike] = None,
     progress: ProgressArg = True,
+    env: Optional[Callable[[dict], Any]] = None,
 ) -> dict:
     """``promptdt train``: trains from ``config`` (TOML) into ``out``, or continues the run in
     ``out`` exactly where it stopped (``resume=True``; ``iterations`` then sets the run's length).
@@ -215,7 +216,17 @@ def train(
     "loss", "test_return", "elapsed_s"}`` (an exception it raises stops the run and propagates).
     Ctrl-C stops training before the next gradient step and raises ``KeyboardInterrupt``; the
     iteration under way is dropped, and ``train(out, resume=True)`` goes on from the run's last
-    checkpoint or resume point (``train.resume_interval`` sets how often one is written)."""
+    checkpoint or resume point (``train.resume_interval`` sets how often one is written).
+
+    ``env``: a ``factory(task)`` returning a new ``gymnasium.Env`` for one episode (as
+    ``evaluate``'s ``env``): the run's periodic evaluations are played in its environments, in
+    this process, with the run's protocol, and recorded in ``eval.jsonl`` as any run's. A task
+    suite with no ``[environment]`` is then evaluated in them instead of offline. A run resumes
+    with evaluations of the kind it began with: one evaluated in a factory's environments on such
+    a suite needs ``env=`` again (``train(out, resume=True, env=factory)``), and one evaluated
+    offline refuses ``env=``; each refusal an ``InvalidInputError`` naming the run."""
+    if env is not None and not callable(env):
+        raise ArgumentTypeError(f"env: expected a callable factory(task) -> gymnasium.Env, got {env!r}")
     seed = _opt_uint("seed", seed, "a seed")
     iterations = _opt_uint("iterations", iterations, "a number of iterations")
     return _with_progress(progress, "train", lambda report: _native.train(
@@ -229,6 +240,7 @@ def train(
         device=device,
         data=None if data is None else _os.fspath(data),
         progress=report,
+        env=env,
     ))
 
 

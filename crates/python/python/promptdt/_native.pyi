@@ -58,6 +58,7 @@ def train(
     matmul: Optional[str] = None,
     data: Optional[_Path] = None,
     progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+    env: Optional[Callable[[Dict[str, Any]], Any]] = None,
 ) -> Dict[str, Any]: ...
 def evaluate(
     run_dir: _Path,

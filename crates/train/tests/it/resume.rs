@@ -79,6 +79,7 @@ fn starting_over_an_existing_run_is_refused() {
             stop_after_iterations: None,
             progress: &mut progress,
             interrupt: Default::default(),
+            envs: None,
         },
     )
     .unwrap_err();
@@ -146,6 +147,7 @@ fn interrupted_run_writes_nothing_more_and_resumes_to_the_same_run() {
         stop_after_iterations: None,
         progress: &mut progress,
         interrupt: interrupt.clone(),
+        envs: None,
     };
     let err = train(Some(cfg), &cut, opts).unwrap_err();
     assert!(matches!(err, pdt_train::run::RunError::Interrupted { iteration: 4, .. }), "{err}");

@@ -67,6 +67,7 @@ fn run_train(
             stop_after_iterations: None,
             progress: &mut progress,
             interrupt: Default::default(),
+            envs: None,
         },
     )
 }

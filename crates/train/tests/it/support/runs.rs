@@ -91,6 +91,7 @@ pub fn run(
             stop_after_iterations: stop,
             progress: &mut progress,
             interrupt: Default::default(),
+            envs: None,
         },
     )
 }
