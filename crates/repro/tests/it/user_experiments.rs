@@ -207,6 +207,16 @@ fn a_user_experiments_archived_runs_render_after_the_papers_with_their_claim() {
     let claim = claim.unwrap_or_else(|| panic!("no claim:\n{section}"));
     assert!(claim.contains("provisional (1 vs 1 seeds)"), "{claim}");
     assert!(section.contains("- **toy_exp (`smoke`)**:"), "{section}");
+
+    // A checkout moved or cloned elsewhere (the runs record the suite file's absolute path, and
+    // the run directories stay behind) renders the same.
+    let moved = tmp.path().join("elsewhere");
+    std::fs::create_dir(&moved).unwrap();
+    for d in ["exp", "results"] {
+        std::fs::rename(tmp.path().join(d), moved.join(d)).unwrap();
+    }
+    let again = render(&moved.join("results")).unwrap_or_else(|e| panic!("render: {e}"));
+    assert!(again.results_md == md, "moved:\n{}", again.results_md);
 }
 
 #[test]
