@@ -591,6 +591,28 @@ fn walk_runs(registry: &Path) -> (Vec<String>, Vec<String>) {
 mod tests {
     use super::*;
 
+    /// A built-in experiment records no manifest; a manifest file records its path from the
+    /// registry's directory where it lies under it, its absolute path where not.
+    #[test]
+    fn the_manifest_is_recorded_from_the_registrys_directory() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let fig2 = Manifest::load("fig2").expect("fig2");
+        assert!(matches!(manifest_record("fig2", &fig2, tmp.path()), Ok(None)));
+        let text = crate::manifest::BUILTIN[0].1.replace("name = \"fig2\"", "name = \"mine\"");
+        let file = tmp.path().join("exp/mine.toml");
+        std::fs::create_dir_all(file.parent().expect("parent")).expect("mkdir");
+        std::fs::write(&file, text).expect("write");
+        let path = file.to_str().expect("utf-8");
+        let mine = Manifest::load(path).expect("mine");
+        let at = |registry: &Path| manifest_record(path, &mine, registry).expect("recorded");
+        assert_eq!(at(&tmp.path().join("results")).as_deref(), Some("exp/mine.toml"));
+        let elsewhere = tmp.path().join("exp/sub/results");
+        let abs = std::fs::canonicalize(&file).expect("canonical");
+        assert_eq!(at(&elsewhere), Some(abs.to_string_lossy().into_owned()));
+        // Named as a built-in experiment: that experiment's runs.
+        assert_eq!(manifest_record(path, &fig2, tmp.path()).expect("fig2"), None);
+    }
+
     #[test]
     fn dates_are_calendar_days() {
         for d in ["2026-03-14", "2024-02-29", "2000-02-29", "1970-01-01", "2026-12-31"] {
