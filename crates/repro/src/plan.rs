@@ -341,6 +341,14 @@ fn identity(c: &TrainConfig) -> toml::Value {
     // How often a resume point is written changes no result (resuming is byte-identical).
     c.train.resume_interval = 0;
     c.data.dir = c.data.dir.file_name().map(PathBuf::from).unwrap_or_default();
+    // A suite's runs record the suite file's absolute path: like the data directory, only its
+    // name is the run's, so that an archived run (`results render`, `--report-only`) or a moved
+    // tree still reads as its cell's where the checkout lies elsewhere. Its content is checked
+    // where it matters: a resumed run against its copy, the data by their fingerprints.
+    if pdt_envs::suite::is_suite_path(&c.env.name) {
+        let name = Path::new(&c.env.name).file_name().map(|n| n.to_string_lossy().into_owned());
+        c.env.name = name.unwrap_or_default();
+    }
     // As written to config.toml: a method's configuration carries only its own sections.
     c.to_toml_value().unwrap_or(toml::Value::Boolean(false))
 }
@@ -391,7 +399,9 @@ impl DataCheck {
         let stats_path = run.stats_path();
         let stats = run.stats().map_err(|e| e.to_string())?;
         let c = read_config(&spec.dir)?;
-        let family = pdt_envs::family(&c.env.name).map_err(|e| e.to_string())?;
+        // The plan's suite file, not the one the run recorded: an archived run's may lie in
+        // another checkout (its identity, the name, was checked).
+        let family = pdt_envs::family(&spec.config.env.name).map_err(|e| e.to_string())?;
         let (train, test) = family.split(&c.env.split).map_err(|e| e.to_string())?;
         let sets = [
             (

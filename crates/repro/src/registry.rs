@@ -11,7 +11,9 @@
 //!
 //! - `normalisation.json`: the per-task expert and random returns of the dataset card the run
 //!   was scored with ([`crate::baselines::baselines`]), so its normalised score needs no data;
-//! - `provenance.json`: where and how it ran ([`Provenance`]).
+//! - `provenance.json`: where and how it ran ([`Provenance`]), and for a user's experiment (a
+//!   manifest file that is no built-in one) which manifest it belongs to, so that `results render`
+//!   finds that experiment again without a flag ([`Provenance::manifest`]).
 //!
 //! `promptdt results add` ([`add`]) is the only writer: it refuses an unfinished run, one whose
 //! configuration is not its cell's at that budget, one whose `metrics.jsonl` does not reach its
@@ -19,7 +21,7 @@
 //! with a run it cannot read ([`archive_problems`], and what the report names).
 
 use crate::baselines::{baselines, Normalisation, NORMALISATION_JSON};
-use crate::manifest::Manifest;
+use crate::manifest::{Manifest, BUILTIN};
 use crate::plan::{self, Plan, PlanOptions};
 use crate::ReproError;
 use pdt_rundir::{MetricsLine, RunDir, RunInfo};
@@ -39,6 +41,12 @@ pub struct Provenance {
     /// `<cell id>/<budget>/seed<N>`.
     pub key: String,
     pub experiment: String,
+    /// A user's experiment's manifest file (`results add --exp FILE`), which `results render`
+    /// reads the experiment from: relative to [`registry_root`] (the repository root for
+    /// `results/`) where the file lies under it, else absolute. Absent for a built-in experiment
+    /// (compiled in), and in archives made before it was recorded (render names those).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub manifest: Option<String>,
     pub budget: String,
     /// The commit of the binary that trained it.
     pub commit: String,
@@ -117,14 +125,49 @@ pub fn add(o: &AddOptions) -> Result<Vec<Added>, ReproError> {
         check_date(d).map_err(|why| ReproError::Invalid(format!("--date {d:?}: {why}")))?;
     }
     let m = Manifest::load(&o.experiment)?;
+    let manifest = manifest_record(&o.experiment, &m, &o.registry)?;
     let mut added = Vec::new();
     for dir in &o.runs {
-        added.push(add_one(&m, o, dir)?);
+        added.push(add_one(&m, manifest.as_deref(), o, dir)?);
     }
     Ok(added)
 }
 
-fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError> {
+/// Whether `name` is a built-in experiment's (compiled in: `results render` reads it without a
+/// file).
+pub fn is_builtin(name: &str) -> bool {
+    BUILTIN.iter().any(|(n, _)| *n == name)
+}
+
+/// The directory a registry's recorded manifest paths are taken from: the one holding the registry
+/// (the repository root for `results/`, where `RESULTS.md` is written), so that a checkout moved
+/// or cloned elsewhere finds its manifests.
+pub fn registry_root(registry: &Path) -> PathBuf {
+    let abs = std::path::absolute(registry).unwrap_or_else(|_| registry.to_path_buf());
+    let parent = abs.parent().map_or_else(|| abs.clone(), Path::to_path_buf);
+    std::fs::canonicalize(&parent).unwrap_or(parent)
+}
+
+/// What `provenance.json` records as the manifest of `--exp exp` (read as `m`) archived into
+/// `registry`: `None` for a built-in experiment, and for a manifest file named as one (its runs
+/// are that experiment's, rendered with it); else the file's path from [`registry_root`] where it
+/// lies under it, absolute where not.
+fn manifest_record(exp: &str, m: &Manifest, registry: &Path) -> Result<Option<String>, ReproError> {
+    if is_builtin(exp) || is_builtin(&m.name) {
+        return Ok(None);
+    }
+    let file = std::fs::canonicalize(exp).map_err(|e| io(Path::new(exp), e))?;
+    let root = registry_root(registry);
+    let path = file.strip_prefix(&root).unwrap_or(&file);
+    Ok(Some(path.to_string_lossy().into_owned()))
+}
+
+fn add_one(
+    m: &Manifest,
+    manifest: Option<&str>,
+    o: &AddOptions,
+    dir: &Path,
+) -> Result<Added, ReproError> {
     let seed = dir
         .file_name()
         .and_then(|n| n.to_str())
@@ -228,6 +271,7 @@ fn add_one(m: &Manifest, o: &AddOptions, dir: &Path) -> Result<Added, ReproError
     let prov = Provenance {
         key: spec.key.clone(),
         experiment: m.name.clone(),
+        manifest: manifest.map(str::to_string),
         budget: o.budget.clone(),
         commit: f.commit.clone(),
         device: config.run.device.as_str().to_string(),
@@ -546,6 +590,28 @@ fn walk_runs(registry: &Path) -> (Vec<String>, Vec<String>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A built-in experiment records no manifest; a manifest file records its path from the
+    /// registry's directory where it lies under it, its absolute path where not.
+    #[test]
+    fn the_manifest_is_recorded_from_the_registrys_directory() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let fig2 = Manifest::load("fig2").expect("fig2");
+        assert!(matches!(manifest_record("fig2", &fig2, tmp.path()), Ok(None)));
+        let text = crate::manifest::BUILTIN[0].1.replace("name = \"fig2\"", "name = \"mine\"");
+        let file = tmp.path().join("exp/mine.toml");
+        std::fs::create_dir_all(file.parent().expect("parent")).expect("mkdir");
+        std::fs::write(&file, text).expect("write");
+        let path = file.to_str().expect("utf-8");
+        let mine = Manifest::load(path).expect("mine");
+        let at = |registry: &Path| manifest_record(path, &mine, registry).expect("recorded");
+        assert_eq!(at(&tmp.path().join("results")).as_deref(), Some("exp/mine.toml"));
+        let elsewhere = tmp.path().join("exp/sub/results");
+        let abs = std::fs::canonicalize(&file).expect("canonical");
+        assert_eq!(at(&elsewhere), Some(abs.to_string_lossy().into_owned()));
+        // Named as a built-in experiment: that experiment's runs.
+        assert_eq!(manifest_record(path, &fig2, tmp.path()).expect("fig2"), None);
+    }
 
     #[test]
     fn dates_are_calendar_days() {

@@ -46,15 +46,17 @@ struct Section {
     planned: Vec<(String, usize)>,
 }
 
-/// Every committed experiment at every budget with an archived run, as reported from the
-/// registry in `registry` (no run directory, data or checkpoint is read).
+/// Every committed experiment at every budget with an archived run, then every user experiment
+/// whose manifest the archives record ([`user_manifests`]), as reported from the registry in
+/// `registry` (no run directory, data or checkpoint is read; a user experiment's manifest and
+/// suite files are).
 ///
 /// An archived run that cannot be read (a cut `eval.jsonl`, a garbage `config.toml`, a corrupt
 /// `provenance.json` or `normalisation.json`: any file of it the report reads) fails the whole
 /// render, every such run named with its file and why: `RESULTS.md` is committed, and a row
 /// silently left out (or a device shown as `-`) would publish another result than the registry
 /// holds.
-fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
+fn sections(registry: &Path) -> Result<(Vec<Section>, Vec<UserExperiment>), ReproError> {
     // A registry that is not there, or holds no archived run, would render an empty RESULTS.md
     // over the committed one: a mistyped `--registry`, never an intended result.
     if !registry.is_dir() {
@@ -74,63 +76,18 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
         )));
     }
     // Problem -> where it was met (`fig2 cpu`): a run read by two experiments is named once.
-    let mut problems: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-    // A place with no run directories, so that every run is read from the registry.
-    let nowhere = registry.join(".no-run-directories");
+    let mut problems = Problems::new();
     let mut out = Vec::new();
     for (name, _) in BUILTIN {
         let m = Manifest::load(name)?;
-        for b in m.budgets.keys() {
-            let opts = PlanOptions {
-                budget: b.clone(),
-                out: nowhere.clone(),
-                data_root: nowhere.join("data"),
-                threads: 1,
-                device: Default::default(),
-                matmul: Default::default(),
-                seeds: None,
-            };
-            // Every archived seed, however many the budget plans: the registry's runs only.
-            let Some(max_seed) = registry::max_seed(&archived, b) else { continue };
-            let mut planned: Vec<(String, usize)> = Vec::new();
-            for r in &plan::plan(&m, &opts)?.runs {
-                let id = m.cells[r.cell].id();
-                match planned.iter_mut().find(|(c, _)| *c == id) {
-                    Some((_, n)) => *n += 1,
-                    None => planned.push((id, 1)),
-                }
-            }
-            let mut p = plan::plan(&m, &PlanOptions { seeds: Some(max_seed + 1), ..opts })?;
-            p.runs.retain(|r| archived.contains(&r.key));
-            let used = registry::use_archived(&mut p, registry);
-            if used.is_empty() {
-                continue;
-            }
-            let rep = report::build(&m, &p, None)?;
-            let at = format!("{} `{b}`", m.name);
-            for c in &rep.cells {
-                for why in &c.problems {
-                    // The report's problems start with the run's key, or name the cell's card.
-                    let why = match why.starts_with(&format!("{}/", c.id)) {
-                        true => why.clone(),
-                        false => format!("{}: {why}", c.id),
-                    };
-                    problems.entry(why).or_default().insert(at.clone());
-                }
-            }
-            let mut seeds: BTreeMap<String, Vec<u64>> = BTreeMap::new();
-            let mut devices: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-            for r in p.runs.iter().filter(|r| used.contains(&r.key)) {
-                let id = m.cells[r.cell].id();
-                seeds.entry(id.clone()).or_default().push(r.seed);
-                if let Ok(pv) = registry::provenance(&r.dir) {
-                    devices.entry(id).or_default().insert(pv.device_name);
-                }
-                for why in registry::archive_problems(&r.dir, r.base.is_some()) {
-                    problems.entry(format!("{}: {why}", r.key)).or_default().insert(at.clone());
-                }
-            }
-            out.push(Section { report: rep, seeds, devices, planned });
+        out.extend(experiment_sections(&m, registry, &archived, &mut problems)?);
+    }
+    let mut users = Vec::new();
+    for (manifest, m, keys) in user_manifests(registry, &archived, &mut problems) {
+        let sections = experiment_sections(&m, registry, &keys, &mut problems)
+            .map_err(|e| ReproError::Invalid(format!("{manifest}: {e}")))?;
+        if !sections.is_empty() {
+            users.push(UserExperiment { manifest, m, sections });
         }
     }
     for key in registry::strays(registry) {
@@ -156,6 +113,162 @@ fn sections(registry: &Path) -> Result<Vec<Section>, ReproError> {
             list.len(),
             list.join("\n")
         )));
+    }
+    Ok((out, users))
+}
+
+/// Problem -> the experiments (and budgets) it was met for.
+type Problems = BTreeMap<String, BTreeSet<String>>;
+
+/// Where the problems of finding the user experiments are said to be met.
+const USER_EXPERIMENTS: &str = "the user experiments";
+
+/// A user's experiment with archived runs (docs/reproduce.md, "Your own experiments"): its
+/// manifest as the archives' `provenance.json` records it, the manifest read, and a section per
+/// budget with an archived run.
+struct UserExperiment {
+    manifest: String,
+    m: Manifest,
+    sections: Vec<Section>,
+}
+
+/// The user experiments the registry's archives record (`provenance.json`'s `manifest`), in the
+/// order of their recorded paths: the recorded path, the manifest read from it, and the keys of
+/// the archives recording it. What keeps one from being rendered is a problem naming the archive
+/// and the file: an archive of an experiment that is no built-in one and records no manifest (its
+/// runs would be left out unsaid), a manifest file that is gone or cannot be read, or one that now
+/// names another experiment than its archives.
+fn user_manifests(
+    registry: &Path,
+    archived: &BTreeSet<String>,
+    problems: &mut Problems,
+) -> Vec<(String, Manifest, BTreeSet<String>)> {
+    let mut problem = |why: String| {
+        problems.entry(why).or_default().insert(USER_EXPERIMENTS.into());
+    };
+    // Recorded manifest -> the experiment names its archives record, and their keys.
+    let mut recorded: BTreeMap<String, (BTreeSet<String>, BTreeSet<String>)> = BTreeMap::new();
+    for key in archived {
+        let dir = registry.join(key);
+        let pv = match registry::provenance(&dir) {
+            Ok(pv) => pv,
+            // The message the paper's experiments give it, so the run is named once.
+            Err(e) => {
+                problem(format!("{key}: {e}"));
+                continue;
+            }
+        };
+        match pv.manifest {
+            Some(file) => {
+                let (names, keys) = recorded.entry(file).or_default();
+                names.insert(pv.experiment);
+                keys.insert(key.clone());
+            }
+            None if registry::is_builtin(&pv.experiment) => {}
+            None => problem(format!(
+                "{key}: {}: experiment `{}` is no built-in one and the record names no manifest \
+                 file (archived before `results add --exp FILE` recorded it), so its section \
+                 cannot be rendered: archive the run again with `results add --exp FILE`, or write \
+                 the file's path from {} into it as \"manifest\" (docs/reproduce.md#the-results-\
+                 registry)",
+                dir.join(registry::PROVENANCE_JSON).display(),
+                pv.experiment,
+                registry::registry_root(registry).display()
+            )),
+        }
+    }
+    let root = registry::registry_root(registry);
+    let mut out = Vec::new();
+    for (file, (names, keys)) in recorded {
+        let path = root.join(&file);
+        let names = names.into_iter().collect::<Vec<_>>().join("`, `");
+        let runs = keys.iter().cloned().collect::<Vec<_>>().join(", ");
+        let loaded = match path.is_file() {
+            true => Manifest::load(&path.to_string_lossy()).map_err(|e| e.to_string()),
+            false => Err("no such file".to_string()),
+        };
+        match loaded {
+            Ok(m) if names == m.name => out.push((file, m, keys)),
+            Ok(m) => problem(format!(
+                "{}: the manifest of experiment `{names}` recorded by {runs} (their \
+                 provenance.json's \"manifest\") now names experiment `{}`",
+                path.display(),
+                m.name
+            )),
+            Err(e) => problem(format!(
+                "{}: the manifest of experiment `{names}` recorded by {runs} (their \
+                 provenance.json's \"manifest\") cannot be read: {e}; put it back, or archive the \
+                 runs again with `results add --exp FILE` naming where it is now",
+                path.display()
+            )),
+        }
+    }
+    out
+}
+
+/// The sections of experiment `m`, one per budget with an archived run among `archived` (keys),
+/// as reported from the registry in `registry` (no run directory, data or checkpoint is read).
+/// What its runs' files cannot give is added to `problems`.
+fn experiment_sections(
+    m: &Manifest,
+    registry: &Path,
+    archived: &BTreeSet<String>,
+    problems: &mut Problems,
+) -> Result<Vec<Section>, ReproError> {
+    // A place with no run directories, so that every run is read from the registry.
+    let nowhere = registry.join(".no-run-directories");
+    let mut out = Vec::new();
+    for b in m.budgets.keys() {
+        let opts = PlanOptions {
+            budget: b.clone(),
+            out: nowhere.clone(),
+            data_root: nowhere.join("data"),
+            threads: 1,
+            device: Default::default(),
+            matmul: Default::default(),
+            seeds: None,
+        };
+        // Every archived seed, however many the budget plans: the registry's runs only.
+        let Some(max_seed) = registry::max_seed(archived, b) else { continue };
+        let mut planned: Vec<(String, usize)> = Vec::new();
+        for r in &plan::plan(m, &opts)?.runs {
+            let id = m.cells[r.cell].id();
+            match planned.iter_mut().find(|(c, _)| *c == id) {
+                Some((_, n)) => *n += 1,
+                None => planned.push((id, 1)),
+            }
+        }
+        let mut p = plan::plan(m, &PlanOptions { seeds: Some(max_seed + 1), ..opts })?;
+        p.runs.retain(|r| archived.contains(&r.key));
+        let used = registry::use_archived(&mut p, registry);
+        if used.is_empty() {
+            continue;
+        }
+        let rep = report::build(m, &p, None)?;
+        let at = format!("{} `{b}`", m.name);
+        for c in &rep.cells {
+            for why in &c.problems {
+                // The report's problems start with the run's key, or name the cell's card.
+                let why = match why.starts_with(&format!("{}/", c.id)) {
+                    true => why.clone(),
+                    false => format!("{}: {why}", c.id),
+                };
+                problems.entry(why).or_default().insert(at.clone());
+            }
+        }
+        let mut seeds: BTreeMap<String, Vec<u64>> = BTreeMap::new();
+        let mut devices: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        for r in p.runs.iter().filter(|r| used.contains(&r.key)) {
+            let id = m.cells[r.cell].id();
+            seeds.entry(id.clone()).or_default().push(r.seed);
+            if let Ok(pv) = registry::provenance(&r.dir) {
+                devices.entry(id).or_default().insert(pv.device_name);
+            }
+            for why in registry::archive_problems(&r.dir, r.base.is_some()) {
+                problems.entry(format!("{}: {why}", r.key)).or_default().insert(at.clone());
+            }
+        }
+        out.push(Section { report: rep, seeds, devices, planned });
     }
     Ok(out)
 }
@@ -229,7 +342,7 @@ fn normalised_text(c: &report::CellResult) -> (String, String, String) {
 
 /// `RESULTS.md` and the README block from the registry in `registry`.
 pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
-    let sections = sections(registry)?;
+    let (sections, users) = sections(registry)?;
     let mut s = String::new();
     let _ = writeln!(s, "# Results\n");
     let _ = writeln!(
@@ -262,7 +375,8 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
         stats::MIN_SEEDS
     );
     for sec in &sections {
-        cells_table(&mut s, sec);
+        let heading = format!("## {} — `{}` budget", sec.report.title, sec.report.budget);
+        cells_table(&mut s, sec, &heading);
     }
     let _ = writeln!(s, "## What reproduces\n");
     let _ = writeln!(
@@ -286,6 +400,9 @@ pub fn render(registry: &Path) -> Result<Rendered, ReproError> {
         let _ = writeln!(s, "\n## Why MT-ORL rises and then falls\n");
         s.push_str(&blind);
         let _ = writeln!(s, "\n{MT_ORL_READING}");
+    }
+    for u in &users {
+        user_section(&mut s, u);
     }
     let _ = writeln!(
         s,
@@ -368,10 +485,43 @@ pub fn splice_block(doc: &str, begin: &str, end: &str, block: &str) -> Result<St
     Ok(format!("{}\n{block}{}", &doc[..start], &doc[stop..]))
 }
 
-/// A registry section's table: one row per archived cell.
-fn cells_table(s: &mut String, sec: &Section) {
+/// A user experiment's section, after the paper's: its manifest, title and description, then per
+/// budget its table and its claims' verdicts, by the code the paper's experiments' use.
+fn user_section(s: &mut String, u: &UserExperiment) {
+    let m = &u.m;
+    let _ = writeln!(s, "\n## {} — user experiment `{}`\n", m.title.trim(), m.name);
+    // A relative path is from the registry's directory, where RESULTS.md lies: a link from it.
+    let file = match Path::new(&u.manifest).is_absolute() {
+        true => format!("`{}`", u.manifest),
+        false => format!("[`{0}`]({0})", u.manifest),
+    };
+    let _ = writeln!(
+        s,
+        "A user's experiment ([docs/reproduce.md](docs/reproduce.md#your-own-experiments)), read \
+         from its manifest {file}, which its archived runs record: `promptdt reproduce {} --budget \
+         B --report-only` writes its report, curves, `cells.csv`, `curves.csv` and `report.json` \
+         from the registry.\n",
+        u.manifest
+    );
+    let _ = writeln!(s, "{}\n", m.description.trim());
+    for sec in &u.sections {
+        cells_table(s, sec, &format!("### `{}` budget", sec.report.budget));
+    }
+    let _ = writeln!(
+        s,
+        "Its claims, judged by the rule the paper's are (\"What reproduces\"; fewer than {} seeds \
+         on a side: provisional):\n",
+        stats::MIN_SEEDS
+    );
+    for sec in &u.sections {
+        verdicts(s, sec);
+    }
+}
+
+/// A registry section's table under `heading`: one row per archived cell.
+fn cells_table(s: &mut String, sec: &Section, heading: &str) {
     let r = &sec.report;
-    let _ = writeln!(s, "## {} — `{}` budget\n", r.title, r.budget);
+    let _ = writeln!(s, "{heading}\n");
     let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
     let _ = writeln!(s, "{}\n", archive_text(sec));
     // Evaluation noise beside seed noise: in the prompt-control table (whose rows differ by

@@ -244,10 +244,26 @@ fn add_refuses_a_date_that_is_no_day_and_a_run_whose_metrics_lost_their_end() {
     assert!(prov.contains("\"date\": \"2024-02-29\""), "{prov}");
 }
 
-/// The committed registry (`results/`) copied into `dir`.
+/// The committed registry (`results/`) copied into `dir`, with the manifests and suite files of
+/// the examples beside it (the user experiments' archives record their manifest from the
+/// registry's directory; their data are not needed to render).
 fn committed_registry(dir: &Path) -> std::path::PathBuf {
     let reg = dir.join("results");
     copy_dir(&cli::repo("results"), &reg);
+    for e in std::fs::read_dir(cli::repo("examples")).unwrap() {
+        let example = e.unwrap().path();
+        if !example.is_dir() {
+            continue;
+        }
+        let to = dir.join("examples").join(example.file_name().unwrap());
+        std::fs::create_dir_all(&to).unwrap();
+        for f in std::fs::read_dir(&example).unwrap() {
+            let f = f.unwrap().path();
+            if f.extension().is_some_and(|x| x == "toml") {
+                std::fs::copy(&f, to.join(f.file_name().unwrap())).unwrap();
+            }
+        }
+    }
     reg
 }
 

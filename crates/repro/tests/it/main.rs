@@ -8,3 +8,4 @@ mod bootstrap_python;
 mod reference_experts;
 mod results_md;
 mod suites;
+mod user_experiments;
