@@ -4,7 +4,6 @@
 
 use crate::error::RunError;
 use crate::methods;
-use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_envs::vec_env::VecEnv;
@@ -162,7 +161,7 @@ pub fn evaluate_run_in(
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
     // A stream apart from training's evaluations, so the final numbers are not a repeat of the log.
-    let mut rng = eval_rng(&setup, which, repeat_counter(latest.iteration, 0));
+    let mut rng = setup.eval_rng(which, repeat_counter(latest.iteration, 0));
     let methods::Evaluation { tasks, picks, adapt_log } =
         learner.evaluate(which, &test_time, &mut rng)?;
     let tasks: Vec<_> = tasks.into_iter().map(|t| t.result).collect();
@@ -174,7 +173,7 @@ pub fn evaluate_run_in(
             for r in 1..n {
                 // From the checkpoint again: each repeat is the evaluation of the saved weights.
                 learner.load_weights(&run.checkpoint_file(&latest.model))?;
-                let mut rng = eval_rng(&setup, which, repeat_counter(latest.iteration, r));
+                let mut rng = setup.eval_rng(which, repeat_counter(latest.iteration, r));
                 let e = learner.evaluate(which, &test_time, &mut rng)?;
                 rows.push(e.tasks.iter().map(|t| t.result.return_mean).collect());
             }

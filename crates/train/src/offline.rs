@@ -6,7 +6,6 @@
 use crate::error::RunError;
 use crate::evaluate::{check_recorded_stats, repeat_counter, EvalRequest};
 use crate::methods;
-use crate::run_loop::eval_rng;
 use crate::setup::{Setup, Split};
 use crate::streams::torch_rng_lock;
 use pdt_run::files::{latest_checkpoint, run_config};
@@ -61,7 +60,7 @@ pub fn evaluate_run_offline(dir: &Path, req: &EvalRequest) -> Result<OfflineEval
     let mut learner = methods::learner(&setup)?;
     let latest = latest_checkpoint(&run)?;
     learner.load_weights(&run.checkpoint_file(&latest.model))?;
-    let mut rng = eval_rng(&setup, which, repeat_counter(latest.iteration, 0));
+    let mut rng = setup.eval_rng(which, repeat_counter(latest.iteration, 0));
     let tasks = learner.offline_evaluate(which, &mut rng)?.ok_or_else(|| {
         RunError::invalid(
             format!("run.method = \"{}\"", setup.cfg.run.method.name()),

@@ -17,7 +17,7 @@ use crate::streams::torch_rng_lock;
 use pdt_base::fs::write_atomic;
 use pdt_base::seed::derive_seed;
 use pdt_prompt::Rng;
-use pdt_run::streams::{STREAM_BATCHES, STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+use pdt_run::streams::STREAM_BATCHES;
 use pdt_rundir::config::{TestTime, TrainConfig};
 use pdt_rundir::{
     read_json, write_json, EvalLine, Latest, MetricsLine, PackInfo, RunDir, RunInfo, TrainState,
@@ -317,16 +317,6 @@ fn write_suite_copy(setup: &Setup, run: &RunDir) -> Result<(), RunError> {
     write_atomic(&path, suite.text().as_bytes()).map_err(io_err(&path))
 }
 
-/// The evaluation stream of `split` at `counter` (the iteration; a final evaluation counts down
-/// from `u64::MAX`, apart from training's).
-pub(crate) fn eval_rng(setup: &Setup, split: Split, counter: u64) -> Rng {
-    let stream = match split {
-        Split::Test => STREAM_EVAL_TEST,
-        Split::Train => STREAM_EVAL_TRAIN,
-    };
-    Rng::seed_from_u64(derive_seed(setup.cfg.run.seed, stream, counter))
-}
-
 /// The `eval.jsonl` lines of an evaluation on `eval_on` ("test" or "train"), with the learner's
 /// adaptation columns and each task's target return ([`Setup::task_target_return`]).
 fn eval_lines(
@@ -440,7 +430,7 @@ fn run_loop(
         // Reference: evaluation after the first iteration and every `interval` after it.
         let evaluates = note.is_none();
         if evaluates && ((iteration - 1) % t.test_eval_interval == 0 || last) {
-            let mut rng = eval_rng(setup, Split::Test, iteration);
+            let mut rng = setup.eval_rng(Split::Test, iteration);
             let res = learner.evaluate(Split::Test, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(setup, &res, iteration, step, "test"))?;
             let res: Vec<TaskResult> = res.into_iter().map(|r| r.result).collect();
@@ -452,7 +442,7 @@ fn run_loop(
             offline.as_mut().filter(|_| (iteration - 1) % t.test_eval_interval == 0 || last)
         {
             // The same stream and counter as an evaluation in an environment would draw from.
-            let mut rng = eval_rng(setup, Split::Test, iteration);
+            let mut rng = setup.eval_rng(Split::Test, iteration);
             if let Some(res) = learner.offline_evaluate(Split::Test, &mut rng)? {
                 let lines: Vec<OfflineEvalLine> = res
                     .iter()
@@ -469,7 +459,7 @@ fn run_loop(
         }
         let train_evals = t.train_eval_interval > 0 && evaluates;
         if train_evals && ((iteration - 1) % t.train_eval_interval == 0 || last) {
-            let mut rng = eval_rng(setup, Split::Train, iteration);
+            let mut rng = setup.eval_rng(Split::Train, iteration);
             let res = learner.evaluate(Split::Train, &test_time, &mut rng)?.tasks;
             evals.append(&eval_lines(setup, &res, iteration, step, "train"))?;
         }

@@ -49,6 +49,22 @@ fn env_threads_in_pack(setting: usize, cores: usize, pack_size: usize) -> usize 
 }
 
 impl Setup {
+    /// The evaluation stream of `split` at `counter` (the iteration; a final evaluation counts
+    /// down from `u64::MAX`, apart from training's).
+    pub(crate) fn eval_rng(&self, split: Split, counter: u64) -> pdt_prompt::Rng {
+        use pdt_run::streams::{STREAM_EVAL_TEST, STREAM_EVAL_TRAIN};
+        use rand::SeedableRng;
+        let stream = match split {
+            Split::Test => STREAM_EVAL_TEST,
+            Split::Train => STREAM_EVAL_TRAIN,
+        };
+        pdt_prompt::Rng::seed_from_u64(pdt_base::seed::derive_seed(
+            self.cfg.run.seed,
+            stream,
+            counter,
+        ))
+    }
+
     /// The set-up of `cfg` for the run in `dir` (its environment family as the run trained on
     /// it: a task suite from the run's copy, [`pdt_envs::family_of_run`]).
     pub(crate) fn new(cfg: TrainConfig, dir: &Path) -> Result<Self, RunError> {
