@@ -129,5 +129,7 @@ column = "pendulum_mass"
     assert out.returncode == 0, f"stdout:\n{out.stdout}\nstderr:\n{out.stderr}"
     report = (here / "repro/reports/pendulum_mass_smoke-smoke/report.md").read_text()
     assert "Prompt-DT" in report and "pendulum_mass" in report, report
+    # A user's experiment has no paper values: no paper columns, no "paper's claims".
+    assert "paper normalised" not in report and "The paper's claims" not in report, report
     evals = (here / "repro/runs/pendulum/prompt-dt/smoke/seed0/eval.jsonl").read_text().splitlines()
     assert {json.loads(e)["task"] for e in evals} == {"pendulum_mass-6", "pendulum_mass-7"}, evals

@@ -528,13 +528,17 @@ fn cells_table(s: &mut String, sec: &Section, heading: &str) {
     // evaluation alone), and wherever a cell's runs were evaluated with repeats.
     let noise = r.experiment == NOISE_EXPERIMENT || r.cells.iter().any(|c| c.eval_noise.is_some());
     let (noise_head, noise_rule) = if noise { (" evaluation noise |", "---:|") } else { ("", "") };
+    // The paper's columns only where a cell has the paper's value (not in a user's experiment).
+    let paper = report::has_paper(r);
+    let (paper_head, paper_rule) =
+        if paper { (" paper | paper normalised |", "---:|---:|") } else { ("", "") };
     let _ = writeln!(
         s,
         "| cell | budget | seeds | iterations | device | ours | ours normalised |{noise_head} \
-         {:.0} % interval | IQM | ours, ratio of means | paper | paper normalised |",
+         {:.0} % interval | IQM | ours, ratio of means |{paper_head}",
         100.0 * stats::CONFIDENCE
     );
-    let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|{noise_rule}---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---|---|---:|---|---:|---:|{noise_rule}---:|---:|---:|{paper_rule}");
     for c in &r.cells {
         let Some(seeds) = sec.seeds.get(&c.id).filter(|_| c.seeds > 0) else { continue };
         let ours = match c.success {
@@ -542,6 +546,7 @@ fn cells_table(s: &mut String, sec: &Section, heading: &str) {
             None => stat(c.ours, 1),
         };
         let report::PaperText { raw: p, normalised: pn } = report::PaperText::of(c);
+        let paper_cells = if paper { format!(" {p} | {pn} |") } else { String::new() };
         let devices = sec.devices.get(&c.id).map(|d| d.iter().cloned().collect::<Vec<_>>());
         let devices = devices.map_or("-".into(), |d| d.join(", "));
         let (norm, ci, iqm) = normalised_text(c);
@@ -551,7 +556,7 @@ fn cells_table(s: &mut String, sec: &Section, heading: &str) {
         };
         let _ = writeln!(
             s,
-            "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} | {p} | {pn} |",
+            "| {} `{}` | {} | {} | {} | {} | {ours} | {norm} | {ci} | {iqm} | {} |{paper_cells}",
             c.label,
             c.id,
             r.budget,

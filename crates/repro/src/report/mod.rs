@@ -25,7 +25,7 @@ use crate::stats::CellStats;
 use claims::check_claim;
 pub use claims::{ClaimResult, DEFAULT_MARGIN};
 use render::{cells_csv, curves_csv, markdown};
-pub(crate) use render::{eval_noise_text, PaperText};
+pub(crate) use render::{eval_noise_text, has_paper, PaperText};
 
 // Mean ± std over seeds (population std, as numpy's default; a diverged seed's NaN is left out
 // and `n` says how many seeds were used): the rule of `promptdt report`, so one definition.

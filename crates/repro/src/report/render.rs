@@ -18,6 +18,12 @@ fn stat(s: Option<Stat>, d: usize) -> String {
     })
 }
 
+/// Whether any cell of `r` has the paper's value: else its tables show no paper columns and its
+/// claims are not called the paper's (a user's experiment, or one of ours the paper has no number for).
+pub(crate) fn has_paper(r: &Report) -> bool {
+    r.cells.iter().any(|c| c.paper.is_some())
+}
+
 /// ` (bf16)` for a report of bf16 runs, after its title and each cell; nothing for fp32 (whose
 /// reports read as before) or tf32.
 fn precision_tag(r: &Report) -> &'static str {
@@ -30,6 +36,8 @@ fn precision_tag(r: &Report) -> &'static str {
 
 pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
     let mut s = String::new();
+    // The paper's columns only where a cell has a paper value (a user's experiment has none).
+    let paper = has_paper(r);
     let _ = writeln!(s, "# {} — `{}` budget{}\n", r.title, r.budget, precision_tag(r));
     if r.matmul == Matmul::Bf16 {
         let _ = writeln!(
@@ -46,24 +54,37 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
          normalised = 100 (R - R_random) / (R_expert - R_random) per test task with our datasets' \
          returns, averaged (the per-task mean of ratios: the claims judge it, docs/reproduce.md#claims). \
          Ratio of means: the mean return over the test tasks normalised by the mean expert and mean \
-         random returns over them, the paper's way and the one compared with the paper's value. \
-         Paper normalised: the paper's value with the reference release's expert \
-         returns (its prompt files) and our random returns; `-` where the reference's experts are \
-         unknown. Within: |ours (ratio of means) - paper| <= the paper's std, normalised (only where the paper gives a std).\n"
+         random returns over them, the paper's way{}",
+        match paper {
+            true => " and the one compared with the paper's value. Paper normalised: the paper's \
+                     value with the reference release's expert returns (its prompt files) and our \
+                     random returns; `-` where the reference's experts are unknown. Within: |ours \
+                     (ratio of means) - paper| <= the paper's std, normalised (only where the paper \
+                     gives a std).\n",
+            false => ".\n",
+        }
     );
-    let header = "cell|seeds|iteration|ours|ours normalised|evaluation noise|ratio of means|paper|\
-                  paper normalised|within paper std|status";
     let (text, num) = (Align::Left, Align::Right);
-    let align = vec![text, num, num, num, num, num, num, num, num, text, text];
-    let mut table = Table::with_align(header.split('|').map(String::from).collect(), align);
+    let mut header = "cell|seeds|iteration|ours|ours normalised|evaluation noise|ratio of means"
+        .split('|')
+        .map(String::from)
+        .collect::<Vec<_>>();
+    let mut align = vec![text, num, num, num, num, num, num];
+    if paper {
+        header.extend(["paper", "paper normalised", "within paper std"].map(String::from));
+        align.extend([num, num, text]);
+    }
+    header.push("status".into());
+    align.push(text);
+    let mut table = Table::with_align(header, align);
     for c in &r.cells {
-        let PaperText { raw: paper, normalised: pn } = PaperText::of(c);
+        let PaperText { raw: paper_raw, normalised: pn } = PaperText::of(c);
         let it = match (c.iteration, c.iterations_planned) {
             (Some(i), Some(n)) => format!("{i} / {n}"),
             (None, Some(n)) => format!("- / {n}"),
             _ => "-".into(),
         };
-        table.push(vec![
+        let mut row = vec![
             format!("`{}`{}", c.id, precision_tag(r)),
             c.seeds.to_string(),
             it,
@@ -74,11 +95,13 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
             stat(c.ours_normalised, 1),
             eval_noise_text(c),
             stat(c.ours_normalised_rom, 1),
-            paper,
-            pn,
-            c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" }).to_string(),
-            c.status.to_string(),
-        ]);
+        ];
+        if paper {
+            let within = c.within_paper_std.map_or("-", |w| if w { "yes" } else { "no" });
+            row.extend([paper_raw, pn, within.to_string()]);
+        }
+        row.push(c.status.to_string());
+        table.push(row);
     }
     s.push_str(&table.markdown(Rule::Tight));
     if m.layout == Layout::Table {
@@ -94,7 +117,10 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                 }
             }
         }
-        let _ = writeln!(s, "\n## As the paper lays it out (ours normalised as a ratio of means / paper normalised; raw in the table above)\n");
+        let _ = match paper {
+            true => writeln!(s, "\n## As the paper lays it out (ours normalised as a ratio of means / paper normalised; raw in the table above)\n"),
+            false => writeln!(s, "\n## As a table (ours normalised as a ratio of means; raw in the table above)\n"),
+        };
         // The corner cell is empty: the rows are labelled, the columns are.
         let mut header = vec![String::new()];
         header.extend(cols.iter().cloned());
@@ -106,12 +132,13 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
                     r.cells
                         .iter()
                         .find(|c| c.row.as_ref() == Some(row) && c.column.as_ref() == Some(col))
-                        .map_or("".into(), |c| {
-                            format!(
+                        .map_or("".into(), |c| match paper {
+                            true => format!(
                                 "{} / {}",
                                 stat(c.ours_normalised_rom, 1),
                                 opt(c.paper_normalised, 1)
-                            )
+                            ),
+                            false => stat(c.ours_normalised_rom, 1),
                         })
                 })
                 .collect();
@@ -130,7 +157,8 @@ pub(super) fn markdown(m: &Manifest, r: &Report) -> String {
         }
     }
     if !r.claims.is_empty() {
-        let _ = writeln!(s, "\n## The paper's claims, on these numbers\n");
+        let whose = if paper { "The paper's claims" } else { "The claims" };
+        let _ = writeln!(s, "\n## {whose}, on these numbers\n");
         for c in &r.claims {
             let _ = writeln!(s, "- **{}**: {} ({})", c.text, c.verdict, c.detail);
         }

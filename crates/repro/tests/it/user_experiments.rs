@@ -201,6 +201,9 @@ fn a_user_experiments_archived_runs_render_after_the_papers_with_their_claim() {
     // Normalised with the suite's returns (9 expert, 1 random): g3 87.5, g4 75.
     assert!(section.contains("| test CPU | 7.5 | 81.2 |"), "{section}");
     assert!(section.contains("| MT-ORL `toy-main/mt-orl` | smoke | 1 (0) | 2 | test CPU | 2.5 |"));
+    // No paper value in a user's experiment: no paper columns.
+    let header = section.lines().find(|l| l.starts_with("| cell |")).expect("a table header");
+    assert!(header.ends_with("| ours, ratio of means |") && !header.contains("paper"), "{header}");
     // The claim, judged by the paper's rule: one seed a side is provisional.
     let claim =
         section.lines().find(|l| l.contains("Prompt-DT beats MT-ORL on the held-out goals"));
