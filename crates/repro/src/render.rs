@@ -41,6 +41,9 @@ struct Section {
     /// Per cell id: the archived runs' seeds and the devices that ran them.
     seeds: BTreeMap<String, Vec<u64>>,
     devices: BTreeMap<String, BTreeSet<String>>,
+    /// Per cell id and device: each archived run's wall time (seconds, `provenance.json`) and how
+    /// many runs shared its device, so that what a run costs is read from the archive, never typed.
+    walls: BTreeMap<String, BTreeMap<String, Vec<(f64, u32)>>>,
     /// Per cell id the budget plans runs for: how many seeds it plans (what the archive is
     /// described against).
     planned: Vec<(String, usize)>,
@@ -258,17 +261,23 @@ fn experiment_sections(
         }
         let mut seeds: BTreeMap<String, Vec<u64>> = BTreeMap::new();
         let mut devices: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        let mut walls: BTreeMap<String, BTreeMap<String, Vec<(f64, u32)>>> = BTreeMap::new();
         for r in p.runs.iter().filter(|r| used.contains(&r.key)) {
             let id = m.cells[r.cell].id();
             seeds.entry(id.clone()).or_default().push(r.seed);
             if let Ok(pv) = registry::provenance(&r.dir) {
+                let by_device = walls.entry(id.clone()).or_default();
+                by_device
+                    .entry(pv.device_name.clone())
+                    .or_default()
+                    .push((pv.wall_time_s, pv.shared_with));
                 devices.entry(id).or_default().insert(pv.device_name);
             }
             for why in registry::archive_problems(&r.dir, r.base.is_some()) {
                 problems.entry(format!("{}: {why}", r.key)).or_default().insert(at.clone());
             }
         }
-        out.push(Section { report: rep, seeds, devices, planned });
+        out.push(Section { report: rep, seeds, devices, walls, planned });
     }
     Ok(out)
 }
@@ -300,25 +309,68 @@ down. Not measured here: what a paper-budget MT-ORL run ends at, or whether the 
 own MT-ORL behaves alike at this budget.";
 
 /// The archive of a section, described from the registry: per planned cell, how many of the
-/// seeds its budget plans are archived (the manifest's budget note describes the plan only).
+/// seeds its budget plans are archived, and what a run took (the manifest's budget note describes
+/// the plan only).
 fn archive_text(sec: &Section) -> String {
     let mut full = Vec::new();
     let mut short = Vec::new();
     let mut none = Vec::new();
     for (id, n) in &sec.planned {
+        let took = sec.walls.get(id).map_or(String::new(), |w| format!("; {}", took_by_device(w)));
         match sec.seeds.get(id).map_or(0, Vec::len) {
             0 => none.push(format!("`{id}`")),
-            k if k >= *n => full.push(format!("`{id}` ({k})")),
-            k => short.push(format!("`{id}` ({k} of {n})")),
+            k if k >= *n => full.push(format!("`{id}` ({k}{took})")),
+            k => short.push(format!("`{id}` ({k} of {n}{took})")),
         }
     }
     let list = |v: &[String]| if v.is_empty() { "none".to_string() } else { v.join(", ") };
     format!(
-        "Archived (from the registry): every planned seed for {}; fewer for {}; no run for {}.",
+        "Archived (from the registry; per cell its seeds, a run's wall time and how many runs \
+         shared its device): every planned seed for {}; fewer for {}; no run for {}.",
         list(&full),
         list(&short),
         list(&none)
     )
+}
+
+/// What the cell's runs took, per device where more than one ran them (a GPU's minutes and a
+/// CPU's hours are no range).
+fn took_by_device(walls: &BTreeMap<String, Vec<(f64, u32)>>) -> String {
+    match walls.len() {
+        1 => walls.values().map(|w| took_text(w)).collect(),
+        _ => walls
+            .iter()
+            .map(|(d, w)| format!("{} on {d}", took_text(w)))
+            .collect::<Vec<_>>()
+            .join("; "),
+    }
+}
+
+/// The range of the runs' wall times and of how many runs shared the device: "24 min to 80 min,
+/// 2 at once". A variant's time is its evaluation's (it trained nothing).
+fn took_text(walls: &[(f64, u32)]) -> String {
+    let (lo, hi) =
+        walls.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &(w, _)| (l.min(w), h.max(w)));
+    let (a, b) = walls.iter().fold((u32::MAX, 0), |(l, h), &(_, n)| (l.min(n), h.max(n)));
+    let time = match duration(lo) == duration(hi) {
+        true => duration(lo),
+        false => format!("{} to {}", duration(lo), duration(hi)),
+    };
+    let shared = match (a, b) {
+        (1, 1) => "alone".to_string(),
+        (a, b) if a == b => format!("{a} at once"),
+        (a, b) => format!("{a} to {b} at once"),
+    };
+    format!("{time}, {shared}")
+}
+
+/// Seconds as a person reads a run's length: seconds below 2 minutes, minutes below 3 hours.
+fn duration(s: f64) -> String {
+    match s {
+        s if s < 120.0 => format!("{s:.0} s"),
+        s if s < 3.0 * 3600.0 => format!("{:.0} min", s / 60.0),
+        s => format!("{:.1} h", s / 3600.0),
+    }
 }
 
 fn opt(v: Option<f64>) -> String {
@@ -734,7 +786,24 @@ pub fn write(o: &RenderOptions) -> Result<Vec<PathBuf>, ReproError> {
 
 #[cfg(test)]
 mod tests {
-    use super::trend;
+    use super::{took_by_device, took_text, trend};
+
+    #[test]
+    fn a_cells_run_time_is_the_range_of_its_archived_runs() {
+        assert_eq!(
+            took_text(&[(1423.0, 2), (4789.0, 2), (1876.0, 2)]),
+            "24 min to 80 min, 2 at once"
+        );
+        assert_eq!(took_text(&[(45.4, 1)]), "45 s, alone");
+        assert_eq!(took_text(&[(9000.0, 1), (14400.0, 2)]), "150 min to 4.0 h, 1 to 2 at once");
+        assert_eq!(took_text(&[(600.0, 2), (610.0, 2)]), "10 min, 2 at once");
+        let mut two = std::collections::BTreeMap::new();
+        two.insert("cpu".to_string(), vec![(21000.0, 2)]);
+        two.insert("gpu".to_string(), vec![(180.0, 4)]);
+        assert_eq!(took_by_device(&two), "5.8 h, 2 at once on cpu; 3 min, 4 at once on gpu");
+        two.remove("gpu");
+        assert_eq!(took_by_device(&two), "5.8 h, 2 at once");
+    }
 
     #[test]
     fn trend_names_the_way_the_last_three_evaluations_go() {
