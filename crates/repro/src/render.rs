@@ -14,6 +14,8 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+mod archive;
+
 /// The README's generated block lies between these lines.
 pub const README_BEGIN: &str = "<!-- results:begin -->";
 pub const README_END: &str = "<!-- results:end -->";
@@ -43,7 +45,7 @@ struct Section {
     devices: BTreeMap<String, BTreeSet<String>>,
     /// Per cell id and device: each archived run's wall time (seconds, `provenance.json`) and how
     /// many runs shared its device, so that what a run costs is read from the archive, never typed.
-    walls: BTreeMap<String, BTreeMap<String, Vec<(f64, u32)>>>,
+    walls: BTreeMap<String, archive::Walls>,
     /// Per cell id the budget plans runs for: how many seeds it plans (what the archive is
     /// described against).
     planned: Vec<(String, usize)>,
@@ -261,7 +263,7 @@ fn experiment_sections(
         }
         let mut seeds: BTreeMap<String, Vec<u64>> = BTreeMap::new();
         let mut devices: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-        let mut walls: BTreeMap<String, BTreeMap<String, Vec<(f64, u32)>>> = BTreeMap::new();
+        let mut walls: BTreeMap<String, archive::Walls> = BTreeMap::new();
         for r in p.runs.iter().filter(|r| used.contains(&r.key)) {
             let id = m.cells[r.cell].id();
             seeds.entry(id.clone()).or_default().push(r.seed);
@@ -307,71 +309,6 @@ settling on a behaviour that suits the test goals worse, not one that unlearned 
 marked not identified sits on the edge of the searched targets: the returns do not pin the speed \
 down. Not measured here: what a paper-budget MT-ORL run ends at, or whether the reference code's \
 own MT-ORL behaves alike at this budget.";
-
-/// The archive of a section, described from the registry: per planned cell, how many of the
-/// seeds its budget plans are archived, and what a run took (the manifest's budget note describes
-/// the plan only).
-fn archive_text(sec: &Section) -> String {
-    let mut full = Vec::new();
-    let mut short = Vec::new();
-    let mut none = Vec::new();
-    for (id, n) in &sec.planned {
-        let took = sec.walls.get(id).map_or(String::new(), |w| format!("; {}", took_by_device(w)));
-        match sec.seeds.get(id).map_or(0, Vec::len) {
-            0 => none.push(format!("`{id}`")),
-            k if k >= *n => full.push(format!("`{id}` ({k}{took})")),
-            k => short.push(format!("`{id}` ({k} of {n}{took})")),
-        }
-    }
-    let list = |v: &[String]| if v.is_empty() { "none".to_string() } else { v.join(", ") };
-    format!(
-        "Archived (from the registry; per cell its seeds, a run's wall time and how many runs \
-         shared its device): every planned seed for {}; fewer for {}; no run for {}.",
-        list(&full),
-        list(&short),
-        list(&none)
-    )
-}
-
-/// What the cell's runs took, per device where more than one ran them (a GPU's minutes and a
-/// CPU's hours are no range).
-fn took_by_device(walls: &BTreeMap<String, Vec<(f64, u32)>>) -> String {
-    match walls.len() {
-        1 => walls.values().map(|w| took_text(w)).collect(),
-        _ => walls
-            .iter()
-            .map(|(d, w)| format!("{} on {d}", took_text(w)))
-            .collect::<Vec<_>>()
-            .join("; "),
-    }
-}
-
-/// The range of the runs' wall times and of how many runs shared the device: "24 min to 80 min,
-/// 2 at once". A variant's time is its evaluation's (it trained nothing).
-fn took_text(walls: &[(f64, u32)]) -> String {
-    let (lo, hi) =
-        walls.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &(w, _)| (l.min(w), h.max(w)));
-    let (a, b) = walls.iter().fold((u32::MAX, 0), |(l, h), &(_, n)| (l.min(n), h.max(n)));
-    let time = match duration(lo) == duration(hi) {
-        true => duration(lo),
-        false => format!("{} to {}", duration(lo), duration(hi)),
-    };
-    let shared = match (a, b) {
-        (1, 1) => "alone".to_string(),
-        (a, b) if a == b => format!("{a} at once"),
-        (a, b) => format!("{a} to {b} at once"),
-    };
-    format!("{time}, {shared}")
-}
-
-/// Seconds as a person reads a run's length: seconds below 2 minutes, minutes below 3 hours.
-fn duration(s: f64) -> String {
-    match s {
-        s if s < 120.0 => format!("{s:.0} s"),
-        s if s < 3.0 * 3600.0 => format!("{:.0} min", s / 60.0),
-        s => format!("{:.1} h", s / 3600.0),
-    }
-}
 
 fn opt(v: Option<f64>) -> String {
     v.map_or("-".into(), |v| format!("{v:.1}"))
@@ -575,7 +512,7 @@ fn cells_table(s: &mut String, sec: &Section, heading: &str) {
     let r = &sec.report;
     let _ = writeln!(s, "{heading}\n");
     let _ = writeln!(s, "Budget (the plan): {}\n", r.budget_note.trim());
-    let _ = writeln!(s, "{}\n", archive_text(sec));
+    let _ = writeln!(s, "{}\n", archive::text(&sec.planned, &sec.seeds, &sec.walls));
     // Evaluation noise beside seed noise: in the prompt-control table (whose rows differ by
     // evaluation alone), and wherever a cell's runs were evaluated with repeats.
     let noise = r.experiment == NOISE_EXPERIMENT || r.cells.iter().any(|c| c.eval_noise.is_some());
@@ -786,24 +723,7 @@ pub fn write(o: &RenderOptions) -> Result<Vec<PathBuf>, ReproError> {
 
 #[cfg(test)]
 mod tests {
-    use super::{took_by_device, took_text, trend};
-
-    #[test]
-    fn a_cells_run_time_is_the_range_of_its_archived_runs() {
-        assert_eq!(
-            took_text(&[(1423.0, 2), (4789.0, 2), (1876.0, 2)]),
-            "24 min to 80 min, 2 at once"
-        );
-        assert_eq!(took_text(&[(45.4, 1)]), "45 s, alone");
-        assert_eq!(took_text(&[(9000.0, 1), (14400.0, 2)]), "150 min to 4.0 h, 1 to 2 at once");
-        assert_eq!(took_text(&[(600.0, 2), (610.0, 2)]), "10 min, 2 at once");
-        let mut two = std::collections::BTreeMap::new();
-        two.insert("cpu".to_string(), vec![(21000.0, 2)]);
-        two.insert("gpu".to_string(), vec![(180.0, 4)]);
-        assert_eq!(took_by_device(&two), "5.8 h, 2 at once on cpu; 3 min, 4 at once on gpu");
-        two.remove("gpu");
-        assert_eq!(took_by_device(&two), "5.8 h, 2 at once");
-    }
+    use super::trend;
 
     #[test]
     fn trend_names_the_way_the_last_three_evaluations_go() {
